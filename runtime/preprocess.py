@@ -1,0 +1,100 @@
+"""The one preprocessing of a tactile frame: training imports this, the cell runs this.
+
+frame (HxWx3 uint8 BGR) and the session's no-contact reference frame ->
+  checked (dtype, size, finite, not black/white/saturated) ->
+  difference to the reference (what the press changed, lighting and gel removed) ->
+  centre crop to the square of the shorter side (times ``crop_fraction``) ->
+  resize to ``size`` x ``size`` (INTER_AREA: an anti-aliased decimation) ->
+  scale: (diff / 255 - mean) / std, per channel ->
+  float32 CHW, channels in RGB order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+
+class FrameError(ValueError):
+    """A frame the cell must not classify. ``reason`` is a short machine-readable word."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class TactilePreprocess:
+    size: int = 224  # side of the square network input, px
+    crop_fraction: float = 1.0  # of the shorter side, centred
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)  # of diff/255, RGB
+    std: tuple[float, float, float] = (0.08, 0.08, 0.08)  # typical spread of a pressed diff
+    use_reference: bool = True  # subtract the no-contact frame
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TactilePreprocess":
+        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        for key in ("mean", "std"):
+            if key in known:
+                known[key] = tuple(float(v) for v in known[key])
+        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ValueError(f"preprocessing: unknown key(s) {unknown}")
+        return cls(**known)
+
+
+# A frame whose pixels are this close to black or white everywhere is no sensor image.
+_DARK_MEAN, _BRIGHT_MEAN = 3.0, 252.0
+_SATURATED_FRACTION = 0.5  # more than half the pixels clipped in some channel
+
+
+def check_frame(frame: object, expected_hw: tuple[int, int] | None = None, name: str = "frame") -> np.ndarray:
+    """Return the frame as HxWx3 uint8 or raise FrameError saying what is wrong with it."""
+    if not isinstance(frame, np.ndarray):
+        raise FrameError(f"{name}: not an image array ({type(frame).__name__})", "type")
+    if frame.dtype != np.uint8:
+        if np.issubdtype(frame.dtype, np.floating) and not np.all(np.isfinite(frame)):
+            raise FrameError(f"{name}: contains NaN or Inf", "nonfinite")
+        raise FrameError(f"{name}: dtype {frame.dtype}, expected uint8", "dtype")
+    if frame.ndim != 3 or frame.shape[2] != 3:
+        raise FrameError(f"{name}: shape {frame.shape}, expected HxWx3", "shape")
+    if expected_hw is not None and tuple(frame.shape[:2]) != tuple(expected_hw):
+        raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, expected "
+                         f"{expected_hw[1]}x{expected_hw[0]}", "size")
+    mean = float(frame.mean())
+    if mean < _DARK_MEAN:
+        raise FrameError(f"{name}: all black (mean {mean:.1f}); camera covered or off", "black")
+    if mean > _BRIGHT_MEAN:
+        raise FrameError(f"{name}: all white (mean {mean:.1f}); overexposed", "white")
+    clipped = max(float(np.mean(frame[..., c] >= 255)) for c in range(3))
+    if clipped > _SATURATED_FRACTION:
+        raise FrameError(f"{name}: {clipped:.0%} of pixels saturated; lower the exposure", "saturated")
+    return frame
+
+
+def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | None, spec: TactilePreprocess) -> np.ndarray:
+    """One frame -> (3, size, size) float32, as the tactile trunk expects it."""
+    frame = check_frame(frame)
+    image = frame.astype(np.float32)
+    if spec.use_reference:
+        if reference is None:
+            raise FrameError("no-contact reference frame missing", "reference")
+        reference = check_frame(reference, frame.shape[:2], name="reference frame")
+        image = image - reference.astype(np.float32)
+    h, w = image.shape[:2]
+    side = max(1, int(round(min(h, w) * spec.crop_fraction)))
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    image = image[y0:y0 + side, x0:x0 + side]
+    image = cv2.resize(image, (spec.size, spec.size), interpolation=cv2.INTER_AREA)
+    image = image[..., ::-1] / 255.0  # BGR -> RGB
+    image = (image - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
+    return np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
+
+
+def preprocess_batch(frames: list[np.ndarray], reference: np.ndarray | None, spec: TactilePreprocess) -> np.ndarray:
+    return np.stack([preprocess_tactile(f, reference, spec) for f in frames])

@@ -1,0 +1,64 @@
+"""The cell installs without torch, and nothing in runtime/ or firmware_bridge/ imports it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_WALK_AND_CHECK = r"""
+import importlib, pkgutil, sys
+import vs2t_edge.runtime, vs2t_edge.firmware_bridge
+names = []
+for pkg in (vs2t_edge.runtime, vs2t_edge.firmware_bridge):
+    for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
+        importlib.import_module(info.name)
+        names.append(info.name)
+bad = sorted(m for m in sys.modules if m == "torch" or m.startswith("torch."))
+print(len(names), "modules imported")
+sys.exit(f"torch imported by the cell's code: {bad[:5]}" if bad else 0)
+"""
+
+
+def test_runtime_and_firmware_bridge_never_import_torch():
+    result = subprocess.run([sys.executable, "-c", _WALK_AND_CHECK], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr + result.stdout
+
+
+def test_cli_help_lists_every_verb():
+    from vs2t_edge.cli import VERBS
+
+    result = subprocess.run([sys.executable, "-m", "vs2t_edge", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    for verb in VERBS:
+        assert verb in result.stdout
+
+
+@pytest.mark.slow
+def test_wheel_installs_and_runs_without_the_train_extra(tmp_path):
+    dist = tmp_path / "dist"
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                            "-w", str(dist), str(ROOT)], capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr[-2000:]
+    wheel = next(dist.glob("vs2t_edge-*.whl"))
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=True).create(env_dir)
+    py = env_dir / "bin" / "python"
+    install = subprocess.run([str(py), "-m", "pip", "install", "-q", str(wheel)], capture_output=True, text=True)
+    assert install.returncode == 0, install.stderr[-2000:]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    helped = subprocess.run([str(env_dir / "bin" / "vs2t-edge"), "--help"], capture_output=True, text=True,
+                            env=env, cwd=tmp_path)
+    assert helped.returncode == 0, helped.stderr
+    assert "synth" in helped.stdout
+    no_torch = subprocess.run([str(py), "-c", "import importlib.util, sys; "
+                               "sys.exit(1 if importlib.util.find_spec('torch') else 0)"], env=env, cwd=tmp_path)
+    assert no_torch.returncode == 0, "torch got installed with the base package"
+    walked = subprocess.run([str(py), "-c", _WALK_AND_CHECK], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert walked.returncode == 0, walked.stderr + walked.stdout

@@ -1,0 +1,97 @@
+"""The `vs2t-edge` command: one subcommand per verb, each living in its own room.
+
+Every verb is imported lazily, only when chosen, so `vs2t-edge --help` and the cell's verbs
+run on the lean runtime install (no torch); offline verbs say which extra they need.
+
+Each verb module exposes ``add_arguments(parser, verb)`` and ``run(args) -> int``;
+``args.verb`` tells a module that serves several verbs which one was asked for.
+
+Exit codes (documented in README):
+  0 success, 1 the job ran but failed its check (e.g. replay mismatch),
+  2 bad usage, config or input, 3 hardware or device fault, 4 missing optional extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_DEVICE = 3
+EXIT_MISSING_EXTRA = 4
+
+# verb -> (module, one-line help). The module owns its arguments and its run().
+VERBS: dict[str, tuple[str, str]] = {
+    "synth": ("vs2t_edge.sim.synth_cli", "generate the synthetic fabric world as a dataset"),
+    "validate-data": ("vs2t_edge.runtime.dataset_cli", "check a dataset folder and say what is wrong"),
+    "train": ("vs2t_edge.train.cli", "train VS2T-ZSL on touched fabrics and evaluate (needs [train])"),
+    "compare": ("vs2t_edge.train.compare_cli", "baselines, modern generators and GZSL routers (needs [train])"),
+    "export": ("vs2t_edge.export.cli", "export a training run to a verified ONNX bundle (needs [train])"),
+    "bench": ("vs2t_edge.runtime.bench_cli", "measure the speed-for-accuracy trade of bundles"),
+    "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
+    "validate-config": ("vs2t_edge.runtime.config_cli", "check a cell config file (use as ExecStartPre)"),
+    "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),
+    "demo": ("vs2t_edge.sim.demo", "the embedded default end to end on the simulated cell"),
+    "calibrate-threshold": ("vs2t_edge.runtime.calibrate", "choose the novelty threshold beta from presses"),
+    "record": ("vs2t_edge.runtime.record_cli", "record a live session into a replay file"),
+    "replay": ("vs2t_edge.runtime.replay_cli", "run the daemon from a replay file and compare decisions"),
+    "sort": ("vs2t_edge.firmware_bridge.cli", "send one sort command to the gate by hand"),
+    "gate-status": ("vs2t_edge.firmware_bridge.cli", "ask the gate for its status"),
+    "gate-clear": ("vs2t_edge.firmware_bridge.cli", "clear a latched gate fault"),
+    "reliability": ("vs2t_edge.sim.faults_cli", "run the fault matrix and write docs/reliability.md"),
+}
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vs2t-edge",
+        description="Fabric-sorting cell: recognise fabrics by touch, zero-shot for untouched ones.",
+        epilog="exit codes: 0 ok, 1 check failed, 2 bad usage/config/input, 3 device fault, 4 missing extra",
+    )
+    from vs2t_edge import __version__
+
+    parser.add_argument("--version", action="version", version=f"vs2t-edge {__version__}")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    for verb, (_, help_text) in VERBS.items():
+        sub.add_parser(verb, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _build_parser()
+    if not argv or argv[0] not in VERBS:
+        args = parser.parse_args(argv)  # prints help/version or a usage error
+        if args.verb is None:
+            parser.print_help()
+            return EXIT_USAGE
+    verb, rest = argv[0], argv[1:]
+    module_name, help_text = VERBS[verb]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or "?"
+        if missing.split(".")[0] in {"torch", "onnx", "efficientnet_lite_pytorch", "matplotlib", "tqdm", "scipy"}:
+            print(
+                f"vs2t-edge {verb}: needs the optional package '{missing}'. "
+                "Install the training extra: pip install 'vs2t-edge[train]'",
+                file=sys.stderr,
+            )
+            return EXIT_MISSING_EXTRA
+        if missing.startswith("vs2t_edge"):
+            print(f"vs2t-edge {verb}: not available in this build ({missing})", file=sys.stderr)
+            return EXIT_USAGE
+        raise
+    verb_parser = argparse.ArgumentParser(prog=f"vs2t-edge {verb}", description=help_text)
+    module.add_arguments(verb_parser, verb)
+    args = verb_parser.parse_args(rest)
+    args.verb = verb
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
