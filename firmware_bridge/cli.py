@@ -1,0 +1,95 @@
+"""Hand commands for the gate: ``vs2t-edge sort BIN``, ``gate-status``, ``gate-clear``.
+
+For commissioning and tests. Each command is its own host session: it connects, does one
+thing and disconnects. Between hand commands nobody sends heartbeats, so a gate left alone
+for more than a second fails safe (reject, HEARTBEAT_LOST latched) — that is the fail-safe
+working. ``sort`` therefore arms a gate latched by BOOT or HEARTBEAT_LOST before routing
+(``--no-arm`` refuses instead); a JAM latch always needs ``gate-clear`` after someone freed
+the flap. ``--simulate`` runs the command against the MCU simulator on a fresh pty.
+
+Exit codes: 0 ok, 2 bad usage (no port, bad bin), 3 gate fault (timeout, NAK, jam, latched,
+link), as in vs2t_edge/cli.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from vs2t_edge.firmware_bridge import protocol as p
+from vs2t_edge.firmware_bridge.gate_client import GateClient, GateClientError, GateReport
+
+EXIT_OK, EXIT_USAGE, EXIT_DEVICE = 0, 2, 3  # the values of vs2t_edge.cli (this room imports none of ours)
+PORT_ENV = "VS2T_GATE_PORT"
+
+
+def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
+    if verb == "sort":
+        parser.add_argument("bin", type=int, metavar="BIN", help="bin to route to (0 is the reject bin)")
+        parser.add_argument("--no-arm", action="store_true",
+                            help="do not clear a boot or heartbeat-lost latch before sorting")
+    if verb == "gate-status":
+        parser.epilog = "exits 3 when the gate is latched (fault or failsafe)"
+    parser.add_argument("--port", default=os.environ.get(PORT_ENV),
+                        help=f"serial port or pyserial URL of the gate (default: ${PORT_ENV})")
+    parser.add_argument("--timeout-s", type=float, default=0.5, help="reply timeout per attempt, seconds")
+    parser.add_argument("--retries", type=int, default=3, help="retransmissions before giving up")
+    parser.add_argument("--simulate", action="store_true",
+                        help="talk to a simulated gate MCU on a new pseudo-terminal (commissioning practice)")
+
+
+def _describe(report: GateReport) -> str:
+    fault = f" ({report.fault})" if report.fault else ""
+    return (f"gate {report.state}{fault}, flap at bin {report.bin} of {report.n_bins}, "
+            f"boot {report.boot_id}, up {report.uptime_ms / 1000:.1f} s, {report.sorts_done} sorts since boot")
+
+
+def run(args: argparse.Namespace) -> int:
+    verb = args.verb
+    if args.timeout_s <= 0 or args.retries < 0:
+        print(f"vs2t-edge {verb}: --timeout-s must be > 0 and --retries >= 0", file=sys.stderr)
+        return EXIT_USAGE
+    if verb == "sort" and not 0 <= args.bin <= 255:
+        print(f"vs2t-edge sort: bin {args.bin} is out of range (0..255; 0 is reject)", file=sys.stderr)
+        return EXIT_USAGE
+    simulator = None
+    port = args.port
+    if args.simulate:
+        from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
+
+        port, simulator = start_simulated_gate()
+        print(f"simulated gate on {port}", file=sys.stderr)
+    if not port:
+        print(f"vs2t-edge {verb}: no gate port; pass --port /dev/ttyACM0 (or any pyserial URL), "
+              f"set {PORT_ENV}, or use --simulate", file=sys.stderr)
+        return EXIT_USAGE
+    arm: tuple[str, ...] = ()
+    if verb == "sort" and not args.no_arm:
+        arm = ("boot", "heartbeat_lost")
+    # No heartbeat thread: a hand command is one short exchange.
+    client = GateClient(port, timeout_s=args.timeout_s, retries=args.retries, heartbeat_period_s=None,
+                        arm_latches=arm)
+    try:
+        report = client.connect()
+        if client.armed_from:
+            print(f"note: the gate was latched ({client.armed_from}); armed it", file=sys.stderr)
+        if verb == "sort":
+            client.sort(args.bin)
+            print(f"sorted to bin {args.bin}" + (" (reject)" if args.bin == p.REJECT_BIN else ""))
+        elif verb == "gate-clear":
+            client.clear()
+            print("gate cleared: " + _describe(client.status()))
+        else:
+            print(_describe(report))
+            if report.state in ("fault", "failsafe"):
+                return EXIT_DEVICE  # a latched gate is a device fault to a script asking
+
+        return EXIT_OK
+    except GateClientError as exc:
+        print(f"vs2t-edge {verb}: {exc} [{exc.kind}]", file=sys.stderr)
+        return EXIT_DEVICE
+    finally:
+        client.disconnect()
+        if simulator is not None:
+            simulator.stop()

@@ -1,0 +1,313 @@
+"""Host driver for the sorting gate over pyserial (docs/protocol.md).
+
+Stop-and-wait: one request on the wire at a time (``_lock``), retransmitted with the same SEQ
+on timeout at most ``retries`` times. A background thread sends HEARTBEATs so the MCU's
+watchdog stays fed; it shares the lock and skips a beat when a request is on the wire.
+Every reply carries the MCU's boot id, so a reboot is noticed on the next exchange.
+
+Any pyserial URL works: a device path (``/dev/ttyACM0``, a pty's ``/dev/pts/N``), ``loop://``,
+``socket://host:port``. Errors are ``GateClientError`` with ``kind`` in
+timeout / nak / jam / fault_latched / link; ``runtime.gate`` turns them into the runtime's
+``GateError``. This module imports pyserial and the stdlib only.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+from dataclasses import dataclass
+
+import serial
+
+from vs2t_edge.firmware_bridge import protocol as p
+
+log = logging.getLogger(__name__)
+
+ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link")
+
+
+class GateClientError(RuntimeError):
+    """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name."""
+
+    def __init__(self, message: str, *, kind: str, reason: str = "") -> None:
+        super().__init__(message)
+        assert kind in ERROR_KINDS, kind
+        self.kind = kind
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class GateReport:
+    """The gate's answer to STATUS, in words."""
+
+    state: str  # ready, busy, fault, failsafe
+    bin: int
+    fault: str  # "", heartbeat_lost, jam, boot
+    n_bins: int
+    boot_id: int
+    uptime_ms: int
+    sorts_done: int
+    seq: int
+
+
+def _state_name(code: int) -> str:
+    return p.STATE_NAMES.get(code, f"unknown({code})")
+
+
+def _fault_name(code: int) -> str:
+    return p.FAULT_NAMES.get(code, f"unknown({code})")
+
+
+class GateClient:
+    """Thread-safe host side of the gate protocol. ``connect()`` before use; a context manager."""
+
+    def __init__(self, port: str, *, timeout_s: float = 0.5, retries: int = 3,
+                 heartbeat_period_s: float | None = p.HEARTBEAT_PERIOD_S, baudrate: int = p.BAUDRATE,
+                 arm_latches: tuple[str, ...] = ("boot",)) -> None:
+        if timeout_s <= 0 or retries < 0:
+            raise ValueError(f"timeout_s must be > 0 and retries >= 0 (got {timeout_s}, {retries})")
+        self.port = port
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.heartbeat_period_s = heartbeat_period_s
+        self.baudrate = baudrate
+        # Latches connect() clears by itself: by default only the power-on one (see protocol.md).
+        self.arm_latches = arm_latches
+        self._serial: serial.SerialBase | None = None
+        self._reader = p.FrameReader()
+        self._lock = threading.RLock()
+        self._seq = secrets.randbelow(256)  # a new host session never reuses the last one's SEQ
+        self._boot_id: int | None = None
+        self._reboot: tuple[int, int] | None = None  # (old, new) boot id once a reboot is seen
+        self._hb_stop = threading.Event()
+        self._hb_thread: threading.Thread | None = None
+        self.last_state = ""
+        self.armed_from = ""  # the latch connect() cleared, if any
+        self.last_fault = ""
+        self.fault_reports: list[p.FaultReport] = []  # unsolicited FAULT frames, in order
+        self.retransmissions = 0
+        self.heartbeats_ok = 0
+        self.heartbeat_errors = 0
+
+    # --- lifecycle -----------------------------------------------------------------------------
+    def connect(self) -> GateReport:
+        with self._lock:
+            if self._serial is not None:
+                return self.status()
+            if self._serial is None:
+                try:
+                    self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.01,
+                                                         write_timeout=1.0)
+                except (serial.SerialException, OSError, ValueError) as exc:
+                    raise GateClientError(f"cannot open the gate's serial port {self.port}: {exc}",
+                                          kind="link") from exc
+                self._serial.reset_input_buffer()
+                self._reader = p.FrameReader()
+            try:
+                # The first request of a session is a STATUS: it also resets the MCU's duplicate memory.
+                report = self.status()
+                self._boot_id = report.boot_id
+                self._reboot = None
+                if report.state in ("fault", "failsafe") and report.fault in self.arm_latches:
+                    log.info("gate latched (%s) at connect; arming it", report.fault)
+                    self.armed_from = report.fault
+                    self.clear()
+                    report = self.status()
+            except GateClientError:
+                self.disconnect()
+                raise
+        self.start_heartbeat()
+        return report
+
+    def disconnect(self) -> None:
+        self.stop_heartbeat()
+        with self._lock:
+            if self._serial is not None:
+                try:
+                    self._serial.close()
+                except (serial.SerialException, OSError):
+                    pass
+                self._serial = None
+
+    @property
+    def connected(self) -> bool:
+        return self._serial is not None
+
+    def __enter__(self) -> "GateClient":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disconnect()
+
+    # --- heartbeat -------------------------------------------------------------------------------
+    def start_heartbeat(self) -> None:
+        if not self.heartbeat_period_s or (self._hb_thread and self._hb_thread.is_alive()):
+            return
+        self._hb_stop.clear()
+        self._hb_thread = threading.Thread(target=self._heartbeat_loop, name="gate-heartbeat", daemon=True)
+        self._hb_thread.start()
+
+    def stop_heartbeat(self) -> None:
+        self._hb_stop.set()
+        thread, self._hb_thread = self._hb_thread, None
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=2 * self.timeout_s + 1)
+
+    def _heartbeat_loop(self) -> None:
+        while not self._hb_stop.wait(self.heartbeat_period_s):
+            if not self._lock.acquire(blocking=False):
+                continue  # a request is on the wire; it feeds the watchdog too
+            try:
+                if self._serial is None:
+                    return
+                self._request(p.HEARTBEAT, b"", retries=0)
+                self.heartbeats_ok += 1
+            except GateClientError as exc:
+                self.heartbeat_errors += 1
+                log.warning("gate heartbeat failed: %s", exc)
+            finally:
+                self._lock.release()
+
+    # --- requests --------------------------------------------------------------------------------
+    def sort(self, bin_index: int) -> None:
+        """Route the next item to ``bin_index``; returns once the gate confirmed the flap is there."""
+        if not 0 <= bin_index <= 255:
+            raise GateClientError(f"bin {bin_index} is not a gate bin (0..255)", kind="nak", reason="bad_bin")
+        with self._lock:
+            self._refuse_after_reboot()
+            reply = self._request(p.SORT, bytes((bin_index,)))
+            self._refuse_after_reboot()  # a reboot explains a NAK better than the NAK does
+            if isinstance(reply, p.Nak):
+                raise self._nak_error(reply, f"sort to bin {bin_index}")
+
+    def status(self) -> GateReport:
+        with self._lock:
+            seq = self._next_seq()
+            reply = self._request(p.STATUS, b"", seq=seq)
+            if not isinstance(reply, p.StatusReply):
+                raise self._nak_error(reply, "status") if isinstance(reply, p.Nak) else \
+                    GateClientError(f"gate answered STATUS with {reply}", kind="link")
+            return GateReport(_state_name(reply.state), reply.bin, _fault_name(reply.fault), reply.n_bins,
+                              reply.boot_id, reply.uptime_ms, reply.sorts_done, seq)
+
+    def clear(self) -> None:
+        """Clear a latched fault (and acknowledge a reboot); the flap goes back to reject (bin 0)."""
+        with self._lock:
+            reply = self._request(p.CLEAR, b"", check_reboot=False)
+            if isinstance(reply, p.Nak):
+                raise self._nak_error(reply, "clear")
+            self._boot_id = reply.boot_id
+            self._reboot = None
+        self.start_heartbeat()
+
+    def to_reject(self) -> None:
+        """Best effort, never raises: route to reject; if that fails, stop heartbeats so the MCU's
+        own watchdog puts the flap at reject within HEARTBEAT_TIMEOUT."""
+        try:
+            self.sort(p.REJECT_BIN)
+        except Exception as exc:  # noqa: BLE001 - must not raise, whatever went wrong
+            log.warning("gate to reject failed (%s); stopping heartbeats so the gate fails safe", exc)
+            self.stop_heartbeat()
+
+    # --- internals -----------------------------------------------------------------------------
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFF
+        return self._seq
+
+    def _refuse_after_reboot(self) -> None:
+        if self._reboot is not None:
+            old, new = self._reboot
+            raise GateClientError(f"the gate controller rebooted (boot id {old} -> {new}); the item in flight "
+                                  "may not have been routed; clear the gate to continue", kind="link")
+
+    def _nak_error(self, nak: p.Nak, what: str) -> GateClientError:
+        reason = p.NAK_NAMES.get(nak.reason, f"unknown({nak.reason})")
+        kind = p.NAK_ERROR_KIND.get(nak.reason, "nak")
+        words = {
+            "bad_bin": "the gate has no such bin",
+            "bad_length": "the gate did not understand the message length",
+            "unknown_type": "the gate does not know this message",
+            "busy": "the gate is still moving",
+            "latched": f"the gate is latched in {_state_name(nak.state)} ({_fault_name(nak.fault)}) "
+                       "and refuses to route until cleared",
+            "jam": "the flap jammed and did not reach the bin; clear the jam, then clear the gate",
+            "jam_present": "the flap is still blocked; free it before clearing",
+        }.get(reason, reason)
+        return GateClientError(f"{what} refused: {words}", kind=kind, reason=reason)
+
+    def _request(self, msg_type: int, payload: bytes, *, seq: int | None = None, retries: int | None = None,
+                 check_reboot: bool = True) -> p.Ack | p.Nak | p.StatusReply:
+        """Send one request and wait for its reply, retransmitting the same frame on timeout."""
+        with self._lock:
+            if self._serial is None:
+                raise GateClientError("the gate is not connected", kind="link")
+            seq = self._next_seq() if seq is None else seq
+            frame = p.encode_frame(seq, msg_type, payload)
+            attempts = 1 + (self.retries if retries is None else retries)
+            for attempt in range(attempts):
+                if attempt:
+                    self.retransmissions += 1
+                self._write(frame)
+                reply = self._wait_reply(seq, msg_type, time.monotonic() + self.timeout_s)
+                if reply is not None:
+                    self._note_state(reply.state, reply.fault)
+                    if check_reboot:
+                        self._check_boot(reply.boot_id)
+                    return reply
+            name = p.TYPE_NAMES[msg_type]
+            raise GateClientError(f"the gate did not answer {name} (seq {seq}) within {self.timeout_s:.2f} s "
+                                  f"after {attempts} attempts on {self.port}", kind="timeout")
+
+    def _write(self, frame: bytes) -> None:
+        try:
+            self._serial.write(frame)
+            self._serial.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise GateClientError(f"writing to the gate on {self.port} failed: {exc}", kind="link") from exc
+
+    def _wait_reply(self, seq: int, msg_type: int, deadline: float) -> p.Ack | p.Nak | p.StatusReply | None:
+        want = p.STATUS_REPLY if msg_type == p.STATUS else None
+        while True:
+            for frame in self._reader.feed(self._read_some()):
+                try:
+                    reply = p.parse_reply(frame)
+                except p.MessageError as exc:
+                    log.warning("ignoring a malformed frame from the gate: %s", exc)
+                    continue
+                if isinstance(reply, p.FaultReport):
+                    self._on_fault_report(reply)
+                    continue
+                if frame.seq != seq:
+                    continue  # a late reply to an earlier request, or a duplicate
+                if isinstance(reply, p.StatusReply):
+                    if want == p.STATUS_REPLY:
+                        return reply
+                elif reply.acked_type == msg_type:
+                    return reply
+            if time.monotonic() >= deadline:
+                return None
+
+    def _read_some(self) -> bytes:
+        try:
+            return self._serial.read(max(1, self._serial.in_waiting))
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise GateClientError(f"reading from the gate on {self.port} failed: {exc}", kind="link") from exc
+
+    def _on_fault_report(self, report: p.FaultReport) -> None:
+        self.fault_reports.append(report)
+        self._note_state(report.state, report.fault)
+        log.warning("gate reports fault %s (state %s, bin %d)", _fault_name(report.fault),
+                    _state_name(report.state), report.bin)
+        self._check_boot(report.boot_id)
+
+    def _note_state(self, state: int, fault: int) -> None:
+        self.last_state = _state_name(state)
+        self.last_fault = _fault_name(fault)
+
+    def _check_boot(self, boot_id: int) -> None:
+        if self._boot_id is not None and boot_id != self._boot_id and self._reboot is None:
+            self._reboot = (self._boot_id, boot_id)
+            log.error("gate controller rebooted: boot id %d -> %d", self._boot_id, boot_id)
