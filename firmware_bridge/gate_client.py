@@ -13,6 +13,7 @@ timeout / nak / jam / fault_latched / link; ``runtime.gate`` turns them into the
 
 from __future__ import annotations
 
+import collections
 import logging
 import secrets
 import threading
@@ -68,6 +69,11 @@ class GateClient:
                  arm_latches: tuple[str, ...] = ("boot",)) -> None:
         if timeout_s <= 0 or retries < 0:
             raise ValueError(f"timeout_s must be > 0 and retries >= 0 (got {timeout_s}, {retries})")
+        if heartbeat_period_s and timeout_s + heartbeat_period_s >= p.HEARTBEAT_TIMEOUT_MS / 1000:
+            # While a request waits for its reply no heartbeat goes out; the gate must not time
+            # out in that silence.
+            raise ValueError(f"timeout_s + heartbeat_period_s ({timeout_s} + {heartbeat_period_s} s) must stay "
+                             f"under the gate's heartbeat timeout of {p.HEARTBEAT_TIMEOUT_MS / 1000} s")
         self.port = port
         self.timeout_s = timeout_s
         self.retries = retries
@@ -77,6 +83,7 @@ class GateClient:
         self.arm_latches = arm_latches
         self._serial: serial.SerialBase | None = None
         self._reader = p.FrameReader()
+        self._pending: collections.deque[p.Frame] = collections.deque()
         self._lock = threading.RLock()
         self._seq = secrets.randbelow(256)  # a new host session never reuses the last one's SEQ
         self._boot_id: int | None = None
@@ -105,6 +112,7 @@ class GateClient:
                                           kind="link") from exc
                 self._serial.reset_input_buffer()
                 self._reader = p.FrameReader()
+                self._pending.clear()
             try:
                 # The first request of a session is a STATUS: it also resets the MCU's duplicate memory.
                 report = self.status()
@@ -271,7 +279,11 @@ class GateClient:
     def _wait_reply(self, seq: int, msg_type: int, deadline: float) -> p.Ack | p.Nak | p.StatusReply | None:
         want = p.STATUS_REPLY if msg_type == p.STATUS else None
         while True:
-            for frame in self._reader.feed(self._read_some()):
+            # One read can bring several frames (a NAK and its FAULT report); those after the
+            # reply wait in _pending for the next look, never lost.
+            self._pending.extend(self._reader.feed(self._read_some()))
+            while self._pending:
+                frame = self._pending.popleft()
                 try:
                     reply = p.parse_reply(frame)
                 except p.MessageError as exc:
@@ -284,11 +296,27 @@ class GateClient:
                     continue  # a late reply to an earlier request, or a duplicate
                 if isinstance(reply, p.StatusReply):
                     if want == p.STATUS_REPLY:
+                        self._drain_fault_reports()
                         return reply
                 elif reply.acked_type == msg_type:
+                    self._drain_fault_reports()
                     return reply
             if time.monotonic() >= deadline:
                 return None
+
+    def _drain_fault_reports(self) -> None:
+        """Handle FAULT reports already received behind the reply (keeps replies queued)."""
+        rest = collections.deque()
+        while self._pending:
+            frame = self._pending.popleft()
+            if frame.type == p.FAULT:
+                try:
+                    self._on_fault_report(p.parse_reply(frame))
+                except p.MessageError:
+                    pass
+            else:
+                rest.append(frame)
+        self._pending = rest
 
     def _read_some(self) -> bytes:
         try:

@@ -227,6 +227,7 @@ def test_jam_is_reported_latched_and_cleared_once_freed(sim, client):
     assert (caught.value.kind, caught.value.reason) == ("jam", "jam")
     report = client.status()
     assert (report.state, report.fault) == ("fault", "jam")
+    assert [r.fault for r in client.fault_reports] == [p.FAULT_JAM]  # the FAULT frame behind the NAK
     with pytest.raises(GateClientError) as latched:
         client.sort(1)
     assert latched.value.kind == "fault_latched"
