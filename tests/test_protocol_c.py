@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from vs2t_edge.firmware_bridge import protocol as p
@@ -202,3 +202,80 @@ def test_c_firmware_jam_reboot_and_failsafe_with_the_python_driver(c_gate):
         client.clear()
         client.sort(1)
         assert c_gate.command("info")["sorts"] == 2  # after the reboot: 4, then 1
+
+
+# --- differential: the Python MCU simulator's firmware model against the C firmware -------------
+
+@pytest.fixture(scope="module")
+def c_script(harness):
+    """A long-running `host_harness script`: one command in, the frames the C core wrote out."""
+    proc = subprocess.Popen([str(harness), "script", "--heartbeat-timeout-ms", "500", "--move-time-ms", "60"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+
+    def step(command: str) -> list[str]:
+        proc.stdin.write(command + "\n")
+        proc.stdin.flush()
+        return proc.stdout.readline().split()
+
+    yield step
+    proc.stdin.close()
+    proc.wait(timeout=5)
+
+
+request_st = st.one_of(
+    st.tuples(st.integers(0, 255), st.just(p.SORT), st.integers(0, 9).map(lambda b: bytes([b]))),
+    st.tuples(st.integers(0, 255), st.sampled_from([p.STATUS, p.HEARTBEAT, p.CLEAR]), st.just(b"")),
+    st.tuples(st.integers(0, 255), st.sampled_from([p.SORT, p.CLEAR, 0x42, p.ACK]), st.binary(max_size=3)),
+)
+event_st = st.one_of(
+    st.tuples(st.just("send"), request_st),
+    st.tuples(st.just("repeat"), st.none()),  # the host retransmits its last frame
+    # Clock steps, with the boundaries of move time (60), move timeout (300) and watchdog (500).
+    st.tuples(st.just("advance"), st.one_of(st.integers(0, 700), st.sampled_from([59, 60, 61, 299, 300, 301,
+                                                                                   499, 500, 501]))),
+    st.tuples(st.just("jam"), st.booleans()),
+    st.tuples(st.just("reboot"), st.none()),
+    st.tuples(st.just("noise"), st.binary(min_size=1, max_size=8)),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                  HealthCheck.function_scoped_fixture])
+@given(st.lists(event_st, min_size=1, max_size=40))
+# The timing boundaries, spelled out: move done at exactly 60 ms, watchdog at exactly 500 ms
+# of silence, jam at exactly 300 ms.
+@example([("send", (1, p.CLEAR, b"")), ("advance", 59), ("advance", 1), ("send", (2, p.HEARTBEAT, b"")),
+          ("advance", 500), ("advance", 1)])
+@example([("send", (1, p.CLEAR, b"")), ("advance", 60), ("jam", True), ("send", (2, p.SORT, b"\x03")),
+          ("advance", 299), ("advance", 1), ("repeat", None), ("send", (3, p.CLEAR, b"")), ("advance", 300)])
+def test_python_simulator_behaves_as_the_c_firmware(c_script, events):
+    """Same bytes and clock into mcu_sim.GateFirmware and gate_core.c: same frames out, byte for byte."""
+    from vs2t_edge.firmware_bridge.mcu_sim import GateFirmware
+
+    now_ms, last = 0, b""
+    model = GateFirmware(now_ms=now_ms, boot_id=1, heartbeat_timeout_ms=500, move_time_ms=60)
+    reader = p.FrameReader()
+    assert c_script("boot 0 1") == []
+    transcript = []
+    for kind, arg in events:
+        if kind in ("send", "repeat", "noise"):
+            data = p.encode_frame(*arg) if kind == "send" else (last if kind == "repeat" else arg)
+            last = data if kind == "send" else last
+            if not data:
+                continue
+            command = f"rx {now_ms} {data.hex()}"
+            out = [f for frame in reader.feed(data) for f in model.on_frame(frame, now_ms)]
+        elif kind == "advance":
+            now_ms += arg
+            command, out = f"tick {now_ms}", model.tick(now_ms)
+        elif kind == "jam":
+            command, out = f"jam {int(arg)}", []
+            model.jam_present = arg
+        else:
+            command, out = f"reboot {now_ms}", []
+            model.reboot(now_ms)
+            reader = p.FrameReader()  # gate_core_boot() empties the C reader too
+        transcript.append(command)
+        assert c_script(command) == [f.hex() for f in out], "\n".join(transcript)
+        # Both tick after every step, as the firmware's loop does.
+        assert c_script(f"tick {now_ms}") == [f.hex() for f in model.tick(now_ms)], "\n".join(transcript)

@@ -4,6 +4,10 @@
  *   host_harness encode SEQ TYPE [HEX]   print the encoded frame
  *   host_harness parse                   per stdin line of hex (one stream): the frames found,
  *                                        hex, space separated, then "| dropped N"
+ *   host_harness script [--heartbeat-timeout-ms N] [--move-time-ms N]
+ *       drive gate_core with explicit time, one stdin command per line, and print the frames
+ *       it wrote for that command (hex, space separated): "boot T ID", "rx T HEX", "tick T",
+ *       "jam 0|1", "reboot T". For the differential test against mcu_sim.GateFirmware.
  *   host_harness gate [--heartbeat-timeout-ms N] [--move-time-ms N] [--boot-id N]
  *       run gate_core on a new pseudo-terminal; print its slave path; stdin takes
  *       "jam 1", "jam 0", "reboot", "info", "quit". The flap reaches a commanded bin after
@@ -108,8 +112,68 @@ static int hw_at_bin(void *ctx, uint8_t bin)
 static void hw_write(void *ctx, const uint8_t *data, size_t len)
 {
     sim_hw_t *hw = (sim_hw_t *)ctx;
-    ssize_t written = write(hw->master_fd, data, len);
+    ssize_t written;
+    if (hw->master_fd < 0) { /* script mode: one hex word per frame on stdout */
+        printf(" ");
+        print_hex(data, len);
+        return;
+    }
+    written = write(hw->master_fd, data, len);
     (void)written; /* nobody reading: a real UART would lose the bytes too */
+}
+
+static int cmd_script(int argc, char **argv)
+{
+    static char line[4096];
+    static uint8_t bytes[2048];
+    sim_hw_t hw;
+    gate_hw_t callbacks;
+    gate_core_t core;
+    uint32_t heartbeat_timeout_ms = GATE_HEARTBEAT_TIMEOUT_MS;
+    int i;
+    memset(&hw, 0, sizeof hw);
+    memset(&core, 0, sizeof core);
+    hw.master_fd = -1;
+    hw.move_time_ms = 60;
+    for (i = 2; i + 1 < argc; i += 2) {
+        if (strcmp(argv[i], "--heartbeat-timeout-ms") == 0) {
+            heartbeat_timeout_ms = (uint32_t)atoi(argv[i + 1]);
+        } else if (strcmp(argv[i], "--move-time-ms") == 0) {
+            hw.move_time_ms = (uint32_t)atoi(argv[i + 1]);
+        }
+    }
+    callbacks.servo_to_bin = hw_servo;
+    callbacks.flap_at_bin = hw_at_bin;
+    callbacks.uart_write = hw_write;
+    callbacks.ctx = &hw;
+    while (fgets(line, sizeof line, stdin)) {
+        unsigned long t = 0, arg = 0;
+        char hex[4096];
+        if (sscanf(line, "boot %lu %lu", &t, &arg) == 2) { /* a fresh gate: flap free */
+            hw.now_ms = (uint32_t)t;
+            hw.jammed = 0;
+            gate_core_boot(&core, &callbacks, GATE_DEFAULT_N_BINS, (uint16_t)arg, hw.now_ms);
+            core.heartbeat_timeout_ms = heartbeat_timeout_ms;
+        } else if (sscanf(line, "reboot %lu", &t) == 1) {
+            hw.now_ms = (uint32_t)t;
+            gate_core_boot(&core, &callbacks, GATE_DEFAULT_N_BINS, (uint16_t)(core.boot_id + 1), hw.now_ms);
+            core.heartbeat_timeout_ms = heartbeat_timeout_ms;
+        } else if (sscanf(line, "rx %lu %4095s", &t, hex) == 2) {
+            size_t n = from_hex(hex, bytes, sizeof bytes), k;
+            hw.now_ms = (uint32_t)t;
+            for (k = 0; k < n; k++) {
+                gate_core_on_byte(&core, bytes[k], hw.now_ms);
+            }
+        } else if (sscanf(line, "tick %lu", &t) == 1) {
+            hw.now_ms = (uint32_t)t;
+            gate_core_tick(&core, hw.now_ms);
+        } else if (sscanf(line, "jam %lu", &arg) == 1) {
+            hw.jammed = (int)arg;
+        }
+        printf("\n");
+        fflush(stdout);
+    }
+    return 0;
 }
 
 static int cmd_gate(int argc, char **argv)
@@ -235,10 +299,13 @@ int main(int argc, char **argv)
     if (argc >= 2 && strcmp(argv[1], "parse") == 0) {
         return cmd_parse();
     }
+    if (argc >= 2 && strcmp(argv[1], "script") == 0) {
+        return cmd_script(argc, argv);
+    }
     if (argc >= 2 && strcmp(argv[1], "gate") == 0) {
         return cmd_gate(argc, argv);
     }
-    fprintf(stderr, "usage: host_harness crc HEX | encode SEQ TYPE [HEX] | parse | gate [options]\n");
+    fprintf(stderr, "usage: host_harness crc HEX | encode SEQ TYPE [HEX] | parse | script [options] | gate [options]\n");
     return 2;
 }
 
