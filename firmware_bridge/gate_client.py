@@ -165,6 +165,7 @@ class GateClient:
             thread.join(timeout=2 * self.timeout_s + 1)
 
     def _heartbeat_loop(self) -> None:
+        logged_failure, failing_since = False, 0.0
         while not self._hb_stop.wait(self.heartbeat_period_s):
             if not self._lock.acquire(blocking=False):
                 continue  # a request is on the wire; it feeds the watchdog too
@@ -173,9 +174,15 @@ class GateClient:
                     return
                 self._request(p.HEARTBEAT, b"", retries=0)
                 self.heartbeats_ok += 1
+                if logged_failure:
+                    log.warning("gate heartbeat answered again after %.1f s", time.monotonic() - failing_since)
+                    logged_failure, failing_since = False, 0.0
             except GateClientError as exc:
                 self.heartbeat_errors += 1
-                log.warning("gate heartbeat failed: %s", exc)
+                failing_since = failing_since or time.monotonic()
+                if not logged_failure:  # once per outage, not four times a second
+                    log.warning("gate heartbeat failed: %s", exc)
+                    logged_failure = True
             finally:
                 self._lock.release()
 

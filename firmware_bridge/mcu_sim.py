@@ -21,6 +21,7 @@ import errno
 import os
 import random
 import select
+import socket
 import threading
 import time
 import tty
@@ -196,15 +197,26 @@ class LineFaults:
 class MCUSimulator:
     """``GateFirmware`` on the master side of a pty, in a background thread."""
 
-    def __init__(self, *, faults: LineFaults | None = None, **firmware_kwargs) -> None:
+    def __init__(self, *, faults: LineFaults | None = None, transport: str = "pty", **firmware_kwargs) -> None:
+        if transport not in ("pty", "tcp"):
+            raise ValueError(f"transport must be 'pty' or 'tcp', got {transport!r}")
         self.faults = faults or LineFaults()
         self._lock = threading.RLock()
         self._t0 = time.monotonic()
         self.firmware = GateFirmware(now_ms=self.now_ms(), **firmware_kwargs)
-        self.master_fd, self.slave_fd = os.openpty()
-        tty.setraw(self.slave_fd)  # no echo, no CR/LF translation: a binary line
-        os.set_blocking(self.master_fd, False)
-        self.device_path = os.ttyname(self.slave_fd)
+        self.master_fd = self.slave_fd = -1
+        self._listener: socket.socket | None = None
+        self._conn: socket.socket | None = None
+        if transport == "pty":
+            self.master_fd, self.slave_fd = os.openpty()
+            tty.setraw(self.slave_fd)  # no echo, no CR/LF translation: a binary line
+            os.set_blocking(self.master_fd, False)
+            self.device_path = os.ttyname(self.slave_fd)
+        else:
+            # pyserial's socket:// URL, as a serial-over-LAN bridge would offer; loopback only.
+            self._listener = socket.create_server(("127.0.0.1", 0))
+            self._listener.setblocking(False)
+            self.device_path = f"socket://127.0.0.1:{self._listener.getsockname()[1]}"
         self.reader = p.FrameReader()
         self.rx_frames: list[p.Frame] = []  # every valid frame that reached the firmware
         self.tx_frames = 0
@@ -224,10 +236,14 @@ class MCUSimulator:
         if self._thread.is_alive():
             self._thread.join(timeout=2)
         for fd in (self.master_fd, self.slave_fd):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        for sock in (self._conn, self._listener):
+            if sock is not None:
+                sock.close()
 
     def __enter__(self) -> "MCUSimulator":
         return self
@@ -267,19 +283,51 @@ class MCUSimulator:
             return list(self.firmware.executed)
 
     # --- the loop ------------------------------------------------------------------------------
+    def _receive(self) -> bytes:
+        """Bytes from the host within ~2 ms, from the pty or the TCP connection."""
+        if self.master_fd >= 0:
+            ready, _, _ = select.select([self.master_fd], [], [], 0.002)
+            if not ready:
+                return b""
+            try:
+                return os.read(self.master_fd, 4096)
+            except OSError as exc:
+                if exc.errno in (errno.EAGAIN, errno.EIO):  # EIO: no host has the tty open
+                    return b""
+                raise
+        sockets = [self._listener] + ([self._conn] if self._conn is not None else [])
+        ready, _, _ = select.select(sockets, [], [], 0.002)
+        if self._listener in ready:
+            conn, _ = self._listener.accept()
+            if self._conn is not None:
+                self._conn.close()  # one host at a time, like a UART
+            conn.setblocking(False)
+            self._conn = conn
+        if self._conn is not None and self._conn in ready:
+            try:
+                data = self._conn.recv(4096)
+            except BlockingIOError:
+                return b""
+            except OSError:
+                data = b""
+            if not data:  # the host hung up; the MCU keeps running
+                self._conn.close()
+                self._conn = None
+            return data
+        return b""
+
+    def _transmit(self, data: bytes) -> None:
+        if self.master_fd >= 0:
+            os.write(self.master_fd, data)
+        elif self._conn is not None:
+            self._conn.send(data)
+
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                ready, _, _ = select.select([self.master_fd], [], [], 0.002)
+                data = self._receive()
             except (OSError, ValueError):
                 return
-            data = b""
-            if ready:
-                try:
-                    data = os.read(self.master_fd, 4096)
-                except OSError as exc:
-                    if exc.errno not in (errno.EAGAIN, errno.EIO):
-                        return
             with self._lock:
                 now = self.now_ms()
                 out: list[bytes] = []
@@ -317,16 +365,18 @@ class MCUSimulator:
                 keep.append((due, data))
                 continue
             try:
-                os.write(self.master_fd, data)
+                self._transmit(data)
                 self.tx_frames += 1
             except OSError:
-                pass  # nobody reading (pty buffer full or closed): a real UART would lose it too
+                pass  # nobody reading (buffer full or closed): a real UART would lose it too
         self._outbox = keep
 
 
-def start_simulated_gate(*, faults: LineFaults | None = None, **firmware_kwargs) -> tuple[str, MCUSimulator]:
-    """Start a simulated gate MCU on a new pty; returns (device path for the host, simulator)."""
-    sim = MCUSimulator(faults=faults, **firmware_kwargs).start()
+def start_simulated_gate(*, faults: LineFaults | None = None, transport: str = "pty",
+                         **firmware_kwargs) -> tuple[str, MCUSimulator]:
+    """Start a simulated gate MCU on a new pty (or a loopback TCP port: transport="tcp");
+    returns (device path or pyserial URL for the host, simulator)."""
+    sim = MCUSimulator(faults=faults, transport=transport, **firmware_kwargs).start()
     return sim.device_path, sim
 
 

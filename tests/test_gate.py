@@ -6,6 +6,7 @@ adapter. Faults are injected on the simulated line and MCU (mcu_sim.LineFaults).
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -394,3 +395,41 @@ def test_cli_port_from_environment_and_simulate(monkeypatch, sim, capsys):
     assert cli_main(["gate-status"]) == 2
     assert "no gate port" in capsys.readouterr().err
     assert cli_main(["sort", "-1", "--simulate"]) == 2
+
+
+# --- other pyserial URLs, a lost link, the real gate -----------------------------------------------
+
+def test_socket_url_reaches_the_simulated_gate():
+    url, sim = start_simulated_gate(transport="tcp", move_time_ms=MOVE_MS)
+    try:
+        assert url.startswith("socket://127.0.0.1:")
+        with GateClient(url, timeout_s=0.3, heartbeat_period_s=0.1) as gate:
+            gate.sort(6)
+            assert gate.status().bin == 6
+        assert sim.executed == [6]
+    finally:
+        sim.stop()
+
+
+def test_lost_link_is_reported_not_hung(sim, client):
+    client.stop_heartbeat()
+    sim.stop()  # the USB adapter is unplugged: the pty's other end is gone
+    started = time.monotonic()
+    with pytest.raises(GateClientError) as caught:
+        client.sort(1)
+    assert caught.value.kind == "link" and sim.device_path in str(caught.value)
+    assert time.monotonic() - started < 0.5  # noticed at once, not after the retries
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not (os.environ.get("VS2T_HARDWARE") == "1" and os.environ.get("VS2T_GATE_PORT")),
+                    reason="needs the real gate: set VS2T_HARDWARE=1 and VS2T_GATE_PORT")
+def test_real_gate_routes_and_returns_to_reject():
+    with GateClient(os.environ["VS2T_GATE_PORT"], arm_latches=("boot", "heartbeat_lost")) as gate:
+        report = gate.status()
+        assert report.state == "ready", f"the real gate is {report.state} ({report.fault}); clear it first"
+        before = report.sorts_done
+        gate.sort(1)
+        gate.sort(p.REJECT_BIN)
+        after = gate.status()
+        assert (after.bin, after.sorts_done) == (p.REJECT_BIN, before + 2)
