@@ -32,10 +32,13 @@ class SerialGate:
     """The live gate over a serial port (``/dev/ttyACM0``, ``/dev/pts/N``, ``socket://...``)."""
 
     def __init__(self, port: str, *, timeout_s: float = 0.5, retries: int = 3,
-                 heartbeat_period_s: float = proto.HEARTBEAT_PERIOD_S) -> None:
+                 heartbeat_period_s: float = proto.HEARTBEAT_PERIOD_S,
+                 arm_latches: tuple[str, ...] = ("boot",)) -> None:
+        """``arm_latches``: latches connect() clears by itself. Only the power-on one by default:
+        a heartbeat-lost or jam latch found at start-up waits for the operator's clear()."""
         self.port = port
         self._client = GateClient(port, timeout_s=timeout_s, retries=retries,
-                                  heartbeat_period_s=heartbeat_period_s)
+                                  heartbeat_period_s=heartbeat_period_s, arm_latches=arm_latches)
         self._connected = False
 
     def connect(self) -> None:

@@ -167,3 +167,23 @@ def test_truncated_frame_followed_by_a_good_one(first, second, data):
     cut = data.draw(st.integers(1, len(first) - 1))
     found, _ = decode_all(first[:cut] + second + TAIL)
     assert found[-1:] == [second]
+
+
+def test_doc_examples_decode():
+    """Every worked example in docs/protocol.md is a valid frame and says what the text says."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text()
+    lines = [line for line in doc.splitlines() if line.startswith("A5 ")]
+    assert len(lines) == 6, "the worked examples block in docs/protocol.md changed"
+    decoded = []
+    for line in lines:
+        hex_part, words = line[:42].strip(), line[42:].strip()
+        frame = bytes.fromhex(hex_part)
+        assert p.check_frame(frame) == (p.FRAME, len(frame)), line
+        decoded.append((p.decode_frame(frame), words))
+    (sort, _), (ack, _), (bad, _), (nak, _), (beat, _), (fault, _) = decoded
+    assert (sort.type, sort.seq, sort.payload) == (p.SORT, 0x10, b"\x03")
+    assert p.parse_reply(ack) == p.Ack(p.SORT, p.STATE_READY, 3, p.FAULT_NONE, 2) and ack.seq == 0x10
+    assert (bad.type, bad.payload) == (p.SORT, b"\x09")
+    assert p.parse_reply(nak).reason == p.NAK_BAD_BIN and nak.seq == 0x11
+    assert (beat.type, beat.seq, beat.payload) == (p.HEARTBEAT, 0x12, b"")
+    assert p.parse_reply(fault) == p.FaultReport(p.FAULT_HEARTBEAT_LOST, p.STATE_FAILSAFE, 0, 2)
