@@ -85,7 +85,9 @@ class GateClient:
         self._reader = p.FrameReader()
         self._pending: collections.deque[p.Frame] = collections.deque()
         self._lock = threading.RLock()
-        self._seq = secrets.randbelow(256)  # a new host session never reuses the last one's SEQ
+        # A random start, and a STATUS as the first request (connect), keep a new session's first
+        # SORT from matching the previous session's last one in the MCU's duplicate memory.
+        self._seq = secrets.randbelow(256)
         self._boot_id: int | None = None
         self._reboot: tuple[int, int] | None = None  # (old, new) boot id once a reboot is seen
         self._hb_stop = threading.Event()
@@ -103,16 +105,15 @@ class GateClient:
         with self._lock:
             if self._serial is not None:
                 return self.status()
-            if self._serial is None:
-                try:
-                    self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.01,
-                                                         write_timeout=1.0)
-                except (serial.SerialException, OSError, ValueError) as exc:
-                    raise GateClientError(f"cannot open the gate's serial port {self.port}: {exc}",
-                                          kind="link") from exc
-                self._serial.reset_input_buffer()
-                self._reader = p.FrameReader()
-                self._pending.clear()
+            try:
+                self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.01,
+                                                     write_timeout=1.0)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise GateClientError(f"cannot open the gate's serial port {self.port}: {exc}",
+                                      kind="link") from exc
+            self._serial.reset_input_buffer()
+            self._reader = p.FrameReader()
+            self._pending.clear()
             try:
                 # The first request of a session is a STATUS: it also resets the MCU's duplicate memory.
                 report = self.status()
