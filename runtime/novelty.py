@@ -1,0 +1,673 @@
+"""GZSL routers: decide whether a press comes from a touched fabric (CLS_t) or an untouched one (CLS_u).
+
+Every router maps a press to a *novelty* score, HIGHER = more likely untouched, and the cell
+predicts "untouched" when ``novelty > beta``. The same code fits the routers in training, is
+serialised into the run folder and the bundle (``to_params`` / ``Router.from_params``), and
+scores presses on the cell, so this module is numpy only (the cell never imports torch).
+
+Routers (``ROUTERS``):
+
+- ``gaussian`` — the paper's rule: a Gaussian fitted on touched tactile features, novelty is the
+  negative log density. The empirical covariance of a 2048-d feature from a few hundred presses
+  is singular (dead ReLU channels, collinear channels, n < d), so its eigenvalues are floored
+  at ``variance_floor`` x the mean variance before inversion.
+- ``mahalanobis_lw`` / ``mahalanobis_oas`` — the same density with a shrinkage covariance
+  (Ledoit & Wolf 2004; Chen, Wiesel, Eldar & Hero 2010), novelty = squared Mahalanobis distance.
+- ``energy`` — novelty = -T * logsumexp(logits_t / T) (Liu et al. 2020).
+- ``max_softmax`` — novelty = -max softmax(logits_t) (Hendrycks & Gimpel 2017).
+- ``calibrated_stacking`` — (Chao et al. 2016) the all-class decision argmax[s_t - gamma, s_u];
+  novelty = max(s_u) - max(s_t), so "untouched" iff novelty > beta with beta = -gamma.
+
+Numerics: every fit is in float64; the covariance is factorised once at fit time (eigh) into a
+whitening matrix W with W W^T = Sigma^-1 and the log-determinant is the sum of log-eigenvalues,
+so scoring is a centring, one matmul and a squared norm. The squared norm is always summed in
+float64 (with the float32 path the matmul runs in float32 and each row is rescaled before
+squaring), which keeps float32 scores within ~1e-4 relative of the float64 reference for
+feature norms from 1e-6 to 1e6 (tests/test_novelty_stability.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+ROUTERS: tuple[str, ...] = (
+    "gaussian",
+    "mahalanobis_lw",
+    "mahalanobis_oas",
+    "energy",
+    "max_softmax",
+    "calibrated_stacking",
+)
+# Routers that need only the tactile feature (others need the heads' logits).
+FEATURE_ROUTERS: tuple[str, ...] = ("gaussian", "mahalanobis_lw", "mahalanobis_oas")
+
+PARAMS_VERSION = 1
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+class RouterError(ValueError):
+    """A router was asked something it cannot answer (bad shapes, missing logits, NaN)."""
+
+
+# --------------------------------------------------------------------------------------------
+# numerically stable pieces shared by the routers and the evidence code
+# --------------------------------------------------------------------------------------------
+
+
+def log_softmax(logits: np.ndarray, axis: int = -1) -> np.ndarray:
+    """log softmax in float64, exact for logits of +-1e4 (subtract the max before exp)."""
+    z = np.asarray(logits, dtype=np.float64)
+    m = np.max(z, axis=axis, keepdims=True)
+    shifted = z - m
+    return shifted - np.log(np.sum(np.exp(shifted), axis=axis, keepdims=True))
+
+
+def logsumexp(logits: np.ndarray, axis: int = -1) -> np.ndarray:
+    z = np.asarray(logits, dtype=np.float64)
+    m = np.max(z, axis=axis, keepdims=True)
+    out = m + np.log(np.sum(np.exp(z - m), axis=axis, keepdims=True))
+    return np.squeeze(out, axis=axis)
+
+
+def _as_features(features: np.ndarray, dim: int | None, what: str = "features") -> np.ndarray:
+    x = np.asarray(features)
+    if x.ndim == 1:
+        x = x[None, :]
+    if x.ndim != 2:
+        raise RouterError(f"{what} must be (N, D), got shape {x.shape}")
+    if dim is not None and x.shape[1] != dim:
+        raise RouterError(f"{what} have {x.shape[1]} dimensions, the router was fitted on {dim}")
+    if not np.all(np.isfinite(x)):
+        raise RouterError(f"{what} contain NaN or Inf; refuse to score them")
+    return x
+
+
+def _as_logits(logits: np.ndarray | None, router: str, what: str = "logits_t") -> np.ndarray:
+    if logits is None:
+        raise RouterError(f"router '{router}' needs {what} (the classifier head's logits)")
+    z = np.asarray(logits)
+    if z.ndim == 1:
+        z = z[None, :]
+    if z.ndim != 2 or z.shape[1] < 1:
+        raise RouterError(f"{what} must be (N, C), got shape {z.shape}")
+    if not np.all(np.isfinite(z)):
+        raise RouterError(f"{what} contain NaN or Inf; refuse to score them")
+    return z
+
+
+def _frozen(a: np.ndarray, dtype=np.float64) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# covariance estimators (float64, written from their papers; no sklearn on the cell)
+# --------------------------------------------------------------------------------------------
+
+
+def empirical_covariance(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, maximum-likelihood covariance S = Xc^T Xc / n) in float64."""
+    x = np.asarray(x, dtype=np.float64)
+    mean = x.mean(axis=0)
+    xc = x - mean
+    return mean, (xc.T @ xc) / x.shape[0]
+
+
+def ledoit_wolf_shrinkage(xc: np.ndarray) -> float:
+    """Ledoit & Wolf (2004) optimal shrinkage of S towards mu*I for centred samples xc (n, p).
+
+    With S = Xc^T Xc / n, mu = tr(S)/p, d^2 = ||S - mu I||_F^2 / p,
+    b_bar^2 = 1/n^2 sum_k ||x_k x_k^T - S||_F^2 / p, b^2 = min(b_bar^2, d^2); shrinkage = b^2/d^2.
+    The sums are taken through the n x n Gram matrix and row norms, never a p x p x n tensor:
+    sum_k ||x_k x_k^T - S||_F^2 = sum_k ||x_k||^4 - n ||S||_F^2.
+    """
+    xc = np.asarray(xc, dtype=np.float64)
+    n, p = xc.shape
+    gram = xc @ xc.T  # ||S||_F^2 = ||Xc Xc^T||_F^2 / n^2, cheaper when n < p
+    s_fro2 = float(np.sum(gram * gram)) / n**2
+    mu = float(np.trace(gram)) / (n * p)
+    d2 = (s_fro2 - 2.0 * mu * mu * p + mu * mu * p) / p  # ||S - mu I||^2 = ||S||^2 - p mu^2
+    row_norm2 = np.diag(gram)
+    b_bar2 = (float(np.sum(row_norm2**2)) - n * s_fro2) / (n**2 * p)
+    b2 = min(max(b_bar2, 0.0), d2)
+    if d2 <= 0.0:
+        return 1.0  # S is already a multiple of the identity
+    return float(b2 / d2)
+
+
+def oas_shrinkage(xc: np.ndarray) -> float:
+    """Oracle Approximating Shrinkage, Chen et al. (2010) eq. 23, for centred samples xc (n, p).
+
+    rho = min( ((1 - 2/p) tr(S^2) + tr(S)^2) / ((n + 1 - 2/p) (tr(S^2) - tr(S)^2 / p)), 1 ).
+    """
+    xc = np.asarray(xc, dtype=np.float64)
+    n, p = xc.shape
+    gram = xc @ xc.T
+    tr_s = float(np.trace(gram)) / n
+    tr_s2 = float(np.sum(gram * gram)) / n**2
+    den = (n + 1.0 - 2.0 / p) * (tr_s2 - tr_s * tr_s / p)
+    if den <= 0.0:
+        return 1.0
+    num = (1.0 - 2.0 / p) * tr_s2 + tr_s * tr_s
+    return float(min(max(num / den, 0.0), 1.0))
+
+
+def shrunk_covariance(x: np.ndarray, estimator: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """(mean, covariance, shrinkage) for estimator in {"empirical", "ledoit_wolf", "oas"}."""
+    mean, s = empirical_covariance(x)
+    if estimator == "empirical":
+        return mean, s, 0.0
+    xc = np.asarray(x, dtype=np.float64) - mean
+    if estimator == "ledoit_wolf":
+        shrink = ledoit_wolf_shrinkage(xc)
+    elif estimator == "oas":
+        shrink = oas_shrinkage(xc)
+    else:
+        raise RouterError(f"unknown covariance estimator '{estimator}'")
+    mu = float(np.trace(s)) / s.shape[0]
+    cov = (1.0 - shrink) * s
+    cov[np.diag_indices_from(cov)] += shrink * mu
+    return mean, cov, shrink
+
+
+# --------------------------------------------------------------------------------------------
+# routers
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Router:
+    """Base of all routers: immutable, numpy only, rebuilt from ``to_params`` output."""
+
+    name: str
+    _registry: ClassVar[dict[str, type["Router"]]] = {}
+
+    def novelty(
+        self,
+        features: np.ndarray | None,
+        logits_t: np.ndarray | None = None,
+        *,
+        logits_u: np.ndarray | None = None,
+    ) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def is_untouched(self, novelty: np.ndarray, beta: float) -> np.ndarray:
+        """The GZSL decision: True = route to CLS_u. beta=+inf -> all touched, -inf -> none."""
+        return route_untouched(novelty, beta)
+
+    def to_params(self) -> dict[str, Any]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> "Router":
+        name = _scalar_str(params, "name")
+        if name not in ROUTERS:
+            raise RouterError(f"router parameters name unknown router '{name}'; known: {', '.join(ROUTERS)}")
+        version = int(np.asarray(params.get("params_version", PARAMS_VERSION)))
+        if version != PARAMS_VERSION:
+            raise RouterError(f"router parameters version {version}, this runtime reads {PARAMS_VERSION}")
+        impl = Router._registry[name]
+        if cls is not Router and not issubclass(impl, cls):
+            raise RouterError(f"parameters are for '{name}', not a {cls.__name__}")
+        return impl._from_params(params)
+
+    @classmethod
+    def _from_params(cls, params: Mapping[str, Any]) -> "Router":  # pragma: no cover
+        raise NotImplementedError
+
+
+def _scalar_str(params: Mapping[str, Any], key: str) -> str:
+    if key not in params:
+        raise RouterError(f"router parameters lack '{key}'")
+    v = params[key]
+    if isinstance(v, np.ndarray):
+        v = v.item() if v.shape == () else str(v)
+    if isinstance(v, bytes):
+        v = v.decode()
+    return str(v)
+
+
+def _scalar_float(params: Mapping[str, Any], key: str, default: float | None = None) -> float:
+    if key not in params:
+        if default is None:
+            raise RouterError(f"router parameters lack '{key}'")
+        return default
+    return float(np.asarray(params[key], dtype=np.float64))
+
+
+def _register(*names: str):
+    def deco(cls):
+        for n in names:
+            Router._registry[n] = cls
+        return cls
+
+    return deco
+
+
+@_register("gaussian", "mahalanobis_lw", "mahalanobis_oas")
+@dataclass(frozen=True)
+class GaussianRouter(Router):
+    """A Gaussian density of touched features; novelty = -log N(x; mean, cov) (``gaussian``) or
+    the squared Mahalanobis distance (shrinkage routers; same ranking, no 2048-d constant)."""
+
+    mean: np.ndarray = field(repr=False, default=None)  # (D,) float64
+    whitening: np.ndarray = field(repr=False, default=None)  # (D, D) float64, W W^T = cov^-1
+    log_det: float = 0.0  # log det of the (floored) covariance
+    shrinkage: float = 0.0
+    variance_floor: float = 0.0  # absolute eigenvalue floor actually used
+    covariance: np.ndarray | None = field(repr=False, default=None)  # (D, D) float64 (for export)
+
+    _ESTIMATOR: ClassVar[dict[str, str]] = {
+        "gaussian": "empirical",
+        "mahalanobis_lw": "ledoit_wolf",
+        "mahalanobis_oas": "oas",
+    }
+
+    @property
+    def dim(self) -> int:
+        return int(self.mean.shape[0])
+
+    @property
+    def uses_log_density(self) -> bool:
+        return self.name == "gaussian"
+
+    @classmethod
+    def fit(
+        cls,
+        name: str,
+        touched_features: np.ndarray,
+        *,
+        variance_floor: float = 1e-6,
+        keep_covariance: bool = True,
+    ) -> "GaussianRouter":
+        """Fit on touched features (N, D) in float64.
+
+        ``variance_floor`` is relative: eigenvalues below ``variance_floor * mean variance`` are
+        raised to it, so a dead channel (zero variance) or a collinear pair gets a finite, large
+        but bounded Mahalanobis weight instead of inf/NaN.
+        """
+        if name not in cls._ESTIMATOR:
+            raise RouterError(f"'{name}' is not a Gaussian router")
+        x = _as_features(touched_features, None, "touched_features").astype(np.float64)
+        if x.shape[0] < 2:
+            raise RouterError(f"need at least 2 touched feature vectors to fit '{name}', got {x.shape[0]}")
+        mean, cov, shrink = shrunk_covariance(x, cls._ESTIMATOR[name])
+        cov = 0.5 * (cov + cov.T)
+        evals, evecs = np.linalg.eigh(cov)
+        mean_var = float(np.trace(cov)) / cov.shape[0]
+        # All-identical samples: no scale at all; fall back to the feature magnitude so the floor
+        # is still relative to something, and a tiny absolute value for all-zero features.
+        scale = mean_var if mean_var > 0 else float(np.mean(mean * mean))
+        floor = max(variance_floor * scale, 1e-30)
+        evals = np.maximum(evals, floor)
+        whitening = evecs / np.sqrt(evals)[None, :]
+        log_det = float(np.sum(np.log(evals)))
+        cov_out = (evecs * evals[None, :]) @ evecs.T if keep_covariance else None
+        return cls(
+            name=name,
+            mean=_frozen(mean),
+            whitening=_frozen(whitening),
+            log_det=log_det,
+            shrinkage=float(shrink),
+            variance_floor=floor,
+            covariance=None if cov_out is None else _frozen(cov_out),
+        )
+
+    def squared_mahalanobis(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(x - mean)^T cov^-1 (x - mean) per row; ``dtype=np.float32`` is the cell's fast path."""
+        x = _as_features(features, self.dim)
+        dtype = np.dtype(dtype)
+        z = (x.astype(dtype, copy=False) - self.mean.astype(dtype)) @ self.whitening.astype(dtype)
+        z = z.astype(np.float64)
+        # Rescale each row before squaring so the sum never overflows (z may reach ~1e21 when a
+        # 1e6-norm feature meets a floored dead channel); the square is then multiplied back.
+        peak = np.max(np.abs(z), axis=1)
+        safe = np.where(peak > 0, peak, 1.0)
+        return np.sum((z / safe[:, None]) ** 2, axis=1) * safe * safe
+
+    def novelty(self, features, logits_t=None, *, logits_u=None, dtype=np.float64) -> np.ndarray:
+        m2 = self.squared_mahalanobis(features, dtype=dtype)
+        if self.uses_log_density:
+            return 0.5 * (m2 + self.log_det + self.dim * _LOG_2PI)
+        return m2
+
+    def to_params(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "name": self.name,
+            "params_version": PARAMS_VERSION,
+            "mean": np.array(self.mean),
+            "whitening": np.array(self.whitening),
+            "log_det": float(self.log_det),
+            "shrinkage": float(self.shrinkage),
+            "variance_floor": float(self.variance_floor),
+        }
+        if self.covariance is not None:
+            out["covariance"] = np.array(self.covariance)
+        return out
+
+    @classmethod
+    def _from_params(cls, params):
+        name = _scalar_str(params, "name")
+        if "mean" not in params:
+            raise RouterError(f"router '{name}' parameters lack 'mean'")
+        mean = np.asarray(params["mean"], dtype=np.float64).reshape(-1)
+        cov = params.get("covariance")
+        if "whitening" in params:
+            whitening = np.asarray(params["whitening"], dtype=np.float64)
+            log_det = _scalar_float(params, "log_det")
+            floor = _scalar_float(params, "variance_floor", 0.0)
+        elif cov is not None:
+            # Rebuild the factorisation from a covariance alone (e.g. written by another tool).
+            cov = np.asarray(cov, dtype=np.float64)
+            evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
+            floor = max(_scalar_float(params, "variance_floor", 0.0), 1e-30)
+            evals = np.maximum(evals, floor)
+            whitening = evecs / np.sqrt(evals)[None, :]
+            log_det = float(np.sum(np.log(evals)))
+        else:
+            raise RouterError(f"router '{name}' parameters need 'whitening' or 'covariance'")
+        d = mean.shape[0]
+        if whitening.shape != (d, d):
+            raise RouterError(f"router '{name}': whitening is {whitening.shape}, mean has {d} dimensions")
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(whitening)) and np.isfinite(log_det)):
+            raise RouterError(f"router '{name}': parameters contain NaN or Inf")
+        return cls(
+            name=name,
+            mean=_frozen(mean),
+            whitening=_frozen(whitening),
+            log_det=float(log_det),
+            shrinkage=_scalar_float(params, "shrinkage", 0.0),
+            variance_floor=floor,
+            covariance=None if cov is None else _frozen(cov),
+        )
+
+
+@_register("energy")
+@dataclass(frozen=True)
+class EnergyRouter(Router):
+    """novelty = -T logsumexp(logits_t / T): low free energy = familiar (Liu et al. 2020)."""
+
+    temperature: float = 1.0
+
+    def novelty(self, features, logits_t=None, *, logits_u=None) -> np.ndarray:
+        z = _as_logits(logits_t, self.name).astype(np.float64)
+        t = self.temperature
+        return -t * logsumexp(z / t, axis=1)
+
+    def to_params(self):
+        return {"name": self.name, "params_version": PARAMS_VERSION, "temperature": float(self.temperature)}
+
+    @classmethod
+    def _from_params(cls, params):
+        t = _scalar_float(params, "temperature", 1.0)
+        if not (t > 0 and np.isfinite(t)):
+            raise RouterError(f"energy temperature must be > 0, got {t}")
+        return cls(name="energy", temperature=t)
+
+
+@_register("max_softmax")
+@dataclass(frozen=True)
+class MaxSoftmaxRouter(Router):
+    """novelty = -max softmax(logits_t / T) (Hendrycks & Gimpel 2017)."""
+
+    temperature: float = 1.0
+
+    def novelty(self, features, logits_t=None, *, logits_u=None) -> np.ndarray:
+        z = _as_logits(logits_t, self.name).astype(np.float64)
+        return -np.exp(np.max(log_softmax(z / self.temperature, axis=1), axis=1))
+
+    def to_params(self):
+        return {"name": self.name, "params_version": PARAMS_VERSION, "temperature": float(self.temperature)}
+
+    @classmethod
+    def _from_params(cls, params):
+        t = _scalar_float(params, "temperature", 1.0)
+        if not (t > 0 and np.isfinite(t)):
+            raise RouterError(f"max_softmax temperature must be > 0, got {t}")
+        return cls(name="max_softmax", temperature=t)
+
+
+@_register("calibrated_stacking")
+@dataclass(frozen=True)
+class CalibratedStackingRouter(Router):
+    """Calibrated stacking (Chao et al. 2016) on all-class scores [s_t, s_u].
+
+    The decision argmax[s_t - gamma, s_u] picks an untouched class iff max s_u > max s_t - gamma,
+    i.e. iff novelty = max s_u - max s_t > -gamma; so beta = -gamma and the threshold machinery
+    (tune_threshold, the seen-unseen curve) is shared with the other routers.
+    ``scores = "log_softmax"`` first turns each head's logits into log-probabilities, which puts
+    two separately trained heads on one scale; ``"logits"`` uses them as they are.
+    """
+
+    scores: str = "log_softmax"
+
+    def novelty(self, features, logits_t=None, *, logits_u=None) -> np.ndarray:
+        zt = _as_logits(logits_t, self.name, "logits_t").astype(np.float64)
+        zu = _as_logits(logits_u, self.name, "logits_u").astype(np.float64)
+        if zt.shape[0] != zu.shape[0]:
+            raise RouterError(f"logits_t has {zt.shape[0]} rows, logits_u {zu.shape[0]}")
+        if self.scores == "log_softmax":
+            zt, zu = log_softmax(zt, axis=1), log_softmax(zu, axis=1)
+        return np.max(zu, axis=1) - np.max(zt, axis=1)
+
+    def to_params(self):
+        return {"name": self.name, "params_version": PARAMS_VERSION, "scores": self.scores}
+
+    @classmethod
+    def _from_params(cls, params):
+        scores = _scalar_str(params, "scores") if "scores" in params else "log_softmax"
+        if scores not in ("log_softmax", "logits"):
+            raise RouterError(f"calibrated_stacking scores must be 'log_softmax' or 'logits', got '{scores}'")
+        return cls(name="calibrated_stacking", scores=scores)
+
+
+def fit_router(
+    name: str,
+    touched_features: np.ndarray | None,
+    touched_logits: np.ndarray | None = None,
+    **options: Any,
+) -> Router:
+    """Fit router ``name`` on touched training data.
+
+    Options: ``variance_floor`` (Gaussian routers, relative, default 1e-6), ``keep_covariance``;
+    ``temperature`` (energy, max_softmax); ``scores`` (calibrated_stacking). The logit-based
+    routers have no fitted parameters beyond their options; their threshold (and gamma) is
+    chosen on validation fabrics with ``tune_threshold``.
+    """
+    if name in FEATURE_ROUTERS:
+        allowed = {"variance_floor", "keep_covariance"}
+        _check_options(name, options, allowed)
+        return GaussianRouter.fit(name, touched_features, **options)
+    if name in ("energy", "max_softmax"):
+        _check_options(name, options, {"temperature"})
+        t = float(options.get("temperature", 1.0))
+        if not (t > 0 and np.isfinite(t)):
+            raise RouterError(f"{name} temperature must be > 0, got {t}")
+        return (EnergyRouter if name == "energy" else MaxSoftmaxRouter)(name=name, temperature=t)
+    if name == "calibrated_stacking":
+        _check_options(name, options, {"scores"})
+        return CalibratedStackingRouter._from_params({"name": name, **options})
+    raise RouterError(f"unknown router '{name}'; known: {', '.join(ROUTERS)}")
+
+
+def _check_options(name: str, options: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise RouterError(f"router '{name}' has no option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+
+
+# --------------------------------------------------------------------------------------------
+# thresholds, curves, areas
+# --------------------------------------------------------------------------------------------
+
+
+def route_untouched(novelty: np.ndarray, beta: float) -> np.ndarray:
+    """True where the press goes to CLS_u. beta=+inf: all touched; beta=-inf: all untouched."""
+    nov = np.asarray(novelty, dtype=np.float64)
+    if np.any(np.isnan(nov)):
+        raise RouterError("novelty contains NaN; refuse to route")
+    if np.isnan(beta):
+        raise RouterError("beta is NaN")
+    return nov > beta
+
+
+def _clean(a: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64).reshape(-1)
+    if a.size == 0:
+        raise RouterError(f"{what} is empty")
+    if np.any(np.isnan(a)):
+        raise RouterError(f"{what} contains NaN")
+    return a
+
+
+def _gap_thresholds(values: np.ndarray) -> np.ndarray:
+    """One beta per gap of the sorted unique values: -inf, midpoints, +inf."""
+    u = np.unique(values)
+    with np.errstate(over="ignore", invalid="ignore"):
+        mids = u[:-1] + 0.5 * (u[1:] - u[:-1])  # avoids (a+b) overflow near float max
+    mids = np.where(np.isfinite(mids), mids, u[:-1])
+    return np.concatenate([[-np.inf], mids, [np.inf]])
+
+
+def threshold_rates(novelty_touched, novelty_untouched, betas) -> tuple[np.ndarray, np.ndarray]:
+    """(fraction of touched kept touched, fraction of untouched flagged untouched) per beta."""
+    t = np.sort(_clean(novelty_touched, "novelty_touched"))
+    u = np.sort(_clean(novelty_untouched, "novelty_untouched"))
+    betas = np.asarray(betas, dtype=np.float64)
+    kept = np.searchsorted(t, betas, side="right") / t.size  # novelty <= beta
+    flagged = 1.0 - np.searchsorted(u, betas, side="right") / u.size  # novelty > beta
+    return kept, flagged
+
+
+def tune_threshold(
+    novelty_touched: np.ndarray,
+    novelty_untouched: np.ndarray,
+    objective: str = "balanced",
+    target_false_untouched: float | None = None,
+) -> float:
+    """Choose beta on validation data (touched presses vs. presses of validation fabrics).
+
+    - ``"balanced"`` (the paper's rule): maximise the mean of the fraction of touched presses
+      kept as touched and the fraction of validation presses flagged untouched.
+    - ``"accuracy"``: maximise the fraction of all presses routed correctly.
+    - ``"target"`` (or any objective with ``target_false_untouched`` given): flag as many
+      validation presses as possible while at most ``target_false_untouched`` of the touched
+      presses are flagged untouched.
+
+    beta is taken in the middle of the winning gap between observed scores (so it does not sit
+    on a sample), -inf / +inf at the ends; ties go to the lowest such beta.
+    """
+    t = _clean(novelty_touched, "novelty_touched")
+    u = _clean(novelty_untouched, "novelty_untouched")
+    betas = _gap_thresholds(np.concatenate([t, u]))
+    kept, flagged = threshold_rates(t, u, betas)
+    # Integer counts for the comparisons, so float rounding never breaks a tie the wrong way.
+    kept_n = np.rint(kept * t.size).astype(np.int64)
+    flagged_n = np.rint(flagged * u.size).astype(np.int64)
+    if target_false_untouched is not None or objective == "target":
+        if target_false_untouched is None:
+            raise RouterError("objective 'target' needs target_false_untouched")
+        if not 0.0 <= target_false_untouched <= 1.0:
+            raise RouterError(f"target_false_untouched must be in [0, 1], got {target_false_untouched}")
+        ok = (t.size - kept_n) <= np.floor(target_false_untouched * t.size + 1e-9)
+        score = np.where(ok, flagged_n, -1)
+    elif objective == "balanced":
+        score = kept_n * u.size + flagged_n * t.size  # = 2 |t| |u| x mean of the two rates
+    elif objective == "accuracy":
+        score = kept_n + flagged_n
+    else:
+        raise RouterError(f"unknown threshold objective '{objective}'; use balanced, accuracy or target")
+    return float(betas[int(np.argmax(score))])
+
+
+def _class_weights(labels: np.ndarray | None, n: int) -> np.ndarray:
+    """Weights that make a sum over samples the per-class mean accuracy."""
+    if labels is None:
+        return np.full(n, 1.0 / n)
+    labels = np.asarray(labels).reshape(-1)
+    if labels.size != n:
+        raise RouterError(f"{labels.size} labels for {n} samples")
+    classes, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
+    return 1.0 / (counts[inverse] * classes.size)
+
+
+def seen_unseen_curve(
+    novelty_touched: np.ndarray,
+    correct_touched: np.ndarray,
+    novelty_untouched: np.ndarray,
+    correct_untouched: np.ndarray,
+    labels_touched: np.ndarray | None = None,
+    labels_untouched: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The seen-unseen accuracy curve (Chao et al. 2016) swept over beta.
+
+    ``correct_touched[i]``: CLS_t classifies touched test press i correctly (if routed to it);
+    ``correct_untouched[j]``: CLS_u classifies untouched press j correctly. A press counts only
+    when routed to the right head. With labels the accuracies are per-class means (as the
+    paper's acc_t / acc_u). Returns (acc_untouched, acc_touched, betas) with acc_untouched
+    non-decreasing, from beta=+inf (everything touched) to beta=-inf (everything untouched).
+    """
+    nt = _clean(novelty_touched, "novelty_touched")
+    nu = _clean(novelty_untouched, "novelty_untouched")
+    ct = np.asarray(correct_touched, dtype=bool).reshape(-1)
+    cu = np.asarray(correct_untouched, dtype=bool).reshape(-1)
+    if ct.size != nt.size or cu.size != nu.size:
+        raise RouterError("correct_* must have one entry per novelty score")
+    wt = _class_weights(labels_touched, nt.size) * ct
+    wu = _class_weights(labels_untouched, nu.size) * cu
+    betas = _gap_thresholds(np.concatenate([nt, nu]))[::-1]  # +inf first
+    order_t = np.argsort(nt)
+    cum_t = np.concatenate([[0.0], np.cumsum(wt[order_t])])
+    order_u = np.argsort(nu)
+    cum_u = np.concatenate([[0.0], np.cumsum(wu[order_u])])
+    k_t = np.searchsorted(nt[order_t], betas, side="right")
+    k_u = np.searchsorted(nu[order_u], betas, side="right")
+    acc_t = cum_t[k_t]  # touched with novelty <= beta and correct
+    acc_u = cum_u[-1] - cum_u[k_u]  # untouched with novelty > beta and correct
+    return acc_u, acc_t, betas
+
+
+def ausuc(*args, **kwargs) -> float:
+    """Area under the seen-unseen curve (x = acc_untouched, y = acc_touched), trapezoid rule.
+
+    Same arguments as ``seen_unseen_curve``. 1.0 = a router and heads that are perfect.
+    """
+    acc_u, acc_t, _ = seen_unseen_curve(*args, **kwargs)
+    return float(np.sum(np.diff(acc_u) * 0.5 * (acc_t[1:] + acc_t[:-1])))
+
+
+def auroc(novelty_touched: np.ndarray, novelty_untouched: np.ndarray) -> float:
+    """P(novelty of an untouched press > that of a touched press), ties counting half."""
+    t = _clean(novelty_touched, "novelty_touched")
+    u = _clean(novelty_untouched, "novelty_untouched")
+    allv = np.concatenate([t, u])
+    # average ranks (1-based) with ties shared: Mann-Whitney U
+    order = np.argsort(allv, kind="mergesort")
+    sorted_v = allv[order]
+    ranks = np.empty(allv.size, dtype=np.float64)
+    uniq, first, counts = np.unique(sorted_v, return_index=True, return_counts=True)
+    avg = first + (counts + 1) / 2.0
+    ranks[order] = np.repeat(avg, counts)
+    r_u = float(np.sum(ranks[t.size:]))
+    return (r_u - u.size * (u.size + 1) / 2.0) / (t.size * u.size)
+
+
+def gzsl_accuracies(
+    untouched_mask_touched: np.ndarray,
+    correct_touched: np.ndarray,
+    untouched_mask_untouched: np.ndarray,
+    correct_untouched: np.ndarray,
+    labels_touched: np.ndarray | None = None,
+    labels_untouched: np.ndarray | None = None,
+) -> dict[str, float]:
+    """acc_t, acc_u (per-class means when labels given) and their harmonic mean H at one beta."""
+    wt = _class_weights(labels_touched, np.asarray(correct_touched).size)
+    wu = _class_weights(labels_untouched, np.asarray(correct_untouched).size)
+    acc_t = float(np.sum(wt * (np.asarray(correct_touched, bool) & ~np.asarray(untouched_mask_touched, bool))))
+    acc_u = float(np.sum(wu * (np.asarray(correct_untouched, bool) & np.asarray(untouched_mask_untouched, bool))))
+    h = 0.0 if acc_t + acc_u == 0 else 2 * acc_t * acc_u / (acc_t + acc_u)
+    return {"acc_t": acc_t, "acc_u": acc_u, "H": h}
