@@ -503,9 +503,8 @@ class URSim:
             self.out_int[0] = READY
             return
         if cmd in _REALTIME_CMDS:
-            if not self._executing or self.log.get("commands", [None])[-1] != cmd:
-                self._record_cmd(cmd)
-            self._executing = True
+            if self.log.get("commands", [None])[-1] != cmd:
+                self._record_cmd(cmd)  # once per run of the same realtime command
             self._start_command(cmd, now)
             self.out_int[0] = READY
             return
@@ -877,6 +876,16 @@ class URSim:
                     raise KeyError(f"unknown scene field {key!r}")
                 setattr(self.scene, key, value)
 
+    def reset(self) -> None:
+        """Back to a normal, powered robot at the home pose with no faults (between tests)."""
+        with self._lock:
+            self.faults = SimFaults()
+            self.safety_mode = SAFETY_MODE["NORMAL"]
+            self.robot_mode = ROBOT_MODE["RUNNING"]
+            self.pose = list(self.scene.home_pose)
+            self._motion = self._force_mode = self._pending = None
+            self.speed = [0.0] * 6
+
     def get_log(self) -> dict:
         with self._lock:
             return {k: list(v) for k, v in self.log.items()}
@@ -903,7 +912,7 @@ class URSimProcess:
     """
 
     _ALLOWED = {"trigger_protective_stop", "trigger_emergency_stop", "release_emergency_stop",
-                "drop_connections", "snapshot", "set_faults", "set_scene", "get_log", "clear_log",
+                "drop_connections", "snapshot", "set_faults", "set_scene", "get_log", "clear_log", "reset",
                 "contact_force_at"}
 
     def __init__(self, scene: PressScene | None = None, *, host: str = "127.0.0.1",
