@@ -324,8 +324,18 @@ class URArm:
         """Operator action after inspecting the cause: unlock, close the popup, restart the script."""
         self._require()
         self._dash.closeSafetyPopup()
-        self._dash.unlockProtectiveStop()
-        self._ctl.reuploadScript()
+        self._dash.unlockProtectiveStop()  # raises with the controller's words if refused (< 5 s)
+        # The safety stop aborted the control script; reuploadScript() does not wait for it to run.
+        if not _bounded(self._ctl.reuploadScript, self.config.command_timeout_s):
+            raise ArmConnectionError("control script could not be re-uploaded", device="arm",
+                                     kind="connection_lost")
+        deadline = time.monotonic() + self.config.command_timeout_s
+        while not self._link_ok():
+            if time.monotonic() > deadline:
+                raise ArmConnectionError("control script not running after re-upload", device="arm",
+                                         kind="connection_lost")
+            time.sleep(0.01)
+        self._raise_if_unsafe("after clearing the protective stop")
 
     # --- motion helpers ------------------------------------------------------------------
 

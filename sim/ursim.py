@@ -931,9 +931,11 @@ class URSimProcess:
         import sys
 
         spec = {"scene": asdict(self.scene), "host": self.host, "kwargs": self._kwargs}
+        # The child's stderr goes to a file, not a pipe nobody drains (a full pipe would stall it).
+        self._stderr = tempfile.TemporaryFile(mode="w+")
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "vs2t_edge.sim.ursim", "--serve-stdio", json.dumps(spec)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr, text=True, bufsize=1)
         status, detail = self._read_reply(self._start_timeout_s)
         if status != "ready":
             self.stop()
@@ -947,10 +949,7 @@ class URSimProcess:
         ready, _, _ = select.select([self._proc.stdout], [], [], timeout_s)
         line = self._proc.stdout.readline() if ready else ""
         if not line:
-            err = ""
-            if self._proc.poll() is not None:
-                err = self._proc.stderr.read()[-2000:]
-            return "error", f"no answer from the simulator process {err}".strip()
+            return "error", f"no answer from the simulator process {self.stderr_text()[-2000:]}".strip()
         reply = json.loads(line)
         return reply["status"], reply.get("value")
 
@@ -968,6 +967,14 @@ class URSimProcess:
         if status != "ok":
             raise RuntimeError(f"UR simulator {method}: {value}")
         return value
+
+    def stderr_text(self) -> str:
+        """What the child wrote on stderr (tracebacks of simulator threads end up here)."""
+        if getattr(self, "_stderr", None) is None:
+            return ""
+        self._stderr.flush()
+        self._stderr.seek(0)
+        return self._stderr.read()
 
     def __getattr__(self, name: str):
         if name in URSimProcess._ALLOWED:
@@ -991,11 +998,10 @@ class URSimProcess:
             except Exception:
                 proc.kill()
                 proc.wait()
-        for stream in (proc.stdout, proc.stderr):
-            try:
-                stream.close()
-            except OSError:
-                pass
+        try:
+            proc.stdout.close()
+        except OSError:
+            pass
 
     def __enter__(self) -> "URSimProcess":
         return self.start()
