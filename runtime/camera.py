@@ -1,0 +1,373 @@
+"""GelSight capture: frames in, nothing else (preprocessing stays in runtime/preprocess.py).
+
+Three implementations of :class:`vs2t_edge.runtime.devices.TactileCamera`:
+
+* :class:`UVCCamera` - the sensor as a UVC camera through ``cv2.VideoCapture`` (device index or
+  path); resolution, fps and exposure set where the driver accepts them (what it accepted is
+  read back into ``settings_applied``); a bounded read; stale buffered frames flushed.
+* :class:`ReplayCamera` - recorded frames (a video file, an image folder or a glob), same
+  interface; loops or ends with ``CameraError(kind="ended")``.
+* :class:`SimulatedCamera` - the simulated cell's sensor: a callable gives the frame of the
+  current press; faults (unplugged for N grabs, frozen, black, truncated) are injectable.
+
+Every grab goes through one guard: ``check_frame`` from the runtime (dtype, size, NaN, black,
+white, saturated) and frozen-frame detection (the same frame N times in a row: a hung driver
+hands out its last buffer again; a live sensor's noise never repeats bit for bit).
+Faults are ``CameraError(kind=...)`` with kind one of: unplugged, timeout, frozen, ended, corrupt.
+
+:class:`ContactCheck` answers "is the gel actually pressed?" from the difference to the
+session's no-contact reference frame; :func:`capture_reference` takes that reference.
+"""
+
+from __future__ import annotations
+
+import glob as globmod
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from vs2t_edge.runtime.devices import CameraError, Frame, NotConnectedError
+from vs2t_edge.runtime.preprocess import FrameError, check_frame
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class _FrameGuard:
+    """Checks shared by every camera: frame sanity, frozen frames, running index, timestamp."""
+
+    def __init__(self, name: str, expected_hw: tuple[int, int] | None, frozen_after: int) -> None:
+        if frozen_after < 2:
+            raise ValueError(f"{name}: frozen_after must be at least 2, got {frozen_after}")
+        self.name = name
+        self.expected_hw = expected_hw
+        self.frozen_after = frozen_after
+        self._last: np.ndarray | None = None
+        self._repeats = 1
+        self.index = 0
+
+    def reset(self) -> None:
+        self._last, self._repeats = None, 1
+
+    def admit(self, image: object, where: str = "") -> Frame:
+        try:
+            image = check_frame(image, self.expected_hw, name=f"{self.name} frame {self.index}{where}")
+        except FrameError as exc:
+            err = CameraError(str(exc), device=self.name, kind="corrupt")
+            err.reason = exc.reason  # the precise check that failed (black, size, ...)
+            raise err from exc
+        if self._last is not None and image.shape == self._last.shape and np.array_equal(image, self._last):
+            self._repeats += 1
+            if self._repeats >= self.frozen_after:
+                raise CameraError(f"{self.name}: the same frame {self._repeats} times in a row; "
+                                  "the camera is frozen", device=self.name, kind="frozen")
+        else:
+            self._repeats = 1
+        self._last = image
+        frame = Frame(image=image, timestamp_s=time.monotonic(), index=self.index)
+        self.index += 1
+        return frame
+
+
+class _CameraBase:
+    name = "camera"
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disconnect()
+
+
+# --- live UVC camera ----------------------------------------------------------------------
+
+class UVCCamera(_CameraBase):
+    """A GelSight (Mini, R1.5, ...) enumerating as a UVC camera."""
+
+    def __init__(self, device: int | str = 0, *, width: int | None = None, height: int | None = None,
+                 fps: float | None = None, exposure: float | None = None, read_timeout_s: float = 1.0,
+                 frozen_after: int = 5, flush_frames: int = 2, expected_hw: tuple[int, int] | None = None,
+                 api_preference: int = cv2.CAP_ANY) -> None:
+        if read_timeout_s <= 0:
+            raise ValueError("read_timeout_s must be positive")
+        if flush_frames < 0:
+            raise ValueError("flush_frames must be >= 0")
+        self.device = device
+        self.name = f"camera {device}"
+        self.requested = {"width": width, "height": height, "fps": fps, "exposure": exposure}
+        self.read_timeout_s = read_timeout_s
+        self.flush_frames = flush_frames  # V4L2 queues a few buffers: drop those taken before the press
+        self.api_preference = api_preference
+        self.settings_applied: dict[str, float | None] = {}
+        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
+        self._cap = None
+        self._reader: threading.Thread | None = None  # a read still stuck in the driver
+
+    def connect(self) -> None:
+        cap = cv2.VideoCapture(self.device, self.api_preference)
+        if not cap.isOpened():
+            cap.release()
+            raise CameraError(f"{self.name}: cannot open (unplugged, wrong index/path or busy)",
+                              device=self.name, kind="unplugged")
+        req = self.requested
+        applied: dict[str, float | None] = {}
+        for key, prop in (("width", cv2.CAP_PROP_FRAME_WIDTH), ("height", cv2.CAP_PROP_FRAME_HEIGHT),
+                          ("fps", cv2.CAP_PROP_FPS)):
+            if req[key] is not None:
+                cap.set(prop, float(req[key]))
+            applied[key] = cap.get(prop) or None  # what the driver actually runs at
+        if req["exposure"] is not None:
+            # V4L2 convention: auto-exposure 1 = manual, 3 = aperture priority (auto).
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)
+            cap.set(cv2.CAP_PROP_EXPOSURE, float(req["exposure"]))
+            applied["exposure"] = cap.get(cv2.CAP_PROP_EXPOSURE)
+        self.settings_applied = applied
+        self._cap = cap
+        self._guard.reset()
+
+    def disconnect(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+        self._cap = None
+
+    def _read_bounded(self) -> np.ndarray | None:
+        if self._reader is not None and self._reader.is_alive():
+            raise CameraError(f"{self.name}: the previous read is still stuck in the driver",
+                              device=self.name, kind="timeout")
+        box: dict = {}
+        cap = self._cap
+
+        def read() -> None:
+            for _ in range(self.flush_frames):
+                cap.grab()
+            ok, image = cap.read()
+            box["image"] = image if ok else None
+
+        self._reader = threading.Thread(target=read, daemon=True, name="uvc-read")
+        self._reader.start()
+        self._reader.join(self.read_timeout_s)
+        if self._reader.is_alive():
+            raise CameraError(f"{self.name}: no frame within {self.read_timeout_s} s", device=self.name,
+                              kind="timeout")
+        return box.get("image")
+
+    def grab(self) -> Frame:
+        if self._cap is None:
+            raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
+        image = self._read_bounded()
+        if image is None:
+            raise CameraError(f"{self.name}: no frame (unplugged or stream ended)", device=self.name,
+                              kind="unplugged")
+        return self._guard.admit(image)
+
+
+# --- replay -------------------------------------------------------------------------------
+
+def _list_images(source: str | Path) -> list[Path]:
+    path = Path(source)
+    if path.is_dir():
+        files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+    else:
+        files = [Path(p) for p in globmod.glob(str(source))
+                 if Path(p).suffix.lower() in IMAGE_SUFFIXES]
+    return sorted(files)
+
+
+class ReplayCamera(_CameraBase):
+    """Recorded frames through the camera interface: a video file, an image folder or a glob."""
+
+    def __init__(self, source: str | Path, *, loop: bool = False, frozen_after: int = 5,
+                 expected_hw: tuple[int, int] | None = None) -> None:
+        self.source = str(source)
+        self.name = f"replay {Path(self.source).name}"
+        self.loop = loop
+        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
+        self._files: list[Path] | None = None
+        self._video = None
+        self._pos = 0
+        self._connected = False
+
+    @property
+    def is_video(self) -> bool:
+        p = Path(self.source)
+        return p.is_file() and p.suffix.lower() not in IMAGE_SUFFIXES
+
+    def __len__(self) -> int:
+        if self._files is not None:
+            return len(self._files)
+        if self._video is not None:
+            return int(self._video.get(cv2.CAP_PROP_FRAME_COUNT))
+        return 0
+
+    def connect(self) -> None:
+        if self.is_video:
+            video = cv2.VideoCapture(self.source)
+            if not video.isOpened():
+                raise CameraError(f"{self.name}: cannot open video {self.source}", device=self.name,
+                                  kind="unplugged")
+            self._video = video
+        else:
+            files = _list_images(self.source)
+            if not files:
+                raise CameraError(f"{self.name}: no images at {self.source}", device=self.name,
+                                  kind="unplugged")
+            self._files = files
+        self._pos = 0
+        self._guard.reset()
+        self._connected = True
+
+    def disconnect(self) -> None:
+        if self._video is not None:
+            self._video.release()
+        self._video, self._files, self._connected = None, None, False
+
+    def _rewind(self) -> None:
+        self._pos = 0
+        if self._video is not None:
+            self._video.set(cv2.CAP_PROP_POS_FRAMES, 0)
+
+    def grab(self) -> Frame:
+        if not self._connected:
+            raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
+        for attempt in range(2):
+            if self._video is not None:
+                ok, image = self._video.read()
+                where = f" (video frame {self._pos})"
+                if ok:
+                    self._pos += 1
+                    return self._guard.admit(image, where)
+            elif self._pos < len(self._files):
+                path = self._files[self._pos]
+                self._pos += 1
+                image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                if image is None:
+                    raise CameraError(f"{self.name}: cannot decode {path}", device=self.name, kind="corrupt")
+                return self._guard.admit(image, f" ({path.name})")
+            if not self.loop or attempt:
+                break
+            self._rewind()
+        raise CameraError(f"{self.name}: end of the recording after {self._pos} frames", device=self.name,
+                          kind="ended")
+
+
+# --- simulated ----------------------------------------------------------------------------
+
+class SimulatedCamera(_CameraBase):
+    """The simulated cell's sensor. ``frame_fn()`` returns the frame for the current press
+    (the demo wires it to the synthetic dataset: item fabric + grid index).
+
+    Sensor noise (``noise_levels``, 1-sigma in grey levels) is added to every grab, as a real
+    sensor's would be, so that only an injected freeze repeats a frame bit for bit.
+    ``inject(kind, count)`` queues faults: unplugged (no frame), frozen (the last frame again),
+    black (a dark frame), truncated (a frame of the wrong size), timeout.
+    """
+
+    FAULTS = ("unplugged", "frozen", "black", "truncated", "timeout")
+
+    def __init__(self, frame_fn: Callable[[], np.ndarray], *, noise_levels: float = 1.0, seed: int = 0,
+                 frozen_after: int = 5, expected_hw: tuple[int, int] | None = None) -> None:
+        self.frame_fn = frame_fn
+        self.name = "simulated camera"
+        self.noise_levels = noise_levels
+        self._rng = np.random.default_rng(seed)
+        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
+        self._faults: list[str] = []
+        self._last: np.ndarray | None = None
+        self._connected = False
+        self.grabs = 0
+
+    def inject(self, kind: str, count: int = 1) -> None:
+        if kind not in self.FAULTS:
+            raise ValueError(f"unknown camera fault {kind!r}; known: {self.FAULTS}")
+        self._faults.extend([kind] * count)
+
+    def connect(self) -> None:
+        if self._faults and self._faults[0] == "unplugged":
+            self._faults.pop(0)
+            raise CameraError(f"{self.name}: cannot open (unplugged)", device=self.name, kind="unplugged")
+        self._connected = True
+        self._guard.reset()
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    def grab(self) -> Frame:
+        if not self._connected:
+            raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
+        self.grabs += 1
+        fault = self._faults.pop(0) if self._faults else ""
+        if fault == "unplugged":
+            raise CameraError(f"{self.name}: no frame (unplugged)", device=self.name, kind="unplugged")
+        if fault == "timeout":
+            raise CameraError(f"{self.name}: no frame in time", device=self.name, kind="timeout")
+        if fault == "frozen" and self._last is not None:
+            return self._guard.admit(self._last)
+        image = np.asarray(self.frame_fn())
+        if self.noise_levels > 0 and image.dtype == np.uint8:
+            noisy = image.astype(np.float32) + self._rng.normal(0.0, self.noise_levels, image.shape)
+            image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+        if fault == "black":
+            image = np.zeros_like(image)
+        elif fault == "truncated":
+            image = image[: max(1, image.shape[0] // 2)]
+        self._last = image
+        return self._guard.admit(image)
+
+
+# --- contact --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ContactReading:
+    pressed: bool
+    area_fraction: float  # of pixels that changed by more than the threshold
+    peak_levels: float  # largest locally averaged change, grey levels
+
+
+@dataclass(frozen=True)
+class ContactCheck:
+    """Is the gel pressed? Compares a frame with the session's no-contact reference.
+
+    The per-pixel change (largest over the three channels) is averaged over a small window so
+    that sensor noise cancels while an imprint (a few mm, tens of pixels) stays; the gel counts
+    as pressed when enough of the image changed by more than ``threshold_levels``. A global
+    lighting drift of a few levels stays under the threshold.
+    """
+
+    threshold_levels: float = 12.0
+    min_area_fraction: float = 0.005
+    window_px: int = 5
+
+    def difference(self, frame: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        if frame.shape != reference.shape:
+            raise ValueError(f"frame {frame.shape} and no-contact reference {reference.shape} differ in size")
+        diff = np.abs(frame.astype(np.int16) - reference.astype(np.int16)).max(axis=2).astype(np.float32)
+        return cv2.blur(diff, (self.window_px, self.window_px))
+
+    def read(self, frame: np.ndarray, reference: np.ndarray) -> ContactReading:
+        diff = self.difference(frame, reference)
+        area = float(np.mean(diff > self.threshold_levels))
+        return ContactReading(pressed=area >= self.min_area_fraction, area_fraction=area,
+                              peak_levels=float(diff.max()))
+
+    def is_pressed(self, frame: np.ndarray, reference: np.ndarray) -> bool:
+        return self.read(frame, reference).pressed
+
+
+def capture_reference(camera, n_frames: int = 5, check: ContactCheck | None = None) -> np.ndarray:
+    """The session's no-contact frame: the median of n grabs, refused if the gel moved meanwhile."""
+    if n_frames < 1:
+        raise ValueError("n_frames must be at least 1")
+    frames = [camera.grab().image for _ in range(n_frames)]
+    reference = np.median(np.stack(frames), axis=0).astype(np.uint8)
+    check = check or ContactCheck()
+    for i, image in enumerate(frames):
+        if check.is_pressed(image, reference):
+            raise CameraError(f"no-contact reference: frame {i} of {n_frames} differs from the others; "
+                              "something touches the gel", device=getattr(camera, "name", "camera"),
+                              kind="corrupt")
+    return reference

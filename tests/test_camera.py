@@ -1,0 +1,231 @@
+"""GelSight capture: OpenCV reading real files (a written video, real GelSight image sequences),
+frame guards (frozen, corrupt, ended), the simulated camera's faults and the contact check."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vs2t_edge.runtime.camera import (
+    ContactCheck,
+    ReplayCamera,
+    SimulatedCamera,
+    UVCCamera,
+    capture_reference,
+)
+from vs2t_edge.runtime.devices import CameraError, NotConnectedError, TactileCamera
+from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+
+SHARED_REAL = Path(__file__).resolve().parents[2] / "shared" / "real"
+H, W = 120, 160
+
+
+def _pattern(i: int) -> np.ndarray:
+    """A frame a codec keeps recognisable: a bright disc that moves with i on a mid-grey gel."""
+    image = np.full((H, W, 3), 110, np.uint8)
+    cv2.circle(image, (30 + 8 * i, 60), 18, (200, 170, 140), -1)
+    return image
+
+
+@pytest.fixture
+def video(tmp_path) -> Path:
+    path = tmp_path / "press.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (W, H))
+    assert writer.isOpened()
+    for i in range(10):
+        writer.write(_pattern(i))
+    writer.release()
+    return path
+
+
+def test_replay_reads_back_a_written_video(video):
+    cam = ReplayCamera(video)
+    assert isinstance(cam, TactileCamera)
+    with pytest.raises(NotConnectedError):
+        cam.grab()
+    with cam:
+        assert len(cam) == 10
+        frames = [cam.grab() for _ in range(10)]
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+    assert exc.value.kind == "ended"
+    assert [f.index for f in frames] == list(range(10))
+    for i, f in enumerate(frames):
+        assert f.image.shape == (H, W, 3) and f.image.dtype == np.uint8
+        # MJPEG is lossy: the disc is where it was written, within a few grey levels on average.
+        assert np.abs(f.image.astype(int) - _pattern(i)).mean() < 4.0
+    assert frames[-1].timestamp_s >= frames[0].timestamp_s
+
+
+def test_replay_loops(video):
+    with ReplayCamera(video, loop=True) as cam:
+        frames = [cam.grab().image for _ in range(13)]
+    assert np.array_equal(frames[10], frames[0]) and np.array_equal(frames[12], frames[2])
+
+
+def test_uvc_camera_through_videocapture_on_a_path(video):
+    # A file path exercises the same cv2.VideoCapture code a /dev/video path does.
+    with UVCCamera(str(video), width=W, height=H, flush_frames=0, read_timeout_s=2.0) as cam:
+        assert cam.settings_applied["width"] == W and cam.settings_applied["height"] == H
+        first = cam.grab()
+        assert np.abs(first.image.astype(int) - _pattern(0)).mean() < 4.0
+        for _ in range(9):
+            cam.grab()
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.kind == "unplugged"  # the stream ended: for a device, unplugged
+
+
+def test_uvc_flush_drops_buffered_frames(video):
+    with UVCCamera(str(video), flush_frames=2) as cam:
+        image = cam.grab().image
+    assert np.abs(image.astype(int) - _pattern(2)).mean() < 4.0  # frames 0 and 1 were stale
+
+
+def test_uvc_missing_device_is_unplugged(tmp_path):
+    with pytest.raises(CameraError) as exc:
+        UVCCamera(str(tmp_path / "video99.avi")).connect()
+    assert exc.value.kind == "unplugged"
+
+
+def test_frozen_frames_detected(tmp_path):
+    for i in range(6):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), _pattern(0))
+    with ReplayCamera(tmp_path, frozen_after=4) as cam:
+        for _ in range(3):
+            cam.grab()
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+    assert exc.value.kind == "frozen"
+
+
+def test_corrupt_and_black_images_named(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), _pattern(0))
+    (tmp_path / "b.png").write_bytes(b"not a png")
+    cv2.imwrite(str(tmp_path / "c.png"), np.zeros((H, W, 3), np.uint8))
+    with ReplayCamera(tmp_path) as cam:
+        cam.grab()
+        with pytest.raises(CameraError, match="b.png") as exc:
+            cam.grab()
+        assert exc.value.kind == "corrupt"
+        with pytest.raises(CameraError, match="c.png") as exc:
+            cam.grab()
+        assert exc.value.kind == "corrupt" and exc.value.reason == "black"
+
+
+def test_expected_size_enforced(video):
+    with ReplayCamera(video, expected_hw=(240, 320)) as cam:
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+    assert exc.value.reason == "size"
+
+
+def test_simulated_camera_faults():
+    press = {"i": 0}
+    cam = SimulatedCamera(lambda: _pattern(press["i"]), frozen_after=3)
+    cam.inject("unplugged")
+    with pytest.raises(CameraError):
+        cam.connect()
+    cam.connect()
+    a, b = cam.grab().image, cam.grab().image
+    assert not np.array_equal(a, b)  # sensor noise: two grabs of one press still differ
+    assert np.abs(a.astype(int) - _pattern(0)).mean() < 2
+    cam.inject("unplugged", 2)
+    for _ in range(2):
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.kind == "unplugged"
+    cam.grab()
+    cam.inject("frozen", 2)
+    cam.grab()
+    with pytest.raises(CameraError) as exc:
+        cam.grab()
+    assert exc.value.kind == "frozen"
+    cam.inject("black")
+    with pytest.raises(CameraError) as exc:
+        cam.grab()
+    assert exc.value.reason == "black"
+    cam.inject("truncated")
+    cam._guard.expected_hw = (H, W)
+    with pytest.raises(CameraError) as exc:
+        cam.grab()
+    assert exc.value.reason == "size"
+    press["i"] = 5
+    assert np.abs(cam.grab().image.astype(int) - _pattern(5)).mean() < 2
+
+
+def test_contact_check_on_synthetic_frames():
+    reference = _pattern(0)
+    check = ContactCheck()
+    rng = np.random.default_rng(1)
+    noisy = np.clip(reference + rng.normal(0, 3, reference.shape), 0, 255).astype(np.uint8)
+    brighter = np.clip(reference.astype(int) + 6, 0, 255).astype(np.uint8)
+    assert not check.is_pressed(noisy, reference)
+    assert not check.is_pressed(brighter, reference)  # lighting drift is not a press
+    assert check.is_pressed(_pattern(4), reference)
+    with pytest.raises(ValueError, match="differ in size"):
+        check.read(reference[:10], reference)
+
+
+def test_capture_reference_refuses_a_touched_gel():
+    frames = iter([_pattern(0)] * 4 + [_pattern(3)])
+    cam = SimulatedCamera(lambda: next(frames), noise_levels=1.0)
+    cam.connect()
+    with pytest.raises(CameraError, match="touches the gel"):
+        capture_reference(cam, n_frames=5)
+    steady = SimulatedCamera(lambda: _pattern(0), noise_levels=1.0)
+    steady.connect()
+    reference = capture_reference(steady, n_frames=5)
+    assert np.abs(reference.astype(int) - _pattern(0)).max() <= 3
+
+
+# --- real GelSight frames (skip on a machine without ../shared) -------------------------------
+
+needs_real = pytest.mark.skipif(not SHARED_REAL.is_dir(), reason="../shared/real is absent")
+
+
+@needs_real
+def test_contact_check_on_real_ball_presses():
+    pack = SHARED_REAL / "taxim_calib" / "dataPack_small.npz"
+    if not pack.is_file():
+        pytest.skip("taxim_calib/dataPack_small.npz absent")
+    data = np.load(pack)
+    reference, presses = data["f0"], data["imgs"]  # a real no-contact frame and 49 real presses
+    check = ContactCheck()
+    readings = [check.read(p, reference) for p in presses]
+    assert all(r.pressed for r in readings), [round(r.area_fraction, 4) for r in readings]
+    rng = np.random.default_rng(0)
+    unpressed = np.clip(reference + rng.normal(0, 3, reference.shape), 0, 255).astype(np.uint8)
+    assert not check.is_pressed(unpressed, reference)
+
+
+def _real_sequences() -> list[Path]:
+    if not SHARED_REAL.is_dir():
+        return []
+    folders = sorted((SHARED_REAL / "gelsight_mini_materials").glob("material_*"))
+    folders += [SHARED_REAL / "vitac_cloth11" / name for name in ("11t", "11t_test")]
+    return [f for f in folders if f.is_dir()]
+
+
+@needs_real
+@pytest.mark.parametrize("folder", _real_sequences(), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_real_sequences_through_capture_and_preprocessing(folder):
+    spec = TactilePreprocess()
+    with ReplayCamera(folder) as cam:
+        n = len(cam)
+        frames = [cam.grab() for _ in range(n)]
+        with pytest.raises(CameraError):
+            cam.grab()
+    assert n >= 2
+    shapes = {f.image.shape for f in frames}
+    assert len(shapes) == 1, f"{folder}: frames of different sizes {shapes}"
+    # No no-contact frame was recorded: the first frame of the sequence stands in for it.
+    reference = frames[0].image
+    tensors = [preprocess_tactile(f.image, reference, spec) for f in frames]
+    for t in tensors:
+        assert t.shape == (3, spec.size, spec.size) and t.dtype == np.float32 and np.all(np.isfinite(t))
+    assert np.abs(tensors[0]).max() == 0.0  # the reference minus itself
+    assert max(np.abs(t).mean() for t in tensors[1:]) > 0.01  # other presses differ from it
