@@ -183,6 +183,14 @@ def _bounded(fn, timeout_s: float):
     return box.get("value")
 
 
+def _reconnected(what: str) -> ArmConnectionError:
+    """The link broke during ``what`` and is back: the step was lost, the arm is usable."""
+    err = ArmConnectionError(f"link to the robot lost during {what}; reconnected", device="arm",
+                             kind="connection_lost")
+    err.reconnected = True
+    return err
+
+
 def _safety_error(mode: int, where: str) -> ArmError | None:
     if mode in _SAFETY_EMERGENCY:
         return ArmSafetyStop(f"emergency stop ({where}); release it, power on and brake release "
@@ -220,6 +228,14 @@ class URArm:
         host, freq = self.config.host, self.config.rtde_frequency_hz
         dash = dashboard_client.DashboardClient(host)
         dash.connect()
+        try:
+            # Stop any program first. Otherwise the control constructor sends stopScript through
+            # the register handshake, which never completes if the old script is still busy with
+            # an earlier command - and that constructor holds the GIL, so nothing here could
+            # time it out.
+            dash.stop()
+        except RuntimeError:
+            pass  # "Failed to execute: stop" when nothing runs
         rcv = rtde_receive.RTDEReceiveInterface(host, freq)
         # Uploads the control script on the script port and waits for it to run.
         ctl = rtde_control.RTDEControlInterface(host, freq)
@@ -348,8 +364,7 @@ class URArm:
             if retry is not None:
                 retry()
                 return
-            raise ArmConnectionError(f"link to the robot lost during {what}; reconnected", device="arm",
-                                     kind="connection_lost")
+            raise _reconnected(what)
         raise PressFailed(f"robot refused {what}", device="arm", kind="timeout")
 
     def _call(self, what: str, fn, *, retry=None):
@@ -360,11 +375,9 @@ class URArm:
             self._abandoned.extend(o for o in (self._ctl, self._rcv, self._dash) if o is not None)
             self._ctl = self._rcv = self._dash = None
             self._connect_with_backoff(f"{what} did not return within {self.config.command_timeout_s} s")
-            if retry is not None:
-                retry()
-                return True
-            raise ArmConnectionError(f"link to the robot lost during {what}; reconnected", device="arm",
-                                     kind="connection_lost")
+            self._raise_if_unsafe(what)
+            raise PressFailed(f"{what} did not return within {self.config.command_timeout_s} s; "
+                              "link re-established", device="arm", kind="timeout")
         except RuntimeError:
             ok = False
         if ok is False:
@@ -437,7 +450,7 @@ class URArm:
         try:
             return self._press_once()
         except ArmConnectionError as exc:
-            if "reconnected" not in str(exc):
+            if not getattr(exc, "reconnected", False):
                 raise
             # The link came back: the script restarted, force mode is gone. Back up and press again.
             x, y = self._target
@@ -472,8 +485,7 @@ class URArm:
                 self._raise_if_unsafe("press")
                 self.stop()
                 self._connect_with_backoff("link lost during press")
-                raise ArmConnectionError("link to the robot lost during press; reconnected", device="arm",
-                                         kind="connection_lost")
+                raise _reconnected("press")
             samples.append((now - t0, pose[2], force))
             max_force = max(max_force, force)
             if contact_z is None and force >= cfg.contact_threshold_n:

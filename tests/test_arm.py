@@ -210,3 +210,16 @@ def test_connection_refused_is_a_typed_error():
     assert time.monotonic() - t0 < 10
     with pytest.raises(NotConnectedError):
         arm.press()
+
+
+def test_controller_not_answering_a_command_is_bounded(arm, sim):
+    arm.move_above(70.0, 70.0)
+    arm.config = dataclasses.replace(arm.config, command_timeout_s=1.0)
+    sim.set_faults(command_delay_s=4.0)  # the script answers 'done' 4 s late
+    t0 = time.monotonic()
+    with pytest.raises(PressFailed) as exc:
+        arm.press()
+    assert exc.value.kind == "timeout" and "zeroFtSensor" in str(exc.value)
+    assert time.monotonic() - t0 < 4.0  # bounded by command_timeout_s + one reconnect
+    sim.set_faults(command_delay_s=0.0)
+    assert arm.press().force_n == pytest.approx(15.0, abs=1.0)  # the re-established link works
