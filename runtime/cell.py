@@ -1,0 +1,450 @@
+"""The one cell loop. The live daemon, replay and the demo all run this code.
+
+Everything it touches is injected: camera, arm and gate (runtime/devices.py protocols), the
+model (``set_reference`` / ``score_press``), an evidence factory (runtime/evidence.py), the
+item source, the journal, the notifier and the clock. Per item::
+
+    wait for item -> reference frame (gel in the air above the first point)
+    -> for each grid point (config order): move_above, press, grab, retract, score
+       -> evidence.add(score) until it decides (confident) or the press limit
+    -> bin from the scene (a scene fabric -> its bin; "unknown" or off-scene -> reject bin)
+    -> journal "pre_sort" record, fsynced  -> gate.sort(bin), ack awaited
+    -> journal "final" record (exactly one per item)
+
+Retry policy (one table, so the behaviour is reviewable):
+
+* retryable device error (CameraError, PressFailed, ArmConnectionError): that press is tried
+  once more; a second failure latches a fault.
+* a bad frame (FrameError from preprocessing): skipped, counted, journalled, never used; the
+  next grid point is pressed. An item whose frames are all bad is decided "unknown" -> reject.
+* ArmSafetyStop, any other device error, a gate error, an item over its time budget: a
+  latched fault.
+
+Latched fault (Klipper's shutdown): arm.stop(), gate.to_reject(), the reason in the journal,
+in STATUS and in the fault file — each step guarded so one failing step does not skip the
+rest. The item in hand gets its final record (``rejected_fault``). Nothing moves until an
+operator clears the fault: the fault file is removed (``vs2t-edge run --clear-fault``), after
+which the loop clears the gate and carries on. The fault file survives a restart, so a restart
+does not clear a fault either.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import threading
+
+from vs2t_edge.runtime.devices import (
+    ArmSafetyStop,
+    DeviceError,
+    GateError,
+)
+from vs2t_edge.runtime.preprocess import FrameError
+
+UNKNOWN = "unknown"
+
+
+@dataclass(frozen=True)
+class Item:
+    id: str  # the feeder's id for the piece (sim: "item-0007")
+    truth: str | None = None  # known label in simulation/replay, never used to decide
+
+
+class ItemSource(Protocol):
+    def next_item(self, timeout_s: float) -> Item | None: ...  # None: nothing yet, ask again
+
+
+class ContinuousFeed:
+    """Live cell: the feeder presents the next piece as soon as the last one is sorted."""
+
+    def __init__(self, limit: int | None = None) -> None:
+        self.limit, self.count = limit, 0
+
+    def next_item(self, timeout_s: float) -> Item | None:
+        if self.limit is not None and self.count >= self.limit:
+            time.sleep(min(timeout_s, 0.05))
+            return None
+        self.count += 1
+        return Item(id=f"piece-{self.count:06d}")
+
+    def exhausted(self) -> bool:
+        return self.limit is not None and self.count >= self.limit
+
+
+@dataclass
+class SceneSpec:
+    """What the loop needs from the config (a CellConfig satisfies it via from_config)."""
+
+    bins: dict[str, int]  # scene class -> bin
+    reject_bin: int
+    points_mm: list[tuple[float, float]]  # grid points in press order
+    max_presses: int
+    confidence: float
+    item_timeout_s: float = 60.0
+    wait_item_timeout_s: float = 1.0
+    fault_file: Path | None = None
+
+    @classmethod
+    def from_config(cls, cfg) -> "SceneSpec":
+        return cls(bins={f.name: f.bin for f in cfg.fabrics}, reject_bin=cfg.reject_bin,
+                   points_mm=cfg.press_points_mm(), max_presses=cfg.max_presses,
+                   confidence=cfg.confidence, item_timeout_s=cfg.item_timeout_s,
+                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file)
+
+    @property
+    def classes(self) -> list[str]:
+        return list(self.bins)
+
+    def bin_for(self, label: str) -> int:
+        return self.bins.get(label, self.reject_bin)
+
+
+class CellFault(Exception):
+    """Raised inside the loop to latch a fault; ``reason`` is what the operator reads."""
+
+    def __init__(self, reason: str, kind: str = "fault") -> None:
+        super().__init__(reason)
+        self.reason, self.kind = reason, kind
+
+
+class StopRequested(Exception):
+    pass
+
+
+@dataclass
+class ItemResult:
+    item: Item
+    label: str
+    bin: int
+    outcome: str  # sorted | rejected_fault | aborted
+    presses: int
+    confidence: float
+    stopped_by: str
+    skipped_frames: int
+    latency_ms: list[float] = field(default_factory=list)  # model time per press
+    item_s: float = 0.0
+
+
+def _score_dict(score: Any) -> dict:
+    """A PressScore as plain JSON numbers (for the journal and replay comparisons)."""
+    out: dict[str, Any] = {}
+    for key in ("novelty", "untouched", "latency_ms"):
+        v = getattr(score, key, None)
+        if isinstance(v, (bool, int, float)):
+            out[key] = v if isinstance(v, bool) else float(v)
+    lp = getattr(score, "log_posterior", None)
+    if isinstance(lp, dict):
+        out["log_posterior"] = {str(k): float(v) for k, v in lp.items()}
+    elif lp is not None:
+        try:
+            out["log_posterior"] = [float(v) for v in lp]
+        except TypeError:
+            pass
+    return out
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+class Cell:
+    def __init__(self, *, camera, arm, gate, model, journal, notifier, scene: SceneSpec,
+                 evidence_factory: Callable[[], Any], items: ItemSource,
+                 clock: Callable[[], float] = time.monotonic, stop_event: threading.Event | None = None,
+                 on_item: Callable[[ItemResult], None] | None = None, log: Callable[[str], None] | None = None,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.camera, self.arm, self.gate, self.model = camera, arm, gate, model
+        self.journal, self.notifier, self.scene = journal, notifier, scene
+        self.evidence_factory, self.items, self.clock = evidence_factory, items, clock
+        self.stop_event = stop_event or threading.Event()
+        self.on_item = on_item
+        self.log = log or (lambda msg: None)
+        self.sleep = sleep
+        self.fault: str | None = None
+        self.results: list[ItemResult] = []
+        self.skipped_total = 0
+        self.next_number = journal.next_item_number()
+
+    # --- start-up ----------------------------------------------------------------------
+
+    def recover(self) -> list[dict]:
+        """Resolve items the last run left between pre_sort and final; restore a latched fault."""
+        resolved = []
+        for pre in self.journal.unresolved_items():
+            rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
+                              bin_=self.scene.reject_bin, outcome="unknown_outcome",
+                              note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
+                                   "and before the gate's ack; the gate may have moved - check the bins")
+            resolved.append(rec)
+            self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
+        ff = self.scene.fault_file
+        if ff is not None and ff.exists():
+            reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"
+            self.fault = reason
+            self.notifier.status(f"FAULT (latched before restart): {reason}")
+        return resolved
+
+    # --- journal helpers ---------------------------------------------------------------
+
+    def _final(self, number: int, item_id: str, *, label: str, bin_: int, outcome: str, **extra) -> dict:
+        rec = {"type": "final", "item": number, "item_id": item_id, "label": label, "bin": bin_,
+               "outcome": outcome, **extra}
+        return self.journal.append(rec)
+
+    # --- the fault latch ---------------------------------------------------------------
+
+    def latch_fault(self, reason: str, kind: str = "fault") -> None:
+        """Arm stopped, gate to reject, reason journalled and reported; every step guarded."""
+        self.fault = reason
+        steps: list[str] = []
+        for what, fn in (("arm.stop", self.arm.stop), ("gate.to_reject", self.gate.to_reject)):
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - one failing step must not skip the rest
+                steps.append(f"{what} failed: {exc}")
+        try:
+            self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
+                                 "t": time.time()})
+        except Exception as exc:  # noqa: BLE001
+            steps.append(f"journal failed: {exc}")
+        try:
+            if self.scene.fault_file is not None:
+                _atomic_write(self.scene.fault_file, reason + "\n")
+        except Exception as exc:  # noqa: BLE001
+            steps.append(f"fault file failed: {exc}")
+        try:
+            self.notifier.status(f"FAULT: {reason} - clear with `vs2t-edge run --clear-fault`")
+        except Exception:  # noqa: BLE001
+            pass
+        self.log(f"FAULT latched: {reason}" + (f" ({'; '.join(steps)})" if steps else ""))
+
+    def fault_cleared_by_operator(self) -> bool:
+        ff = self.scene.fault_file
+        return ff is None or not ff.exists()
+
+    def clear_fault(self) -> bool:
+        """Called when the operator removed the fault file: clear the gate, journal, resume."""
+        try:
+            self.gate.clear()
+            clear_arm = getattr(self.arm, "clear_protective_stop", None)
+            if clear_arm is not None:
+                clear_arm()
+                connect = getattr(self.arm, "connect", None)
+                if connect is not None:
+                    connect()
+        except DeviceError as exc:
+            self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
+            return False
+        self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
+        self.log(f"fault cleared by the operator: {self.fault}")
+        self.fault = None
+        self.notifier.status("fault cleared; sorting")
+        return True
+
+    # --- the loop ----------------------------------------------------------------------
+
+    def run(self, max_items: int | None = None, stop_when: Callable[[], bool] | None = None) -> list[ItemResult]:
+        """Sort until stopped (SIGTERM sets stop_event), max_items done, or stop_when() is true."""
+        while not self.stop_event.is_set():
+            self.notifier.ping_if_due()
+            if max_items is not None and len(self.results) >= max_items:
+                break
+            if stop_when is not None and stop_when():
+                break
+            if self.fault is not None:
+                if not self.fault_cleared_by_operator():
+                    self.sleep(min(0.2, self.scene.wait_item_timeout_s))
+                    continue
+                if not self.clear_fault():
+                    continue
+            self.notifier.status(f"waiting for item ({len(self.results)} sorted)")
+            item = self.items.next_item(self.scene.wait_item_timeout_s)
+            if item is None:
+                continue
+            result = self.process_item(item)
+            if result is not None:
+                self.results.append(result)
+                if self.on_item is not None:
+                    self.on_item(result)
+        return self.results
+
+    def _check_time(self, t0: float) -> None:
+        if self.clock() - t0 > self.scene.item_timeout_s:
+            raise CellFault(f"item took longer than {self.scene.item_timeout_s} s", "item_timeout")
+        if self.stop_event.is_set():
+            raise StopRequested()
+
+    def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
+        """One press step with the retry policy: a retryable error is retried once."""
+        for attempt in (1, 2):
+            self._check_time(t0)
+            try:
+                return fn()
+            except ArmSafetyStop as exc:
+                raise CellFault(f"arm safety stop during {what}: {exc}", exc.kind) from exc
+            except DeviceError as exc:
+                if isinstance(exc, GateError):
+                    raise CellFault(f"gate fault during {what}: {exc}", exc.kind) from exc
+                if not exc.retryable:
+                    raise CellFault(f"{exc.device or 'device'} fault during {what}: {exc}", exc.kind) from exc
+                if attempt == 2:
+                    raise CellFault(f"{what} failed twice: {exc}", "repeated_failure") from exc
+                self.log(f"{what} failed ({exc}); retrying once")
+                self.journal.append({"type": "retry", "item": self._number, "step": what, "error": str(exc),
+                                     "kind": exc.kind})
+                try:
+                    self.arm.retract()
+                except DeviceError:
+                    pass  # the retried step starts from move_above again
+        raise AssertionError("unreachable")
+
+    def _press_once(self, x_mm: float, y_mm: float):
+        self.arm.move_above(x_mm, y_mm)
+        press = self.arm.press()
+        try:
+            frame = self.camera.grab()
+        finally:
+            self.arm.retract()  # always lift the gel, also when the grab failed
+        return press, frame
+
+    def process_item(self, item: Item) -> ItemResult | None:
+        t0 = self.clock()
+        self._number = number = self.next_number
+        self.next_number += 1
+        self.notifier.status(f"item {number} ({item.id}): pressing")
+        self.journal.append({"type": "item", "item": number, "item_id": item.id, "t": time.time()})
+        evidence = self.evidence_factory()
+        presses, skipped = 0, 0
+        latencies: list[float] = []
+        scores: list[dict] = []
+        decision = None
+        pre_written = False
+        label, bin_ = UNKNOWN, self.scene.reject_bin
+        try:
+            x0, y0 = self.scene.points_mm[0]
+
+            def reference():
+                self.arm.move_above(x0, y0)
+                return self.camera.grab()
+
+            ref = self._step("reference frame", reference, t0)
+            try:
+                self.model.set_reference(ref.image)
+            except FrameError as exc:
+                raise CellFault(f"no-contact reference frame unusable: {exc}", "reference") from exc
+            for k, (x_mm, y_mm) in enumerate(self.scene.points_mm):
+                if presses >= self.scene.max_presses:
+                    break
+                if skipped >= 2 * self.scene.max_presses:
+                    break  # the camera keeps giving bad frames: decide on what we have
+                press, frame = self._step(f"press {k} at ({x_mm}, {y_mm}) mm",
+                                          lambda: self._press_once(x_mm, y_mm), t0)
+                try:
+                    score = self.model.score_press(frame.image)
+                except FrameError as exc:
+                    skipped += 1
+                    self.skipped_total += 1
+                    self.journal.append({"type": "frame_skipped", "item": number, "point": k,
+                                         "reason": exc.reason, "message": str(exc)})
+                    self.log(f"item {number}: frame of press {k} skipped ({exc.reason})")
+                    continue
+                presses += 1
+                latencies.append(float(getattr(score, "latency_ms", 0.0)))
+                scores.append({"point": k, "x_mm": x_mm, "y_mm": y_mm, "force_n": float(press.force_n),
+                               **_score_dict(score)})
+                self.notifier.ping_if_due()
+                decision = evidence.add(score)
+                if decision is not None:
+                    break
+            if decision is None:
+                decision = evidence.decide() if presses else None
+            label = decision.label if decision is not None else UNKNOWN
+            confidence = float(decision.confidence) if decision is not None else 0.0
+            stopped_by = decision.stopped_by if decision is not None else "no_usable_frames"
+            bin_ = self.scene.bin_for(label)
+            pre = {"type": "pre_sort", "item": number, "item_id": item.id, "label": label, "bin": bin_,
+                   "confidence": confidence, "presses": presses, "skipped_frames": skipped,
+                   "stopped_by": stopped_by, "scores": scores,
+                   "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
+            self.journal.append(pre)  # durable BEFORE the gate moves
+            pre_written = True
+            self.notifier.status(f"item {number}: {label} -> bin {bin_}")
+            self._check_time(t0)
+            try:
+                self.gate.sort(bin_)
+            except GateError as exc:
+                if exc.retryable:
+                    self.log(f"gate did not answer ({exc}); one more try")
+                    try:
+                        self.gate.sort(bin_)
+                    except GateError as exc2:
+                        raise CellFault(f"gate fault sorting to bin {bin_}: {exc2}", exc2.kind) from exc2
+                else:
+                    raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind) from exc
+            self._final(number, item.id, label=label, bin_=bin_, outcome="sorted", confidence=confidence,
+                        presses=presses)
+            result = ItemResult(item, label, bin_, "sorted", presses, confidence, stopped_by, skipped,
+                                latencies, self.clock() - t0)
+        except CellFault as fault:
+            self.latch_fault(f"item {number} ({item.id}): {fault.reason}", fault.kind)
+            self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
+                        outcome="rejected_fault", reason=fault.reason, presses=presses)
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "rejected_fault", presses, 0.0,
+                                "fault", skipped, latencies, self.clock() - t0)
+        except StopRequested:
+            # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
+            for fn in (self.arm.retract, self.gate.to_reject):
+                try:
+                    fn()
+                except Exception:  # noqa: BLE001 - stopping must reach the journal
+                    pass
+            self._final(number, item.id, label=UNKNOWN, bin_=self.scene.reject_bin, outcome="aborted",
+                        reason="service stopping", presses=presses)
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", presses, 0.0, "stop",
+                                skipped, latencies, self.clock() - t0)
+        return result
+
+    def shutdown(self, reason: str = "stopped") -> None:
+        """Gate to reject, arm stopped, journal closed; every step guarded."""
+        for fn in (self.gate.to_reject, self.arm.stop):
+            try:
+                fn()
+            except Exception:  # noqa: BLE001
+                pass
+        try:
+            self.journal.append({"type": "stop", "reason": reason, "t": time.time(),
+                                 "items": len(self.results)})
+        finally:
+            self.journal.close()
+
+
+def _jsonable(x: Any) -> Any:
+    if x is None:
+        return None
+    if isinstance(x, dict):
+        return {str(k): _finite(v) for k, v in x.items()}
+    try:
+        return [_finite(v) for v in x]
+    except TypeError:
+        return _finite(x) if isinstance(x, (int, float)) else str(x)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    import os
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def summary_json(results: list[ItemResult]) -> str:
+    return json.dumps([r.__dict__ | {"item": r.item.id} for r in results], default=str)

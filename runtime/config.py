@@ -1,0 +1,403 @@
+"""The cell's config file: YAML, every key known, every bound checked, errors with file:line.
+
+One file describes one cell: which bundle, which devices, which scene (the fabrics that may
+arrive, touched or untouched, and their bins), the stopping rule, the journal and the watchdog.
+``load_config(path)`` returns a :class:`CellConfig` or raises :class:`ConfigError` listing
+*every* problem found, each as ``FILE:LINE: key.path: what is wrong`` (line numbers come from
+the YAML node marks, so the operator lands on the right line at once).
+
+The reference of every key, with bounds and defaults, is in docs/cell.md; ``_SCHEMA`` below is
+the single source of truth and a test checks the two agree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError
+
+CAMERA_KINDS = ("uvc", "replay", "sim")
+ARM_KINDS = ("ur_rtde", "fake", "sim")
+GATE_KINDS = ("serial", "sim", "fake")
+GRID_ORDERS = ("spread", "rows", "list")
+N_GRID_X = N_GRID_Y = 15  # the paper's 15 x 15 grid of press points on the 8 cm piece
+
+
+class ConfigError(ValueError):
+    """Every problem in one config file; ``problems`` are ``FILE:LINE: key: message`` lines."""
+
+    def __init__(self, path: Path | str, problems: list[str]) -> None:
+        self.path = Path(path)
+        self.problems = list(problems)
+        body = "\n".join(f"  {p}" for p in self.problems)
+        super().__init__(f"config {self.path}: {len(self.problems)} problem(s)\n{body}")
+
+
+# --- the schema --------------------------------------------------------------------------
+# A leaf is (type, default, bounds-or-choices, help). type: "float", "int", "str", "path",
+# "bool", "optfloat", "list". Nested dicts are sections. REQUIRED marks keys without default.
+
+REQUIRED = object()
+
+
+def _leaf(kind: str, default: Any, bounds: Any = None, help_text: str = "") -> dict:
+    return {"__leaf__": True, "kind": kind, "default": default, "bounds": bounds, "help": help_text}
+
+
+_ARM_PRESS_KEYS = {name: f for name, f in ArmConfig.__dataclass_fields__.items() if name != "host"}
+
+_SCHEMA: dict[str, Any] = {
+    "bundle": _leaf("path", REQUIRED, None, "model bundle folder (relative paths: to this file)"),
+    "beta_override": _leaf("optfloat", None, (-1e9, 1e9), "novelty threshold replacing the bundle's beta"),
+    "beta_override_file": _leaf("optpath", None, None, "beta_override.json written by calibrate-threshold "
+                                                      "(default: next to the bundle, if present)"),
+    "threads": _leaf("int", 2, (1, 64), "onnxruntime intra-op threads"),
+    "devices": {
+        "camera": {
+            "kind": _leaf("str", "uvc", CAMERA_KINDS, "uvc (cv2.VideoCapture), replay (recorded files), sim"),
+            "device": _leaf("str", "/dev/video0", None, "uvc: device path or index"),
+            "width_px": _leaf("int", 640, (16, 4096), "uvc: frame width"),
+            "height_px": _leaf("int", 480, (16, 4096), "uvc: frame height"),
+            "fps": _leaf("float", 30.0, (1.0, 240.0), "uvc: frame rate asked for"),
+            "timeout_s": _leaf("float", 2.0, (0.05, 60.0), "longest wait for one frame"),
+            "path": _leaf("optpath", None, None, "replay: replay file; sim: dataset folder"),
+        },
+        "arm": {
+            "kind": _leaf("str", "ur_rtde", ARM_KINDS, "ur_rtde (live robot), fake or sim (loopback simulator)"),
+            "host": _leaf("str", "192.168.1.10", None, "ur_rtde: the robot's IPv4 address"),
+            # Every other key is a press parameter of runtime/arm.py ArmConfig, bounds included.
+            "__open__": "arm",
+        },
+        "gate": {
+            "kind": _leaf("str", "serial", GATE_KINDS, "serial (the gate MCU), sim (MCU simulator on a pty), fake"),
+            "url": _leaf("str", "/dev/ttyACM0", None, "serial: device path or pyserial URL"),
+            "timeout_s": _leaf("float", 0.5, (0.05, 10.0), "ack timeout per try"),
+            "retries": _leaf("int", 3, (0, 10), "retransmissions before a gate fault"),
+        },
+    },
+    "scene": {
+        "reject_bin": _leaf("int", 0, (0, 7), "bin for unknown items, faults and anything off-scene"),
+        "fabrics": _leaf("list", REQUIRED, None, "list of {name, kind: touched|untouched, bin}"),
+    },
+    "evidence": {
+        "confidence": _leaf("float", 0.9, (0.5, 0.99999), "stop pressing once the posterior reaches this"),
+        "max_presses": _leaf("int", 5, (1, N_GRID_X * N_GRID_Y), "press limit per item"),
+        "grid_order": _leaf("str", "spread", GRID_ORDERS, "spread (far-apart points first), rows, or list"),
+        "grid_points": _leaf("list", None, None, "grid_order list: press indices 0..224 (row-major 15x15)"),
+    },
+    "journal": _leaf("path", "/var/lib/vs2t-edge/journal.jsonl", None, "append-only decision journal"),
+    "fault_file": _leaf("optpath", None, None, "latched-fault marker (default: next to the journal)"),
+    "watchdog": {
+        "item_timeout_s": _leaf("float", 60.0, (1.0, 3600.0), "an item taking longer is a fault"),
+        "wait_item_timeout_s": _leaf("float", 1.0, (0.01, 60.0), "longest wait for an item before a WATCHDOG ping"),
+    },
+}
+
+
+# --- the result --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SceneFabric:
+    name: str
+    kind: str  # "touched" or "untouched"
+    bin: int
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    path: Path
+    bundle: Path
+    beta_override: float | None
+    beta_override_file: Path | None
+    threads: int
+    camera: dict
+    arm_kind: str
+    arm: ArmConfig
+    gate: dict
+    reject_bin: int
+    fabrics: tuple[SceneFabric, ...]
+    confidence: float
+    max_presses: int
+    grid_order: str
+    grid_points: tuple[int, ...]
+    journal: Path
+    fault_file: Path
+    item_timeout_s: float
+    wait_item_timeout_s: float
+    raw: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def scene_classes(self) -> list[str]:
+        return [f.name for f in self.fabrics]
+
+    def bin_for(self, label: str) -> int:
+        """The scene's bin for a decided label; anything else (unknown, off-scene) -> reject."""
+        for f in self.fabrics:
+            if f.name == label:
+                return f.bin
+        return self.reject_bin
+
+    def press_points_mm(self) -> list[tuple[float, float]]:
+        grid = self.arm.grid_points_mm(N_GRID_X, N_GRID_Y)
+        return [grid[i] for i in self.grid_points]
+
+
+def spread_order(n_x: int = N_GRID_X, n_y: int = N_GRID_Y) -> list[int]:
+    """Grid indices, each next point the farthest from those already pressed (centre first).
+
+    Far-apart presses see different parts of the weave, so early stopping sees more of the
+    fabric per press than a row-by-row scan would; deterministic (ties: lowest index).
+    """
+    pts = [(i % n_x, i // n_x) for i in range(n_x * n_y)]
+    centre = (n_y // 2) * n_x + n_x // 2
+    chosen = [centre]
+    d2 = [(x - pts[centre][0]) ** 2 + (y - pts[centre][1]) ** 2 for x, y in pts]
+    while len(chosen) < len(pts):
+        best = max(range(len(pts)), key=lambda i: (d2[i], -i))
+        chosen.append(best)
+        bx, by = pts[best]
+        d2 = [min(d, (x - bx) ** 2 + (y - by) ** 2) for d, (x, y) in zip(d2, pts)]
+        for c in chosen:
+            d2[c] = -1
+    return chosen
+
+
+# --- YAML with line numbers --------------------------------------------------------------
+
+def _to_python(node: yaml.Node, key: str, lines: dict[str, int]) -> Any:
+    lines[key] = node.start_mark.line + 1
+    if isinstance(node, yaml.MappingNode):
+        out: dict[str, Any] = {}
+        for k_node, v_node in node.value:
+            k = str(yaml.safe_load(yaml.serialize(k_node))) if not isinstance(k_node, yaml.ScalarNode) else k_node.value
+            sub = f"{key}.{k}" if key else k
+            lines[sub] = k_node.start_mark.line + 1
+            if k in out:
+                lines.setdefault("__dup__", [])  # type: ignore[arg-type]
+                lines["__dup__"].append(sub)  # type: ignore[union-attr]
+            out[k] = _to_python(v_node, sub, lines)
+            lines[sub] = k_node.start_mark.line + 1
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_to_python(v, f"{key}[{i}]", lines) for i, v in enumerate(node.value)]
+    return yaml.safe_load(yaml.serialize(node))
+
+
+def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise ConfigError(path, [f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})"]) from None
+    lines: dict[str, int] = {}
+    if node is None:
+        return {}, lines
+    return _to_python(node, "", lines), lines
+
+
+# --- validation --------------------------------------------------------------------------
+
+class _Checker:
+    def __init__(self, path: Path, lines: dict[str, int]) -> None:
+        self.path, self.lines, self.problems = path, lines, []
+
+    def err(self, key: str, msg: str) -> None:
+        line = self.lines.get(key)
+        while line is None and "." in key:
+            key_parent = key.rsplit(".", 1)[0]
+            line = self.lines.get(key_parent)
+            key = key_parent if line is None else key
+        where = f"{self.path}:{line}" if line else str(self.path)
+        self.problems.append(f"{where}: {msg}")
+
+    def leaf(self, key: str, spec: dict, value: Any) -> Any:
+        kind, bounds = spec["kind"], spec["bounds"]
+        if value is None and spec["default"] is REQUIRED:
+            self.err(key, f"{key}: required ({spec['help']})")
+            return None
+        if value is None:
+            return spec["default"]
+        if kind in ("float", "optfloat"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                self.err(key, f"{key} = {value!r}: must be a number")
+                return spec["default"]
+            value = float(value)
+        elif kind == "int":
+            if isinstance(value, bool) or not isinstance(value, int):
+                self.err(key, f"{key} = {value!r}: must be a whole number")
+                return spec["default"]
+        elif kind in ("str", "path", "optpath"):
+            if isinstance(value, (dict, list)) or isinstance(value, bool):
+                self.err(key, f"{key} = {value!r}: must be a text value")
+                return spec["default"]
+            value = str(value)
+            if kind in ("path", "optpath"):
+                p = Path(value).expanduser()
+                value = p if p.is_absolute() else (self.path.parent / p)
+        elif kind == "list":
+            if not isinstance(value, list):
+                self.err(key, f"{key}: must be a list")
+                return spec["default"]
+        if bounds is not None and kind in ("float", "optfloat", "int"):
+            lo, hi = bounds
+            if not lo <= value <= hi:
+                self.err(key, f"{key} = {value!r}: must be between {lo} and {hi}")
+        elif bounds is not None and kind == "str" and value not in bounds:
+            self.err(key, f"{key} = {value!r}: must be one of {', '.join(bounds)}")
+        return value
+
+    def section(self, prefix: str, schema: dict, data: Any) -> dict:
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            self.err(prefix, f"{prefix or 'the file'}: must be a mapping of keys")
+            data = {}
+        out: dict[str, Any] = {}
+        open_kind = schema.get("__open__")
+        for k in data:
+            if k not in schema and not (open_kind == "arm" and k in _ARM_PRESS_KEYS):
+                known = sorted(s for s in schema if not s.startswith("__"))
+                if open_kind == "arm":
+                    known += sorted(_ARM_PRESS_KEYS)
+                sub = f"{prefix}.{k}" if prefix else str(k)
+                self.err(sub, f"{sub}: unknown key (known here: {', '.join(known)})")
+        for k, spec in schema.items():
+            if k.startswith("__"):
+                continue
+            sub = f"{prefix}.{k}" if prefix else k
+            if isinstance(spec, dict) and spec.get("__leaf__"):
+                out[k] = self.leaf(sub, spec, data.get(k))
+            else:
+                out[k] = self.section(sub, spec, data.get(k))
+        if open_kind == "arm":
+            out["__press__"] = {k: data[k] for k in data if k in _ARM_PRESS_KEYS}
+        return out
+
+
+def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellConfig:
+    chk = _Checker(path, lines)
+    for dup in lines.get("__dup__", []):  # type: ignore[union-attr]
+        chk.err(dup, f"{dup}: given twice")
+    v = chk.section("", _SCHEMA, data)
+
+    # arm: press parameters are ArmConfig's, with its own bounds and cross-checks.
+    arm_sec = v["devices"]["arm"]
+    press = dict(arm_sec.pop("__press__", {}))
+    arm_cfg = ArmConfig()
+    try:
+        arm_cfg = ArmConfig.from_dict({"host": arm_sec["host"], **press})
+    except ArmConfigError as exc:
+        msg = str(exc)
+        bad = msg.split(" ", 1)[0].split("=")[0].strip().removeprefix("arm.").rstrip(":")
+        chk.err(f"devices.arm.{bad}", f"devices.{msg}")
+    except (TypeError, ValueError) as exc:
+        chk.err("devices.arm", f"devices.arm: {exc}")
+
+    # scene
+    fabrics: list[SceneFabric] = []
+    seen_names: set[str] = set()
+    reject_bin = v["scene"]["reject_bin"]
+    for i, item in enumerate(v["scene"]["fabrics"] or []):
+        key = f"scene.fabrics[{i}]"
+        if not isinstance(item, dict):
+            chk.err(key, f"{key}: must be a mapping with name, kind and bin")
+            continue
+        unknown = sorted(set(item) - {"name", "kind", "bin"})
+        if unknown:
+            chk.err(key, f"{key}: unknown key(s) {unknown} (known: name, kind, bin)")
+        name, kind, bin_ = item.get("name"), item.get("kind"), item.get("bin")
+        if not isinstance(name, str) or not name:
+            chk.err(f"{key}.name", f"{key}.name: required, the fabric's class name in the bundle")
+            continue
+        if name in seen_names:
+            chk.err(f"{key}.name", f"{key}.name = {name!r}: listed twice")
+        seen_names.add(name)
+        if name == "unknown":
+            chk.err(f"{key}.name", f"{key}.name: 'unknown' is reserved for undecided items")
+        if kind not in ("touched", "untouched"):
+            chk.err(f"{key}.kind", f"{key}.kind = {kind!r}: must be touched or untouched")
+        if isinstance(bin_, bool) or not isinstance(bin_, int) or not 0 <= bin_ <= 7:
+            chk.err(f"{key}.bin", f"{key}.bin = {bin_!r}: must be a bin number 0..7")
+            continue
+        if bin_ == reject_bin:
+            chk.err(f"{key}.bin", f"{key}.bin = {bin_}: that is the reject bin")
+        fabrics.append(SceneFabric(name, str(kind), int(bin_)))
+    if v["scene"]["fabrics"] is not None and not v["scene"]["fabrics"]:
+        chk.err("scene.fabrics", "scene.fabrics: the scene needs at least one fabric")
+
+    # evidence: which grid points, in which order
+    ev = v["evidence"]
+    n_points = N_GRID_X * N_GRID_Y
+    if ev["grid_order"] == "list":
+        pts = ev["grid_points"]
+        if not pts:
+            chk.err("evidence.grid_points", "evidence.grid_points: required when grid_order is list")
+            pts = [0]
+        bad = [p for p in pts if isinstance(p, bool) or not isinstance(p, int) or not 0 <= p < n_points]
+        if bad:
+            chk.err("evidence.grid_points", f"evidence.grid_points: {bad} are not grid indices 0..{n_points - 1}")
+            pts = [0]
+        if len(set(pts)) != len(pts):
+            chk.err("evidence.grid_points", "evidence.grid_points: a point is listed twice")
+        grid_points = tuple(int(p) for p in pts)
+    else:
+        if ev["grid_points"] is not None:
+            chk.err("evidence.grid_points", "evidence.grid_points: only used with grid_order: list")
+        grid_points = tuple(spread_order() if ev["grid_order"] == "spread" else range(n_points))
+    if ev["max_presses"] > len(grid_points):
+        chk.err("evidence.max_presses", f"evidence.max_presses = {ev['max_presses']}: more than the "
+                                        f"{len(grid_points)} grid points listed")
+
+    cam, gate = v["devices"]["camera"], v["devices"]["gate"]
+    if cam["kind"] in ("replay", "sim") and cam["path"] is None:
+        chk.err("devices.camera.path", f"devices.camera.path: required for camera kind {cam['kind']}")
+    if chk.problems:
+        raise ConfigError(path, chk.problems)
+    journal = v["journal"]
+    return CellConfig(
+        path=path, bundle=v["bundle"], beta_override=v["beta_override"],
+        beta_override_file=v["beta_override_file"], threads=v["threads"], camera=cam,
+        arm_kind=arm_sec["kind"], arm=arm_cfg, gate=gate, reject_bin=reject_bin, fabrics=tuple(fabrics),
+        confidence=ev["confidence"], max_presses=ev["max_presses"], grid_order=ev["grid_order"],
+        grid_points=grid_points, journal=journal,
+        fault_file=v["fault_file"] or journal.with_name("FAULT"),
+        item_timeout_s=v["watchdog"]["item_timeout_s"],
+        wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"], raw=data if isinstance(data, dict) else {},
+    )
+
+
+def load_config(path: Path | str) -> CellConfig:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(path, [f"{path}: cannot read ({exc.strerror or exc})"]) from None
+    data, lines = parse_yaml_with_lines(text, path)
+    return validate_config_dict(data, lines, path)
+
+
+def schema_reference() -> list[tuple[str, str, str, str]]:
+    """(key, default, bounds, help) for every key - docs/cell.md's table is checked against it."""
+    rows: list[tuple[str, str, str, str]] = []
+
+    def walk(prefix: str, schema: dict) -> None:
+        for k, spec in schema.items():
+            if k.startswith("__"):
+                continue
+            key = f"{prefix}.{k}" if prefix else k
+            if spec.get("__leaf__"):
+                default = "required" if spec["default"] is REQUIRED else repr(spec["default"])
+                b = spec["bounds"]
+                bounds = "" if b is None else (" | ".join(b) if spec["kind"] == "str" else f"{b[0]} .. {b[1]}")
+                rows.append((key, default, bounds, spec["help"]))
+            else:
+                walk(key, spec)
+
+    walk("", _SCHEMA)
+    return rows

@@ -1,0 +1,33 @@
+"""`vs2t-edge validate-config FILE`: check a cell config; every problem with file, line and key.
+
+Exit 0 when valid (prints a one-line summary), 2 with every problem on stderr. The systemd unit
+runs it as ExecStartPre, so a bad config stops the service before any device is touched.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("config", help="cell config file (YAML)")
+    parser.add_argument("--check-bundle", action="store_true",
+                        help="also require the bundle folder to exist")
+
+
+def run(args) -> int:
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    if args.check_bundle and not cfg.bundle.is_dir():
+        print(f"config {cfg.path}: bundle folder {cfg.bundle} does not exist", file=sys.stderr)
+        return 2
+    fabrics = ", ".join(f"{f.name}({f.kind[0]})->{f.bin}" for f in cfg.fabrics)
+    print(f"{cfg.path}: ok - camera {cfg.camera['kind']}, arm {cfg.arm_kind}, gate {cfg.gate['kind']}, "
+          f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "
+          f"confidence {cfg.confidence}, max {cfg.max_presses} presses")
+    return 0

@@ -1,0 +1,127 @@
+"""In-test fakes for the cell loop: a scripted model, a simple evidence rule and a frame camera.
+
+They satisfy the same protocols the real runtime/inference.py and runtime/evidence.py do, so
+the loop's tests do not wait for (or depend on the numbers of) a trained bundle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vs2t_edge.runtime.devices import CameraError, Frame
+from vs2t_edge.runtime.preprocess import FrameError, check_frame
+
+
+@dataclass(frozen=True)
+class FakeScore:
+    log_posterior: dict
+    novelty: float
+    untouched: bool
+    latency_ms: float = 1.0
+
+
+@dataclass(frozen=True)
+class FakeDecision:
+    label: str
+    confidence: float
+    presses: int
+    log_posterior: dict
+    stopped_by: str
+
+
+class FakeEvidence:
+    """Sum of log posteriors; decides once the normalised posterior reaches ``confidence``."""
+
+    def __init__(self, classes, confidence=0.9, max_presses=5):
+        self.classes, self.confidence, self.max_presses = list(classes), confidence, max_presses
+        self.total = {c: 0.0 for c in self.classes}
+        self.n = 0
+
+    def _posterior(self):
+        m = max(self.total.values())
+        z = sum(math.exp(v - m) for v in self.total.values())
+        return {c: math.exp(v - m) / z for c, v in self.total.items()}
+
+    def add(self, score):
+        self.n += 1
+        for c in self.classes:
+            self.total[c] += score.log_posterior.get(c, -30.0)
+        post = self._posterior()
+        best = max(post, key=post.get)
+        if post[best] >= self.confidence:
+            return FakeDecision(best, post[best], self.n, dict(self.total), "confident")
+        if self.n >= self.max_presses:
+            return self.decide()
+        return None
+
+    def decide(self):
+        post = self._posterior()
+        best = max(post, key=post.get)
+        label = best if post[best] >= self.confidence else "unknown"
+        return FakeDecision(label, post[best], self.n, dict(self.total), "press_limit")
+
+
+class FakeModel:
+    """Scores frames by their mean grey level: a frame of value v votes for ``votes[v]``."""
+
+    def __init__(self, votes: dict[int, str], classes, strength=3.0):
+        self.votes, self.classes, self.strength = votes, list(classes), strength
+        self.reference = None
+        self.scored = 0
+
+    def set_reference(self, frame):
+        self.reference = check_frame(frame, name="reference frame")
+
+    def score_press(self, frame):
+        check_frame(frame)
+        v = int(round(float(frame[..., 0].mean())))
+        target = self.votes.get(v)
+        self.scored += 1
+        lp = {c: (0.0 if c == target else -self.strength) for c in self.classes}
+        return FakeScore(lp, novelty=float(v), untouched=False)
+
+
+class ScriptedCamera:
+    """Returns a reference frame when the gel is up and the scripted frames when pressed.
+
+    ``script`` entries: an int grey level, "black" (a bad frame), or "error" (CameraError).
+    """
+
+    def __init__(self, arm, script, size=(48, 64)):
+        self.arm, self.script, self.size = arm, list(script), size
+        self.index = 0
+        self.connected = False
+
+    def connect(self):
+        self.connected = True
+
+    def disconnect(self):
+        self.connected = False
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc):
+        self.disconnect()
+
+    def grab(self):
+        self.index += 1
+        pressed = bool(self.arm.calls) and self.arm.calls[-1] == "press"
+        if not pressed:
+            return Frame(np.full(self.size + (3,), 100, np.uint8), float(self.index), self.index)
+        what = self.script.pop(0) if self.script else 100
+        if what == "error":
+            raise CameraError("no frame (injected)", device="camera", kind="timeout")
+        if what == "black":
+            return Frame(np.zeros(self.size + (3,), np.uint8), float(self.index), self.index)
+        return Frame(np.full(self.size + (3,), int(what), np.uint8), float(self.index), self.index)
+
+
+def strict_model_frame_check(frame):
+    check_frame(frame)
+    if frame.mean() < 3:
+        raise FrameError("black", "black")

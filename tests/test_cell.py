@@ -1,0 +1,205 @@
+"""The cell loop with fake devices: decisions, bins, journal order, retries, latched faults."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+
+from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+from vs2t_edge.runtime.arm import FakeArm
+from vs2t_edge.runtime.cell import Cell, ContinuousFeed, Item, SceneSpec
+from vs2t_edge.runtime.gate import FakeGate
+from vs2t_edge.runtime.journal import Journal, read_records
+from vs2t_edge.runtime.notify import Notifier
+
+CLASSES = ["denim", "silk", "wool"]
+BINS = {"denim": 1, "silk": 2, "wool": 3}
+VOTES = {50: "denim", 60: "silk", 70: "wool"}  # grey level of a pressed frame -> class it votes for
+
+
+class OrderedGate(FakeGate):
+    """A FakeGate that checks the pre-sort record is on disk when sort() is called."""
+
+    def __init__(self, journal_path: Path):
+        super().__init__()
+        self.journal_path = journal_path
+        self.on_disk_at_sort: list[bool] = []
+
+    def sort(self, bin_index):
+        recs = read_records(self.journal_path)
+        self.on_disk_at_sort.append(bool(recs) and recs[-1]["type"] == "pre_sort" and recs[-1]["bin"] == bin_index)
+        super().sort(bin_index)
+
+
+def make_cell(tmp_path, script, *, max_presses=4, confidence=0.95, gate=None, arm=None, items=None):
+    arm = arm or FakeArm()
+    arm.connect()
+    camera = ScriptedCamera(arm, script)
+    journal = Journal.open(tmp_path / "journal.jsonl")
+    gate = gate or OrderedGate(tmp_path / "journal.jsonl")
+    gate.connect()
+    points = arm.config.grid_points_mm()
+    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=points[:20], max_presses=max_presses,
+                      confidence=confidence, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
+    cell = Cell(camera=camera, arm=arm, gate=gate, model=FakeModel(VOTES, CLASSES), journal=journal,
+                notifier=Notifier(address=""), scene=scene,
+                evidence_factory=lambda: FakeEvidence(CLASSES, confidence, max_presses),
+                items=items or ContinuousFeed(), sleep=lambda s: None)
+    return cell, arm, camera, gate, journal
+
+
+def finals(path):
+    return [r for r in read_records(path) if r["type"] == "final"]
+
+
+def test_confident_item_goes_to_its_bin_and_journal_precedes_the_gate(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60])
+    results = cell.run(max_items=1)
+    assert [r.label for r in results] == ["silk"]
+    assert gate.sorted == [BINS["silk"]]
+    assert gate.on_disk_at_sort == [True]
+    f = finals(journal.path)
+    assert len(f) == 1 and f[0]["outcome"] == "sorted" and f[0]["bin"] == 2
+    # stop rule: one press gives p = 1/(1+2e-3) = 0.91 < 0.95, two give 0.995: stop after two
+    assert results[0].presses == 2
+    assert arm.calls.count("press") == 2 and arm.calls.count("retract") == 2
+
+
+def test_ambiguous_item_is_unknown_and_rejected(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 60, 70, 100], max_presses=4, confidence=0.99)
+    results = cell.run(max_items=1)
+    assert results[0].label == "unknown" and results[0].bin == 0
+    assert gate.sorted == [0]
+    assert results[0].presses == 4
+
+
+def test_off_scene_label_goes_to_reject(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50, 50])
+    cell.scene.bins.pop("denim")  # denim is in the model but not in this scene
+    results = cell.run(max_items=1)
+    assert gate.sorted == [0] and results[0].bin == 0
+
+
+def test_bad_frame_is_skipped_counted_and_never_routed(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, ["black", 70, 70])
+    results = cell.run(max_items=1)
+    assert results[0].label == "wool" and results[0].skipped_frames == 1
+    recs = read_records(journal.path)
+    assert [r["reason"] for r in recs if r["type"] == "frame_skipped"] == ["black"]
+    assert cell.model.scored == 2  # the black frame was refused by the check, never scored
+
+
+def test_camera_error_is_retried_once(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, ["error", 50, 50])
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "sorted" and results[0].label == "denim"
+    assert [r for r in read_records(journal.path) if r["type"] == "retry"]
+    assert cell.fault is None
+
+
+def test_press_failed_twice_latches_a_fault(tmp_path):
+    arm = FakeArm(fail_next=["force_not_reached", "force_not_reached"])
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50], arm=arm)
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "rejected_fault" and results[0].bin == 0
+    assert cell.fault and "failed twice" in cell.fault
+    assert (tmp_path / "FAULT").exists()
+    assert "stop" in arm.calls and gate.to_reject_calls >= 1
+    assert gate.sorted == []  # a faulted item is not routed by sort(); the gate sits at reject
+    assert "FAULT" in cell.notifier.status_line
+
+
+def test_safety_stop_latches_and_nothing_moves_until_cleared(tmp_path):
+    arm = FakeArm()
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50] * 10, arm=arm)
+    arm.fail_next = ["protective_stop"]
+    polls = {"n": 0}
+
+    def stop_when():
+        polls["n"] += 1
+        return polls["n"] > 20
+
+    cell.run(max_items=3, stop_when=stop_when)
+    assert cell.fault and "safety stop" in cell.fault
+    presses_while_faulted = arm.calls.count("press")
+    cell.run(max_items=3, stop_when=lambda: True)  # still latched: no motion
+    assert arm.calls.count("press") == presses_while_faulted
+    # operator clears: the fault file goes, the loop clears gate and arm and carries on
+    (tmp_path / "FAULT").unlink()
+    results = cell.run(max_items=2)
+    assert cell.fault is None and results[-1].outcome == "sorted"
+    recs = read_records(journal.path)
+    assert [r["type"] for r in recs].count("fault_cleared") == 1
+
+
+def test_gate_jam_latches_fault_after_pre_sort(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60])
+    gate.jam_next_sort()
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "rejected_fault"
+    recs = read_records(journal.path)
+    types = [r["type"] for r in recs]
+    assert types.index("pre_sort") < types.index("fault") < types.index("final")
+    assert len(finals(journal.path)) == 1
+
+
+def test_gate_timeout_is_retried_once(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60])
+    gate.time_out_next(1)
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "sorted" and gate.sorted == [2]
+
+
+class FailingStopArm(FakeArm):
+    def stop(self):
+        raise RuntimeError("stop failed (injected)")
+
+
+def test_fault_steps_are_each_guarded(tmp_path):
+    arm = FailingStopArm(fail_next=["emergency_stop"])
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50] * 5, arm=arm)
+    cell.run(max_items=1)
+    fault = [r for r in read_records(journal.path) if r["type"] == "fault"][0]
+    assert any("arm.stop failed" in s for s in fault["steps_failed"])
+    assert gate.to_reject_calls >= 1  # the failing arm.stop did not skip the gate step
+    assert (tmp_path / "FAULT").exists()
+
+
+def test_stop_request_mid_item_aborts_to_reject(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 60, 70, 50, 60, 70], confidence=0.999999)
+    original = cell.model.score_press
+
+    def score_and_stop(frame):
+        cell.stop_event.set()  # SIGTERM arrives during the first press
+        return original(frame)
+
+    cell.model.score_press = score_and_stop
+    cell.process_item(Item("x"))
+    f = finals(journal.path)
+    assert f[-1]["outcome"] == "aborted" and f[-1]["bin"] == 0
+    assert gate.sorted == [] and gate.to_reject_calls >= 1
+
+
+def test_restart_resolves_item_left_between_pre_sort_and_final(tmp_path):
+    path = tmp_path / "journal.jsonl"
+    j = Journal.open(path)
+    j.append({"type": "item", "item": 7, "item_id": "p7"})
+    j.append({"type": "pre_sort", "item": 7, "item_id": "p7", "label": "silk", "bin": 2})
+    j.close()  # the process died before the gate's ack
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50])
+    resolved = cell.recover()
+    assert len(resolved) == 1 and resolved[0]["outcome"] == "unknown_outcome" and resolved[0]["bin"] == 0
+    cell.run(max_items=1)
+    f = finals(path)
+    assert [r["item"] for r in f] == [7, 8]  # exactly one final per item, numbering continues
+    assert Journal.open(path).unresolved_items() == []
+
+
+def test_fault_file_survives_restart(tmp_path):
+    (tmp_path / "FAULT").write_text("gate jam\n")
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50])
+    cell.recover()
+    cell.run(max_items=1, stop_when=lambda: True)
+    assert cell.fault == "gate jam" and arm.calls.count("press") == 0
