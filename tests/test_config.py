@@ -1,0 +1,115 @@
+"""Cell config: every key known, bounds checked, each problem named with file and line."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from vs2t_edge.cli import main
+from vs2t_edge.runtime.config import ConfigError, load_config, schema_reference, spread_order
+
+GOOD = """\
+bundle: bundle
+threads: 1
+devices:
+  camera: {kind: sim, path: data}
+  arm:
+    kind: fake
+    force_n: 15.0
+  gate: {kind: fake}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {name: denim, kind: touched, bin: 1}
+    - {name: silk, kind: untouched, bin: 2}
+evidence:
+  confidence: 0.95
+  max_presses: 6
+journal: state/journal.jsonl
+"""
+
+
+def write(tmp_path, text, name="cell.yaml"):
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+def test_good_config_loads_with_relative_paths_resolved(tmp_path):
+    cfg = load_config(write(tmp_path, GOOD))
+    assert cfg.bundle == tmp_path / "bundle" and cfg.journal == tmp_path / "state/journal.jsonl"
+    assert cfg.fault_file == tmp_path / "state/FAULT"
+    assert cfg.bin_for("silk") == 2 and cfg.bin_for("unknown") == 0 and cfg.bin_for("tweed") == 0
+    assert cfg.arm.force_n == 15.0 and cfg.max_presses == 6
+    assert len(cfg.press_points_mm()) == 225 and cfg.grid_points[0] == 112  # centre first
+
+
+@pytest.mark.parametrize("edit, line, words", [
+    (("threads: 1", "threads: 0"), 2, "threads = 0: must be between 1 and 64"),
+    (("threads: 1", "threads: 1\nthreds: 2"), 3, "threds: unknown key"),
+    (("force_n: 15.0", "force_n: 99"), 7, "devices.arm.force_n = 99"),
+    (("force_n: 15.0", "forse_n: 15"), 7, "devices.arm.forse_n: unknown key"),
+    (("kind: untouched, bin: 2", "kind: untuoched, bin: 2"), 13, "must be touched or untouched"),
+    (("kind: untouched, bin: 2", "kind: untouched, bin: 0"), 13, "that is the reject bin"),
+    (("confidence: 0.95", "confidence: high"), 15, "confidence = 'high': must be a number"),
+    (("max_presses: 6", "max_presses: 500"), 16, "max_presses = 500"),
+    (("camera: {kind: sim, path: data}", "camera: {kind: webcam}"), 4, "must be one of uvc, replay, sim"),
+    (("bundle: bundle\n", ""), None, "bundle: required"),
+])
+def test_each_problem_names_file_line_and_key(tmp_path, edit, line, words):
+    text = GOOD.replace(*edit)
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    msg = str(info.value)
+    assert words in msg
+    if line is not None:
+        assert f"{path}:{line}:" in msg
+
+
+def test_all_problems_reported_at_once(tmp_path):
+    text = GOOD.replace("threads: 1", "threads: 0").replace("max_presses: 6", "max_presses: 0")
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, text))
+    assert len(info.value.problems) == 2
+
+
+def test_duplicate_fabric_and_broken_yaml(tmp_path):
+    text = GOOD.replace("name: silk", "name: denim")
+    with pytest.raises(ConfigError, match="listed twice"):
+        load_config(write(tmp_path, text))
+    with pytest.raises(ConfigError, match=r"cell.yaml:\d+: not valid YAML"):
+        load_config(write(tmp_path, "bundle: [unclosed\n"))
+
+
+def test_list_order_checks_indices(tmp_path):
+    text = GOOD.replace("max_presses: 6", "max_presses: 2\n  grid_order: list\n  grid_points: [3, 300]")
+    with pytest.raises(ConfigError, match=r"\[300\] are not grid indices"):
+        load_config(write(tmp_path, text))
+    ok = load_config(write(tmp_path, GOOD.replace("max_presses: 6", "max_presses: 2\n  grid_order: list\n"
+                                                                    "  grid_points: [3, 7]")))
+    assert ok.grid_points == (3, 7)
+
+
+def test_spread_order_is_a_permutation_far_points_first():
+    order = spread_order()
+    assert sorted(order) == list(range(225))
+    assert order[0] == 112 and order[1] in (0, 14, 210, 224)
+
+
+def test_validate_config_cli_exit_codes(tmp_path, capsys):
+    assert main(["validate-config", str(write(tmp_path, GOOD))]) == 0
+    assert "ok" in capsys.readouterr().out
+    bad = write(tmp_path, GOOD.replace("threads: 1", "threads: -3"), "bad.yaml")
+    assert main(["validate-config", str(bad)]) == 2
+    assert f"{bad}:2: threads = -3" in capsys.readouterr().err
+    assert main(["validate-config", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_docs_reference_lists_every_key():
+    from pathlib import Path
+
+    doc = (Path(__file__).parents[1] / "docs" / "cell.md").read_text()
+    for key, _default, _bounds, _help in schema_reference():
+        assert f"`{key}`" in doc, f"docs/cell.md does not document config key {key}"
