@@ -1,0 +1,251 @@
+"""`vs2t-edge run --config FILE`: the sorting cell as a systemd service (Type=notify).
+
+Start-up order (each step says what it is doing in STATUS=):
+
+1. load and validate the config (exit 2 on any problem; ExecStartPre has checked it already);
+2. load the bundle: hashes, shapes, versions verified, sessions warmed, probe input checked
+   against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says;
+3. open the journal (a torn last record is cut and kept aside), resolve an item the last run
+   left between its pre-sort and final records, restore a latched fault from the fault file;
+4. connect camera, arm and gate - exit 3 on a device fault (systemd restarts, within limits);
+5. READY=1, then the loop (runtime/cell.py) with WATCHDOG=1 pings and STATUS= lines.
+
+SIGTERM/SIGINT: the current item is aborted at the next press boundary (gel lifted, gate to
+reject, its final record ``aborted``), then gate to reject, arm stopped, ``stop`` record,
+journal closed, STOPPING=1, exit 0.
+
+``--clear-fault``: the operator's command after fixing the cause of a latched fault: prints
+the reason and removes the fault file; the running service sees it, clears the gate and arm
+and resumes (a stopped service starts clean).
+
+Devices of kind ``sim`` are built by the simulated cell (vs2t_edge.sim.scene, the demo), which
+calls :func:`run_daemon` with them: the cell runtime never imports the simulators.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
+from vs2t_edge.runtime.devices import DeviceError
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
+
+
+def _log(msg: str) -> None:
+    print(f"vs2t-edge: {msg}", file=sys.stderr, flush=True)
+
+
+def resolve_beta_override(cfg: CellConfig) -> float | None:
+    """The config's beta_override wins; else calibrate-threshold's override file if present."""
+    if cfg.beta_override is not None:
+        return cfg.beta_override
+    from vs2t_edge.runtime.calibrate import read_beta_override
+
+    path = cfg.beta_override_file or default_override_path(cfg.bundle)
+    return read_beta_override(path)
+
+
+def default_override_path(bundle: Path) -> Path:
+    return Path(bundle).parent / f"{Path(bundle).name}.beta_override.json"
+
+
+def load_model(cfg: CellConfig):
+    """Verified, warmed model of the bundle (raises on any mismatch, naming it)."""
+    from vs2t_edge.runtime.inference import TactileModel
+
+    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta_override(cfg))
+    missing = [f.name for f in cfg.fabrics if f.name not in list(model.touched) + list(model.untouched)]
+    if missing:
+        raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
+                         f"(touched: {list(model.touched)}, untouched: {list(model.untouched)})")
+    return model
+
+
+def default_evidence_factory(cfg: CellConfig) -> Callable[[], Any]:
+    from vs2t_edge.runtime.evidence import Evidence
+
+    return lambda: Evidence(cfg.scene_classes, cfg.confidence, cfg.max_presses)
+
+
+def build_live_devices(cfg: CellConfig):
+    """Camera, arm and gate from the config (vendor modules imported only when chosen)."""
+    cam, gate_cfg = cfg.camera, cfg.gate
+    if cam["kind"] == "sim":
+        raise ConfigError(cfg.path, [f"{cfg.path}: devices.camera.kind = sim is built by the simulated cell "
+                                     "(`vs2t-edge demo`), not by `run`"])
+    if cam["kind"] == "uvc":
+        from vs2t_edge.runtime.camera import UVCCamera
+
+        dev = cam["device"]
+        camera = UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
+                           fps=cam["fps"], read_timeout_s=cam["timeout_s"])
+    else:
+        from vs2t_edge.runtime.camera import ReplayCamera
+
+        camera = ReplayCamera(cam["path"])
+    if cfg.arm_kind == "ur_rtde":
+        from vs2t_edge.runtime.arm import URArm
+
+        arm = URArm(cfg.arm)
+    elif cfg.arm_kind == "fake":
+        from vs2t_edge.runtime.arm import FakeArm
+
+        arm = FakeArm(config=cfg.arm)
+    else:
+        raise ConfigError(cfg.path, [f"{cfg.path}: devices.arm.kind = sim is built by the simulated cell "
+                                     "(`vs2t-edge demo`), not by `run`"])
+    if gate_cfg["kind"] == "serial":
+        from vs2t_edge.runtime.gate import SerialGate
+
+        gate = SerialGate(gate_cfg["url"], timeout_s=gate_cfg["timeout_s"], retries=gate_cfg["retries"])
+    elif gate_cfg["kind"] == "sim":
+        from vs2t_edge.runtime.gate import simulated_serial_gate
+
+        gate = simulated_serial_gate()
+    else:
+        from vs2t_edge.runtime.gate import FakeGate
+
+        gate = FakeGate()
+    return camera, arm, gate
+
+
+def clear_fault(cfg: CellConfig) -> int:
+    ff = cfg.fault_file
+    if not ff.exists():
+        print(f"no latched fault ({ff} absent)")
+        return EXIT_OK
+    reason = ff.read_text(encoding="utf-8", errors="replace").strip()
+    ff.unlink()
+    print(f"fault cleared: {reason}\nthe running service clears the gate and arm and resumes sorting")
+    return EXIT_OK
+
+
+def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None, items=None,
+               evidence_factory=None, notifier=None, stop_event: threading.Event | None = None,
+               on_item=None, max_items: int | None = None, stop_when=None, install_signals: bool = True,
+               log: Callable[[str], None] = _log) -> int:
+    from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+    from vs2t_edge.runtime.journal import Journal, JournalError
+    from vs2t_edge.runtime.notify import Notifier
+
+    notifier = notifier or Notifier()
+    stop_event = stop_event or threading.Event()
+    if install_signals:
+        def on_signal(signum, _frame):
+            log(f"{signal.Signals(signum).name}: finishing safely")
+            notifier.stopping(f"stopping ({signal.Signals(signum).name}): current item aborted to reject")
+            stop_event.set()
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+
+    notifier.status(f"loading bundle {cfg.bundle}")
+    t0 = time.monotonic()
+    if model is None:
+        try:
+            model = load_model(cfg)
+        except Exception as exc:  # noqa: BLE001 - any bundle problem stops the start, in words
+            notifier.status(f"bundle refused: {exc}")
+            log(f"bundle {cfg.bundle} refused: {exc}")
+            return EXIT_USAGE
+    load_s = time.monotonic() - t0
+    try:
+        journal = Journal.open(cfg.journal)
+    except (JournalError, OSError) as exc:
+        log(f"journal: {exc}")
+        notifier.status(f"journal unusable: {exc}")
+        return EXIT_USAGE
+    if journal.torn_bytes:
+        log(f"journal {cfg.journal}: torn last record ({journal.torn_bytes} bytes) cut, kept in "
+            f"{cfg.journal}.torn")
+    if camera is None or arm is None or gate is None:
+        try:
+            camera, arm, gate = build_live_devices(cfg)
+        except ConfigError as exc:
+            log(str(exc))
+            journal.close()
+            return EXIT_USAGE
+    connected: list[Any] = []
+    try:
+        for name, dev in (("gate", gate), ("arm", arm), ("camera", camera)):
+            notifier.status(f"connecting {name}")
+            dev.connect()
+            connected.append(dev)
+    except DeviceError as exc:
+        log(f"cannot start: {exc}")
+        notifier.status(f"device fault at start: {exc}")
+        for dev in connected:
+            try:
+                dev.disconnect()
+            except Exception:  # noqa: BLE001
+                pass
+        journal.append({"type": "start_failed", "reason": str(exc), "t": time.time()})
+        journal.close()
+        return EXIT_DEVICE
+    try:
+        gate.to_reject()  # a fresh start routes nothing until a decision says so
+    except Exception:  # noqa: BLE001
+        pass
+    scene = SceneSpec.from_config(cfg)
+    cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
+                evidence_factory=evidence_factory or default_evidence_factory(cfg),
+                items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log)
+    journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
+                    "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
+    cell.recover()
+    beta = getattr(model, "beta", None)
+    notifier.ready(f"ready: bundle {Path(cfg.bundle).name} verified and warm in {load_s:.1f} s"
+                   + (f", beta {beta:.4g}" if isinstance(beta, (int, float)) else "")
+                   + (f"; FAULT latched: {cell.fault}" if cell.fault else ""))
+    notifier.watchdog()
+    reason = "stopped"
+    try:
+        cell.run(max_items=max_items, stop_when=stop_when)
+        reason = "SIGTERM" if stop_event.is_set() else "done"
+    except BaseException as exc:  # noqa: BLE001 - the journal must close, the gate must go to reject
+        reason = f"crashed: {exc!r}"
+        log(reason)
+        cell.shutdown(reason)
+        _disconnect_all(camera, arm, gate)
+        raise
+    cell.shutdown(reason)
+    _disconnect_all(camera, arm, gate)
+    notifier.stopping(f"stopped ({reason}); {len(cell.results)} items")
+    notifier.close()
+    return EXIT_OK
+
+
+def _float_or_none(x) -> float | None:
+    return float(x) if isinstance(x, (int, float)) else None
+
+
+def _disconnect_all(*devices) -> None:
+    for dev in devices:
+        try:
+            dev.disconnect()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("--config", required=True, help="cell config (YAML); see docs/cell.md")
+    parser.add_argument("--clear-fault", action="store_true",
+                        help="clear a latched fault (after fixing its cause) and exit")
+    parser.add_argument("--max-items", type=int, default=None, help="stop after this many items (commissioning)")
+
+
+def run(args) -> int:
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_USAGE
+    if args.clear_fault:
+        return clear_fault(cfg)
+    return run_daemon(cfg, max_items=args.max_items)

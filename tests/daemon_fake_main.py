@@ -1,0 +1,51 @@
+"""Run the real daemon (runtime/daemon.py) in a subprocess with fake devices and a fake model.
+
+Used by tests/test_daemon.py: ``python tests/daemon_fake_main.py CONFIG [--score-delay-s S]``.
+The model and devices are the in-test fakes; everything else - signals, sd_notify, journal,
+the loop - is the production code path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera  # noqa: E402
+from vs2t_edge.runtime.arm import FakeArm  # noqa: E402
+from vs2t_edge.runtime.config import load_config  # noqa: E402
+from vs2t_edge.runtime.daemon import run_daemon  # noqa: E402
+from vs2t_edge.runtime.gate import FakeGate  # noqa: E402
+
+
+class SlowModel(FakeModel):
+    def __init__(self, *a, delay_s=0.0, **k):
+        super().__init__(*a, **k)
+        self.delay_s = delay_s
+
+    def score_press(self, frame):
+        time.sleep(self.delay_s)
+        return super().score_press(frame)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("config")
+    ap.add_argument("--score-delay-s", type=float, default=0.05)
+    ap.add_argument("--load-delay-s", type=float, default=0.0)
+    a = ap.parse_args()
+    cfg = load_config(a.config)
+    time.sleep(a.load_delay_s)  # READY must come only after the model is loaded
+    arm = FakeArm(config=cfg.arm)
+    classes = cfg.scene_classes
+    model = SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes, delay_s=a.score_delay_s)
+    camera = ScriptedCamera(arm, [50, 60] * 100000)  # alternating votes: items need every press
+    return run_daemon(cfg, model=model, camera=camera, arm=arm, gate=FakeGate(),
+                      evidence_factory=lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

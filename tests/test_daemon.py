@@ -1,0 +1,159 @@
+"""The daemon as a real subprocess: sd_notify on a test NOTIFY_SOCKET, SIGTERM, restart recovery."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vs2t_edge.runtime.journal import read_records
+
+HERE = Path(__file__).parent
+CONFIG = """\
+bundle: bundle
+threads: 1
+devices:
+  camera: {kind: replay, path: frames}
+  arm: {kind: fake}
+  gate: {kind: fake}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {name: denim, kind: touched, bin: 1}
+    - {name: silk, kind: untouched, bin: 2}
+evidence: {confidence: 0.95, max_presses: 4}
+journal: state/journal.jsonl
+watchdog: {wait_item_timeout_s: 0.05}
+"""
+
+
+def start(tmp_path, *extra, env_extra=None):
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(CONFIG)
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(20)
+    env = dict(os.environ, NOTIFY_SOCKET=sock_path, WATCHDOG_USEC="400000", PYTHONUNBUFFERED="1")
+    env.pop("WATCHDOG_PID", None)
+    env.update(env_extra or {})
+    proc = subprocess.Popen([sys.executable, str(HERE / "daemon_fake_main.py"), str(cfg), *extra], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, server, tmp_path / "state" / "journal.jsonl"
+
+
+def receive_until(server, pred, limit_s=20.0):
+    got = []
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        msg = server.recv(4096).decode()
+        got.append(msg)
+        if pred(msg):
+            return got
+    raise AssertionError(f"never saw the expected message; got {got}")
+
+
+def test_ready_watchdog_status_then_graceful_sigterm(tmp_path):
+    proc, server, journal = start(tmp_path, "--load-delay-s", "0.3")
+    try:
+        msgs = receive_until(server, lambda m: m.startswith("READY=1"))
+        assert any(m.startswith("STATUS=loading bundle") for m in msgs[:-1])  # status before READY
+        msgs += receive_until(server, lambda m: "pressing" in m)
+        msgs += receive_until(server, lambda m: m == "WATCHDOG=1")
+        # let a few items go by, then stop in the middle of one
+        receive_until(server, lambda m: "-> bin" in m)
+        receive_until(server, lambda m: "pressing" in m)
+        proc.send_signal(signal.SIGTERM)
+        tail = receive_until(server, lambda m: m.startswith("STOPPING=1") and "items" in m)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        server.close()
+    assert proc.returncode == 0, err
+    recs = read_records(journal)
+    types = [r["type"] for r in recs]
+    assert types[0] == "start" and types[-1] == "stop" and recs[-1]["reason"] == "SIGTERM"
+    finals = [r for r in recs if r["type"] == "final"]
+    assert finals and finals[-1]["outcome"] == "aborted" and finals[-1]["bin"] == 0
+    items = {r["item"] for r in recs if r["type"] == "item"}
+    assert items == {r["item"] for r in finals}  # exactly one final per item
+    assert any(m.startswith("STOPPING=1") for m in tail)
+    assert "SIGTERM: finishing safely" in err
+
+
+def test_restart_after_kill_resolves_the_open_item(tmp_path):
+    proc, server, journal = start(tmp_path)
+    try:
+        receive_until(server, lambda m: m.startswith("READY=1"))
+        # kill -9 right after a pre-sort record: no chance to write the final one
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            recs = read_records(journal)
+            if recs and recs[-1]["type"] == "pre_sort":
+                proc.kill()
+                break
+            time.sleep(0.002)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        server.close()
+    recs = read_records(journal)
+    open_items = {r["item"] for r in recs if r["type"] == "pre_sort"} - {r["item"] for r in recs if r["type"] == "final"}
+    if not open_items:
+        pytest.skip("the kill landed after the final record this time; nothing to recover")
+    (tmp_path / "notify.sock").unlink()
+    proc, server, journal = start(tmp_path)
+    try:
+        receive_until(server, lambda m: m.startswith("READY=1"))
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        server.close()
+    recs = read_records(journal)
+    for item in open_items:
+        f = [r for r in recs if r["type"] == "final" and r["item"] == item]
+        assert len(f) == 1 and f[0]["outcome"] == "unknown_outcome" and f[0]["bin"] == 0
+
+
+def test_bad_bundle_exits_2_without_ready(tmp_path):
+    """The `run` verb on a config whose bundle is missing: no READY, exit 2, reason on stderr."""
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(CONFIG)
+    sock_path = str(tmp_path / "n.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(0.2)
+    env = dict(os.environ, NOTIFY_SOCKET=sock_path)
+    proc = subprocess.run([sys.executable, "-m", "vs2t_edge", "run", "--config", str(cfg)], env=env,
+                          capture_output=True, text=True, timeout=60)
+    msgs = []
+    try:
+        while True:
+            msgs.append(server.recv(4096).decode())
+    except socket.timeout:
+        pass
+    server.close()
+    assert proc.returncode == 2, proc.stderr
+    assert "bundle" in proc.stderr and not any(m.startswith("READY=1") for m in msgs)
+
+
+def test_clear_fault_command(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(CONFIG)
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "FAULT").write_text("item 3: gate jam\n")
+    assert main(["run", "--config", str(cfg), "--clear-fault"]) == 0
+    assert "gate jam" in capsys.readouterr().out
+    assert not (tmp_path / "state" / "FAULT").exists()
