@@ -183,6 +183,11 @@ class ZSLMethod:
     def untouched_logits(self, x_t: np.ndarray, x_v: np.ndarray) -> np.ndarray:  # pragma: no cover
         raise NotImplementedError
 
+    def retarget(self, data: ZSLData, budget: Budget, seed: int) -> "ZSLMethod":  # pragma: no cover
+        """Rebuild CLS_u for ``data``'s untouched classes (e.g. the validation fabrics) without
+        retraining what was learnt on touched fabrics; returns self."""
+        raise NotImplementedError
+
 
 # --------------------------------------------------------------------------------------------
 # attribute-based baselines
@@ -228,6 +233,10 @@ class DAP(ZSLMethod):
             opt.step()
         self.attr_u = data.attr_u
         self.prior = data.attr_t[data.y].mean(axis=0)
+        return self
+
+    def retarget(self, data, budget, seed):
+        self.attr_u = data.attr_u
         return self
 
     def attribute_probabilities(self, x_t, x_v=None):
@@ -322,6 +331,10 @@ class _GenerativeZSL(ZSLMethod):
     def _fit_cls_u(self, data, budget, seed):
         xs, ys = self.synthesise(data, budget, seed)
         self.cls_u = train_classifier(xs, ys, data.n_u, steps=budget.cls_steps, seed=seed)
+
+    def retarget(self, data, budget, seed):
+        self._fit_cls_u(data, budget, seed)
+        return self
 
     def untouched_logits(self, x_t, x_v):
         return predict_logits(self.cls_u, x_t)

@@ -290,6 +290,9 @@ class CADAVAE(ZSLMethod):
             losses["total"].backward()
             opt.step()
         self.net.eval()
+        return self.retarget(data, budget, seed)
+
+    def retarget(self, data: ZSLData, budget: Budget, seed: int):
         # CLS_u on latent samples drawn from the condition encoder of untouched crops
         cond_u, cls_u = data.condition_u()
         gen_s = torch.Generator().manual_seed(seed + 7)

@@ -1,0 +1,121 @@
+"""The comparison pipeline: splits, validation-only choices, the written report; and the
+real-sensor check (skips when ../shared/real is absent)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.train import compare as cmp
+from vs2t_edge.train.baselines import DAP, Budget
+from vs2t_edge.train.generators_modern import CADAVAE
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "gelsight_mini_materials"
+
+
+def test_splits_are_disjoint_reproducible_and_different():
+    ids = [f"f{i:02d}" for i in range(50)]
+    a = cmp.make_splits(ids, 5, seed=0)
+    b = cmp.make_splits(ids, 5, seed=0)
+    assert [asdict_(s) for s in a] == [asdict_(s) for s in b]
+    for s in a:
+        assert (len(s.touched), len(s.validation), len(s.untouched)) == (40, 5, 5)  # the paper's 40/5/5
+        assert not (set(s.touched) & set(s.validation) or set(s.touched) & set(s.untouched)
+                    or set(s.validation) & set(s.untouched))
+    assert len({tuple(s.untouched) for s in a}) == 5
+    with pytest.raises(ValueError, match="too few"):
+        cmp.make_splits(ids[:4], 1)
+
+
+def asdict_(s):
+    return (s.touched, s.validation, s.untouched, s.seed)
+
+
+def test_split_views_keep_untouched_tactile_out_of_training():
+    table = cmp.toy_feature_table(n_fabrics=12, presses=20, d_t=16, d_v=8)
+    split = cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=2)[0]
+    v = cmp.split_views(table, split)
+    assert v.train.n_t == 8 and v.train.n_u == 2 and v.val.n_u == 2
+    # touched presses: train + val + test = all presses of touched fabrics, no overlap in count
+    assert len(v.train.y) + len(v.touched_val[2]) + len(v.touched_test[2]) == 8 * 20
+    assert len(v.test_presses[2]) == 2 * 20 and len(v.val_presses[2]) == 2 * 20
+    # the scaler is fitted on touched train presses only: their mean is ~0, untouched not
+    assert np.allclose(v.train.x_t.mean(0), 0, atol=1e-4)
+
+
+def _fake_split_result(val_zsl, test_zsl, val_ausuc, test_ausuc):
+    methods = {}
+    for m in val_zsl:
+        routers = {r: {"acc_t": 0.9, "acc_u": 0.5, "H": 0.6, "auroc": 0.8, "beta": 0.0,
+                       "ausuc": test_ausuc[m][r], "val_ausuc": val_ausuc[m][r]} for r in val_ausuc[m]}
+        methods[m] = {"zsl_acc": test_zsl[m], "val_zsl_acc": val_zsl[m], "routers": routers, "seconds": 1.0}
+    return {"split": {}, "cls_t_acc": 0.9, "methods": methods}
+
+
+def test_recommendation_uses_validation_not_test():
+    r = _fake_split_result(
+        val_zsl={"A": 0.9, "B": 0.5}, test_zsl={"A": 0.4, "B": 0.99},
+        val_ausuc={"A": {"gaussian": 0.3, "energy": 0.7}, "B": {"gaussian": 0.9, "energy": 0.1}},
+        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.2}, "B": {"gaussian": 0.9, "energy": 0.9}},
+    )
+    s = cmp.summarise([r, r])
+    assert s["recommendation"]["model"] == "A" and s["recommendation"]["router"] == "energy"
+    assert s["methods"]["B"]["zsl_acc"]["mean"] == pytest.approx(0.99)
+
+
+def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
+    torch.set_num_threads(1)
+    table = cmp.toy_feature_table(n_fabrics=14, presses=20, d_t=24, d_v=12)
+    cache = tmp_path / "features.npz"
+    table.save(cache)
+    table = cmp.FeatureTable.load(cache)
+    splits = cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=3)
+    budget = Budget(steps=60, batch=32, hidden=32, latent=8, cls_steps=60, n_synth_per_class=30)
+    result = cmp.run_comparison(table, splits, budget, {"DAP": DAP, "CADA-VAE": CADAVAE}, log=lambda m: None)
+    result["meta"] = {"command": "test", "features": "toy", "n_fabrics": 14, "n_presses": 280, "d_t": 24,
+                      "d_v": 12, "n_splits": 1, "split_sizes": "9/2/3", "budget": "tiny", "host": "test",
+                      "seconds": 1.0}
+    m = result["summary"]["methods"]["DAP"]
+    assert set(m["routers"]) == set(nv.ROUTERS)
+    for r in nv.ROUTERS:
+        for key in ("acc_t", "acc_u", "H", "ausuc", "val_ausuc"):
+            assert 0.0 <= m["routers"][r][key]["mean"] <= 1.0
+    assert m["zsl_acc"]["mean"] > 1 / 3  # better than chance among 3 untouched fabrics
+    paths = cmp.write_results(result, tmp_path / "out")
+    md = paths["md"].read_text()
+    assert "| DAP | 43.56 |" in md and "Recommendation" in md
+    assert json.loads(paths["json"].read_text())["summary"]["recommendation"]["model"] in ("DAP", "CADA-VAE")
+    assert paths["png"].stat().st_size > 5000
+
+
+def test_feature_cache_names_missing_keys(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x_t=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="lacks"):
+        cmp.FeatureTable.load(bad)
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real/gelsight_mini_materials absent")
+def test_real_materials_frozen_trunk_separates_touched_from_untouched():
+    """Real GelSight Mini frames: the frozen ImageNet trunk + Gaussian router flags unseen
+    materials better than chance (a weak but real bar; the benchmark fine-tunes)."""
+    from vs2t_edge.train import realdata_check as rc
+
+    torch.set_num_threads(1)
+    names, frames = rc.load_materials(REAL)
+    assert len(names) == 10 and all(len(f) == 20 for f in frames)
+    spec = rc.TactilePreprocess(size=96, mean=rc.IMAGENET_MEAN, std=rc.IMAGENET_STD, use_reference=False)
+    x = {m: torch.from_numpy(np.stack([rc.preprocess_tactile(f, None, spec) for f in frames[m]])) for m in range(10)}
+    trunk, _ = rc.make_trunk()
+    feats = {m: rc._features(trunk, x[m]) for m in range(10)}
+    touched, untouched = range(0, 5), range(5, 10)
+    train = np.concatenate([feats[m][:14] for m in touched])
+    held = np.concatenate([feats[m][14:] for m in touched])
+    unseen = np.concatenate([feats[m] for m in untouched])
+    router = nv.fit_router("mahalanobis_lw", train)
+    assert nv.auroc(router.novelty(held), router.novelty(unseen)) > 0.6
