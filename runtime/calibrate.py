@@ -1,0 +1,305 @@
+"""`vs2t-edge calibrate-threshold`: choose the novelty threshold beta from presses on the cell.
+
+Inputs: presses of fabrics the model was trained on ("touched") and of validation fabrics it
+never saw, either from a dataset folder (fabrics named as bundle classes count as touched,
+the rest - or those given by ``--validation`` - as validation) or from replay files
+(``--touched-replay`` / ``--validation-replay``: every press in the file is of that group).
+Each press is scored by the deployed bundle (same preprocessing, same model) to its novelty.
+
+beta is chosen as the paper does - maximise the mean of the two accuracies (touched kept as
+touched, validation flagged untouched) - or, with ``--target-false-untouched R``, flagging as
+many validation presses as possible with at most a fraction R of touched presses flagged.
+The curve (both rates and their mean against beta) goes to a PNG (matplotlib when importable,
+else drawn with OpenCV: the cell has no matplotlib) and a CSV beside it.
+
+The new beta is written atomically (temp file, fsync, rename) to
+``<bundle>.beta_override.json`` next to the bundle - the bundle itself stays as its hashes say
+- with the previous override kept as ``...json.prev`` and the history inside the file. The
+daemon reads it at start (a config ``beta_override`` wins over it).
+
+Refuses (exit 2, in words) with fewer than ``--min-presses`` per group, non-finite scores, all
+scores equal, or a best balanced accuracy no better than chance.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+class CalibrationError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class Calibration:
+    beta: float
+    objective: str
+    target_false_untouched: float | None
+    kept_touched: float  # fraction of touched presses routed to touched at beta
+    flagged_validation: float  # fraction of validation presses flagged untouched at beta
+    balanced: float
+    n_touched: int
+    n_validation: int
+
+
+def choose_beta(novelty_touched, novelty_validation, *, target_false_untouched: float | None = None,
+                min_presses: int = 20) -> Calibration:
+    from vs2t_edge.runtime.novelty import threshold_rates, tune_threshold
+
+    t = np.asarray(novelty_touched, dtype=np.float64).ravel()
+    v = np.asarray(novelty_validation, dtype=np.float64).ravel()
+    for name, a in (("touched", t), ("validation", v)):
+        if a.size < min_presses:
+            raise CalibrationError(f"only {a.size} {name} presses; at least {min_presses} are needed "
+                                   "(press more pieces, or lower --min-presses knowingly)")
+        if not np.all(np.isfinite(a)):
+            raise CalibrationError(f"{int(np.sum(~np.isfinite(a)))} {name} novelty scores are not finite; "
+                                   "the bundle or the frames are broken")
+    both = np.concatenate([t, v])
+    if np.ptp(both) == 0.0:
+        raise CalibrationError(f"every press scored the same novelty ({both[0]:.6g}); nothing to separate - "
+                               "are the frames all the same (camera frozen, no contact)?")
+    objective = "target" if target_false_untouched is not None else "balanced"
+    beta = tune_threshold(t, v, objective=objective, target_false_untouched=target_false_untouched)
+    kept, flagged = threshold_rates(t, v, np.array([beta]))
+    balanced = 0.5 * (float(kept[0]) + float(flagged[0]))
+    if balanced <= 0.5 + 1e-9:
+        raise CalibrationError(f"no threshold separates touched from validation presses better than chance "
+                               f"(best balanced accuracy {balanced:.1%}); the validation fabrics look touched "
+                               "to this model - check the scene and the bundle")
+    if not math.isfinite(beta):
+        raise CalibrationError(f"the chosen beta is {beta}: the {objective} rule puts every press on one side; "
+                               "loosen --target-false-untouched or add presses")
+    return Calibration(beta, objective, target_false_untouched, float(kept[0]), float(flagged[0]), balanced,
+                       int(t.size), int(v.size))
+
+
+def curve(novelty_touched, novelty_validation, n: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    from vs2t_edge.runtime.novelty import threshold_rates
+
+    both = np.concatenate([np.ravel(novelty_touched), np.ravel(novelty_validation)])
+    lo, hi = float(np.min(both)), float(np.max(both))
+    pad = 0.05 * (hi - lo or 1.0)
+    betas = np.linspace(lo - pad, hi + pad, n)
+    kept, flagged = threshold_rates(np.asarray(novelty_touched), np.asarray(novelty_validation), betas)
+    return betas, kept, flagged
+
+
+def write_curve(out_png: Path, novelty_touched, novelty_validation, cal: Calibration) -> list[Path]:
+    betas, kept, flagged = curve(novelty_touched, novelty_validation)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    csv_path = out_png.with_suffix(".csv")
+    with open(csv_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["beta", "touched_kept", "validation_flagged", "mean"])
+        for b, k, g in zip(betas, kept, flagged):
+            w.writerow([f"{b:.6g}", f"{k:.4f}", f"{g:.4f}", f"{(k + g) / 2:.4f}"])
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 3.6), dpi=100)
+        ax.plot(betas, kept, label="touched kept as touched")
+        ax.plot(betas, flagged, label="validation flagged untouched")
+        ax.plot(betas, (kept + flagged) / 2, "k--", label="mean (paper's rule)")
+        ax.axvline(cal.beta, color="r", lw=1, label=f"beta = {cal.beta:.4g}")
+        ax.set_xlabel("novelty threshold beta")
+        ax.set_ylabel("fraction of presses")
+        ax.set_ylim(-0.02, 1.02)
+        ax.legend(fontsize=7, loc="lower left")
+        fig.tight_layout()
+        fig.savefig(out_png)
+        plt.close(fig)
+    except ImportError:
+        _draw_curve_cv2(out_png, betas, kept, flagged, cal.beta)
+    return [out_png, csv_path]
+
+
+def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float) -> None:
+    import cv2
+
+    w, h, m = 640, 360, 40
+    img = np.full((h, w, 3), 255, np.uint8)
+    cv2.rectangle(img, (m, m // 2), (w - m // 2, h - m), (0, 0, 0), 1)
+    lo, hi = float(betas[0]), float(betas[-1])
+
+    def px(b, r):
+        x = m + (b - lo) / (hi - lo or 1.0) * (w - 1.5 * m)
+        y = (h - m) - r * (h - 1.5 * m)
+        return int(round(x)), int(round(y))
+
+    for series, colour in ((kept, (200, 80, 0)), (flagged, (0, 140, 0)), ((kept + flagged) / 2, (0, 0, 0))):
+        pts = np.array([px(b, r) for b, r in zip(betas, series)], np.int32)
+        cv2.polylines(img, [pts], False, colour, 2)
+    x, _ = px(beta, 0)
+    cv2.line(img, (x, m // 2), (x, h - m), (0, 0, 255), 1)
+    cv2.putText(img, f"beta={beta:.4g}  blue: touched kept, green: validation flagged, black: mean",
+                (m, h - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    cv2.imwrite(str(out_png), img)
+
+
+# --- the override file -------------------------------------------------------------------
+
+def override_path_for(bundle: Path) -> Path:
+    bundle = Path(bundle)
+    return bundle.parent / f"{bundle.name}.beta_override.json"
+
+
+def read_beta_override(path: Path | None) -> float | None:
+    if path is None or not Path(path).exists():
+        return None
+    try:
+        data = json.loads(Path(path).read_text())
+        beta = float(data["beta"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise CalibrationError(f"{path}: not a beta override file ({exc})") from None
+    if not math.isfinite(beta):
+        raise CalibrationError(f"{path}: beta {beta} is not finite")
+    return beta
+
+
+def write_beta_override(path: Path, cal: Calibration, *, bundle_beta: float | None, source: str) -> Path:
+    """Atomic: write a temp file, fsync, keep the old one as .prev, rename over, fsync the folder."""
+    path = Path(path)
+    history = []
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+            history = old.get("history", []) + [{k: old.get(k) for k in ("beta", "written", "objective")}]
+        except ValueError:
+            history = []
+    data = {"beta": cal.beta, "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "source": source, **{k: v for k, v in asdict(cal).items() if k != "beta"}, "history": history}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    if path.exists():
+        os.replace(path, path.with_name(path.name + ".prev"))
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return path
+
+
+# --- scoring presses ---------------------------------------------------------------------
+
+def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None = None,
+                         progress=None) -> tuple[list[float], list[float]]:
+    """Novelty of every press of the dataset, split into touched (bundle classes) and validation."""
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import FrameError
+
+    ds = load_dataset(dataset_root)
+    touched_names = set(model.touched)
+    touched, val = [], []
+    fabrics = list(ds.fabrics)
+    for i, fab in enumerate(fabrics):
+        if fab.name in touched_names or fab.id in touched_names:
+            group = touched
+        elif validation is None or fab.name in validation or fab.id in validation:
+            group = val
+        else:
+            continue
+        model.set_reference(fab.load_reference())
+        for k in range(len(fab.presses)):
+            try:
+                group.append(float(model.score_press(fab.load_press(k)).novelty))
+            except FrameError:
+                continue  # a bad frame says nothing about beta
+        if progress:
+            progress(i + 1, len(fabrics))
+    return touched, val
+
+
+def novelty_from_replays(model, files: list[Path]) -> list[float]:
+    from vs2t_edge.runtime.replay import ReplayFile
+    from vs2t_edge.runtime.preprocess import FrameError
+
+    out = []
+    for f in files:
+        rf = ReplayFile.open(f)
+        for ref, frames in rf.frames_by_item():
+            model.set_reference(ref)
+            for frame in frames:
+                try:
+                    out.append(float(model.score_press(frame).novelty))
+                except FrameError:
+                    continue
+    return out
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("--bundle", required=True, help="the deployed bundle folder")
+    parser.add_argument("--dataset", help="dataset folder: bundle classes = touched, others = validation")
+    parser.add_argument("--validation", nargs="*", help="with --dataset: only these fabrics (names or ids) "
+                                                        "are validation fabrics")
+    parser.add_argument("--touched-replay", nargs="*", default=[], help="replay files of touched fabrics")
+    parser.add_argument("--validation-replay", nargs="*", default=[], help="replay files of validation fabrics")
+    parser.add_argument("--target-false-untouched", type=float, default=None,
+                        help="max fraction of touched presses flagged untouched (default: the paper's rule)")
+    parser.add_argument("--min-presses", type=int, default=20, help="refuse with fewer presses per group")
+    parser.add_argument("--curve", default=None, help="curve PNG (default: next to the bundle)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--dry-run", action="store_true", help="print the beta, write nothing")
+
+
+def run(args) -> int:
+    bundle = Path(args.bundle)
+    if not args.dataset and not (args.touched_replay and args.validation_replay):
+        print("calibrate-threshold: give --dataset, or both --touched-replay and --validation-replay",
+              file=sys.stderr)
+        return 2
+    if args.target_false_untouched is not None and not 0.0 <= args.target_false_untouched <= 1.0:
+        print("calibrate-threshold: --target-false-untouched must be between 0 and 1", file=sys.stderr)
+        return 2
+    try:
+        from vs2t_edge.runtime.inference import TactileModel
+
+        model = TactileModel.load(bundle, threads=args.threads, beta_override=None)
+    except Exception as exc:  # noqa: BLE001
+        print(f"calibrate-threshold: bundle {bundle} refused: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.dataset:
+            def progress(i, n):
+                print(f"\rscoring fabric {i}/{n}", end="", file=sys.stderr, flush=True)
+
+            touched, val = novelty_from_dataset(model, Path(args.dataset), args.validation, progress)
+            print(file=sys.stderr)
+        else:
+            touched = novelty_from_replays(model, [Path(p) for p in args.touched_replay])
+            val = novelty_from_replays(model, [Path(p) for p in args.validation_replay])
+        cal = choose_beta(touched, val, target_false_untouched=args.target_false_untouched,
+                          min_presses=args.min_presses)
+    except (CalibrationError, ValueError) as exc:
+        print(f"calibrate-threshold: refused: {exc}", file=sys.stderr)
+        return 2
+    png = Path(args.curve) if args.curve else bundle.parent / f"{bundle.name}.beta_curve.png"
+    written = write_curve(png, touched, val, cal)
+    old = float(model.beta) if getattr(model, "beta", None) is not None else None
+    print(f"beta {cal.beta:.6g} ({cal.objective}): touched kept {cal.kept_touched:.1%}, validation flagged "
+          f"{cal.flagged_validation:.1%}, mean {cal.balanced:.1%} on {cal.n_touched}+{cal.n_validation} presses"
+          f" (bundle's beta {old})")
+    print("curve: " + ", ".join(str(p) for p in written))
+    if args.dry_run:
+        return 0
+    path = write_beta_override(override_path_for(bundle), cal, bundle_beta=old, source=args.dataset or "replays")
+    print(f"written {path} (previous kept as {path.name}.prev); restart the service to use it")
+    return 0

@@ -1,0 +1,95 @@
+"""calibrate-threshold: the paper's rule, a target rate, refusals, the curve, the atomic override."""
+
+from __future__ import annotations
+
+import builtins
+import json
+
+import numpy as np
+import pytest
+
+from vs2t_edge.runtime.calibrate import (
+    CalibrationError,
+    choose_beta,
+    override_path_for,
+    read_beta_override,
+    write_beta_override,
+    write_curve,
+)
+
+rng = np.random.default_rng(0)
+TOUCHED = rng.normal(0.0, 1.0, 200)
+VALIDATION = rng.normal(3.0, 1.0, 150)
+
+
+def test_balanced_beta_sits_between_the_groups():
+    cal = choose_beta(TOUCHED, VALIDATION)
+    assert 1.0 < cal.beta < 2.0  # equal spreads: the best split is near the midpoint 1.5
+    assert cal.balanced > 0.9 and cal.objective == "balanced"
+    # the balanced mean at the chosen beta is the best over every observed gap
+    grid = np.sort(np.concatenate([TOUCHED, VALIDATION]))
+    means = [0.5 * (np.mean(TOUCHED <= b) + np.mean(VALIDATION > b)) for b in grid]
+    assert cal.balanced >= max(means) - 1e-12
+
+
+def test_target_false_untouched_is_respected():
+    cal = choose_beta(TOUCHED, VALIDATION, target_false_untouched=0.01)
+    assert np.mean(TOUCHED > cal.beta) <= 0.01
+    assert cal.beta > choose_beta(TOUCHED, VALIDATION).beta  # stricter on touched -> higher beta
+
+
+@pytest.mark.parametrize("t, v, words", [
+    (TOUCHED[:5], VALIDATION, "only 5 touched presses"),
+    (np.full(50, 2.0), np.full(50, 2.0), "every press scored the same"),
+    (np.r_[TOUCHED[:49], np.nan], VALIDATION, "not finite"),
+    (TOUCHED, TOUCHED[::-1].copy(), "better than chance"),
+])
+def test_refuses_too_little_or_degenerate_data(t, v, words):
+    with pytest.raises(CalibrationError, match=words):
+        choose_beta(t, v)
+
+
+def test_override_written_atomically_and_previous_kept(tmp_path):
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    path = override_path_for(bundle)
+    assert read_beta_override(path) is None
+    first = choose_beta(TOUCHED, VALIDATION)
+    write_beta_override(path, first, bundle_beta=0.5, source="test")
+    second = choose_beta(TOUCHED, VALIDATION, target_false_untouched=0.01)
+    write_beta_override(path, second, bundle_beta=0.5, source="test")
+    assert read_beta_override(path) == pytest.approx(second.beta)
+    prev = json.loads(path.with_name(path.name + ".prev").read_text())
+    assert prev["beta"] == pytest.approx(first.beta)
+    assert json.loads(path.read_text())["history"][0]["beta"] == pytest.approx(first.beta)
+    assert not list(tmp_path.glob("*.tmp"))
+    path.write_text("{not json")
+    with pytest.raises(CalibrationError, match="not a beta override"):
+        read_beta_override(path)
+
+
+def test_curve_png_with_and_without_matplotlib(tmp_path, monkeypatch):
+    import cv2
+
+    cal = choose_beta(TOUCHED, VALIDATION)
+    png, csv_path = write_curve(tmp_path / "a.png", TOUCHED, VALIDATION, cal)
+    assert cv2.imread(str(png)) is not None and csv_path.read_text().startswith("beta,")
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *a, **k):
+        if name.startswith("matplotlib"):
+            raise ImportError("no matplotlib on the cell")
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    png2, _ = write_curve(tmp_path / "b.png", TOUCHED, VALIDATION, cal)
+    img = cv2.imread(str(png2))
+    assert img is not None and img.shape == (360, 640, 3)
+    assert (img[..., 2] > 200).sum() > 0 and (img[..., 0] < 50).sum() > 0  # drawn lines, not blank
+
+
+def test_cli_needs_inputs(capsys):
+    from vs2t_edge.cli import main
+
+    assert main(["calibrate-threshold", "--bundle", "/nonexistent"]) == 2
+    assert "give --dataset" in capsys.readouterr().err
