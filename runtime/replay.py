@@ -1,0 +1,570 @@
+"""Record a cell session into a replay file, and run the whole daemon again from it.
+
+A replay file is a folder ``NAME.replay/`` (format in docs/cell.md):
+
+* ``index.json`` - format name and version, the cell config the session ran with (as a YAML
+  mapping), the items in order (id, and the true fabric when known), every device event in
+  order, and the reference decisions (the journal's decision records);
+* ``frames/NNNNNN.png`` - every grabbed frame, PNG (lossless, so a replay scores the same
+  pixels).
+
+Recording wraps the session's camera, arm, gate and item source in proxies that log each call
+with its result or its typed error (``RecordingCamera`` ...), tagged with the item in hand.
+Replaying gives the cell loop devices that answer from those logs (``ReplayArm`` raises the
+recorded ``ArmSafetyStop`` at the same press, ``ReplayCamera`` returns the recorded frames), with
+the operator's recorded fault clears played back, and runs the same daemon code
+(runtime/daemon.run_daemon). Then :func:`compare` checks the new decisions against the
+reference: exact on label, bin, outcome, presses and fault kinds, a tolerance on scores and
+confidences, timestamps ignored. ``--update-refs`` rewrites the reference decisions from the new
+run, never by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import tempfile
+import threading
+import time
+from collections import defaultdict, deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from vs2t_edge.runtime import devices as dv
+from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.devices import Frame, PressResult
+
+FORMAT = "vs2t-edge-replay"
+VERSION = 1
+DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped", "retry")
+SCORE_RTOL, SCORE_ATOL = 1e-3, 1e-3  # onnxruntime thread counts and CPUs differ in the last bits
+
+_ERRORS = {cls.__name__: cls for cls in (dv.CameraError, dv.ArmConnectionError, dv.ArmSafetyStop, dv.PressFailed,
+                                         dv.ArmError, dv.GateError, dv.DeviceError, dv.NotConnectedError)}
+
+
+class ReplayError(ValueError):
+    """A replay file that cannot be read, named with what is wrong."""
+
+
+class ReplayDivergence(RuntimeError):
+    """The replayed cell asked for something the recording does not have (it took another path)."""
+
+
+def _error_to_json(exc: dv.DeviceError) -> dict:
+    return {"type": type(exc).__name__, "message": str(exc), "kind": exc.kind, "device": exc.device,
+            "retryable": bool(exc.retryable)}
+
+
+def _error_from_json(d: dict) -> dv.DeviceError:
+    cls = _ERRORS.get(d["type"], dv.DeviceError)
+    exc = cls(d["message"], device=d.get("device", ""), kind=d.get("kind", ""))
+    if exc.retryable != d.get("retryable", exc.retryable):
+        exc.retryable = d["retryable"]
+    return exc
+
+
+# --- recording -----------------------------------------------------------------------------
+
+class Recorder:
+    """Collects events and frames; ``save(folder, config_dict, journal_records)`` writes the file."""
+
+    def __init__(self) -> None:
+        self.events: list[dict] = []
+        self.frames: list[bytes] = []
+        self.items: list[dict] = []
+        self.item_index = -1  # index into items of the piece in hand
+        self._lock = threading.Lock()
+
+    def event(self, dev: str, call: str, **fields) -> dict:
+        with self._lock:
+            ev = {"item": self.item_index, "dev": dev, "call": call, **fields}
+            self.events.append(ev)
+            return ev
+
+    def add_frame(self, image: np.ndarray) -> str:
+        ok, buf = cv2.imencode(".png", image)
+        if not ok:
+            raise ReplayError("could not PNG-encode a frame")
+        with self._lock:
+            self.frames.append(buf.tobytes())
+            return f"frames/{len(self.frames):06d}.png"
+
+    def save(self, folder: Path, config: dict, journal_records: list[dict], meta: dict | None = None) -> Path:
+        folder = Path(folder)
+        tmp = folder.with_name(folder.name + ".partial")
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        (tmp / "frames").mkdir(parents=True)
+        for i, data in enumerate(self.frames, 1):
+            (tmp / "frames" / f"{i:06d}.png").write_bytes(data)
+        index = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                 "meta": meta or {}, "config": config, "items": self.items, "events": self.events,
+                 "decisions": decisions_of(journal_records)}
+        (tmp / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+        if folder.exists():
+            shutil.rmtree(folder)
+        tmp.rename(folder)
+        return folder
+
+
+class RecordingCamera:
+    def __init__(self, inner, rec: Recorder) -> None:
+        self.inner, self.rec = inner, rec
+
+    def connect(self) -> None:
+        self.inner.connect()
+
+    def disconnect(self) -> None:
+        self.inner.disconnect()
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()
+
+    def grab(self) -> Frame:
+        try:
+            frame = self.inner.grab()
+        except dv.DeviceError as exc:
+            self.rec.event("camera", "grab", error=_error_to_json(exc))
+            raise
+        name = self.rec.add_frame(frame.image) if isinstance(frame.image, np.ndarray) and frame.image.ndim == 3 \
+            and frame.image.dtype == np.uint8 else None
+        self.rec.event("camera", "grab", frame=name, timestamp_s=frame.timestamp_s, index=frame.index)
+        return frame
+
+
+class _RecordingDevice:
+    DEV = ""
+    RECORDED: tuple[str, ...] = ()
+
+    def __init__(self, inner, rec: Recorder) -> None:
+        self.inner, self.rec = inner, rec
+
+    def __getattr__(self, name):
+        attr = getattr(self.inner, name)
+        if name not in self.RECORDED or not callable(attr):
+            return attr
+
+        def call(*args):
+            try:
+                result = attr(*args)
+            except dv.DeviceError as exc:
+                self.rec.event(self.DEV, name, args=list(args), error=_error_to_json(exc))
+                raise
+            self.rec.event(self.DEV, name, args=list(args), result=_result_json(result))
+            return result
+
+        return call
+
+    def __enter__(self):
+        self.inner.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.inner.disconnect()
+
+
+def _result_json(result: Any) -> Any:
+    if isinstance(result, PressResult):
+        return {"x_mm": result.x_mm, "y_mm": result.y_mm, "force_n": result.force_n, "depth_mm": result.depth_mm,
+                "tcp_pose": list(result.tcp_pose), "telemetry": _plain(result.telemetry)}
+    return None
+
+
+def _plain(x: Any) -> Any:
+    try:
+        return json.loads(json.dumps(x, default=str))
+    except (TypeError, ValueError):
+        return str(x)
+
+
+class RecordingArm(_RecordingDevice):
+    DEV = "arm"
+    RECORDED = ("move_above", "press", "retract")
+
+
+class RecordingGate(_RecordingDevice):
+    DEV = "gate"
+    RECORDED = ("sort", "clear")
+
+
+class RecordingItems:
+    def __init__(self, inner, rec: Recorder) -> None:
+        self.inner, self.rec = inner, rec
+
+    def next_item(self, timeout_s: float):
+        item = self.inner.next_item(timeout_s)
+        if item is not None:
+            self.rec.items.append({"id": item.id, "truth": item.truth})
+            self.rec.item_index = len(self.rec.items) - 1
+        return item
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def decisions_of(records: list[dict]) -> list[dict]:
+    """The journal records a replay compares, timestamps dropped."""
+    out = []
+    for r in records:
+        if r.get("type") in DECISION_TYPES:
+            out.append({k: v for k, v in r.items() if k not in ("t", "steps_failed")})
+    return out
+
+
+# --- the replay file -----------------------------------------------------------------------
+
+@dataclass
+class ReplayFile:
+    folder: Path
+    index: dict
+
+    @classmethod
+    def open(cls, folder: Path | str) -> "ReplayFile":
+        folder = Path(folder)
+        path = folder / "index.json"
+        if not path.is_file():
+            raise ReplayError(f"{folder}: not a replay file (no index.json)")
+        try:
+            index = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ReplayError(f"{path}: not valid JSON ({exc})") from None
+        if index.get("format") != FORMAT:
+            raise ReplayError(f"{path}: format {index.get('format')!r}, expected {FORMAT!r}")
+        if index.get("version") != VERSION:
+            raise ReplayError(f"{path}: version {index.get('version')}, this build reads {VERSION}")
+        for key in ("config", "items", "events", "decisions"):
+            if key not in index:
+                raise ReplayError(f"{path}: missing {key!r}")
+        return cls(folder, index)
+
+    def load_frame(self, name: str) -> np.ndarray:
+        path = self.folder / name
+        data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        if image is None:
+            raise ReplayError(f"{path}: frame missing or unreadable")
+        return image
+
+    def frames_by_item(self):
+        """(reference frame, pressed frames) per item: the first grab of an item is its reference."""
+        grabs: dict[int, list[str]] = defaultdict(list)
+        for ev in self.index["events"]:
+            if ev["dev"] == "camera" and ev.get("frame"):
+                grabs[ev["item"]].append(ev["frame"])
+        for item in sorted(grabs):
+            names = grabs[item]
+            yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
+
+    def save_decisions(self, decisions: list[dict]) -> None:
+        self.index["decisions"] = decisions
+        tmp = self.folder / "index.json.tmp"
+        tmp.write_text(json.dumps(self.index, indent=1, sort_keys=True) + "\n")
+        tmp.replace(self.folder / "index.json")
+
+
+# --- replay devices ------------------------------------------------------------------------
+
+class _Queues:
+    def __init__(self, rf: ReplayFile) -> None:
+        self.rf = rf
+        self.by: dict[tuple[int, str], deque] = defaultdict(deque)
+        self.clears: dict[int, int] = defaultdict(int)  # operator clears after item i
+        for ev in rf.index["events"]:
+            if ev["dev"] == "operator":
+                self.clears[ev["item"]] += 1
+            else:
+                self.by[(ev["item"], ev["dev"])].append(ev)
+        self.item_index = -1
+
+    def pop(self, dev: str, call: str) -> dict:
+        q = self.by[(self.item_index, dev)]
+        if not q:
+            raise ReplayDivergence(f"item {self.item_index}: the replayed cell called {dev}.{call} but the "
+                                   f"recording has no more {dev} events for this item")
+        ev = q.popleft()
+        if ev["call"] != call:
+            raise ReplayDivergence(f"item {self.item_index}: the replayed cell called {dev}.{call}, the "
+                                   f"recording has {dev}.{ev['call']} here")
+        return ev
+
+
+class _ReplayBase:
+    def __init__(self, queues: _Queues) -> None:
+        self.q = queues
+        self.connected = False
+
+    def connect(self) -> None:
+        self.connected = True
+
+    def disconnect(self) -> None:
+        self.connected = False
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()
+
+
+class ReplayCameraDevice(_ReplayBase):
+    def grab(self) -> Frame:
+        ev = self.q.pop("camera", "grab")
+        if "error" in ev:
+            raise _error_from_json(ev["error"])
+        if ev.get("frame") is None:
+            raise dv.CameraError("recorded grab returned no image", device="camera", kind="corrupt")
+        return Frame(self.q.rf.load_frame(ev["frame"]), float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
+
+
+class ReplayArm(_ReplayBase):
+    def _replay(self, call: str, args: tuple) -> Any:
+        ev = self.q.pop("arm", call)
+        if args and [round(float(a), 6) for a in args] != [round(float(a), 6) for a in ev.get("args", [])]:
+            raise ReplayDivergence(f"item {self.q.item_index}: arm.{call}{args} but the recording has "
+                                   f"{tuple(ev.get('args', []))}")
+        if "error" in ev:
+            raise _error_from_json(ev["error"])
+        return ev.get("result")
+
+    def move_above(self, x_mm: float, y_mm: float) -> None:
+        self._replay("move_above", (x_mm, y_mm))
+
+    def press(self) -> PressResult:
+        r = self._replay("press", ())
+        return PressResult(x_mm=r["x_mm"], y_mm=r["y_mm"], force_n=r["force_n"], depth_mm=r["depth_mm"],
+                           tcp_pose=tuple(r.get("tcp_pose", ())), telemetry=r.get("telemetry", {}))
+
+    def retract(self) -> None:
+        self._replay("retract", ())
+
+    def stop(self) -> None:
+        pass  # best effort on the live arm; nothing to replay
+
+    def clear_protective_stop(self) -> None:
+        pass
+
+
+class ReplayGate(_ReplayBase):
+    """Sorts and clears answer as recorded; to_reject/status are the simulated gate's."""
+
+    def __init__(self, queues: _Queues) -> None:
+        super().__init__(queues)
+        self.sorted: list[int] = []
+        self.bin = 0
+
+    def sort(self, bin_index: int) -> None:
+        ev = self.q.pop("gate", "sort")
+        if ev.get("args") != [bin_index]:
+            raise ReplayDivergence(f"item {self.q.item_index}: gate.sort({bin_index}) but the recording sorted "
+                                   f"to {ev.get('args')}")
+        if "error" in ev:
+            raise _error_from_json(ev["error"])
+        self.sorted.append(bin_index)
+        self.bin = bin_index
+
+    def clear(self) -> None:
+        ev = self.q.pop("gate", "clear")
+        if "error" in ev:
+            raise _error_from_json(ev["error"])
+
+    def to_reject(self) -> None:
+        self.bin = 0
+
+    def status(self) -> dv.GateStatus:
+        return dv.GateStatus(state="ready", bin=self.bin)
+
+
+class ReplayItems:
+    def __init__(self, queues: _Queues) -> None:
+        self.q = queues
+        self.items = [Item(d["id"], d.get("truth")) for d in queues.rf.index["items"]]
+
+    def next_item(self, timeout_s: float):
+        if self.q.item_index + 1 >= len(self.items):
+            return None
+        self.q.item_index += 1
+        return self.items[self.q.item_index]
+
+    def exhausted(self) -> bool:
+        return self.q.item_index + 1 >= len(self.items)
+
+
+# --- comparing -----------------------------------------------------------------------------
+
+EXACT_KEYS = ("type", "item", "item_id", "label", "bin", "outcome", "presses", "skipped_frames", "stopped_by",
+              "kind", "reason", "point", "step")
+
+
+def _close(a: Any, b: Any, path: str, out: list[str]) -> None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            out.append(f"{path}: keys {sorted(set(a) ^ set(b))} differ")
+            return
+        for k in a:
+            _close(a[k], b[k], f"{path}.{k}", out)
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            out.append(f"{path}: {len(a)} entries recorded, {len(b)} now")
+            return
+        for i, (x, y) in enumerate(zip(a, b)):
+            _close(x, y, f"{path}[{i}]", out)
+    elif isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        if a is None or b is None or not math.isclose(float(a), float(b), rel_tol=SCORE_RTOL, abs_tol=SCORE_ATOL):
+            out.append(f"{path}: recorded {a}, now {b}")
+    elif a != b:
+        out.append(f"{path}: recorded {a!r}, now {b!r}")
+
+
+def compare(reference: list[dict], new: list[dict]) -> list[str]:
+    """Mismatches between two decision lists; [] when the replay reproduced the recording."""
+    problems: list[str] = []
+    if len(reference) != len(new):
+        problems.append(f"{len(reference)} decision records recorded, {len(new)} now: "
+                        f"{[r['type'] for r in reference]} vs {[r['type'] for r in new]}")
+    for i, (a, b) in enumerate(zip(reference, new)):
+        where = f"record {i} ({a.get('type')} item {a.get('item')})"
+        for k in EXACT_KEYS:
+            if a.get(k) != b.get(k):
+                problems.append(f"{where}: {k} recorded {a.get(k)!r}, now {b.get(k)!r}")
+        rest_a = {k: v for k, v in a.items() if k not in EXACT_KEYS}
+        rest_b = {k: v for k, v in b.items() if k not in EXACT_KEYS}
+        _close(rest_a, rest_b, where, problems)
+    return problems
+
+
+@dataclass
+class ReplayReport:
+    file: Path
+    items: int
+    mismatches: list[str] = field(default_factory=list)
+    decisions: list[dict] = field(default_factory=list)
+    diverged: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.mismatches and not self.diverged
+
+
+def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
+    """The recorded config with the bundle swapped in and the journal in a scratch folder."""
+    from vs2t_edge.runtime.config import validate_config_dict
+
+    raw = json.loads(json.dumps(rf.index["config"]))
+    if bundle is not None:
+        raw["bundle"] = str(Path(bundle).resolve())
+    raw["journal"] = str(workdir / "journal.jsonl")
+    raw.pop("fault_file", None)
+    raw.pop("beta_override_file", None)
+    text = yaml.safe_dump(raw)
+    path = workdir / "replay-config.yaml"
+    path.write_text(text)
+    from vs2t_edge.runtime.config import parse_yaml_with_lines
+
+    data, lines = parse_yaml_with_lines(text, path)
+    return validate_config_dict(data, lines, path)
+
+
+def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evidence_factory=None,
+               update_refs: bool = False) -> ReplayReport:
+    """Run the daemon from a replay file and compare its decisions with the recorded ones."""
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.journal import read_records
+    from vs2t_edge.runtime.notify import Notifier
+
+    rf = ReplayFile.open(file)
+    with tempfile.TemporaryDirectory(prefix="vs2t-replay-") as tmp:
+        work = Path(tmp)
+        if bundle is None and model is None:
+            rec_bundle = Path(rf.index["config"].get("bundle", ""))
+            bundle = rec_bundle if rec_bundle.is_absolute() else (rf.folder / rec_bundle)
+        cfg = config_for_replay(rf, work, bundle)
+        queues = _Queues(rf)
+        items = ReplayItems(queues)
+        clears = dict(queues.clears)
+        fault_file = cfg.fault_file
+
+        def stop_when() -> bool:
+            # The operator's recorded clears, played back at the same point of the session.
+            if fault_file.exists():
+                if clears.get(queues.item_index, 0) > 0:
+                    clears[queues.item_index] -= 1
+                    fault_file.unlink()
+                    return False
+                return True  # latched and never cleared in the recording: the session ended here
+            return items.exhausted()
+
+        diverged = ""
+        try:
+            code = run_daemon(cfg, model=model, camera=ReplayCameraDevice(queues), arm=ReplayArm(queues),
+                              gate=ReplayGate(queues), items=items, evidence_factory=evidence_factory,
+                              notifier=Notifier(address=""), stop_when=stop_when, install_signals=False,
+                              log=lambda m: None)
+            if code != 0:
+                diverged = f"the daemon exited with {code} (bundle or config refused)"
+        except ReplayDivergence as exc:
+            diverged = str(exc)
+        new = decisions_of(read_records(cfg.journal)) if cfg.journal.exists() else []
+    report = ReplayReport(Path(file), len(rf.index["items"]), decisions=new, diverged=diverged)
+    if update_refs and not diverged:
+        rf.save_decisions(new)
+    elif not diverged:
+        report.mismatches = compare(rf.index["decisions"], new)
+    return report
+
+
+def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items, evidence_factory=None,
+                   max_items: int | None = None, operator_clear=None, meta: dict | None = None,
+                   on_item=None, log=lambda m: None) -> Path:
+    """Run the daemon on the given devices, recording everything into the replay folder ``out``.
+
+    The session journals into a fresh journal beside the replay (``out``.journal.jsonl), so the
+    reference decisions are this session's alone. ``operator_clear()`` is called when a fault
+    is latched: it fixes the cause (in simulation: clears the injected fault) and returns True
+    to clear the fault, which is recorded; returning False ends the session in fault.
+    """
+    import dataclasses
+
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.journal import read_records
+    from vs2t_edge.runtime.notify import Notifier
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    journal = out.with_name(out.name + ".journal.jsonl")
+    for p in (journal, journal.with_name("FAULT." + out.name)):
+        if p.exists():
+            p.unlink()
+    cfg = dataclasses.replace(cfg, journal=journal, fault_file=journal.with_name("FAULT." + out.name))
+    rec = Recorder()
+    r_items = RecordingItems(items, rec)
+
+    def stop_when() -> bool:
+        if cfg.fault_file.exists():
+            if operator_clear is not None and operator_clear():
+                rec.event("operator", "clear_fault")
+                cfg.fault_file.unlink()
+                return False
+            return True
+        exhausted = getattr(items, "exhausted", None)
+        return bool(exhausted and exhausted())
+
+    run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
+               gate=RecordingGate(gate, rec), items=r_items, evidence_factory=evidence_factory,
+               notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when, install_signals=False,
+               on_item=on_item, log=log)
+    raw = json.loads(json.dumps(cfg.raw, default=str))
+    folder = rec.save(out, raw, read_records(journal), meta)
+    journal.unlink()
+    return folder

@@ -1,0 +1,119 @@
+"""Record a session of the cell (fake devices, scripted model), replay it through the daemon.
+
+The replays with the real bundle and the simulated cell are in tests/test_replay_sessions.py;
+these check the machinery itself: identical decisions on a faithful replay, a mismatch caught
+when the model changes, --update-refs, divergence, and a fault mid-item with the operator's
+clear played back.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+from vs2t_edge.runtime.arm import FakeArm
+from vs2t_edge.runtime.cell import ContinuousFeed
+from vs2t_edge.runtime.config import load_config
+from vs2t_edge.runtime.gate import FakeGate
+from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, record_session, run_replay
+
+CONFIG = """\
+bundle: bundle
+devices:
+  camera: {kind: replay, path: x}
+  arm: {kind: fake}
+  gate: {kind: fake}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {name: denim, kind: touched, bin: 1}
+    - {name: silk, kind: touched, bin: 2}
+    - {name: wool, kind: untouched, bin: 3}
+evidence: {confidence: 0.95, max_presses: 4}
+journal: j.jsonl
+"""
+CLASSES = ["denim", "silk", "wool"]
+VOTES = {50: "denim", 60: "silk", 70: "wool"}
+
+
+def model(strength=3.0):
+    return FakeModel(VOTES, CLASSES, strength=strength)
+
+
+def evidence():
+    return FakeEvidence(CLASSES, 0.95, 4)
+
+
+def record(tmp_path, script, n_items, fail_next=(), clear=True):
+    (tmp_path / "cell.yaml").write_text(CONFIG)
+    cfg = load_config(tmp_path / "cell.yaml")
+    arm = FakeArm(config=cfg.arm)
+    cam = ScriptedCamera(arm, script)
+    clears = []
+
+    def operator_clear():
+        arm.latched = ""  # the operator released the stop
+        clears.append(1)
+        return clear
+
+    arm.fail_next = list(fail_next)
+    out = record_session(cfg, tmp_path / "s.replay", model=model(), camera=cam, arm=arm, gate=FakeGate(),
+                         items=ContinuousFeed(limit=n_items), evidence_factory=evidence,
+                         operator_clear=operator_clear)
+    return out, clears
+
+
+def test_faithful_replay_reproduces_every_decision(tmp_path):
+    out, _ = record(tmp_path, [50, 50, 60, 100, 100, 100, 60, 60, "black", 70, 70], 4)
+    rf = ReplayFile.open(out)
+    finals = [d for d in rf.index["decisions"] if d["type"] == "final"]
+    assert [d["label"] for d in finals] == ["denim", "unknown", "silk", "wool"]
+    assert len(list((out / "frames").glob("*.png"))) == sum(1 for e in rf.index["events"] if e.get("frame"))
+    report = run_replay(out, model=model(), evidence_factory=evidence)
+    assert report.ok, report.mismatches + [report.diverged]
+
+
+def test_changed_model_is_caught_and_update_refs_accepts_it(tmp_path):
+    out, _ = record(tmp_path, [50, 50, 60, 60], 2)
+    report = run_replay(out, model=model(strength=3.5), evidence_factory=evidence)
+    assert not report.ok and any("log_posterior" in m for m in report.mismatches)
+    before = json.loads((out / "index.json").read_text())["events"]
+    run_replay(out, model=model(strength=3.5), evidence_factory=evidence, update_refs=True)
+    assert json.loads((out / "index.json").read_text())["events"] == before  # only references change
+    assert run_replay(out, model=model(strength=3.5), evidence_factory=evidence).ok
+
+
+def test_a_model_that_needs_more_presses_diverges(tmp_path):
+    out, _ = record(tmp_path, [50, 50, 60, 60], 2)
+    report = run_replay(out, model=model(strength=1.0), evidence_factory=evidence)
+    assert report.diverged and "no more" in report.diverged
+
+
+def test_fault_mid_item_with_operator_clear_replays(tmp_path):
+    # first item: protective stop at its first move -> latched; the operator clears; two more items
+    out, clears = record(tmp_path, [50, 50, 60, 60, 70, 70], 3, fail_next=["protective_stop"])
+    rf = ReplayFile.open(out)
+    types = [d["type"] for d in rf.index["decisions"]]
+    assert "fault" in types and "fault_cleared" in types and clears
+    finals = [d for d in rf.index["decisions"] if d["type"] == "final"]
+    assert finals[0]["outcome"] == "rejected_fault" and finals[0]["bin"] == 0
+    assert any(e["dev"] == "arm" and e.get("error", {}).get("type") == "ArmSafetyStop" for e in rf.index["events"])
+    report = run_replay(out, model=model(), evidence_factory=evidence)
+    assert report.ok, report.mismatches + [report.diverged]
+
+
+def test_compare_is_exact_on_decisions_and_tolerant_on_scores():
+    a = [{"type": "final", "item": 1, "label": "silk", "bin": 2, "confidence": 0.9500}]
+    assert compare(a, [dict(a[0], confidence=0.9504)]) == []
+    assert compare(a, [dict(a[0], confidence=0.96)])
+    assert compare(a, [dict(a[0], bin=3)]) and compare(a, [dict(a[0], label="wool")])
+
+
+def test_bad_replay_files_are_named(tmp_path):
+    with pytest.raises(ReplayError, match="no index.json"):
+        ReplayFile.open(tmp_path)
+    (tmp_path / "index.json").write_text('{"format": "other"}')
+    with pytest.raises(ReplayError, match="format 'other'"):
+        ReplayFile.open(tmp_path)
