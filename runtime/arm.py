@@ -237,6 +237,7 @@ class URArm:
         host, freq = self.config.host, self.config.rtde_frequency_hz
         dash = dashboard_client.DashboardClient(host)
         dash.connect()
+        self._dash = dash  # available to the safety check even if the rest fails
         try:
             # Stop any program first. Otherwise the control constructor sends stopScript through
             # the register handshake, which never completes if the old script is still busy with
@@ -284,6 +285,11 @@ class URArm:
                 raise
             except Exception as exc:  # RuntimeError from the C++ client: refused, reset, timeout
                 last = exc
+                # A program cannot start in a safety stop: that is not a network problem.
+                error = _safety_error(self.safety_mode(ask_dashboard=True), why)
+                if error is not None:
+                    self._teardown()
+                    raise error from exc
         self._teardown()
         raise ArmConnectionError(f"robot at {cfg.host} unreachable after {cfg.reconnect_attempts + 1} "
                                  f"attempt(s) ({why}): {last}", device="arm", kind="connection_lost")
@@ -318,17 +324,20 @@ class URArm:
 
     # --- safety --------------------------------------------------------------------------
 
-    def safety_mode(self) -> int:
-        """Safety mode from the receive stream, or from the dashboard when the stream is gone."""
-        try:
-            if self._rcv is not None and self._rcv.isConnected():
-                if self._rcv.isEmergencyStopped():
-                    return 7
-                if self._rcv.isProtectiveStopped():
-                    return 3
-                return int(self._rcv.getSafetyMode())
-        except Exception:
-            pass
+    def safety_mode(self, ask_dashboard: bool = False) -> int:
+        """Safety mode from the receive stream; from the dashboard when the stream is gone or
+        when asked (a synchronous answer: the control stream can be a package ahead of the
+        receive stream, so a stopped program may show before the stop that caused it)."""
+        if not ask_dashboard:
+            try:
+                if self._rcv is not None and self._rcv.isConnected():
+                    if self._rcv.isEmergencyStopped():
+                        return 7
+                    if self._rcv.isProtectiveStopped():
+                        return 3
+                    return int(self._rcv.getSafetyMode())
+            except Exception:
+                pass
         try:
             text = self._dash.safetymode() if self._dash is not None else ""
         except Exception:  # no stream and no dashboard: nothing says unsafe; the link check decides
@@ -341,7 +350,10 @@ class URArm:
         return 1
 
     def _raise_if_unsafe(self, where: str) -> None:
-        error = _safety_error(self.safety_mode(), where)
+        mode = self.safety_mode()
+        if _safety_error(mode, where) is None and not self._link_ok():
+            mode = self.safety_mode(ask_dashboard=True)  # the link looks broken: is it a stop?
+        error = _safety_error(mode, where)
         if error is not None:
             self.stop()
             raise error
@@ -500,6 +512,12 @@ class URArm:
             max_force = max(max_force, force)
             if contact_z is None and force >= cfg.contact_threshold_n:
                 contact_z, contact_t = pose[2], now
+                if len(samples) >= 2 and force > samples[-2][2]:
+                    # Interpolate to where the force crossed the threshold between two packages,
+                    # so the depth does not depend on the RTDE cycle at which contact was seen.
+                    _, z_prev, f_prev = samples[-2]
+                    frac = (cfg.contact_threshold_n - f_prev) / (force - f_prev)
+                    contact_z = z_prev + min(max(frac, 0.0), 1.0) * (pose[2] - z_prev)
             if force > cfg.force_max_n:
                 self.stop()
                 raise PressFailed(f"overforce: {force:.1f} N > {cfg.force_max_n} N at ({x_mm}, {y_mm}) mm",

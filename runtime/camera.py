@@ -319,6 +319,9 @@ class SimulatedCamera(_CameraBase):
         return self._guard.admit(image)
 
 
+SceneCamera = SimulatedCamera  # the name the cell's simulated scene uses
+
+
 # --- contact --------------------------------------------------------------------------------
 
 @dataclass(frozen=True)

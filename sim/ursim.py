@@ -725,7 +725,7 @@ class URSim:
             if buf:
                 # A quiet gap after data: one program (or one line of script) has arrived.
                 self._record("scripts", buf.decode(errors="replace"))
-                if b"def " in buf or b"sec " in buf:
+                if b"def " in buf:  # a program; a secondary one ("sec") or a single line is not
                     self._program_started()
                 buf = b""
         if buf:
@@ -850,6 +850,12 @@ class URSim:
             t.join(timeout=2.0)
         self._threads.clear()
         if self._lockfile is not None:
+            if self.host != "127.0.0.1":
+                # Per-simulator addresses are used once; do not leave a lock file per test run.
+                try:
+                    os.unlink(self._lockfile.name)
+                except OSError:
+                    pass
             fcntl.flock(self._lockfile, fcntl.LOCK_UN)
             self._lockfile.close()
             self._lockfile = None

@@ -229,3 +229,15 @@ def test_real_sequences_through_capture_and_preprocessing(folder):
         assert t.shape == (3, spec.size, spec.size) and t.dtype == np.float32 and np.all(np.isfinite(t))
     assert np.abs(tensors[0]).max() == 0.0  # the reference minus itself
     assert max(np.abs(t).mean() for t in tensors[1:]) > 0.01  # other presses differ from it
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(__import__("os").environ.get("VS2T_HARDWARE") != "1", reason="needs the real sensor")
+def test_live_gelsight_on_uvc():
+    import os
+
+    device = os.environ.get("VS2T_CAMERA", "0")
+    with UVCCamera(int(device) if device.isdigit() else device, read_timeout_s=2.0) as cam:
+        reference = capture_reference(cam, n_frames=5)
+        frame = cam.grab()
+    assert frame.image.shape == reference.shape
