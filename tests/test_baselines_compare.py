@@ -119,3 +119,14 @@ def test_real_materials_frozen_trunk_separates_touched_from_untouched():
     unseen = np.concatenate([feats[m] for m in untouched])
     router = nv.fit_router("mahalanobis_lw", train)
     assert nv.auroc(router.novelty(held), router.novelty(unseen)) > 0.6
+
+
+def test_compare_verb_refuses_bad_input_with_exit_2(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    assert main(["compare"]) == 2
+    assert "--features" in capsys.readouterr().err
+    assert main(["compare", "--features", str(tmp_path / "nope.npz")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["compare", "--toy", "--methods", "DAP,Nope", "--skip-real"]) == 2
+    assert "unknown method" in capsys.readouterr().err

@@ -9,6 +9,7 @@ a frozen ImageNet EfficientNet-Lite0), ``--toy`` (a synthetic feature world, for
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import sys
 import time
@@ -38,8 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--real", type=Path, default=None,
                         help="GelSight Mini materials folder (default ../shared/real/gelsight_mini_materials)")
     parser.add_argument("--skip-real", action="store_true", help="do not run the real-sensor check")
+    parser.add_argument("--real-result", type=Path, default=None,
+                        help="reuse a real-sensor check JSON written by `python -m vs2t_edge.train.realdata_check --out`")
     parser.add_argument("--real-splits", type=int, default=5)
-    parser.add_argument("--real-epochs", type=int, default=12)
+    parser.add_argument("--real-epochs", type=int, default=8)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,7 +112,14 @@ def run(args: argparse.Namespace) -> int:
         "seconds": 0.0,
     }
     real = None
-    if not args.skip_real:
+    if args.real_result is not None:
+        try:
+            real = json.loads(args.real_result.read_text())
+            real["summary"]
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"vs2t-edge compare: cannot read real-sensor result {args.real_result}: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+    elif not args.skip_real:
         root = args.real or DEFAULT_ROOT
         if root.is_dir():
             log(f"real-sensor check on {root}")
