@@ -1,0 +1,313 @@
+"""The simulated cell: a stream of fabric pieces, the loopback UR simulator, the gate MCU on a pty,
+and a tactile camera fed from a dataset - wired to the same daemon the real cell runs.
+
+* Items: a seeded sequence of the dataset's fabrics (scene fabrics, touched and untouched, and
+  optionally off-scene ones that must go to the reject bin); the true fabric travels with the
+  item for scoring the run, never to the loop's decision.
+* Arm: ``URArm`` (the real ur_rtde client) against ``URSimProcess`` on a free 127.x address,
+  or ``FakeArm`` for quick runs; wrapped in :class:`TrackingArm` so the camera knows where the
+  gel is and whether it is pressed.
+* Camera: ``SimulatedCamera`` whose frame is the item's no-contact reference frame while the
+  gel is up, and the dataset press nearest to the arm's grid point while it is pressed.
+* Gate: ``simulated_serial_gate()`` (the real host driver against the MCU simulator over a
+  pty), or ``FakeGate``.
+* Faults: ``schedule_fault(item_index, press_number, kind)`` injects a protective stop (in the
+  UR simulator) or a camera fault at that press; ``operator_clear()`` is what the operator does.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.config import load_config
+from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
+
+
+@dataclass(frozen=True)
+class SimItem:
+    id: str
+    fabric_id: str
+    truth: str  # the fabric's name (a bundle class, or an off-scene fabric)
+
+
+class SceneItems:
+    """ItemSource over a fixed list; ``current`` is the piece under the gel (for the camera)."""
+
+    def __init__(self, items: list[SimItem]) -> None:
+        self.items = list(items)
+        self.index = -1
+
+    @property
+    def current(self) -> SimItem | None:
+        return self.items[self.index] if 0 <= self.index < len(self.items) else None
+
+    def next_item(self, timeout_s: float) -> Item | None:
+        if self.index + 1 >= len(self.items):
+            return None
+        self.index += 1
+        it = self.items[self.index]
+        return Item(it.id, it.truth)
+
+    def exhausted(self) -> bool:
+        return self.index + 1 >= len(self.items)
+
+
+def item_stream(dataset: Dataset, names: list[str], n_items: int, seed: int = 0) -> list[SimItem]:
+    """n_items pieces, cycling through ``names`` (fabric names or ids) in a seeded shuffle."""
+    by_name = {f.name: f for f in dataset.fabrics} | {f.id: f for f in dataset.fabrics}
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise ValueError(f"dataset {dataset.root} has no fabric(s) {missing}")
+    rng = random.Random(seed)
+    order: list[str] = []
+    while len(order) < n_items:
+        batch = list(names)
+        rng.shuffle(batch)
+        order.extend(batch)
+    return [SimItem(f"item-{i + 1:04d}", by_name[n].id, by_name[n].name) for i, n in enumerate(order[:n_items])]
+
+
+@dataclass
+class _Scheduled:
+    item_index: int
+    press_number: int  # 1-based press of that item
+    kind: str  # protective_stop | camera_timeout | black_frame
+
+
+class TrackingArm:
+    """An Arm proxy that remembers the target point and whether the gel is pressed; injects faults."""
+
+    def __init__(self, inner, items: SceneItems, sim=None, camera=None) -> None:
+        self.inner, self.items, self.sim, self.camera = inner, items, sim, camera
+        self.target: tuple[float, float] | None = None
+        self.pressed = False
+        self.presses_this_item = 0
+        self._item_seen = -1
+        self.schedule: list[_Scheduled] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def connect(self) -> None:
+        self.inner.connect()
+
+    def disconnect(self) -> None:
+        self.inner.disconnect()
+
+    def move_above(self, x_mm: float, y_mm: float) -> None:
+        self.pressed = False
+        self.target = (x_mm, y_mm)
+        self.inner.move_above(x_mm, y_mm)
+
+    def press(self):
+        if self.items.index != self._item_seen:
+            self._item_seen, self.presses_this_item = self.items.index, 0
+        self.presses_this_item += 1
+        for s in list(self.schedule):
+            if s.item_index == self.items.index and s.press_number == self.presses_this_item:
+                self.schedule.remove(s)
+                self._inject(s.kind)
+        result = self.inner.press()
+        self.pressed = True
+        return result
+
+    def _inject(self, kind: str) -> None:
+        if kind == "protective_stop":
+            if self.sim is not None:
+                self.sim.trigger_protective_stop()
+            else:
+                self.inner.fail_next.insert(0, "protective_stop")
+        elif kind == "camera_timeout" and self.camera is not None:
+            self.camera.inject("timeout", 1)
+        elif kind == "black_frame" and self.camera is not None:
+            self.camera.inject("black", 1)
+        else:
+            raise ValueError(f"cannot inject {kind!r} here")
+
+    def retract(self) -> None:
+        self.pressed = False
+        self.inner.retract()
+
+    def stop(self) -> None:
+        self.pressed = False
+        self.inner.stop()
+
+    def operator_clear(self) -> bool:
+        """What the operator does at the pendant: release the protective stop."""
+        if self.sim is not None:
+            self.sim.reset()
+        clear = getattr(self.inner, "clear_protective_stop", None)
+        if clear is not None:
+            try:
+                clear()
+            except Exception:  # noqa: BLE001 - the cell's clear reconnects and reports
+                pass
+        return True
+
+
+class DatasetFrames:
+    """The frame under the gel: reference when up, nearest recorded press when pressed."""
+
+    def __init__(self, dataset: Dataset, items: SceneItems, arm: TrackingArm, cache_size: int = 256) -> None:
+        self.dataset, self.items, self.arm = dataset, items, arm
+        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self.cache_size = cache_size
+        self._fallback: np.ndarray | None = None
+
+    def _load(self, key: tuple, loader) -> np.ndarray:
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        image = loader()
+        self._cache[key] = image
+        if len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return image
+
+    def nearest_press(self, fabric: Fabric, x_mm: float, y_mm: float) -> int:
+        d = [(p.x_mm - x_mm) ** 2 + (p.y_mm - y_mm) ** 2 for p in fabric.presses]
+        return int(np.argmin(d))
+
+    def __call__(self) -> np.ndarray:
+        item = self.items.current
+        fabric = self.dataset.by_id(item.fabric_id) if item else self.dataset.fabrics[0]
+        if not self.arm.pressed or self.arm.target is None:
+            return self._load((fabric.id, "ref"), fabric.load_reference)
+        k = self.nearest_press(fabric, *self.arm.target)
+        return self._load((fabric.id, k), lambda: fabric.load_press(k))
+
+
+# Fast press settings for the simulated cell (the physics is simulated in real time; these keep
+# a press near one second instead of two and a half, within the arm's documented bounds).
+FAST_PRESS = {"approach_height_mm": 4.0, "travel_speed_m_s": 0.25, "travel_accel_m_s2": 1.5,
+              "press_speed_m_s": 0.03, "settle_s": 0.05, "press_timeout_s": 4.0, "move_timeout_s": 6.0,
+              "reconnect_backoff_s": 0.2}
+
+
+def scene_config_yaml(*, bundle: Path, dataset: Path, journal: Path, fabrics: list[tuple[str, str, int]],
+                      arm_host: str = "127.0.0.1", confidence: float = 0.95, max_presses: int = 5,
+                      threads: int = 1, reject_bin: int = 0, extra_arm: dict | None = None) -> dict:
+    return {
+        "bundle": str(bundle), "threads": threads,
+        "devices": {"camera": {"kind": "sim", "path": str(dataset)},
+                    "arm": {"kind": "sim", "host": arm_host, **FAST_PRESS, **(extra_arm or {})},
+                    "gate": {"kind": "sim"}},
+        "scene": {"reject_bin": reject_bin,
+                  "fabrics": [{"name": n, "kind": k, "bin": b} for n, k, b in fabrics]},
+        "evidence": {"confidence": confidence, "max_presses": max_presses, "grid_order": "spread"},
+        "journal": str(journal),
+        "watchdog": {"item_timeout_s": 120.0, "wait_item_timeout_s": 0.05},
+    }
+
+
+def write_scene_config(path: Path, data: dict):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return load_config(path)
+
+
+def assign_bins(touched: list[str], untouched: list[str], n_bins: int = 8, reject_bin: int = 0):
+    """Scene fabrics -> bins 1..n-1 in turn (several fabrics may share a bin on a small gate)."""
+    out = []
+    bins = [b for b in range(n_bins) if b != reject_bin]
+    for i, (name, kind) in enumerate([(n, "touched") for n in touched] + [(n, "untouched") for n in untouched]):
+        out.append((name, kind, bins[i % len(bins)]))
+    return out
+
+
+@dataclass
+class SimulatedCell:
+    """Context manager: the simulated devices for one session (``arm``: "ursim" or "fake")."""
+
+    dataset_root: Path
+    items: list[SimItem]
+    arm_kind: str = "ursim"
+    gate_kind: str = "pty"
+    camera_seed: int = 0
+    press_settings: dict = field(default_factory=lambda: dict(FAST_PRESS))
+    sim: Any = None
+    camera: Any = None
+    arm: Any = None
+    gate: Any = None
+    source: SceneItems | None = None
+
+    def __enter__(self) -> "SimulatedCell":
+        from vs2t_edge.runtime.arm import ArmConfig, FakeArm
+        from vs2t_edge.runtime.camera import SimulatedCamera
+        from vs2t_edge.runtime.gate import FakeGate, simulated_serial_gate
+
+        self.dataset = load_dataset(self.dataset_root)
+        self.source = SceneItems(self.items)
+        if self.arm_kind == "ursim":
+            from vs2t_edge.runtime.arm import URArm
+            from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
+
+            scene = PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0))
+            self.sim = URSimProcess(scene, host=free_loopback_host()).start()
+            inner = URArm(ArmConfig(host=self.sim.host, **self.press_settings))
+        else:
+            inner = FakeArm(config=ArmConfig(**self.press_settings))
+        self.arm = TrackingArm(inner, self.source, sim=self.sim)
+        frames = DatasetFrames(self.dataset, self.source, self.arm)
+        g = self.dataset.geometry
+        self.camera = SimulatedCamera(frames, noise_levels=1.0, seed=self.camera_seed,
+                                      expected_hw=None)
+        self.arm.camera = self.camera
+        self.gate = simulated_serial_gate() if self.gate_kind == "pty" else FakeGate()
+        self.frame_hw = (g.frame_height_px, g.frame_width_px)
+        return self
+
+    @property
+    def arm_host(self) -> str:
+        return self.sim.host if self.sim is not None else "127.0.0.1"
+
+    def schedule_fault(self, item_index: int, press_number: int, kind: str) -> None:
+        self.arm.schedule.append(_Scheduled(item_index, press_number, kind))
+
+    def operator_clear(self) -> bool:
+        return self.arm.operator_clear()
+
+    def __exit__(self, *exc) -> None:
+        for dev in (self.camera, self.arm, self.gate):
+            try:
+                if dev is not None:
+                    dev.disconnect()
+            except Exception:  # noqa: BLE001
+                pass
+        if self.sim is not None:
+            self.sim.stop()
+
+
+def score_run(results, items: list[SimItem], scene_names: set[str]) -> dict:
+    """Accuracy as the demo reports it: a scene fabric must get its own label; an off-scene piece
+    must go to the reject bin (label 'unknown' or anything not in the scene)."""
+    truth = {it.id: it.truth for it in items}
+    rows = []
+    for r in results:
+        t = truth.get(r.item.id)
+        in_scene = t in scene_names
+        correct = (r.label == t) if in_scene else (r.label not in scene_names)
+        rows.append({"item": r.item.id, "truth": t, "label": r.label, "bin": r.bin, "outcome": r.outcome,
+                     "presses": r.presses, "correct": bool(correct and r.outcome == "sorted"),
+                     "latency_ms": float(np.mean(r.latency_ms)) if r.latency_ms else math.nan,
+                     "item_s": r.item_s})
+    n = len(rows)
+    lat = [x for r in results for x in r.latency_ms]
+    return {
+        "items": n,
+        "accuracy": sum(r["correct"] for r in rows) / n if n else math.nan,
+        "presses_per_item": float(np.mean([r["presses"] for r in rows])) if n else math.nan,
+        "latency_ms_median": float(np.median(lat)) if lat else math.nan,
+        "latency_ms_p95": float(np.percentile(lat, 95)) if lat else math.nan,
+        "item_s_median": float(np.median([r["item_s"] for r in rows])) if n else math.nan,
+        "rows": rows,
+    }
