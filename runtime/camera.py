@@ -107,6 +107,7 @@ class UVCCamera(_CameraBase):
         self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
+        self._stuck: list = []  # captures abandoned with a read inside the driver
 
     def connect(self) -> None:
         cap = cv2.VideoCapture(self.device, self.api_preference)
@@ -132,8 +133,15 @@ class UVCCamera(_CameraBase):
 
     def disconnect(self) -> None:
         if self._cap is not None:
-            self._cap.release()
+            if self._reader is not None and self._reader.is_alive():
+                self._reader.join(self.read_timeout_s)
+            if self._reader is not None and self._reader.is_alive():
+                # Releasing under a read still inside the driver can crash OpenCV: leave it.
+                self._stuck.append(self._cap)
+            else:
+                self._cap.release()
         self._cap = None
+        self._reader = None
 
     def _read_bounded(self) -> np.ndarray | None:
         if self._reader is not None and self._reader.is_alive():

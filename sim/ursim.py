@@ -39,7 +39,7 @@ import struct
 import tempfile
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 # --- RTDE wire constants (the protocol's package types are ASCII letters) ----------------

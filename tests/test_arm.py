@@ -112,6 +112,7 @@ def arm(sim):
 
 
 def test_full_press_at_a_grid_point(arm, sim):
+    assert isinstance(arm, Arm)
     x, y = arm.config.grid_points_mm()[112]  # the centre of the 15 x 15 grid
     t0 = time.monotonic()
     arm.move_above(x, y)

@@ -241,3 +241,40 @@ def test_live_gelsight_on_uvc():
         reference = capture_reference(cam, n_frames=5)
         frame = cam.grab()
     assert frame.image.shape == reference.shape
+
+
+class _HangingCapture:
+    """Stands in for a cv2.VideoCapture whose driver stops delivering (cable pulled mid-read)."""
+
+    def __init__(self):
+        import threading
+
+        self.release_read = threading.Event()
+        self.released = False
+
+    def grab(self):
+        return True
+
+    def read(self):
+        self.release_read.wait(5)
+        return False, None
+
+    def release(self):
+        self.released = True
+
+
+def test_uvc_read_timeout_is_bounded_and_reported():
+    import time
+
+    cam = UVCCamera(0, read_timeout_s=0.2, flush_frames=0)
+    cam._cap = _HangingCapture()  # what connect() would have opened
+    t0 = time.monotonic()
+    with pytest.raises(CameraError) as exc:
+        cam.grab()
+    assert exc.value.kind == "timeout" and time.monotonic() - t0 < 1.0
+    with pytest.raises(CameraError, match="still stuck"):
+        cam.grab()
+    hanging = cam._cap
+    cam.disconnect()
+    assert not hanging.released  # not released under a read still inside the driver
+    hanging.release_read.set()
