@@ -467,6 +467,9 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     raw["journal"] = str(workdir / "journal.jsonl")
     raw.pop("fault_file", None)
     raw.pop("beta_override_file", None)
+    beta = rf.index.get("meta", {}).get("beta")
+    if beta is not None:
+        raw["beta_override"] = float(beta)
     text = yaml.safe_dump(raw)
     path = workdir / "replay-config.yaml"
     path.write_text(text)
@@ -565,6 +568,10 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
                notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when, install_signals=False,
                on_item=on_item, log=log)
     raw = json.loads(json.dumps(cfg.raw, default=str))
-    folder = rec.save(out, raw, read_records(journal), meta)
+    records = read_records(journal)
+    start = next((r for r in records if r.get("type") == "start"), {})
+    # The beta the session ran with: a replay uses it, so a later calibration does not change it.
+    meta = dict(meta or {}, beta=start.get("beta"))
+    folder = rec.save(out, raw, records, meta)
     journal.unlink()
     return folder
