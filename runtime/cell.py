@@ -176,12 +176,18 @@ class Cell:
         """Resolve items the last run left between pre_sort and final; restore a latched fault."""
         resolved = []
         for pre in self.journal.unresolved_items():
-            rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
-                              bin_=self.scene.reject_bin, outcome="unknown_outcome",
-                              note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
-                                   "and before the gate's ack; the gate may have moved - check the bins")
+            if pre.get("type") == "pre_sort":
+                rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
+                                  bin_=self.scene.reject_bin, outcome="unknown_outcome",
+                                  note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
+                                       "and before the gate's ack; the gate may have moved - check the bins")
+                self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
+            else:
+                rec = self._final(pre["item"], pre.get("item_id", ""), label=UNKNOWN, bin_=self.scene.reject_bin,
+                                  outcome="aborted", note="process stopped before a decision; the gate was "
+                                                          "not told - the piece is still at the station")
+                self.log(f"recovered item {pre['item']}: stopped before a decision, logged as aborted")
             resolved.append(rec)
-            self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
         ff = self.scene.fault_file
         if ff is not None and ff.exists():
             reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"

@@ -144,9 +144,15 @@ class Journal:
         return (r for r in self.records if r.get("type") == "final")
 
     def unresolved_items(self) -> list[dict]:
-        """pre_sort records without a final record (the process stopped between the two)."""
+        """Items without a final record: the last ``pre_sort`` (stopped between telling the gate
+        and its ack) or ``item`` record (stopped before a decision) of each, in item order."""
         finals = {r.get("item") for r in self.records if r.get("type") == "final"}
-        return [r for r in self.records if r.get("type") == "pre_sort" and r.get("item") not in finals]
+        last: dict = {}
+        for r in self.records:
+            if r.get("type") in ("item", "pre_sort") and r.get("item") not in finals:
+                if r.get("type") == "pre_sort" or r.get("item") not in last:
+                    last[r.get("item")] = r
+        return [last[k] for k in sorted(last)]
 
     def next_item_number(self) -> int:
         nums = [int(r["item"]) for r in self.records if isinstance(r.get("item"), int)]

@@ -203,3 +203,13 @@ def test_fault_file_survives_restart(tmp_path):
     cell.recover()
     cell.run(max_items=1, stop_when=lambda: True)
     assert cell.fault == "gate jam" and arm.calls.count("press") == 0
+
+
+def test_restart_resolves_item_stopped_before_its_decision(tmp_path):
+    path = tmp_path / "journal.jsonl"
+    with Journal.open(path) as j:
+        j.append({"type": "item", "item": 4, "item_id": "p4"})  # died while pressing
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50])
+    resolved = cell.recover()
+    assert [(r["item"], r["outcome"], r["bin"]) for r in resolved] == [(4, "aborted", 0)]
+    assert cell.recover() == []  # resolved once, not again

@@ -52,7 +52,8 @@ def test_unresolved_and_latched_fault_queries(tmp_path):
         j.append({"type": "final", "item": 1})
         j.append({"type": "pre_sort", "item": 2})
         j.append({"type": "fault", "reason": "jam"})
-        assert [r["item"] for r in j.unresolved_items()] == [2]
+        j.append({"type": "item", "item": 3})
+        assert [(r["item"], r["type"]) for r in j.unresolved_items()] == [(2, "pre_sort"), (3, "item")]
         assert j.latched_fault()["reason"] == "jam"
         j.append({"type": "fault_cleared"})
         assert j.latched_fault() is None
