@@ -169,7 +169,14 @@ def spread_order(n_x: int = N_GRID_X, n_y: int = N_GRID_Y) -> list[int]:
 
 # --- YAML with line numbers --------------------------------------------------------------
 
-def _to_python(node: yaml.Node, key: str, lines: dict[str, int]) -> Any:
+_MAX_NODES = 20000  # a cell config has a few hundred; aliases must not expand without bound
+
+
+def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[int] | None = None) -> Any:
+    budget = budget if budget is not None else [_MAX_NODES]
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise _TooBig()
     lines[key] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         out: dict[str, Any] = {}
@@ -180,25 +187,35 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int]) -> Any:
             if k in out:
                 lines.setdefault("__dup__", [])  # type: ignore[arg-type]
                 lines["__dup__"].append(sub)  # type: ignore[union-attr]
-            out[k] = _to_python(v_node, sub, lines)
+            out[k] = _to_python(v_node, sub, lines, budget)
             lines[sub] = k_node.start_mark.line + 1
         return out
     if isinstance(node, yaml.SequenceNode):
-        return [_to_python(v, f"{key}[{i}]", lines) for i, v in enumerate(node.value)]
+        return [_to_python(v, f"{key}[{i}]", lines, budget) for i, v in enumerate(node.value)]
     return yaml.safe_load(yaml.serialize(node))
 
 
 def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: e.g. NUL bytes the reader refuses
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         raise ConfigError(path, [f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})"]) from None
     lines: dict[str, int] = {}
     if node is None:
         return {}, lines
-    return _to_python(node, "", lines), lines
+    try:
+        return _to_python(node, "", lines), lines
+    except (_TooBig, RecursionError):
+        raise ConfigError(path, [f"{path}: too large or self-referencing (YAML aliases); a cell config is "
+                                 "a few dozen keys"]) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(path, [f"{path}: not valid YAML ({exc})"]) from None
+
+
+class _TooBig(Exception):
+    pass
 
 
 # --- validation --------------------------------------------------------------------------
@@ -218,24 +235,27 @@ class _Checker:
 
     def leaf(self, key: str, spec: dict, value: Any) -> Any:
         kind, bounds = spec["kind"], spec["bounds"]
+        fallback = None if spec["default"] is REQUIRED else spec["default"]  # after an error
         if value is None and spec["default"] is REQUIRED:
             self.err(key, f"{key}: required ({spec['help']})")
             return None
         if value is None:
-            return spec["default"]
+            if spec["default"] is None:
+                return None
+            value = spec["default"]  # defaults go through the same conversion (paths, floats)
         if kind in ("float", "optfloat"):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 self.err(key, f"{key} = {value!r}: must be a number")
-                return spec["default"]
+                return fallback
             value = float(value)
         elif kind == "int":
             if isinstance(value, bool) or not isinstance(value, int):
                 self.err(key, f"{key} = {value!r}: must be a whole number")
-                return spec["default"]
+                return fallback
         elif kind in ("str", "path", "optpath"):
             if isinstance(value, (dict, list)) or isinstance(value, bool):
                 self.err(key, f"{key} = {value!r}: must be a text value")
-                return spec["default"]
+                return fallback
             value = str(value)
             if kind in ("path", "optpath"):
                 p = Path(value).expanduser()
@@ -243,7 +263,7 @@ class _Checker:
         elif kind == "list":
             if not isinstance(value, list):
                 self.err(key, f"{key}: must be a list")
-                return spec["default"]
+                return fallback
         if bounds is not None and kind in ("float", "optfloat", "int"):
             lo, hi = bounds
             if not lo <= value <= hi:

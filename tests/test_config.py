@@ -113,3 +113,53 @@ def test_docs_reference_lists_every_key():
     doc = (Path(__file__).parents[1] / "docs" / "cell.md").read_text()
     for key, _default, _bounds, _help in schema_reference():
         assert f"`{key}`" in doc, f"docs/cell.md does not document config key {key}"
+
+
+def test_alias_bombs_and_self_reference_are_refused(tmp_path):
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, c in zip("abcdefg", "bcdefgh"))
+    with pytest.raises(ConfigError, match="too large"):
+        load_config(write(tmp_path, bomb))
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_yaml_ish = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | st.text(max_size=20),
+    lambda kids: st.lists(kids, max_size=4) | st.dictionaries(
+        st.sampled_from(["bundle", "threads", "devices", "camera", "arm", "gate", "kind", "scene", "fabrics",
+                         "name", "bin", "evidence", "grid_points", "grid_order", "max_presses", "force_n",
+                         "piece_origin_pose", "journal", "watchdog", "x"]), kids, max_size=5),
+    max_leaves=25)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(doc=_yaml_ish)
+def test_any_yaml_document_gives_a_config_or_a_config_error(tmp_path, doc):
+    import yaml
+
+    path = tmp_path / "fuzz.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        assert all(p.startswith(str(path)) for p in exc.problems)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(max_size=200))
+def test_any_text_gives_a_config_error_not_a_crash(tmp_path, text):
+    path = tmp_path / "fuzz.yaml"
+    path.write_bytes(text.encode("utf-8", "surrogatepass"))
+    with pytest.raises(ConfigError):
+        load_config(path)
+
+
+def test_defaults_are_typed(tmp_path):
+    from pathlib import Path
+
+    cfg = load_config(write(tmp_path, GOOD.replace("journal: state/journal.jsonl\n", "")))
+    assert cfg.journal == Path("/var/lib/vs2t-edge/journal.jsonl") and cfg.fault_file.name == "FAULT"
+    assert isinstance(cfg.camera["fps"], float)
