@@ -66,6 +66,7 @@ _BOUNDS: dict[str, tuple[float, float]] = {
     "move_timeout_s": (0.5, 120.0),
     "position_tolerance_mm": (0.01, 2.0),
     "command_timeout_s": (0.5, 60.0),
+    "client_reconnect_grace_s": (0.0, 10.0),
     "reconnect_attempts": (0, 10),
     "reconnect_backoff_s": (0.0, 10.0),
     "grid_step_x_mm": (1.0, 20.0),
@@ -100,6 +101,7 @@ class ArmConfig:
     move_timeout_s: float = 15.0
     position_tolerance_mm: float = 0.1
     command_timeout_s: float = 5.0  # one control call (zeroFtSensor, forceModeStop, ...) at most
+    client_reconnect_grace_s: float = 2.0  # let ur_rtde's own reconnect finish before ours
     reconnect_attempts: int = 3
     reconnect_backoff_s: float = 0.5  # doubles after each failed attempt
 
@@ -294,6 +296,18 @@ class URArm:
         raise ArmConnectionError(f"robot at {cfg.host} unreachable after {cfg.reconnect_attempts + 1} "
                                  f"attempt(s) ({why}): {last}", device="arm", kind="connection_lost")
 
+    def _recover_link(self, why: str) -> None:
+        """The link broke. ur_rtde's control interface reconnects by itself from its receive
+        thread; tearing it down while that runs crashed the client (a segfault, seen against
+        the simulator), so it gets a grace period first, and only then is everything rebuilt."""
+        deadline = time.monotonic() + self.config.client_reconnect_grace_s
+        while time.monotonic() < deadline:
+            if self._link_ok():
+                self.reconnects += 1
+                return
+            time.sleep(0.02)
+        self._connect_with_backoff(why)
+
     def disconnect(self) -> None:
         if self._ctl is not None and self._link_ok():
             try:
@@ -381,7 +395,7 @@ class URArm:
         """A control call returned False or raised: say why, reconnecting if the link broke."""
         self._raise_if_unsafe(what)
         if not self._link_ok():
-            self._connect_with_backoff(f"link lost during {what}")
+            self._recover_link(f"link lost during {what}")
             self._raise_if_unsafe(what)
             if retry is not None:
                 retry()
@@ -433,13 +447,13 @@ class URArm:
                 self.stop()
                 self._raise_if_unsafe(what)
                 if not self._link_ok():
-                    self._connect_with_backoff(f"link lost during {what}")
+                    self._recover_link(f"link lost during {what}")
                     return self._move_to(pose, what) + (time.monotonic() - t0)
                 raise PressFailed(f"{what}: not at the target after {cfg.move_timeout_s} s", device="arm",
                                   kind="timeout")
             if current is None:
                 self._raise_if_unsafe(what)
-                self._connect_with_backoff(f"link lost during {what}")
+                self._recover_link(f"link lost during {what}")
                 return self._move_to(pose, what) + (time.monotonic() - t0)
             self._raise_if_unsafe(what)
             time.sleep(period)
@@ -506,7 +520,7 @@ class URArm:
             if not link_ok:
                 self._raise_if_unsafe("press")
                 self.stop()
-                self._connect_with_backoff("link lost during press")
+                self._recover_link("link lost during press")
                 raise _reconnected("press")
             samples.append((now - t0, pose[2], force))
             max_force = max(max_force, force)

@@ -451,8 +451,13 @@ class URSim:
             if self.safety_mode == SAFETY_MODE["ROBOT_EMERGENCY_STOP"]:
                 self.safety_mode = SAFETY_MODE["NORMAL"]
 
-    def drop_connections(self, refuse_s: float = 0.0) -> None:
-        """Cut every client connection; with refuse_s > 0 also refuse new ones for that long."""
+    def drop_connections(self, refuse_s: float = 1.0) -> None:
+        """Cut every client connection and refuse new ones for ``refuse_s``.
+
+        With refuse_s = 0 the real ur_rtde 1.6.5 client's own reconnect succeeds at once and
+        then loops (reconnecting again after every success) until it crashes its process with a
+        segfault - a client bug, see docs/arm.md. Keep a refusal window unless that is the test.
+        """
         if refuse_s > 0:
             self._close_listeners()
             timer = threading.Timer(refuse_s, self._open_listeners)

@@ -94,7 +94,8 @@ def sim():
 
 def _config(sim, **kw) -> ArmConfig:
     base = dict(host=sim.host, approach_height_mm=5.0, travel_speed_m_s=0.25, travel_accel_m_s2=1.5,
-                press_speed_m_s=0.02, reconnect_backoff_s=0.2, press_timeout_s=3.0, move_timeout_s=5.0)
+                press_speed_m_s=0.02, reconnect_backoff_s=0.2, press_timeout_s=3.0, move_timeout_s=5.0,
+                client_reconnect_grace_s=0.5)
     base.update(kw)
     return ArmConfig(**base)
 
@@ -170,6 +171,16 @@ def test_connection_drop_mid_press_reconnects_and_presses(arm, sim):
     assert arm.reconnects >= 1
     assert result.force_n == pytest.approx(15.0, abs=1.0)
     assert len(sim.get_log()["drops"]) == 1
+
+
+def test_connection_drop_during_a_move_redoes_the_move(arm, sim):
+    arm.move_above(10.0, 10.0)
+    arm.config = dataclasses.replace(arm.config, travel_speed_m_s=0.02)  # a long move to cut into
+    threading.Timer(0.3, lambda: sim.drop_connections(0.5)).start()
+    arm.move_above(60.0, 60.0)
+    assert arm.reconnects >= 1
+    expected = arm.config.surface_pose(60.0, 60.0)
+    assert sim.snapshot()["pose"][:3] == pytest.approx([expected[0], expected[1], expected[2] + 0.005], abs=2e-4)
 
 
 def test_force_never_reached(arm, sim):
