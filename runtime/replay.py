@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import tempfile
 import threading
@@ -239,13 +240,13 @@ class ReplayFile:
             index = json.loads(path.read_text())
         except ValueError as exc:
             raise ReplayError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(index, dict):
+            raise ReplayError(f"{path}: must be a JSON object")
         if index.get("format") != FORMAT:
             raise ReplayError(f"{path}: format {index.get('format')!r}, expected {FORMAT!r}")
         if index.get("version") != VERSION:
             raise ReplayError(f"{path}: version {index.get('version')}, this build reads {VERSION}")
-        for key in ("config", "items", "events", "decisions"):
-            if key not in index:
-                raise ReplayError(f"{path}: missing {key!r}")
+        _check_index(index, path)
         return cls(folder, index)
 
     def load_frame(self, name: str) -> np.ndarray:
@@ -271,6 +272,44 @@ class ReplayFile:
         tmp = self.folder / "index.json.tmp"
         tmp.write_text(json.dumps(self.index, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.folder / "index.json")
+
+
+_FRAME_NAME = re.compile(r"^frames/[0-9]{6}\.png$")  # nothing outside the replay folder is ever read
+
+
+def _check_index(index: Any, path: Path) -> None:
+    """Shape of every part the replay reads; a ReplayError naming the first bad entry."""
+    if not isinstance(index, dict):
+        raise ReplayError(f"{path}: must be a JSON object")
+    for key, typ in (("config", dict), ("items", list), ("events", list), ("decisions", list)):
+        if not isinstance(index.get(key), typ):
+            raise ReplayError(f"{path}: {key!r} missing or not a {typ.__name__}")
+    if not isinstance(index.get("meta", {}), dict):
+        raise ReplayError(f"{path}: 'meta' must be an object")
+    for i, it in enumerate(index["items"]):
+        if not isinstance(it, dict) or not isinstance(it.get("id"), str):
+            raise ReplayError(f"{path}: items[{i}] needs an 'id' text")
+    for i, ev in enumerate(index["events"]):
+        if not (isinstance(ev, dict) and isinstance(ev.get("dev"), str) and isinstance(ev.get("call"), str)
+                and isinstance(ev.get("item"), int) and not isinstance(ev.get("item"), bool)):
+            raise ReplayError(f"{path}: events[{i}] needs dev, call (text) and item (number)")
+        frame = ev.get("frame")
+        if frame is not None and (not isinstance(frame, str) or not _FRAME_NAME.match(frame)):
+            raise ReplayError(f"{path}: events[{i}].frame {frame!r} is not frames/NNNNNN.png")
+        if "error" in ev and not (isinstance(ev["error"], dict) and isinstance(ev["error"].get("message"), str)
+                                  and isinstance(ev["error"].get("type"), str)):
+            raise ReplayError(f"{path}: events[{i}].error needs type and message")
+        if "args" in ev and not (isinstance(ev["args"], list)
+                                 and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in ev["args"])):
+            raise ReplayError(f"{path}: events[{i}].args must be a list of numbers")
+        if ev["call"] == "press" and "error" not in ev:
+            r = ev.get("result")
+            if not (isinstance(r, dict) and all(isinstance(r.get(k), (int, float)) for k in
+                                                ("x_mm", "y_mm", "force_n", "depth_mm"))):
+                raise ReplayError(f"{path}: events[{i}] press result needs x_mm, y_mm, force_n, depth_mm")
+    for i, d in enumerate(index["decisions"]):
+        if not isinstance(d, dict) or not isinstance(d.get("type"), str):
+            raise ReplayError(f"{path}: decisions[{i}] needs a 'type'")
 
 
 # --- replay devices ------------------------------------------------------------------------

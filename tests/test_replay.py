@@ -117,3 +117,35 @@ def test_bad_replay_files_are_named(tmp_path):
     (tmp_path / "index.json").write_text('{"format": "other"}')
     with pytest.raises(ReplayError, match="format 'other'"):
         ReplayFile.open(tmp_path)
+
+
+def test_frame_names_cannot_leave_the_replay_folder(tmp_path):
+    out, _ = record(tmp_path, [50, 50], 1)
+    index = json.loads((out / "index.json").read_text())
+    grab = next(e for e in index["events"] if e.get("frame"))
+    grab["frame"] = "frames/../../../etc/passwd"
+    (out / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ReplayError, match="is not frames/NNNNNN.png"):
+        ReplayFile.open(out)
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=8),
+                     lambda k: st.lists(k, max_size=3) | st.dictionaries(
+                         st.sampled_from(["format", "version", "config", "items", "events", "decisions", "dev",
+                                          "call", "item", "frame", "id", "type", "error", "args", "result"]),
+                         k, max_size=5), max_leaves=20)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(body=_json)
+def test_any_index_is_opened_or_refused_with_a_replay_error(tmp_path, body):
+    if isinstance(body, dict):
+        body = {"format": "vs2t-edge-replay", "version": 1, **body}
+    (tmp_path / "index.json").write_text(json.dumps(body))
+    try:
+        ReplayFile.open(tmp_path)
+    except ReplayError:
+        pass
