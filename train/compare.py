@@ -398,20 +398,24 @@ def run_comparison(table: FeatureTable, splits: list[FabricSplit], budget: Budge
 # --------------------------------------------------------------------------------------------
 
 
-def toy_feature_table(n_fabrics: int = 30, presses: int = 40, d_t: int = 128, d_v: int = 64, seed: int = 0
-                      ) -> FeatureTable:
+def toy_feature_table(n_fabrics: int = 30, presses: int = 40, d_t: int = 128, d_v: int = 64, seed: int = 0,
+                      noise: float = 0.8, private: float = 0.0) -> FeatureTable:
     """A synthetic feature world for tests and a no-data smoke run: tactile and visual features are
     ReLU maps of the fabric's attributes and a hidden per-fabric 'structure' that both camera and
-    touch partly see (so vision adds information beyond the 24 attributes), plus press noise."""
+    touch partly see (so vision adds information beyond the 24 attributes), plus press noise of
+    std ``noise`` and a touch-only per-fabric part of scale ``private`` that neither attributes
+    nor camera reveal (what makes zero-shot recognition hard)."""
     rng = np.random.default_rng(seed)
     attrs = rng.integers(0, 2, (n_fabrics, 24)).astype(np.float64)
     hidden = rng.normal(size=(n_fabrics, 8))
-    w_ta, w_th = rng.normal(size=(24, d_t)) / 3, rng.normal(size=(8, d_t)) / 2
+    secret = rng.normal(size=(n_fabrics, 8)) * private
+    w_ta, w_th, w_ts = rng.normal(size=(24, d_t)) / 3, rng.normal(size=(8, d_t)) / 2, rng.normal(size=(8, d_t)) / 2
     w_va, w_vh = rng.normal(size=(24, d_v)) / 3, rng.normal(size=(8, d_v)) / 2
     xt, xv, fab = [], [], []
     for f in range(n_fabrics):
-        xt.append(np.maximum(attrs[f] @ w_ta + hidden[f] @ w_th + rng.normal(size=(presses, d_t)) * 0.8, 0))
-        xv.append(np.maximum(attrs[f] @ w_va + hidden[f] @ w_vh + rng.normal(size=(presses, d_v)) * 0.8, 0))
+        xt.append(np.maximum(attrs[f] @ w_ta + hidden[f] @ w_th + secret[f] @ w_ts
+                             + rng.normal(size=(presses, d_t)) * noise, 0))
+        xv.append(np.maximum(attrs[f] @ w_va + hidden[f] @ w_vh + rng.normal(size=(presses, d_v)) * noise, 0))
         fab.append(np.full(presses, f))
     xt, xv = np.concatenate(xt), np.concatenate(xv)
     xt[:, :5] = 0.0  # dead channels, as a ReLU trunk has

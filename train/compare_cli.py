@@ -76,7 +76,10 @@ def run(args: argparse.Namespace) -> int:
                     table.save(args.cache)
                 source = table.source
         elif args.toy:
-            table = cmp.toy_feature_table(seed=args.seed)
+            # sized like the paper (50 fabrics) but with 60 presses each, 256-d features, and a
+            # touch-only part per fabric so that zero-shot is not trivially solvable
+            table = cmp.toy_feature_table(n_fabrics=50, presses=60, d_t=256, d_v=256, seed=args.seed, noise=3.0,
+                                          private=1.5)
             source = table.source
         else:
             print("vs2t-edge compare: give --features CACHE.npz, --data DATASET or --toy", file=sys.stderr)
