@@ -311,3 +311,78 @@ def score_run(results, items: list[SimItem], scene_names: set[str]) -> dict:
         "item_s_median": float(np.median([r["item_s"] for r in rows])) if n else math.nan,
         "rows": rows,
     }
+
+
+# --- the committed reference replays (tests/replays) ----------------------------------------
+
+REFERENCE_SESSIONS = {
+    # name: (which fabrics, n items, scheduled fault or None)
+    "touched": ("touched", 3, None),
+    "untouched": ("untouched", 3, None),
+    "unknown": ("off_scene", 3, None),
+    "fault": ("mixed", 3, (1, 2, "protective_stop")),
+}
+
+
+def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm_kind: str = "ursim",
+                              gate_kind: str = "pty", seed: int = 0, max_presses: int = 4,
+                              confidence: float = 0.95, log=print) -> list[Path]:
+    """Record the simulated-cell sessions the replay tests run (touched, untouched, off-scene
+    pieces, and a protective stop mid-item cleared by the operator).
+
+    The scene is the bundle's classes minus its last untouched class, which is kept off-scene:
+    pieces of it must go to the reject bin whatever the model calls them.
+    """
+    from vs2t_edge.runtime.daemon import default_evidence_factory
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.replay import record_session
+
+    model = TactileModel.load(bundle, threads=1, beta_override=None)
+    touched, untouched = list(model.touched), list(model.untouched)
+    off_scene = [untouched.pop()] if len(untouched) > 1 else []
+    ds = load_dataset(dataset)
+    others = [f.name for f in ds.fabrics if f.name not in set(model.touched) | set(model.untouched)]
+    off_scene += others[:1]
+    groups = {"touched": touched, "untouched": untouched, "off_scene": off_scene or untouched,
+              "mixed": touched[:1] + untouched[:1] + touched[1:2]}
+    fabrics = assign_bins(touched, untouched)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for k, (name, (group, n_items, fault)) in enumerate(REFERENCE_SESSIONS.items()):
+        items = item_stream(ds, groups[group], n_items, seed=seed + k)
+        with SimulatedCell(dataset, items, arm_kind=arm_kind, gate_kind=gate_kind, camera_seed=seed + k) as cell:
+            data = scene_config_yaml(bundle=Path(bundle).resolve(), dataset=Path(dataset).resolve(),
+                                     journal=out_dir / "unused.jsonl", fabrics=fabrics, arm_host=cell.arm_host,
+                                     confidence=confidence, max_presses=max_presses, threads=1)
+            # The recorded config names the bundle relatively: replays find it via --bundle or beside them.
+            cfg = write_scene_config(out_dir / f".{name}.yaml", data)
+            if fault is not None:
+                cell.schedule_fault(*fault)
+            path = record_session(cfg, out_dir / f"{name}.replay", model=model, camera=cell.camera, arm=cell.arm,
+                                  gate=cell.gate, items=cell.source, evidence_factory=default_evidence_factory(cfg),
+                                  operator_clear=cell.operator_clear,
+                                  meta={"made_by": "python -m vs2t_edge.sim.scene record-references",
+                                        "session": name, "seed": seed + k})
+            (out_dir / f".{name}.yaml").unlink()
+        written.append(path)
+        log(f"recorded {path}")
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m vs2t_edge.sim.scene")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    rr = sub.add_parser("record-references", help="record the replay tests' reference sessions")
+    rr.add_argument("--dataset", required=True)
+    rr.add_argument("--bundle", required=True)
+    rr.add_argument("--out", default="tests/replays")
+    rr.add_argument("--arm", choices=("ursim", "fake"), default="ursim")
+    a = ap.parse_args(argv)
+    record_reference_sessions(Path(a.dataset), Path(a.bundle), Path(a.out), arm_kind=a.arm)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
