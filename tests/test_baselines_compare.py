@@ -70,22 +70,23 @@ def test_recommendation_uses_validation_not_test():
 
 def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
     torch.set_num_threads(1)
-    table = cmp.toy_feature_table(n_fabrics=14, presses=20, d_t=24, d_v=12)
+    table = cmp.toy_feature_table(n_fabrics=32, presses=15, d_t=32, d_v=16, noise=0.5)
     cache = tmp_path / "features.npz"
     table.save(cache)
     table = cmp.FeatureTable.load(cache)
-    splits = cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=3)
-    budget = Budget(steps=60, batch=32, hidden=32, latent=8, cls_steps=60, n_synth_per_class=30)
+    splits = cmp.make_splits(table.fabric_ids, 1, n_val=3, n_untouched=3)
+    budget = Budget(steps=100, batch=32, hidden=32, latent=8, cls_steps=150, n_synth_per_class=30)
     result = cmp.run_comparison(table, splits, budget, {"DAP": DAP, "CADA-VAE": CADAVAE}, log=lambda m: None)
     result["meta"] = {"command": "test", "features": "toy", "n_fabrics": 14, "n_presses": 280, "d_t": 24,
-                      "d_v": 12, "n_splits": 1, "split_sizes": "9/2/3", "budget": "tiny", "host": "test",
+                      "d_v": 16, "n_splits": 1, "split_sizes": "26/3/3", "budget": "tiny", "host": "test",
                       "seconds": 1.0}
     m = result["summary"]["methods"]["DAP"]
     assert set(m["routers"]) == set(nv.ROUTERS)
     for r in nv.ROUTERS:
         for key in ("acc_t", "acc_u", "H", "ausuc", "val_ausuc"):
             assert 0.0 <= m["routers"][r][key]["mean"] <= 1.0
-    assert m["zsl_acc"]["mean"] > 1 / 3  # better than chance among 3 untouched fabrics
+    # 24 touched fabrics teach DAP the attributes well enough to beat chance (1/3) clearly
+    assert m["zsl_acc"]["mean"] > 0.5
     paths = cmp.write_results(result, tmp_path / "out")
     md = paths["md"].read_text()
     assert "| DAP | 43.56 |" in md and "Recommendation" in md
