@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm, URArm
+from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm, IsolatedURArm, URArm
 from vs2t_edge.runtime.devices import (
     Arm,
     ArmConnectionError,
@@ -211,6 +211,43 @@ def test_slow_robot_times_out(arm, sim):
     with pytest.raises(PressFailed) as exc:
         arm.press()
     assert exc.value.kind == "timeout"
+
+
+def test_isolated_arm_survives_a_client_crash(sim):
+    """A drop the robot takes back at once makes ur_rtde's own reconnect loop and segfault
+    (docs/arm.md); in a worker process that costs one press, not the cell."""
+    sim.reset()
+    arm = IsolatedURArm(_config(sim))
+    assert isinstance(arm, Arm)
+    with pytest.raises(NotConnectedError):
+        arm.press()
+    arm.connect()
+    try:
+        arm.move_above(25.0, 25.0)
+        assert arm.press().force_n == pytest.approx(15.0, abs=1.0)
+        arm.retract()
+        sim.set_faults(protective_stop_above_n=8.0)  # typed faults cross the process boundary
+        with pytest.raises(ArmSafetyStop) as exc:
+            arm.press()
+        assert exc.value.kind == "protective_stop"
+        sim.set_faults(protective_stop_above_n=None)
+        arm.clear_protective_stop()
+        arm.retract()
+        threading.Timer(0.3, lambda: sim.drop_connections(0.0)).start()
+        try:
+            arm.press()
+        except ArmConnectionError as exc:
+            assert "worker died" in str(exc) or "reconnected" in str(exc)
+        time.sleep(0.5)
+        arm.move_above(35.0, 35.0)
+        assert arm.press().force_n == pytest.approx(15.0, abs=1.0)
+        if any(code not in (0, None) for code in arm.worker_exit_codes):
+            assert arm.worker_restarts == 1
+        print(f"worker exit codes after the drop: {arm.worker_exit_codes}")
+    finally:
+        arm.stop()
+        arm.disconnect()
+        sim.reset()
 
 
 def test_connection_refused_is_a_typed_error():
