@@ -173,7 +173,14 @@ def split_views(table: FeatureTable, split: FabricSplit) -> SplitViews:
 
 
 def all_methods() -> dict[str, type[ZSLMethod]]:
-    return {**BASELINES, **MODERN}
+    """Table 4's rows, the modern generators, and VS2T-ZSL.
+
+    VS2T-ZSL here is ``generators_modern.VS2TPrivate``, a minimal feature-level re-implementation
+    trained on the same cached features and splits as every other row (the training room's own
+    model trains its trunk end to end and is reported by `vs2t-edge train`)."""
+    from vs2t_edge.train.generators_modern import VS2TPrivate
+
+    return {**BASELINES, **MODERN, "VS2T-ZSL": VS2TPrivate}
 
 
 def _router_block(routers: dict[str, nv.Router], cls_t, views: SplitViews, logits_u_val, logits_u_test,
@@ -337,6 +344,10 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
               "visual feature to the tactile feature (BCE adversarial + 100 x L1), not image-to-image.",
               "- f-VAEGAN is the inductive f-VAEGAN-D2 without D2 (D2 needs unlabelled untouched "
               "tactile data).",
+              "- VS2T-ZSL in this table is a minimal feature-level re-implementation "
+              "(`generators_modern.VS2TPrivate`: E, VS-F as a sigmoid gate on [x_v, s], G, D with the "
+              "paper's losses and weights, widths from the shared budget), so that it runs on exactly "
+              "the same features and splits as the other rows.",
               "- Budgets are shortened for a shared 2-core CPU (see Budget above); GAN learning rates "
               "are 5e-4 instead of 1e-4 to compensate.", ""]
     if meta.get("vs2t_note"):
