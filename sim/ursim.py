@@ -927,11 +927,12 @@ class URSimProcess:
                 "contact_force_at"}
 
     def __init__(self, scene: PressScene | None = None, *, host: str = "127.0.0.1",
-                 start_timeout_s: float = 30.0, **kwargs) -> None:
+                 start_timeout_s: float = 140.0, **kwargs) -> None:
         _check_loopback(host)
         self.scene = scene or PressScene()
         self.host = host
         self._kwargs = kwargs
+        # Longer than the child's wait for another simulator's lock on the same address.
         self._start_timeout_s = start_timeout_s
         self._proc = None
         self._call_lock = threading.Lock()
