@@ -837,8 +837,10 @@ class IsolatedURArm:
         self._call("retract")
 
     def stop(self) -> None:
+        if self._proc is None or self._proc.poll() is not None:
+            return  # no worker, no link: nothing to command
         try:
-            self._call("stop")
+            self._send("stop", (), 5.0)  # stop is quick or the worker is hung (then it is ended)
         except Exception:  # must not raise: the fault paths call it
             pass
 
