@@ -1,0 +1,104 @@
+"""The fabric world: deterministic, loadable, and honest about what touch and vision can see."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS
+from vs2t_edge.runtime.dataset import validate_dataset
+from vs2t_edge.sim import synth
+from vs2t_edge.sim.gelsight import GelSight
+
+
+def _digest(root: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(p.relative_to(root).as_posix().encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return synth.generate(tmp_path_factory.mktemp("w") / "tiny", "tiny", seed=3, progress=False, n_fabrics=4)
+
+
+def test_tiny_world_validates_deeply(tiny):
+    ds = validate_dataset(tiny, deep=True)
+    assert len(ds.fabrics) == 4 and all(len(f.presses) == 9 for f in ds.fabrics)
+    assert ds.geometry.frame_width_px == 160
+    f = ds.fabrics[0]
+    assert f.load_press(0).shape == (120, 160, 3)
+    assert "params" in (f.folder / "fabric.yaml").read_text()
+
+
+def test_same_seed_same_bytes_other_seed_other_bytes(tiny, tmp_path):
+    again = synth.generate(tmp_path / "again", "tiny", seed=3, progress=False, n_fabrics=4, workers=1)
+    other = synth.generate(tmp_path / "other", "tiny", seed=4, progress=False, n_fabrics=4, workers=1)
+    assert _digest(again) == _digest(tiny)
+    assert _digest(other) != _digest(tiny)
+
+
+def _press(p: synth.FabricParams, force_n: float = 15.0) -> np.ndarray:
+    sensor = GelSight(width_px=160, height_px=120, mm_per_px=15 / 160)
+    return synth.pressed_deformation(p, synth.Surface(p), 40.0, 40.0, force_n, 0.0, sensor, 1.0)
+
+
+def test_colour_and_print_never_change_touch():
+    p = synth.draw_fabric(np.random.default_rng(0), "twill")
+    recoloured = replace(p, colour_hsv=(10.0, 0.9, 0.3), print_kind="dots", stripes=not p.stripes)
+    assert np.array_equal(_press(p), _press(recoloured))
+    cam_a = synth.camera_image(p, synth.Surface(p), 100)
+    cam_b = synth.camera_image(recoloured, synth.Surface(recoloured), 100)
+    assert np.abs(cam_a.astype(int) - cam_b).mean() > 10  # ... while the camera sees it
+
+
+def test_stiffer_fabric_lets_less_of_its_surface_touch_the_gel():
+    p = synth.draw_fabric(np.random.default_rng(1), "jersey")
+    soft, stiff = replace(p, stiffness=0.05), replace(p, stiffness=0.95)
+    assert (_press(soft) > 1e-4).mean() > (_press(stiff) > 1e-4).mean() + 0.1
+
+
+def test_more_force_more_contact():
+    p = synth.draw_fabric(np.random.default_rng(2), "felt")
+    assert (_press(p, 19.0) > 1e-4).mean() > (_press(p, 11.0) > 1e-4).mean()
+
+
+def test_hairiness_shows_more_in_touch_than_in_sight():
+    p = synth.draw_fabric(np.random.default_rng(5), "plain")
+    bald, hairy = replace(p, hairiness=0.0), replace(p, hairiness=1.0)
+    touch = np.abs(_press(hairy) - _press(bald)).mean() / (np.abs(_press(bald)).mean() + 1e-9)
+    cam = lambda q: synth.camera_image(q, synth.Surface(q), 200).astype(float)
+    sight = np.abs(cam(hairy) - cam(bald)).mean() / cam(bald).mean()
+    assert touch > 3 * sight
+
+
+def test_attributes_respect_exclusive_pairs_and_fabricvst_base_rates():
+    """Base rates over many worlds of 50 (labels only, no rendering) sit near FabricVST's."""
+    rates = {a: [] for a in synth.TARGET_RATES}
+    for seed in range(12):
+        world = synth.draw_world(50, seed)
+        rng = np.random.default_rng([seed, 99])
+        attrs = np.stack([synth.label_attributes(p, rng) for p in world])
+        for x, y in EXCLUSIVE_PAIRS:
+            assert not np.any(attrs[:, ATTRIBUTES.index(x)] & attrs[:, ATTRIBUTES.index(y)])
+        for a in rates:
+            rates[a].append(attrs[:, ATTRIBUTES.index(a)].mean())
+    for a, target in synth.TARGET_RATES.items():
+        assert abs(np.mean(rates[a]) - target) < 0.08, (a, np.mean(rates[a]), target)
+
+
+def test_every_construction_appears_in_a_paper_sized_world():
+    kinds = {p.construction for p in synth.draw_world(50, 0)}
+    assert kinds == set(synth.CONSTRUCTIONS)
+
+
+def test_unknown_profile_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown profile"):
+        synth.generate(tmp_path, "huge")
