@@ -90,9 +90,11 @@ def build_live_devices(cfg: CellConfig):
 
         camera = ReplayCamera(cam["path"])
     if cfg.arm_kind == "ur_rtde":
-        from vs2t_edge.runtime.arm import URArm
+        # ur_rtde in a worker process: a client crash (it can segfault on a flapping link)
+        # costs one press, not the service (docs/arm.md).
+        from vs2t_edge.runtime.arm import IsolatedURArm
 
-        arm = URArm(cfg.arm)
+        arm = IsolatedURArm(cfg.arm)
     elif cfg.arm_kind == "fake":
         from vs2t_edge.runtime.arm import FakeArm
 
