@@ -319,13 +319,13 @@ REFERENCE_SESSIONS = {
     # name: (which fabrics, n items, scheduled fault or None)
     "touched": ("touched", 3, None),
     "untouched": ("untouched", 3, None),
-    "unknown": ("off_scene", 3, None),
+    "unknown": ("off_scene", 2, None),
     "fault": ("mixed", 3, (1, 2, "protective_stop")),
 }
 
 
 def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm_kind: str = "ursim",
-                              gate_kind: str = "pty", seed: int = 0, max_presses: int = 4,
+                              gate_kind: str = "pty", seed: int = 0, max_presses: int = 3,
                               confidence: float = 0.95, log=print) -> list[Path]:
     """Record the simulated-cell sessions the replay tests run (touched, untouched, off-scene
     pieces, and a protective stop mid-item cleared by the operator).
@@ -364,9 +364,22 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
                                   meta={"made_by": "python -m vs2t_edge.sim.scene record-references",
                                         "session": name, "seed": seed + k})
             (out_dir / f".{name}.yaml").unlink()
+        _relative_paths(path)
         written.append(path)
         log(f"recorded {path}")
     return written
+
+
+def _relative_paths(replay: Path) -> None:
+    """No machine's absolute paths in a committed replay: the bundle and dataset are given at replay."""
+    import json
+
+    index_path = replay / "index.json"
+    index = json.loads(index_path.read_text())
+    index["config"]["bundle"] = "bundle"
+    index["config"]["devices"]["camera"]["path"] = "dataset"
+    index["config"]["journal"] = "journal.jsonl"
+    index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
