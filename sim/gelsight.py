@@ -106,10 +106,10 @@ def render_press(deformation_mm: np.ndarray, bg: np.ndarray, sensor: GelSight, r
         base = marker_mask(sensor, np.random.default_rng(0))
         moved = marker_mask(sensor, np.random.default_rng(0), marker_shift_px)
         image *= ((1.0 - 0.55 * moved) / (1.0 - 0.55 * base))[..., None]
-    image += rng.normal(0, sensor.noise_dn, image.shape).astype(np.float32)
+    image += rng.standard_normal(image.shape, dtype=np.float32) * np.float32(sensor.noise_dn)
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
 def reference_frame(bg: np.ndarray, sensor: GelSight, rng: np.random.Generator) -> np.ndarray:
-    noisy = bg + rng.normal(0, sensor.noise_dn, bg.shape).astype(np.float32)
+    noisy = bg + rng.standard_normal(bg.shape, dtype=np.float32) * np.float32(sensor.noise_dn)
     return np.clip(noisy, 0, 255).astype(np.uint8)

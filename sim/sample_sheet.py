@@ -1,0 +1,77 @@
+"""A sample sheet so a person can judge the fabric world by eye.
+
+    python -m vs2t_edge.sim.sample_sheet DATASET --out docs/sample_sheet.png [--fabrics 6]
+
+One row per fabric: the camera image of the piece, the camera's crop under one press, the
+GelSight frame of that press, the same frame minus the no-contact reference (contrast x3),
+and the fabric's true attributes. Drawn with OpenCV only (the lean install has no matplotlib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vs2t_edge.runtime.attributes import ATTRIBUTES
+from vs2t_edge.runtime.dataset import load_dataset
+
+TILE_W, TILE_H = 240, 180
+TEXT_W = 250
+
+
+def _fit(image: np.ndarray, w: int = TILE_W, h: int = TILE_H) -> np.ndarray:
+    ih, iw = image.shape[:2]
+    s = min(w / iw, h / ih)
+    small = cv2.resize(image, (max(1, int(iw * s)), max(1, int(ih * s))), interpolation=cv2.INTER_AREA)
+    tile = np.full((h, w, 3), 255, np.uint8)
+    y0, x0 = (h - small.shape[0]) // 2, (w - small.shape[1]) // 2
+    tile[y0:y0 + small.shape[0], x0:x0 + small.shape[1]] = small
+    return tile
+
+
+def sheet(dataset: Path, n_fabrics: int = 6) -> np.ndarray:
+    ds = load_dataset(dataset)
+    step = max(1, len(ds.fabrics) // n_fabrics)
+    rows = []
+    header = np.full((28, TILE_W * 4 + TEXT_W, 3), 255, np.uint8)
+    for i, title in enumerate(("camera, 8 x 8 cm", "camera crop under the press", "GelSight frame",
+                               "frame - reference (x3)")):
+        cv2.putText(header, title, (i * TILE_W + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(header, "attributes", (4 * TILE_W + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    rows.append(header)
+    for fabric in ds.fabrics[::step][:n_fabrics]:
+        k = len(fabric.presses) // 2
+        camera = fabric.load_camera()
+        frame, ref = fabric.load_press(k), fabric.load_reference()
+        diff = np.clip((frame.astype(np.float32) - ref) * 3 + 128, 0, 255).astype(np.uint8)
+        text = np.full((TILE_H, TEXT_W, 3), 255, np.uint8)
+        on = [a for a, v in zip(ATTRIBUTES, fabric.attributes) if v]
+        lines = [fabric.name, ""] + [", ".join(on[j:j + 3]) for j in range(0, len(on), 3)]
+        for j, line in enumerate(lines[:11]):
+            cv2.putText(text, line, (6, 18 + 15 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.4 if j else 0.45,
+                        (0, 0, 0), 1, cv2.LINE_AA)
+        row = np.hstack([_fit(camera), _fit(fabric.visual_crop(k, camera)), _fit(frame), _fit(diff), text])
+        rows.append(np.vstack([row, np.full((4, row.shape[1], 3), 255, np.uint8)]))
+    return np.vstack(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("docs/sample_sheet.png"))
+    ap.add_argument("--fabrics", type=int, default=6)
+    args = ap.parse_args(argv)
+    image = sheet(args.dataset, args.fabrics)
+    if not cv2.imwrite(str(args.out), image, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+        print(f"sample_sheet: could not write {args.out}", file=sys.stderr)
+        return 2
+    print(f"{args.out}: {image.shape[1]}x{image.shape[0]}, {args.out.stat().st_size // 1024} KB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
