@@ -102,3 +102,13 @@ def test_every_construction_appears_in_a_paper_sized_world():
 def test_unknown_profile_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown profile"):
         synth.generate(tmp_path, "huge")
+
+
+def test_difficulty_report_runs_and_touch_beats_chance(tiny, tmp_path):
+    from vs2t_edge.sim import difficulty
+
+    res = difficulty.analyse(tiny, presses=9)
+    assert res["tactile_logreg_acc"] > 2 * res["chance"]
+    assert 0.0 <= res["attribute_nearest_class_acc"] <= 1.0
+    difficulty.write_report(res, tmp_path / "d.md")
+    assert "How hard" in (tmp_path / "d.md").read_text()
