@@ -93,3 +93,75 @@ def test_cli_needs_inputs(capsys):
 
     assert main(["calibrate-threshold", "--bundle", "/nonexistent"]) == 2
     assert "give --dataset" in capsys.readouterr().err
+
+
+def _fake_inference(monkeypatch, touched, untouched):
+    """A stand-in runtime.inference until a bundle is at hand: novelty = the frame's grey level."""
+    import sys
+    import types
+
+    from cell_fakes import FakeModel
+
+    class TactileModel(FakeModel):
+        beta = 65.0
+
+        @classmethod
+        def load(cls, bundle, threads=1, beta_override=None):
+            m = cls({}, touched + untouched)
+            m.touched, m.untouched = touched, untouched
+            return m
+
+    mod = types.ModuleType("vs2t_edge.runtime.inference")
+    mod.TactileModel = TactileModel
+    monkeypatch.setitem(sys.modules, "vs2t_edge.runtime.inference", mod)
+
+
+def _grey_dataset(root, greys: dict[str, int], n_presses=25):
+    from vs2t_edge.runtime.dataset import SensorGeometry, press_grid_mm, write_dataset_meta, write_fabric, write_fabric_index
+
+    write_dataset_meta(root, SensorGeometry(frame_width_px=32, frame_height_px=24, camera_image_px=40), {"t": 1})
+    rows = []
+    rng = np.random.default_rng(1)
+    for i, (name, grey) in enumerate(greys.items()):
+        attrs = [1, 0] * 6 + [0] * 12
+        rows.append((f"f{i}", name, attrs))
+        presses = [(np.full((24, 32, 3), grey + int(rng.integers(-4, 5)), np.uint8), x, y, 15.0)
+                   for x, y in press_grid_mm(5, 5, 10.0, 10.0)[:n_presses]]
+        write_fabric(root, f"f{i}", name, attrs, np.full((40, 40, 3), 128, np.uint8),
+                     np.full((24, 32, 3), 120, np.uint8), presses)
+    write_fabric_index(root, rows)
+
+
+def test_cli_from_a_dataset_writes_override_and_curve(tmp_path, monkeypatch, capsys):
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import resolve_beta_override
+
+    _fake_inference(monkeypatch, ["denim", "silk"], ["wool"])
+    _grey_dataset(tmp_path / "ds", {"denim": 50, "silk": 60, "velvet": 80, "tweed": 90})
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds")]) == 0
+    out = capsys.readouterr().out
+    beta = read_beta_override(override_path_for(bundle))
+    assert 64 <= beta <= 76  # between the touched (<= 64) and validation (>= 76) grey levels
+    assert "touched kept 100.0%" in out and (tmp_path / "bundle.beta_curve.png").exists()
+    # the daemon picks the override up unless the config sets beta_override itself
+    cfg_text = ("bundle: bundle\ndevices: {camera: {kind: replay, path: x}, arm: {kind: fake}, gate: {kind: fake}}\n"
+                "scene: {fabrics: [{name: denim, kind: touched, bin: 1}]}\njournal: j.jsonl\n")
+    (tmp_path / "c.yaml").write_text(cfg_text)
+    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == pytest.approx(beta)
+    (tmp_path / "c.yaml").write_text(cfg_text + "beta_override: 1.5\n")
+    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == 1.5
+
+
+def test_cli_refuses_thin_data_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    from vs2t_edge.cli import main
+
+    _fake_inference(monkeypatch, ["denim"], ["wool"])
+    _grey_dataset(tmp_path / "ds", {"denim": 50, "velvet": 80}, n_presses=5)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds")]) == 2
+    assert "only 5 touched presses" in capsys.readouterr().err
+    assert not override_path_for(bundle).exists()
