@@ -204,7 +204,7 @@ def write_fabric(root: Path, fabric_id: str, name: str, attributes: Sequence[int
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise ValueError(f"{path}: could not encode image")
     path.write_bytes(buf.tobytes())

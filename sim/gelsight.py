@@ -15,6 +15,7 @@ repository in ../shared/real/taxim_calib); sim/realism.py refits them and report
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -84,6 +85,11 @@ def marker_mask(sensor: GelSight, rng: np.random.Generator, shift_px: tuple[floa
     return cv2.GaussianBlur(mask, (0, 0), radius / 2)
 
 
+@lru_cache(maxsize=4)
+def _marker_base(sensor: GelSight) -> np.ndarray:
+    return marker_mask(sensor, np.random.default_rng(0))
+
+
 def shade(deformation_mm: np.ndarray, sensor: GelSight, lights: np.ndarray | None = None) -> np.ndarray:
     """Colour change (float32 HxWx3 BGR) of the gel for a deformation map in mm."""
     lights = np.asarray(sensor.lights if lights is None else lights, np.float32)
@@ -103,8 +109,9 @@ def render_press(deformation_mm: np.ndarray, bg: np.ndarray, sensor: GelSight, r
     image = bg + shade(gel, sensor)
     if sensor.markers and any(marker_shift_px):
         # markers ride on the gel: the press shears them a little relative to the reference
-        base = marker_mask(sensor, np.random.default_rng(0))
-        moved = marker_mask(sensor, np.random.default_rng(0), marker_shift_px)
+        base = _marker_base(sensor)
+        shift = np.float32([[1, 0, marker_shift_px[0]], [0, 1, marker_shift_px[1]]])
+        moved = cv2.warpAffine(base, shift, (sensor.width_px, sensor.height_px), borderMode=cv2.BORDER_REFLECT)
         image *= ((1.0 - 0.55 * moved) / (1.0 - 0.55 * base))[..., None]
     image += rng.standard_normal(image.shape, dtype=np.float32) * np.float32(sensor.noise_dn)
     return np.clip(image, 0, 255).astype(np.uint8)

@@ -389,15 +389,17 @@ def pressed_deformation(p: FabricParams, surface: Surface, x_mm: float, y_mm: fl
     """How far the gel is pushed in (mm) at each pixel for one press at (x_mm, y_mm)."""
     w_mm, h_mm = sensor.field_mm
     wp, hp = max(8, int(sensor.width_px * work_scale)), max(8, int(sensor.height_px * work_scale))
-    # Sample a slightly larger square so the small per-press rotation stays filled.
-    side_mm = math.hypot(w_mm, h_mm)
-    n = int(max(wp, hp) * side_mm / w_mm)
-    coords = (np.arange(n) + 0.5) * side_mm / n - side_mm / 2
-    h = surface.height(x_mm + coords, y_mm + coords)
-    rot = cv2.getRotationMatrix2D((n / 2, n / 2), rot_deg, 1.0)
-    h = cv2.warpAffine(h, rot, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    c0, r0 = (n - wp) // 2, (n - hp) // 2
-    h = h[r0:r0 + hp, c0:c0 + wp]
+    # Sample a margin around the field so the small per-press rotation stays filled
+    # (|rot| <= ~6 deg needs sin(6 deg) * width of margin; a rectangle, not the diagonal's square).
+    margin = int(math.ceil(abs(math.sin(math.radians(min(abs(rot_deg), 8.0) + 1.0))) * max(wp, hp))) + 2
+    nw, nh = wp + 2 * margin, hp + 2 * margin
+    px_mm = w_mm / wp
+    xs = (np.arange(nw) - nw / 2 + 0.5) * px_mm
+    ys = (np.arange(nh) - nh / 2 + 0.5) * px_mm
+    h = surface.height(x_mm + xs, y_mm + ys)
+    rot = cv2.getRotationMatrix2D((nw / 2, nh / 2), rot_deg, 1.0)
+    h = cv2.warpAffine(h, rot, (nw, nh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    h = h[margin:margin + hp, margin:margin + wp]
     # Indentation: the gel sinks until the fabric carries the force. A compliant fabric lets
     # more of its surface touch (and is itself squashed, flattening its relief); a stiff one
     # carries the load on its peaks alone.
