@@ -470,7 +470,7 @@ def extract_feature_table(dataset_root: Path, size_px: int = 224, log: Callable[
         print(f"\rfeatures: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", end="", file=sys.stderr,
               flush=True)
     print(file=sys.stderr)
-    return FeatureTable(np.concatenate(xt), np.concatenate(xv), np.concatenate(fab), list(ds.ids()),
+    return FeatureTable(np.concatenate(xt), np.concatenate(xv), np.concatenate(fab), [f.id for f in ds.fabrics],
                         ds.attribute_matrix().astype(np.float64), source=f"{dataset_root} (frozen EfficientNet-Lite0)")
 
 

@@ -53,7 +53,8 @@ class RealCheckConfig:
     size_px: int = 160
     epochs: int = 12
     batch: int = 16
-    lr: float = 3e-5  # trunk; the head gets 10x
+    lr: float = 3e-6  # trunk (see the fine-tuning comment in run_check)
+    head_lr: float = 1e-4
     seed: int = 0
 
 
@@ -99,15 +100,6 @@ def make_trunk(pretrained: bool = True) -> tuple[nn.Module, int]:
 def _features(trunk: nn.Module, x: torch.Tensor, chunk: int = 32) -> np.ndarray:
     trunk.eval()
     return torch.cat([trunk(x[i:i + chunk]) for i in range(0, len(x), chunk)]).numpy().astype(np.float64)
-
-
-def _augment(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """Flips and 90-degree turns: a press has no preferred orientation on the fabric."""
-    if torch.rand(1, generator=gen).item() < 0.5:
-        x = x.flip(3)
-    if torch.rand(1, generator=gen).item() < 0.5:
-        x = x.flip(2)
-    return x
 
 
 def _split_materials(n_materials: int, cfg: RealCheckConfig, split: int):
@@ -166,11 +158,13 @@ def run_check(root: Path = DEFAULT_ROOT, cfg: RealCheckConfig | None = None, pro
                     loss.backward()
                     opt.step()
             else:
-                # ... then fine-tune trunk and probe together (LP-FT, Kumar et al. 2022): starting
-                # from the probe keeps the first, large gradients from wrecking the trunk, and the
-                # trunk's learning rate is 10x below the head's (measured: 3e-4 collapses it).
-                opt = torch.optim.AdamW([{"params": trunk.parameters(), "lr": cfg.lr},
-                                         {"params": head.parameters(), "lr": 10 * cfg.lr}], weight_decay=1e-4)
+                # ... then fine-tune trunk and probe together (LP-FT, Kumar et al. 2022). Measured
+                # on these frames: Adam at 3e-5 (or SGD at 1e-3, or only the last 4 blocks at 1e-4)
+                # raises the training loss 15-30x in the first epoch and ends below the probe; the
+                # probe rests on small feature differences between similar-looking materials. At
+                # 3e-6 the trunk moves without breaking them.
+                opt = torch.optim.Adam([{"params": trunk.parameters(), "lr": cfg.lr},
+                                        {"params": head.parameters(), "lr": cfg.head_lr}])
                 for epoch in range(cfg.epochs):
                     # BatchNorm stays in eval mode: 70 frames in batches of 16 give running
                     # statistics far noisier than ImageNet's, which wrecks the trunk.
@@ -178,7 +172,9 @@ def run_check(root: Path = DEFAULT_ROOT, cfg: RealCheckConfig | None = None, pro
                     perm = torch.randperm(len(tr_x), generator=gen)
                     for i in range(0, len(perm), cfg.batch):
                         idx = perm[i:i + cfg.batch]
-                        loss = F.cross_entropy(head(trunk(_augment(tr_x[idx], gen))), tr_y[idx])
+                        # no flips or turns: the gel's LEDs light it from fixed sides, so a flipped
+                        # frame has a different colour layout (measured: the loss jumps 15x)
+                        loss = F.cross_entropy(head(trunk(tr_x[idx])), tr_y[idx])
                         opt.zero_grad()
                         loss.backward()
                         opt.step()
