@@ -139,3 +139,16 @@ def test_auroc_known_values():
 def test_gzsl_accuracies_and_h():
     out = nv.gzsl_accuracies([False, True], [True, True], [True, True], [True, False])
     assert out["acc_t"] == 0.5 and out["acc_u"] == 0.5 and out["H"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("name", nv.ROUTERS)
+def test_params_survive_an_npz_file(name, tmp_path):
+    """Bundles store router parameters as .npz: 0-d string arrays must rebuild the router."""
+    x = _data(30, 8, seed=10)
+    logits = x[:, :3]
+    r = nv.fit_router(name, x, logits)
+    np.savez(tmp_path / "router.npz", **r.to_params())
+    with np.load(tmp_path / "router.npz") as z:
+        r2 = nv.Router.from_params(dict(z))
+    np.testing.assert_allclose(r2.novelty(x, logits, logits_u=logits[:, :2]),
+                               r.novelty(x, logits, logits_u=logits[:, :2]), rtol=1e-12)
