@@ -287,6 +287,29 @@ def _pct(d: dict) -> str:
     return f"{100 * d['mean']:.2f} ± {100 * d['std']:.2f}"
 
 
+def _evidence_strength(result: dict) -> str:
+    """Is the validation choice more than a coin toss? Paired over splits: the per-split
+    difference of validation ZSL accuracy between the chosen model and the runner-up, a clear
+    lead when its mean exceeds two standard errors."""
+    s = result["summary"]
+    vals = sorted(((ms["val_zsl_acc"]["mean"], m) for m, ms in s["methods"].items()), reverse=True)
+    best, runner = vals[0][1], vals[1][1]
+    diffs = np.array([r["methods"][best]["val_zsl_acc"] - r["methods"][runner]["val_zsl_acc"]
+                      for r in result["splits"]])
+    se = diffs.std(ddof=1) / np.sqrt(len(diffs)) if len(diffs) > 1 else float("inf")
+    strong = diffs.mean() > 2 * se
+    rec = s["recommendation"]
+    rv = sorted(((v["val_ausuc"]["mean"], k) for k, v in s["methods"][best]["routers"].items()), reverse=True)
+    rd = np.array([r["methods"][best]["routers"][rv[0][1]]["val_ausuc"]
+                   - r["methods"][best]["routers"][rv[1][1]]["val_ausuc"] for r in result["splits"]])
+    rse = rd.std(ddof=1) / np.sqrt(len(rd)) if len(rd) > 1 else float("inf")
+    return (f"Strength of evidence (paired over {len(diffs)} splits): {best} leads {runner} on validation ZSL by "
+            f"{100 * diffs.mean():.1f} points, standard error {100 * se:.1f}: "
+            f"{'a clear lead' if strong else 'within two standard errors, so the model choice is weak'}. "
+            f"Router {rec['router']} leads {rv[1][1]} on validation AUSUC by {100 * rd.mean():.1f} points, "
+            f"standard error {100 * rse:.1f}: {'clear' if rd.mean() > 2 * rse else 'weak'}.")
+
+
 def render_markdown(result: dict, real_md: str | None = None) -> str:
     s = result["summary"]
     meta = result["meta"]
@@ -332,7 +355,7 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
     lines += ["", "## Recommendation (chosen on validation fabrics only)", "",
               f"Default model **{rec['model']}**, default router **{rec['router']}**. Rule: {rec['rule']}.",
               f"On test this gives ZSL {_pct(rm['zsl_acc'])}, GZSL H {_pct(rm['routers'][rec['router']]['H'])}, "
-              f"AUSUC {_pct(rm['routers'][rec['router']]['ausuc'])}.", "",
+              f"AUSUC {_pct(rm['routers'][rec['router']]['ausuc'])}.", "", _evidence_strength(result), "",
               "![comparison](comparison.png)", ""]
     lines += ["## Methods and adaptations", "",
               "- All methods use the same cached features, splits, touched train/val/test presses, "
