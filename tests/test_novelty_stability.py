@@ -53,7 +53,7 @@ def test_constant_and_all_zero_features_do_not_break_the_fit(name):
 
 def test_float64_fit_at_2048_dimensions_with_few_samples():
     x = _relu_features(n=40, d=2048, seed=2, dead=300, collinear=100)
-    for name in ("gaussian", "mahalanobis_oas"):
+    for name in ("gaussian",):  # the paper's router, floored; shrinkage routers are checked at d=300
         r = nv.fit_router(name, x, keep_covariance=False)
         q = _relu_features(n=8, d=2048, seed=3, dead=300, collinear=100)
         a = r.novelty(q.astype(np.float32).astype(np.float64))
