@@ -1,0 +1,96 @@
+"""`vs2t-edge reliability`: run the fault matrix (sim/faults.py) and write docs/reliability.md.
+
+The table's numbers are measured on this run; the prose around it (soak, fuzzing, security) is
+read from the last soak JSON (``--soak-json``, written by ``python -m vs2t_edge.sim.soak``).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("--out", type=Path, default=None, help="write the markdown report here "
+                        "(e.g. docs/reliability.md); without it only the table is printed")
+    parser.add_argument("--only", nargs="*", default=None, help="run only these scenario names")
+    parser.add_argument("--skip-slow", action="store_true", help="leave out the UR simulator rows")
+    parser.add_argument("--soak-json", type=Path, default=Path("docs/results/soak.json"),
+                        help="soak result to quote in the report (from `python -m vs2t_edge.sim.soak`)")
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def table(rows) -> str:
+    lines = ["| # | scenario | where | fault | expected | measured outcome | result | s |",
+             "|---|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(rows, 1):
+        result = "PASS" if r.passed else ("pending" if r.pending else "**FAIL**")
+        outcome = r.outcome if not r.problems else r.outcome + " — " + "; ".join(p.splitlines()[-1] for p in r.problems)
+        lines.append(f"| {i} | `{r.name}` | {r.where} | {_cell(r.fault)} | {_cell(r.expect)} | "
+                     f"{_cell(outcome[:400])} | {result} | {r.seconds:.1f} |")
+    return "\n".join(lines)
+
+
+def report(rows, soak: dict | None, seconds: float) -> str:
+    here = Path(__file__).with_name("reliability_template.md")
+    head = here.read_text(encoding="utf-8") if here.exists() else ""
+    n_pass = sum(r.passed for r in rows)
+    n_pending = sum(bool(r.pending) for r in rows)
+    out = [head.rstrip() + "\n" if head else "",
+           f"## Fault matrix\n\nRegenerate: `vs2t-edge reliability --out docs/reliability.md`. "
+           f"Last run: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.machine()} "
+           f"(Python {platform.python_version()}), {len(rows)} rows, {n_pass} pass, {n_pending} pending, "
+           f"{len(rows) - n_pass - n_pending} fail, {seconds:.0f} s.\n",
+           table(rows), ""]
+    if soak:
+        out.append(soak_section(soak))
+    return "\n".join(out) + "\n"
+
+
+def soak_section(s: dict) -> str:
+    return ("## Soak (last run)\n\n"
+            f"`{s.get('command', 'python -m vs2t_edge.sim.soak')}`: {s['presses']} presses, {s['items']} pieces in "
+            f"{s['seconds']:.0f} s ({s.get('arm', '?')} arm, {s.get('gate', '?')} gate).\n\n"
+            "| measure | first 10 % | last 10 % | slope (per 1000 presses) | verdict |\n|---|---|---|---|---|\n"
+            f"| RSS (MiB) | {s['rss_first_mib']:.1f} | {s['rss_last_mib']:.1f} | {s['rss_slope_mib_per_kpress']:+.3f} MiB | "
+            f"{s['rss_verdict']} |\n"
+            f"| press cycle (ms, median) | {s['press_ms_first']:.2f} | {s['press_ms_last']:.2f} | "
+            f"{s['press_ms_slope_per_kpress']:+.3f} ms | {s['latency_verdict']} |\n"
+            f"| journal | | {s['journal_mib']:.1f} MiB | | {s['journal_verdict']} |\n")
+
+
+def run(args) -> int:
+    from vs2t_edge.sim import faults
+
+    chosen = [s for s in faults.SCENARIOS
+              if (args.only is None or s.name in args.only) and not (args.skip_slow and s.where == "ursim")]
+    if args.only:
+        unknown = set(args.only) - {s.name for s in faults.SCENARIOS}
+        if unknown:
+            print(f"unknown scenario(s): {', '.join(sorted(unknown))}; known: "
+                  f"{', '.join(s.name for s in faults.SCENARIOS)}", file=sys.stderr)
+            return 2
+    t0 = time.monotonic()
+    rows = []
+    for i, sc in enumerate(chosen, 1):
+        print(f"[{i}/{len(chosen)}] {sc.name} ...", file=sys.stderr, flush=True)
+        rows.append(faults.run_scenario(sc))
+        r = rows[-1]
+        print(f"    {'PASS' if r.passed else 'pending' if r.pending else 'FAIL'} ({r.seconds:.1f} s) {r.outcome[:160]}",
+              file=sys.stderr, flush=True)
+    seconds = time.monotonic() - t0
+    print(table(rows))
+    if args.out is not None:
+        soak = None
+        if args.soak_json and Path(args.soak_json).exists():
+            soak = json.loads(Path(args.soak_json).read_text())
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(report(rows, soak, seconds), encoding="utf-8")
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0 if all(r.passed or r.pending for r in rows) else 1

@@ -1,0 +1,57 @@
+"""The fault matrix (sim/faults.py): every row must pass in CI. One test per row, so a failing
+row is named; the UR simulator rows need ur_rtde and take ~10 s each."""
+
+from __future__ import annotations
+
+import pytest
+
+from vs2t_edge.sim import faults
+
+ROWS = {s.name: s for s in faults.SCENARIOS}
+
+
+@pytest.mark.parametrize("name", [s.name for s in faults.SCENARIOS])
+def test_fault_matrix_row(name, tmp_path):
+    sc = ROWS[name]
+    if sc.where == "ursim":
+        pytest.importorskip("rtde_control")
+    row = faults.run_scenario(sc, tmp_path)
+    if row.pending:
+        pytest.skip(row.pending)
+    assert row.passed, f"{name}: {row.outcome}\n" + "\n".join(row.problems)
+
+
+def test_audit_catches_a_lost_a_duplicated_and_a_guessed_item(tmp_path):
+    from vs2t_edge.runtime.journal import Journal
+
+    j = Journal.open(tmp_path / "j.jsonl")
+    for n, pid in ((1, "a"), (2, "b"), (3, "c"), (4, "d")):
+        j.append({"type": "item", "item": n, "item_id": pid})
+    j.append({"type": "final", "item": 1, "item_id": "a", "outcome": "sorted", "bin": 1})
+    j.append({"type": "final", "item": 1, "item_id": "a", "outcome": "sorted", "bin": 1})  # duplicated
+    j.append({"type": "final", "item": 3, "item_id": "c", "outcome": "sorted", "bin": 2})  # denim in silk's bin
+    j.append({"type": "final", "item": 4, "item_id": "d", "outcome": "rejected_fault", "bin": 3})  # not rejected
+    j.close()
+    problems = faults.audit(tmp_path / "j.jsonl", {"a": "denim", "b": "silk", "c": "denim", "d": "wool"})["problems"]
+    text = "\n".join(problems)
+    assert "item 1 has 2 final records" in text
+    assert "items without a final record: [2]" in text
+    assert "c (denim) -> bin 2" in text and "d rejected_fault -> bin 3" in text
+
+
+def test_reliability_cli_writes_the_table(tmp_path, capsys):
+    import argparse
+
+    from vs2t_edge.sim import faults_cli
+
+    p = argparse.ArgumentParser()
+    faults_cli.add_arguments(p, "reliability")
+    out = tmp_path / "rel.md"
+    args = p.parse_args(["--only", "protective_stop", "bundle_tampered", "--out", str(out),
+                         "--soak-json", str(tmp_path / "none.json")])
+    assert faults_cli.run(args) == 0
+    text = out.read_text()
+    assert "| 1 | `protective_stop` | loop |" in text and "PASS" in text
+    assert "`bundle_tampered`" in text
+    assert faults_cli.run(p.parse_args(["--only", "no_such_row"])) == 2
+    assert "unknown scenario" in capsys.readouterr().err
