@@ -1,0 +1,48 @@
+"""`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
+    parser.add_argument("dataset", type=Path, help="dataset folder (docs/dataset.md)")
+    parser.add_argument("--profile", default="small", choices=("tiny", "small", "paper"),
+                        help="training budget and input size (docs/training.md); default small")
+    parser.add_argument("--out", type=Path, required=True, help="run folder to write")
+    parser.add_argument("--splits", type=int, help="number of seeded random splits (profile default)")
+    parser.add_argument("--trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), help="feature trunk")
+    parser.add_argument("--weights", type=Path, help="trunk weights file (e.g. a torchvision resnet50 state dict)")
+    parser.add_argument("--seed", type=int, help="split and training seed (default 0)")
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    if not (args.dataset / "fabrics.csv").is_file() and not args.dataset.is_dir():
+        print(f"vs2t-edge train: dataset folder {args.dataset} does not exist", file=sys.stderr)
+        return 2
+    try:
+        load_dataset(args.dataset)
+    except Exception as exc:  # the loader names the file and key
+        print(f"vs2t-edge train: {args.dataset} is not a readable dataset: {exc}", file=sys.stderr)
+        return 2
+    if args.splits is not None and args.splits < 1:
+        print("vs2t-edge train: --splits must be at least 1", file=sys.stderr)
+        return 2
+    if args.weights is not None and not args.weights.is_file():
+        print(f"vs2t-edge train: weights file {args.weights} does not exist", file=sys.stderr)
+        return 2
+    from vs2t_edge.train.run import train
+
+    t0 = time.time()
+    m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
+              seed=args.seed, figures=not args.no_figures)
+    s = m["summary"]["VS2T-ZSL"]
+    print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
+          f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")
+    return 0

@@ -1,0 +1,178 @@
+"""Feature extraction with a cached frozen stem, and tactile fine-tuning on TOUCHED fabrics only.
+
+The expensive part of a trunk (its stem, see ``trunks.py``) is run once per press and cached:
+- ``stem_t``: the tactile stem activation of ``preprocess_tactile(press, reference, spec)``
+  (the runtime's one preprocessing function), float16;
+- ``x_v``: the visual feature of the camera crop at the press (frozen ImageNet trunk, ImageNet
+  normalisation) — the visual trunk is NOT fine-tuned (CPU budget; stated in the report);
+- ``x_t0``: the frozen trunk's tactile feature (the baselines' ``FeatureTable`` uses it).
+
+Zero-shot guard: ``touched_training_rows`` is the only way fine-tuning gets rows; it returns the
+SAME touched-train presses ``compare.split_views`` uses for training (touched val/test presses
+stay out too) and refuses any row of a fabric outside ``split.touched``. ``finetune_tail``
+receives a copy of exactly those rows.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from vs2t_edge.train.trunks import IMAGENET_MEAN, IMAGENET_STD, Trunk
+
+CACHE_VERSION = 1
+
+
+class ZeroShotViolation(RuntimeError):
+    """A training step was about to see tactile data of a fabric that is not touched."""
+
+
+@dataclass
+class StemCache:
+    stem_t: np.ndarray  # (P, C, h, w) float16
+    x_v: np.ndarray  # (P, D) float32
+    x_t0: np.ndarray  # (P, D) float32 frozen tactile features
+    fabric: np.ndarray  # (P,) int64 index into fabric_ids
+    fabric_ids: list[str]
+    attributes: np.ndarray  # (F, 24)
+    meta: dict
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, stem_t=self.stem_t, x_v=self.x_v, x_t0=self.x_t0, fabric=self.fabric,
+                 fabric_ids=np.array(self.fabric_ids), attributes=self.attributes,
+                 meta=np.array(repr(sorted(self.meta.items()))))
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path, expect_meta: dict | None = None) -> "StemCache | None":
+        """The cache, or None when it is absent or was made with other settings."""
+        if not path.is_file():
+            return None
+        with np.load(path, allow_pickle=False) as z:
+            meta = dict(eval(str(z["meta"])))  # noqa: S307 - our own repr of a sorted list of str/int pairs
+            if expect_meta is not None and meta != expect_meta:
+                return None
+            return cls(z["stem_t"], z["x_v"], z["x_t0"], z["fabric"].astype(np.int64),
+                       [str(s) for s in z["fabric_ids"]], z["attributes"].astype(np.float64), meta)
+
+
+def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
+    import cv2
+
+    img = cv2.resize(crop_bgr, (size, size), interpolation=cv2.INTER_AREA)[..., ::-1] / 255.0
+    img = (img - np.asarray(IMAGENET_MEAN)) / np.asarray(IMAGENET_STD)
+    return img.transpose(2, 0, 1).astype(np.float32)
+
+
+@torch.no_grad()
+def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None = None,
+                  batch: int = 64, progress: bool = True) -> StemCache:
+    """Read every press once: tactile stem activations, visual and frozen tactile features."""
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+
+    ds = load_dataset(dataset_root)
+    spec = TactilePreprocess(size=size)
+    trunk.eval()
+    stems, xv, xt0, fab = [], [], [], []
+    t0 = time.time()
+    total = sum(len(f.presses) if max_presses is None else min(max_presses, len(f.presses)) for f in ds.fabrics)
+    done = 0
+    for k, fabric in enumerate(ds.fabrics):
+        ref, camera = fabric.load_reference(), fabric.load_camera()
+        n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
+        for i0 in range(0, n, batch):
+            idx = range(i0, min(n, i0 + batch))
+            tac = torch.from_numpy(np.stack([preprocess_tactile(fabric.load_press(i), ref, spec) for i in idx]))
+            vis = torch.from_numpy(np.stack([_visual_input(fabric.visual_crop(i, camera), size) for i in idx]))
+            a = trunk.stem(tac)
+            stems.append(a.half().numpy())
+            xt0.append(trunk.features_from_stem(a).numpy())
+            xv.append(trunk(vis).numpy())
+            done += len(idx)
+            if progress:
+                el = time.time() - t0
+                print(f"\rfeatures: fabric {k + 1}/{len(ds.fabrics)}, press {done}/{total} "
+                      f"({el:.0f} s, ~{el / done * (total - done):.0f} s left)", end="", file=sys.stderr, flush=True)
+        fab.append(np.full(n, k))
+    if progress:
+        print(file=sys.stderr)
+    return StemCache(np.concatenate(stems), np.concatenate(xv).astype(np.float32), np.concatenate(xt0).astype(np.float32),
+                     np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
+                     {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
+                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve())})
+
+
+def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, class index) of the touched TRAINING presses of ``split`` — the same partition
+    (seed split.seed + 17; 10 % val, 20 % test, rest train per fabric) as ``compare.split_views``."""
+    index = {f: i for i, f in enumerate(fabric_ids)}
+    rng = np.random.default_rng(split.seed + 17)
+    rows, ys = [], []
+    for k, fid in enumerate(split.touched):
+        r = rng.permutation(np.flatnonzero(fabric == index[fid]))
+        n_va, n_te = max(1, round(0.1 * len(r))), max(1, round(0.2 * len(r)))
+        rows.append(r[n_va + n_te:])
+        ys.append(np.full(len(r) - n_va - n_te, k))
+    rows_a, y = np.concatenate(rows), np.concatenate(ys)
+    allowed = {index[f] for f in split.touched}
+    bad = sorted({fabric_ids[int(f)] for f in np.unique(fabric[rows_a])} - {fabric_ids[i] for i in allowed})
+    if bad:  # cannot happen by construction; kept so a refactor that breaks it fails loudly
+        raise ZeroShotViolation(f"fine-tuning rows include fabrics outside the touched set: {bad}")
+    return rows_a, y
+
+
+def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_classes: int, *, epochs: int = 2,
+                  max_rows: int | None = None, batch: int = 64, lr: float = 3e-4, seed: int = 0,
+                  progress: bool = True) -> Trunk:
+    """A copy of ``trunk`` whose tail is fine-tuned (softmax over touched classes) on the given
+    touched-train stem activations. The stem is unchanged (frozen)."""
+    out = copy.deepcopy(trunk)
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    rows = np.arange(len(y))
+    if max_rows is not None and len(rows) > max_rows:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_rows, replace=False))
+    a = torch.from_numpy(np.asarray(stem_touched[rows], dtype=np.float32))
+    yt = torch.as_tensor(np.asarray(y)[rows], dtype=torch.long)
+    head = nn.Linear(out.feature_dim, n_classes)
+    opt = torch.optim.Adam([{"params": out.tail.parameters(), "lr": lr}, {"params": head.parameters(), "lr": 10 * lr}])
+    out.tail.train()
+    t0 = time.time()
+    for ep in range(epochs):
+        perm = torch.randperm(len(yt), generator=gen)
+        for j, i0 in enumerate(range(0, len(perm), batch)):
+            idx = perm[i0:i0 + batch]
+            if len(idx) < 2:  # BatchNorm needs 2 samples
+                continue
+            loss = nn.functional.cross_entropy(head(out.features_from_stem(a[idx])), yt[idx])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        if progress:
+            print(f"\rfine-tune tactile tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
+                  f"({time.time() - t0:.0f} s)", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    out.eval()
+    return out
+
+
+@torch.no_grad()
+def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.ndarray:
+    trunk.eval()
+    return np.concatenate([trunk.features_from_stem(torch.from_numpy(stem[i:i + chunk].astype(np.float32))).numpy()
+                           for i in range(0, len(stem), chunk)]).astype(np.float32)
+
+
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "touched_training_rows", "finetune_tail",
+           "features_from_stem"]

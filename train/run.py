@@ -1,0 +1,228 @@
+"""`vs2t-edge train`: features -> per split (fine-tune tactile tail on touched, VS2T-ZSL and its
+ablations / unimodal variants, CLS_t, Gaussian router with beta on validation) -> metrics,
+figures, report and the deployment artefacts (split 0).
+
+Run folder (docs/training.md): config.yaml, metrics.json, report.md, figures/*.png,
+artifacts/model.pt, features/stem_cache.npz, features/feature_table.npz (frozen-trunk
+``compare.FeatureTable`` for `vs2t-edge compare --features`).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.preprocess import TactilePreprocess
+from vs2t_edge.train import compare as cmp
+from vs2t_edge.train import features as ft
+from vs2t_edge.train import vs2t
+from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
+from vs2t_edge.train.baselines import predict_logits, train_classifier
+from vs2t_edge.train.trunks import build_trunk
+
+
+@dataclass
+class Profile:
+    name: str
+    trunk: str = "efficientnet_lite0"
+    size_px: int = 128  # tactile and visual network input side
+    splits: int = 1
+    max_presses: int | None = None  # per fabric, feature extraction
+    ft_epochs: int = 2
+    ft_max_rows: int | None = 3000  # touched-train presses used to fine-tune the tactile tail
+    steps: int = 800  # generator optimiser steps
+    batch: int = 64
+    cls_steps: int = 300
+    n_synth_per_class: int = 200
+    lr_scale: float = 5.0
+    latent: int = 64
+    seed: int = 0
+
+
+PROFILES = {
+    "tiny": Profile("tiny", trunk="tiny", size_px=64, ft_epochs=2, steps=150, cls_steps=100, n_synth_per_class=60),
+    "small": Profile("small", size_px=128, steps=600, cls_steps=300),
+    "paper": Profile("paper", size_px=128, splits=5, ft_epochs=2, ft_max_rows=3000, steps=1000, cls_steps=400),
+}
+
+
+def n_holdout(n_fabrics: int) -> int:
+    """Validation = untouched count: the paper's 5 of 50; 15 % (>= 2) for smaller worlds (3 of 20)."""
+    return 5 if n_fabrics >= 50 else max(2, round(0.15 * n_fabrics))
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCache:
+    meta = {"size": prof.size_px, "arch": prof.trunk, "max_presses": -1 if prof.max_presses is None else prof.max_presses,
+            "version": ft.CACHE_VERSION, "dataset": str(Path(dataset).resolve())}
+    path = cache_dir / "stem_cache.npz"
+    cache = ft.StemCache.load(path, meta)
+    if cache is None:
+        cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses)
+        cache.save(path)
+        cmp.FeatureTable(cache.x_t0, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
+                         source=f"{dataset} (frozen {prof.trunk}, {prof.size_px} px)").save(cache_dir / "feature_table.npz")
+    else:
+        _log(f"features: cached ({path})")
+    return cache
+
+
+def wasserstein_mean_1d(real: np.ndarray, synth: np.ndarray) -> float:
+    """Mean over feature dimensions of the 1-D Wasserstein-1 distance between the marginals
+    (scipy.stats.wasserstein_distance), in standardised feature units."""
+    from scipy.stats import wasserstein_distance
+
+    return float(np.mean([wasserstein_distance(real[:, j], synth[:, j]) for j in range(real.shape[1])]))
+
+
+def _cos(a, b) -> float:
+    return float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+
+
+def synth_quality(method, views: cmp.SplitViews, budget, seed: int) -> dict:
+    xs, ys = method.synthesise(views.train, budget, seed)
+    xr, _, yr = views.test_presses
+    w = np.mean([wasserstein_mean_1d(xr[yr == k], xs[ys == k]) for k in np.unique(yr)])
+    c = np.mean([_cos(xr[yr == k].mean(0), xs[ys == k].mean(0)) for k in np.unique(yr)])
+    return {"wasserstein": float(w), "cosine": float(c)}
+
+
+def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile, budget) -> dict:
+    t0 = time.time()
+    rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
+    tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=prof.ft_epochs,
+                             max_rows=prof.ft_max_rows, seed=split.seed)
+    x_t = ft.features_from_stem(tuned, cache.stem_t)
+    t_ft = time.time() - t0
+    table = cmp.FeatureTable(x_t, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
+    classes = vs2t.all_variants()
+    result = cmp.run_split(table, split, classes, budget, routers=("gaussian",), log=_log)
+    result["finetune_s"] = round(t_ft, 1)
+    views = cmp.split_views(table, split)
+    fitted = {name: cls.instances[-1] for name, cls in classes.items()}
+    for name, m in fitted.items():
+        m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
+        result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
+    result["seconds"] = round(time.time() - t0, 1)
+    return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": tuned}
+
+
+def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget) -> RunArtifacts:
+    views, fitted, tuned = out["views"], out["fitted"], out["trunk"]
+    seed = split.seed
+    # the same CLS_t and router compare.run_split evaluated (deterministic from the seed)
+    cls_t = train_classifier(views.train.x_t, views.train.y, views.train.n_t, hidden=[512, 512],
+                             steps=budget.cls_steps * 2, seed=seed)
+    router = nv.fit_router("gaussian", views.train.x_t, predict_logits(cls_t, views.train.x_t), keep_covariance=False)
+    g = out["result"]["methods"]["VS2T-ZSL"]["routers"]["gaussian"]
+    scaler = cmp.FeatureScaler.fit(out["table"].x_t[ft.touched_training_rows(out["table"].fabric,
+                                                                                out["table"].fabric_ids, split)[0]])
+    return RunArtifacts(
+        trunk_arch=prof.trunk, trunk_state=tuned.state_dict(), feature_dim=tuned.feature_dim,
+        preprocess=TactilePreprocess(size=prof.size_px).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
+        cls_t_state=cls_t.state_dict(), touched=list(split.touched),
+        cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
+        router_name="gaussian", router_params=router.to_params(), beta=float(g["beta"]),
+        validation=list(split.validation), dataset=str(Path(dataset).resolve()),
+        touched_fabric_ids=list(split.touched), info={"profile": prof.name, "split_seed": seed})
+
+
+def summarise(results: list[dict]) -> dict:
+    names = list(results[0]["methods"])
+    out = {}
+    for n in names:
+        ms = [r["methods"][n] for r in results]
+        g = [m["routers"]["gaussian"] for m in ms]
+
+        def stat(vals):
+            v = 100 * np.asarray(vals, dtype=float)
+            return {"mean": float(v.mean()), "std": float(v.std())}
+
+        out[n] = {"zsl": stat([m["zsl_acc"] for m in ms]), "acc_t": stat([x["acc_t"] for x in g]),
+                  "acc_u": stat([x["acc_u"] for x in g]), "H": stat([x["H"] for x in g]),
+                  "wasserstein": float(np.mean([m["synthesis"]["wasserstein"] for m in ms])),
+                  "cosine": float(np.mean([m["synthesis"]["cosine"] for m in ms])),
+                  "paper_zsl": vs2t.PAPER.get(n)}
+    return out
+
+
+def orderings(s: dict) -> dict:
+    z = {k: v["zsl"]["mean"] for k, v in s.items()}
+    return {"VS2T > V2T": z["VS2T-ZSL"] > z["V2T"], "V2T > S2T": z["V2T"] > z["S2T"],
+            "VS2T > w/o E": z["VS2T-ZSL"] > z["w/o E"], "VS2T > w/o VS-F": z["VS2T-ZSL"] > z["w/o VS-F"],
+            "VS2T > w/o both": z["VS2T-ZSL"] > z["w/o E, VS-F"]}
+
+
+def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
+          weights: Path | None = None, seed: int | None = None, figures: bool = True) -> dict:
+    prof = PROFILES[profile]
+    prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed)) if v is not None})
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    torch.manual_seed(prof.seed)
+    trunk = build_trunk(prof.trunk, pretrained=True, weights_path=weights)
+    import yaml
+
+    (out_dir / "config.yaml").write_text(yaml.safe_dump({"dataset": str(Path(dataset).resolve()),
+                                                         "profile": asdict(prof), "router": "gaussian",
+                                                         "torch_threads": torch.get_num_threads()}, sort_keys=False))
+    t0 = time.time()
+    cache = get_cache(dataset, prof, out_dir / "features", trunk)
+    t_feat = time.time() - t0
+    n = len(cache.fabric_ids)
+    k = n_holdout(n)
+    split_list = cmp.make_splits(cache.fabric_ids, prof.splits, k, k, seed=prof.seed)
+    budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
+                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent)
+    results, first = [], None
+    for i, sp in enumerate(split_list):
+        _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
+             f"{len(sp.untouched)} untouched")
+        o = run_split(cache, trunk, sp, prof, budget)
+        results.append(o["result"])
+        if i == 0:
+            first = o
+            save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, sp, o, budget))
+    summary = summarise(results)
+    metrics = {"dataset": str(Path(dataset).resolve()), "profile": asdict(prof), "n_fabrics": n,
+               "split_sizes": [n - 2 * k, k, k], "summary": summary, "orderings": orderings(summary),
+               "paper": {"zsl": vs2t.PAPER, "gzsl": vs2t.PAPER_GZSL},
+               "wasserstein_estimator": "mean over feature dims of the 1-D Wasserstein-1 distance (scipy) between "
+                                        "real and synthesised untouched features of each class (standardised units), "
+                                        "averaged over untouched classes",
+               "splits": [{k2: v for k2, v in r.items()} for r in results],
+               "timing_s": {"features": round(t_feat, 1), "splits": [r["seconds"] for r in results]}}
+    if figures:
+        from vs2t_edge.train import report as rp
+
+        metrics["figures"] = rp.figures(first, out_dir / "figures")
+    metrics["timing_s"]["total"] = round(time.time() - t_start, 1)
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, default=_json_default))
+    from vs2t_edge.train import report as rp
+
+    (out_dir / "report.md").write_text(rp.render(metrics))
+    return metrics
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+__all__ = ["PROFILES", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout"]
