@@ -86,12 +86,16 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     stems, xv, xt0, fab = [], [], [], []
     t0 = time.time()
     total = sum(len(f.presses) if max_presses is None else min(max_presses, len(f.presses)) for f in ds.fabrics)
+    total = max(total, 1)
     done = 0
     for k, fabric in enumerate(ds.fabrics):
         ref, camera = fabric.load_reference(), fabric.load_camera()
         n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
+        # evenly spaced over the press order (the grid), not the first rows of the grid
+        chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))
+        n = len(chosen)
         for i0 in range(0, n, batch):
-            idx = range(i0, min(n, i0 + batch))
+            idx = chosen[i0:i0 + batch]
             tac = torch.from_numpy(np.stack([preprocess_tactile(fabric.load_press(i), ref, spec) for i in idx]))
             vis = torch.from_numpy(np.stack([_visual_input(fabric.visual_crop(i, camera), size) for i in idx]))
             a = trunk.stem(tac)

@@ -10,6 +10,7 @@ artifacts/model.pt, features/stem_cache.npz, features/feature_table.npz (frozen-
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
@@ -43,13 +44,17 @@ class Profile:
     n_synth_per_class: int = 200
     lr_scale: float = 5.0
     latent: int = 64
+    hidden: int | None = 512  # E / G width; None = feature size (the paper's 2048 for 2048-d); 512 for CPU time
     seed: int = 0
 
 
 PROFILES = {
     "tiny": Profile("tiny", trunk="tiny", size_px=64, ft_epochs=2, steps=150, cls_steps=100, n_synth_per_class=60),
-    "small": Profile("small", size_px=128, steps=600, cls_steps=300),
-    "paper": Profile("paper", size_px=128, splits=5, ft_epochs=2, ft_max_rows=3000, steps=1000, cls_steps=400),
+    "small": Profile("small", size_px=128, steps=400, cls_steps=200, n_synth_per_class=150),
+    # paper: 50 fabrics x 225 presses; features from 45 presses per fabric (9 of every 45 grid
+    # points would be the same cost) so extraction fits the CPU budget; see docs/training.md
+    "paper": Profile("paper", size_px=128, splits=5, max_presses=45, ft_epochs=2, ft_max_rows=2000, steps=400,
+                     cls_steps=200, n_synth_per_class=150),
 }
 
 
@@ -171,6 +176,8 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     torch.manual_seed(prof.seed)
+    # one thread: on 2 cores shared with other jobs, 2 threads were ~2x slower per step (measured)
+    torch.set_num_threads(int(os.environ.get("VS2T_TORCH_THREADS", "1")))
     trunk = build_trunk(prof.trunk, pretrained=True, weights_path=weights)
     import yaml
 
@@ -184,13 +191,17 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     k = n_holdout(n)
     split_list = cmp.make_splits(cache.fabric_ids, prof.splits, k, k, seed=prof.seed)
     budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
-                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent)
+                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
+                             hidden=prof.hidden)
     results, first = [], None
     for i, sp in enumerate(split_list):
         _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
              f"{len(sp.untouched)} untouched")
         o = run_split(cache, trunk, sp, prof, budget)
         results.append(o["result"])
+        # partial summary after every split, so a stopped run still leaves numbers
+        (out_dir / "metrics_partial.json").write_text(json.dumps(
+            {"splits_done": len(results), "summary": summarise(results)}, indent=1, default=_json_default))
         if i == 0:
             first = o
             save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, sp, o, budget))

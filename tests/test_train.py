@@ -1,0 +1,120 @@
+"""VS2T-ZSL training: trunks, reproducibility, a trained generator beats an untrained one, and
+`vs2t-edge train` end to end on the tiny fabric world (run folder, artefacts round trip)."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from vs2t_edge.train import compare as cmp
+from vs2t_edge.train import vs2t
+from vs2t_edge.train.run import wasserstein_mean_1d
+from vs2t_edge.train.trunks import ResNet50, build_trunk, resnet50_state_for_torchvision
+
+
+def _views(seed=0):
+    table = cmp.toy_feature_table(n_fabrics=16, presses=30, d_t=48, d_v=24, seed=seed)
+    split = cmp.make_splits(table.fabric_ids, 1, 3, 3, seed=seed)[0]
+    return cmp.split_views(table, split)
+
+
+BUDGET = vs2t.VS2TBudget(steps=250, cls_steps=150, n_synth_per_class=60, hidden=128, latent=16)
+
+
+def _zsl(m, views):
+    x, v, y = views.test_presses
+    return float(np.mean(m.untouched_logits(x, v).argmax(1) == y))
+
+
+def test_seeded_training_is_reproducible():
+    views = _views()
+    a = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=5, steps=30)
+    b = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=5, steps=30)
+    for pa, pb in zip(list(a.G.parameters()) + list(a.cls_u.parameters()),
+                      list(b.G.parameters()) + list(b.cls_u.parameters())):
+        assert torch.equal(pa, pb)
+    c = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=6, steps=30)
+    assert not torch.equal(next(a.G.parameters()), next(c.G.parameters()))
+
+
+def test_trained_generator_beats_untrained():
+    views = _views()
+    trained = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=0)
+    untrained = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=0, steps=0)
+    xr, _, yr = views.test_presses
+
+    def w1(m):
+        xs, ys = m.synthesise(views.train, BUDGET, 0)
+        return np.mean([wasserstein_mean_1d(xr[yr == k], xs[ys == k]) for k in np.unique(yr)])
+
+    assert w1(trained) < w1(untrained)
+    assert _zsl(trained, views) > _zsl(untrained, views) + 0.1
+    assert _zsl(trained, views) > 1.5 / views.train.n_u  # well above chance
+
+
+def test_ablation_variants_build_the_right_parts():
+    views = _views()
+    for name, cls in vs2t.all_variants().items():
+        m = cls().fit(views.train, BUDGET, seed=0, steps=3)
+        assert (m.E is None) == (not vs2t.VARIANTS[name].use_e)
+        assert (m.vsf is None) == (not vs2t.VARIANTS[name].use_vsf)
+        d_c = {"vs": views.train.d_v + 24, "v": views.train.d_v, "s": 24}[vs2t.VARIANTS[name].modality]
+        assert m.G.net[0].in_features == BUDGET.latent + d_c
+
+
+@pytest.mark.parametrize("arch,dim", [("tiny", 64), ("efficientnet_lite0", 1280), ("resnet50", 2048)])
+def test_trunks_shapes_and_stem_tail_split(arch, dim):
+    t = build_trunk(arch, pretrained=(arch == "efficientnet_lite0")).eval()
+    x = torch.randn(2, 3, 64, 64)
+    with torch.no_grad():
+        f = t(x)
+        assert f.shape == (2, dim) and t.feature_dim == dim
+        assert torch.allclose(f, t.features_from_stem(t.stem(x)), atol=1e-5)
+
+
+def test_resnet50_loads_a_torchvision_named_state_dict(tmp_path):
+    src = ResNet50()
+    state = {k: v for k, v in src.state_dict().items()}
+    state["fc.weight"], state["fc.bias"] = torch.zeros(1000, 2048), torch.zeros(1000)  # torchvision has fc
+    torch.save(state, tmp_path / "r50.pth")
+    t = build_trunk("resnet50", weights_path=tmp_path / "r50.pth")
+    got = resnet50_state_for_torchvision(t)
+    assert torch.equal(got["layer4.2.conv3.weight"], state["layer4.2.conv3.weight"])
+    torch.save({"conv1.weight": torch.zeros(1)}, tmp_path / "bad.pth")
+    with pytest.raises(Exception):
+        build_trunk("resnet50", weights_path=tmp_path / "bad.pth")
+
+
+def test_tiny_profile_end_to_end(tmp_path):
+    from vs2t_edge.sim.synth import generate
+    from vs2t_edge.train.artifacts import build_modules, load_router, load_run_artifacts
+    from vs2t_edge.train.cli import add_arguments, run
+    import argparse
+
+    data = generate(tmp_path / "world", "tiny", 0, progress=False)
+    out = tmp_path / "run"
+    p = argparse.ArgumentParser()
+    add_arguments(p, "train")
+    t0 = time.time()
+    assert run(p.parse_args([str(data), "--profile", "tiny", "--out", str(out)])) == 0
+    assert time.time() - t0 < 60
+    for f in ("config.yaml", "metrics.json", "report.md", "artifacts/model.pt", "features/feature_table.npz",
+              "figures/confusion.png", "figures/pca_real_vs_synth.png", "figures/class_cosine.png",
+              "figures/threshold_curve.png"):
+        assert (out / f).is_file(), f
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["summary"]) == set(vs2t.VARIANTS)
+    assert 0.0 <= m["summary"]["VS2T-ZSL"]["zsl"]["mean"] <= 100.0
+    assert "83.06" in (out / "report.md").read_text()
+    art = load_run_artifacts(out)
+    assert not set(art.untouched) & set(art.touched) and not set(art.validation) & set(art.touched)
+    trunk, cls_t, cls_u = build_modules(art)
+    x = torch.randn(3, 3, art.tactile_preprocess.size, art.tactile_preprocess.size)
+    with torch.no_grad():
+        f = trunk(x)
+        assert cls_t(f).shape == (3, len(art.touched)) and cls_u(f).shape == (3, len(art.untouched))
+    assert load_router(art).novelty(f.numpy().astype(np.float64)).shape == (3,)
+    # the cached features are reused by a second run (no frame is read again)
+    assert cmp.FeatureTable.load(out / "features" / "feature_table.npz").x_t.shape[1] == 64
