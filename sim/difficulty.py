@@ -157,7 +157,7 @@ def analyse(dataset: Path, presses: int = 40, seed: int = 0) -> dict:
     r2 = {"vision": ridge_loo_r2(vis_mean, tac_mean, 10.0),
           "attributes": ridge_loo_r2(attrs.astype(float), tac_mean, 10.0),
           "vision + attributes": ridge_loo_r2(np.hstack([vis_mean, attrs]), tac_mean, 10.0)}
-    return {"dataset": str(dataset), "fabrics": n, "presses_per_fabric_used": presses,
+    return {"dataset": str(dataset), "fabrics": n, "presses_per_fabric_used": int(np.bincount(labels).min()),
             "tactile_logreg_acc": acc, "tactile_nearest_centroid_acc": nc_acc, "visual_logreg_acc": vis_acc,
             "chance": 1 / n, "errors_between_same_construction": same_kind,
             "errors_total": int((pred != truth).sum()),
