@@ -178,6 +178,7 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     torch.manual_seed(prof.seed)
     # one thread: on 2 cores shared with other jobs, 2 threads were ~2x slower per step (measured)
     torch.set_num_threads(int(os.environ.get("VS2T_TORCH_THREADS", "1")))
+    torch.set_flush_denormal(True)  # denormal floats in small activations can slow CPU steps many-fold
     trunk = build_trunk(prof.trunk, pretrained=True, weights_path=weights)
     import yaml
 

@@ -27,6 +27,7 @@ from vs2t_edge.train.models import Classifier, Discriminator, Encoder, Generator
 
 # Paper rates; lr_scale multiplies all three (ratios kept) because our CPU schedule is far shorter.
 LR_E, LR_G, LR_D = 1e-4, 1e-4, 1e-5
+CLIP_SD = 4.0
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,10 @@ class VS2TZSL(_GenerativeZSL):
 
     # conditions -------------------------------------------------------------------------
     def _cond(self, v: np.ndarray, s: np.ndarray) -> np.ndarray:
+        # Visual features are standardised on touched presses; a channel almost constant there
+        # gets values in the hundreds for an unseen fabric and G extrapolates wildly (measured:
+        # W1 real-synth ~500 vs 0.6 without vision). Clip to +-CLIP_SD standard deviations.
+        v = np.clip(v, -CLIP_SD, CLIP_SD)
         parts = {"vs": [v, s], "v": [v], "s": [s]}[self.variant.modality]
         return np.concatenate(parts, axis=1).astype(np.float32)
 
