@@ -25,9 +25,12 @@ import cv2
 import numpy as np
 import yaml
 
+from vs2t_edge.runtime.attributes import ATTRIBUTES
 from vs2t_edge.runtime.dataset import load_dataset
 
 N_BANDS = 16
+# The base rates the paper reports for FabricVST (out of 50 fabrics); the rest are not published.
+FABRICVST_OF_50 = {"soft": 38, "rough": 30, "thick": 27, "warm": 26, "cool": 24, "thin": 23, "smooth": 20, "stiff": 11}
 
 
 def radial_spectrum(gray: np.ndarray, n_bands: int = N_BANDS) -> np.ndarray:
@@ -164,7 +167,8 @@ def analyse(dataset: Path, presses: int = 40, seed: int = 0) -> dict:
             "top_confusions": [{"true": ds.fabrics[t].name, "predicted": ds.fabrics[p].name, "count": c}
                                for (t, p), c in top],
             "unique_attribute_vectors": unique_vectors, "attribute_nearest_class_acc": attr_acc,
-            "tactile_r2_loo": r2}
+            "tactile_r2_loo": r2,
+            "attribute_counts": {a: int(c) for a, c in zip(ATTRIBUTES, np.asarray(attrs).sum(0))}}
 
 
 def write_report(res: dict, out: Path) -> None:
@@ -192,6 +196,12 @@ def write_report(res: dict, out: Path) -> None:
         "| true | predicted | presses |",
         "| --- | --- | --- |",
     ] + [f"| {c['true']} | {c['predicted']} | {c['count']} |" for c in res["top_confusions"]] + [
+        "",
+        f"Attribute base rates in this dataset (of {res['fabrics']}) beside FabricVST's (of 50):",
+        "",
+        "| attribute | here | FabricVST |",
+        "| --- | --- | --- |",
+    ] + [f"| {a} | {res['attribute_counts'][a]} | {FABRICVST_OF_50.get(a, '')} |" for a in res["attribute_counts"]] + [
         "",
         "Reading: touch separates the touched fabrics well but not perfectly, and its mistakes fall",
         "between similar constructions; attributes alone are far from identifying a fabric; a",
