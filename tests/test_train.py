@@ -118,3 +118,11 @@ def test_tiny_profile_end_to_end(tmp_path):
     assert load_router(art).novelty(f.numpy().astype(np.float64)).shape == (3,)
     # the cached features are reused by a second run (no frame is read again)
     assert cmp.FeatureTable.load(out / "features" / "feature_table.npz").x_t.shape[1] == 64
+
+
+def test_visual_condition_is_clipped_for_unseen_fabrics():
+    # a channel nearly constant on touched fabrics standardises to huge values for an unseen one;
+    # unclipped, G extrapolated (W1 real-synth ~500 on the small world)
+    m = vs2t.VS2TZSL()
+    c = m._cond(np.array([[3.7e5, -2.0]]), np.array([[1.0, 0.0]]))
+    assert c.tolist() == [[vs2t.CLIP_SD, -2.0, 1.0, 0.0]]
