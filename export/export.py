@@ -1,0 +1,452 @@
+"""Training run -> verified ONNX bundle (docs/bundle.md).
+
+``write_bundle`` is the core: torch modules + router + class names + preprocessing + frames in,
+bundle folder out. It exports the trunk and the heads (opset ``OPSET``), checks torch against
+onnxruntime on real frames (train/serve parity, recorded in the manifest), quantises the trunk
+statically to int8 when asked (export/quantize.py; calibrated on touched presses only), fits the
+gating temperature, records a probe press with the outputs onnxruntime gives for it, hashes
+every file and finally loads the folder with the cell's own ``TactileModel.load`` - a bundle
+that does not pass the runtime's verification is never left behind.
+
+``export_run`` reads a run folder (train/artifacts.py) and its dataset; ``export_random_trunk``
+makes a latency-only bundle of an untrained trunk (ResNet50 latency without a trained run).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import io
+import json
+import math
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import warnings
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from vs2t_edge.runtime import bundle as rb
+from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+
+OPSET = 17
+# torch (float32, its own kernels) vs onnxruntime (fused BN/conv, other summation order) on the
+# same frames: max |diff| / max |torch output|. Measured ~1e-6 on the tiny and EfficientNet trunks.
+PARITY_TOLERANCE = 1e-4
+PROBE_TOLERANCE = {"fp32": {"feature": 1e-4, "logits": 1e-4, "novelty": 1e-4},
+                   # int8 kernels may pick other accumulation orders per thread count / CPU
+                   "int8": {"feature": 2e-2, "logits": 2e-2, "novelty": 2e-2}}
+
+
+class ExportError(RuntimeError):
+    pass
+
+
+class _Heads(nn.Module):
+    def __init__(self, cls_t: nn.Module, cls_u: nn.Module) -> None:
+        super().__init__()
+        self.cls_t, self.cls_u = cls_t, cls_u
+
+    def forward(self, f):
+        return self.cls_t(f), self.cls_u(f)
+
+
+def export_onnx(module: nn.Module, example: torch.Tensor, path: Path, input_name: str,
+                output_names: Sequence[str], opset: int = OPSET) -> None:
+    """TorchScript-based exporter (no onnxscript needed), dynamic batch axis, BN folded."""
+    module = module.eval()
+    axes = {input_name: {0: "batch"}, **{n: {0: "batch"} for n in output_names}}
+    buf = io.BytesIO()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, example, buf, opset_version=opset, input_names=[input_name],
+                          output_names=list(output_names), dynamic_axes=axes, do_constant_folding=True,
+                          dynamo=False)
+    Path(path).write_bytes(buf.getvalue())
+
+
+def graph_io(path: Path) -> dict[str, dict[str, list]]:
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    init = {i.name for i in model.graph.initializer}
+
+    def dims(v):
+        return [d.dim_value if d.HasField("dim_value") else None for d in v.type.tensor_type.shape.dim]
+
+    return {"inputs": {v.name: dims(v) for v in model.graph.input if v.name not in init},
+            "outputs": {v.name: dims(v) for v in model.graph.output}}
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-6))
+
+
+def _run_batches(session, x: np.ndarray, chunk: int = 16) -> list[np.ndarray]:
+    name = session.get_inputs()[0].name
+    outs = [session.run(None, {name: np.ascontiguousarray(x[i:i + chunk], np.float32)}) for i in range(0, len(x), chunk)]
+    return [np.concatenate([o[k] for o in outs]) for k in range(len(outs[0]))]
+
+
+def _novelty(router: nv.Router, feature, logits_t, logits_u) -> np.ndarray:
+    """The novelty exactly as runtime.inference computes it (float32 path for Gaussians)."""
+    if isinstance(router, nv.GaussianRouter):
+        return router.novelty(feature, logits_t, logits_u=logits_u, dtype=np.float32)
+    return router.novelty(feature, logits_t, logits_u=logits_u)
+
+
+def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, beta: float) -> float:
+    """T of P(untouched|x) = sigmoid((novelty - beta) / T), by maximum likelihood of the route
+    labels (touched presses 0, validation-fabric presses 1) with the offset fixed at beta, so the
+    hard decision stays the tuned operating point and only its softness is learned. Searched on
+    a log grid (the likelihood is unimodal in log T), then refined."""
+    t = np.asarray(nov_touched, np.float64)
+    u = np.asarray(nov_untouched, np.float64)
+    if t.size == 0 or u.size == 0 or not math.isfinite(beta):
+        return robust_temperature(np.concatenate([t, u]) if t.size + u.size else np.zeros(1))
+    d = np.concatenate([t - beta, u - beta])
+    y = np.concatenate([np.zeros(t.size), np.ones(u.size)])
+    scale = max(float(np.median(np.abs(d))), 1e-12)
+
+    def nll(log_t: float) -> float:
+        z = d / math.exp(log_t)
+        # -log sigmoid(z) for y=1, -log sigmoid(-z) for y=0, stably
+        return float(np.mean(np.where(y > 0, np.logaddexp(0, -z), np.logaddexp(0, z))))
+
+    grid = np.log(scale) + np.linspace(-12, 6, 73)
+    vals = [nll(g) for g in grid]
+    k = int(np.argmin(vals))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    for _ in range(40):  # golden section on the bracket
+        m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
+        if nll(m1) < nll(m2):
+            hi = m2
+        else:
+            lo = m1
+    return float(math.exp(0.5 * (lo + hi)))
+
+
+def robust_temperature(novelty: np.ndarray) -> float:
+    """Fallback T without validation presses: the spread (1.4826 MAD) of the scores."""
+    n = np.asarray(novelty, np.float64)
+    mad = 1.4826 * float(np.median(np.abs(n - np.median(n))))
+    return mad if mad > 0 else max(float(np.max(np.abs(n))), 1.0) * 1e-3
+
+
+def _git_commit() -> str:
+    try:
+        root = Path(__file__).resolve().parents[1]
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "export", "runtime", "train"], cwd=root,
+                               capture_output=True, text=True, timeout=5)
+        return sha.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "") if sha.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _versions() -> dict[str, str]:
+    import onnx
+    import onnxruntime
+
+    from vs2t_edge import __version__
+
+    return {"vs2t_edge": __version__, "python": platform.python_version(), "torch": torch.__version__,
+            "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__, "numpy": np.__version__}
+
+
+def _prepare_out(out: Path) -> None:
+    if out.exists():
+        if not out.is_dir():
+            raise ExportError(f"{out} exists and is not a folder")
+        if any(out.iterdir()) and not (out / rb.MANIFEST).is_file():
+            raise ExportError(f"{out} is a non-empty folder that is not a bundle; refusing to overwrite it")
+
+
+def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
+                 touched: Sequence[str], untouched: Sequence[str], preprocess: TactilePreprocess, beta: float,
+                 calibration: np.ndarray, trunk_precision: str = "fp32", trunk_arch: str = "custom",
+                 validation: np.ndarray | None = None, touched_heldout: np.ndarray | None = None,
+                 gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
+                 provenance: dict | None = None, calibration_method: str = "minmax", opset: int = OPSET,
+                 threads: int = 2, log: Callable[[str], None] = lambda m: None) -> dict:
+    """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
+    preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
+    ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
+    touched presses for the gating temperature."""
+    from vs2t_edge.runtime.inference import TactileModel
+
+    if trunk_precision not in ("fp32", "int8"):
+        raise ExportError(f"trunk precision {trunk_precision!r}: choose fp32 or int8")
+    touched, untouched = [str(c) for c in touched], [str(c) for c in untouched]
+    if not touched or not untouched:
+        raise ExportError("a bundle needs at least one touched and one untouched class")
+    s = preprocess.size
+    calibration = np.ascontiguousarray(calibration, dtype=np.float32)
+    if calibration.ndim != 4 or calibration.shape[1:] != (3, s, s) or len(calibration) < 1:
+        raise ExportError(f"calibration frames are {calibration.shape}, expected (N>=1, 3, {s}, {s})")
+    out = Path(out_dir)
+    _prepare_out(out)
+    trunk, cls_t, cls_u = trunk.eval(), cls_t.eval(), cls_u.eval()
+    heads = _Heads(cls_t, cls_u).eval()
+    with torch.no_grad():
+        dim = int(trunk(torch.from_numpy(calibration[:1])).shape[1])
+    checks: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(dir=out.parent if out.parent.exists() else None) as tmp_s:
+        tmp = Path(tmp_s)
+        fp32 = tmp / "trunk_fp32.onnx"
+        log(f"exporting the {trunk_arch} trunk at {s} px (opset {opset})")
+        export_onnx(trunk, torch.from_numpy(calibration[:1]), fp32, "image", ["feature"], opset)
+        export_onnx(heads, torch.zeros(1, dim), tmp / "heads.onnx", "feature", ["logits_t", "logits_u"], opset)
+
+        # train/serve parity: torch vs onnxruntime (fp32 graphs) on real frames
+        parity_x = calibration[: min(8, len(calibration))]
+        with torch.no_grad():
+            f_torch = trunk(torch.from_numpy(parity_x)).numpy()
+            lt_torch, lu_torch = (t.numpy() for t in heads(torch.from_numpy(f_torch)))
+        (f_ort,) = _run_batches(rb.open_session(fp32, threads), parity_x)
+        lt_ort, lu_ort = rb.open_session(tmp / "heads.onnx", threads).run(None, {"feature": f_torch})
+        checks["parity_torch_vs_onnxruntime"] = {"frames": int(len(parity_x)), "feature": _rel(f_ort, f_torch),
+                                                 "logits_t": _rel(lt_ort, lt_torch), "logits_u": _rel(lu_ort, lu_torch),
+                                                 "tolerance": PARITY_TOLERANCE}
+        bad = {k: v for k, v in checks["parity_torch_vs_onnxruntime"].items()
+               if k in ("feature", "logits_t", "logits_u") and not v <= PARITY_TOLERANCE}
+        if bad:
+            raise ExportError(f"torch and onnxruntime disagree beyond {PARITY_TOLERANCE}: {bad}")
+
+        trunk_file = tmp / "trunk.onnx"
+        quant: dict | None = None
+        if trunk_precision == "int8":
+            log(f"static int8 quantisation (QDQ, per-channel) calibrated on {len(calibration)} touched presses")
+            from vs2t_edge.export.quantize import quantize_trunk_static
+
+            quant = quantize_trunk_static(fp32, trunk_file, calibration, method=calibration_method)
+            (f32,) = _run_batches(rb.open_session(fp32, threads), calibration)
+            (f8,) = _run_batches(rb.open_session(trunk_file, threads), calibration)
+            sess_h = rb.open_session(tmp / "heads.onnx", threads)
+            top32 = np.argmax(sess_h.run(None, {"feature": f32})[0], axis=1)
+            top8 = np.argmax(sess_h.run(None, {"feature": f8})[0], axis=1)
+            cos = np.sum(f32 * f8, 1) / np.maximum(np.linalg.norm(f32, axis=1) * np.linalg.norm(f8, axis=1), 1e-12)
+            checks["int8_vs_fp32_on_calibration"] = {"frames": int(len(calibration)), "feature_rel": _rel(f8, f32),
+                                                     "feature_cosine_min": float(np.min(cos)),
+                                                     "cls_t_top1_agreement": float(np.mean(top32 == top8))}
+        else:
+            shutil.copyfile(fp32, trunk_file)
+        fp32.unlink()
+
+        sess_t, sess_h = rb.open_session(trunk_file, threads), rb.open_session(tmp / "heads.onnx", threads)
+
+        def score(x: np.ndarray):
+            (f,) = _run_batches(sess_t, x)
+            lt, lu = sess_h.run(None, {"feature": f})
+            return f, lt, lu, _novelty(router, f, lt, lu)
+
+        # gating temperature on the deployed graph's own scores
+        how = "given"
+        if gating_temperature is None:
+            if validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout):
+                nt, nu = score(touched_heldout)[3], score(validation)[3]
+                gating_temperature = fit_gating_temperature(nt, nu, beta)
+                how = (f"maximum likelihood of the route on {len(nt)} held-out touched and {len(nu)} "
+                       "validation-fabric presses, offset fixed at beta")
+            else:
+                gating_temperature = robust_temperature(score(calibration)[3])
+                how = "1.4826 x MAD of the calibration presses' novelty (no validation presses given)"
+        if not (gating_temperature > 0 and math.isfinite(gating_temperature)):
+            raise ExportError(f"gating temperature {gating_temperature} must be finite and > 0")
+
+        probe = calibration[:1]
+        f, lt, lu, nov = score(probe)
+        np.save(tmp / "probe_input.npy", probe)
+        np.savez(tmp / "probe_expected.npz", feature=f, logits_t=lt, logits_u=lu, novelty=np.asarray(nov, np.float64))
+        np.savez(tmp / "router.npz", **{k: np.asarray(v) for k, v in router.to_params().items()})
+
+        graphs = {}
+        for key, path in (("trunk", trunk_file), ("heads", tmp / "heads.onnx")):
+            graphs[key] = {"file": path.name, "opset": rb.read_onnx_opsets(path)[""], **graph_io(path)}
+        graphs["trunk"].update(arch=trunk_arch, precision=trunk_precision, input_size_px=s)
+        if quant:
+            graphs["trunk"]["quantisation"] = quant
+        graphs["heads"]["precision"] = "fp32"
+        files = sorted(p.name for p in tmp.iterdir())
+        manifest = {
+            "format": rb.FORMAT,
+            "format_version": rb.FORMAT_VERSION,
+            "classes": {"touched": touched, "untouched": untouched},
+            "preprocess": preprocess.to_dict(),
+            "feature_dim": dim,
+            "graphs": graphs,
+            "router": {"name": router.name, "file": "router.npz"},
+            "beta": float(beta),
+            "operating_point": operating_point,
+            "gating": {"temperature": float(gating_temperature), "how": how,
+                       "rule": "P(untouched|x) = sigmoid((novelty - beta) / temperature)"},
+            "probe": {"input": "probe_input.npy", "expected": "probe_expected.npz",
+                      "tolerance": PROBE_TOLERANCE[trunk_precision],
+                      "note": "a touched calibration press; expected = onnxruntime at export, max|diff|/max|expected|"},
+            "checks": checks,
+            "files": {name: rb.sha256_file(tmp / name) for name in files},
+            "provenance": {"time_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                           "git_commit": _git_commit(), "versions": _versions(), "command": " ".join(sys.argv),
+                           **(provenance or {})},
+        }
+        (tmp / rb.MANIFEST).write_text(json.dumps(manifest, indent=1, allow_nan=True) + "\n")
+        # the runtime's own verification before anything is left in place
+        model = TactileModel.load(tmp, threads=threads)
+        manifest["checks"]["probe_errors_at_export"] = model.probe_errors
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        for p in tmp.iterdir():
+            shutil.move(str(p), out / p.name)
+    log(f"bundle written to {out} and verified")
+    return manifest
+
+
+# ------------------------------------------------------------------ from a training run
+
+
+def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int,
+                    max_presses: int | None) -> dict[str, dict[str, list[int]]]:
+    """Which presses of each touched fabric trained the model (train/features.py
+    ``extract_cache`` + ``touched_training_rows``: evenly spaced ``max_presses`` of the grid, then
+    per fabric 10 % val, 20 % test, rest train with rng(seed + 17)). Returns
+    {fabric: {"train": [...], "val": [...], "test": [...], "unused": [...]}} in press indices."""
+    rng = np.random.default_rng(seed + 17)
+    out = {}
+    for fid in touched:
+        p = n_presses[fid]
+        n = p if max_presses is None else min(max_presses, p)
+        chosen = np.unique(np.linspace(0, p - 1, n).round().astype(int))
+        perm = rng.permutation(len(chosen))
+        n_va, n_te = max(1, round(0.1 * len(chosen))), max(1, round(0.2 * len(chosen)))
+        out[fid] = {"val": sorted(chosen[perm[:n_va]].tolist()), "test": sorted(chosen[perm[n_va:n_va + n_te]].tolist()),
+                    "train": sorted(chosen[perm[n_va + n_te:]].tolist()),
+                    "unused": sorted(set(range(p)) - set(chosen.tolist()))}
+    return out
+
+
+def _frames(ds, fid: str, indices: Sequence[int], spec: TactilePreprocess) -> np.ndarray:
+    fab = ds.by_id(fid)
+    ref = fab.load_reference()
+    return np.stack([preprocess_tactile(fab.load_press(i), ref, spec) for i in indices]).astype(np.float32)
+
+
+def _spread(indices: Sequence[int], k: int) -> list[int]:
+    idx = list(indices)
+    if len(idx) <= k:
+        return idx
+    return [idx[int(j)] for j in np.linspace(0, len(idx) - 1, k).round().astype(int)]
+
+
+def _run_profile(run_dir: Path) -> dict:
+    cfg = run_dir / "config.yaml"
+    if not cfg.is_file():
+        return {}
+    import yaml
+
+    data = yaml.safe_load(cfg.read_text()) or {}
+    return data.get("profile", {}) or {}
+
+
+def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
+               calibration_frames: int = 64, dataset: Path | str | None = None,
+               log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
+    """Bundle of a training run (RUN/artifacts/model.pt and its dataset)."""
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
+
+    run_dir = Path(run_dir)
+    art = load_run_artifacts(run_dir)
+    trunk, cls_t, cls_u = build_modules(art)
+    router = load_router(art)
+    spec = art.tactile_preprocess
+    trained_size = spec.size
+    if size is not None:
+        spec = replace(spec, size=int(size))
+    ds_root = Path(dataset or art.dataset)
+    if not ds_root.is_dir():
+        raise ExportError(f"the run's dataset {ds_root} is not there (int8 calibration, parity and the probe "
+                          "need its touched presses); pass --dataset")
+    ds = load_dataset(ds_root)
+    prof = _run_profile(run_dir)
+    seed = int(art.info.get("split_seed", 0))
+    max_presses = prof.get("max_presses")
+    part = press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, seed, max_presses)
+    calib_ids = [fid for fid in (art.touched_fabric_ids or art.touched) if fid in part]
+    if set(calib_ids) - set(art.touched):
+        raise ExportError("calibration fabrics must be touched fabrics")
+    per = max(1, math.ceil(calibration_frames / len(calib_ids)))
+    log(f"reading {per} training presses from each of {len(calib_ids)} touched fabrics (calibration)")
+    calib = np.concatenate([_frames(ds, fid, _spread(part[fid]["train"], per), spec) for fid in calib_ids])
+    calib = calib[_spread(range(len(calib)), calibration_frames)]
+    heldout = np.concatenate([_frames(ds, fid, part[fid]["val"], spec) for fid in art.touched])
+    validation = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), 12), spec)
+                                 for fid in art.validation]) if art.validation else None
+    prov = {"run": str(run_dir.resolve()), "trained": True, "trained_size_px": trained_size,
+            "data": {"dataset": str(ds_root.resolve()), "split_seed": seed, "max_presses": max_presses,
+                     "validation": list(art.validation), "touched_presses": part,
+                     "calibration_fabrics": calib_ids}, "run_info": art.info}
+    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=art.touched,
+                        untouched=art.untouched, preprocess=spec, beta=art.beta, calibration=calib,
+                        trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
+                        touched_heldout=heldout, provenance=prov, log=log, threads=threads,
+                        operating_point=f"{art.router_name} router, beta balanced on validation fabrics "
+                                        f"{', '.join(art.validation)}")
+
+
+def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
+                        trunk_precision: str = "fp32", calibration_frames: int = 32, seed: int = 0,
+                        log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
+    """A latency-only bundle: an UNTRAINED trunk (random init, or the offline ImageNet weights for
+    efficientnet_lite0) with random heads over the dataset's fabrics and a Gaussian router on its
+    own features. Its accuracy means nothing (the manifest says trained: false); its latency,
+    memory and int8 behaviour on real-looking frames are those of the architecture."""
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.train.models import Classifier
+    from vs2t_edge.train.trunks import build_trunk
+
+    torch.manual_seed(seed)
+    trunk = build_trunk(arch, pretrained=False).eval()
+    spec = TactilePreprocess(size=int(size))
+    ds = load_dataset(dataset)
+    ids = ds.ids
+    touched, untouched = ids[: max(1, len(ids) - 3)], ids[max(1, len(ids) - 3):]
+    per = max(1, math.ceil(calibration_frames / len(touched)))
+    calib = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), per), spec) for fid in touched])
+    calib = calib[_spread(range(len(calib)), calibration_frames)]
+    with torch.no_grad():
+        feats = torch.cat([trunk(torch.from_numpy(calib[i:i + 8])) for i in range(0, len(calib), 8)]).numpy()
+    mean, std = feats.mean(0), feats.std(0) + 1e-6
+
+    class _Std(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.t = trunk
+            self.register_buffer("m", torch.from_numpy(mean))
+            self.register_buffer("s", torch.from_numpy(std))
+
+        def forward(self, x):
+            return (self.t(x) - self.m) / self.s
+
+    deploy = _Std().eval()
+    d = feats.shape[1]
+    router = nv.fit_router("gaussian", (feats - mean) / std, keep_covariance=False)
+    nov = router.novelty((feats - mean) / std)
+    return write_bundle(out_dir, trunk=deploy, cls_t=Classifier(d, len(touched)), cls_u=Classifier(d, len(untouched)),
+                        router=router, touched=touched, untouched=untouched, preprocess=spec,
+                        beta=float(np.quantile(nov, 0.95)), calibration=calib, trunk_precision=trunk_precision,
+                        trunk_arch=arch, operating_point="none (untrained, latency only)",
+                        provenance={"trained": False, "dataset": str(Path(dataset).resolve()), "seed": seed},
+                        log=log, threads=threads)
+
+
+__all__ = ["OPSET", "ExportError", "write_bundle", "export_run", "export_random_trunk", "press_partition",
+           "fit_gating_temperature", "export_onnx", "graph_io"]

@@ -1,0 +1,356 @@
+"""The model bundle: the one thing that crosses from training to the cell (docs/bundle.md).
+
+A bundle is a folder::
+
+    manifest.json        format, classes, preprocessing, beta, gating, router, files + sha256, probe
+    trunk.onnx           image (N, 3, S, S) float32 -> feature (N, D), standardised (fp32 or QDQ int8)
+    heads.onnx           feature (N, D) -> logits_t (N, C_t), logits_u (N, C_u)  (always fp32)
+    router.npz           runtime.novelty Router.to_params()
+    probe_input.npy      one preprocessed press (1, 3, S, S) float32
+    probe_expected.npz   feature, logits_t, logits_u, novelty the exporter's onnxruntime gave for it
+
+``load_bundle`` reads and checks everything that can be checked without running a graph:
+format and version, every file's presence and sha256, each graph's opset (read from the ONNX
+protobuf itself, so the cell needs no ``onnx`` package), the router's parameters and dimension,
+the class lists. ``check_session_shapes`` compares the sessions' inputs/outputs with the manifest
+once the graphs are open; ``runtime.inference.TactileModel.load`` then warms up and checks the
+probe. Every refusal is a ``BundleError`` whose message names the file or key that mismatches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vs2t_edge.runtime.preprocess import TactilePreprocess
+
+FORMAT = "vs2t-bundle"
+FORMAT_VERSION = 1
+# Opsets this runtime accepts for the default ONNX domain. 17 is the oldest the exporter writes
+# (LayerNormalization, current QDQ ops); the upper bound is what onnxruntime 1.17+ executes.
+MIN_OPSET, MAX_OPSET = 17, 21
+MANIFEST = "manifest.json"
+GRAPH_KEYS = ("trunk", "heads")
+
+
+class BundleError(ValueError):
+    """The bundle is not the one its manifest describes (or no bundle at all)."""
+
+    def __init__(self, bundle: Path | str, message: str) -> None:
+        super().__init__(f"bundle {bundle}: {message}")
+        self.bundle = str(bundle)
+        self.detail = message
+
+
+def sha256_file(path: Path | str, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            block = f.read(chunk)
+            if not block:
+                break
+            h.update(block)
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------ ONNX opset without onnx
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    shift = result = 0
+    while True:
+        if i >= len(buf):
+            raise ValueError("truncated varint")
+        b = buf[i]
+        i += 1
+        result |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return result, i
+        shift += 7
+        if shift > 63:
+            raise ValueError("varint too long")
+
+
+def _fields(buf: bytes):
+    """(field number, wire type, value) of one protobuf message; length-delimited values as bytes."""
+    i = 0
+    while i < len(buf):
+        key, i = _varint(buf, i)
+        num, wire = key >> 3, key & 7
+        if wire == 0:
+            val, i = _varint(buf, i)
+        elif wire == 1:
+            val, i = buf[i:i + 8], i + 8
+        elif wire == 2:
+            n, i = _varint(buf, i)
+            val, i = buf[i:i + n], i + n
+            if i > len(buf):
+                raise ValueError("truncated field")
+        elif wire == 5:
+            val, i = buf[i:i + 4], i + 4
+        else:
+            raise ValueError(f"unsupported wire type {wire}")
+        yield num, wire, val
+
+
+def read_onnx_opsets(path: Path | str) -> dict[str, int]:
+    """{domain: version} of an ONNX file's opset_import (ModelProto field 8; "" = ai.onnx)."""
+    data = Path(path).read_bytes()
+    out: dict[str, int] = {}
+    try:
+        for num, wire, val in _fields(data):
+            if num == 8 and wire == 2:  # OperatorSetIdProto: domain = 1 (string), version = 2 (int64)
+                domain, version = "", None
+                for n2, w2, v2 in _fields(val):
+                    if n2 == 1 and w2 == 2:
+                        domain = v2.decode()
+                    elif n2 == 2 and w2 == 0:
+                        version = v2
+                if version is not None:
+                    out["" if domain == "ai.onnx" else domain] = int(version)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable ONNX model ({exc})") from exc
+    if "" not in out:
+        raise ValueError(f"{path}: no ai.onnx opset_import (not an ONNX model?)")
+    return out
+
+
+# ------------------------------------------------------------------ the bundle
+
+
+@dataclass(frozen=True)
+class Bundle:
+    root: Path
+    manifest: dict
+    touched: tuple[str, ...]
+    untouched: tuple[str, ...]
+    preprocess: TactilePreprocess
+    feature_dim: int
+    beta: float
+    gating_temperature: float
+    router: Any  # runtime.novelty.Router
+    probe_input: np.ndarray
+    probe_expected: dict[str, np.ndarray]
+    probe_tolerance: dict[str, float]
+    opsets: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def path(self, key: str) -> Path:
+        return self.root / self.manifest["graphs"][key]["file"]
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        return self.touched + self.untouched
+
+
+def _need(manifest: dict, root: Path, *keys: str):
+    node: Any = manifest
+    for depth, k in enumerate(keys):
+        if not isinstance(node, dict) or k not in node:
+            raise BundleError(root, f"manifest.json lacks '{'.'.join(keys[:depth + 1])}'")
+        node = node[k]
+    return node
+
+
+def _float(v: Any, root: Path, key: str, allow_inf: bool = False) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise BundleError(root, f"manifest.json '{key}' = {v!r} is not a number") from None
+    if math.isnan(x) or (math.isinf(x) and not allow_inf):
+        raise BundleError(root, f"manifest.json '{key}' = {x} is not a finite number")
+    return x
+
+
+def read_manifest(root: Path | str) -> dict:
+    root = Path(root)
+    if not root.is_dir():
+        raise BundleError(root, "not a folder")
+    path = root / MANIFEST
+    if not path.is_file():
+        raise BundleError(root, f"no {MANIFEST}")
+    try:
+        manifest = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise BundleError(root, f"{MANIFEST} is not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise BundleError(root, f"{MANIFEST} format is {manifest.get('format') if isinstance(manifest, dict) else '?'!r}, "
+                                f"expected {FORMAT!r}")
+    version = manifest.get("format_version")
+    if version != FORMAT_VERSION:
+        raise BundleError(root, f"format version {version!r}, this runtime reads version {FORMAT_VERSION} "
+                                "(re-export the bundle with this release)")
+    return manifest
+
+
+def verify_hashes(root: Path, manifest: dict) -> None:
+    files = _need(manifest, root, "files")
+    if not isinstance(files, dict) or not files:
+        raise BundleError(root, "manifest.json 'files' is empty")
+    referenced = {g["file"] for g in manifest.get("graphs", {}).values() if isinstance(g, dict) and "file" in g}
+    referenced |= {manifest.get("router", {}).get("file"), manifest.get("probe", {}).get("input"),
+                   manifest.get("probe", {}).get("expected")}
+    unhashed = sorted(f for f in referenced if f and f not in files)
+    if unhashed:
+        raise BundleError(root, f"file(s) {unhashed} used but not listed with a sha256 in 'files'")
+    for name, digest in files.items():
+        p = root / name
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise BundleError(root, f"file name {name!r} leaves the bundle folder")
+        if not p.is_file():
+            raise BundleError(root, f"{name} is missing")
+        actual = sha256_file(p)
+        if actual != digest:
+            raise BundleError(root, f"{name}: sha256 {actual[:12]}... does not match the manifest's "
+                                    f"{str(digest)[:12]}... (file changed or corrupted)")
+
+
+def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
+    """Read and statically verify a bundle (no graph is run here). Raises BundleError."""
+    from vs2t_edge.runtime import novelty as nv
+
+    root = Path(root)
+    manifest = read_manifest(root)
+    verify_hashes(root, manifest)
+    touched = tuple(str(c) for c in _need(manifest, root, "classes", "touched"))
+    untouched = tuple(str(c) for c in _need(manifest, root, "classes", "untouched"))
+    if not touched:
+        raise BundleError(root, "manifest.json 'classes.touched' is empty")
+    dup = sorted({c for c in touched + untouched if (touched + untouched).count(c) > 1})
+    if dup:
+        raise BundleError(root, f"class name(s) {dup} appear more than once in 'classes'")
+    try:
+        spec = TactilePreprocess.from_dict(_need(manifest, root, "preprocess"))
+    except (TypeError, ValueError) as exc:
+        raise BundleError(root, f"manifest.json 'preprocess': {exc}") from None
+    dim = int(_need(manifest, root, "feature_dim"))
+    beta = _float(_need(manifest, root, "beta"), root, "beta", allow_inf=True)
+    if beta_override is not None:
+        beta = float(beta_override)
+        if math.isnan(beta):
+            raise BundleError(root, "beta override is NaN")
+    temp = _float(_need(manifest, root, "gating", "temperature"), root, "gating.temperature")
+    if temp <= 0:
+        raise BundleError(root, f"manifest.json 'gating.temperature' = {temp} must be > 0")
+
+    opsets: dict[str, dict[str, int]] = {}
+    for key in GRAPH_KEYS:
+        g = _need(manifest, root, "graphs", key)
+        path = root / _need(manifest, root, "graphs", key, "file")
+        try:
+            ops = read_onnx_opsets(path)
+        except ValueError as exc:
+            raise BundleError(root, str(exc)) from None
+        declared = int(_need(manifest, root, "graphs", key, "opset"))
+        if ops[""] != declared:
+            raise BundleError(root, f"{path.name}: opset {ops['']}, the manifest says {declared}")
+        if not MIN_OPSET <= ops[""] <= MAX_OPSET:
+            raise BundleError(root, f"{path.name}: opset {ops['']} outside what this runtime runs "
+                                    f"({MIN_OPSET}..{MAX_OPSET})")
+        for section in ("inputs", "outputs"):
+            if not isinstance(g.get(section), dict) or not g[section]:
+                raise BundleError(root, f"manifest.json 'graphs.{key}.{section}' missing")
+        opsets[key] = ops
+
+    router_file = root / _need(manifest, root, "router", "file")
+    try:
+        with np.load(router_file, allow_pickle=False) as z:
+            router = nv.Router.from_params({k: z[k] for k in z.files})
+    except (nv.RouterError, ValueError, OSError) as exc:
+        raise BundleError(root, f"{router_file.name}: {exc}") from None
+    if router.name != _need(manifest, root, "router", "name"):
+        raise BundleError(root, f"{router_file.name} holds router '{router.name}', the manifest says "
+                                f"'{manifest['router']['name']}'")
+    rdim = getattr(router, "dim", None)
+    if rdim is not None and rdim != dim:
+        raise BundleError(root, f"{router_file.name}: router fitted on {rdim}-d features, feature_dim is {dim}")
+
+    probe_in = root / _need(manifest, root, "probe", "input")
+    probe_exp = root / _need(manifest, root, "probe", "expected")
+    try:
+        x = np.load(probe_in, allow_pickle=False)
+        with np.load(probe_exp, allow_pickle=False) as z:
+            expected = {k: np.asarray(z[k]) for k in z.files}
+    except (ValueError, OSError) as exc:
+        raise BundleError(root, f"probe files unreadable ({exc})") from None
+    want = (1, 3, spec.size, spec.size)
+    if x.shape != want or x.dtype != np.float32:
+        raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
+    for k in ("feature", "logits_t", "logits_u", "novelty"):
+        if k not in expected:
+            raise BundleError(root, f"{probe_exp.name} lacks '{k}'")
+    tol = _need(manifest, root, "probe", "tolerance")
+    tolerance = {k: _float(tol.get(k) if isinstance(tol, dict) else None, root, f"probe.tolerance.{k}")
+                 for k in ("feature", "logits", "novelty")}
+    return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
+                  feature_dim=dim, beta=beta, gating_temperature=temp, router=router, probe_input=x,
+                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets)
+
+
+# ------------------------------------------------------------------ sessions
+
+
+def session_options(threads: int = 2):
+    """onnxruntime options for a small dedicated CPU: see docs/bundle.md "Session"."""
+    import onnxruntime as ort
+
+    if threads < 1:
+        raise ValueError(f"threads = {threads} must be >= 1")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)  # the trunk's convolutions split over the cores
+    so.inter_op_num_threads = 1  # the graphs are a chain: no parallel branches worth a pool
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL  # fusions, QDQ -> QLinear
+    so.enable_cpu_mem_arena = True  # one arena, reused press after press (no malloc per run)
+    so.enable_mem_pattern = True  # static shapes at batch 1: plan buffers once
+    so.log_severity_level = 3
+    return so
+
+
+def open_session(path: Path, threads: int = 2):
+    import onnxruntime as ort
+
+    return ort.InferenceSession(str(path), sess_options=session_options(threads), providers=["CPUExecutionProvider"])
+
+
+def _dims(shape) -> list:
+    return [d if isinstance(d, int) else None for d in shape]
+
+
+def check_session_shapes(bundle: Bundle, key: str, session) -> None:
+    """The open graph's input/output names and fixed dimensions are the manifest's."""
+    g = bundle.manifest["graphs"][key]
+    for section, actual in (("inputs", session.get_inputs()), ("outputs", session.get_outputs())):
+        declared = g[section]
+        got = {a.name: _dims(a.shape) for a in actual}
+        if set(got) != set(declared):
+            raise BundleError(bundle.root, f"{g['file']}: {section} {sorted(got)}, the manifest says {sorted(declared)}")
+        for name, shape in declared.items():
+            if len(shape) != len(got[name]) or any(d is not None and d != a for d, a in zip(shape, got[name])):
+                raise BundleError(bundle.root, f"{g['file']}: {section[:-1]} '{name}' has shape {got[name]}, "
+                                               f"the manifest says {shape}")
+    # and the manifest agrees with the rest of the bundle
+    s = bundle.preprocess.size
+    if key == "trunk":
+        (shape_in,) = g["inputs"].values()
+        (shape_out,) = g["outputs"].values()
+        if list(shape_in[1:]) != [3, s, s]:
+            raise BundleError(bundle.root, f"{g['file']}: input {shape_in}, preprocessing makes (N, 3, {s}, {s})")
+        if shape_out[-1] != bundle.feature_dim:
+            raise BundleError(bundle.root, f"{g['file']}: feature dim {shape_out[-1]}, feature_dim is {bundle.feature_dim}")
+    else:
+        want = {"logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
+        for name, n in want.items():
+            if name not in g["outputs"] or g["outputs"][name][-1] != n:
+                raise BundleError(bundle.root, f"{g['file']}: output '{name}' is not (N, {n}) for the "
+                                               f"{n} class names in the manifest")
+
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "Bundle", "BundleError", "load_bundle",
+           "read_manifest", "verify_hashes", "read_onnx_opsets", "sha256_file", "session_options",
+           "open_session", "check_session_shapes"]

@@ -1,0 +1,44 @@
+"""`vs2t-edge verify-bundle BUNDLE`: the cell's own verification, run by hand (or in CI).
+
+Exit 0 when the bundle loads, warms up and passes its probe; 1 when it is refused (the reason,
+naming the file or key, on stderr); 2 when the path is no folder.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("bundle", help="bundle folder (manifest.json + graphs)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads (default 2)")
+
+
+def run(args) -> int:
+    from vs2t_edge.runtime.bundle import BundleError
+    from vs2t_edge.runtime.inference import TactileModel
+
+    path = Path(args.bundle)
+    if not path.is_dir():
+        print(f"verify-bundle: {path} is not a folder", file=sys.stderr)
+        return 2
+    try:
+        model = TactileModel.load(path, threads=args.threads)
+    except BundleError as exc:
+        print(f"verify-bundle: REFUSED - {exc}", file=sys.stderr)
+        return 1
+    m = model.manifest
+    trunk = m["graphs"]["trunk"]
+    worst = max(model.probe_errors.values())
+    print(f"bundle {path}: ok")
+    print(f"  trunk {trunk.get('arch', '?')} {trunk.get('precision', '?')} at {model.preprocess_spec.size} px, "
+          f"opset {trunk['opset']}, feature {m['feature_dim']}-d")
+    print(f"  classes: {len(model.touched)} touched, {len(model.untouched)} untouched; router {m['router']['name']}, "
+          f"beta {model.beta:.6g}, gating T {model.temperature:.6g}")
+    print(f"  {len(m['files'])} files, sha256 verified; probe max relative error {worst:.2e} "
+          f"(tolerance {min(model.bundle.probe_tolerance.values()):.0e})")
+    prov = m.get("provenance", {})
+    print(f"  made {prov.get('time_utc', '?')} from {prov.get('run', 'no run (untrained)')} at commit "
+          f"{prov.get('git_commit', '?')}")
+    return 0

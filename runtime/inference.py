@@ -1,0 +1,196 @@
+"""The lean inference core: one verified bundle, one press in, one GZSL log posterior out.
+
+Per press: check + preprocess the frame (runtime/preprocess.py, the one preprocessing) ->
+trunk (onnxruntime) -> heads CLS_t / CLS_u (onnxruntime) -> router novelty (numpy) -> the GZSL
+posterior by soft gating of the paper's route (docs/bundle.md "Decision"):
+
+    P(untouched | x) = sigmoid((novelty - beta) / T)
+    log p(c | x) = log P(touched | x)   + log softmax(logits_t)[c]   for touched c
+                   log P(untouched | x) + log softmax(logits_u)[c]   for untouched c
+
+so the posterior sums to 1 over all bundle classes, its hard version is exactly the paper's route
+(``untouched = novelty > beta``), and beta = +inf / -inf sends everything to CLS_t / CLS_u.
+Probabilities that are exactly zero (beta at +-inf) are written as ``LOG_ZERO`` instead of -inf
+so journals stay valid JSON and sums over presses never meet inf - inf.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vs2t_edge.runtime.bundle import Bundle, BundleError, check_session_shapes, load_bundle, open_session
+from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax
+from vs2t_edge.runtime.preprocess import FrameError, check_frame, preprocess_tactile
+
+LOG_ZERO = -1e30  # log of a probability that is exactly 0 (finite on purpose, see module doc)
+WARMUP_RUNS = 3
+
+
+@dataclass(frozen=True)
+class PressScore:
+    log_posterior: dict[str, float]  # over the bundle's classes (touched + untouched), normalised in log space
+    novelty: float  # router score, higher = more likely untouched
+    untouched: bool  # novelty > beta
+    latency_ms: float
+
+
+def log_sigmoid(z: np.ndarray) -> np.ndarray:
+    """log(1 / (1 + exp(-z))) without overflow for |z| up to inf."""
+    return -np.logaddexp(0.0, -np.asarray(z, dtype=np.float64))
+
+
+def gzsl_log_posterior(logits_t: np.ndarray, logits_u: np.ndarray, novelty: np.ndarray, beta: float,
+                       temperature: float) -> np.ndarray:
+    """(N, C_t + C_u) log posterior by soft gating (module doc); float64, finite, rows sum to 1."""
+    if not temperature > 0 or math.isinf(temperature):
+        raise ValueError(f"gating temperature {temperature} must be finite and > 0")
+    if math.isnan(beta):
+        raise ValueError("beta is NaN")
+    nov = np.asarray(novelty, dtype=np.float64).reshape(-1)
+    if np.any(~np.isfinite(nov)):
+        raise ValueError("novelty is NaN or Inf")
+    z = (nov - beta) / temperature  # beta = +inf -> -inf (all touched), -inf -> +inf (all untouched)
+    log_pu, log_pt = log_sigmoid(z), log_sigmoid(-z)
+    out = np.concatenate([log_pt[:, None] + log_softmax(logits_t, axis=1),
+                          log_pu[:, None] + log_softmax(logits_u, axis=1)], axis=1)
+    return np.where(np.isneginf(out), LOG_ZERO, out)
+
+
+@dataclass(frozen=True)
+class Outputs:
+    feature: np.ndarray  # (N, D) float32
+    logits_t: np.ndarray
+    logits_u: np.ndarray
+    novelty: np.ndarray  # (N,) float64
+
+
+def _rel_err(actual: np.ndarray, expected: np.ndarray) -> float:
+    """max |a - e| / max(max |e|, 1e-6): one number per output, scale-free."""
+    a, e = np.asarray(actual, np.float64), np.asarray(expected, np.float64)
+    if a.shape != e.shape:
+        return math.inf
+    if not np.all(np.isfinite(a)):
+        return math.inf
+    return float(np.max(np.abs(a - e)) / max(float(np.max(np.abs(e))), 1e-6)) if a.size else 0.0
+
+
+class TactileModel:
+    """A loaded, verified, warmed bundle. ``load`` is the only constructor the cell uses."""
+
+    def __init__(self, bundle: Bundle, trunk_session, heads_session, threads: int) -> None:
+        self.bundle = bundle
+        self.manifest = bundle.manifest
+        self.touched: tuple[str, ...] = bundle.touched
+        self.untouched: tuple[str, ...] = bundle.untouched
+        self.classes: tuple[str, ...] = bundle.classes
+        self.beta: float = bundle.beta
+        self.temperature: float = bundle.gating_temperature
+        self.router = bundle.router
+        self.preprocess_spec = bundle.preprocess
+        self.threads = threads
+        self._trunk, self._heads = trunk_session, heads_session
+        self._trunk_in = trunk_session.get_inputs()[0].name
+        self._heads_in = heads_session.get_inputs()[0].name
+        self._reference: np.ndarray | None = None
+        self.last_timing: dict[str, float] = {}
+        self.probe_errors: dict[str, float] = {}
+
+    # -------------------------------------------------------------- loading
+
+    @classmethod
+    def load(cls, bundle_dir: Path | str, threads: int = 2, beta_override: float | None = None) -> "TactileModel":
+        """Verify (hashes, opsets, shapes, version), open, warm up and check the probe. Raises
+        BundleError naming what mismatches."""
+        bundle = load_bundle(bundle_dir, beta_override=beta_override)
+        sessions = {}
+        for key in ("trunk", "heads"):
+            try:
+                sessions[key] = open_session(bundle.path(key), threads)
+            except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types; say which file
+                raise BundleError(bundle.root, f"{bundle.path(key).name}: onnxruntime cannot open it ({exc})") from None
+            check_session_shapes(bundle, key, sessions[key])
+        model = cls(bundle, sessions["trunk"], sessions["heads"], threads)
+        model._warm_and_probe()
+        return model
+
+    def _warm_and_probe(self) -> None:
+        x = self.bundle.probe_input
+        for _ in range(WARMUP_RUNS):  # first runs allocate the arena and pick kernels
+            self.forward(x)
+        out = self.forward(x)
+        exp = self.bundle.probe_expected
+        tol = self.bundle.probe_tolerance
+        checks = {"feature": (out.feature, exp["feature"], tol["feature"]),
+                  "logits_t": (out.logits_t, exp["logits_t"], tol["logits"]),
+                  "logits_u": (out.logits_u, exp["logits_u"], tol["logits"]),
+                  "novelty": (out.novelty, exp["novelty"], tol["novelty"])}
+        for name, (a, e, t) in checks.items():
+            err = _rel_err(a, e)
+            self.probe_errors[name] = err
+            if not err <= t:
+                raise BundleError(self.bundle.root, f"probe check failed: '{name}' differs from the exporter's "
+                                                    f"by {err:.3g} (relative), tolerance {t:.3g}")
+
+    # -------------------------------------------------------------- per press
+
+    def set_reference(self, frame: np.ndarray) -> None:
+        """The session's no-contact frame; refused (FrameError) if it is no usable image."""
+        self._reference = check_frame(frame, name="reference frame").copy()
+
+    def preprocess(self, frame: np.ndarray) -> np.ndarray:
+        spec = self.preprocess_spec
+        ref = self._reference if spec.use_reference else None
+        if spec.use_reference and ref is None:
+            raise FrameError("no no-contact reference frame set (call set_reference first)", "reference")
+        return preprocess_tactile(frame, ref, spec)[None]
+
+    def forward(self, x: np.ndarray) -> Outputs:
+        """Preprocessed batch (N, 3, S, S) float32 -> all outputs (for the probe, bench and calibration)."""
+        t0 = time.perf_counter()
+        feature = self._trunk.run(None, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})[0]
+        t1 = time.perf_counter()
+        logits_t, logits_u = self._heads.run(["logits_t", "logits_u"], {self._heads_in: feature})
+        t2 = time.perf_counter()
+        if isinstance(self.router, GaussianRouter):
+            novelty = self.router.novelty(feature, logits_t, logits_u=logits_u, dtype=np.float32)
+        else:
+            novelty = self.router.novelty(feature, logits_t, logits_u=logits_u)
+        t3 = time.perf_counter()
+        self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 1e3 * (t2 - t1), "router_ms": 1e3 * (t3 - t2)}
+        return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64))
+
+    def log_posterior(self, out: Outputs, beta: float | None = None) -> np.ndarray:
+        return gzsl_log_posterior(out.logits_t, out.logits_u, out.novelty, self.beta if beta is None else beta,
+                                  self.temperature)
+
+    def score_press(self, frame: np.ndarray) -> PressScore:
+        """One press frame (HxWx3 uint8 BGR) -> PressScore. Raises FrameError for frames the cell
+        must not classify (bad frame, or a model output that is not finite)."""
+        t0 = time.perf_counter()
+        x = self.preprocess(frame)
+        t1 = time.perf_counter()
+        try:
+            out = self.forward(x)
+        except RouterError as exc:  # NaN/Inf features: never route such a press to a bin
+            raise FrameError(f"model output not usable for this frame ({exc})", "model_output") from None
+        t2 = time.perf_counter()
+        if not (np.all(np.isfinite(out.logits_t)) and np.all(np.isfinite(out.logits_u))):
+            raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
+        lp = self.log_posterior(out)[0]
+        novelty = float(out.novelty[0])
+        score = PressScore(log_posterior=dict(zip(self.classes, (float(v) for v in lp))), novelty=novelty,
+                           untouched=bool(novelty > self.beta), latency_ms=0.0)
+        t3 = time.perf_counter()
+        timing = dict(self.last_timing)
+        timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
+        self.last_timing = timing
+        return PressScore(score.log_posterior, score.novelty, score.untouched, timing["total_ms"])
+
+
+__all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "log_sigmoid", "LOG_ZERO",
+           "BundleError", "FrameError"]

@@ -1,0 +1,131 @@
+"""runtime.bundle refuses, naming which, a bundle whose hashes, shapes, opset, version or probe
+do not match; a good bundle loads, warms up and passes its probe."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from test_bundle_fixtures import SIZE, TOUCHED, UNTOUCHED, shared_bundle
+from vs2t_edge.runtime import bundle as rb
+from vs2t_edge.runtime.inference import TactileModel
+
+
+@pytest.fixture()
+def bundle_copy(tmp_path):
+    dst = tmp_path / "b"
+    shutil.copytree(shared_bundle("fp32"), dst)
+    return dst
+
+
+def _edit(b, fn):
+    m = json.loads((b / "manifest.json").read_text())
+    fn(m)
+    (b / "manifest.json").write_text(json.dumps(m))
+
+
+def _rehash(b, name):
+    _edit(b, lambda m: m["files"].__setitem__(name, rb.sha256_file(b / name)))
+
+
+def test_good_bundle_loads_and_passes_probe():
+    model = TactileModel.load(shared_bundle("fp32"), threads=1)
+    assert model.touched == TOUCHED and model.untouched == UNTOUCHED
+    assert model.manifest["format_version"] == rb.FORMAT_VERSION
+    assert set(model.probe_errors) == {"feature", "logits_t", "logits_u", "novelty"}
+    assert max(model.probe_errors.values()) <= 1e-4
+    m = model.manifest
+    assert m["graphs"]["trunk"]["opset"] >= 17 and m["graphs"]["trunk"]["inputs"]["image"] == [None, 3, SIZE, SIZE]
+    assert set(m["files"]) == {"trunk.onnx", "heads.onnx", "router.npz", "probe_input.npy", "probe_expected.npz"}
+    for key in ("time_utc", "git_commit", "versions"):
+        assert key in m["provenance"]
+
+
+def test_opset_read_from_protobuf_matches_onnx():
+    import onnx
+
+    p = shared_bundle("fp32") / "trunk.onnx"
+    want = {(o.domain if o.domain != "ai.onnx" else ""): o.version for o in onnx.load(str(p)).opset_import}
+    assert rb.read_onnx_opsets(p) == want
+
+
+def test_changed_graph_is_refused_by_hash(bundle_copy):
+    with open(bundle_copy / "heads.onnx", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(rb.BundleError, match=r"heads\.onnx: sha256"):
+        TactileModel.load(bundle_copy)
+
+
+def test_missing_file_is_named(bundle_copy):
+    (bundle_copy / "router.npz").unlink()
+    with pytest.raises(rb.BundleError, match=r"router\.npz is missing"):
+        TactileModel.load(bundle_copy)
+
+
+def test_format_version_mismatch_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m.__setitem__("format_version", 2))
+    with pytest.raises(rb.BundleError, match="format version 2"):
+        TactileModel.load(bundle_copy)
+
+
+def test_opset_mismatch_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m["graphs"]["trunk"].__setitem__("opset", 18))
+    with pytest.raises(rb.BundleError, match=r"trunk\.onnx: opset 17, the manifest says 18"):
+        TactileModel.load(bundle_copy)
+
+
+def test_shape_mismatch_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m["graphs"]["trunk"]["outputs"].__setitem__("feature", [None, 99]))
+    with pytest.raises(rb.BundleError, match=r"trunk\.onnx: output 'feature' has shape \[None, 16\]"):
+        TactileModel.load(bundle_copy)
+
+
+def test_class_list_that_does_not_fit_the_heads_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m["classes"]["touched"].append("extra"))
+    with pytest.raises(rb.BundleError, match=r"logits_t"):
+        TactileModel.load(bundle_copy)
+
+
+def test_preprocessing_size_that_does_not_fit_the_trunk_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m["preprocess"].__setitem__("size", SIZE * 2))
+    with pytest.raises(rb.BundleError, match="probe_input|preprocessing"):
+        TactileModel.load(bundle_copy)
+
+
+def test_wrong_probe_expectation_is_refused(bundle_copy):
+    z = dict(np.load(bundle_copy / "probe_expected.npz"))
+    z["logits_u"] = z["logits_u"] + 0.5
+    np.savez(bundle_copy / "probe_expected.npz", **z)
+    _rehash(bundle_copy, "probe_expected.npz")
+    with pytest.raises(rb.BundleError, match="probe check failed: 'logits_u'"):
+        TactileModel.load(bundle_copy)
+
+
+def test_router_of_another_dimension_is_refused(bundle_copy):
+    from vs2t_edge.runtime import novelty as nv
+
+    r = nv.fit_router("gaussian", np.random.default_rng(0).normal(size=(40, 8)))
+    np.savez(bundle_copy / "router.npz", **r.to_params())
+    _rehash(bundle_copy, "router.npz")
+    with pytest.raises(rb.BundleError, match=r"router fitted on 8-d features, feature_dim is 16"):
+        TactileModel.load(bundle_copy)
+
+
+def test_not_a_bundle(tmp_path):
+    with pytest.raises(rb.BundleError, match="no manifest.json"):
+        TactileModel.load(tmp_path)
+    with pytest.raises(rb.BundleError, match="not a folder"):
+        TactileModel.load(tmp_path / "nope")
+
+
+def test_verify_bundle_cli(bundle_copy, capsys):
+    from vs2t_edge.cli import main
+
+    assert main(["verify-bundle", str(bundle_copy)]) == 0
+    assert "ok" in capsys.readouterr().out
+    with open(bundle_copy / "trunk.onnx", "ab") as f:
+        f.write(b"\0")
+    assert main(["verify-bundle", str(bundle_copy)]) == 1
+    assert "trunk.onnx: sha256" in capsys.readouterr().err

@@ -1,0 +1,82 @@
+"""The per-press core: frames -> PressScore with a normalised GZSL log posterior over the bundle's
+classes, the paper's hard route as its limit, and frames the cell must not classify refused."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from test_bundle_fixtures import TOUCHED, UNTOUCHED, shared_bundle, world_frames
+from vs2t_edge.runtime.inference import LOG_ZERO, PressScore, TactileModel, gzsl_log_posterior
+from vs2t_edge.runtime.preprocess import FrameError
+
+
+@pytest.fixture(scope="module")
+def model():
+    return TactileModel.load(shared_bundle("fp32"), threads=1)
+
+
+def _lse(v):
+    v = np.asarray(list(v), float)
+    return float(v.max() + np.log(np.exp(v - v.max()).sum()))
+
+
+def test_score_press_on_world_frames(model):
+    _, raws, ref = world_frames()
+    model.set_reference(ref)
+    s = model.score_press(raws[3])
+    assert isinstance(s, PressScore)
+    assert list(s.log_posterior) == list(TOUCHED + UNTOUCHED)
+    assert abs(_lse(s.log_posterior.values())) < 1e-9
+    assert s.untouched == (s.novelty > model.beta)
+    assert s.latency_ms > 0 and set(model.last_timing) >= {"preprocess_ms", "trunk_ms", "heads_ms", "router_ms",
+                                                          "decision_ms"}
+    # the same press scored twice gives the same answer (no state leaks between presses)
+    assert model.score_press(raws[3]).log_posterior == s.log_posterior
+
+
+def test_posterior_mass_follows_the_route(model):
+    _, raws, ref = world_frames()
+    model.set_reference(ref)
+    for frame in raws[:12]:
+        s = model.score_press(frame)
+        p_u = sum(math.exp(s.log_posterior[c]) for c in UNTOUCHED)
+        assert (p_u > 0.5) == s.untouched or abs(p_u - 0.5) < 1e-9
+
+
+def test_beta_override_and_infinite_beta():
+    _, raws, ref = world_frames()
+    for beta, untouched in ((math.inf, False), (-math.inf, True)):
+        m = TactileModel.load(shared_bundle("fp32"), threads=1, beta_override=beta)
+        m.set_reference(ref)
+        for frame in raws[:5]:
+            s = m.score_press(frame)
+            assert s.untouched is untouched
+            zero = UNTOUCHED if not untouched else TOUCHED
+            assert all(s.log_posterior[c] == LOG_ZERO for c in zero)
+            assert all(math.isfinite(v) for v in s.log_posterior.values())
+            assert abs(_lse(v for c, v in s.log_posterior.items() if c not in zero)) < 1e-9
+
+
+def test_missing_reference_is_a_frame_error():
+    m = TactileModel.load(shared_bundle("fp32"), threads=1)
+    _, raws, _ = world_frames()
+    with pytest.raises(FrameError) as e:
+        m.score_press(raws[0])
+    assert e.value.reason == "reference"
+
+
+def test_soft_gating_limits():
+    lt, lu = np.array([[2.0, 0.0, -1.0]]), np.array([[0.5, 0.1]])
+    # far below beta: all mass on the touched head, equal to its softmax
+    lp = gzsl_log_posterior(lt, lu, np.array([0.0]), beta=1e6, temperature=1.0)
+    ls = lt - np.log(np.exp(lt).sum())
+    assert np.allclose(lp[0, :3], ls) and np.all(lp[0, 3:] < -1e5)
+    # at beta: half the mass on each head
+    lp = gzsl_log_posterior(lt, lu, np.array([5.0]), beta=5.0, temperature=2.0)
+    assert np.isclose(np.exp(lp[0, 3:]).sum(), 0.5)
+    with pytest.raises(ValueError):
+        gzsl_log_posterior(lt, lu, np.array([np.nan]), beta=0.0, temperature=1.0)
+    with pytest.raises(ValueError):
+        gzsl_log_posterior(lt, lu, np.array([0.0]), beta=0.0, temperature=0.0)
