@@ -103,29 +103,40 @@ def _novelty(router: nv.Router, feature, logits_t, logits_u) -> np.ndarray:
     return router.novelty(feature, logits_t, logits_u=logits_u)
 
 
-def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, beta: float) -> float:
-    """T of P(untouched|x) = sigmoid((novelty - beta) / T), by maximum likelihood of the route
-    labels (touched presses 0, validation-fabric presses 1) with the offset fixed at beta, so the
-    hard decision stays the tuned operating point and only its softness is learned. Searched on
-    a log grid (the likelihood is unimodal in log T), then refined."""
+def gating_scale(novelty: np.ndarray) -> float:
+    """s of the gate's g(n) = asinh(n / s): the typical magnitude of touched presses' scores."""
+    n = np.abs(np.asarray(novelty, np.float64))
+    s = float(np.median(n)) if n.size else 1.0
+    return s if s > 0 and math.isfinite(s) else 1.0
+
+
+def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, beta: float,
+                           scale: float | None = None) -> float:
+    """T of P(untouched|x) = sigmoid((g(novelty) - g(beta)) / T), g = asinh(. / scale) (identity
+    when scale is None), by maximum likelihood of the route labels (touched presses 0,
+    validation-fabric presses 1) with the offset fixed at g(beta): the hard decision stays the
+    tuned operating point and only its softness is learned. Log-grid search (the likelihood is
+    unimodal in log T), then golden-section refinement."""
+    from vs2t_edge.runtime.inference import gate_logit
+
     t = np.asarray(nov_touched, np.float64)
     u = np.asarray(nov_untouched, np.float64)
     if t.size == 0 or u.size == 0 or not math.isfinite(beta):
-        return robust_temperature(np.concatenate([t, u]) if t.size + u.size else np.zeros(1))
-    d = np.concatenate([t - beta, u - beta])
+        return robust_temperature(np.concatenate([t, u]) if t.size + u.size else np.zeros(1), scale)
+    d = gate_logit(np.concatenate([t, u]), beta, 1.0, scale)
     y = np.concatenate([np.zeros(t.size), np.ones(u.size)])
-    scale = max(float(np.median(np.abs(d))), 1e-12)
+    spread = max(float(np.median(np.abs(d))), 1e-12)
 
     def nll(log_t: float) -> float:
         z = d / math.exp(log_t)
         # -log sigmoid(z) for y=1, -log sigmoid(-z) for y=0, stably
         return float(np.mean(np.where(y > 0, np.logaddexp(0, -z), np.logaddexp(0, z))))
 
-    grid = np.log(scale) + np.linspace(-12, 6, 73)
+    grid = np.log(spread) + np.linspace(-12, 6, 73)
     vals = [nll(g) for g in grid]
     k = int(np.argmin(vals))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    for _ in range(40):  # golden section on the bracket
+    for _ in range(40):
         m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
         if nll(m1) < nll(m2):
             hi = m2
@@ -134,9 +145,11 @@ def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, b
     return float(math.exp(0.5 * (lo + hi)))
 
 
-def robust_temperature(novelty: np.ndarray) -> float:
-    """Fallback T without validation presses: the spread (1.4826 MAD) of the scores."""
+def robust_temperature(novelty: np.ndarray, scale: float | None = None) -> float:
+    """Fallback T without validation presses: the spread (1.4826 MAD) of the gate's input."""
     n = np.asarray(novelty, np.float64)
+    if scale is not None:
+        n = np.arcsinh(n / scale)
     mad = 1.4826 * float(np.median(np.abs(n - np.median(n))))
     return mad if mad > 0 else max(float(np.max(np.abs(n))), 1.0) * 1e-3
 
@@ -248,17 +261,20 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
             lt, lu = sess_h.run(None, {"feature": f})
             return f, lt, lu, _novelty(router, f, lt, lu)
 
-        # gating temperature on the deployed graph's own scores
+        # gate scale and temperature on the deployed graph's own scores
         how = "given"
+        have_val = validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout)
+        nt = score(touched_heldout if have_val else calibration)[3]
+        scale = gating_scale(nt)
         if gating_temperature is None:
-            if validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout):
-                nt, nu = score(touched_heldout)[3], score(validation)[3]
-                gating_temperature = fit_gating_temperature(nt, nu, beta)
+            if have_val:
+                nu = score(validation)[3]
+                gating_temperature = fit_gating_temperature(nt, nu, beta, scale)
                 how = (f"maximum likelihood of the route on {len(nt)} held-out touched and {len(nu)} "
                        "validation-fabric presses, offset fixed at beta")
             else:
-                gating_temperature = robust_temperature(score(calibration)[3])
-                how = "1.4826 x MAD of the calibration presses' novelty (no validation presses given)"
+                gating_temperature = robust_temperature(nt, scale)
+                how = "1.4826 x MAD of the calibration presses' asinh novelty (no validation presses given)"
         if not (gating_temperature > 0 and math.isfinite(gating_temperature)):
             raise ExportError(f"gating temperature {gating_temperature} must be finite and > 0")
 
@@ -286,8 +302,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
             "router": {"name": router.name, "file": "router.npz"},
             "beta": float(beta),
             "operating_point": operating_point,
-            "gating": {"temperature": float(gating_temperature), "how": how,
-                       "rule": "P(untouched|x) = sigmoid((novelty - beta) / temperature)"},
+            "gating": {"transform": "asinh", "scale": scale, "temperature": float(gating_temperature), "how": how,
+                       "rule": "P(untouched|x) = sigmoid((asinh(novelty/scale) - asinh(beta/scale)) / temperature)",
+                       "scale_is": "median |novelty| of held-out touched presses"},
             "probe": {"input": "probe_input.npy", "expected": "probe_expected.npz",
                       "tolerance": PROBE_TOLERANCE[trunk_precision],
                       "note": "a touched calibration press; expected = onnxruntime at export, max|diff|/max|expected|"},
@@ -449,4 +466,4 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
 
 
 __all__ = ["OPSET", "ExportError", "write_bundle", "export_run", "export_random_trunk", "press_partition",
-           "fit_gating_temperature", "export_onnx", "graph_io"]
+           "fit_gating_temperature", "gating_scale", "export_onnx", "graph_io"]

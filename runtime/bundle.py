@@ -134,6 +134,7 @@ class Bundle:
     feature_dim: int
     beta: float
     gating_temperature: float
+    gating_scale: float | None  # None = linear gate (manifest gating.transform = "linear")
     router: Any  # runtime.novelty.Router
     probe_input: np.ndarray
     probe_expected: dict[str, np.ndarray]
@@ -237,6 +238,15 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     temp = _float(_need(manifest, root, "gating", "temperature"), root, "gating.temperature")
     if temp <= 0:
         raise BundleError(root, f"manifest.json 'gating.temperature' = {temp} must be > 0")
+    transform = manifest["gating"].get("transform", "linear")
+    if transform == "asinh":
+        gscale = _float(_need(manifest, root, "gating", "scale"), root, "gating.scale")
+        if gscale <= 0:
+            raise BundleError(root, f"manifest.json 'gating.scale' = {gscale} must be > 0")
+    elif transform == "linear":
+        gscale = None
+    else:
+        raise BundleError(root, f"manifest.json 'gating.transform' = {transform!r}: expected 'asinh' or 'linear'")
 
     opsets: dict[str, dict[str, int]] = {}
     for key in GRAPH_KEYS:
@@ -288,7 +298,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     tolerance = {k: _float(tol.get(k) if isinstance(tol, dict) else None, root, f"probe.tolerance.{k}")
                  for k in ("feature", "logits", "novelty")}
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
-                  feature_dim=dim, beta=beta, gating_temperature=temp, router=router, probe_input=x,
+                  feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
                   probe_expected=expected, probe_tolerance=tolerance, opsets=opsets)
 
 

@@ -4,12 +4,15 @@ Per press: check + preprocess the frame (runtime/preprocess.py, the one preproce
 trunk (onnxruntime) -> heads CLS_t / CLS_u (onnxruntime) -> router novelty (numpy) -> the GZSL
 posterior by soft gating of the paper's route (docs/bundle.md "Decision"):
 
-    P(untouched | x) = sigmoid((novelty - beta) / T)
+    P(untouched | x) = sigmoid((g(novelty) - g(beta)) / T),   g(n) = asinh(n / s)
     log p(c | x) = log P(touched | x)   + log softmax(logits_t)[c]   for touched c
                    log P(untouched | x) + log softmax(logits_u)[c]   for untouched c
 
 so the posterior sums to 1 over all bundle classes, its hard version is exactly the paper's route
-(``untouched = novelty > beta``), and beta = +inf / -inf sends everything to CLS_t / CLS_u.
+(``untouched = novelty > beta``, g is increasing), and beta = +inf / -inf sends everything to
+CLS_t / CLS_u. g is a signed log beyond the scale s: the Gaussian router's negative log density
+is heavy-tailed (1e7 .. 1e12 on one run), and a logistic in the raw score would need T so large
+that every press sat near 0.5. T and s come from the manifest (fitted at export, docs/bundle.md).
 Probabilities that are exactly zero (beta at +-inf) are written as ``LOG_ZERO`` instead of -inf
 so journals stay valid JSON and sums over presses never meet inf - inf.
 """
@@ -44,17 +47,27 @@ def log_sigmoid(z: np.ndarray) -> np.ndarray:
     return -np.logaddexp(0.0, -np.asarray(z, dtype=np.float64))
 
 
+def gate_logit(novelty: np.ndarray, beta: float, temperature: float, scale: float | None = None) -> np.ndarray:
+    """z with P(untouched | x) = sigmoid(z); scale None = linear in the score (no asinh)."""
+    nov = np.asarray(novelty, dtype=np.float64).reshape(-1)
+    if scale is None:
+        return (nov - beta) / temperature  # beta = +inf -> -inf (all touched), -inf -> +inf
+    return (np.arcsinh(nov / scale) - np.arcsinh(beta / scale)) / temperature  # asinh(+-inf) = +-inf
+
+
 def gzsl_log_posterior(logits_t: np.ndarray, logits_u: np.ndarray, novelty: np.ndarray, beta: float,
-                       temperature: float) -> np.ndarray:
+                       temperature: float, scale: float | None = None) -> np.ndarray:
     """(N, C_t + C_u) log posterior by soft gating (module doc); float64, finite, rows sum to 1."""
     if not temperature > 0 or math.isinf(temperature):
         raise ValueError(f"gating temperature {temperature} must be finite and > 0")
+    if scale is not None and not (scale > 0 and math.isfinite(scale)):
+        raise ValueError(f"gating scale {scale} must be finite and > 0")
     if math.isnan(beta):
         raise ValueError("beta is NaN")
     nov = np.asarray(novelty, dtype=np.float64).reshape(-1)
     if np.any(~np.isfinite(nov)):
         raise ValueError("novelty is NaN or Inf")
-    z = (nov - beta) / temperature  # beta = +inf -> -inf (all touched), -inf -> +inf (all untouched)
+    z = gate_logit(nov, beta, temperature, scale)
     log_pu, log_pt = log_sigmoid(z), log_sigmoid(-z)
     out = np.concatenate([log_pt[:, None] + log_softmax(logits_t, axis=1),
                           log_pu[:, None] + log_softmax(logits_u, axis=1)], axis=1)
@@ -90,6 +103,7 @@ class TactileModel:
         self.classes: tuple[str, ...] = bundle.classes
         self.beta: float = bundle.beta
         self.temperature: float = bundle.gating_temperature
+        self.gate_scale: float | None = bundle.gating_scale
         self.router = bundle.router
         self.preprocess_spec = bundle.preprocess
         self.threads = threads
@@ -166,7 +180,7 @@ class TactileModel:
 
     def log_posterior(self, out: Outputs, beta: float | None = None) -> np.ndarray:
         return gzsl_log_posterior(out.logits_t, out.logits_u, out.novelty, self.beta if beta is None else beta,
-                                  self.temperature)
+                                  self.temperature, self.gate_scale)
 
     def score_press(self, frame: np.ndarray) -> PressScore:
         """One press frame (HxWx3 uint8 BGR) -> PressScore. Raises FrameError for frames the cell
@@ -192,5 +206,5 @@ class TactileModel:
         return PressScore(score.log_posterior, score.novelty, score.untouched, timing["total_ms"])
 
 
-__all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "log_sigmoid", "LOG_ZERO",
+__all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",
            "BundleError", "FrameError"]

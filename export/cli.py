@@ -1,0 +1,75 @@
+"""`vs2t-edge export RUN --out BUNDLE`: a training run -> a verified ONNX bundle (docs/bundle.md).
+
+The bundle is written to a temporary folder, loaded with the cell's own verification
+(runtime.inference.TactileModel.load) and only then moved to --out.
+``--random-trunk ARCH --dataset D`` makes a latency-only bundle of an untrained trunk instead
+(used by the bench for ResNet50 when no trained run exists; its manifest says trained: false).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("run", nargs="?", help="training run folder (RUN/artifacts/model.pt)")
+    parser.add_argument("--out", required=True, help="bundle folder to write (replaced if it is a bundle)")
+    parser.add_argument("--trunk-precision", choices=("fp32", "int8"), default="fp32",
+                        help="int8 = static QDQ quantisation calibrated on touched presses (default fp32)")
+    parser.add_argument("--size", type=int, default=None,
+                        help="input side in px (default: the run's); other sizes trade accuracy for speed")
+    parser.add_argument("--calibration-frames", type=int, default=64,
+                        help="touched training presses for int8 ranges, parity and the probe (default 64)")
+    parser.add_argument("--dataset", default=None, help="dataset folder (default: the run's)")
+    parser.add_argument("--random-trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), default=None,
+                        help="latency-only bundle of an UNTRAINED trunk (needs --dataset and --size, no RUN)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads for the checks (default 2)")
+
+
+def run(args) -> int:
+    from vs2t_edge.export.export import ExportError, export_random_trunk, export_run
+    from vs2t_edge.runtime.bundle import BundleError
+
+    def log(msg: str) -> None:
+        print(f"export: {msg}", file=sys.stderr, flush=True)
+
+    t0 = time.time()
+    try:
+        if args.random_trunk:
+            if args.run or not args.dataset or not args.size:
+                print("export: --random-trunk needs --dataset and --size and no RUN", file=sys.stderr)
+                return 2
+            m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
+                                    trunk_precision=args.trunk_precision,
+                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads)
+        else:
+            if not args.run:
+                print("export: give a training run folder (or --random-trunk)", file=sys.stderr)
+                return 2
+            if not (Path(args.run) / "artifacts" / "model.pt").is_file():
+                print(f"export: {args.run} has no artifacts/model.pt (run `vs2t-edge train` first)", file=sys.stderr)
+                return 2
+            m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
+                           calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
+                           threads=args.threads)
+    except (ExportError, FileNotFoundError, ValueError) as exc:
+        print(f"export: {exc}", file=sys.stderr)
+        return 2
+    except BundleError as exc:  # the written bundle failed the runtime's own verification
+        print(f"export: the exported bundle fails verification: {exc}", file=sys.stderr)
+        return 1
+    checks = m["checks"]
+    par = checks["parity_torch_vs_onnxruntime"]
+    print(f"bundle {args.out}: {m['graphs']['trunk']['arch']} {m['graphs']['trunk']['precision']} at "
+          f"{m['preprocess']['size']} px, {len(m['classes']['touched'])} touched + "
+          f"{len(m['classes']['untouched'])} untouched classes, verified ({time.time() - t0:.1f} s)")
+    print(f"  torch vs onnxruntime: feature {par['feature']:.1e}, logits_t {par['logits_t']:.1e} "
+          f"(tolerance {par['tolerance']:.0e})")
+    if "int8_vs_fp32_on_calibration" in checks:
+        q = checks["int8_vs_fp32_on_calibration"]
+        print(f"  int8 vs fp32 on {q['frames']} touched presses: min feature cosine {q['feature_cosine_min']:.4f}, "
+              f"CLS_t top-1 agreement {q['cls_t_top1_agreement']:.1%}")
+    print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")
+    return 0
