@@ -912,7 +912,9 @@ def hostile_configs(w: Path):
 
 
 def bundle_tampered(w: Path):
-    return "", []
+    # runtime/bundle.py landed while this matrix was written; the tamper rows are not written yet,
+    # so the row reports itself pending instead of passing on nothing.
+    return "skipped: bundle tamper scenario not written yet (runtime/bundle.py arrived late)", []
 
 
 # --- the matrix -----------------------------------------------------------------------------
