@@ -85,6 +85,47 @@ def graph_io(path: Path) -> dict[str, dict[str, list]]:
             "outputs": {v.name: dims(v) for v in model.graph.output}}
 
 
+def count_macs(path: Path) -> dict[str, int]:
+    """Multiply-accumulates of one frame (batch 1) by op type, from the graph itself: Conv =
+    C_out x H_out x W_out x (C_in / group) x kH x kW, MatMul/Gemm = M x K x N. Shapes are
+    observed, not inferred: every Conv/MatMul/Gemm tensor is made a graph output and the graph
+    is run once on zeros (static shape inference cannot see through EfficientNet's computed
+    "same" padding). Element-wise ops are not counted (memory-bound, < 1 % of these trunks' MACs)."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    model = onnx.load(str(path))
+    init = {i.name: list(numpy_helper.to_array(i).shape) for i in model.graph.initializer}
+    nodes = [n for n in model.graph.node if n.op_type in ("Conv", "MatMul", "Gemm")]
+    present = {o.name for o in model.graph.output}
+    wanted = sorted({t for n in nodes for t in list(n.input[:2]) + [n.output[0]] if t and t not in init} - present)
+    model.graph.output.extend([onnx.ValueInfoProto(name=t) for t in wanted])
+    sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    inp = sess.get_inputs()[0]
+    x = np.zeros([d if isinstance(d, int) else 1 for d in inp.shape], np.float32)
+    names = [o.name for o in sess.get_outputs()]
+    shapes = {n: list(v.shape) for n, v in zip(names, sess.run(None, {inp.name: x}))}
+    shapes.update(init)
+    out: dict[str, int] = {}
+    for node in nodes:
+        macs = 0
+        if node.op_type == "Conv":
+            w, y = shapes.get(node.input[1]), shapes.get(node.output[0])
+            if w and y and len(y) == 4:
+                macs = int(np.prod(y[1:])) * int(np.prod(w[1:]))  # w: (C_out, C_in/group, kH, kW)
+        else:
+            a, b = shapes.get(node.input[0]), shapes.get(node.input[1])
+            if a and b:
+                trans_b = any(at.name == "transB" and at.i for at in node.attribute)
+                k, n = (b[-1], b[-2]) if trans_b else (b[-2], b[-1])
+                macs = int(np.prod(a[:-1])) * k * n
+        if macs:
+            out[node.op_type] = out.get(node.op_type, 0) + macs
+    out["total"] = sum(out.values())
+    return out
+
+
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-6))
@@ -234,6 +275,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
         if bad:
             raise ExportError(f"torch and onnxruntime disagree beyond {PARITY_TOLERANCE}: {bad}")
 
+        macs = count_macs(fp32)
         trunk_file = tmp / "trunk.onnx"
         quant: dict | None = None
         if trunk_precision == "int8":
@@ -287,7 +329,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
         graphs = {}
         for key, path in (("trunk", trunk_file), ("heads", tmp / "heads.onnx")):
             graphs[key] = {"file": path.name, "opset": rb.read_onnx_opsets(path)[""], **graph_io(path)}
-        graphs["trunk"].update(arch=trunk_arch, precision=trunk_precision, input_size_px=s)
+        graphs["trunk"].update(arch=trunk_arch, precision=trunk_precision, input_size_px=s, macs_per_frame=macs)
         if quant:
             graphs["trunk"]["quantisation"] = quant
         graphs["heads"]["precision"] = "fp32"
@@ -466,4 +508,4 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
 
 
 __all__ = ["OPSET", "ExportError", "write_bundle", "export_run", "export_random_trunk", "press_partition",
-           "fit_gating_temperature", "gating_scale", "export_onnx", "graph_io"]
+           "fit_gating_temperature", "gating_scale", "count_macs", "export_onnx", "graph_io"]

@@ -1,0 +1,578 @@
+"""The measured speed-for-accuracy trade of bundles (`vs2t-edge bench`, docs/results/bench/).
+
+Per bundle (a variant: trunk, input size, fp32/int8):
+
+- speed, in a fresh subprocess per bundle so peak memory is the bundle's own: trunk latency at
+  batch 1 with 1 and 2 onnxruntime threads (p50/p99 over timed runs on real preprocessed presses),
+  everything per press outside the trunk timed by stage (PNG decode, preprocess, heads, router,
+  decision incl. the evidence update), peak RSS (VmHWM) next to a baseline process that imports
+  the same modules and loads nothing;
+- the compute limit: MACs per frame (counted from the graph at export, manifest
+  ``graphs.trunk.macs_per_frame``) / this machine's measured GEMM peak (``measure_peak``), and
+  the fraction of it the trunk reaches;
+- accuracy, for trained bundles, on presses the model never trained on (the manifest records
+  which presses trained it): per press ZSL accuracy and GZSL acc_t / acc_u / H at the bundle's
+  beta (hard route, the paper's protocol); per item (random presses of one fabric) for 1, 3, 5, 9
+  presses with the soft-gated posterior summed in log space, and the sequential rule
+  (runtime.evidence, confidence 0.95, at most 9 presses): presses used, accuracy, unknown rate.
+  The scene is every class of the bundle (the hardest scene the cell can be given).
+
+No torch here (runtime/). ``onnx`` (train extra) is used only to build the GEMM graphs of the
+peak measurement; without it the fp32 peak comes from numpy and the int8 peak is not measured.
+matplotlib (train extra) draws the Pareto plot when importable.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+ITEM_PRESSES = (1, 3, 5, 9)
+SEQ_CONFIDENCE, SEQ_MAX_PRESSES = 0.95, 9
+
+
+def _log(msg: str) -> None:
+    print(f"bench: {msg}", file=sys.stderr, flush=True)
+
+
+def _pct(values: Sequence[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, np.float64), q)) if len(values) else math.nan
+
+
+# ------------------------------------------------------------------ compute peak
+
+
+def _gemm_graph(n: int, int8: bool) -> bytes:
+    import onnx
+    from onnx import TensorProto, helper
+
+    if int8:
+        a = helper.make_tensor_value_info("a", TensorProto.UINT8, [n, n])
+        b = helper.make_tensor_value_info("b", TensorProto.INT8, [n, n])
+        y = helper.make_tensor_value_info("y", TensorProto.INT32, [n, n])
+        node = helper.make_node("MatMulInteger", ["a", "b"], ["y"])
+    else:
+        a = helper.make_tensor_value_info("a", TensorProto.FLOAT, [n, n])
+        b = helper.make_tensor_value_info("b", TensorProto.FLOAT, [n, n])
+        y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [n, n])
+        node = helper.make_node("MatMul", ["a", "b"], ["y"])
+    g = helper.make_graph([node], "gemm", [a, b], [y])
+    return helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]).SerializeToString()
+
+
+def measure_peak(threads: int, precision: str, n: int = 1024, repeats: int = 15) -> dict:
+    """GEMM throughput (MAC/s) of an n x n x n matrix product through onnxruntime's own kernels
+    (MLAS; MatMul for fp32, MatMulInteger u8 x s8 for int8 - the VNNI path the QDQ convs use),
+    ``threads`` intra-op threads; the fastest of ``repeats`` runs after 3 warm-ups, i.e. a
+    practical peak, not the datasheet's."""
+    try:
+        import onnxruntime as ort
+
+        model = _gemm_graph(n, precision == "int8")
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        sess = ort.InferenceSession(model, sess_options=so, providers=["CPUExecutionProvider"])
+        rng = np.random.default_rng(0)
+        if precision == "int8":
+            feeds = {"a": rng.integers(0, 255, (n, n), dtype=np.uint8), "b": rng.integers(-127, 127, (n, n), dtype=np.int8)}
+        else:
+            feeds = {"a": rng.standard_normal((n, n), dtype=np.float32), "b": rng.standard_normal((n, n), dtype=np.float32)}
+        run = lambda: sess.run(None, feeds)  # noqa: E731
+        how = f"onnxruntime {'MatMulInteger u8xs8' if precision == 'int8' else 'MatMul fp32'} {n}^3, {threads} thread(s)"
+    except ImportError:
+        if precision == "int8":
+            return {"macs_per_s": math.nan, "how": "not measured (needs the onnx package to build the GEMM graph)"}
+        a = np.random.default_rng(0).standard_normal((n, n), dtype=np.float32)
+        run = lambda: a @ a  # noqa: E731
+        how = f"numpy matmul fp32 {n}^3 (its BLAS's own thread count)"
+    for _ in range(3):
+        run()
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - t0)
+    return {"macs_per_s": n ** 3 / best, "how": how}
+
+
+# ------------------------------------------------------------------ data
+
+
+def _dataset_of(manifest: dict, override: str | None) -> Path | None:
+    prov = manifest.get("provenance", {})
+    for cand in (override, prov.get("data", {}).get("dataset"), prov.get("dataset")):
+        if cand and Path(cand).is_dir():
+            return Path(cand)
+    return None
+
+
+def eval_presses(manifest: dict, ds, cap: int) -> dict[str, list[int]]:
+    """Presses the bundle never trained on, per fabric: touched = test + unused (not train, not
+    the val presses beta and the gate were tuned on); untouched = all; at most ``cap`` each,
+    evenly spread over the grid."""
+    part = manifest["provenance"]["data"]["touched_presses"]
+    out = {}
+    for fid in manifest["classes"]["touched"]:
+        idx = sorted(part[fid]["test"] + part[fid]["unused"])
+        out[fid] = _spread(idx, cap)
+    for fid in manifest["classes"]["untouched"]:
+        out[fid] = _spread(list(range(len(ds.by_id(fid).presses))), cap)
+    return out
+
+
+def _spread(idx: list[int], k: int) -> list[int]:
+    if len(idx) <= k:
+        return list(idx)
+    return [idx[int(j)] for j in np.linspace(0, len(idx) - 1, k).round().astype(int)]
+
+
+# ------------------------------------------------------------------ speed (worker process)
+
+
+def _vm_hwm_mb() -> float:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _import_runtime() -> None:
+    import cv2  # noqa: F401
+    import onnxruntime  # noqa: F401
+
+    from vs2t_edge.runtime import evidence, inference  # noqa: F401
+
+
+def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
+                 n_frames: int = 16) -> dict:
+    """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS."""
+    import cv2
+
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.inference import TactileModel
+
+    _import_runtime()
+    out: dict[str, Any] = {"latency": {}, "overhead_ms": {}}
+    raw_png: list[bytes] = []
+    ref = None
+    model = None
+    for t in threads_list:
+        model = TactileModel.load(bundle, threads=t)
+        if ref is None:
+            ds_root = _dataset_of(model.manifest, dataset)
+            if ds_root is None:
+                raise FileNotFoundError(f"{bundle}: its dataset is not here; pass --dataset")
+            ds = load_dataset(ds_root)
+            fab = ds.by_id(model.touched[0])
+            ref = fab.load_reference()
+            for i in _spread(list(range(len(fab.presses))), n_frames):
+                raw_png.append(fab.presses[i].path.read_bytes())
+        model.set_reference(ref)
+        frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in raw_png]
+        xs = [model.preprocess(f) for f in frames]
+        sess, name = model._trunk, model._trunk_in
+        for x in xs[:3]:
+            sess.run(None, {name: x})
+        t0 = time.perf_counter()
+        sess.run(None, {name: xs[0]})
+        est = time.perf_counter() - t0
+        n = int(min(400, max(30, budget_s / max(est, 1e-4))))
+        times = []
+        for k in range(n):
+            x = xs[k % len(xs)]
+            t0 = time.perf_counter()
+            sess.run(None, {name: x})
+            times.append(1e3 * (time.perf_counter() - t0))
+        out["latency"][str(t)] = {"p50_ms": _pct(times, 50), "p99_ms": _pct(times, 99), "runs": n}
+    # everything per press outside the trunk, on the last (2-thread) model, real frames
+    stages: dict[str, list[float]] = {k: [] for k in ("decode", "preprocess", "heads", "router", "decision", "evidence")}
+    for k in range(max(60, 4 * len(raw_png))):
+        b = raw_png[k % len(raw_png)]
+        t0 = time.perf_counter()
+        frame = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
+        stages["decode"].append(1e3 * (time.perf_counter() - t0))
+        s = model.score_press(frame)
+        tm = model.last_timing
+        for key in ("preprocess", "heads", "router", "decision"):
+            stages[key].append(tm[f"{key}_ms"])
+        ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+        t0 = time.perf_counter()
+        ev.add(s)
+        stages["evidence"].append(1e3 * (time.perf_counter() - t0))
+    out["overhead_ms"] = {k: _pct(v, 50) for k, v in stages.items()}
+    out["overhead_ms"]["total"] = float(sum(out["overhead_ms"].values()))
+    out["overhead_p99_ms"] = {k: _pct(v, 99) for k, v in stages.items()}
+    out["peak_rss_mb"] = _vm_hwm_mb()
+    return out
+
+
+def baseline_worker() -> dict:
+    _import_runtime()
+    return {"peak_rss_mb": _vm_hwm_mb()}
+
+
+def _run_worker(args: list[str], timeout_s: float = 900) -> dict:
+    cmd = [sys.executable, "-m", "vs2t_edge.runtime.bench", *args]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=env)
+    if res.returncode != 0:
+        raise RuntimeError(f"bench worker failed ({' '.join(args[:2])}): {res.stderr.strip()[-800:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+# ------------------------------------------------------------------ accuracy
+
+
+def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str], None] = _log) -> dict:
+    """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u."""
+    from vs2t_edge.runtime.novelty import log_softmax
+    from vs2t_edge.runtime.preprocess import preprocess_tactile
+
+    cls_index = {c: i for i, c in enumerate(model.classes)}
+    lp, nov, lsu, lab = [], [], [], []
+    for j, (fid, idx) in enumerate(presses.items()):
+        fab = ds.by_id(fid)
+        ref = fab.load_reference()
+        x = np.stack([preprocess_tactile(fab.load_press(i), ref, model.preprocess_spec) for i in idx])
+        for a in range(0, len(x), 32):
+            o = model.forward(x[a:a + 32])
+            lp.append(model.log_posterior(o))
+            nov.append(o.novelty)
+            lsu.append(log_softmax(o.logits_u, axis=1))
+        lab.append(np.full(len(idx), cls_index[fid]))
+        print(f"\rbench: scoring presses, fabric {j + 1}/{len(presses)}", end="", file=sys.stderr, flush=True)
+    print("", file=sys.stderr)
+    return {"lp": np.concatenate(lp), "novelty": np.concatenate(nov), "lsu": np.concatenate(lsu),
+            "label": np.concatenate(lab)}
+
+
+def _per_class_mean(correct: np.ndarray, labels: np.ndarray) -> float:
+    if correct.size == 0:
+        return math.nan
+    return float(np.mean([np.mean(correct[labels == c]) for c in np.unique(labels)]))
+
+
+def _h(a: float, b: float) -> float:
+    return 0.0 if a + b == 0 or math.isnan(a) or math.isnan(b) else 2 * a * b / (a + b)
+
+
+def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
+    """Per press and per item accuracies (module doc); all in percent."""
+    from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+    from vs2t_edge.runtime.novelty import gzsl_accuracies
+
+    ct = len(model.touched)
+    lab, lp, lsu, nov = out["label"], out["lp"], out["lsu"], out["novelty"]
+    is_t = lab < ct
+    res: dict[str, Any] = {"eval_presses": {"touched": int(is_t.sum()), "untouched": int((~is_t).sum())}}
+    # per press: the paper's protocol (hard route at beta)
+    routed_u = nov > model.beta
+    pred_t = np.argmax(lp[:, :ct], axis=1)  # = argmax logits_t (the gate is a constant per press)
+    pred_u = ct + np.argmax(lsu, axis=1)
+    g = gzsl_accuracies(routed_u[is_t], pred_t[is_t] == lab[is_t], routed_u[~is_t], pred_u[~is_t] == lab[~is_t],
+                        lab[is_t], lab[~is_t])
+    res["press"] = {"zsl": 100 * _per_class_mean(pred_u[~is_t] == lab[~is_t], lab[~is_t]),
+                    "acc_t": 100 * g["acc_t"], "acc_u": 100 * g["acc_u"], "H": 100 * g["H"],
+                    "touched_routed_untouched": 100 * float(np.mean(routed_u[is_t])),
+                    "untouched_routed_untouched": 100 * float(np.mean(routed_u[~is_t]))}
+    # per item
+    rng = np.random.default_rng(seed)
+    kmax = max(max(ITEM_PRESSES), SEQ_MAX_PRESSES)
+    items, item_lab, replaced = [], [], 0
+    for c in np.unique(lab):
+        rows = np.flatnonzero(lab == c)
+        for _ in range(n_items):
+            if len(rows) >= kmax:
+                items.append(rng.choice(rows, kmax, replace=False))
+            else:
+                items.append(rng.choice(rows, kmax, replace=True))
+                replaced += 1
+        item_lab += [c] * n_items
+    items, item_lab = np.stack(items), np.asarray(item_lab)
+    it_t = item_lab < ct
+    res["items"] = {"per_class": n_items, "drawn_with_replacement": replaced,
+                    "note": "presses of one fabric drawn at random; scene = all bundle classes"}
+    for k in ITEM_PRESSES:
+        acc_lp = lp[items[:, :k]].sum(axis=1)  # (items, C): log posteriors summed over k presses
+        pred = np.argmax(acc_lp, axis=1)
+        zs = ct + np.argmax(lsu[items[:, :k]].sum(axis=1), axis=1)
+        at = _per_class_mean(pred[it_t] == item_lab[it_t], item_lab[it_t])
+        au = _per_class_mean(pred[~it_t] == item_lab[~it_t], item_lab[~it_t])
+        res["items"][str(k)] = {"zsl": 100 * _per_class_mean(zs[~it_t] == item_lab[~it_t], item_lab[~it_t]),
+                                "acc_t": 100 * at, "acc_u": 100 * au, "H": 100 * _h(at, au)}
+    # the sequential rule
+    classes = list(model.classes)
+    used, correct, unknown = [], [], []
+    for row, c in zip(items, item_lab):
+        ev = Evidence(classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+        d = None
+        for r in row[:SEQ_MAX_PRESSES]:
+            d = ev.add(_Score(dict(zip(classes, lp[r]))))
+            if d is not None:
+                break
+        used.append(d.presses)
+        correct.append(d.label == classes[c])
+        unknown.append(d.label == UNKNOWN)
+    used, correct, unknown = np.asarray(used), np.asarray(correct), np.asarray(unknown)
+    at = _per_class_mean(correct[it_t], item_lab[it_t])
+    au = _per_class_mean(correct[~it_t], item_lab[~it_t])
+    res["sequential"] = {"confidence": SEQ_CONFIDENCE, "max_presses": SEQ_MAX_PRESSES,
+                         "presses_mean": float(used.mean()), "presses_touched": float(used[it_t].mean()),
+                         "presses_untouched": float(used[~it_t].mean()), "acc_t": 100 * at, "acc_u": 100 * au,
+                         "H": 100 * _h(at, au), "unknown": 100 * float(unknown.mean())}
+    return res
+
+
+class _Score:
+    __slots__ = ("log_posterior",)
+
+    def __init__(self, lp: dict) -> None:
+        self.log_posterior = lp
+
+
+# ------------------------------------------------------------------ the bench
+
+
+def describe(bundle: Path) -> dict:
+    from vs2t_edge.runtime.bundle import read_manifest
+
+    m = read_manifest(bundle)
+    tr = m["graphs"]["trunk"]
+    size_b = sum((bundle / f).stat().st_size for f in m["files"])
+    return {"bundle": str(bundle), "name": bundle.name, "arch": tr.get("arch", "?"), "precision": tr.get("precision", "?"),
+            "size_px": int(m["preprocess"]["size"]), "trained": bool(m.get("provenance", {}).get("trained", True)),
+            "macs": int(tr.get("macs_per_frame", {}).get("total", 0)) or None,
+            "bundle_mb": size_b / 1e6, "trunk_mb": (bundle / tr["file"]).stat().st_size / 1e6,
+            "classes": [len(m["classes"]["touched"]), len(m["classes"]["untouched"])],
+            "run": m.get("provenance", {}).get("run")}
+
+
+def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
+              threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 60,
+              accuracy_on: bool = True, log: Callable[[str], None] = _log) -> dict:
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+
+    t_start = time.time()
+    log("measuring this machine's GEMM peak (1 and 2 threads, fp32 and int8)")
+    peak = {p: {str(t): measure_peak(t, p) for t in threads} for p in ("fp32", "int8")}
+    base = _run_worker(["--baseline"])
+    rows = []
+    for i, b in enumerate(bundles):
+        b = Path(b)
+        row = describe(b)
+        log(f"[{i + 1}/{len(bundles)}] {b.name}: speed ({row['arch']} {row['precision']} {row['size_px']} px)")
+        args = ["--worker", str(b), "--threads", ",".join(map(str, threads)), "--budget", str(budget_s)]
+        if dataset:
+            args += ["--dataset", dataset]
+        row.update(_run_worker(args))
+        row["rss_over_baseline_mb"] = row["peak_rss_mb"] - base["peak_rss_mb"]
+        if row["macs"]:
+            row["limit_ms"], row["fraction_of_peak"] = {}, {}
+            for t in map(str, threads):
+                pk = peak[row["precision"]][t]["macs_per_s"]
+                if pk and math.isfinite(pk):
+                    row["limit_ms"][t] = 1e3 * row["macs"] / pk
+                    row["fraction_of_peak"][t] = row["limit_ms"][t] / row["latency"][t]["p50_ms"]
+        if accuracy_on and row["trained"]:
+            model = TactileModel.load(b, threads=max(threads))
+            ds_root = _dataset_of(model.manifest, dataset)
+            if ds_root is not None and "data" in model.manifest.get("provenance", {}):
+                log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses")
+                ds = load_dataset(ds_root)
+                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap))
+                row["accuracy"] = accuracy(model, outs, n_items=n_items)
+            del model
+        rows.append(row)
+    result = {"machine": _machine(), "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
+              "seconds": round(time.time() - t_start, 1),
+              "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    result["comparisons"] = compare_pairs(rows)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+        (out_dir / "bench.md").write_text(render_markdown(result))
+        try:
+            plot_pareto(result, out_dir / "pareto.png")
+        except ImportError:
+            log("matplotlib not installed: no pareto.png (install the [train] extra)")
+    return result
+
+
+def _machine() -> dict:
+    import platform
+
+    import onnxruntime
+
+    cpu = "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "onnxruntime": onnxruntime.__version__,
+            "python": platform.python_version(), "load_avg_at_start": list(os.getloadavg())}
+
+
+def compare_pairs(rows: list[dict]) -> list[dict]:
+    """int8 vs fp32 of the same trunk, size and run: speed-up and accuracy difference."""
+    out = []
+    for r8 in rows:
+        if r8["precision"] != "int8":
+            continue
+        for r32 in rows:
+            if (r32["precision"] == "fp32" and r32["arch"] == r8["arch"] and r32["size_px"] == r8["size_px"]
+                    and r32.get("run") == r8.get("run")):
+                c = {"int8": r8["name"], "fp32": r32["name"],
+                     "speedup_2t": r32["latency"]["2"]["p50_ms"] / r8["latency"]["2"]["p50_ms"]}
+                if "accuracy" in r8 and "accuracy" in r32:
+                    a8, a32 = r8["accuracy"], r32["accuracy"]
+                    c["delta_points"] = {"press_H": a8["press"]["H"] - a32["press"]["H"],
+                                         "press_zsl": a8["press"]["zsl"] - a32["press"]["zsl"],
+                                         "press_acc_t": a8["press"]["acc_t"] - a32["press"]["acc_t"],
+                                         "item5_H": a8["items"]["5"]["H"] - a32["items"]["5"]["H"],
+                                         "sequential_H": a8["sequential"]["H"] - a32["sequential"]["H"]}
+                    c["within_1_point"] = all(abs(v) <= 1.0 for v in c["delta_points"].values())
+                out.append(c)
+    return out
+
+
+def _f(v, fmt="{:.1f}") -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
+
+
+def render_table(result: dict) -> str:
+    hdr = ("| variant | trunk | px | prec | MMAC | p50 1t | p99 1t | p50 2t | p99 2t | limit 2t | of peak 2t "
+           "| outside trunk | RSS MB | bundle MB | ZSL/press | H/press | H 1 | H 3 | H 5 | H 9 | seq presses | seq H | seq unknown |")
+    lines = [hdr, "|" + "---|" * (hdr.count("|") - 1)]
+    for r in result["variants"]:
+        a = r.get("accuracy")
+        lat = r["latency"]
+        acc = ["–"] * 9
+        if a:
+            acc = [_f(a["press"]["zsl"]), _f(a["press"]["H"])] + [_f(a["items"][str(k)]["H"]) for k in ITEM_PRESSES] + [
+                _f(a["sequential"]["presses_mean"], "{:.2f}"), _f(a["sequential"]["H"]), _f(a["sequential"]["unknown"])]
+        elif not r["trained"]:
+            acc = ["untrained"] + ["–"] * 8
+        lines.append("| " + " | ".join([
+            r["name"], r["arch"], str(r["size_px"]), r["precision"], _f((r["macs"] or math.nan) / 1e6, "{:.0f}"),
+            _f(lat.get("1", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("1", {}).get("p99_ms"), "{:.2f}"),
+            _f(lat.get("2", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("2", {}).get("p99_ms"), "{:.2f}"),
+            _f(r.get("limit_ms", {}).get("2"), "{:.2f}"), _f(r.get("fraction_of_peak", {}).get("2"), "{:.0%}"),
+            _f(r["overhead_ms"]["total"], "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"), _f(r["bundle_mb"], "{:.1f}"),
+            *acc]) + " |")
+    return "\n".join(lines)
+
+
+def render_markdown(result: dict) -> str:
+    m, pk = result["machine"], result["peak"]
+    lines = ["# Speed for accuracy: the bench", "",
+             f"Measured {result['time_utc']} on {m['cpu']} ({m['cores']} cores, shared with other helpers' jobs; "
+             f"load average at start {', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}), onnxruntime "
+             f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
+             "at batch 1; ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
+             "", "## Compute peak of this machine", "",
+             "| precision | 1 thread | 2 threads | how |", "|---|---|---|---|"]
+    for p in ("fp32", "int8"):
+        lines.append(f"| {p} | {_f(pk[p]['1']['macs_per_s'] / 1e9)} GMAC/s | {_f(pk[p]['2']['macs_per_s'] / 1e9)} GMAC/s "
+                     f"| {pk[p]['2']['how']}, fastest of 15 |")
+    lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
+              "## Variants", "", render_table(result), "",
+              "Columns: latency in ms (trunk only); *outside trunk* = median ms per press of PNG decode + preprocess + "
+              "heads + router + decision + evidence update (target < 2 ms); RSS = peak resident memory of a process that "
+              f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
+              f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training; H = harmonic mean of "
+              "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
+              f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
+              "counted wrong).", "", "## Outside the trunk, per press (median ms)", "",
+              "| variant | decode | preprocess | heads | router | decision | evidence | total |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["variants"]:
+        o = r["overhead_ms"]
+        lines.append(f"| {r['name']} | " + " | ".join(_f(o[k], "{:.3f}") for k in
+                                                     ("decode", "preprocess", "heads", "router", "decision", "evidence", "total")) + " |")
+    if result["comparisons"]:
+        lines += ["", "## int8 against fp32", "", "| int8 | fp32 | speed-up (2 threads) | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H | within 1 point |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for c in result["comparisons"]:
+            d = c.get("delta_points")
+            lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
+                _f(d[k], "{:+.1f}") for k in ("press_H", "press_zsl", "item5_H", "sequential_H")) + f" | {'yes' if c['within_1_point'] else 'no'} |"
+                if d else "– | – | – | – | – |"))
+    return "\n".join(lines) + "\n"
+
+
+def plot_pareto(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    trained = [r for r in result["variants"] if "accuracy" in r]
+    for ax, key, label in ((axes[0], lambda a: a["press"]["H"], "GZSL H per press (%)"),
+                           (axes[1], lambda a: a["sequential"]["H"], "GZSL H per item, sequential rule (%)")):
+        pts = sorted(((r["latency"]["2"]["p50_ms"], key(r["accuracy"]), r) for r in trained), key=lambda p: p[0])
+        for x, y, r in pts:
+            ax.scatter(x, y, marker="o" if r["precision"] == "fp32" else "s",
+                       color={"efficientnet_lite0": "C0", "resnet50": "C3", "tiny": "C2"}.get(r["arch"], "C7"))
+            ax.annotate(f"{r['arch'].replace('efficientnet_lite0', 'effnet')} {r['size_px']} {r['precision']}", (x, y),
+                        fontsize=7, xytext=(3, 3), textcoords="offset points")
+        front, best = [], -1.0
+        for x, y, _ in pts:  # Pareto front: faster and at least as accurate
+            if y > best:
+                front.append((x, y))
+                best = y
+        if front:
+            ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="k", lw=0.8, alpha=0.6)
+        for r in result["variants"]:
+            if "accuracy" not in r:
+                ax.axvline(r["latency"]["2"]["p50_ms"], color="C3" if r["arch"] == "resnet50" else "C7", ls=":", lw=0.8)
+                ax.annotate(f"{r['arch']} {r['size_px']} {r['precision']} (untrained)", (r["latency"]["2"]["p50_ms"], 0),
+                            rotation=90, fontsize=6, va="bottom")
+        ax.set_xscale("log")
+        ax.set_xlabel("trunk latency p50, batch 1, 2 threads (ms)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_title("circles fp32, squares int8; line = Pareto front", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _main(argv: list[str]) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser()
+    p.add_argument("--worker")
+    p.add_argument("--baseline", action="store_true")
+    p.add_argument("--threads", default="1,2")
+    p.add_argument("--budget", type=float, default=4.0)
+    p.add_argument("--dataset")
+    a = p.parse_args(argv)
+    if a.baseline:
+        print(json.dumps(baseline_worker()))
+    else:
+        print(json.dumps(speed_worker(a.worker, a.dataset, [int(t) for t in a.threads.split(",")], a.budget)))
+    return 0
+
+
+if __name__ == "__main__":  # the speed worker process
+    sys.exit(_main(sys.argv[1:]))

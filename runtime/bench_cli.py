@@ -1,0 +1,52 @@
+"""`vs2t-edge bench BUNDLE... [--out DIR]`: the speed-for-accuracy table (runtime/bench.py).
+
+Prints the table; with --out writes bench.md, bench.json and (with matplotlib) pareto.png.
+Make the variants with `vs2t-edge export` (docs/results/bench/bench.md lists the commands).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser, verb: str) -> None:
+    parser.add_argument("bundles", nargs="+", help="bundle folders, one per variant")
+    parser.add_argument("--out", default=None, help="folder for bench.md, bench.json, pareto.png")
+    parser.add_argument("--dataset", default=None, help="dataset folder (default: each bundle's own)")
+    parser.add_argument("--threads", default="1,2", help="thread counts to time (default 1,2)")
+    parser.add_argument("--budget-s", type=float, default=4.0, help="seconds of timed runs per thread count")
+    parser.add_argument("--items", type=int, default=100, help="simulated items per class (default 100)")
+    parser.add_argument("--max-eval-presses", type=int, default=60, help="held-out presses per fabric (default 60)")
+    parser.add_argument("--no-accuracy", action="store_true", help="speed only")
+
+
+def run(args) -> int:
+    from vs2t_edge.runtime.bench import render_table, run_bench
+    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+
+    bundles = [Path(b) for b in args.bundles]
+    try:
+        threads = tuple(int(t) for t in args.threads.split(","))
+        if not threads or min(threads) < 1:
+            raise ValueError
+    except ValueError:
+        print(f"bench: --threads {args.threads!r}: give thread counts like 1,2", file=sys.stderr)
+        return 2
+    for b in bundles:
+        try:
+            read_manifest(b)
+        except BundleError as exc:
+            print(f"bench: {exc}", file=sys.stderr)
+            return 2
+    try:
+        result = run_bench(bundles, Path(args.out) if args.out else None, dataset=args.dataset, threads=threads,
+                           budget_s=args.budget_s, n_items=args.items, cap=args.max_eval_presses,
+                           accuracy_on=not args.no_accuracy)
+    except (BundleError, FileNotFoundError, RuntimeError) as exc:
+        print(f"bench: {exc}", file=sys.stderr)
+        return 1
+    print(render_table(result))
+    if args.out:
+        print(f"bench: wrote {args.out}/bench.md, bench.json" + (", pareto.png" if (Path(args.out) / "pareto.png").exists() else ""))
+    return 0
