@@ -1,0 +1,174 @@
+"""export/: a run folder -> a bundle the runtime verifies; train/serve parity (torch vs
+onnxruntime) within a stated tolerance; int8 calibrated on touched fabrics only; MACs counted."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from test_bundle_fixtures import tiny_world, world_frames
+from vs2t_edge.export import export as ex
+from vs2t_edge.runtime.inference import TactileModel
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A run folder as train/ writes it, with the tiny trunk on the tiny fabric world."""
+    from vs2t_edge.runtime import novelty as nv
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
+    from vs2t_edge.train.models import Classifier
+    from vs2t_edge.train.trunks import build_trunk
+
+    torch.manual_seed(0)
+    ds = load_dataset(tiny_world())
+    ids = ds.ids
+    touched, untouched, validation = ids[:6], ids[6:8], ids[8:10]
+    trunk = build_trunk("tiny").eval()
+    x, _, _ = world_frames(64)
+    with torch.no_grad():
+        f = trunk(torch.from_numpy(x[: 6 * 9])).numpy()
+    mean, std = f.mean(0), f.std(0) + 1e-3
+    router = nv.fit_router("gaussian", (f - mean) / std, keep_covariance=False)
+    art = RunArtifacts(trunk_arch="tiny", trunk_state=trunk.state_dict(), feature_dim=64,
+                       preprocess=TactilePreprocess(size=64).to_dict(), feature_mean=mean, feature_std=std,
+                       cls_t_state=Classifier(64, 6).state_dict(), touched=touched,
+                       cls_u_state=Classifier(64, 2).state_dict(), untouched=untouched, router_name="gaussian",
+                       router_params=router.to_params(), beta=float(np.median(router.novelty((f - mean) / std))),
+                       validation=validation, dataset=str(tiny_world()), touched_fabric_ids=touched,
+                       info={"split_seed": 0})
+    run = tmp_path_factory.mktemp("run")
+    save_run_artifacts(run, art)
+    return run, art
+
+
+def test_export_run_fp32_and_int8_verify(tiny_run, tmp_path):
+    run, art = tiny_run
+    for prec in ("fp32", "int8"):
+        out = tmp_path / f"b_{prec}"
+        m = ex.export_run(run, out, trunk_precision=prec, calibration_frames=24)
+        model = TactileModel.load(out, threads=1)
+        assert list(model.touched) == art.touched and list(model.untouched) == art.untouched
+        assert m["graphs"]["trunk"]["precision"] == prec and m["graphs"]["trunk"]["opset"] >= 17
+        assert m["provenance"]["run"] == str(run.resolve()) and m["provenance"]["trained"] is True
+        # calibration presses come only from touched fabrics, and only from their training presses
+        data = m["provenance"]["data"]
+        assert set(data["calibration_fabrics"]) <= set(art.touched)
+        assert not set(data["calibration_fabrics"]) & set(art.untouched + art.validation)
+        assert m["gating"]["temperature"] > 0 and m["gating"]["scale"] > 0
+        if prec == "int8":
+            q = m["graphs"]["trunk"]["quantisation"]
+            assert q["method"] == "static QDQ" and "per-channel" in q["weights"]
+            import onnx
+
+            ops = {n.op_type for n in onnx.load(str(out / "trunk.onnx")).graph.node}
+            assert {"QuantizeLinear", "DequantizeLinear"} <= ops and "ConvInteger" not in ops
+            assert m["checks"]["int8_vs_fp32_on_calibration"]["cls_t_top1_agreement"] >= 0.9
+
+
+def test_press_partition_is_the_trainers(tiny_run):
+    """The manifest's 'which presses trained it' must be train/features.py's partition."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.train.features import touched_training_rows
+
+    ids = [f"f{i:02d}" for i in range(7)]
+    counts = {f: 20 + 3 * i for i, f in enumerate(ids)}
+    touched = ids[1:5]
+    fabric = np.concatenate([np.full(counts[f], i) for i, f in enumerate(ids)])
+    rows, _ = touched_training_rows(fabric, ids, SimpleNamespace(touched=touched, seed=3))
+    start = {f: int(np.flatnonzero(fabric == i)[0]) for i, f in enumerate(ids)}
+    part = ex.press_partition(counts, touched, seed=3, max_presses=None)
+    want = sorted(start[f] + p for f in touched for p in part[f]["train"])
+    assert sorted(rows.tolist()) == want
+    # with max_presses, presses off the evenly spaced subset are 'unused' and never train
+    part45 = ex.press_partition({"a": 225}, ["a"], seed=0, max_presses=45)["a"]
+    assert len(part45["unused"]) == 180 and not set(part45["unused"]) & set(part45["train"])
+
+
+def test_parity_efficientnet_trunk_torch_vs_onnxruntime(tmp_path):
+    """Train/serve parity on the real architecture (random init, 64 px, world frames):
+    max |ort - torch| / max |torch| <= PARITY_TOLERANCE."""
+    from vs2t_edge.runtime.bundle import open_session
+    from vs2t_edge.train.trunks import build_trunk
+
+    trunk = build_trunk("efficientnet_lite0", pretrained=False).eval()
+    x, _, _ = world_frames(64)
+    x = x[:6]
+    ex.export_onnx(trunk, torch.from_numpy(x[:1]), tmp_path / "t.onnx", "image", ["feature"])
+    with torch.no_grad():
+        ref = trunk(torch.from_numpy(x)).numpy()
+    (got,) = open_session(tmp_path / "t.onnx", 1).run(None, {"image": x})
+    assert got.shape == ref.shape == (6, 1280)
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= ex.PARITY_TOLERANCE
+
+
+@given(st.integers(1, 5), st.floats(1e-3, 1e3))
+@settings(max_examples=15, deadline=None)
+def test_parity_heads_property(batch, scale):
+    from vs2t_edge.runtime.bundle import open_session
+    from vs2t_edge.train.models import Classifier
+
+    import tempfile
+    from pathlib import Path
+
+    torch.manual_seed(batch)
+    heads = ex._Heads(Classifier(16, 4, (32, 32)), Classifier(16, 3, (32, 32))).eval()
+    f = (torch.randn(batch, 16) * scale).float()
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "h.onnx"
+        ex.export_onnx(heads, torch.zeros(1, 16), p, "feature", ["logits_t", "logits_u"])
+        lt, lu = open_session(p, 1).run(None, {"feature": f.numpy()})
+    with torch.no_grad():
+        rt, ru = heads(f)
+    for a, b in ((lt, rt.numpy()), (lu, ru.numpy())):
+        assert np.max(np.abs(a - b)) <= ex.PARITY_TOLERANCE * max(1.0, float(np.max(np.abs(b))))
+
+
+def test_count_macs_by_hand(tmp_path):
+    from torch import nn
+
+    m = nn.Sequential(nn.Conv2d(3, 8, 3, stride=2, padding=1), nn.ReLU(), nn.Conv2d(8, 8, 3, padding=1, groups=8),
+                      nn.Flatten(), nn.Linear(8 * 16 * 16, 5)).eval()
+    ex.export_onnx(m, torch.zeros(1, 3, 32, 32), tmp_path / "m.onnx", "image", ["y"])
+    macs = ex.count_macs(tmp_path / "m.onnx")
+    conv = 8 * 16 * 16 * 3 * 9 + 8 * 16 * 16 * 1 * 9  # C_out*H*W*(C_in/group)*k*k
+    assert macs["Conv"] == conv and macs.get("Gemm", 0) + macs.get("MatMul", 0) == 8 * 16 * 16 * 5
+    assert macs["total"] == conv + 8 * 16 * 16 * 5
+
+
+def test_gating_temperature_recovers_a_known_logistic():
+    rng = np.random.default_rng(0)
+    nov = rng.uniform(-10, 10, 20000)
+    y = rng.random(nov.size) < 1 / (1 + np.exp(-(nov - 1.0) / 2.5))
+    t = ex.fit_gating_temperature(nov[~y], nov[y], beta=1.0)
+    assert t == pytest.approx(2.5, rel=0.1)
+
+
+def test_export_cli_usage_errors(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    assert main(["export", str(tmp_path / "norun"), "--out", str(tmp_path / "b")]) == 2
+    assert "no artifacts/model.pt" in capsys.readouterr().err
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "keep.txt").write_text("x")
+    assert main(["export", "--random-trunk", "tiny", "--dataset", str(tiny_world()), "--size", "32",
+                 "--out", str(tmp_path / "junk")]) == 2
+    assert "not a bundle; refusing" in capsys.readouterr().err
+    assert (tmp_path / "junk" / "keep.txt").exists()
+
+
+def test_export_cli_random_trunk_writes_latency_bundle(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    out = tmp_path / "b"
+    assert main(["export", "--random-trunk", "tiny", "--dataset", str(tiny_world()), "--size", "32",
+                 "--trunk-precision", "int8", "--out", str(out)]) == 0
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["provenance"]["trained"] is False and m["graphs"]["trunk"]["macs_per_frame"]["total"] > 0
+    assert "verified" in capsys.readouterr().out
