@@ -747,7 +747,7 @@ watchdog: {wait_item_timeout_s: 0.05}
 """
 
 
-def daemon_child(config: str, score_delay_s: float = 0.03) -> int:
+def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08) -> int:
     """The real daemon with fake devices and the grey model (``python -m vs2t_edge.sim.faults
     daemon-child CONFIG``): signals, journal, recovery are the production code path."""
     from vs2t_edge.runtime.arm import FakeArm
@@ -769,10 +769,15 @@ def daemon_child(config: str, score_delay_s: float = 0.03) -> int:
             time.sleep(score_delay_s)  # a press takes time: signals land mid-item
             return super().score_press(frame)
 
+    class MovingGate(FakeGate):
+        def sort(self, bin_index):
+            time.sleep(gate_travel_s)  # the flap takes time to move: a kill lands between pre_sort and ack
+            return super().sort(bin_index)
+
     pieces = Endless([])
     arm = FaultArm(FakeArm(config=cfg.arm), pieces)
     camera = SimulatedCamera(grey_frames(arm, pieces), noise_levels=1.0, seed=0)
-    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=FakeGate(), items=pieces,
+    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=MovingGate(), items=pieces,
                       evidence_factory=lambda: GreyEvidence(CLASSES, cfg.confidence, cfg.max_presses),
                       notifier=Notifier(address=""))
 
