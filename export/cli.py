@@ -22,6 +22,10 @@ def add_arguments(parser, verb: str) -> None:
                         help="input side in px (default: the run's); other sizes trade accuracy for speed")
     parser.add_argument("--calibration-frames", type=int, default=64,
                         help="touched training presses for int8 ranges, parity and the probe (default 64)")
+    parser.add_argument("--int8-calibration", choices=("minmax", "percentile", "entropy"), default="minmax",
+                        help="how int8 activation ranges are set from the calibration presses (default minmax)")
+    parser.add_argument("--float-convs", type=int, default=0,
+                        help="keep the last N convolutions of the trunk in float when quantising (default 0)")
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the run's)")
     parser.add_argument("--random-trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), default=None,
                         help="latency-only bundle of an UNTRAINED trunk (needs --dataset and --size, no RUN)")
@@ -53,6 +57,7 @@ def run(args) -> int:
                 return 2
             m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
                            calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
+                           calibration_method=args.int8_calibration, float_convs=args.float_convs,
                            threads=args.threads)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)

@@ -229,7 +229,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
                  calibration: np.ndarray, trunk_precision: str = "fp32", trunk_arch: str = "custom",
                  validation: np.ndarray | None = None, touched_heldout: np.ndarray | None = None,
                  gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
-                 provenance: dict | None = None, calibration_method: str = "minmax", opset: int = OPSET,
+                 provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
+                 opset: int = OPSET,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
@@ -282,7 +283,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
             log(f"static int8 quantisation (QDQ, per-channel) calibrated on {len(calibration)} touched presses")
             from vs2t_edge.export.quantize import quantize_trunk_static
 
-            quant = quantize_trunk_static(fp32, trunk_file, calibration, method=calibration_method)
+            quant = quantize_trunk_static(fp32, trunk_file, calibration, method=calibration_method,
+                                          float_convs=float_convs)
             (f32,) = _run_batches(rb.open_session(fp32, threads), calibration)
             (f8,) = _run_batches(rb.open_session(trunk_file, threads), calibration)
             sess_h = rb.open_session(tmp / "heads.onnx", threads)
@@ -416,8 +418,8 @@ def _run_profile(run_dir: Path) -> dict:
 
 
 def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
-               calibration_frames: int = 64, dataset: Path | str | None = None,
-               log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
+               calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
+               float_convs: int = 0, log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
@@ -457,6 +459,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         untouched=art.untouched, preprocess=spec, beta=art.beta, calibration=calib,
                         trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
                         touched_heldout=heldout, provenance=prov, log=log, threads=threads,
+                        calibration_method=calibration_method, float_convs=float_convs,
                         operating_point=f"{art.router_name} router, beta balanced on validation fabrics "
                                         f"{', '.join(art.validation)}")
 

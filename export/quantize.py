@@ -35,15 +35,24 @@ class _Reader:
         self.i = 0
 
 
-def _float_tail_nodes(model) -> list[str]:
-    """Names of the nodes after the last Conv (pooling, standardisation): kept in float."""
+def _float_tail_nodes(model, float_convs: int = 0) -> list[str]:
+    """Names of the nodes after the last ``float_convs + 1``-th Conv from the end (pooling,
+    standardisation, and the last ``float_convs`` convolutions): kept in float."""
     nodes = list(model.graph.node)
-    last_conv = max((i for i, n in enumerate(nodes) if n.op_type == "Conv"), default=-1)
-    return [n.name for n in nodes[last_conv + 1:] if n.name]
+    convs = [i for i, n in enumerate(nodes) if n.op_type == "Conv"]
+    if not convs:
+        return [n.name for n in nodes if n.name]
+    if float_convs <= 0:
+        start = convs[-1] + 1
+    elif float_convs >= len(convs):
+        start = 0
+    else:
+        start = convs[-float_convs]
+    return [n.name for n in nodes[start:] if n.name]
 
 
 def quantize_trunk_static(fp32_path: Path | str, out_path: Path | str, calibration: np.ndarray, *,
-                          method: str = "minmax", per_channel: bool = True) -> dict:
+                          method: str = "minmax", per_channel: bool = True, float_convs: int = 0) -> dict:
     """Write the QDQ int8 trunk; returns what was done (for the manifest)."""
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
@@ -65,7 +74,7 @@ def quantize_trunk_static(fp32_path: Path | str, out_path: Path | str, calibrati
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=False)
         model = onnx.load(str(pre))
         input_name = model.graph.input[0].name
-        exclude = _float_tail_nodes(model)
+        exclude = _float_tail_nodes(model, float_convs)
         extra = {"ActivationSymmetric": False, "WeightSymmetric": True}
         if method == "percentile":
             extra["CalibPercentile"] = 99.99
@@ -74,7 +83,7 @@ def quantize_trunk_static(fp32_path: Path | str, out_path: Path | str, calibrati
                         nodes_to_exclude=exclude, calibrate_method=methods[method], extra_options=extra)
     return {"method": "static QDQ", "activations": "uint8 asymmetric", "weights": "int8 symmetric per-channel"
             if per_channel else "int8 symmetric per-tensor", "calibration": method, "calibration_frames": int(len(calibration)),
-            "float_nodes": exclude}
+            "float_convs_at_end": int(float_convs), "float_nodes": len(exclude)}
 
 
 __all__ = ["quantize_trunk_static"]
