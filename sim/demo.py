@@ -112,7 +112,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     touched, untouched = list(model.touched), list(model.untouched)
     ds = load_dataset(dataset)
     scene_names = set(touched) | set(untouched)
-    off_scene = [f.name for f in ds.fabrics if f.name not in scene_names][:max(1, len(scene_names) // 4)]
+    off_scene = [f.id for f in ds.fabrics if f.id not in scene_names][:max(1, len(scene_names) // 4)]
+    # Bundle classes are dataset ids; the printout adds the fabric's name for the operator.
+    names_of = {f.id: f.name for f in ds.fabrics}
     # Scene pieces are the touched and untouched fabrics; a few off-scene pieces test the reject path.
     names = touched + untouched + off_scene
     items = item_stream(ds, names, n_items, seed=seed)
@@ -128,7 +130,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         tk = kinds.get(truth, "off-scene")
         ok = (r.label == truth) if truth in scene_names else (r.label not in scene_names)
         lat = sum(r.latency_ms) / len(r.latency_ms) if r.latency_ms else float("nan")
-        line = (f"{r.item.id}  {truth:>14s} ({tk:9s}) -> {r.label:>14s}  bin {r.bin}  {r.presses} presses  "
+        said = f"{r.label} {names_of.get(r.label, '')}".strip()
+        line = (f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} ({tk:9s}) -> {said:>26s}  bin {r.bin}  "
+                f"{r.presses} presses  "
                 f"conf {r.confidence:.2f}  {lat:6.1f} ms/press  {r.item_s:5.1f} s  "
                 f"{'ok' if ok and r.outcome == 'sorted' else 'WRONG' if r.outcome == 'sorted' else r.outcome}")
         rows_printed.append(line)
@@ -231,7 +235,8 @@ def run(args) -> int:
     log(f"presses per piece {summary['presses_per_item']:.2f}; model latency median "
         f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press; "
         f"{summary['item_s_median']:.1f} s per piece (simulated arm in real time)")
-    log(f"time: {summary['stage_s']} + sorting {summary['sort_s']:.0f} s; total {summary['total_s']:.0f} s")
+    stages = ", ".join(f"{k.removesuffix('_s')} {v:.0f} s" for k, v in summary["stage_s"].items()) or "all stages cached"
+    log(f"time: {stages}; sorting {summary['sort_s']:.0f} s; total {summary['total_s']:.0f} s")
     (workdir / "demo_summary.json").write_text(json.dumps(summary, indent=1, default=float))
     log(f"summary: {workdir / 'demo_summary.json'}; journal: {workdir / 'journal.jsonl'}")
     return 0

@@ -36,7 +36,7 @@ from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
 class SimItem:
     id: str
     fabric_id: str
-    truth: str  # the fabric's name (a bundle class, or an off-scene fabric)
+    truth: str  # the fabric's id: a bundle class (bundles name classes by dataset id), or an off-scene fabric
 
 
 class SceneItems:
@@ -73,7 +73,7 @@ def item_stream(dataset: Dataset, names: list[str], n_items: int, seed: int = 0)
         batch = list(names)
         rng.shuffle(batch)
         order.extend(batch)
-    return [SimItem(f"item-{i + 1:04d}", by_name[n].id, by_name[n].name) for i, n in enumerate(order[:n_items])]
+    return [SimItem(f"item-{i + 1:04d}", by_name[n].id, by_name[n].id) for i, n in enumerate(order[:n_items])]
 
 
 @dataclass
@@ -324,6 +324,26 @@ REFERENCE_SESSIONS = {
 }
 
 
+# The world the reference sessions are recorded in: the tiny profile's 10 fabrics and 3 x 3
+# presses, at 64 x 48 px frames instead of 160 x 120. The replays carry every grabbed frame and
+# tests/replays must stay under 3 MB with the bundle (whose 512-512 heads alone are 2.4 MB): a
+# 160 x 120 press is ~33 KB of noisy PNG, a 64 x 48 one ~5 KB. The tiny trunk's input is 64 px
+# either way.
+REFERENCE_WORLD = {"n_fabrics": 10, "grid": (3, 3), "frame_px": (64, 48), "camera_px": 200}
+REFERENCE_WORLD_PROFILE = "replay-tiny"
+
+
+def make_reference_world(out: Path, seed: int = 0, progress: bool = True) -> Path:
+    """Generate the reference sessions' fabric world (``REFERENCE_WORLD``) into ``out``."""
+    from vs2t_edge.sim import synth
+
+    # synth has no frame-size option; a named profile beside tiny/small/paper, recorded in the
+    # dataset's provenance, keeps the world reproducible from this function alone.
+    synth.PROFILES.setdefault(REFERENCE_WORLD_PROFILE, synth.SynthProfile(**REFERENCE_WORLD))
+    # One process: the profile registered here is not in a spawned worker's table.
+    return synth.generate(out, REFERENCE_WORLD_PROFILE, seed=seed, progress=progress, workers=1)
+
+
 def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm_kind: str = "ursim",
                               gate_kind: str = "pty", seed: int = 0, max_presses: int = 3,
                               confidence: float = 0.95, log=print) -> list[Path]:
@@ -341,7 +361,7 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
     touched, untouched = list(model.touched), list(model.untouched)
     off_scene = [untouched.pop()] if len(untouched) > 1 else []
     ds = load_dataset(dataset)
-    others = [f.name for f in ds.fabrics if f.name not in set(model.touched) | set(model.untouched)]
+    others = [f.id for f in ds.fabrics if f.id not in set(model.touched) | set(model.untouched)]
     off_scene += others[:1]
     groups = {"touched": touched, "untouched": untouched, "off_scene": off_scene or untouched,
               "mixed": touched[:1] + untouched[:1] + touched[1:2]}
@@ -392,8 +412,16 @@ def main(argv: list[str] | None = None) -> int:
     rr.add_argument("--bundle", required=True)
     rr.add_argument("--out", default="tests/replays")
     rr.add_argument("--arm", choices=("ursim", "fake"), default="ursim")
+    rr.add_argument("--seed", type=int, default=0, help="item order and camera noise seed (session k uses seed + k)")
+    rw = sub.add_parser("reference-world", help="generate the reference sessions' small-frame fabric world")
+    rw.add_argument("out", help="dataset folder to write (must not exist or be empty)")
+    rw.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
-    record_reference_sessions(Path(a.dataset), Path(a.bundle), Path(a.out), arm_kind=a.arm)
+    if a.cmd == "reference-world":
+        make_reference_world(Path(a.out), seed=a.seed)
+        print(f"reference world written to {a.out}")
+        return 0
+    record_reference_sessions(Path(a.dataset), Path(a.bundle), Path(a.out), arm_kind=a.arm, seed=a.seed)
     return 0
 
 

@@ -60,7 +60,8 @@ def test_daemon_sorts_a_stream_on_the_simulated_cell(tmp_path, dataset):
     from vs2t_edge.runtime.journal import read_records
 
     finals = [r for r in read_records(tmp_path / "journal.jsonl") if r["type"] == "final"]
-    truth = {it.id: it.truth for it in items}
+    name_of = {f"f{i}": name for i, name in enumerate(GREY)}  # items carry the fabric id, as bundles name classes
+    truth = {it.id: name_of[it.truth] for it in items}
     assert len(finals) == 4
     for f in finals:
         t = truth[f["item_id"]]
