@@ -176,23 +176,16 @@ def test_each_method_beats_chance_on_a_separable_toy_split(name):
     assert acc > 1.0 / data.n_u + 0.15, f"{name}: accuracy {acc:.2f} on a separable toy split"
 
 
-def test_vs2t_losses_by_hand():
-    x, x_e, x_r = torch.tensor([[1.0, 0.0]]), torch.tensor([[0.0, 0.0]]), torch.tensor([[1.0, 1.0]])
-    mu, lv = torch.zeros(1, 3), torch.zeros(1, 3)
-    d_real = (torch.tensor([0.0]), torch.tensor([[1.0, 0.0]]))
-    d_e = (torch.tensor([0.0]), torch.tensor([[0.0, 0.0]]))
-    d_r = (torch.tensor([0.0]), torch.tensor([[1.0, 2.0]]))
-    out = gm.vs2t_losses(x, x_e, x_r, mu, lv, d_real, d_e, d_r, gd_weight=20.0)
-    assert out["D"].item() == pytest.approx(3 * math.log(2), rel=1e-6)
-    assert out["rec"].item() == pytest.approx(1.0 + 1.0)  # L2 1 + pairwise feature matching 1
-    assert out["GD"].item() == pytest.approx(1.0 + 4.0)  # mean matching of x_e and of x_r
-    assert out["KL"].item() == pytest.approx(0.0)
-    assert out["E"].item() == pytest.approx(2.0) and out["G"].item() == pytest.approx(2.0 + 20 * 5.0)
+def test_vs2t_row_is_the_training_rooms_model_and_beats_chance():
+    """The comparison's VS2T-ZSL row is train/vs2t.py's VS2TZSL (no private copy)."""
+    from vs2t_edge.train import compare as cmp
+    from vs2t_edge.train import vs2t
 
-
-def test_private_vs2t_beats_chance_on_the_toy_split():
     torch.set_num_threads(1)
+    cls = cmp.all_methods()["VS2T-ZSL"]
+    assert issubclass(cls, vs2t.VS2TZSL) and cls.variant == vs2t.VARIANTS["VS2T-ZSL"]
+    assert not hasattr(gm, "VS2TPrivate")
     data, (x_te, v_te, y_te) = _toy_split()
-    budget = bl.Budget(steps=240, batch=32, hidden=64, latent=8, cls_steps=150, n_synth_per_class=60, lr=1e-3)
-    m = gm.VS2TPrivate().fit(data, budget, seed=0)
+    budget = vs2t.VS2TBudget(steps=240, batch=32, hidden=64, latent=8, cls_steps=150, n_synth_per_class=60)
+    m = cls().fit(data, budget, seed=0)
     assert float(np.mean(m.untouched_logits(x_te, v_te).argmax(1) == y_te)) > 1 / 3 + 0.15

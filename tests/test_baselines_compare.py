@@ -131,3 +131,118 @@ def test_compare_verb_refuses_bad_input_with_exit_2(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert main(["compare", "--toy", "--methods", "DAP,Nope", "--skip-real"]) == 2
     assert "unknown method" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# a training run as the source: its features, its exact splits, its VS2T numbers
+# --------------------------------------------------------------------------------------------
+
+
+def _fake_run(tmp_path, with_stems=False, seeds=(7, 11)):
+    """A run folder as `vs2t-edge train` writes it (features, config.yaml, metrics.json), with
+    splits drawn by other seeds than `make_splits(..., seed=0)` would, and VS2T-ZSL numbers
+    computed the way the run computes them (compare.run_split with train/vs2t.py's class)."""
+    import yaml
+
+    from vs2t_edge.train import vs2t
+
+    run = tmp_path / "run"
+    (run / "features").mkdir(parents=True)
+    table = cmp.toy_feature_table(n_fabrics=14, presses=12, d_t=24, d_v=12, noise=0.5, seed=3)
+    table.save(run / "features" / "feature_table.npz")
+    splits = [cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=3, seed=s)[0] for s in seeds]
+    profile = {"name": "tiny", "trunk": "tiny", "size_px": 32, "splits": len(splits), "ft_epochs": 1,
+               "ft_max_rows": None, "steps": 20, "batch": 32, "cls_steps": 30, "n_synth_per_class": 20,
+               "lr_scale": 5.0, "latent": 8, "hidden": 32, "seed": 0}
+    (run / "config.yaml").write_text(yaml.safe_dump({"dataset": "toy", "profile": profile}, sort_keys=False))
+    budget = cmp.run_budget(profile)
+    records = []
+    for sp in splits:
+        r = cmp.run_split(table, sp, {"VS2T-ZSL": vs2t.variant_class("VS2T-ZSL")}, budget, routers=("gaussian",),
+                          log=lambda m: None)
+        records.append(r)
+    (run / "metrics.json").write_text(json.dumps({"splits": records, "summary": {}}, default=float))
+    if with_stems:
+        from vs2t_edge.train import features as ft
+        from vs2t_edge.train.trunks import build_trunk
+
+        torch.manual_seed(0)
+        trunk = build_trunk("tiny").eval()
+        images = torch.from_numpy(np.random.default_rng(0).normal(size=(len(table.fabric), 3, 32, 32))
+                                  .astype(np.float32) + table.fabric[:, None, None, None].astype(np.float32) * 0.1)
+        with torch.no_grad():
+            stem = trunk.stem(images)
+            x_t0 = trunk.features_from_stem(stem).numpy()
+        ft.StemCache(stem.half().numpy(), table.x_v, x_t0, table.fabric, table.fabric_ids, table.attributes,
+                     {"arch": "tiny", "size": 32}).save(run / "features" / "stem_cache.npz")
+    return run, table, splits
+
+
+def test_load_run_reads_exactly_the_runs_splits_and_budget(tmp_path):
+    torch.set_num_threads(1)
+    run, table, splits = _fake_run(tmp_path)
+    src = cmp.load_run(run)
+    assert [asdict_(s) for s in src.splits] == [asdict_(s) for s in splits]  # order and seeds kept
+    assert [asdict_(s) for s in src.splits] != [asdict_(s) for s in cmp.make_splits(table.fabric_ids, 2, 2, 3)]
+    assert np.array_equal(src.table.x_t, table.x_t) and src.table.fabric_ids == table.fabric_ids
+    b = cmp.run_budget(src.profile, steps=5)
+    assert (b.steps, b.hidden, b.latent, b.cls_steps, b.lr_scale) == (5, 32, 8, 30, 5.0)
+    own = cmp.run_vs2t_numbers(src)
+    assert own["per_split_zsl"] == [r["zsl_acc"] for r in src.vs2t_splits] and len(src.vs2t_splits) == 2
+    # a split naming a fabric the table lacks is refused by name
+    m = json.loads((run / "metrics.json").read_text())
+    m["splits"][1]["split"]["untouched"][0] = "nope"
+    (run / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(ValueError, match=r"split 1 .*\['nope'\]"):
+        cmp.load_run(run)
+    del m["splits"][0]["split"]["seed"]
+    (run / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(ValueError, match=r"splits\[0\]\.split lacks \['seed'\]"):
+        cmp.read_run_splits(run / "metrics.json")
+
+
+def test_compare_verb_on_a_run_uses_its_splits_and_reproduces_its_vs2t(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    torch.set_num_threads(1)
+    run, table, splits = _fake_run(tmp_path)
+    out = tmp_path / "out"
+    code = main(["compare", "--run", str(run), "--tactile", "frozen", "--methods", "DAP,VS2T-ZSL", "--skip-real",
+                 "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    res = json.loads((out / "comparison_tiny.json").read_text())
+    assert [tuple(r["split"][k] for k in ("touched", "validation", "untouched", "seed")) for r in res["splits"]] \
+        == [asdict_(s) for s in splits]
+    # same class, features, splits, seeds and budget as the "run": identical VS2T-ZSL numbers
+    assert res["run_vs2t"]["reproduction"]["max_abs_diff"] == 0.0
+    md = (out / "comparison_tiny.md").read_text()
+    assert "VS2T-ZSL, the run's own metrics.json | 83.06" in md and "exactly the splits of" in md
+    assert (out / "comparison_tiny.png").is_file() and not (out / "comparison_tiny.partial.json").exists()
+    # the same splits through --features + --splits-from
+    code = main(["compare", "--features", str(run / "features" / "feature_table.npz"), "--splits-from", str(run),
+                 "--methods", "DAP", "--skip-real", "--steps", "20", "--cls-steps", "30", "--hidden", "32",
+                 "--out", str(out), "--out-name", "sf"])
+    assert code == 0
+    res2 = json.loads((out / "sf.json").read_text())
+    assert [r["split"] for r in res2["splits"]] == [r["split"] for r in res["splits"]]
+    assert main(["compare", "--run", str(tmp_path / "absent"), "--skip-real"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_finetuned_run_features_follow_the_run_recipe(tmp_path):
+    torch.set_num_threads(1)
+    run, table, splits = _fake_run(tmp_path, with_stems=True)
+    src = cmp.load_run(run)
+    for_split = cmp.finetuned_tables(src, log=lambda m: None)
+    a, b = for_split(splits[0]), for_split(splits[0])
+    assert np.array_equal(a.x_t, b.x_t)  # seeded by the split, like the run
+    assert np.array_equal(a.x_v, table.x_v) and a.fabric_ids == table.fabric_ids
+    assert a.x_t.shape == (len(table.fabric), 64)
+    from vs2t_edge.train import features as ft
+
+    frozen = ft.StemCache.load(run / "features" / "stem_cache.npz").x_t0
+    assert not np.allclose(a.x_t, frozen)  # the tail was fine-tuned
+    assert not np.array_equal(for_split(splits[1]).x_t, a.x_t)  # per split: other touched fabrics, other seed
+    (run / "features" / "stem_cache.npz").unlink()
+    with pytest.raises(FileNotFoundError, match="stem_cache"):
+        cmp.finetuned_tables(src)

@@ -16,6 +16,13 @@ at the press, fabric index; one attribute row per fabric) and a list of fabric s
 
 The recommendation (default model and router) uses validation numbers only: model by mean
 validation ZSL accuracy, router by mean validation AUSUC for that model.
+
+A `vs2t-edge train` run folder can be the source (``load_run``): its exact splits (metrics.json,
+order and seeds kept), its budget (config.yaml), its frozen feature table, or (``finetuned_tables``)
+per split the tactile features its VS2T-ZSL saw (the run's stem cache through the trunk tail
+fine-tuned on that split's touched-train presses, same recipe and seed); the run's own VS2T-ZSL
+numbers are kept beside this comparison's (``compare_with_run``). The VS2T-ZSL row itself is
+``train/vs2t.py``'s model, so with the run's features and budget it reproduces the run.
 """
 
 from __future__ import annotations
@@ -175,12 +182,12 @@ def split_views(table: FeatureTable, split: FabricSplit) -> SplitViews:
 def all_methods() -> dict[str, type[ZSLMethod]]:
     """Table 4's rows, the modern generators, and VS2T-ZSL.
 
-    VS2T-ZSL here is ``generators_modern.VS2TPrivate``, a minimal feature-level re-implementation
-    trained on the same cached features and splits as every other row (the training room's own
-    model trains its trunk end to end and is reported by `vs2t-edge train`)."""
-    from vs2t_edge.train.generators_modern import VS2TPrivate
+    VS2T-ZSL is the training room's own model (``train/vs2t.py``, the class `vs2t-edge train`
+    fits), run here through the same split machinery on the same features as every other row.
+    A fresh subclass per call keeps its ``instances`` list private to this comparison."""
+    from vs2t_edge.train import vs2t
 
-    return {**BASELINES, **MODERN, "VS2T-ZSL": VS2TPrivate}
+    return {**BASELINES, **MODERN, "VS2T-ZSL": vs2t.variant_class("VS2T-ZSL")}
 
 
 def _router_block(routers: dict[str, nv.Router], cls_t, views: SplitViews, logits_u_val, logits_u_test,
@@ -293,6 +300,9 @@ def _evidence_strength(result: dict) -> str:
     lead when its mean exceeds two standard errors."""
     s = result["summary"]
     vals = sorted(((ms["val_zsl_acc"]["mean"], m) for m, ms in s["methods"].items()), reverse=True)
+    n_routers = len(next(iter(s["methods"].values()))["routers"])
+    if len(vals) < 2 or n_routers < 2:
+        return "Strength of evidence: not assessed (fewer than two methods or routers compared)."
     best, runner = vals[0][1], vals[1][1]
     diffs = np.array([r["methods"][best]["val_zsl_acc"] - r["methods"][runner]["val_zsl_acc"]
                       for r in result["splits"]])
@@ -310,16 +320,44 @@ def _evidence_strength(result: dict) -> str:
             f"standard error {100 * rse:.1f}: {'clear' if rd.mean() > 2 * rse else 'weak'}.")
 
 
+def compare_with_run(result: dict, run: RunSource) -> dict | None:
+    """The run's own VS2T-ZSL numbers and, per split, how far this comparison's VS2T-ZSL row
+    (same class, features, splits, seeds and budget when run on fine-tuned features) is from
+    them. Stored in ``result["run_vs2t"]``; None when the run has no VS2T-ZSL record."""
+    own = run_vs2t_numbers(run)
+    if own is None:
+        return None
+    ours = [r["methods"].get("VS2T-ZSL", {}).get("zsl_acc") for r in result["splits"]]
+    if len(ours) == len(own["per_split_zsl"]) and all(o is not None for o in ours):
+        diffs = [float(a - b) for a, b in zip(ours, own["per_split_zsl"])]
+        own["reproduction"] = {"per_split_zsl_diff": diffs, "max_abs_diff": float(np.max(np.abs(diffs)))}
+    result["run_vs2t"] = own
+    return own
+
+
+def _table4_row(name: str, ms: dict, paper_zsl, paper_g: dict | None) -> str:
+    g = ms["routers"].get(GAUSSIAN_ROUTER) or next(iter(ms["routers"].values()))
+    pg = f"{paper_g['acc_t']} / {paper_g['acc_u']} / {paper_g['H']}" if paper_g else "—"
+    opt = lambda d, k: _pct(d[k]) if k in d else "—"  # noqa: E731
+    return (f"| {name} | {paper_zsl if paper_zsl is not None else '—'} | {_pct(ms['zsl_acc'])} | "
+            f"{opt(ms, 'val_zsl_acc')} | {pg} | {_pct(g['acc_t'])} | {_pct(g['acc_u'])} | {_pct(g['H'])} | "
+            f"{opt(g, 'ausuc')} |")
+
+
 def render_markdown(result: dict, real_md: str | None = None) -> str:
     s = result["summary"]
     meta = result["meta"]
     lines = [
-        "# Comparison: baselines, modern generators and GZSL routers",
+        f"# Comparison: baselines, modern generators and GZSL routers{meta.get('title_suffix', '')}",
         "",
+    ]
+    if meta.get("see_also"):
+        lines += [meta["see_also"], ""]
+    lines += [
         f"Regenerate: `{meta['command']}`. Features: {meta['features']} ({meta['n_fabrics']} fabrics, "
         f"{meta['n_presses']} presses, d_t={meta['d_t']}, d_v={meta['d_v']}). {meta['n_splits']} splits "
-        f"(touched/validation/untouched {meta['split_sizes']}). Budget: {meta['budget']}. "
-        f"Wall time {meta['seconds']:.0f} s on {meta['host']}.",
+        f"(touched/validation/untouched {meta['split_sizes']}{meta.get('splits_source', '')}). "
+        f"Budget: {meta['budget']}. Wall time {meta['seconds']:.0f} s on {meta['host']}.",
         "",
         "Our numbers are mean ± std over splits (%). The paper's numbers are on FabricVST (real "
         "fabrics, not reachable here); ours are on the data named above, so the columns compare "
@@ -327,18 +365,25 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
         "",
         "## Table 4: ZSL and GZSL (paper's Gaussian router, beta tuned on validation fabrics)",
         "",
-        "| method | paper ZSL | our ZSL | our val ZSL | acc_t | acc_u | H | AUSUC |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| method | paper ZSL | our ZSL | our val ZSL | paper acc_t / acc_u / H | acc_t | acc_u | H | AUSUC |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for m, ms in s["methods"].items():
-        g = ms["routers"].get(GAUSSIAN_ROUTER) or next(iter(ms["routers"].values()))
-        paper = PAPER_ZSL.get(m)
-        lines.append(f"| {m} | {paper if paper is not None else '—'} | {_pct(ms['zsl_acc'])} | "
-                     f"{_pct(ms['val_zsl_acc'])} | {_pct(g['acc_t'])} | {_pct(g['acc_u'])} | {_pct(g['H'])} | "
-                     f"{_pct(g['ausuc'])} |")
+        lines.append(_table4_row(m, ms, PAPER_ZSL.get(m), PAPER_GZSL_VS2T if m == "VS2T-ZSL" else None))
+    own = result.get("run_vs2t")
+    if own:
+        lines.append(_table4_row("VS2T-ZSL, the run's own metrics.json", own, PAPER_ZSL["VS2T-ZSL"],
+                                 PAPER_GZSL_VS2T))
     p = PAPER_GZSL_VS2T
-    lines += ["", f"Paper, VS2T-ZSL GZSL: acc_t {p['acc_t']}, acc_u {p['acc_u']}, H {p['H']}. "
-              f"CLS_t touched accuracy (all methods share it): {_pct(s['cls_t_acc'])}.", ""]
+    lines += ["", f"Paper, VS2T-ZSL GZSL: acc_t {p['acc_t']}, acc_u {p['acc_u']}, H {p['H']} (the paper gives "
+              f"GZSL only for VS2T-ZSL). CLS_t touched accuracy (all methods share it): {_pct(s['cls_t_acc'])}.", ""]
+    if own and own.get("reproduction"):
+        rp = own["reproduction"]
+        same = rp["max_abs_diff"] < 1e-9
+        lines += [f"The VS2T-ZSL row is `train/vs2t.py`'s model trained here; its per-split ZSL accuracy "
+                  f"differs from the run's own metrics.json by at most {100 * rp['max_abs_diff']:.2f} points "
+                  f"({'identical: same model, features, splits, seeds and budget' if same else 'per split: ' + ', '.join(f'{100 * d:+.1f}' for d in rp['per_split_zsl_diff'])}).",
+                  ""]
     routers = list(next(iter(s["methods"].values()))["routers"])
     lines += ["## AUSUC per router (test) — and validation AUSUC, which chooses", "",
               "| method | " + " | ".join(routers) + " |", "| --- | " + " | ".join("---" for _ in routers) + " |"]
@@ -356,23 +401,25 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
               f"Default model **{rec['model']}**, default router **{rec['router']}**. Rule: {rec['rule']}.",
               f"On test this gives ZSL {_pct(rm['zsl_acc'])}, GZSL H {_pct(rm['routers'][rec['router']]['H'])}, "
               f"AUSUC {_pct(rm['routers'][rec['router']]['ausuc'])}.", "", _evidence_strength(result), "",
-              "![comparison](comparison.png)", ""]
+              f"![comparison]({meta.get('png', 'comparison.png')})", ""]
     lines += ["## Methods and adaptations", "",
-              "- All methods use the same cached features, splits, touched train/val/test presses, "
+              "- All methods use the same features, splits, touched train/val/test presses, "
               "the same CLS_t, and the same fused visual+semantic condition [x_v, s] where they condition "
-              "on both (f-CLSWGAN, CADA-VAE, f-VAEGAN). DAP uses tactile only; VT-FC-ZSL maps "
+              "on both (f-CLSWGAN, CADA-VAE, f-VAEGAN, VS2T-ZSL). DAP uses tactile only; VT-FC-ZSL maps "
               "[x_t, x_v] to attributes; Abderrahmane 2019 conditions on attributes only; Lee 2019 on "
               "the visual feature only.",
               "- Lee 2019 is adapted to feature level: a pix2pix-style conditional GAN from the crop's "
               "visual feature to the tactile feature (BCE adversarial + 100 x L1), not image-to-image.",
               "- f-VAEGAN is the inductive f-VAEGAN-D2 without D2 (D2 needs unlabelled untouched "
               "tactile data).",
-              "- VS2T-ZSL in this table is a minimal feature-level re-implementation "
-              "(`generators_modern.VS2TPrivate`: E, VS-F as a sigmoid gate on [x_v, s], G, D with the "
-              "paper's losses and weights, widths from the shared budget), so that it runs on exactly "
-              "the same features and splits as the other rows.",
+              "- VS2T-ZSL is `train/vs2t.py`'s `VS2TZSL` (the model `vs2t-edge train` fits), trained "
+              "through the same split machinery as every other row.",
               "- Budgets are shortened for a shared 2-core CPU (see Budget above); GAN learning rates "
               "are 5e-4 instead of 1e-4 to compensate.", ""]
+    for note in meta.get("notes", []):
+        lines += [f"- {note}"]
+    if meta.get("notes"):
+        lines += [""]
     if meta.get("vs2t_note"):
         lines += [f"- VS2T-ZSL: {meta['vs2t_note']}", ""]
     if real_md:
@@ -416,15 +463,186 @@ def plot(result: dict, path: Path) -> None:
 
 
 def run_comparison(table: FeatureTable, splits: list[FabricSplit], budget: Budget,
-                   methods: dict[str, type[ZSLMethod]] | None = None, log: Callable[[str], None] = print) -> dict:
+                   methods: dict[str, type[ZSLMethod]] | None = None, log: Callable[[str], None] = print,
+                   table_for_split: Callable[[FabricSplit], FeatureTable] | None = None,
+                   on_split: Callable[[list[dict]], None] | None = None) -> dict:
+    """Every method on every split. ``table_for_split`` (optional) gives the feature table of one
+    split, e.g. the tactile features of a training run's per-split fine-tuned trunk
+    (``finetuned_tables``); ``table`` is used otherwise. ``on_split`` gets the per-split results
+    after every split (a stopped run still leaves numbers)."""
     methods = methods or all_methods()
+    check_splits(table, splits)
     t0 = time.time()
     per_split = []
     for k, split in enumerate(splits):
-        log(f"[{k + 1}/{len(splits)}] split seed {split.seed}")
-        per_split.append(run_split(table, split, methods, budget, log=log))
+        done = time.time() - t0
+        eta = f", ~{done / k * (len(splits) - k):.0f} s left" if k else ""
+        log(f"[{k + 1}/{len(splits)}] split seed {split.seed} ({done:.0f} s elapsed{eta})")
+        t_split = table_for_split(split) if table_for_split is not None else table
+        per_split.append(run_split(t_split, split, methods, budget, log=log))
+        if on_split is not None:
+            on_split(per_split)
     return {"splits": per_split, "summary": summarise(per_split), "seconds": time.time() - t0,
             "budget": asdict(budget)}
+
+
+def check_splits(table: FeatureTable, splits: list[FabricSplit]) -> None:
+    """Every split names known fabrics, in three disjoint non-empty groups."""
+    known = set(table.fabric_ids)
+    for k, sp in enumerate(splits):
+        groups = {"touched": sp.touched, "validation": sp.validation, "untouched": sp.untouched}
+        for g, ids in groups.items():
+            if not ids:
+                raise ValueError(f"split {k} (seed {sp.seed}): no {g} fabrics")
+            unknown = sorted(set(ids) - known)
+            if unknown:
+                raise ValueError(f"split {k} (seed {sp.seed}): {g} fabrics {unknown} are not in the feature "
+                                 f"table ({table.source or 'features'})")
+        seen: set[str] = set()
+        for g, ids in groups.items():
+            if seen & set(ids) or len(set(ids)) != len(ids):
+                raise ValueError(f"split {k} (seed {sp.seed}): {g} fabrics overlap another group or repeat")
+            seen |= set(ids)
+
+
+# --------------------------------------------------------------------------------------------
+# a training run (`vs2t-edge train`) as the source: its features, its splits, its VS2T numbers
+# --------------------------------------------------------------------------------------------
+
+RUN_FEATURE_TABLE = Path("features") / "feature_table.npz"
+RUN_STEM_CACHE = Path("features") / "stem_cache.npz"
+
+
+@dataclass
+class RunSource:
+    """What a comparison needs from a `vs2t-edge train` run folder."""
+
+    run_dir: Path
+    table: FeatureTable  # frozen-trunk features (features/feature_table.npz)
+    splits: list[FabricSplit]  # exactly the run's splits, in its order (metrics.json)
+    profile: dict  # config.yaml "profile" ({} when config.yaml is absent)
+    vs2t_splits: list[dict]  # the run's own VS2T-ZSL record per split (metrics.json), fractions
+
+
+def read_run_splits(path: Path) -> tuple[list[FabricSplit], list[dict]]:
+    """The splits recorded by a training run: ``path`` is the run folder or its metrics.json.
+    Returns (splits, per-split method records). Names the file and key on any problem."""
+    path = Path(path)
+    metrics = path / "metrics.json" if path.is_dir() else path
+    if not metrics.is_file():
+        partial = metrics.with_name("metrics_partial.json")
+        hint = " (only metrics_partial.json: the run did not finish)" if partial.is_file() else ""
+        raise FileNotFoundError(f"{metrics} does not exist{hint}")
+    try:
+        m = json.loads(metrics.read_text())
+    except ValueError as exc:
+        raise ValueError(f"{metrics}: not JSON ({exc})") from exc
+    records = m.get("splits")
+    if not isinstance(records, list) or not records:
+        raise ValueError(f"{metrics}: no 'splits' list")
+    splits = []
+    for k, r in enumerate(records):
+        sp = r.get("split") if isinstance(r, dict) else None
+        if not isinstance(sp, dict):
+            raise ValueError(f"{metrics}: splits[{k}] has no 'split' record")
+        missing = {"touched", "validation", "untouched", "seed"} - set(sp)
+        if missing:
+            raise ValueError(f"{metrics}: splits[{k}].split lacks {sorted(missing)}")
+        splits.append(FabricSplit(touched=[str(f) for f in sp["touched"]],
+                                  validation=[str(f) for f in sp["validation"]],
+                                  untouched=[str(f) for f in sp["untouched"]], seed=int(sp["seed"])))
+    return splits, [r.get("methods", {}) for r in records]
+
+
+def load_run(run_dir: Path) -> RunSource:
+    """The run's cached frozen feature table, its exact splits, profile and VS2T numbers."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {run_dir} does not exist")
+    feats = run_dir / RUN_FEATURE_TABLE
+    if not feats.is_file():
+        raise FileNotFoundError(f"{feats} does not exist (written by `vs2t-edge train`)")
+    table = FeatureTable.load(feats)
+    splits, records = read_run_splits(run_dir)
+    check_splits(table, splits)
+    profile: dict = {}
+    cfg = run_dir / "config.yaml"
+    if cfg.is_file():
+        import yaml
+
+        try:
+            profile = dict((yaml.safe_load(cfg.read_text()) or {}).get("profile") or {})
+        except (yaml.YAMLError, AttributeError, TypeError) as exc:
+            raise ValueError(f"{cfg}: unreadable profile ({exc})") from exc
+    vs2t_splits = [r.get("VS2T-ZSL", {}) for r in records]
+    return RunSource(run_dir, table, splits, profile, vs2t_splits)
+
+
+def run_budget(profile: dict, **overrides) -> Budget:
+    """The run's generator budget (``train/vs2t.py``'s ``VS2TBudget``) from its profile, so that
+    every row trains with the budget the VS2T run used; ``overrides`` (not None) win."""
+    from vs2t_edge.train import vs2t
+
+    keys = {"steps", "batch", "cls_steps", "n_synth_per_class", "lr_scale", "latent", "hidden"}
+    kw = {k: profile[k] for k in keys if profile.get(k) is not None}
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return vs2t.VS2TBudget(**kw)
+
+
+def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
+                     weights: Path | None = None) -> Callable[[FabricSplit], FeatureTable]:
+    """Per split, the tactile features the VS2T run's models saw: its cached stem activations
+    through a copy of the trunk whose tail is fine-tuned on that split's touched-train presses,
+    with the run's epochs, row cap and seed (``train/features.py``, as `vs2t-edge train` does).
+    Visual features, fabrics and attributes are the cache's (the visual trunk is frozen)."""
+    from vs2t_edge.train import features as ft
+    from vs2t_edge.train.trunks import build_trunk
+
+    path = run.run_dir / RUN_STEM_CACHE
+    cache = ft.StemCache.load(path)
+    if cache is None:
+        raise FileNotFoundError(f"{path} does not exist (fine-tuned features need the run's stem cache; "
+                                f"use frozen tactile features instead)")
+    arch = str(run.profile.get("trunk", cache.meta.get("arch", "")))
+    if cache.meta.get("arch") != arch:
+        raise ValueError(f"{path}: stem cache of trunk {cache.meta.get('arch')!r}, config.yaml names {arch!r}")
+    if list(cache.fabric_ids) != list(run.table.fabric_ids) or len(cache.fabric) != len(run.table.fabric):
+        raise ValueError(f"{path}: fabrics/presses differ from {run.run_dir / RUN_FEATURE_TABLE}")
+    # `vs2t-edge train` seeds torch with the profile seed just before building its trunk: the same
+    # here, so that even a trunk without pretrained weights (tiny, resnet50) starts identical
+    torch.manual_seed(int(run.profile.get("seed", 0)))
+    trunk = build_trunk(arch, pretrained=True, weights_path=weights)
+    epochs = int(run.profile.get("ft_epochs", 2))
+    max_rows = run.profile.get("ft_max_rows", None)
+
+    def table_for(split: FabricSplit) -> FeatureTable:
+        t0 = time.time()
+        rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
+        tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs,
+                                 max_rows=max_rows, seed=split.seed, progress=False)
+        x_t = ft.features_from_stem(tuned, cache.stem_t)
+        log(f"  tactile tail fine-tuned on {len(rows)} touched-train presses ({time.time() - t0:.0f} s)")
+        return FeatureTable(x_t, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
+                            source=f"{path} (tail fine-tuned per split, seed = split seed)")
+
+    return table_for
+
+
+def run_vs2t_numbers(run: RunSource) -> dict | None:
+    """The run's own VS2T-ZSL numbers (metrics.json, Gaussian router) in ``summarise``'s format,
+    or None when the run has no VS2T-ZSL record."""
+    recs = run.vs2t_splits
+    if not recs or not all(r.get("routers", {}).get(GAUSSIAN_ROUTER) for r in recs):
+        return None
+    g = [r["routers"][GAUSSIAN_ROUTER] for r in recs]
+    out = {"zsl_acc": _ms([r["zsl_acc"] for r in recs]), "per_split_zsl": [float(r["zsl_acc"]) for r in recs],
+           "routers": {GAUSSIAN_ROUTER: {k: _ms([x[k] for x in g]) for k in ("acc_t", "acc_u", "H")}}}
+    if all("val_zsl_acc" in r for r in recs):
+        out["val_zsl_acc"] = _ms([r["val_zsl_acc"] for r in recs])
+    for k in ("ausuc", "val_ausuc"):
+        if all(k in x for x in g):
+            out["routers"][GAUSSIAN_ROUTER][k] = _ms([x[k] for x in g])
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -497,11 +715,13 @@ def extract_feature_table(dataset_root: Path, size_px: int = 224, log: Callable[
                         ds.attribute_matrix().astype(np.float64), source=f"{dataset_root} (frozen EfficientNet-Lite0)")
 
 
-def write_results(result: dict, out_dir: Path, real: dict | None = None) -> dict[str, Path]:
+def write_results(result: dict, out_dir: Path, real: dict | None = None, name: str = "comparison") -> dict[str, Path]:
+    """``out_dir/{name}.md|json|png``."""
     from vs2t_edge.train.realdata_check import render_markdown as real_markdown
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {"md": out_dir / "comparison.md", "json": out_dir / "comparison.json", "png": out_dir / "comparison.png"}
+    paths = {"md": out_dir / f"{name}.md", "json": out_dir / f"{name}.json", "png": out_dir / f"{name}.png"}
+    result.setdefault("meta", {})["png"] = paths["png"].name
     payload = dict(result)
     if real is not None:
         payload["real_sensor_check"] = real
@@ -512,4 +732,6 @@ def write_results(result: dict, out_dir: Path, real: dict | None = None) -> dict
 
 
 __all__ = ["FeatureTable", "FabricSplit", "make_splits", "run_comparison", "summarise", "render_markdown", "plot",
-           "toy_feature_table", "extract_feature_table", "write_results"]
+           "toy_feature_table", "extract_feature_table", "write_results", "RunSource", "load_run",
+           "read_run_splits", "run_budget", "finetuned_tables", "run_vs2t_numbers", "compare_with_run",
+           "check_splits"]
