@@ -133,6 +133,15 @@ def test_fvaegan_vae_loss_by_hand():
     assert gm.fvaegan_vae_loss(x, x_rec, mu, lv).item() == pytest.approx(1.0 + 0.5)
 
 
+def test_fvaegan_generator_loss_by_hand():
+    x, x_rec = torch.tensor([[0.0, 1.0]]), torch.tensor([[1.0, 1.0]])
+    mu, lv = torch.tensor([[1.0]]), torch.tensor([[0.0]])
+    d_rec, d_fake = torch.tensor([2.0, 4.0]), torch.tensor([-1.0, 1.0])
+    # L_VAE 1.5; WGAN term -(mean 3 + mean 0) / 2 = -1.5, times gamma 10
+    assert gm.fvaegan_generator_loss(x, x_rec, mu, lv, d_rec, d_fake, 10.0).item() == pytest.approx(1.5 - 15.0)
+    assert gm.fvaegan_generator_loss(x, x_rec, mu, lv, d_rec, d_fake, 0.0).item() == pytest.approx(1.5)
+
+
 def test_feature_scaler_keeps_dead_channels_at_zero():
     x = np.c_[np.zeros(5), np.arange(5.0)]
     s = bl.FeatureScaler.fit(x)

@@ -105,6 +105,14 @@ def fvaegan_vae_loss(x: torch.Tensor, x_rec: torch.Tensor, mu: torch.Tensor, log
     return ((x_rec - x) ** 2).sum(1).mean() + gaussian_kl(mu, logvar)
 
 
+def fvaegan_generator_loss(x: torch.Tensor, x_rec: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor,
+                           d_rec: torch.Tensor, d_fake: torch.Tensor, gan_weight: float = 10.0) -> torch.Tensor:
+    """f-VAEGAN objective of E and G (the shared decoder/generator): L_VAE + gamma * the WGAN
+    generator term on both reconstructions G(E(x, c), c) and prior samples G(z, c) (f-VAEGAN
+    fig. 2): -(E[D(x_rec, c)] + E[D(x~, c)]) / 2."""
+    return fvaegan_vae_loss(x, x_rec, mu, logvar) - gan_weight * (d_rec.mean() + d_fake.mean()) / 2
+
+
 # --------------------------------------------------------------------------------------------
 # networks
 # --------------------------------------------------------------------------------------------
@@ -220,11 +228,9 @@ class FVAEGAN(_FusedConditionGenerator):
             logvar = logvar.clamp(-10, 10)
             z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
             x_rec = self.G(z, c[idx])
-            vae = fvaegan_vae_loss(x[idx], x_rec, mu, logvar)
-            # the generator's WGAN term on both reconstructions and prior samples (f-VAEGAN fig. 2)
             fake = self.G(torch.randn(len(idx), budget.latent), c[idx])
-            adv = -(self.D(x_rec, c[idx]).mean() + self.D(fake, c[idx]).mean()) / 2
-            loss = vae + self.gan_weight * adv
+            loss = fvaegan_generator_loss(x[idx], x_rec, mu, logvar, self.D(x_rec, c[idx]), self.D(fake, c[idx]),
+                                          self.gan_weight)
             opt_ge.zero_grad()
             loss.backward()
             opt_ge.step()
