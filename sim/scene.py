@@ -17,6 +17,7 @@ and a tactile camera fed from a dataset - wired to the same daemon the real cell
 
 from __future__ import annotations
 
+import json
 import math
 import random
 from collections import OrderedDict
@@ -386,14 +387,51 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
             (out_dir / f".{name}.yaml").unlink()
         _relative_paths(path)
         written.append(path)
-        log(f"recorded {path}")
+        index = json.loads((path / "index.json").read_text())
+        finals = [f"{d['label']}->{d['bin']}" for d in index["decisions"] if d["type"] == "final"]
+        margins = ", ".join(f"{k} {v:.3g}" for k, v in decision_margins(index).items())
+        log(f"recorded {path}: truth {[it['truth'] for it in index['items']]}, decided {finals}; "
+            f"closest to flipping: {margins}")
     return written
+
+
+def decision_margins(index: dict) -> dict:
+    """How far a recorded session's decisions are from flipping, from its own reference decisions.
+
+    For every scored press: the scene posterior after it against ``evidence.confidence`` (the stop
+    and unknown rule), the gap between the two leading classes (the label), and the novelty
+    against beta in log units (the press's touched/untouched route). A replay on another CPU
+    differs in the last bits of a score; a margin well above the replay tolerance (1e-3) means
+    that cannot change a decision.
+    """
+    confidence = float(index["config"].get("evidence", {}).get("confidence", 0.9))
+    beta = index.get("meta", {}).get("beta")
+    # The evidence uses the scene's classes only (an off-scene class never wins), renormalised.
+    scene = [f["name"] for f in index["config"].get("scene", {}).get("fabrics", [])]
+    out = {"confidence": math.inf, "label_gap": math.inf, "novelty_log_ratio": math.inf}
+    for d in index["decisions"]:
+        if d.get("type") != "pre_sort":
+            continue
+        acc = None
+        for sc in d.get("scores", []):
+            lp = sc.get("log_posterior")
+            if isinstance(lp, dict) and all(c in lp for c in scene):
+                v = np.array([float(lp[c]) for c in scene], dtype=np.float64)
+                v = np.maximum(v - np.logaddexp.reduce(v), -1e300)
+                acc = v if acc is None else acc + v
+                post = np.exp(acc - np.logaddexp.reduce(acc))
+                top = np.sort(post)[::-1]
+                out["confidence"] = min(out["confidence"], abs(float(top[0]) - confidence))
+                if len(top) > 1:
+                    out["label_gap"] = min(out["label_gap"], float(top[0] - top[1]))
+            nov = sc.get("novelty")
+            if beta and nov and nov > 0 and beta > 0:
+                out["novelty_log_ratio"] = min(out["novelty_log_ratio"], abs(math.log(float(nov) / float(beta))))
+    return out
 
 
 def _relative_paths(replay: Path) -> None:
     """No machine's absolute paths in a committed replay: the bundle and dataset are given at replay."""
-    import json
-
     index_path = replay / "index.json"
     index = json.loads(index_path.read_text())
     index["config"]["bundle"] = "bundle"

@@ -46,6 +46,69 @@ def test_session_replays_with_identical_decisions(session):
     assert [d for d in report.decisions if d["type"] == "final"]
 
 
+def test_committed_replays_name_no_machine_paths():
+    """A clean clone has only the repo: the replays name the bundle and dataset relatively."""
+    for session in SESSIONS:
+        text = (session / "index.json").read_text()
+        assert "/work/" not in text and "/tmp/" not in text and "/home/" not in text, session
+        config = __import__("json").loads(text)["config"]
+        assert config["bundle"] == "bundle" and config["devices"]["camera"]["path"] == "dataset"
+        assert config["threads"] == 1, "references are recorded and replayed at 1 onnxruntime thread"
+
+
+def test_reference_decisions_are_not_on_a_knife_edge():
+    """A replay on another CPU differs in the last bits of a score; every recorded decision
+    (stop/unknown rule, label, touched/untouched route of each press) must be farther from
+    flipping than the replay's score tolerance, or the reference is fragile - re-record with
+    another --seed."""
+    import json
+    import math
+
+    from vs2t_edge.runtime.replay import SCORE_RTOL
+    from vs2t_edge.sim.scene import decision_margins
+
+    for session in SESSIONS:
+        index = json.loads((session / "index.json").read_text())
+        margins = decision_margins(index)
+        assert all(math.isfinite(v) for v in margins.values()), (session.stem, margins)
+        assert min(margins.values()) > SCORE_RTOL, (session.stem, margins)
+
+
+def test_decision_margins_recompute_the_recorded_evidence():
+    """decision_margins re-fuses the per-press posteriors over the scene; its fused posterior must
+    be the one the cell journaled, or the margins above measure something else."""
+    import json
+
+    import numpy as np
+
+    from vs2t_edge.sim.scene import decision_margins
+
+    index = json.loads((HERE / "touched.replay" / "index.json").read_text())
+    scene = [f["name"] for f in index["config"]["scene"]["fabrics"]]
+    for d in (d for d in index["decisions"] if d["type"] == "pre_sort"):
+        acc = sum(np.array([s["log_posterior"][c] for c in scene]) - np.logaddexp.reduce(
+            [s["log_posterior"][c] for c in scene]) for s in d["scores"])
+        fused = acc - np.logaddexp.reduce(acc)
+        np.testing.assert_allclose(fused, [d["log_posterior"][c] for c in scene], atol=1e-9)
+        assert abs(np.exp(fused.max()) - d["confidence"]) < 1e-9
+    one = dict(index, decisions=[d for d in index["decisions"] if d["type"] == "pre_sort"][:1])
+    assert decision_margins(one)["confidence"] == pytest.approx(
+        min(abs(c - index["config"]["evidence"]["confidence"]) for c in _fused_maxima(one, scene)))
+
+
+def _fused_maxima(index, scene):
+    import numpy as np
+
+    out = []
+    for d in (d for d in index["decisions"] if d["type"] == "pre_sort"):
+        acc = np.zeros(len(scene))
+        for s in d["scores"]:
+            v = np.array([s["log_posterior"][c] for c in scene])
+            acc = acc + v - np.logaddexp.reduce(v)
+            out.append(float(np.exp((acc - np.logaddexp.reduce(acc)).max())))
+    return out
+
+
 def test_replay_cli_reports_ok_and_catches_a_changed_beta(tmp_path, capsys):
     import json
     import shutil
