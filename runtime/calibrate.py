@@ -72,37 +72,56 @@ def choose_beta(novelty_touched, novelty_validation, *, target_false_untouched: 
     beta = tune_threshold(t, v, objective=objective, target_false_untouched=target_false_untouched)
     kept, flagged = threshold_rates(t, v, np.array([beta]))
     balanced = 0.5 * (float(kept[0]) + float(flagged[0]))
-    if balanced <= 0.5 + 1e-9:
+    # Under a target rate an infinite beta means "flag nothing to keep the rate": not the same
+    # refusal as "nothing separates the groups" (the balanced rule's infinite beta), nor the same remedy.
+    if objective == "target" and not math.isfinite(beta):
+        raise CalibrationError(f"the chosen beta is {beta}: with at most {target_false_untouched:.1%} of touched "
+                               "presses flagged, no validation press can be flagged; loosen "
+                               "--target-false-untouched or add presses")
+    if balanced <= 0.5 + 1e-9 or not math.isfinite(beta):
         raise CalibrationError(f"no threshold separates touched from validation presses better than chance "
                                f"(best balanced accuracy {balanced:.1%}); the validation fabrics look touched "
                                "to this model - check the scene and the bundle")
-    if not math.isfinite(beta):
-        raise CalibrationError(f"the chosen beta is {beta}: the {objective} rule puts every press on one side; "
-                               "loosen --target-false-untouched or add presses")
     return Calibration(beta, objective, target_false_untouched, float(kept[0]), float(flagged[0]), balanced,
                        int(t.size), int(v.size))
 
 
-def curve(novelty_touched, novelty_validation, n: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def curve(novelty_touched, novelty_validation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Both rates at every threshold where one of them changes (the midpoints between observed
+    scores, as ``tune_threshold`` searches) and just outside the observed range.
+
+    Exact, not sampled: novelty scores are heavy-tailed (1e3 .. 1e7 on one bundle), and an even
+    grid over that range stepped over the one gap where the paper's rule peaks.
+    """
     from vs2t_edge.runtime.novelty import threshold_rates
 
-    both = np.concatenate([np.ravel(novelty_touched), np.ravel(novelty_validation)])
-    lo, hi = float(np.min(both)), float(np.max(both))
-    pad = 0.05 * (hi - lo or 1.0)
-    betas = np.linspace(lo - pad, hi + pad, n)
-    kept, flagged = threshold_rates(np.asarray(novelty_touched), np.asarray(novelty_validation), betas)
+    t, v = np.ravel(novelty_touched).astype(np.float64), np.ravel(novelty_validation).astype(np.float64)
+    u = np.unique(np.concatenate([t, v]))
+    mids = u[:-1] + 0.5 * (u[1:] - u[:-1])
+    lo, hi = float(u[0]), float(u[-1])
+    if lo > 0:  # room on a log axis
+        ends = [lo / 1.5, hi * 1.5]
+    else:
+        pad = 0.05 * (hi - lo or 1.0)
+        ends = [lo - pad, hi + pad]
+    betas = np.concatenate([[ends[0]], mids, [ends[1]]])
+    kept, flagged = threshold_rates(t, v, betas)
     return betas, kept, flagged
 
 
-def write_curve(out_png: Path, novelty_touched, novelty_validation, cal: Calibration) -> list[Path]:
+def write_curve(out_png: Path, novelty_touched, novelty_validation, cal: Calibration,
+                old_beta: float | None = None) -> list[Path]:
+    """The curve as a PNG (log beta axis when every score is positive) and the same numbers as
+    CSV; the chosen beta and the one it replaces are marked."""
     betas, kept, flagged = curve(novelty_touched, novelty_validation)
+    log_x = bool(betas[0] > 0)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     csv_path = out_png.with_suffix(".csv")
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["beta", "touched_kept", "validation_flagged", "mean"])
         for b, k, g in zip(betas, kept, flagged):
-            w.writerow([f"{b:.6g}", f"{k:.4f}", f"{g:.4f}", f"{(k + g) / 2:.4f}"])
+            w.writerow([f"{b:.9g}", f"{k:.4f}", f"{g:.4f}", f"{(k + g) / 2:.4f}"])
     try:
         import matplotlib
 
@@ -110,32 +129,38 @@ def write_curve(out_png: Path, novelty_touched, novelty_validation, cal: Calibra
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(6, 3.6), dpi=100)
-        ax.plot(betas, kept, label="touched kept as touched")
-        ax.plot(betas, flagged, label="validation flagged untouched")
-        ax.plot(betas, (kept + flagged) / 2, "k--", label="mean (paper's rule)")
-        ax.axvline(cal.beta, color="r", lw=1, label=f"beta = {cal.beta:.4g}")
-        ax.set_xlabel("novelty threshold beta")
+        ax.step(betas, kept, where="post", label="touched kept as touched")
+        ax.step(betas, flagged, where="post", label="validation flagged untouched")
+        ax.step(betas, (kept + flagged) / 2, "k--", where="post", label="mean (paper's rule)")
+        ax.axvline(cal.beta, color="r", lw=1, label=f"new beta = {cal.beta:.4g} ({cal.objective})")
+        if old_beta is not None and math.isfinite(old_beta) and (not log_x or old_beta > 0):
+            ax.axvline(old_beta, color="grey", lw=1, ls=":", label=f"old beta = {old_beta:.4g}")
+        if log_x:
+            ax.set_xscale("log")
+        ax.set_xlabel("novelty threshold beta" + (" (log scale)" if log_x else ""))
         ax.set_ylabel("fraction of presses")
         ax.set_ylim(-0.02, 1.02)
+        ax.set_title(f"{cal.n_touched} touched + {cal.n_validation} validation presses", fontsize=9)
         ax.legend(fontsize=7, loc="lower left")
         fig.tight_layout()
         fig.savefig(out_png)
         plt.close(fig)
     except ImportError:
-        _draw_curve_cv2(out_png, betas, kept, flagged, cal.beta)
+        _draw_curve_cv2(out_png, betas, kept, flagged, cal.beta, log_x)
     return [out_png, csv_path]
 
 
-def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float) -> None:
+def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float, log_x: bool = False) -> None:
     import cv2
 
     w, h, m = 640, 360, 40
     img = np.full((h, w, 3), 255, np.uint8)
     cv2.rectangle(img, (m, m // 2), (w - m // 2, h - m), (0, 0, 0), 1)
-    lo, hi = float(betas[0]), float(betas[-1])
+    axis = np.log10 if log_x else (lambda b: b)
+    lo, hi = float(axis(betas[0])), float(axis(betas[-1]))
 
     def px(b, r):
-        x = m + (b - lo) / (hi - lo or 1.0) * (w - 1.5 * m)
+        x = m + (float(axis(b)) - lo) / (hi - lo or 1.0) * (w - 1.5 * m)
         y = (h - m) - r * (h - 1.5 * m)
         return int(round(x)), int(round(y))
 
@@ -144,7 +169,8 @@ def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float) -> None:
         cv2.polylines(img, [pts], False, colour, 2)
     x, _ = px(beta, 0)
     cv2.line(img, (x, m // 2), (x, h - m), (0, 0, 255), 1)
-    cv2.putText(img, f"beta={beta:.4g}  blue: touched kept, green: validation flagged, black: mean",
+    cv2.putText(img, f"beta={beta:.4g}{' (log axis)' if log_x else ''}  blue: touched kept, green: validation "
+                "flagged, black: mean",
                 (m, h - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
     cv2.imwrite(str(out_png), img)
 
@@ -170,32 +196,46 @@ def read_beta_override(path: Path | None) -> float | None:
 
 
 def write_beta_override(path: Path, cal: Calibration, *, bundle_beta: float | None, source: str) -> Path:
-    """Atomic: write a temp file, fsync, keep the old one as .prev, rename over, fsync the folder."""
+    """Atomic: at every instant ``path`` holds either the old override or the new one, whole.
+
+    The old file is copied to ``.prev`` (itself via a temp file and rename), the new one written
+    to a temp file, fsynced and renamed over ``path``, and the folder fsynced. A crash anywhere
+    leaves the old override in force (and perhaps a stray ``.tmp``); never no override at all,
+    which would silently put the bundle's own beta back in charge.
+    """
     path = Path(path)
     history = []
-    if path.exists():
+    old_text = path.read_text() if path.exists() else None
+    if old_text is not None:
         try:
-            old = json.loads(path.read_text())
+            old = json.loads(old_text)
             history = old.get("history", []) + [{k: old.get(k) for k in ("beta", "written", "objective")}]
-        except ValueError:
-            history = []
+        except (ValueError, AttributeError):
+            history = []  # a damaged old file is still kept as .prev below, byte for byte
     data = {"beta": cal.beta, "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "source": source, **{k: v for k, v in asdict(cal).items() if k != "beta"}, "history": history}
+    if old_text is not None:
+        _write_atomic(path.with_name(path.name + ".prev"), old_text)
+    _write_atomic(path, json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def _write_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    if path.exists():
-        os.replace(path, path.with_name(path.name + ".prev"))
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     fd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
-    return path
 
 
 # --- scoring presses ---------------------------------------------------------------------
@@ -292,14 +332,23 @@ def run(args) -> int:
         print(f"calibrate-threshold: refused: {exc}", file=sys.stderr)
         return 2
     png = Path(args.curve) if args.curve else bundle.parent / f"{bundle.name}.beta_curve.png"
-    written = write_curve(png, touched, val, cal)
     old = float(model.beta) if getattr(model, "beta", None) is not None else None
+    override = override_path_for(bundle)
+    try:
+        in_force = read_beta_override(override)
+    except CalibrationError:
+        in_force = None  # a damaged override is replaced (and kept as .prev)
+    written = write_curve(png, touched, val, cal, old_beta=in_force if in_force is not None else old)
     print(f"beta {cal.beta:.6g} ({cal.objective}): touched kept {cal.kept_touched:.1%}, validation flagged "
           f"{cal.flagged_validation:.1%}, mean {cal.balanced:.1%} on {cal.n_touched}+{cal.n_validation} presses"
-          f" (bundle's beta {old})")
+          f" (bundle's beta {old:.6g}" + (f", override in force {in_force:.6g})" if in_force is not None else ")")
+          if old is not None else ")")
     print("curve: " + ", ".join(str(p) for p in written))
     if args.dry_run:
         return 0
-    path = write_beta_override(override_path_for(bundle), cal, bundle_beta=old, source=args.dataset or "replays")
-    print(f"written {path} (previous kept as {path.name}.prev); restart the service to use it")
+    had_old = override.exists()
+    sources = args.dataset or " ".join(["touched:", *args.touched_replay, "validation:", *args.validation_replay])
+    path = write_beta_override(override, cal, bundle_beta=old, source=sources)
+    print(f"written {path}" + (f" (previous kept as {path.name}.prev)" if had_old else "")
+          + "; restart the service to use it")
     return 0

@@ -165,3 +165,120 @@ def test_cli_refuses_thin_data_and_writes_nothing(tmp_path, monkeypatch, capsys)
     assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds")]) == 2
     assert "only 5 touched presses" in capsys.readouterr().err
     assert not override_path_for(bundle).exists()
+
+
+def test_the_override_is_never_missing_while_it_is_replaced(tmp_path, monkeypatch):
+    """A crash just before the final rename leaves the old beta in force: the daemon must never
+    start between the two renames and find no override (the bundle's beta back, silently)."""
+    import os
+
+    path = override_path_for(tmp_path / "bundle")
+    first = choose_beta(TOUCHED, VALIDATION)
+    write_beta_override(path, first, bundle_beta=0.5, source="test")
+    real_replace = os.replace
+
+    def crash_on_final_rename(src, dst):
+        if str(dst) == str(path):
+            raise OSError("power cut")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", crash_on_final_rename)
+    with pytest.raises(OSError, match="power cut"):
+        write_beta_override(path, choose_beta(TOUCHED, VALIDATION, target_false_untouched=0.01),
+                            bundle_beta=0.5, source="test")
+    assert read_beta_override(path) == pytest.approx(first.beta)  # the old one, whole
+    assert not list(tmp_path.glob("*.tmp"))
+    monkeypatch.setattr(os, "replace", real_replace)
+    # a damaged override is replaced, and kept byte for byte as .prev for the record
+    path.write_text("{torn")
+    write_beta_override(path, first, bundle_beta=0.5, source="test")
+    assert path.with_name(path.name + ".prev").read_text() == "{torn"
+    assert read_beta_override(path) == pytest.approx(first.beta)
+
+
+def test_curve_is_exact_on_heavy_tailed_scores(tmp_path):
+    """Novelty spans decades; the curve is evaluated at every gap, so its best mean is the rule's
+    choice (an even grid over 1e2..1e8 missed the peak), and the axis is logarithmic."""
+    import csv
+
+    r = np.random.default_rng(3)
+    t, v = np.exp(r.normal(6.0, 1.0, 60)), np.exp(r.normal(9.0, 2.5, 60))
+    cal = choose_beta(t, v)
+    from vs2t_edge.runtime.calibrate import curve
+
+    betas, kept, flagged = curve(t, v)
+    assert np.max((kept + flagged) / 2) == pytest.approx(cal.balanced)
+    assert betas[0] > 0 and np.all(np.diff(betas) > 0)
+    png, csv_path = write_curve(tmp_path / "c.png", t, v, cal, old_beta=float(np.median(t)))
+    rows = list(csv.DictReader(csv_path.open()))
+    assert len(rows) == len(betas) and max(float(row["mean"]) for row in rows) == pytest.approx(cal.balanced, abs=1e-4)
+    assert png.stat().st_size > 1000
+
+
+def test_a_target_rate_that_flags_nothing_is_refused_in_its_own_words():
+    t = np.r_[np.linspace(0, 1, 40), 10.0]  # one touched press scores above every validation press
+    v = np.linspace(0.5, 5, 40)
+    with pytest.raises(CalibrationError, match="no validation press can be flagged"):
+        choose_beta(t, v, target_false_untouched=0.0)
+    assert np.isfinite(choose_beta(t, v, target_false_untouched=0.05).beta)
+
+
+def test_cli_refuses_a_target_rate_outside_0_1(capsys):
+    from vs2t_edge.cli import main
+
+    assert main(["calibrate-threshold", "--bundle", "b", "--touched-replay", "a", "--validation-replay", "b",
+                 "--target-false-untouched", "1.5"]) == 2
+    assert "between 0 and 1" in capsys.readouterr().err
+
+
+REPLAYS = __import__("pathlib").Path(__file__).parent / "replays"
+needs_replays = pytest.mark.skipif(not (REPLAYS / "bundle").is_dir() or not (REPLAYS / "touched.replay").is_dir(),
+                                   reason="no committed reference replays under tests/replays")
+
+
+@needs_replays
+def test_replay_presses_score_as_the_cell_scored_them():
+    """calibrate-threshold rescoring a replay's frames with the real bundle gets the novelty the
+    cell journaled for those presses: same frames, same reference, same model."""
+    from vs2t_edge.runtime.calibrate import novelty_from_replays
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.replay import ReplayFile
+
+    model = TactileModel.load(REPLAYS / "bundle", threads=1, beta_override=None)
+    for name in ("touched", "unknown"):
+        got = novelty_from_replays(model, [REPLAYS / f"{name}.replay"])
+        journaled = [s["novelty"] for d in ReplayFile.open(REPLAYS / f"{name}.replay").index["decisions"]
+                     if d["type"] == "pre_sort" for s in d["scores"]]
+        assert len(got) == len(journaled) > 0
+        np.testing.assert_allclose(got, journaled, rtol=1e-4)
+
+
+@needs_replays
+def test_cli_from_replay_files_with_the_real_bundle(tmp_path, capsys):
+    import shutil
+
+    from vs2t_edge.cli import main
+
+    bundle = tmp_path / "bundle"  # a copy: the override is written beside the bundle
+    shutil.copytree(REPLAYS / "bundle", bundle)
+    argv = ["calibrate-threshold", "--bundle", str(bundle), "--threads", "1",
+            "--touched-replay", str(REPLAYS / "touched.replay"),
+            "--validation-replay", str(REPLAYS / "unknown.replay"), str(REPLAYS / "untouched.replay")]
+    # 6 touched presses: refused with the default minimum, and nothing written
+    assert main(argv) == 2
+    assert "only 6 touched presses" in capsys.readouterr().err
+    assert not override_path_for(bundle).exists()
+    assert main(argv + ["--min-presses", "5"]) == 0
+    out = capsys.readouterr().out
+    beta = read_beta_override(override_path_for(bundle))
+    assert np.isfinite(beta) and f"beta {beta:.6g} (balanced)" in out
+    assert (tmp_path / "bundle.beta_curve.png").stat().st_size > 1000
+    data = json.loads(override_path_for(bundle).read_text())
+    assert data["n_touched"] == 6 and data["n_validation"] >= 10 and "touched.replay" in data["source"]
+    # no touched press may be flagged: beta moves above every touched score, the first is kept as .prev
+    assert main(argv + ["--min-presses", "5", "--target-false-untouched", "0"]) == 0
+    assert "touched kept 100.0%" in capsys.readouterr().out
+    strict = read_beta_override(override_path_for(bundle))
+    assert strict > beta
+    assert read_beta_override(override_path_for(bundle).with_name("bundle.beta_override.json.prev")) == beta
+    assert json.loads(override_path_for(bundle).read_text())["history"][-1]["beta"] == beta
