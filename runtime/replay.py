@@ -533,6 +533,20 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     return validate_config_dict(data, lines, path)
 
 
+def recorded_bundle(rf: ReplayFile) -> Path:
+    """The bundle a replay names: absolute as recorded, or relative - inside the replay folder
+    or beside it (tests/replays/bundle next to tests/replays/*.replay)."""
+    rec = Path(str(rf.index["config"].get("bundle", "")))
+    if rec.is_absolute():
+        return rec
+    tried = [rf.folder / rec, rf.folder.parent / rec]
+    for candidate in tried:
+        if candidate.is_dir():
+            return candidate
+    raise ReplayError(f"{rf.folder}: the recorded bundle {str(rec)!r} is at neither {tried[0]} nor {tried[1]}; "
+                      "give --bundle")
+
+
 def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evidence_factory=None,
                update_refs: bool = False) -> ReplayReport:
     """Run the daemon from a replay file and compare its decisions with the recorded ones."""
@@ -544,8 +558,7 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
     with tempfile.TemporaryDirectory(prefix="vs2t-replay-") as tmp:
         work = Path(tmp)
         if bundle is None and model is None:
-            rec_bundle = Path(rf.index["config"].get("bundle", ""))
-            bundle = rec_bundle if rec_bundle.is_absolute() else (rf.folder / rec_bundle)
+            bundle = recorded_bundle(rf)
         cfg = config_for_replay(rf, work, bundle)
         queues = _Queues(rf)
         items = ReplayItems(queues)
@@ -563,13 +576,15 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
             return items.exhausted()
 
         diverged = ""
+        said: list[str] = []  # the daemon's log, kept to say why it refused to start
         try:
             code = run_daemon(cfg, model=model, camera=ReplayCameraDevice(queues), arm=ReplayArm(queues),
                               gate=ReplayGate(queues), items=items, evidence_factory=evidence_factory,
                               notifier=Notifier(address=""), stop_when=stop_when, install_signals=False,
-                              log=lambda m: None)
+                              log=said.append)
             if code != 0:
-                diverged = f"the daemon exited with {code} (bundle or config refused)"
+                why = "; ".join(str(m) for m in said[-3:])
+                diverged = f"the daemon exited with {code} (bundle or config refused){': ' + why if why else ''}"
         except ReplayDivergence as exc:
             diverged = str(exc)
         new = decisions_of(read_records(cfg.journal)) if cfg.journal.exists() else []

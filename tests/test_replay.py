@@ -111,6 +111,21 @@ def test_compare_is_exact_on_decisions_and_tolerant_on_scores():
     assert compare(a, [dict(a[0], bin=3)]) and compare(a, [dict(a[0], label="wool")])
 
 
+def test_timings_are_not_decisions():
+    """Model time per press and wall-clock stamps depend on the machine and its load (1.9 ms
+    recorded beside the UR simulator, 0.6 ms replayed alone): never part of a reference, never
+    compared - also for files whose references still carry them."""
+    from vs2t_edge.runtime.replay import decisions_of
+
+    rec = {"type": "pre_sort", "item": 1, "label": "silk", "bin": 2, "confidence": 0.97, "t": 1.7e9,
+           "scores": [{"novelty": 3.0, "latency_ms": 1.9, "log_posterior": {"silk": -0.1}}]}
+    (ref,) = decisions_of([rec, {"type": "item", "item": 1, "t": 1.7e9}])
+    assert "t" not in ref and "latency_ms" not in ref["scores"][0] and ref["scores"][0]["novelty"] == 3.0
+    now = dict(rec, t=1.8e9, scores=[dict(rec["scores"][0], latency_ms=0.6)])
+    assert compare([rec], [now]) == [] and compare([rec], decisions_of([now])) == []
+    assert compare([rec], [dict(now, scores=[dict(now["scores"][0], novelty=3.1)])])  # a score still counts
+
+
 def test_bad_replay_files_are_named(tmp_path):
     with pytest.raises(ReplayError, match="no index.json"):
         ReplayFile.open(tmp_path)

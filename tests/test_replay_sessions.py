@@ -109,6 +109,17 @@ def _fused_maxima(index, scene):
     return out
 
 
+def test_the_bundle_is_found_beside_the_replays_or_asked_for(tmp_path):
+    import shutil
+
+    from vs2t_edge.runtime.replay import ReplayError, run_replay
+
+    assert run_replay(HERE / "unknown.replay").ok  # tests/replays/bundle, next to the file
+    shutil.copytree(HERE / "unknown.replay", tmp_path / "unknown.replay")
+    with pytest.raises(ReplayError, match="give --bundle"):
+        run_replay(tmp_path / "unknown.replay")
+
+
 def test_replay_cli_reports_ok_and_catches_a_changed_beta(tmp_path, capsys):
     import json
     import shutil
