@@ -109,6 +109,42 @@ def _fused_maxima(index, scene):
     return out
 
 
+def test_the_readme_recipe_reproduces_the_committed_references(tmp_path):
+    """tests/replays/README.md's recipe, steps 1 and 4 (the bundle is the committed one), with the
+    in-process arm and gate for speed: the same world, the same device calls in the same order
+    and the same decisions. Only what the simulated devices measure or say differs (the UR
+    simulator's contact force, the wording of its protective stop). If this fails, the world
+    generator or the simulated cell changed: the committed replays still replay, but the README
+    no longer says how they were made - re-record them as it describes."""
+    import json
+
+    from vs2t_edge.runtime.replay import compare
+    from vs2t_edge.sim.scene import make_reference_world, record_reference_sessions
+
+    make_reference_world(tmp_path / "ds", seed=0, progress=False)
+    written = record_reference_sessions(tmp_path / "ds", BUNDLE, tmp_path / "out", arm_kind="fake",
+                                        gate_kind="fake", seed=1, log=lambda m: None)
+    assert sorted(p.name for p in written) == sorted(p.name for p in SESSIONS)
+
+    def device_independent(decisions):
+        out = []
+        for d in decisions:
+            d = dict(d, scores=[{k: v for k, v in sc.items() if k != "force_n"} for sc in d.get("scores", [])])
+            if isinstance(d.get("reason"), str):
+                d["reason"] = d["reason"].split(" mm: ")[0]  # "... during press 1 at (x, y) mm: <the arm's words>"
+            out.append(d)
+        return out
+
+    for new in written:
+        ref = json.loads((HERE / new.name / "index.json").read_text())
+        got = json.loads((new / "index.json").read_text())
+        calls = [[(e["item"], e["dev"], e["call"], e.get("args")) for e in i["events"]] for i in (ref, got)]
+        assert calls[0] == calls[1], f"{new.stem}: the simulated cell made other device calls"
+        assert ref["items"] == got["items"]
+        problems = compare(device_independent(ref["decisions"]), device_independent(got["decisions"]))
+        assert not problems, f"{new.stem}: " + "\n".join(problems)
+
+
 def test_the_bundle_is_found_beside_the_replays_or_asked_for(tmp_path):
     import shutil
 
