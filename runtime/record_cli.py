@@ -36,8 +36,18 @@ def run(args) -> int:
     except Exception as exc:  # noqa: BLE001
         print(f"record: bundle {cfg.bundle} refused: {exc}", file=sys.stderr)
         return 2
+    from vs2t_edge.runtime.replay import ReplayFile
+
     out = record_session(cfg, Path(args.out), model=model, camera=camera, arm=arm, gate=gate,
                          items=ContinuousFeed(limit=args.max_items), evidence_factory=default_evidence_factory(cfg),
                          log=lambda m: print(m, file=sys.stderr))
-    print(f"recorded {args.max_items} items into {out}")
-    return 0
+    index = ReplayFile.open(out).index
+    finals = [d for d in index["decisions"] if d["type"] == "final"]
+    faults = [d for d in index["decisions"] if d["type"] == "fault"]
+    code = int(index["meta"].get("daemon_exit") or 0)
+    print(f"recorded {len(finals)} of {args.max_items} items into {out}"
+          + (f"; ended latched: {faults[-1]['reason']}" if faults and len(finals) < args.max_items else ""))
+    if code != 0:
+        print(f"record: the daemon stopped with exit {code} (see the messages above); the replay holds what "
+              "happened until then", file=sys.stderr)
+    return code

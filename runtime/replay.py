@@ -632,7 +632,7 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
         exhausted = getattr(items, "exhausted", None)
         return bool(exhausted and exhausted())
 
-    run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
+    code = run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
                gate=RecordingGate(gate, rec), items=r_items, evidence_factory=evidence_factory,
                notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when, install_signals=False,
                on_item=on_item, log=log)
@@ -640,7 +640,8 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     records = read_records(journal)
     start = next((r for r in records if r.get("type") == "start"), {})
     # The beta the session ran with: a replay uses it, so a later calibration does not change it.
-    meta = dict(meta or {}, beta=start.get("beta"))
+    # and how the session ended (0 clean, 2 refused, 3 device fault at start), for `vs2t-edge record`.
+    meta = dict(meta or {}, beta=start.get("beta"), daemon_exit=code)
     folder = rec.save(out, raw, records, meta)
     journal.unlink()
     return folder

@@ -171,3 +171,36 @@ def test_replay_cli_reports_ok_and_catches_a_changed_beta(tmp_path, capsys):
     index["meta"]["beta"] = -1e6
     (copy / "index.json").write_text(json.dumps(index))
     assert main(["replay", str(copy), "--bundle", str(BUNDLE)]) == 1
+
+
+def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
+    """`vs2t-edge record` on the live device path (the camera replaying touched.replay's frames,
+    the in-process arm and gate) makes the same first two decisions as the reference, and
+    `vs2t-edge replay` reproduces its own recording; a camera that cannot open ends in exit 3."""
+    import json
+
+    import yaml
+
+    from vs2t_edge.cli import main
+
+    ref = json.loads((HERE / "touched.replay" / "index.json").read_text())
+    config = {"bundle": str(BUNDLE.resolve()), "threads": 1,
+              "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
+                          "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
+              "scene": ref["config"]["scene"], "evidence": ref["config"]["evidence"],
+              "journal": str(tmp_path / "journal.jsonl")}
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
+    out = tmp_path / "today.replay"
+    assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(out), "--max-items", "2"]) == 0
+    assert "recorded 2 of 2 items" in capsys.readouterr().out
+    got = [(d["label"], d["bin"], d["presses"]) for d in json.loads((out / "index.json").read_text())["decisions"]
+           if d["type"] == "final"]
+    want = [(d["label"], d["bin"], d["presses"]) for d in ref["decisions"] if d["type"] == "final"][:2]
+    assert got == want
+    assert main(["replay", str(out)]) == 0  # the absolute bundle path it recorded
+    assert "ok, 2 items identical" in capsys.readouterr().out
+
+    config["devices"]["camera"]["path"] = str(tmp_path / "no-such-frames")
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
+    assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(tmp_path / "x.replay")]) == 3
+    assert "exit 3" in capsys.readouterr().err
