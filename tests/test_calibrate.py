@@ -232,11 +232,9 @@ def test_cli_refuses_a_target_rate_outside_0_1(capsys):
 
 
 REPLAYS = __import__("pathlib").Path(__file__).parent / "replays"
-needs_replays = pytest.mark.skipif(not (REPLAYS / "bundle").is_dir() or not (REPLAYS / "touched.replay").is_dir(),
-                                   reason="no committed reference replays under tests/replays")
+# The committed reference replays (tests/replays) are part of the repo: these do not skip.
 
 
-@needs_replays
 def test_replay_presses_score_as_the_cell_scored_them():
     """calibrate-threshold rescoring a replay's frames with the real bundle gets the novelty the
     cell journaled for those presses: same frames, same reference, same model."""
@@ -253,7 +251,6 @@ def test_replay_presses_score_as_the_cell_scored_them():
         np.testing.assert_allclose(got, journaled, rtol=1e-4)
 
 
-@needs_replays
 def test_cli_from_replay_files_with_the_real_bundle(tmp_path, capsys):
     import shutil
 
