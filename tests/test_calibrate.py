@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import builtins
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -231,7 +232,7 @@ def test_cli_refuses_a_target_rate_outside_0_1(capsys):
     assert "between 0 and 1" in capsys.readouterr().err
 
 
-REPLAYS = __import__("pathlib").Path(__file__).parent / "replays"
+REPLAYS = Path(__file__).parent / "replays"
 # The committed reference replays (tests/replays) are part of the repo: these do not skip.
 
 

@@ -12,6 +12,7 @@ exactly and every score within 1e-3.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -52,7 +53,7 @@ def test_committed_replays_name_no_machine_paths():
     for session in SESSIONS:
         text = (session / "index.json").read_text()
         assert "/work/" not in text and "/tmp/" not in text and "/home/" not in text, session
-        config = __import__("json").loads(text)["config"]
+        config = json.loads(text)["config"]
         assert config["bundle"] == "bundle" and config["devices"]["camera"]["path"] == "dataset"
         assert config["threads"] == 1, "references are recorded and replayed at 1 onnxruntime thread"
 
