@@ -215,7 +215,9 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         ev.add(s)
         stages["evidence"].append(1e3 * (time.perf_counter() - t0))
     out["overhead_ms"] = {k: _pct(v, 50) for k, v in stages.items()}
-    out["overhead_ms"]["total"] = float(sum(out["overhead_ms"].values()))
+    # The cell's camera hands over decoded frames; PNG decode is the bench's (and replay's) own cost.
+    out["overhead_ms"]["cell"] = float(sum(v for k, v in out["overhead_ms"].items() if k != "decode"))
+    out["overhead_ms"]["total"] = out["overhead_ms"]["cell"] + out["overhead_ms"]["decode"]
     out["overhead_p99_ms"] = {k: _pct(v, 99) for k, v in stages.items()}
     out["peak_rss_mb"] = _vm_hwm_mb()
     return out
@@ -403,6 +405,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
               "seconds": round(time.time() - t_start, 1),
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     result["comparisons"] = compare_pairs(rows)
+    result["targets"] = targets(result)
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -455,6 +458,33 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
     return out
 
 
+# The issue's targets (benchmarked, not timed tests).
+TARGET_OF_LIMIT = 1.25  # the ResNet50 trunk within 1.25x of this CPU's compute limit, batch 1, 2 threads
+TARGET_CELL_MS = 2.0  # everything per press outside the trunk (preprocess, heads, router, decision, evidence)
+TARGET_INT8_POINTS = 1.0  # int8 within 1 point of fp32 accuracy
+
+
+def targets(result: dict) -> list[dict]:
+    """Where each variant stands against the targets: one row per (variant, target)."""
+    rows = []
+    for r in result["variants"]:
+        if r["arch"] == "resnet50" and r.get("limit_ms", {}).get("2"):
+            ratio = r["latency"]["2"]["p50_ms"] / r["limit_ms"]["2"]
+            rows.append({"variant": r["name"], "target": f"trunk p50 (2 threads) <= {TARGET_OF_LIMIT}x compute limit",
+                         "measured": f"{r['latency']['2']['p50_ms']:.1f} ms = {ratio:.2f}x the {r['limit_ms']['2']:.1f} ms limit",
+                         "met": ratio <= TARGET_OF_LIMIT})
+        cell = r["overhead_ms"].get("cell")
+        if cell is not None:
+            rows.append({"variant": r["name"], "target": f"per press outside the trunk < {TARGET_CELL_MS:g} ms",
+                         "measured": f"{cell:.2f} ms", "met": cell < TARGET_CELL_MS})
+    for c in result.get("comparisons", []):
+        if c.get("delta_points"):
+            worst = max(c["delta_points"].items(), key=lambda kv: abs(kv[1]))
+            rows.append({"variant": c["int8"], "target": f"int8 within {TARGET_INT8_POINTS:g} point of {c['fp32']}",
+                         "measured": f"largest change {worst[1]:+.1f} points ({worst[0]})", "met": c["within_1_point"]})
+    return rows
+
+
 def _f(v, fmt="{:.1f}") -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
 
@@ -477,7 +507,8 @@ def render_table(result: dict) -> str:
             _f(lat.get("1", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("1", {}).get("p99_ms"), "{:.2f}"),
             _f(lat.get("2", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("2", {}).get("p99_ms"), "{:.2f}"),
             _f(r.get("limit_ms", {}).get("2"), "{:.2f}"), _f(r.get("fraction_of_peak", {}).get("2"), "{:.0%}"),
-            _f(r["overhead_ms"]["total"], "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"), _f(r["bundle_mb"], "{:.1f}"),
+            _f(r["overhead_ms"].get("cell", r["overhead_ms"]["total"]), "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"),
+            _f(r["bundle_mb"], "{:.1f}"),
             *acc]) + " |")
     return "\n".join(lines)
 
@@ -485,8 +516,9 @@ def render_table(result: dict) -> str:
 def render_markdown(result: dict) -> str:
     m, pk = result["machine"], result["peak"]
     lines = ["# Speed for accuracy: the bench", "",
-             f"Measured {result['time_utc']} on {m['cpu']} ({m['cores']} cores, shared with other helpers' jobs; "
-             f"load average at start {', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}), onnxruntime "
+             f"Measured {result['time_utc']} on {m['cpu']} ({m['cores']} cores; load average at start "
+             f"{', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}"
+             f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}), onnxruntime "
              f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
              "at batch 1; ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
              "", "## Compute peak of this machine", "",
@@ -496,18 +528,24 @@ def render_markdown(result: dict) -> str:
                      f"| {pk[p]['2']['how']}, fastest of 15 |")
     lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
               "## Variants", "", render_table(result), "",
-              "Columns: latency in ms (trunk only); *outside trunk* = median ms per press of PNG decode + preprocess + "
-              "heads + router + decision + evidence update (target < 2 ms); RSS = peak resident memory of a process that "
+              "Columns: latency in ms (trunk only); *outside trunk* = median ms per press of preprocess + "
+              "heads + router + decision + evidence update, what the cell adds to the trunk (target < 2 ms; PNG decode, "
+              "which only the bench and replays pay, is listed apart below); RSS = peak resident memory of a process that "
               f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
               f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training; H = harmonic mean of "
               "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
               f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
               "counted wrong).", "", "## Outside the trunk, per press (median ms)", "",
-              "| variant | decode | preprocess | heads | router | decision | evidence | total |", "|---|---|---|---|---|---|---|---|"]
+              "| variant | preprocess | heads | router | decision | evidence | cell total | PNG decode (bench only) |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in result["variants"]:
         o = r["overhead_ms"]
-        lines.append(f"| {r['name']} | " + " | ".join(_f(o[k], "{:.3f}") for k in
-                                                     ("decode", "preprocess", "heads", "router", "decision", "evidence", "total")) + " |")
+        lines.append(f"| {r['name']} | " + " | ".join(_f(o.get(k), "{:.3f}") for k in
+                                                     ("preprocess", "heads", "router", "decision", "evidence", "cell", "decode")) + " |")
+    tg = targets(result)
+    if tg:
+        lines += ["", "## Against the targets", "", "| variant | target | measured | met |", "|---|---|---|---|"]
+        lines += [f"| {t['variant']} | {t['target']} | {t['measured']} | {'yes' if t['met'] else '**no**'} |" for t in tg]
     if result["comparisons"]:
         lines += ["", "## int8 against fp32", "", "| int8 | fp32 | speed-up (2 threads) | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H | within 1 point |",
                   "|---|---|---|---|---|---|---|---|"]

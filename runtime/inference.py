@@ -29,7 +29,7 @@ import numpy as np
 
 from vs2t_edge.runtime.bundle import Bundle, BundleError, check_session_shapes, load_bundle, open_session
 from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax
-from vs2t_edge.runtime.preprocess import FrameError, check_frame, preprocess_tactile
+from vs2t_edge.runtime.preprocess import FrameError, PreparedReference, prepare_reference, preprocess_tactile
 
 LOG_ZERO = -1e30  # log of a probability that is exactly 0 (finite on purpose, see module doc)
 WARMUP_RUNS = 3
@@ -120,7 +120,7 @@ class TactileModel:
         self._trunk, self._heads = trunk_session, heads_session
         self._trunk_in = trunk_session.get_inputs()[0].name
         self._heads_in = heads_session.get_inputs()[0].name
-        self._reference: np.ndarray | None = None
+        self._reference: PreparedReference | None = None
         self.last_timing: dict[str, float] = {}
         self.probe_errors: dict[str, float] = {}
 
@@ -164,7 +164,8 @@ class TactileModel:
 
     def set_reference(self, frame: np.ndarray) -> None:
         """The session's no-contact frame; refused (FrameError) if it is no usable image."""
-        self._reference = check_frame(frame, name="reference frame").copy()
+        # checked, cropped and resized once per item: each press then only subtracts it
+        self._reference = prepare_reference(frame, self.preprocess_spec)
 
     def preprocess(self, frame: np.ndarray) -> np.ndarray:
         spec = self.preprocess_spec
