@@ -558,28 +558,43 @@ def render_markdown(result: dict) -> str:
 
 
 def plot_pareto(result: dict, path: Path) -> None:
+    """Accuracy against trunk latency, one colour per training run: accuracies of bundles trained
+    on different worlds (class counts) are not comparable, so each run gets its own Pareto front;
+    an arrow joins each fp32 bundle to its int8 twin (the price of quantisation)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
     trained = [r for r in result["variants"] if "accuracy" in r]
+    runs = sorted({r.get("run") or "?" for r in trained})
+    colour = {run: f"C{i}" for i, run in enumerate(runs)}
+    by_name = {r["name"]: r for r in trained}
     for ax, key, label in ((axes[0], lambda a: a["press"]["H"], "GZSL H per press (%)"),
                            (axes[1], lambda a: a["sequential"]["H"], "GZSL H per item, sequential rule (%)")):
-        pts = sorted(((r["latency"]["2"]["p50_ms"], key(r["accuracy"]), r) for r in trained), key=lambda p: p[0])
-        for x, y, r in pts:
-            ax.scatter(x, y, marker="o" if r["precision"] == "fp32" else "s",
-                       color={"efficientnet_lite0": "C0", "resnet50": "C3", "tiny": "C2"}.get(r["arch"], "C7"))
-            ax.annotate(f"{r['arch'].replace('efficientnet_lite0', 'effnet')} {r['size_px']} {r['precision']}", (x, y),
-                        fontsize=7, xytext=(3, 3), textcoords="offset points")
-        front, best = [], -1.0
-        for x, y, _ in pts:  # Pareto front: faster and at least as accurate
-            if y > best:
-                front.append((x, y))
-                best = y
-        if front:
-            ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="k", lw=0.8, alpha=0.6)
+        for run in runs:
+            pts = sorted(((r["latency"]["2"]["p50_ms"], key(r["accuracy"]), r) for r in trained
+                          if (r.get("run") or "?") == run), key=lambda p: p[0])
+            r0 = pts[0][2]
+            ax.scatter([], [], color=colour[run], label=f"{Path(run).name} ({r0['classes'][0]} touched + "
+                                                        f"{r0['classes'][1]} untouched)")
+            for k, (x, y, r) in enumerate(pts):
+                ax.scatter(x, y, marker="o" if r["precision"] == "fp32" else "s", color=colour[run], zorder=3)
+                ax.annotate(f"{r['arch'].replace('efficientnet_lite0', 'effnet')} {r['size_px']} {r['precision']}",
+                            (x, y), fontsize=6, xytext=(4, -9 if k % 2 else 3), textcoords="offset points")
+            front, best = [], -1.0
+            for x, y, _ in pts:  # Pareto front: faster and at least as accurate
+                if y > best:
+                    front.append((x, y))
+                    best = y
+            ax.step([p[0] for p in front], [p[1] for p in front], where="post", color=colour[run], lw=0.8, alpha=0.5)
+        for c in result.get("comparisons", []):
+            a, b = by_name.get(c["fp32"]), by_name.get(c["int8"])
+            if a and b:
+                ax.annotate("", xy=(b["latency"]["2"]["p50_ms"], key(b["accuracy"])),
+                            xytext=(a["latency"]["2"]["p50_ms"], key(a["accuracy"])),
+                            arrowprops={"arrowstyle": "->", "color": "0.5", "lw": 0.6})
         for r in result["variants"]:
             if "accuracy" not in r:
                 ax.axvline(r["latency"]["2"]["p50_ms"], color="C3" if r["arch"] == "resnet50" else "C7", ls=":", lw=0.8)
@@ -589,7 +604,9 @@ def plot_pareto(result: dict, path: Path) -> None:
         ax.set_xlabel("trunk latency p50, batch 1, 2 threads (ms)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].set_title("circles fp32, squares int8; line = Pareto front", fontsize=8)
+    axes[0].legend(fontsize=7, loc="center right", title="training run (colour)", title_fontsize=7)
+    axes[0].set_title("circles fp32, squares int8, arrow fp32 -> int8; line = Pareto front of a run", fontsize=8)
+    axes[1].set_title("dotted: latency of untrained trunks (no accuracy)", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
