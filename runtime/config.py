@@ -13,6 +13,8 @@ the single source of truth and a test checks the two agree.
 from __future__ import annotations
 
 import math
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -393,13 +395,34 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
 
 
 def load_config(path: Path | str) -> CellConfig:
+    """Read, check and return the config; a world-writable file is refused before it is parsed."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = _read_private(path)
     except OSError as exc:
         raise ConfigError(path, [f"{path}: cannot read ({exc.strerror or exc})"]) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(path, [f"{path}: not UTF-8 text (byte {exc.start}); a cell config is YAML text"]) from None
     data, lines = parse_yaml_with_lines(text, path)
     return validate_config_dict(data, lines, path)
+
+
+def _read_private(path: Path) -> str:
+    """The file's text, refused when anyone on the machine may write it.
+
+    The config names the bundle, the journal and the devices: a world-writable file would let any
+    local user point the daemon at their own model or move the arm to their own points. The mode
+    is checked on the open file descriptor (fstat), so the file cannot be swapped between the
+    check and the read. Group-writable is allowed (an operators' group owning /etc/vs2t-edge).
+    """
+    fd = os.open(path, os.O_RDONLY)
+    with os.fdopen(fd, "rb") as f:
+        mode = os.fstat(f.fileno()).st_mode
+        if mode & stat.S_IWOTH:
+            raise ConfigError(path, [f"{path}: world-writable (mode {stat.S_IMODE(mode):o}): any local user "
+                                     f"could change which bundle and journal the cell uses; fix with "
+                                     f"`chmod o-w {path}`"])
+        return f.read().decode("utf-8")
 
 
 def schema_reference() -> list[tuple[str, str, str, str]]:

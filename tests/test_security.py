@@ -66,13 +66,36 @@ def test_journal_is_not_world_writable_or_readable(tmp_path):
     assert not mode & (stat.S_IWOTH | stat.S_IROTH), oct(mode)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG (runtime/config.py): a world-writable config is loaded; anyone on "
-                   "the machine could point the daemon at another bundle or journal")
 def test_world_writable_config_is_refused(tmp_path):
     from vs2t_edge.runtime.config import ConfigError, load_config
 
     cfg = tmp_path / "cell.yaml"
     cfg.write_text(faults.DAEMON_CONFIG)
     cfg.chmod(0o666)
-    with pytest.raises(ConfigError):
+    # anyone on the machine could point the daemon at another bundle or journal: refused, in words
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg)
+    assert "world-writable" in str(err.value) and f"chmod o-w {cfg}" in str(err.value)
+    cfg.chmod(0o664)  # group-writable (an operators' group) stays allowed
+    assert load_config(cfg).path == cfg
+
+
+def test_world_writable_config_refused_by_the_daemon_with_exit_2(tmp_path):
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(faults.DAEMON_CONFIG)
+    cfg.chmod(0o646)
+    p = subprocess.run([sys.executable, "-m", "vs2t_edge.cli", "run", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "chmod o-w" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def test_non_utf8_config_is_refused_in_words(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_bytes(b"bundle: \xff\xfe\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
         load_config(cfg)
