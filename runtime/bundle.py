@@ -22,6 +22,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import zipfile
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -158,14 +160,82 @@ def _need(manifest: dict, root: Path, *keys: str):
     return node
 
 
+def _get(manifest: Any, *keys: str) -> Any:
+    """The value at keys, or None when any level is missing or not an object (no error)."""
+    node = manifest
+    for k in keys:
+        if not isinstance(node, dict):
+            return None
+        node = node.get(k)
+    return node
+
+
 def _float(v: Any, root: Path, key: str, allow_inf: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise BundleError(root, f"manifest.json '{key}' = {_short(v)} is not a number")
     try:
         x = float(v)
-    except (TypeError, ValueError):
-        raise BundleError(root, f"manifest.json '{key}' = {v!r} is not a number") from None
+    except OverflowError:  # an integer beyond float range
+        raise BundleError(root, f"manifest.json '{key}' = {_short(v)} is not a finite number") from None
     if math.isnan(x) or (math.isinf(x) and not allow_inf):
         raise BundleError(root, f"manifest.json '{key}' = {x} is not a finite number")
     return x
+
+
+def _int(v: Any, root: Path, key: str, lo: int, hi: int) -> int:
+    # bool is an int in Python and 16.7 would truncate silently: both refused.
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise BundleError(root, f"manifest.json '{key}' = {_short(v)} must be a whole number in {lo}..{hi}")
+    return v
+
+
+def _short(v: Any) -> str:
+    text = repr(v) if not isinstance(v, int) or abs(v) < 10 ** 30 else f"<{v.bit_length()}-bit integer>"
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _names(v: Any, root: Path, key: str) -> tuple[str, ...]:
+    if not isinstance(v, list) or not all(isinstance(c, str) and c for c in v):
+        raise BundleError(root, f"manifest.json '{key}' must be a list of class names (non-empty texts)")
+    return tuple(v)
+
+
+def _inside(root: Path, name: Any, key: str) -> Path:
+    """root / name, refused unless it is a plain relative name that stays in the folder (links
+    resolved: a link inside the bundle pointing out of it is outside)."""
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise BundleError(root, f"manifest.json '{key}' = {_short(name)} is not a file name")
+    if Path(name).is_absolute() or ".." in Path(name).parts:
+        raise BundleError(root, f"file name {name!r} ('{key}') leaves the bundle folder")
+    path = root / name
+    try:
+        real, base = path.resolve(), root.resolve()
+    except (OSError, RuntimeError) as exc:  # RuntimeError: a symlink loop
+        raise BundleError(root, f"{name} ('{key}'): cannot resolve ({exc})") from None
+    if real != base and base not in real.parents:
+        raise BundleError(root, f"file name {name!r} ('{key}') leaves the bundle folder (links to {real})")
+    return path
+
+
+def _shapes(v: Any, root: Path, key: str) -> dict:
+    """{tensor name: [dim or null, ...]} as the exporter writes it."""
+    if not isinstance(v, dict) or not v:
+        raise BundleError(root, f"manifest.json '{key}' missing")
+    for name, shape in v.items():
+        if not (isinstance(shape, list) and 1 <= len(shape) <= 8 and all(
+                d is None or (isinstance(d, int) and not isinstance(d, bool) and 0 < d < 1 << 31) for d in shape)):
+            raise BundleError(root, f"manifest.json '{key}.{name}' = {_short(shape)} is not a shape "
+                                    "(a list of positive sizes or null)")
+    return v
+
+
+def _no_duplicate_keys(pairs: list) -> dict:
+    out: dict = {}
+    for k, v in pairs:
+        if k in out:  # json keeps the last silently: a tampered manifest could hide a second 'files'
+            raise ValueError(f"key {k!r} appears twice in one object")
+        out[k] = v
+    return out
 
 
 def read_manifest(root: Path | str) -> dict:
@@ -176,39 +246,54 @@ def read_manifest(root: Path | str) -> dict:
     if not path.is_file():
         raise BundleError(root, f"no {MANIFEST}")
     try:
-        manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise BundleError(root, f"{MANIFEST} is not valid JSON ({exc})") from None
+        manifest = json.loads(path.read_bytes(), object_pairs_hook=_no_duplicate_keys)
+    except OSError as exc:
+        raise BundleError(root, f"{MANIFEST} cannot be read ({exc.strerror or exc})") from None
+    except RecursionError:
+        raise BundleError(root, f"{MANIFEST} is nested too deeply to be a manifest") from None
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, integers past 4300 digits, duplicates
+        raise BundleError(root, f"{MANIFEST} is not valid JSON ({str(exc)[:200]})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise BundleError(root, f"{MANIFEST} format is {manifest.get('format') if isinstance(manifest, dict) else '?'!r}, "
-                                f"expected {FORMAT!r}")
+        found = manifest.get("format") if isinstance(manifest, dict) else "?"
+        raise BundleError(root, f"{MANIFEST} format is {_short(found)}, expected {FORMAT!r}")
     version = manifest.get("format_version")
-    if version != FORMAT_VERSION:
-        raise BundleError(root, f"format version {version!r}, this runtime reads version {FORMAT_VERSION} "
+    if version != FORMAT_VERSION or isinstance(version, bool):
+        raise BundleError(root, f"format version {_short(version)}, this runtime reads version {FORMAT_VERSION} "
                                 "(re-export the bundle with this release)")
     return manifest
+
+
+def _used_files(manifest: dict) -> dict[str, Any]:
+    """{manifest key: file name} of every file the loader opens (names unchecked here)."""
+    used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in GRAPH_KEYS}
+    used.update({"router.file": _get(manifest, "router", "file"), "probe.input": _get(manifest, "probe", "input"),
+                 "probe.expected": _get(manifest, "probe", "expected")})
+    return used
 
 
 def verify_hashes(root: Path, manifest: dict) -> None:
     files = _need(manifest, root, "files")
     if not isinstance(files, dict) or not files:
         raise BundleError(root, "manifest.json 'files' is empty")
-    referenced = {g["file"] for g in manifest.get("graphs", {}).values() if isinstance(g, dict) and "file" in g}
-    referenced |= {manifest.get("router", {}).get("file"), manifest.get("probe", {}).get("input"),
-                   manifest.get("probe", {}).get("expected")}
-    unhashed = sorted(f for f in referenced if f and f not in files)
-    if unhashed:
-        raise BundleError(root, f"file(s) {unhashed} used but not listed with a sha256 in 'files'")
+    for key, name in _used_files(manifest).items():
+        if name is None:
+            raise BundleError(root, f"manifest.json lacks '{key}'")
+        _inside(root, name, key)
+        if name not in files:
+            raise BundleError(root, f"file {name!r} ('{key}') is used but not listed with a sha256 in 'files'")
     for name, digest in files.items():
-        p = root / name
-        if Path(name).is_absolute() or ".." in Path(name).parts:
-            raise BundleError(root, f"file name {name!r} leaves the bundle folder")
+        p = _inside(root, name, f"files.{name}")
         if not p.is_file():
             raise BundleError(root, f"{name} is missing")
-        actual = sha256_file(p)
+        if not isinstance(digest, str):
+            raise BundleError(root, f"manifest.json 'files.{name}' = {_short(digest)} is not a sha256 text")
+        try:
+            actual = sha256_file(p)
+        except OSError as exc:
+            raise BundleError(root, f"{name} cannot be read ({exc.strerror or exc})") from None
         if actual != digest:
             raise BundleError(root, f"{name}: sha256 {actual[:12]}... does not match the manifest's "
-                                    f"{str(digest)[:12]}... (file changed or corrupted)")
+                                    f"{digest[:12]!r}... (file changed or corrupted)")
 
 
 def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
@@ -218,18 +303,23 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     root = Path(root)
     manifest = read_manifest(root)
     verify_hashes(root, manifest)
-    touched = tuple(str(c) for c in _need(manifest, root, "classes", "touched"))
-    untouched = tuple(str(c) for c in _need(manifest, root, "classes", "untouched"))
+    touched = _names(_need(manifest, root, "classes", "touched"), root, "classes.touched")
+    untouched = _names(_need(manifest, root, "classes", "untouched"), root, "classes.untouched")
     if not touched:
         raise BundleError(root, "manifest.json 'classes.touched' is empty")
-    dup = sorted({c for c in touched + untouched if (touched + untouched).count(c) > 1})
+    counts = Counter(touched + untouched)  # not list.count per name: O(n^2) on a hostile list
+    dup = sorted(c for c, n in counts.items() if n > 1)
     if dup:
-        raise BundleError(root, f"class name(s) {dup} appear more than once in 'classes'")
+        raise BundleError(root, f"class name(s) {dup[:10]} appear more than once in 'classes'")
+    pre = _need(manifest, root, "preprocess")
+    if not isinstance(pre, dict):
+        raise BundleError(root, "manifest.json 'preprocess' must be an object")
     try:
-        spec = TactilePreprocess.from_dict(_need(manifest, root, "preprocess"))
-    except (TypeError, ValueError) as exc:
+        spec = TactilePreprocess.from_dict(pre)
+    except (TypeError, ValueError, OverflowError) as exc:
         raise BundleError(root, f"manifest.json 'preprocess': {exc}") from None
-    dim = int(_need(manifest, root, "feature_dim"))
+    _check_preprocess(spec, root)
+    dim = _int(_need(manifest, root, "feature_dim"), root, "feature_dim", 1, 1 << 20)
     beta = _float(_need(manifest, root, "beta"), root, "beta", allow_inf=True)
     if beta_override is not None:
         beta = float(beta_override)
@@ -246,47 +336,51 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     elif transform == "linear":
         gscale = None
     else:
-        raise BundleError(root, f"manifest.json 'gating.transform' = {transform!r}: expected 'asinh' or 'linear'")
+        raise BundleError(root, f"manifest.json 'gating.transform' = {_short(transform)}: expected 'asinh' or 'linear'")
 
     opsets: dict[str, dict[str, int]] = {}
     for key in GRAPH_KEYS:
         g = _need(manifest, root, "graphs", key)
-        path = root / _need(manifest, root, "graphs", key, "file")
+        path = _inside(root, _need(manifest, root, "graphs", key, "file"), f"graphs.{key}.file")
         try:
             ops = read_onnx_opsets(path)
-        except ValueError as exc:
-            raise BundleError(root, str(exc)) from None
-        declared = int(_need(manifest, root, "graphs", key, "opset"))
+        except (ValueError, OSError) as exc:
+            raise BundleError(root, f"{path.name} ('graphs.{key}.file'): {exc}") from None
+        declared = _int(_need(manifest, root, "graphs", key, "opset"), root, f"graphs.{key}.opset", 1, 1000)
         if ops[""] != declared:
             raise BundleError(root, f"{path.name}: opset {ops['']}, the manifest says {declared}")
         if not MIN_OPSET <= ops[""] <= MAX_OPSET:
             raise BundleError(root, f"{path.name}: opset {ops['']} outside what this runtime runs "
                                     f"({MIN_OPSET}..{MAX_OPSET})")
         for section in ("inputs", "outputs"):
-            if not isinstance(g.get(section), dict) or not g[section]:
-                raise BundleError(root, f"manifest.json 'graphs.{key}.{section}' missing")
+            _shapes(g.get(section), root, f"graphs.{key}.{section}")
         opsets[key] = ops
 
-    router_file = root / _need(manifest, root, "router", "file")
+    router_file = _inside(root, _need(manifest, root, "router", "file"), "router.file")
+    router_name = _need(manifest, root, "router", "name")
     try:
-        with np.load(router_file, allow_pickle=False) as z:
+        with _npz(router_file, root, "router.file") as z:
             router = nv.Router.from_params({k: z[k] for k in z.files})
-    except (nv.RouterError, ValueError, OSError) as exc:
-        raise BundleError(root, f"{router_file.name}: {exc}") from None
-    if router.name != _need(manifest, root, "router", "name"):
+    except _DATA_ERRORS as exc:
+        raise BundleError(root, f"{router_file.name} ('router.file'): {exc}") from None
+    if router.name != router_name:
         raise BundleError(root, f"{router_file.name} holds router '{router.name}', the manifest says "
-                                f"'{manifest['router']['name']}'")
+                                f"{_short(router_name)}")
     rdim = getattr(router, "dim", None)
     if rdim is not None and rdim != dim:
         raise BundleError(root, f"{router_file.name}: router fitted on {rdim}-d features, feature_dim is {dim}")
 
-    probe_in = root / _need(manifest, root, "probe", "input")
-    probe_exp = root / _need(manifest, root, "probe", "expected")
+    probe_in = _inside(root, _need(manifest, root, "probe", "input"), "probe.input")
+    probe_exp = _inside(root, _need(manifest, root, "probe", "expected"), "probe.expected")
     try:
         x = np.load(probe_in, allow_pickle=False)
-        with np.load(probe_exp, allow_pickle=False) as z:
+        if not isinstance(x, np.ndarray):
+            if hasattr(x, "close"):
+                x.close()
+            raise ValueError("not a single .npy array")
+        with _npz(probe_exp, root, "probe.expected") as z:
             expected = {k: np.asarray(z[k]) for k in z.files}
-    except (ValueError, OSError) as exc:
+    except _DATA_ERRORS as exc:
         raise BundleError(root, f"probe files unreadable ({exc})") from None
     want = (1, 3, spec.size, spec.size)
     if x.shape != want or x.dtype != np.float32:
@@ -300,6 +394,31 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
                   probe_expected=expected, probe_tolerance=tolerance, opsets=opsets)
+
+
+# What reading a listed data file may raise when the manifest points a key at the wrong kind of
+# file (router.file = "probe_input.npy") or the parameters inside are not what the key needs.
+_DATA_ERRORS = (ValueError, OSError, EOFError, KeyError, IndexError, TypeError, zipfile.BadZipFile)
+
+
+def _npz(path: Path, root: Path, key: str):
+    z = np.load(path, allow_pickle=False)
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"'{key}' names {path.name}, which is not an .npz archive")
+    return z
+
+
+def _check_preprocess(spec: TactilePreprocess, root: Path) -> None:
+    """TactilePreprocess does not check its fields; the cell resizes and divides with them."""
+    ok = (isinstance(spec.size, int) and not isinstance(spec.size, bool) and 8 <= spec.size <= 4096
+          and isinstance(spec.crop_fraction, (int, float)) and not isinstance(spec.crop_fraction, bool)
+          and 0 < spec.crop_fraction <= 1
+          and len(spec.mean) == 3 and len(spec.std) == 3
+          and all(math.isfinite(m) for m in spec.mean) and all(math.isfinite(s) and s > 0 for s in spec.std)
+          and isinstance(spec.use_reference, bool))
+    if not ok:
+        raise BundleError(root, f"manifest.json 'preprocess' = {_short(spec.to_dict())}: size 8..4096 px, "
+                                "crop_fraction in (0, 1], 3 finite means, 3 positive stds, use_reference true/false")
 
 
 # ------------------------------------------------------------------ sessions
