@@ -26,6 +26,16 @@ rest. The item in hand gets its final record (``rejected_fault``). Nothing moves
 operator clears the fault: the fault file is removed (``vs2t-edge run --clear-fault``), after
 which the loop clears the gate and carries on. The fault file survives a restart, so a restart
 does not clear a fault either.
+
+A journal write that fails (disk full, I/O error) latches a fault too: the journal has cut the
+partial record back, the item in hand stays open in the journal (its ``item`` or ``pre_sort``
+record is the last one), nothing moves. The operator's clear first resolves such open items
+exactly as a restart would (``aborted`` before a decision, ``unknown_outcome`` after the
+pre-sort record) - if the disk is still full that fails and the fault latches again.
+
+Memory is bounded: ``results`` keeps the last ``RECENT_RESULTS`` items, ``items_done`` and
+``outcomes`` count them all. A caller that needs every result (the demo's summary, replay) passes
+``on_item``, which sees each result once as it is made; the journal file has every decision.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -44,9 +55,11 @@ from vs2t_edge.runtime.devices import (
     DeviceError,
     GateError,
 )
+from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 
 UNKNOWN = "unknown"
+RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
 
 
 @dataclass(frozen=True)
@@ -166,7 +179,9 @@ class Cell:
         self.log = log or (lambda msg: None)
         self.sleep = sleep
         self.fault: str | None = None
-        self.results: list[ItemResult] = []
+        self.results: deque[ItemResult] = deque(maxlen=RECENT_RESULTS)  # the most recent only
+        self.items_done = 0  # items finished by this Cell (every outcome)
+        self.outcomes: Counter = Counter()  # items finished by outcome
         self.skipped_total = 0
         self.next_number = journal.next_item_number()
 
@@ -174,6 +189,17 @@ class Cell:
 
     def recover(self) -> list[dict]:
         """Resolve items the last run left between pre_sort and final; restore a latched fault."""
+        resolved = self._resolve_open_items()
+        ff = self.scene.fault_file
+        if ff is not None and ff.exists():
+            reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"
+            self.fault = reason
+            self.notifier.status(f"FAULT (latched before restart): {reason}")
+        return resolved
+
+    def _resolve_open_items(self) -> list[dict]:
+        """One final record for every item the journal has open (a restart, or a failed journal
+        write in this run): after its pre_sort the gate may have moved, before it the gate was not told."""
         resolved = []
         for pre in self.journal.unresolved_items():
             if pre.get("type") == "pre_sort":
@@ -188,11 +214,6 @@ class Cell:
                                                           "not told - the piece is still at the station")
                 self.log(f"recovered item {pre['item']}: stopped before a decision, logged as aborted")
             resolved.append(rec)
-        ff = self.scene.fault_file
-        if ff is not None and ff.exists():
-            reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"
-            self.fault = reason
-            self.notifier.status(f"FAULT (latched before restart): {reason}")
         return resolved
 
     # --- journal helpers ---------------------------------------------------------------
@@ -236,6 +257,9 @@ class Cell:
     def clear_fault(self) -> bool:
         """Called when the operator removed the fault file: clear the gate, journal, resume."""
         try:
+            # an item a failed journal write left open gets its final record first (the disk
+            # must be writable again, else the fault latches again here)
+            self._resolve_open_items()
             self.gate.clear()
             clear_arm = getattr(self.arm, "clear_protective_stop", None)
             if clear_arm is not None:
@@ -243,10 +267,10 @@ class Cell:
                 connect = getattr(self.arm, "connect", None)
                 if connect is not None:
                     connect()
-        except DeviceError as exc:
+            self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
+        except (DeviceError, JournalError) as exc:
             self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
             return False
-        self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
         self.log(f"fault cleared by the operator: {self.fault}")
         self.fault = None
         self.notifier.status("fault cleared; sorting")
@@ -255,10 +279,11 @@ class Cell:
     # --- the loop ----------------------------------------------------------------------
 
     def run(self, max_items: int | None = None, stop_when: Callable[[], bool] | None = None) -> list[ItemResult]:
-        """Sort until stopped (SIGTERM sets stop_event), max_items done, or stop_when() is true."""
+        """Sort until stopped (SIGTERM sets stop_event), ``max_items`` done by this Cell, or
+        stop_when() is true. Returns the last (up to RECENT_RESULTS) results; ``on_item`` sees all."""
         while not self.stop_event.is_set():
             self.notifier.ping_if_due()
-            if max_items is not None and len(self.results) >= max_items:
+            if max_items is not None and self.items_done >= max_items:
                 break
             if stop_when is not None and stop_when():
                 break
@@ -268,16 +293,24 @@ class Cell:
                     continue
                 if not self.clear_fault():
                     continue
-            self.notifier.status(f"waiting for item ({len(self.results)} sorted)")
+            self.notifier.status(f"waiting for item ({self.outcomes['sorted']} sorted)")
             item = self.items.next_item(self.scene.wait_item_timeout_s)
             if item is None:
                 continue
-            result = self.process_item(item)
+            try:
+                result = self.process_item(item)
+            except JournalError as exc:
+                # the record was cut back; the item stays open in the journal and is resolved
+                # when the operator clears (or at restart). Nothing moves meanwhile.
+                self.latch_fault(f"item {self._number} ({item.id}): journal write failed: {exc}", "journal")
+                continue
             if result is not None:
                 self.results.append(result)
+                self.items_done += 1
+                self.outcomes[result.outcome] += 1
                 if self.on_item is not None:
                     self.on_item(result)
-        return self.results
+        return list(self.results)
 
     def _check_time(self, t0: float) -> None:
         if self.clock() - t0 > self.scene.item_timeout_s:
@@ -424,7 +457,9 @@ class Cell:
                 pass
         try:
             self.journal.append({"type": "stop", "reason": reason, "t": time.time(),
-                                 "items": len(self.results)})
+                                 "items": self.items_done, "outcomes": dict(self.outcomes)})
+        except JournalError as exc:  # a full disk must not turn a clean stop into a crash
+            self.log(f"stop record not written: {exc}")
         finally:
             self.journal.close()
 

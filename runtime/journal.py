@@ -19,13 +19,27 @@ Record types (field ``type``), see docs/cell.md for every field:
 On open, an item with a ``pre_sort`` but no ``final`` (the process died between the two) is
 reported by ``unresolved_items()``; the daemon then writes its final record as
 ``unknown_outcome`` to the reject bin (the gate may or may not have moved; a human checks).
+
+Memory stays bounded however long the daemon runs: the journal file is the record, the object
+keeps only ``records`` (the last ``RECENT_RECORDS`` records, for status and debugging) and what
+the loop needs to carry on - the next item number, the items without a final record (normally
+none, at most the one in hand), the latched fault and counts by record type and by outcome. These
+are built by one streaming pass over the file in ``open`` and kept up to date by ``append``; whole
+history queries (``items()``, ``read_records``) read the file.
+
+A failed append (ENOSPC, EIO, a failed fsync) never leaves a partial record: the file is cut back
+to the last good record and :class:`JournalWriteError` says so (the cell then latches a fault and
+moves nothing). If even the cut fails the journal refuses every later append until reopened
+(``open`` cuts a torn tail), so a half line can never end up in the middle of the file.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import zlib
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -54,23 +68,48 @@ def _decode(line: bytes) -> dict | None:
         return None
 
 
+def iter_records(path: Path | str) -> Iterator[dict]:
+    """Every good record of a journal, streamed line by line (torn or corrupt lines are skipped,
+    not repaired); memory does not grow with the file."""
+    path = Path(path)
+    if not path.exists():
+        return
+    with open(path, "rb") as f:
+        for line in f:
+            rec = _decode(line.rstrip(b"\n")) if line.strip() else None
+            if rec is not None:
+                yield rec
+
+
 def read_records(path: Path | str) -> list[dict]:
-    """Every good record of a journal (a torn last line is ignored, not repaired)."""
-    data = Path(path).read_bytes() if Path(path).exists() else b""
-    records = []
-    for line in data.split(b"\n"):
-        rec = _decode(line) if line else None
-        if rec is not None:
-            records.append(rec)
-    return records
+    """Every good record of a journal as a list (tools and tests; the daemon never calls it)."""
+    return list(iter_records(path))
+
+
+RECENT_RECORDS = 128  # records kept in memory (``Journal.records``); the file keeps them all
+
+
+class JournalWriteError(JournalError):
+    """An append failed; the file was cut back to its last good record (``cut_back`` true) or
+    could not be (the journal then refuses appends until reopened). ``errno`` of the OS error."""
+
+    def __init__(self, message: str, errno_: int | None, cut_back: bool) -> None:
+        super().__init__(message)
+        self.errno, self.cut_back = errno_, cut_back
 
 
 @dataclass
 class Journal:
     path: Path
-    records: list[dict] = field(default_factory=list)
+    records: deque = field(default_factory=lambda: deque(maxlen=RECENT_RECORDS))  # the most recent only
     torn_bytes: int = 0  # bytes cut off the end on open (0 when the file was clean)
+    counts: Counter = field(default_factory=Counter)  # records by type, whole file
+    outcomes: Counter = field(default_factory=Counter)  # final records by outcome, whole file
     _fd: int | None = None
+    _open_items: dict = field(default_factory=dict)  # item -> its last item / pre_sort record, no final yet
+    _max_item: int = 0
+    _fault: dict | None = None  # the last fault record not followed by fault_cleared
+    _broken: str = ""  # non-empty: a failed write could not be cut back; appends refused
 
     @classmethod
     def open(cls, path: Path | str) -> "Journal":
@@ -80,51 +119,110 @@ class Journal:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o640)
         if created:
             _fsync_dir(path.parent)
-        data = path.read_bytes()
-        records: list[dict] = []
-        good_end = 0
-        pos = 0
-        # Only the tail may be torn; a corrupt line in the middle is a real problem, reported.
-        lines = data.split(b"\n")
-        for i, line in enumerate(lines):
-            is_last_piece = i == len(lines) - 1
-            if is_last_piece:
-                break  # bytes after the last newline: empty on a clean file, torn otherwise
-            rec = _decode(line)
-            if rec is None:
-                rest = b"\n".join(lines[i + 1:]).strip()
-                if rest:
-                    os.close(fd)
-                    raise JournalError(f"journal {path}: record {len(records) + 1} (byte {pos}) is corrupt "
-                                       "and is not the last one; refusing to append to a damaged journal")
-                break
-            records.append(rec)
-            pos += len(line) + 1
-            good_end = pos
-        torn = len(data) - good_end
+        j = cls(path=path, _fd=fd)
+        good_end = 0  # byte after the last good record
+        bad_at = None  # (record number, byte) of the first corrupt line
+        n_good = 0
+        try:
+            # One streaming pass. Only the tail may be torn or corrupt; a corrupt line with real
+            # records after it is a damaged journal and is refused (a human looks at it).
+            with open(path, "rb") as f:
+                pos = 0
+                for line in f:
+                    if bad_at is not None:
+                        if line.strip():
+                            raise JournalError(f"journal {path}: record {bad_at[0]} (byte {bad_at[1]}) is "
+                                               "corrupt and is not the last one; refusing to append to a "
+                                               "damaged journal")
+                        pos += len(line)
+                        continue
+                    rec = _decode(line[:-1]) if line.endswith(b"\n") else None
+                    if rec is None:
+                        if not line.endswith(b"\n"):
+                            break  # bytes after the last newline: a torn last write
+                        bad_at = (n_good + 1, pos)
+                        pos += len(line)
+                        continue
+                    n_good += 1
+                    j._apply(rec)
+                    pos += len(line)
+                    good_end = pos
+            size = os.fstat(fd).st_size
+        except BaseException:
+            os.close(fd)
+            raise
+        torn = size - good_end
         if torn:
-            with open(str(path) + ".torn", "ab") as f:
-                f.write(data[good_end:])
+            with open(path, "rb") as src, open(str(path) + ".torn", "ab") as f:
+                src.seek(good_end)
+                f.write(src.read())
                 f.flush()
                 os.fsync(f.fileno())
             os.ftruncate(fd, good_end)
             os.fsync(fd)
-        return cls(path=path, records=records, torn_bytes=torn, _fd=fd)
+        j.torn_bytes = torn
+        return j
+
+    def _apply(self, rec: dict) -> None:
+        """Fold one record into the bounded in-memory state."""
+        self.records.append(rec)
+        kind = rec.get("type")
+        self.counts[kind] += 1
+        item = rec.get("item")
+        if isinstance(item, int) and not isinstance(item, bool):
+            self._max_item = max(self._max_item, item)
+        if kind == "final":
+            self.outcomes[rec.get("outcome")] += 1
+            self._open_items.pop(item, None)
+        elif kind == "pre_sort":
+            self._open_items[item] = rec
+        elif kind == "item" and item not in self._open_items:
+            self._open_items[item] = rec
+        elif kind == "fault":
+            self._fault = rec
+        elif kind == "fault_cleared":
+            self._fault = None
 
     def append(self, rec: dict[str, Any]) -> dict:
         if self._fd is None:
             raise JournalError(f"journal {self.path}: closed")
+        if self._broken:
+            raise JournalWriteError(f"journal {self.path}: {self._broken}; nothing more is written until the "
+                                    "service restarts (the restart cuts the torn tail)", None, False)
         line = _encode(rec)
-        written = 0
-        while written < len(line):
-            written += os.write(self._fd, line[written:])
-        os.fsync(self._fd)  # the record is durable before the caller moves anything
-        self.records.append(rec)
+        start = os.fstat(self._fd).st_size  # the last good record ends here
+        try:
+            written = 0
+            while written < len(line):
+                n = os.write(self._fd, line[written:])
+                if n <= 0:
+                    raise OSError(errno.EIO, "write wrote nothing")
+                written += n
+            os.fsync(self._fd)  # the record is durable before the caller moves anything
+        except OSError as exc:
+            self._cut_back(start, rec, exc)
+        self._apply(rec)
         return rec
+
+    def _cut_back(self, start: int, rec: dict, exc: OSError) -> None:
+        """A write or fsync failed: remove whatever part of the record landed, then raise."""
+        what = f"journal {self.path}: writing a {rec.get('type', '?')} record failed ({exc.strerror or exc})"
+        try:
+            os.ftruncate(self._fd, start)
+            os.fsync(self._fd)
+        except OSError as exc2:
+            self._broken = (f"a failed write could not be cut back to byte {start} ({exc2.strerror or exc2}); "
+                            "the file may end in a partial record")
+            raise JournalWriteError(f"{what}; {self._broken}", exc.errno, False) from exc
+        raise JournalWriteError(f"{what}; the partial record was cut back to the last good record (byte "
+                                f"{start}), so the journal stays clean", exc.errno, True) from exc
 
     def close(self) -> None:
         if self._fd is not None:
-            os.fsync(self._fd)
+            try:
+                os.fsync(self._fd)
+            except OSError:
+                pass  # every append was fsynced already; a failing disk must not block the close
             os.close(self._fd)
             self._fd = None
 
@@ -138,35 +236,27 @@ class Journal:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- queries -----------------------------------------------------------------------
+    # --- queries (bounded state; the whole history is in the file) -----------------------
 
     def items(self) -> Iterator[dict]:
-        return (r for r in self.records if r.get("type") == "final")
+        """Every final record, streamed from the file."""
+        return (r for r in iter_records(self.path) if r.get("type") == "final")
 
     def unresolved_items(self) -> list[dict]:
         """Items without a final record: the last ``pre_sort`` (stopped between telling the gate
         and its ack) or ``item`` record (stopped before a decision) of each, in item order."""
-        finals = {r.get("item") for r in self.records if r.get("type") == "final"}
-        last: dict = {}
-        for r in self.records:
-            if r.get("type") in ("item", "pre_sort") and r.get("item") not in finals:
-                if r.get("type") == "pre_sort" or r.get("item") not in last:
-                    last[r.get("item")] = r
-        return [last[k] for k in sorted(last)]
+        return [self._open_items[k] for k in sorted(self._open_items, key=_item_order)]
 
     def next_item_number(self) -> int:
-        nums = [int(r["item"]) for r in self.records if isinstance(r.get("item"), int)]
-        return max(nums, default=0) + 1
+        return self._max_item + 1
 
     def latched_fault(self) -> dict | None:
         """The last fault record not followed by a fault_cleared record."""
-        last = None
-        for r in self.records:
-            if r.get("type") == "fault":
-                last = r
-            elif r.get("type") == "fault_cleared":
-                last = None
-        return last
+        return self._fault
+
+
+def _item_order(k: Any) -> tuple:
+    return (0, k, "") if isinstance(k, int) else (1, 0, str(k))  # a hand-edited journal may hold odd ids
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -644,85 +644,169 @@ def _reopen_rig(w: Path, journal_path: Path, truths: list[str]) -> Rig:
 
 
 class _DiskFull:
-    """os.write for the journal module that hits ENOSPC on the n-th record: half the bytes land,
-    then the error (what a filling disk does); ``freed`` makes later writes succeed again."""
+    """os.write / os.fsync for the journal module that fail on the first record of a type once
+    armed: ``write`` lands half the bytes, then ENOSPC on every write until ``freed`` (a filling
+    disk); ``fsync`` raises EIO once (a dying disk). The journal must cut the half record back."""
 
-    def __init__(self, fail_on_type: str, real_write=os.write) -> None:
-        self.fail_on_type, self.real_write = fail_on_type, real_write
+    def __init__(self, fail_on_type: str, how: str = "write", real=os) -> None:
+        self.fail_on_type, self.how, self.real = fail_on_type, how, real
         self.hit = 0
         self.freed = False
         self.armed = True
+        self._full = False
+        self._fsync_next = False
 
-    def __call__(self, fd: int, data: bytes) -> int:
+    def write(self, fd: int, data: bytes) -> int:
         if self.armed and not self.freed and f'"type":"{self.fail_on_type}"'.encode() in data:
             self.armed = False
             self.hit += 1
-            n = self.real_write(fd, data[: len(data) // 2])
+            if self.how == "fsync":
+                self._fsync_next = True
+                return self.real.write(fd, data)
+            n = self.real.write(fd, data[: len(data) // 2])
             self._full = True
             return n
-        if getattr(self, "_full", False) and not self.freed:
+        if self._full and not self.freed:
             raise OSError(errno.ENOSPC, "No space left on device (injected)")
-        return self.real_write(fd, data)
+        return self.real.write(fd, data)
+
+    def fsync(self, fd: int) -> None:
+        if self._fsync_next:
+            self._fsync_next = False
+            raise OSError(errno.EIO, "Input/output error (injected)")
+        return self.real.fsync(fd)
 
 
-def disk_full(w: Path, *, freed_before_stop: bool = False):
-    """ENOSPC while writing the pre_sort record, injected into the journal's os.write (no tmpfs or
-    loop device here without root). The gate must not move for that piece; the daemon stops (the
-    journal cannot promise anything any more); after space is freed a restart resolves the piece."""
+class _OsProxy:
+    """What the journal module sees as ``os``: the injected write/fsync, the rest real."""
+
+    def __init__(self, disk: _DiskFull) -> None:
+        self._disk = disk
+
+    def __getattr__(self, name):
+        return getattr(self._disk, name) if name in ("write", "fsync") else getattr(os, name)
+
+
+def _journal_clean(path: Path) -> str:
+    """'' when the journal ends on a whole record and no torn bytes were ever cut, else why not."""
+    torn = Path(str(path) + ".torn")
+    data = path.read_bytes()
+    if torn.exists():
+        return f"{torn.stat().st_size} torn bytes were cut from the journal (a partial record was left)"
+    if data and not data.endswith(b"\n"):
+        return "the journal ends in a partial record"
+    if len(read_records(path)) != data.count(b"\n"):
+        return "the journal holds a corrupt line"
+    return ""
+
+
+def disk_failure(w: Path, *, mode: str):
+    """The journal's disk fails mid-item (no tmpfs or loop device here without root, so the
+    failure is injected into the journal module's ``os``). ``mode``:
+
+    * ``clear``: ENOSPC while writing piece 1's pre_sort record (half the bytes land). The record
+      is cut back, a fault latched naming the journal, the gate not moved for that piece. The
+      operator's first clear while the disk is still full is refused (latched again); after space
+      is freed the clear resolves the open piece (aborted, reject) and the rest are sorted.
+    * ``restart``: the same, but the service is stopped while the disk is still full (the stop
+      record cannot be written; the stop must not crash); space freed, a restart resolves it.
+    * ``fsync_eio``: fsync of piece 1's final record fails with EIO after the gate moved it: cut
+      back, fault latched; the clear resolves it as unknown_outcome (the gate may have moved).
+    """
     import vs2t_edge.runtime.journal as jmod
 
     w.mkdir(parents=True, exist_ok=True)
-    rig = build_rig(w, ["denim", "silk", "wool"])
-    full = _DiskFull("pre_sort")
+    how = "fsync" if mode == "fsync_eio" else "write"
+    disk = _DiskFull("final" if how == "fsync" else "pre_sort", how)
+    clears = {"n": 0}
+
+    def operator_fix():
+        clears["n"] += 1
+        if clears["n"] >= 2 or how == "fsync":
+            disk.freed = True  # the operator made space (first try: not yet)
+
+    truths = ["denim", "silk", "wool"]
+    rig = build_rig(w, truths, operator_fix=operator_fix if mode != "restart" else None)
     problems: list[str] = []
     crashed = ""
-    real = jmod.os.write
+    fault_reason = ""
+    real_os = jmod.os
 
-    class _OsProxy:
-        def __getattr__(self, name):
-            return full if name == "write" else getattr(os, name)
+    def arm_on_second():
+        disk.armed = True
 
-    jmod.os = _OsProxy()  # only the journal module sees the full disk
+    disk.armed = False
+    _at(rig, 1, 1, arm_on_second)
+    jmod.os = _OsProxy(disk)  # only the journal module sees the failing disk
     try:
-        def arm_on_second():
-            full.armed = True
-        full.armed = False
-        _at(rig, 1, 1, arm_on_second)
-        try:
-            rig.cell.run(stop_when=rig.pieces.exhausted)
-        except OSError as exc:
-            crashed = str(exc)
-        if freed_before_stop:
-            full.freed = True
-        try:
-            rig.cell.shutdown(f"crashed: {crashed}")
-        except OSError:
-            pass
+        if mode == "restart":
+            def stop_when():
+                nonlocal fault_reason
+                if rig.fault_file.exists():
+                    fault_reason = rig.fault_file.read_text()
+                    return True  # the operator stops the service instead of clearing
+                return rig.pieces.exhausted()
+
+            try:
+                rig.cell.run(stop_when=stop_when)
+                rig.cell.shutdown("SIGTERM")  # stop record fails on the full disk: logged, no crash
+            except Exception as exc:  # noqa: BLE001 - that is the measured outcome
+                crashed = repr(exc)
+        else:
+            try:
+                run_rig(rig)
+            except Exception as exc:  # noqa: BLE001
+                crashed = repr(exc)
+            fault_reason = rig.operator[0] if rig.operator else ""
     finally:
-        jmod.os = os
-    assert real is os.write
+        jmod.os = real_os
     gate_sorted = list(rig.gate.sorted)
-    _check(problems, bool(crashed) and "No space" in crashed, f"the loop did not stop on ENOSPC ({crashed!r})")
-    _check(problems, gate_sorted == [BINS["denim"]], f"gate sorted {gate_sorted}; only piece 0 was decided on disk")
-    # restart with space again
-    try:
+    _check(problems, not crashed, f"the loop crashed: {crashed}")
+    _check(problems, disk.hit == 1, f"the failure was injected {disk.hit} times")
+    want = "No space left" if how == "write" else "Input/output error"
+    _check(problems, "journal write failed" in fault_reason and want in fault_reason,
+           f"the latched fault does not name the journal and {want!r}: {fault_reason[:160]!r}")
+    why = _journal_clean(rig.journal_path)
+    _check(problems, not why, why)
+    expect_gate = [BINS["denim"], BINS["silk"]] if how == "fsync" else [BINS["denim"]]
+    if mode == "restart":
+        _check(problems, gate_sorted == expect_gate, f"gate sorted {gate_sorted}; only piece 0 was decided on disk")
         rig2 = _reopen_rig(w, rig.journal_path, ["wool"])
-    except Exception as exc:  # noqa: BLE001 - that is the measured outcome
-        problems.append(f"restart refused the journal: {exc}")
-        return f"gate sorted {gate_sorted}; restart failed: {str(exc)[:120]}", problems
-    run_rig(rig2)
-    a = audit(rig.journal_path, {"piece-0000": "denim", "piece-0001": "silk", "piece-0000b": "wool"})
+        run_rig(rig2)
+        truths_by_id = {"piece-0000": "denim", "piece-0001": "silk", "piece-0000b": "wool"}
+        expect_finals = 3
+    else:
+        _check(problems, gate_sorted[: len(expect_gate)] == expect_gate and len(gate_sorted) == 2 + (how == "fsync"),
+               f"gate sorted {gate_sorted}")
+        truths_by_id = {it.id: it.truth for it in rig.pieces.items}
+        expect_finals = 3
+        n_clears = 1 if how == "fsync" else 2
+        _check(problems, len(rig.operator) == n_clears, f"operator cleared {len(rig.operator)} times, "
+                                                        f"expected {n_clears}")
+    a = audit(rig.journal_path, truths_by_id)
     problems += a["problems"]
+    _check(problems, len(a["finals"]) == expect_finals, f"{len(a['finals'])} finals")
     f2 = [r for r in a["finals"] if r["item"] == 2]
-    _check(problems, len(f2) == 1 and f2[0]["bin"] == REJECT and f2[0]["outcome"] == "aborted",
-           f"the piece whose decision hit ENOSPC resolved as {f2}")
-    return _outcome_words(a, f"loop stopped on ENOSPC; gate sorted {gate_sorted} before it"), problems
+    want_outcome = "unknown_outcome" if how == "fsync" else "aborted"
+    _check(problems, len(f2) == 1 and f2[0]["bin"] == REJECT and f2[0]["outcome"] == want_outcome,
+           f"the piece whose record failed resolved as {f2}")
+    _check(problems, a["outcomes"].get("sorted", 0) == 2, f"outcomes {dict(a['outcomes'])}")
+    extra = {"clear": "record cut back, fault latched; clear refused while full, then resolved",
+             "restart": "record cut back, fault latched, stopped while full; restart resolved it",
+             "fsync_eio": "record cut back after the gate moved, fault latched; clear resolved it"}[mode]
+    return _outcome_words(a, f"{extra}; gate sorted {gate_sorted}"), problems
 
 
-def disk_full_then_freed(w: Path):
-    """Same, but space comes back before the shutdown's stop record: the half-written pre_sort line
-    is then in the middle of the journal."""
-    return disk_full(w, freed_before_stop=True)
+def disk_full(w: Path):
+    return disk_failure(w, mode="clear")
+
+
+def disk_full_restart(w: Path):
+    return disk_failure(w, mode="restart")
+
+
+def fsync_eio(w: Path):
+    return disk_failure(w, mode="fsync_eio")
 
 
 # --- daemon subprocess rows -------------------------------------------------------------------
@@ -983,10 +1067,13 @@ SCENARIOS = [
              "open item resolved once: unknown_outcome / aborted", daemon_sigkill),
     Scenario("power_loss_mid_write", "journal", "power lost mid pre_sort write (torn last line)",
              "torn tail cut and kept aside, open item aborted once", power_loss_mid_write),
-    Scenario("disk_full", "journal", "ENOSPC writing pre_sort (injected os.write)",
-             "gate not moved, loop stops; after space freed, restart resolves the piece", disk_full),
-    Scenario("disk_full_then_freed", "journal", "ENOSPC writing pre_sort, space back before the stop record",
-             "same; the half line must not poison the journal", disk_full_then_freed),
+    Scenario("disk_full", "journal", "ENOSPC mid pre_sort write (half lands; injected os.write)",
+             "partial record cut back, fault latched naming the journal, gate not moved; clear refused while "
+             "full, then the piece is aborted once and the rest sorted", disk_full),
+    Scenario("disk_full_restart", "journal", "ENOSPC mid pre_sort write, service stopped while full",
+             "cut back, no crash on stop; after space freed the restart resolves the piece", disk_full_restart),
+    Scenario("fsync_eio", "journal", "EIO from fsync of a final record after the gate moved",
+             "cut back, fault latched; the clear resolves the piece as unknown_outcome", fsync_eio),
     Scenario("hostile_config", "config", "alias bomb, python tag, NaN, junk, ...",
              "refused with exit 2 naming the file, no traceback", hostile_configs),
     Scenario("bundle_tampered", "bundle", "corrupt / truncated / tampered bundle",

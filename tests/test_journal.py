@@ -70,3 +70,98 @@ def test_append_fsyncs(tmp_path, monkeypatch):
     j.append({"type": "x"})
     assert len(calls) == n + 1
     j.close()
+
+
+def test_memory_is_bounded_and_state_comes_from_the_file(tmp_path):
+    from vs2t_edge.runtime.journal import RECENT_RECORDS
+
+    p = tmp_path / "j.jsonl"
+    with Journal.open(p) as j:
+        for n in range(1, 401):
+            j.append({"type": "item", "item": n})
+            j.append({"type": "final", "item": n, "outcome": "sorted" if n % 4 else "aborted", "bin": 1})
+        j.append({"type": "fault", "reason": "jam"})
+        j.append({"type": "item", "item": 401})
+        assert len(j.records) == RECENT_RECORDS < 802
+    j = Journal.open(p)  # a restart: the same answers from one streaming pass, memory still bounded
+    assert len(j.records) == RECENT_RECORDS and j.records[-1] == {"type": "item", "item": 401}
+    assert j.next_item_number() == 402 and [r["item"] for r in j.unresolved_items()] == [401]
+    assert j.latched_fault()["reason"] == "jam"
+    assert j.counts["final"] == 400 and j.outcomes == {"sorted": 300, "aborted": 100}
+    assert sum(1 for _ in j.items()) == 400  # whole-history queries stream the file
+    j.close()
+
+
+class _FailingOs:
+    """The journal module's view of ``os``: a write that lands half the bytes then fails, or a
+    failing fsync (what a full or dying disk does)."""
+
+    def __init__(self, fail: str, err: int):
+        import os
+
+        self.os, self.fail, self.err, self.armed = os, fail, err, True
+
+    def __getattr__(self, name):
+        return getattr(self.os, name)
+
+    def write(self, fd, data):
+        if self.armed and self.fail == "write":
+            self.armed = False
+            self.os.write(fd, data[: len(data) // 2])
+            raise OSError(self.err, self.os.strerror(self.err))
+        return self.os.write(fd, data)
+
+    def fsync(self, fd):
+        if self.armed and self.fail == "fsync":
+            self.armed = False
+            raise OSError(self.err, self.os.strerror(self.err))
+        return self.os.fsync(fd)
+
+
+@pytest.mark.parametrize("fail,err", [("write", 28), ("write", 5), ("fsync", 5)])  # ENOSPC, EIO
+def test_failed_append_is_cut_back_and_raises_in_words(tmp_path, monkeypatch, fail, err):
+    import os
+
+    import vs2t_edge.runtime.journal as jmod
+    from vs2t_edge.runtime.journal import JournalWriteError
+
+    p = tmp_path / "j.jsonl"
+    j = Journal.open(p)
+    j.append({"type": "item", "item": 1})
+    good = p.read_bytes()
+    monkeypatch.setattr(jmod, "os", _FailingOs(fail, err))
+    with pytest.raises(JournalWriteError) as exc:
+        j.append({"type": "pre_sort", "item": 1, "bin": 2})
+    assert exc.value.cut_back and exc.value.errno == err
+    assert "pre_sort" in str(exc.value) and os.strerror(err) in str(exc.value) and str(p) in str(exc.value)
+    assert p.read_bytes() == good  # no partial record left behind
+    assert [r["type"] for r in j.unresolved_items()] == ["item"]  # the failed record did not count
+    j.append({"type": "final", "item": 1, "bin": 0})  # the disk is back: appends carry on cleanly
+    j.close()
+    j2 = Journal.open(p)
+    assert j2.torn_bytes == 0 and [r["type"] for r in j2.records] == ["item", "final"]
+
+
+def test_a_write_that_cannot_be_cut_back_stops_all_later_appends(tmp_path, monkeypatch):
+    import vs2t_edge.runtime.journal as jmod
+    from vs2t_edge.runtime.journal import JournalWriteError
+
+    p = tmp_path / "j.jsonl"
+    j = Journal.open(p)
+    j.append({"type": "start"})
+    failing = _FailingOs("write", 5)
+
+    def no_truncate(fd, n):
+        raise OSError(5, "Input/output error")
+
+    failing.ftruncate = no_truncate
+    monkeypatch.setattr(jmod, "os", failing)
+    with pytest.raises(JournalWriteError, match="could not be cut back") as exc:
+        j.append({"type": "item", "item": 1})
+    assert not exc.value.cut_back
+    with pytest.raises(JournalWriteError, match="nothing more is written"):
+        j.append({"type": "stop"})  # would land after the half line and be lost with it
+    monkeypatch.undo()
+    j.close()
+    j2 = Journal.open(p)  # the restart cuts the torn half line; nothing before it is lost
+    assert j2.torn_bytes > 0 and [r["type"] for r in j2.records] == ["start"]
