@@ -251,15 +251,19 @@ class ReplayFile:
         if not path.is_file():
             raise ReplayError(f"{folder}: not a replay file (no index.json)")
         try:
-            index = json.loads(path.read_text())
-        except ValueError as exc:
-            raise ReplayError(f"{path}: not valid JSON ({exc})") from None
+            index = json.loads(path.read_bytes())
+        except OSError as exc:
+            raise ReplayError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+        except RecursionError:
+            raise ReplayError(f"{path}: nested too deeply to be a replay index") from None
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, integers past 4300 digits
+            raise ReplayError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
         if not isinstance(index, dict):
             raise ReplayError(f"{path}: must be a JSON object")
         if index.get("format") != FORMAT:
             raise ReplayError(f"{path}: format {index.get('format')!r}, expected {FORMAT!r}")
-        if index.get("version") != VERSION:
-            raise ReplayError(f"{path}: version {index.get('version')}, this build reads {VERSION}")
+        if index.get("version") != VERSION or isinstance(index.get("version"), bool):
+            raise ReplayError(f"{path}: version {str(index.get('version'))[:40]}, this build reads {VERSION}")
         _check_index(index, path)
         return cls(folder, index)
 
@@ -291,6 +295,10 @@ class ReplayFile:
 _FRAME_NAME = re.compile(r"^frames/[0-9]{6}\.png$")  # nothing outside the replay folder is ever read
 
 
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _check_index(index: Any, path: Path) -> None:
     """Shape of every part the replay reads; a ReplayError naming the first bad entry."""
     if not isinstance(index, dict):
@@ -300,6 +308,11 @@ def _check_index(index: Any, path: Path) -> None:
             raise ReplayError(f"{path}: {key!r} missing or not a {typ.__name__}")
     if not isinstance(index.get("meta", {}), dict):
         raise ReplayError(f"{path}: 'meta' must be an object")
+    beta = index.get("meta", {}).get("beta")
+    if beta is not None and not (_number(beta) and not math.isnan(beta)):  # replayed as beta_override
+        raise ReplayError(f"{path}: meta.beta {str(beta)[:40]!r} is not a number")
+    if not isinstance(index["config"].get("bundle", ""), str):
+        raise ReplayError(f"{path}: config.bundle must be a folder name (text)")
     for i, it in enumerate(index["items"]):
         if not isinstance(it, dict) or not isinstance(it.get("id"), str):
             raise ReplayError(f"{path}: items[{i}] needs an 'id' text")
@@ -309,18 +322,26 @@ def _check_index(index: Any, path: Path) -> None:
             raise ReplayError(f"{path}: events[{i}] needs dev, call (text) and item (number)")
         frame = ev.get("frame")
         if frame is not None and (not isinstance(frame, str) or not _FRAME_NAME.match(frame)):
-            raise ReplayError(f"{path}: events[{i}].frame {frame!r} is not frames/NNNNNN.png")
+            raise ReplayError(f"{path}: events[{i}].frame {str(frame)[:60]!r} is not frames/NNNNNN.png")
         if "error" in ev and not (isinstance(ev["error"], dict) and isinstance(ev["error"].get("message"), str)
-                                  and isinstance(ev["error"].get("type"), str)):
-            raise ReplayError(f"{path}: events[{i}].error needs type and message")
+                                  and isinstance(ev["error"].get("type"), str)
+                                  and all(isinstance(ev["error"].get(k, ""), str) for k in ("kind", "device"))):
+            raise ReplayError(f"{path}: events[{i}].error needs type and message (and text kind, device)")
+        # a replayed grab's Frame is built from these: float(timestamp_s), int(index)
+        if "timestamp_s" in ev and not _number(ev["timestamp_s"]):
+            raise ReplayError(f"{path}: events[{i}].timestamp_s {str(ev['timestamp_s'])[:40]!r} is not a number")
+        if "index" in ev and not (isinstance(ev["index"], int) and not isinstance(ev["index"], bool)):
+            raise ReplayError(f"{path}: events[{i}].index {str(ev['index'])[:40]!r} is not a whole number")
         if "args" in ev and not (isinstance(ev["args"], list)
                                  and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in ev["args"])):
             raise ReplayError(f"{path}: events[{i}].args must be a list of numbers")
         if ev["call"] == "press" and "error" not in ev:
             r = ev.get("result")
-            if not (isinstance(r, dict) and all(isinstance(r.get(k), (int, float)) for k in
-                                                ("x_mm", "y_mm", "force_n", "depth_mm"))):
+            if not (isinstance(r, dict) and all(_number(r.get(k)) for k in ("x_mm", "y_mm", "force_n", "depth_mm"))):
                 raise ReplayError(f"{path}: events[{i}] press result needs x_mm, y_mm, force_n, depth_mm")
+            if not (isinstance(r.get("tcp_pose", []), list) and all(_number(v) for v in r.get("tcp_pose", []))
+                    and isinstance(r.get("telemetry", {}), dict)):
+                raise ReplayError(f"{path}: events[{i}] press result: tcp_pose must be numbers, telemetry an object")
     for i, d in enumerate(index["decisions"]):
         if not isinstance(d, dict) or not isinstance(d.get("type"), str):
             raise ReplayError(f"{path}: decisions[{i}] needs a 'type'")

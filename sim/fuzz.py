@@ -185,7 +185,7 @@ def paths_of(doc: Any, prefix: tuple = (), limit: int = 400) -> list[tuple]:
 
 def dump_json(doc: Any) -> bytes:
     """JSON text as a writer would produce it; NaN/Infinity kept (Python's json reads them)."""
-    return json.dumps(doc, indent=1, allow_nan=True, ensure_ascii=False).encode("utf-8", "surrogatepass")
+    return json.dumps(doc, indent=1, allow_nan=True).encode()  # \uXXXX escapes: lone surrogates too
 
 
 def interesting_values(bait: str) -> list:
@@ -315,7 +315,7 @@ class ReplayTarget:
                 except Exception as exc:  # noqa: BLE001
                     raise _unexpected(exc, step) from exc
                 else:
-                    outcome = "ok"
+                    outcome = "opened"
                     # An opened file must survive everything `replay` does before the daemon runs.
                     for step, fn in (("frames_by_item", lambda: [None for _ in rf.frames_by_item()]),
                                      ("replay queues", lambda: rp.ReplayItems(rp._Queues(rf))),
@@ -325,7 +325,7 @@ class ReplayTarget:
                         try:
                             fn()
                         except (rp.ReplayError, ConfigError) as exc:
-                            outcome = f"opened; {step} refused: {str(exc)[:200]}"
+                            outcome = f"{outcome}; {step} refused: {str(exc)[:200]}"
                         except Exception as exc:  # noqa: BLE001
                             raise _unexpected(exc, step) from exc
         finally:
