@@ -200,6 +200,8 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
 def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except RecursionError:  # thousands of nested [ or {: the composer recurses per level
+        raise ConfigError(path, [f"{path}: nested too deeply to be a cell config"]) from None
     except (yaml.YAMLError, ValueError) as exc:  # ValueError: e.g. NUL bytes the reader refuses
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
@@ -212,12 +214,19 @@ def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
     except (_TooBig, RecursionError):
         raise ConfigError(path, [f"{path}: too large or self-referencing (YAML aliases); a cell config is "
                                  "a few dozen keys"]) from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(path, [f"{path}: not valid YAML ({exc})"]) from None
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an integer past 4300 digits
+        raise ConfigError(path, [f"{path}: not valid YAML ({str(exc)[:200]})"]) from None
 
 
 class _TooBig(Exception):
     pass
+
+
+def _finite(value: int | float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer past float range
+        return False
 
 
 # --- validation --------------------------------------------------------------------------
@@ -246,7 +255,7 @@ class _Checker:
                 return None
             value = spec["default"]  # defaults go through the same conversion (paths, floats)
         if kind in ("float", "optfloat"):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
                 self.err(key, f"{key} = {value!r}: must be a number")
                 return fallback
             value = float(value)
@@ -260,7 +269,11 @@ class _Checker:
                 return fallback
             value = str(value)
             if kind in ("path", "optpath"):
-                p = Path(value).expanduser()
+                try:
+                    p = Path(value).expanduser()
+                except RuntimeError:  # ~user of an unknown user
+                    self.err(key, f"{key} = {value!r}: cannot expand the ~ (no such user's home)")
+                    return fallback
                 value = p if p.is_absolute() else (self.path.parent / p)
         elif kind == "list":
             if not isinstance(value, list):
