@@ -225,6 +225,13 @@ def test_compare_verb_on_a_run_uses_its_splits_and_reproduces_its_vs2t(tmp_path,
     assert code == 0
     res2 = json.loads((out / "sf.json").read_text())
     assert [r["split"] for r in res2["splits"]] == [r["split"] for r in res["splits"]]
+    # --new-splits: the run's features, fresh random splits, no run VS2T numbers to compare with
+    code = main(["compare", "--run", str(run), "--tactile", "frozen", "--new-splits", "--splits", "1", "--seed", "4",
+                 "--n-val", "2", "--n-untouched", "2", "--methods", "DAP", "--skip-real", "--out", str(out),
+                 "--out-name", "ns"])
+    assert code == 0
+    res3 = json.loads((out / "ns.json").read_text())
+    assert [r["split"]["seed"] for r in res3["splits"]] == [4000] and "run_vs2t" not in res3
     assert main(["compare", "--run", str(tmp_path / "absent"), "--skip-real"]) == 2
     assert "does not exist" in capsys.readouterr().err
 

@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     src.add_argument("--toy", action="store_true", help="synthetic feature world (smoke run)")
     parser.add_argument("--tactile", choices=("finetuned", "frozen"), default="finetuned",
                         help="with --run: the run's per-split fine-tuned tactile features (default) or frozen ones")
+    parser.add_argument("--new-splits", action="store_true",
+                        help="with --run: draw --splits random splits (--seed, --n-val, --n-untouched) instead of the "
+                             "run's, e.g. more validation evidence on the run's features (no run VS2T numbers then)")
     parser.add_argument("--splits-from", type=Path, default=None,
                         help="take the splits of this run folder (or its metrics.json) instead of random ones")
     parser.add_argument("--out-name", default=None,
@@ -138,7 +141,7 @@ def _run(args: argparse.Namespace, torch) -> int:
             return EXIT_USAGE
         methods = {m: methods[m] for m in wanted}
     try:
-        if run_src is not None:
+        if run_src is not None and not args.new_splits:
             splits, splits_source = run_src.splits, f"; exactly the splits of {args.run / 'metrics.json'}"
         elif args.splits_from is not None:
             splits, _ = cmp.read_run_splits(args.splits_from)
@@ -196,7 +199,10 @@ def _run(args: argparse.Namespace, torch) -> int:
     if name != "comparison" and (args.out / "comparison.md").is_file():
         result["meta"]["see_also"] = ("The earlier comparison on its own random splits and frozen features is "
                                       "[comparison.md](comparison.md) (with the real-sensor check).")
-    if run_src is not None:
+    if run_src is not None and args.new_splits:
+        result["meta"]["title_suffix"] = (f" — {run_src.profile.get('name', 'run')} profile, the run's features, "
+                                          f"new random splits (seed {args.seed})")
+    elif run_src is not None:
         result["meta"]["title_suffix"] = f" — {run_src.profile.get('name', 'run')} profile (the VS2T run's splits)"
         own = cmp.compare_with_run(result, run_src)
         if own is None:
