@@ -10,7 +10,13 @@ from vs2t_edge.sim import faults
 ROWS = {s.name: s for s in faults.SCENARIOS}
 
 
-@pytest.mark.parametrize("name", [s.name for s in faults.SCENARIOS])
+def _param(sc):
+    if sc.known_bug:  # fails today for a named reason; strict, so a fix shows up as XPASS
+        return pytest.param(sc.name, marks=pytest.mark.xfail(strict=True, reason="BUG " + sc.known_bug))
+    return sc.name
+
+
+@pytest.mark.parametrize("name", [_param(s) for s in faults.SCENARIOS])
 def test_fault_matrix_row(name, tmp_path):
     sc = ROWS[name]
     if sc.where == "ursim":
@@ -52,6 +58,26 @@ def test_reliability_cli_writes_the_table(tmp_path, capsys):
     assert faults_cli.run(args) == 0
     text = out.read_text()
     assert "| 1 | `protective_stop` | loop |" in text and "PASS" in text
-    assert "`bundle_tampered`" in text
+    row2 = next(line for line in text.splitlines() if line.startswith("| 2 | `bundle_tampered` | bundle |"))
+    assert row2.endswith(" |") and "| PASS |" in row2, row2  # really run, not pending
     assert faults_cli.run(p.parse_args(["--only", "no_such_row"])) == 2
     assert "unknown scenario" in capsys.readouterr().err
+
+
+def test_bundle_rows_have_a_bundle_to_tamper_with():
+    # the bundle rows skip (pending) without one: in this repository they must really run
+    assert faults.good_bundle() is not None
+
+
+def test_known_bug_rows_are_listed_not_blocking(tmp_path):
+    import argparse
+
+    from vs2t_edge.sim import faults_cli
+
+    p = argparse.ArgumentParser()
+    faults_cli.add_arguments(p, "reliability")
+    out = tmp_path / "rel.md"
+    args = p.parse_args(["--only", "bundle_manifest_edited", "--out", str(out), "--soak-json", str(tmp_path / "x")])
+    assert faults_cli.run(args) == 0  # listed as a known bug with its owner, the command does not fail on it
+    text = out.read_text()
+    assert "**KNOWN BUG**" in text and "manifest.json is covered by no hash" in text
