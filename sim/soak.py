@@ -10,6 +10,12 @@ after a 10 % warm-up, the least-squares slope of RSS and of the median press cyc
 presses, and the first and last 10 % levels. Verdicts: RSS "no growth" when the slope is under
 ``--rss-limit-mib`` per 1000 presses; latency "no drift" when the last 10 % median is within 20 %
 of the first 10 %.
+
+What is measured is the daemon's own state (loop, journal, notifier, gate host driver). The
+test doubles' logs that a real cell does not have - FakeArm.calls, FakeGate.sorted, the MCU
+simulator's frame and move lists (the real MCU is another machine) - are trimmed to their last
+``KEEP_LOG`` entries at every sample, and the soak's own press stamps are kept per sample window,
+so they do not show up as growth.
 """
 
 from __future__ import annotations
@@ -29,6 +35,29 @@ def rss_mib() -> float:
     with open("/proc/self/statm") as f:
         resident_pages = int(f.read().split()[1])
     return resident_pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+KEEP_LOG = 100
+_DOUBLE_LOGS = ("calls", "sorted", "rx_frames", "executed")
+
+
+def _trim_test_doubles(*objs) -> None:
+    """Cut the test doubles' every-call logs to their last KEEP_LOG entries (see the docstring)."""
+    seen: set[int] = set()
+    todo = [o for o in objs if o is not None]
+    while todo:
+        o = todo.pop()
+        if id(o) in seen:
+            continue
+        seen.add(id(o))
+        for name in _DOUBLE_LOGS:
+            lst = getattr(o, name, None)
+            if isinstance(lst, list) and len(lst) > KEEP_LOG:
+                del lst[:-KEEP_LOG]
+        for child in ("simulator", "firmware", "inner", "fw"):
+            c = getattr(o, child, None)
+            if c is not None and not isinstance(c, (int, float, str, bytes)):
+                todo.append(c)
 
 
 def slope_per_k(x: list[float], y: list[float]) -> float:
@@ -52,10 +81,13 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     truths = [TRUTHS[i % len(TRUTHS)] for i in range(presses)]  # at least one press per piece
     rig = build_rig(workdir, truths, gate=gate)
     inner_press = rig.arm.inner.press
-    stamps: list[float] = []
+    stamps: list[float] = []  # press start times of the current sample window only
+    n_pressed = 0
 
     def timed_press():
+        nonlocal n_pressed
         stamps.append(time.perf_counter())
+        n_pressed += 1
         return inner_press()
 
     rig.arm.inner.press = timed_press
@@ -65,11 +97,14 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
 
     def tick() -> bool:
         nonlocal last_n
-        n = len(stamps)
+        n = n_pressed
         if n - last_n >= sample:
-            cycles = np.diff(np.asarray(stamps[last_n:n], float)) * 1000.0
+            cycles = np.diff(np.asarray(stamps, float)) * 1000.0
+            del stamps[:-1]  # the window's last press starts the next window's first cycle
+            _trim_test_doubles(rig.arm, rig.gate, rig.camera)
             samples.append({"presses": n, "rss_mib": rss_mib(), "press_ms_median": float(np.median(cycles)),
-                            "press_ms_p95": float(np.percentile(cycles, 95)), "t_s": time.monotonic() - t0})
+                            "press_ms_p95": float(np.percentile(cycles, 95)), "t_s": time.monotonic() - t0,
+                            "notifier_messages": len(rig.cell.notifier.sent)})
             last_n = n
             if progress:
                 s = samples[-1]
@@ -99,7 +134,7 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     x = [s["presses"] for s in warm]
     res = {
         "command": f"python -m vs2t_edge.sim.soak --presses {presses} --gate {gate_kind}",
-        "presses": len(stamps), "items": len(a["finals"]), "seconds": seconds, "arm": "FakeArm",
+        "presses": n_pressed, "items": len(a["finals"]), "seconds": seconds, "arm": "FakeArm",
         "gate": "MCU simulator (pty)" if gate_kind == "pty" else "FakeGate",
         "rss_first_mib": float(np.mean([s["rss_mib"] for s in first])),
         "rss_last_mib": float(np.mean([s["rss_mib"] for s in last])),
@@ -109,6 +144,7 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
         "press_ms_slope_per_kpress": slope_per_k(x, [s["press_ms_median"] for s in warm]),
         "journal_mib": journal_mib, "journal_records": len(a["records"]),
         "in_memory_journal_records": len(rig.cell.journal.records), "in_memory_results": len(rig.cell.results),
+        "items_done": rig.cell.items_done, "notifier_messages_held": len(rig.cell.notifier.sent),
         "outcomes": dict(a["outcomes"]), "problems": a["problems"], "samples": samples,
     }
     res["rss_verdict"] = ("no growth" if res["rss_slope_mib_per_kpress"] < rss_limit_mib
@@ -142,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"press cycle median {res['press_ms_first']:.2f} -> {res['press_ms_last']:.2f} ms, slope "
           f"{res['press_ms_slope_per_kpress']:+.3f} ms/1000 presses: {res['latency_verdict']}")
     print(f"journal {res['journal_mib']:.2f} MiB ({res['journal_records']} records; {res['in_memory_journal_records']} "
-          f"held in memory); {res['journal_verdict']}")
+          f"held in memory, {res['in_memory_results']} results); {res['journal_verdict']}")
+    print(f"notifier messages held in memory: {res['notifier_messages_held']}")
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(res, indent=1))

@@ -213,3 +213,51 @@ def test_restart_resolves_item_stopped_before_its_decision(tmp_path):
     resolved = cell.recover()
     assert [(r["item"], r["outcome"], r["bin"]) for r in resolved] == [(4, "aborted", 0)]
     assert cell.recover() == []  # resolved once, not again
+
+
+def test_journal_write_failure_latches_and_the_clear_resolves_the_item(tmp_path, monkeypatch):
+    """A pre_sort record that cannot be written (disk full): the gate is not told, a fault is
+    latched naming the journal; the operator's clear writes the open item's final record (aborted)
+    and the loop carries on. No partial record is left in the file."""
+    import errno
+
+    import vs2t_edge.runtime.journal as jmod
+
+    real_os = jmod.os
+
+    class FullDisk:
+        full = False
+
+        def __getattr__(self, name):
+            return getattr(real_os, name)
+
+        def write(self, fd, data):
+            if b'"type":"pre_sort"' in data and not self.full and not cleared["done"]:
+                self.full = True
+                real_os.write(fd, data[: len(data) // 2])  # half lands, then the disk is full
+            if self.full:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real_os.write(fd, data)
+
+    cleared = {"done": False}
+    disk = FullDisk()
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50, 50, 50, 60, 60, 60, 60])
+    monkeypatch.setattr(jmod, "os", disk)
+    cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    assert cell.fault and "journal write failed" in cell.fault and "No space" in cell.fault
+    assert gate.sorted == [] and "stop" in arm.calls  # nothing routed on a decision that is not on disk
+    assert (tmp_path / "FAULT").exists() and cell.items_done == 0
+    assert journal.path.read_bytes().endswith(b"\n")  # the half record was cut back
+    # the operator clears while the disk is still full: refused, latched again
+    (tmp_path / "FAULT").unlink()
+    cell.run(max_items=1, stop_when=lambda: (tmp_path / "FAULT").exists())
+    assert "could not clear" in cell.fault
+    # space freed, cleared again: the open item gets its final record, the next one is sorted
+    disk.full, cleared["done"] = False, True
+    (tmp_path / "FAULT").unlink()
+    results = cell.run(max_items=1)
+    recs = read_records(journal.path)
+    f = [r for r in recs if r["type"] == "final"]
+    assert [(r["item"], r["outcome"]) for r in f] == [(1, "aborted"), (2, "sorted")] and f[0]["bin"] == 0
+    assert results[-1].outcome == "sorted" and gate.sorted == [f[1]["bin"]] and f[1]["bin"] != 0
+    assert jmod.Journal.open(journal.path).torn_bytes == 0
