@@ -171,7 +171,8 @@ def spread_order(n_x: int = N_GRID_X, n_y: int = N_GRID_Y) -> list[int]:
 
 # --- YAML with line numbers --------------------------------------------------------------
 
-_MAX_NODES = 20000  # a cell config has a few hundred; aliases must not expand without bound
+_MAX_NODES = 5000  # a cell config has a few hundred; aliases must not expand without bound (each
+# scalar costs a ~90 us serialize + safe_load round trip: 20000 made an alias bomb take 1.8 s)
 
 
 def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[int] | None = None) -> Any:

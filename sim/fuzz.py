@@ -480,25 +480,33 @@ def run_atheris(name: str, seconds: int, work: Path, base: Path | None = None, m
     dict_file.write_text("".join(f'"{_escape_dict_entry(t)}"\n' for t in _DICT[name]))
     n_corpus_before = len(list(corpus.iterdir()))
     stats = {"runs": 0, "ok": 0, "refused": 0}
-
-    def one(data: bytes) -> None:
-        stats["runs"] += 1
-        outcome = target.run(data)  # FuzzFailure propagates: libFuzzer saves the input and stops
-        stats["ok" if outcome.startswith(("ok", "opened")) or name == "gate" else "refused"] += 1
-
     t0 = time.monotonic()
+    last = [t0]
 
-    def report() -> None:
+    def report(final: bool = False) -> None:
         dt = time.monotonic() - t0
-        new = len(list(corpus.iterdir())) - n_corpus_before
         crashes = sorted(p.name for p in work.glob("crash-*")) + sorted(p.name for p in work.glob("timeout-*"))
         print(f"fuzz {name}: {stats['runs']} runs in {dt:.0f} s ({stats['runs'] / max(dt, 1e-9):.0f}/s), "
               f"{stats['ok']} loaded, {stats['refused']} refused, corpus {n_corpus_before} -> "
-              f"{n_corpus_before + new}, crashes {len(crashes)} {crashes[:3]} (in {work})", file=sys.stderr)
+              f"{len(list(corpus.iterdir()))}, failures saved {len(crashes)}{' (in ' + str(work) + ')' if final else ''}",
+              file=sys.stderr, flush=True)
 
-    import atexit
+    def one(data: bytes) -> None:
+        stats["runs"] += 1
+        try:
+            outcome = target.run(data)
+        except FuzzFailure:
+            report(final=True)
+            raise  # libFuzzer saves the input as crash-<sha1> in the work folder and stops
+        stats["ok" if outcome.startswith(("ok", "opened")) or name == "gate" else "refused"] += 1
+        now = time.monotonic()
+        # libFuzzer ends the process from C at -max_total_time (no atexit): report as we go.
+        if now - last[0] >= 10 or now - t0 >= seconds - 0.5 and last[0] < t0 + seconds - 0.5:
+            last[0] = now
+            report(final=now - t0 >= seconds - 0.5)
 
-    atexit.register(report)
+    import numpy  # noqa: F401 - third-party code imported first stays uninstrumented (speed):
+    import yaml  # noqa: F401   coverage is wanted in this project's parsers only
     with atheris.instrument_imports():
         # Coverage-guide the code under test (imported here, after instrumentation is on).
         import vs2t_edge.firmware_bridge.protocol  # noqa: F401
@@ -529,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
         failed = 0
         for path, seed in load_seeds(args.target):
             try:
-                outcome = target.run(target.seed_bytes(seed))
+                data = target.seed_bytes(seed)
+                outcome = target.run(data, open_model=True) if seed.get("open_model") else target.run(data)
                 check_seed(target, seed, outcome)
                 print(f"ok    {path.name}: {outcome[:120]}")
             except FuzzFailure as exc:

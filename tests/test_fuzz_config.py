@@ -82,3 +82,12 @@ def test_line_edits_with_yaml_tokens(target, data):
 @given(raw=st.binary(max_size=200))
 def test_any_bytes_as_config(target, raw):
     target.run(raw)
+
+
+def test_harness_replays_every_committed_corpus(tmp_path, capsys):
+    """`python -m vs2t_edge.sim.fuzz TARGET --seeds-only` (no atheris needed): the committed
+    seeds hold on the default bases (the tests/replays bundle, touched.replay, systemd/cell.yaml)."""
+    for name in fuzz.TARGETS:
+        assert fuzz.main([name, "--seeds-only", "--work", str(tmp_path / name)]) == 0, capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "FAIL" not in out and out.count("ok ") >= sum(len(fuzz.load_seeds(t)) for t in fuzz.TARGETS)
