@@ -169,6 +169,8 @@ class Journal:
         kind = rec.get("type")
         self.counts[kind] += 1
         item = rec.get("item")
+        if isinstance(item, (list, dict)):
+            item = json.dumps(item, sort_keys=True)  # a hand-edited record: a key, not a crash
         if isinstance(item, int) and not isinstance(item, bool):
             self._max_item = max(self._max_item, item)
         if kind == "final":
