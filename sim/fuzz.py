@@ -325,7 +325,7 @@ class ReplayTarget:
                         try:
                             fn()
                         except (rp.ReplayError, ConfigError) as exc:
-                            outcome = f"{outcome}; {step} refused: {str(exc)[:200]}"
+                            outcome = f"{outcome}; {step} refused: {str(exc)[:800]}"
                         except Exception as exc:  # noqa: BLE001
                             raise _unexpected(exc, step) from exc
         finally:

@@ -57,7 +57,7 @@ _slow_ok = settings(deadline=None, suppress_health_check=[HealthCheck.too_slow, 
                                                            HealthCheck.function_scoped_fixture])
 
 
-@settings(_slow_ok, max_examples=250)
+@settings(_slow_ok, max_examples=150)
 @given(data=st.data())
 def test_mutated_manifests_load_or_are_refused(target, data):
     ops = data.draw(_ops(target, fuzz.interesting_values(str(target.outside))))
@@ -76,13 +76,13 @@ def test_mutated_graph_shapes_through_onnxruntime(target, data):
     target.run(fuzz.dump_json(fuzz.apply_ops(target.base, ops)), open_model=True)
 
 
-@settings(_slow_ok, max_examples=120)
+@settings(_slow_ok, max_examples=80)
 @given(raw=st.binary(max_size=300) | st.text(max_size=200).map(lambda t: t.encode("utf-8", "surrogatepass")))
 def test_any_bytes_as_manifest(target, raw):
     target.run(raw)
 
 
-@settings(_slow_ok, max_examples=120)
+@settings(_slow_ok, max_examples=80)
 @given(data=st.data())
 def test_byte_edits_of_the_real_manifest(target, data):
     raw = bytearray(target.base_bytes)

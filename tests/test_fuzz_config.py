@@ -49,7 +49,7 @@ def test_committed_seed(target, seed):
     fuzz.check_seed(target, seed, target.run(target.seed_bytes(seed)))
 
 
-@settings(_slow_ok, max_examples=200)
+@settings(_slow_ok, max_examples=100)
 @given(data=st.data())
 def test_mutated_configs_load_or_are_refused(target, data):
     base = yaml.safe_load(target.base_text)
@@ -65,7 +65,7 @@ def test_mutated_configs_load_or_are_refused(target, data):
     target.run(yaml.safe_dump(doc, allow_unicode=True).encode("utf-8", "surrogatepass"))
 
 
-@settings(_slow_ok, max_examples=200)
+@settings(_slow_ok, max_examples=120)
 @given(data=st.data())
 def test_line_edits_with_yaml_tokens(target, data):
     lines = target.base_text.splitlines(keepends=True)

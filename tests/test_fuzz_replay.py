@@ -45,7 +45,7 @@ def _paths(target):
             if len(p) <= 3 and not (len(p) > 1 and isinstance(p[1], int) and p[1] > 6)]
 
 
-@settings(_slow_ok, max_examples=250)
+@settings(_slow_ok, max_examples=120)
 @given(data=st.data())
 def test_mutated_indexes_open_or_are_refused(target, data):
     paths = _paths(target)
@@ -62,13 +62,13 @@ def test_mutated_indexes_open_or_are_refused(target, data):
     target.run(fuzz.dump_json(fuzz.apply_ops(target.base, ops)))
 
 
-@settings(_slow_ok, max_examples=100)
+@settings(_slow_ok, max_examples=80)
 @given(raw=st.binary(max_size=300) | st.text(max_size=200).map(lambda t: t.encode("utf-8", "surrogatepass")))
 def test_any_bytes_as_index(target, raw):
     target.run(raw)
 
 
-@settings(_slow_ok, max_examples=100)
+@settings(_slow_ok, max_examples=60)
 @given(data=st.data())
 def test_byte_edits_of_the_recorded_index(target, data):
     raw = bytearray(target.base_bytes)
