@@ -195,7 +195,12 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
         return out
     if isinstance(node, yaml.SequenceNode):
         return [_to_python(v, f"{key}[{i}]", lines, budget) for i, v in enumerate(node.value)]
-    return yaml.safe_load(yaml.serialize(node))
+    try:
+        return yaml.safe_load(yaml.serialize(node))
+    except (yaml.YAMLError, ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
+        # An explicit tag the value does not fit ("!!timestamp x" -> AttributeError, "!!bool maybe"
+        # -> KeyError, "!!int ''" -> IndexError inside PyYAML): say where, like every other problem.
+        raise _BadScalar(node.start_mark.line + 1, key or "the document", node.tag, exc) from None
 
 
 def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
@@ -215,12 +220,20 @@ def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
     except (_TooBig, RecursionError):
         raise ConfigError(path, [f"{path}: too large or self-referencing (YAML aliases); a cell config is "
                                  "a few dozen keys"]) from None
-    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an integer past 4300 digits
+    except _BadScalar as bad:
+        line, key, tag, exc = bad.args
+        raise ConfigError(path, [f"{path}:{line}: {key}: not valid YAML for tag {tag} "
+                                 f"({type(exc).__name__}: {str(exc)[:200]})"]) from None
+    except yaml.YAMLError as exc:
         raise ConfigError(path, [f"{path}: not valid YAML ({str(exc)[:200]})"]) from None
 
 
 class _TooBig(Exception):
     pass
+
+
+class _BadScalar(Exception):
+    """(line, key, tag, the constructor's exception) of a scalar PyYAML could not build."""
 
 
 def _finite(value: int | float) -> bool:
