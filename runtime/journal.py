@@ -208,16 +208,16 @@ class Journal:
 
     def _cut_back(self, start: int, rec: dict, exc: OSError) -> None:
         """A write or fsync failed: remove whatever part of the record landed, then raise."""
-        what = f"journal {self.path}: writing a {rec.get('type', '?')} record failed ({exc.strerror or exc})"
+        what = f"writing a {rec.get('type', '?')} record failed ({exc.strerror or exc})"
         try:
             os.ftruncate(self._fd, start)
             os.fsync(self._fd)
         except OSError as exc2:
             self._broken = (f"a failed write could not be cut back to byte {start} ({exc2.strerror or exc2}); "
                             "the file may end in a partial record")
-            raise JournalWriteError(f"{what}; {self._broken}", exc.errno, False) from exc
+            raise JournalWriteError(f"{what}; {self._broken} (journal {self.path})", exc.errno, False) from exc
         raise JournalWriteError(f"{what}; the partial record was cut back to the last good record (byte "
-                                f"{start}), so the journal stays clean", exc.errno, True) from exc
+                                f"{start}), the journal stays clean (journal {self.path})", exc.errno, True) from exc
 
     def close(self) -> None:
         if self._fd is not None:
