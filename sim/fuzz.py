@@ -39,7 +39,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = REPO / "tests" / "fuzz_seeds"
@@ -463,7 +463,7 @@ def run_atheris(name: str, seconds: int, work: Path, base: Path | None = None, m
     try:
         import atheris
     except ImportError as exc:
-        print(f"atheris is not installed ({exc}); pip install atheris (Linux x86_64/aarch64 wheels)", file=sys.stderr)
+        print(f"atheris is not installed ({exc}); pip install atheris (wheels for Linux x86_64)", file=sys.stderr)
         return 4
     work.mkdir(parents=True, exist_ok=True)
     target = make_target(name, work / "target", base)
@@ -514,7 +514,8 @@ def run_atheris(name: str, seconds: int, work: Path, base: Path | None = None, m
         import vs2t_edge.runtime.config  # noqa: F401
         import vs2t_edge.runtime.replay  # noqa: F401
     args = [sys.argv[0], f"-max_total_time={seconds}", f"-timeout={int(HANG_S) + 5}", f"-max_len={max_len}",
-            "-rss_limit_mb=3072", f"-artifact_prefix={work}/", f"-dict={dict_file}", "-print_final_stats=1",
+            "-rss_limit_mb=3072", "-error_exitcode=1", "-timeout_exitcode=1", f"-artifact_prefix={work}/",
+            f"-dict={dict_file}", "-print_final_stats=1",
             str(corpus)]
     atheris.Setup(args, one)
     atheris.Fuzz()
