@@ -115,7 +115,11 @@ def test_tiny_profile_end_to_end(tmp_path):
     with torch.no_grad():
         f = trunk(x)
         assert cls_t(f).shape == (3, len(art.touched)) and cls_u(f).shape == (3, len(art.untouched))
-    assert load_router(art).novelty(f.numpy().astype(np.float64)).shape == (3,)
+        lt, lu = cls_t(f).numpy(), cls_u(f).numpy()
+    # the deployed router is the one chosen on validation (it may need the heads' logits)
+    m_router = m["router"]["chosen"]
+    assert art.router_name == m_router and m_router in m["summary"]["VS2T-ZSL"]["routers"]
+    assert load_router(art).novelty(f.numpy().astype(np.float64), lt, logits_u=lu).shape == (3,)
     # the cached features are reused by a second run (no frame is read again)
     assert cmp.FeatureTable.load(out / "features" / "feature_table.npz").x_t.shape[1] == 64
 
@@ -126,3 +130,48 @@ def test_visual_condition_is_clipped_for_unseen_fabrics():
     m = vs2t.VS2TZSL()
     c = m._cond(np.array([[3.7e5, -2.0]]), np.array([[1.0, 0.0]]))
     assert c.tolist() == [[vs2t.CLIP_SD, -2.0, 1.0, 0.0]]
+
+
+def test_router_is_chosen_on_validation_ausuc_only():
+    from vs2t_edge.train.run import choose_router
+
+    def split(val_a, val_b, test_a, test_b):
+        block = {"a": {"val_ausuc": val_a, "ausuc": test_a}, "b": {"val_ausuc": val_b, "ausuc": test_b}}
+        return {"methods": {"VS2T-ZSL": {"routers": block}, "S2T": {"routers": {
+            "a": {"val_ausuc": 0.0, "ausuc": 1.0}, "b": {"val_ausuc": 1.0, "ausuc": 0.0}}}}}
+
+    # b is better on test in every split, a on validation on average: a wins, whatever test says
+    results = [split(0.6, 0.5, 0.1, 0.9), split(0.7, 0.75, 0.1, 0.9)]
+    assert choose_router(results) == "a"
+    assert choose_router([split(0.5, 0.5, 0.0, 0.0)]) == "a"  # tie: the first evaluated (the paper's Gaussian)
+
+
+def test_vsf_gate_starts_where_gate_bias_puts_it():
+    from vs2t_edge.train.models import VSFusion
+
+    torch.manual_seed(0)
+    f = torch.randn(256, 40)
+    for bias, lo, hi in ((0.0, 0.4, 0.6), (3.0, 0.9, 1.0)):
+        with torch.no_grad():
+            gate = torch.sigmoid(VSFusion(40, gate_bias=bias).gate(f))
+        assert lo < float(gate.mean()) < hi, (bias, float(gate.mean()))  # 0: halves the condition; 3: passes it
+
+
+def test_condition_options_see_only_touched_visual_features():
+    views = _views()
+    budget = vs2t.VS2TBudget(steps=3, cls_steps=3, n_synth_per_class=5, hidden=16, latent=4, cond_pca=6,
+                             visual_condition="fabric", cond_noise=0.5)
+    m = vs2t.VS2TZSL().fit(views.train, budget, seed=0)
+    assert m.G.net[0].in_features == 4 + 6 + 24  # latent + principal components + attributes
+    basis = m.pca_basis.copy()
+    # the principal axes come from touched training presses: other untouched crops change nothing
+    data2 = cmp.ZSLData(**{**views.train.__dict__, "v_u": views.train.v_u * 3 + 1})
+    m2 = vs2t.VS2TZSL().fit(data2, budget, seed=0)
+    assert np.array_equal(m2.pca_basis, basis)
+    # "fabric": one visual condition per fabric (the mean over its crops)
+    c, cls = m._conditions_u(views.train)
+    for k in np.unique(cls):
+        assert np.allclose(c[cls == k], c[cls == k][0])
+    # whitened: unit variance on the presses it was fitted on
+    z = (np.clip(views.train.x_v, -vs2t.CLIP_SD, vs2t.CLIP_SD) - m.pca_mean) @ m.pca_basis
+    assert np.allclose(z.std(0, ddof=1), 1.0, atol=1e-3)

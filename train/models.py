@@ -45,10 +45,12 @@ class Encoder(nn.Module):
 
 
 class VSFusion(nn.Module):
-    def __init__(self, d_in: int) -> None:
+    def __init__(self, d_in: int, gate_bias: float = 0.0) -> None:
         super().__init__()
         self.gate = nn.Sequential(nn.Linear(d_in, 512), nn.ReLU(), nn.Linear(512, 256), nn.ReLU(),
                                   nn.Linear(256, d_in))
+        if gate_bias:
+            nn.init.constant_(self.gate[-1].bias, float(gate_bias))
 
     def forward(self, f):
         return f * torch.sigmoid(self.gate(f))

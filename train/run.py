@@ -46,6 +46,10 @@ class Profile:
     latent: int = 64
     hidden: int | None = 512  # E / G width; None = feature size (the paper's 2048 for 2048-d); 512 for CPU time
     seed: int = 0
+    # GZSL routers evaluated on every split (beta of each tuned on the validation fabrics); the
+    # deployed one is chosen by mean VALIDATION AUSUC of VS2T-ZSL over splits (``choose_router``).
+    # "gaussian" (the paper's) is always reported beside it.
+    routers: tuple[str, ...] = nv.ROUTERS
 
 
 PROFILES = {
@@ -111,7 +115,7 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     t_ft = time.time() - t0
     table = cmp.FeatureTable(x_t, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     classes = vs2t.all_variants()
-    result = cmp.run_split(table, split, classes, budget, routers=("gaussian",), log=_log)
+    result = cmp.run_split(table, split, classes, budget, routers=tuple(prof.routers), log=_log)
     result["finetune_s"] = round(t_ft, 1)
     views = cmp.split_views(table, split)
     fitted = {name: cls.instances[-1] for name, cls in classes.items()}
@@ -122,14 +126,28 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": tuned}
 
 
-def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget) -> RunArtifacts:
+def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray) -> nv.Router:
+    """Router ``name`` fitted as ``compare.run_split`` fits it (feature routers without covariance copy)."""
+    opts = {"keep_covariance": False} if name in nv.FEATURE_ROUTERS else {}
+    return nv.fit_router(name, x_t, logits_t, **opts)
+
+
+def choose_router(results: list[dict], method: str = "VS2T-ZSL") -> str:
+    """The router with the highest mean validation AUSUC of ``method`` over splits (validation
+    fabrics only; ties go to the first in evaluation order, the paper's Gaussian first)."""
+    names = list(results[0]["methods"][method]["routers"])
+    return max(names, key=lambda r: (np.mean([x["methods"][method]["routers"][r]["val_ausuc"] for x in results]),
+                                     -names.index(r)))
+
+
+def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_name: str = "gaussian") -> RunArtifacts:
     views, fitted, tuned = out["views"], out["fitted"], out["trunk"]
     seed = split.seed
     # the same CLS_t and router compare.run_split evaluated (deterministic from the seed)
     cls_t = train_classifier(views.train.x_t, views.train.y, views.train.n_t, hidden=[512, 512],
                              steps=budget.cls_steps * 2, seed=seed)
-    router = nv.fit_router("gaussian", views.train.x_t, predict_logits(cls_t, views.train.x_t), keep_covariance=False)
-    g = out["result"]["methods"]["VS2T-ZSL"]["routers"]["gaussian"]
+    router = fit_router(router_name, views.train.x_t, predict_logits(cls_t, views.train.x_t))
+    g = out["result"]["methods"]["VS2T-ZSL"]["routers"][router_name]
     scaler = cmp.FeatureScaler.fit(out["table"].x_t[ft.touched_training_rows(out["table"].fabric,
                                                                                 out["table"].fabric_ids, split)[0]])
     return RunArtifacts(
@@ -137,27 +155,55 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget) -> RunAr
         preprocess=TactilePreprocess(size=prof.size_px).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
         cls_t_state=cls_t.state_dict(), touched=list(split.touched),
         cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
-        router_name="gaussian", router_params=router.to_params(), beta=float(g["beta"]),
+        router_name=router_name, router_params=router.to_params(), beta=float(g["beta"]),
         validation=list(split.validation), dataset=str(Path(dataset).resolve()),
         touched_fabric_ids=list(split.touched), info={"profile": prof.name, "split_seed": seed})
 
 
-def summarise(results: list[dict]) -> dict:
+def _stat(vals) -> dict:
+    v = 100 * np.asarray(vals, dtype=float)
+    return {"mean": float(v.mean()), "std": float(v.std())}
+
+
+def summarise(results: list[dict], router: str | None = None) -> dict:
+    """Per model: ZSL (test and validation), GZSL with the paper's Gaussian router (``acc_t``,
+    ``acc_u``, ``H``), with ``router`` (``gzsl_router``: the validation-chosen one) and every
+    evaluated router's numbers (``routers``)."""
     names = list(results[0]["methods"])
+    router = router or choose_router(results)
     out = {}
     for n in names:
         ms = [r["methods"][n] for r in results]
         g = [m["routers"]["gaussian"] for m in ms]
-
-        def stat(vals):
-            v = 100 * np.asarray(vals, dtype=float)
-            return {"mean": float(v.mean()), "std": float(v.std())}
-
-        out[n] = {"zsl": stat([m["zsl_acc"] for m in ms]), "acc_t": stat([x["acc_t"] for x in g]),
-                  "acc_u": stat([x["acc_u"] for x in g]), "H": stat([x["H"] for x in g]),
+        per_router = {}
+        for rt in ms[0]["routers"]:
+            rs = [m["routers"][rt] for m in ms]
+            per_router[rt] = {k: _stat([x[k] for x in rs]) for k in ("acc_t", "acc_u", "H", "val_ausuc", "ausuc")
+                              if all(k in x for x in rs)}
+        out[n] = {"zsl": _stat([m["zsl_acc"] for m in ms]), "val_zsl": _stat([m["val_zsl_acc"] for m in ms]),
+                  "acc_t": _stat([x["acc_t"] for x in g]),
+                  "acc_u": _stat([x["acc_u"] for x in g]), "H": _stat([x["H"] for x in g]),
+                  "gzsl_router": {"name": router, **per_router[router]}, "routers": per_router,
                   "wasserstein": float(np.mean([m["synthesis"]["wasserstein"] for m in ms])),
                   "cosine": float(np.mean([m["synthesis"]["cosine"] for m in ms])),
                   "paper_zsl": vs2t.PAPER.get(n)}
+    return out
+
+
+ORDER_PAIRS = (("VS2T-ZSL", "V2T"), ("V2T", "S2T"), ("VS2T-ZSL", "w/o E"), ("VS2T-ZSL", "w/o VS-F"),
+               ("VS2T-ZSL", "w/o E, VS-F"))
+
+
+def paired_orderings(results: list[dict], key: str = "zsl_acc") -> dict:
+    """Per ordering a > b of the paper: the per-split paired difference of ``key`` (test
+    ``zsl_acc`` or validation ``val_zsl_acc``) in points, its mean, standard error and the number
+    of splits where a > b. With 5 splits and 5 untouched classes each, a mean under ~2 standard
+    errors is not evidence of either order."""
+    out = {}
+    for a, b in ORDER_PAIRS:
+        d = 100 * np.array([r["methods"][a][key] - r["methods"][b][key] for r in results], dtype=float)
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+        out[f"{a} > {b}"] = {"mean_diff": float(d.mean()), "se": se, "wins": int((d > 0).sum()), "n": int(len(d))}
     return out
 
 
@@ -182,8 +228,14 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     trunk = build_trunk(prof.trunk, pretrained=True, weights_path=weights)
     import yaml
 
-    (out_dir / "config.yaml").write_text(yaml.safe_dump({"dataset": str(Path(dataset).resolve()),
-                                                         "profile": asdict(prof), "router": "gaussian",
+    budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
+                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
+                             hidden=prof.hidden)
+    plain = json.loads(json.dumps({"profile": asdict(prof), "budget": asdict(budget)}))  # tuples -> lists for YAML
+    (out_dir / "config.yaml").write_text(yaml.safe_dump({"dataset": str(Path(dataset).resolve()), **plain,
+                                                         "routers": list(prof.routers),
+                                                         "router_rule": "deployed router: highest mean validation "
+                                                                        "AUSUC of VS2T-ZSL over splits",
                                                          "torch_threads": torch.get_num_threads()}, sort_keys=False))
     t0 = time.time()
     cache = get_cache(dataset, prof, out_dir / "features", trunk)
@@ -191,9 +243,6 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     n = len(cache.fabric_ids)
     k = n_holdout(n)
     split_list = cmp.make_splits(cache.fabric_ids, prof.splits, k, k, seed=prof.seed)
-    budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
-                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
-                             hidden=prof.hidden)
     results, first = [], None
     for i, sp in enumerate(split_list):
         _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
@@ -205,10 +254,16 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
             {"splits_done": len(results), "summary": summarise(results)}, indent=1, default=_json_default))
         if i == 0:
             first = o
-            save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, sp, o, budget))
-    summary = summarise(results)
+    router = choose_router(results)
+    _log(f"GZSL router by validation AUSUC: {router}")
+    # deployment = split 0, with the router chosen on validation over all splits
+    save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, split_list[0], first, budget, router))
+    summary = summarise(results, router)
     metrics = {"dataset": str(Path(dataset).resolve()), "profile": asdict(prof), "n_fabrics": n,
                "split_sizes": [n - 2 * k, k, k], "summary": summary, "orderings": orderings(summary),
+               "orderings_paired": {"test": paired_orderings(results), "validation": paired_orderings(results, "val_zsl_acc")},
+               "router": {"chosen": router, "rule": "highest mean validation AUSUC of VS2T-ZSL over splits"},
+               "budget": asdict(budget),
                "paper": {"zsl": vs2t.PAPER, "gzsl": vs2t.PAPER_GZSL},
                "wasserstein_estimator": "mean over feature dims of the 1-D Wasserstein-1 distance (scipy) between "
                                         "real and synthesised untouched features of each class (standardised units), "
@@ -218,7 +273,7 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     if figures:
         from vs2t_edge.train import report as rp
 
-        metrics["figures"] = rp.figures(first, out_dir / "figures")
+        metrics["figures"] = rp.figures(first, out_dir / "figures", router=router, budget=budget)
     metrics["timing_s"]["total"] = round(time.time() - t_start, 1)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, default=_json_default))
     from vs2t_edge.train import report as rp
@@ -237,4 +292,5 @@ def _json_default(o):
     return str(o)
 
 
-__all__ = ["PROFILES", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout"]
+__all__ = ["PROFILES", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout", "choose_router",
+           "fit_router"]
