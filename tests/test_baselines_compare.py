@@ -253,3 +253,24 @@ def test_finetuned_run_features_follow_the_run_recipe(tmp_path):
     (run / "features" / "stem_cache.npz").unlink()
     with pytest.raises(FileNotFoundError, match="stem_cache"):
         cmp.finetuned_tables(src)
+
+
+def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
+    a = _fake_split_result(
+        val_zsl={"A": 0.9, "B": 0.5}, test_zsl={"A": 0.1, "B": 0.9},
+        val_ausuc={"A": {"gaussian": 0.2, "energy": 0.6}, "B": {"gaussian": 0.3, "energy": 0.4}},
+        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.1}, "B": {"gaussian": 0.9, "energy": 0.9}})
+    b = _fake_split_result(
+        val_zsl={"A": 0.7, "B": 0.6}, test_zsl={"A": 0.1, "B": 0.9},
+        val_ausuc={"A": {"gaussian": 0.25, "energy": 0.5}, "B": {"gaussian": 0.3, "energy": 0.4}},
+        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.1}, "B": {"gaussian": 0.9, "energy": 0.9}})
+    pooled = cmp.pool_results([{"splits": [a, a]}, {"splits": [b]}])
+    assert len(pooled["splits"]) == 3
+    assert pooled["summary"]["methods"]["A"]["val_zsl_acc"]["mean"] == pytest.approx((0.9 + 0.9 + 0.7) / 3)
+    assert pooled["summary"]["recommendation"] == {**pooled["summary"]["recommendation"], "model": "A",
+                                                   "router": "energy"}
+    assert "Against the paper's Gaussian router it leads by" in pooled["evidence"]
+    c = _fake_split_result(val_zsl={"A": 0.9}, test_zsl={"A": 0.1}, val_ausuc={"A": {"gaussian": 0.2}},
+                           test_ausuc={"A": {"gaussian": 0.9}})
+    with pytest.raises(ValueError, match="different methods"):
+        cmp.pool_results([{"splits": [a]}, {"splits": [c]}])

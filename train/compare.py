@@ -313,11 +313,31 @@ def _evidence_strength(result: dict) -> str:
     rd = np.array([r["methods"][best]["routers"][rv[0][1]]["val_ausuc"]
                    - r["methods"][best]["routers"][rv[1][1]]["val_ausuc"] for r in result["splits"]])
     rse = rd.std(ddof=1) / np.sqrt(len(rd)) if len(rd) > 1 else float("inf")
-    return (f"Strength of evidence (paired over {len(diffs)} splits): {best} leads {runner} on validation ZSL by "
+    text = (f"Strength of evidence (paired over {len(diffs)} splits): {best} leads {runner} on validation ZSL by "
             f"{100 * diffs.mean():.1f} points, standard error {100 * se:.1f}: "
             f"{'a clear lead' if strong else 'within two standard errors, so the model choice is weak'}. "
             f"Router {rec['router']} leads {rv[1][1]} on validation AUSUC by {100 * rd.mean():.1f} points, "
             f"standard error {100 * rse:.1f}: {'clear' if rd.mean() > 2 * rse else 'weak'}.")
+    if rec["router"] != GAUSSIAN_ROUTER and GAUSSIAN_ROUTER in s["methods"][best]["routers"]:
+        gd = np.array([r["methods"][best]["routers"][rec["router"]]["val_ausuc"]
+                       - r["methods"][best]["routers"][GAUSSIAN_ROUTER]["val_ausuc"] for r in result["splits"]])
+        gse = gd.std(ddof=1) / np.sqrt(len(gd)) if len(gd) > 1 else float("inf")
+        text += (f" Against the paper's Gaussian router it leads by {100 * gd.mean():.1f} points, standard error "
+                 f"{100 * gse:.1f}: {'clear' if gd.mean() > 2 * gse else 'weak'}.")
+    return text
+
+
+def pool_results(results: list[dict]) -> dict:
+    """Several comparison results (same methods and routers, e.g. the run's splits and new
+    random splits on the same features) as one: their splits concatenated and summarised again,
+    with the evidence text; the recommendation rule is unchanged (validation only)."""
+    splits = [sp for r in results for sp in r["splits"]]
+    methods = [list(r["splits"][0]["methods"]) for r in results]
+    if any(m != methods[0] for m in methods):
+        raise ValueError(f"results compare different methods: {methods}")
+    pooled = {"splits": splits, "summary": summarise(splits)}
+    pooled["evidence"] = _evidence_strength(pooled)
+    return pooled
 
 
 def compare_with_run(result: dict, run: RunSource) -> dict | None:
@@ -731,7 +751,31 @@ def write_results(result: dict, out_dir: Path, real: dict | None = None, name: s
     return paths
 
 
+def _main(argv: list[str] | None = None) -> int:
+    """``python -m vs2t_edge.train.compare pool A.json B.json ...``: the validation-chosen default
+    and its evidence over the splits of several comparison JSONs."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m vs2t_edge.train.compare")
+    ap.add_argument("verb", choices=["pool"])
+    ap.add_argument("results", nargs="+", type=Path)
+    args = ap.parse_args(argv)
+    pooled = pool_results([json.loads(p.read_text()) for p in args.results])
+    rec, sm = pooled["summary"]["recommendation"], pooled["summary"]["methods"]
+    print(f"{len(pooled['splits'])} splits; default model {rec['model']}, router {rec['router']} ({rec['rule']})")
+    for m in sorted(sm, key=lambda k: -sm[k]["val_zsl_acc"]["mean"]):
+        best_r = max(sm[m]["routers"], key=lambda r: sm[m]["routers"][r]["val_ausuc"]["mean"])
+        print(f"  {m:18s} val ZSL {_pct(sm[m]['val_zsl_acc'])}  best val router {best_r} "
+              f"(val AUSUC {100 * sm[m]['routers'][best_r]['val_ausuc']['mean']:.1f})")
+    print(pooled["evidence"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())
+
+
 __all__ = ["FeatureTable", "FabricSplit", "make_splits", "run_comparison", "summarise", "render_markdown", "plot",
            "toy_feature_table", "extract_feature_table", "write_results", "RunSource", "load_run",
            "read_run_splits", "run_budget", "finetuned_tables", "run_vs2t_numbers", "compare_with_run",
-           "check_splits"]
+           "check_splits", "pool_results"]
