@@ -474,9 +474,11 @@ def plot(result: dict, path: Path) -> None:
         axes[1].bar(x + (k - len(routers) / 2 + 0.5) * w,
                     [100 * s["methods"][m]["routers"][r]["ausuc"]["mean"] for m in methods], w, label=r)
     axes[1].set_xticks(x, methods, rotation=30, ha="right")
+    top = max(100 * s["methods"][m]["routers"][r]["ausuc"]["mean"] for m in methods for r in routers)
+    axes[1].set_ylim(0, top * 1.35)  # room for the legend above the bars
     axes[1].set_ylabel("AUSUC %")
     axes[1].set_title("AUSUC per router (test)")
-    axes[1].legend(fontsize=7)
+    axes[1].legend(fontsize=7, ncol=3, loc="upper center")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
