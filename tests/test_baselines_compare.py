@@ -154,8 +154,9 @@ def _fake_run(tmp_path, with_stems=False, seeds=(7, 11)):
     profile = {"name": "tiny", "trunk": "tiny", "size_px": 32, "splits": len(splits), "ft_epochs": 1,
                "ft_max_rows": None, "steps": 20, "batch": 32, "cls_steps": 30, "n_synth_per_class": 20,
                "lr_scale": 5.0, "latent": 8, "hidden": 32, "seed": 0}
-    (run / "config.yaml").write_text(yaml.safe_dump({"dataset": "toy", "profile": profile}, sort_keys=False))
     budget = cmp.run_budget(profile)
+    (run / "config.yaml").write_text(yaml.safe_dump({"dataset": "toy", "profile": profile,
+                                                     "budget": {"steps": 20, "not_a_field": 1}}, sort_keys=False))
     records = []
     for sp in splits:
         r = cmp.run_split(table, sp, {"VS2T-ZSL": vs2t.variant_class("VS2T-ZSL")}, budget, routers=("gaussian",),
@@ -185,8 +186,9 @@ def test_load_run_reads_exactly_the_runs_splits_and_budget(tmp_path):
     assert [asdict_(s) for s in src.splits] == [asdict_(s) for s in splits]  # order and seeds kept
     assert [asdict_(s) for s in src.splits] != [asdict_(s) for s in cmp.make_splits(table.fabric_ids, 2, 2, 3)]
     assert np.array_equal(src.table.x_t, table.x_t) and src.table.fabric_ids == table.fabric_ids
-    b = cmp.run_budget(src.profile, steps=5)
+    b = cmp.run_budget(src.profile, src.budget, steps=5)
     assert (b.steps, b.hidden, b.latent, b.cls_steps, b.lr_scale) == (5, 32, 8, 30, 5.0)
+    assert src.budget["steps"] == 20 and cmp.run_budget(src.profile, {"steps": 25, "not_a_field": 1}).steps == 25
     own = cmp.run_vs2t_numbers(src)
     assert own["per_split_zsl"] == [r["zsl_acc"] for r in src.vs2t_splits] and len(src.vs2t_splits) == 2
     # a split naming a fabric the table lacks is refused by name

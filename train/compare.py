@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Callable
 
@@ -544,6 +544,7 @@ class RunSource:
     splits: list[FabricSplit]  # exactly the run's splits, in its order (metrics.json)
     profile: dict  # config.yaml "profile" ({} when config.yaml is absent)
     vs2t_splits: list[dict]  # the run's own VS2T-ZSL record per split (metrics.json), fractions
+    budget: dict = field(default_factory=dict)  # config.yaml "budget" (newer runs write the full VS2TBudget)
 
 
 def read_run_splits(path: Path) -> tuple[list[FabricSplit], list[dict]]:
@@ -588,25 +589,32 @@ def load_run(run_dir: Path) -> RunSource:
     splits, records = read_run_splits(run_dir)
     check_splits(table, splits)
     profile: dict = {}
+    budget: dict = {}
     cfg = run_dir / "config.yaml"
     if cfg.is_file():
         import yaml
 
         try:
-            profile = dict((yaml.safe_load(cfg.read_text()) or {}).get("profile") or {})
-        except (yaml.YAMLError, AttributeError, TypeError) as exc:
-            raise ValueError(f"{cfg}: unreadable profile ({exc})") from exc
+            conf = yaml.safe_load(cfg.read_text()) or {}
+            profile = dict(conf.get("profile") or {})
+            budget = dict(conf.get("budget") or {})
+        except (yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
+            raise ValueError(f"{cfg}: unreadable profile/budget ({exc})") from exc
     vs2t_splits = [r.get("VS2T-ZSL", {}) for r in records]
-    return RunSource(run_dir, table, splits, profile, vs2t_splits)
+    return RunSource(run_dir, table, splits, profile, vs2t_splits, budget)
 
 
-def run_budget(profile: dict, **overrides) -> Budget:
-    """The run's generator budget (``train/vs2t.py``'s ``VS2TBudget``) from its profile, so that
-    every row trains with the budget the VS2T run used; ``overrides`` (not None) win."""
+def run_budget(profile: dict, budget: dict | None = None, **overrides) -> Budget:
+    """The run's generator budget (``train/vs2t.py``'s ``VS2TBudget``) so that every row trains
+    with the budget the VS2T run used: from its profile, then its config.yaml "budget" section
+    (newer runs record every VS2TBudget field there; fields this VS2TBudget lacks are ignored),
+    then ``overrides`` (not None). Fields the run did not record keep train/vs2t.py's defaults."""
     from vs2t_edge.train import vs2t
 
+    known = {f.name for f in fields(vs2t.VS2TBudget)}
     keys = {"steps", "batch", "cls_steps", "n_synth_per_class", "lr_scale", "latent", "hidden"}
     kw = {k: profile[k] for k in keys if profile.get(k) is not None}
+    kw.update({k: v for k, v in (budget or {}).items() if k in known and v is not None})
     kw.update({k: v for k, v in overrides.items() if v is not None})
     return vs2t.VS2TBudget(**kw)
 

@@ -23,6 +23,7 @@ import json
 import platform
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 EXIT_OK, EXIT_USAGE = 0, 2
@@ -154,11 +155,13 @@ def _run(args: argparse.Namespace, torch) -> int:
         print(f"vs2t-edge compare: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if run_src is not None:
-        budget = cmp.run_budget(run_src.profile, steps=args.steps, hidden=args.hidden, cls_steps=args.cls_steps)
+        budget = cmp.run_budget(run_src.profile, run_src.budget, steps=args.steps, hidden=args.hidden,
+                                cls_steps=args.cls_steps)
         notes.append(f"Budget: the VS2T run's profile ({args.run / 'config.yaml'}) for every row"
                      + (" with command-line overrides" if any(v is not None for v in (args.steps, args.hidden,
                                                                                        args.cls_steps)) else "")
-                     + f"; VS2T-ZSL lr scale {budget.lr_scale} (its paper rates x {budget.lr_scale}).")
+                     + f"; VS2T-ZSL lr scale {budget.lr_scale} (its paper rates x {budget.lr_scale}); full budget: "
+                     + ", ".join(f"{k} {v}" for k, v in asdict(budget).items()) + ".")
     else:
         budget = Budget(steps=args.steps or 1500, hidden=args.hidden or 1024, cls_steps=args.cls_steps or 600)
     real = None  # read before the long run: a bad path fails now
