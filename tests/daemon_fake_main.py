@@ -31,11 +31,24 @@ class SlowModel(FakeModel):
         return super().score_press(frame)
 
 
+class SlowGate(FakeGate):
+    """A gate whose ack takes ``delay_s``: holds the daemon between its pre-sort and final records."""
+
+    def __init__(self, *a, delay_s=0.0, **k):
+        super().__init__(*a, **k)
+        self.delay_s = delay_s
+
+    def sort(self, bin_index):
+        time.sleep(self.delay_s)
+        return super().sort(bin_index)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("config")
     ap.add_argument("--score-delay-s", type=float, default=0.05)
     ap.add_argument("--load-delay-s", type=float, default=0.0)
+    ap.add_argument("--sort-delay-s", type=float, default=0.0)
     a = ap.parse_args()
     cfg = load_config(a.config)
     time.sleep(a.load_delay_s)  # READY must come only after the model is loaded
@@ -43,7 +56,7 @@ def main() -> int:
     classes = cfg.scene_classes
     model = SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes, delay_s=a.score_delay_s)
     camera = ScriptedCamera(arm, [50, 60] * 100000)  # alternating votes: items need every press
-    return run_daemon(cfg, model=model, camera=camera, arm=arm, gate=FakeGate(),
+    return run_daemon(cfg, model=model, camera=camera, arm=arm, gate=SlowGate(delay_s=a.sort_delay_s),
                       evidence_factory=lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
 
 
