@@ -358,6 +358,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
                            "git_commit": _git_commit(), "versions": _versions(), "command": " ".join(sys.argv),
                            **(provenance or {})},
         }
+        manifest = rb.seal_manifest(manifest)
         (tmp / rb.MANIFEST).write_text(json.dumps(manifest, indent=1, allow_nan=True) + "\n")
         # the runtime's own verification before anything is left in place
         model = TactileModel.load(tmp, threads=threads)

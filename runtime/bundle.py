@@ -10,7 +10,9 @@ A bundle is a folder::
     probe_expected.npz   feature, logits_t, logits_u, novelty the exporter's onnxruntime gave for it
 
 ``load_bundle`` reads and checks everything that can be checked without running a graph:
-format and version, every file's presence and sha256, each graph's opset (read from the ONNX
+format and version, the manifest's own seal (``manifest_sha256``: the sha256 of its canonical
+JSON without that key, so a hand-edited or bit-flipped beta, class list or preprocessing is
+refused like a changed graph), every file's presence and sha256, each graph's opset (read from the ONNX
 protobuf itself, so the cell needs no ``onnx`` package), the router's parameters and dimension,
 the class lists. ``check_session_shapes`` compares the sessions' inputs/outputs with the manifest
 once the graphs are open; ``runtime.inference.TactileModel.load`` then warms up and checks the
@@ -38,6 +40,9 @@ FORMAT_VERSION = 1
 # (LayerNormalization, current QDQ ops); the upper bound is what onnxruntime 1.17+ executes.
 MIN_OPSET, MAX_OPSET = 17, 21
 MANIFEST = "manifest.json"
+# The manifest's own digest, kept inside it. It catches corruption and hand edits; it is not a
+# signature - whoever can rewrite the folder can recompute it (docs/bundle.md, "What the hashes prove").
+SEAL_KEY = "manifest_sha256"
 GRAPH_KEYS = ("trunk", "heads")
 
 
@@ -263,6 +268,34 @@ def read_manifest(root: Path | str) -> dict:
     return manifest
 
 
+def manifest_digest(manifest: dict) -> str:
+    """sha256 of the manifest's canonical JSON (sorted keys, no spaces, ASCII escapes, NaN and
+    Infinity as Python writes them) without its own seal: independent of indentation and key order."""
+    body = {k: v for k, v in manifest.items() if k != SEAL_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def seal_manifest(manifest: dict) -> dict:
+    """The manifest with its seal set: what the exporter writes (and nothing on the cell does)."""
+    return {**{k: v for k, v in manifest.items() if k != SEAL_KEY}, SEAL_KEY: manifest_digest(manifest)}
+
+
+def verify_seal(root: Path, manifest: dict) -> None:
+    seal = manifest.get(SEAL_KEY)
+    if not isinstance(seal, str):
+        raise BundleError(root, f"{MANIFEST} carries no '{SEAL_KEY}' (written by hand or by an older exporter): "
+                                "re-export the bundle")
+    try:
+        actual = manifest_digest(manifest)
+    except (ValueError, TypeError, RecursionError) as exc:  # not re-serialisable: cannot be what was sealed
+        raise BundleError(root, f"{MANIFEST} cannot be re-serialised to check its seal ({str(exc)[:120]})") from None
+    if actual != seal:
+        raise BundleError(root, f"{MANIFEST} was changed after export: its content hashes to {actual[:12]}..., "
+                                f"'{SEAL_KEY}' says {_short(seal)[:12]}... (set beta with calibrate-threshold's "
+                                "override, never by editing the manifest)")
+
+
 def _used_files(manifest: dict) -> dict[str, Any]:
     """{manifest key: file name} of every file the loader opens (names unchecked here)."""
     used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in GRAPH_KEYS}
@@ -302,6 +335,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
 
     root = Path(root)
     manifest = read_manifest(root)
+    verify_seal(root, manifest)
     verify_hashes(root, manifest)
     touched = _names(_need(manifest, root, "classes", "touched"), root, "classes.touched")
     untouched = _names(_need(manifest, root, "classes", "untouched"), root, "classes.untouched")
@@ -485,6 +519,6 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"{n} class names in the manifest")
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "Bundle", "BundleError", "load_bundle",
-           "read_manifest", "verify_hashes", "read_onnx_opsets", "sha256_file", "session_options",
-           "open_session", "check_session_shapes"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
+           "read_manifest", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
+           "sha256_file", "session_options", "open_session", "check_session_shapes"]

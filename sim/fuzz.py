@@ -219,6 +219,13 @@ def json_seed_bytes(base: Any, seed: dict, subs: dict[str, str]) -> bytes:
 
 # --- the bundle manifest ------------------------------------------------------------------
 
+def _refuse_duplicates(pairs: list) -> dict:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise ValueError("duplicate key")
+    return out
+
+
 class ManifestTarget:
     """A valid bundle copied to ``work/bundle`` (files fixed), a bait copy of trunk.onnx in
     ``work/outside``; ``run(bytes)`` writes them as manifest.json and loads."""
@@ -240,10 +247,22 @@ class ManifestTarget:
         for f in sorted(p.name for p in self.root.iterdir() if p.is_file() and p.name != "manifest.json"):
             self.subs[f"@sha:{f}@"] = hashlib.sha256((self.root / f).read_bytes()).hexdigest()
 
-    def run(self, data: bytes, open_model: bool = False) -> str:
+    @staticmethod
+    def sealed(data: bytes) -> bytes:
+        """The document re-sealed as the exporter would have (so the fuzz reaches the checks behind
+        the seal); bytes that are no JSON object, or that the loader refuses to parse, as they are."""
+        from vs2t_edge.runtime.bundle import seal_manifest
+
+        try:
+            doc = json.loads(data, object_pairs_hook=_refuse_duplicates)
+            return dump_json(seal_manifest(doc)) if isinstance(doc, dict) else data
+        except (ValueError, TypeError, RecursionError):  # the loader refuses these before the seal
+            return data
+
+    def run(self, data: bytes, open_model: bool = False, seal: bool = True) -> str:
         from vs2t_edge.runtime.bundle import BundleError, load_bundle
 
-        (self.root / "manifest.json").write_bytes(data)
+        (self.root / "manifest.json").write_bytes(self.sealed(data) if seal else data)
         what = "TactileModel.load" if open_model else "load_bundle"
         try:
             with watch_opens(self.outside) as opened, time_limit(HANG_S):
@@ -408,6 +427,17 @@ def load_seeds(target: str, root: Path = SEEDS) -> list[tuple[Path, dict]]:
     return [(p, json.loads(p.read_text())) for p in sorted((root / target).glob("*.json"))]
 
 
+def run_seed(target, seed: dict, data: bytes) -> str:
+    """A seed's run; manifest seeds may say ``"open_model": true`` or ``"seal": false`` (left as a
+    hand edit would leave it, so the seal itself is what refuses it)."""
+    kw = {}
+    if seed.get("open_model"):
+        kw["open_model"] = True
+    if "seal" in seed:
+        kw["seal"] = bool(seed["seal"])
+    return target.run(data, **kw)
+
+
 def check_seed(target_obj, seed: dict, outcome: str) -> None:
     """A seed's recorded expectation: "ok" or "refused" (with `match` in the message)."""
     want = seed.get("expect")
@@ -539,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
         for path, seed in load_seeds(args.target):
             try:
                 data = target.seed_bytes(seed)
-                outcome = target.run(data, open_model=True) if seed.get("open_model") else target.run(data)
+                outcome = run_seed(target, seed, data)
                 check_seed(target, seed, outcome)
                 print(f"ok    {path.name}: {outcome[:120]}")
             except FuzzFailure as exc:

@@ -20,10 +20,11 @@ def bundle_copy(tmp_path):
     return dst
 
 
-def _edit(b, fn):
+def _edit(b, fn, seal=True):
+    """Change the manifest as an exporter would have written it (re-sealed), or by hand (seal=False)."""
     m = json.loads((b / "manifest.json").read_text())
     fn(m)
-    (b / "manifest.json").write_text(json.dumps(m))
+    (b / "manifest.json").write_text(json.dumps(rb.seal_manifest(m) if seal else m))
 
 
 def _rehash(b, name):
@@ -62,6 +63,41 @@ def test_missing_file_is_named(bundle_copy):
     (bundle_copy / "router.npz").unlink()
     with pytest.raises(rb.BundleError, match=r"router\.npz is missing"):
         TactileModel.load(bundle_copy)
+
+
+@pytest.mark.parametrize("what, edit", [
+    ("beta", lambda m: m.__setitem__("beta", m["beta"] * 0.5)),
+    ("class list", lambda m: m["classes"]["untouched"].reverse()),
+    ("preprocessing", lambda m: m["preprocess"]["std"].__setitem__(0, m["preprocess"]["std"][0] * 2)),
+])
+def test_manifest_edited_by_hand_is_refused(bundle_copy, what, edit):
+    _edit(bundle_copy, edit, seal=False)
+    with pytest.raises(rb.BundleError, match=r"manifest\.json was changed after export"):
+        TactileModel.load(bundle_copy)
+
+
+def test_manifest_byte_flip_in_a_number_is_refused(bundle_copy):
+    text = (bundle_copy / "manifest.json").read_text()
+    i = text.index('"beta": ') + len('"beta": ')
+    digit = next(j for j in range(i, i + 30) if text[j].isdigit() and text[j] != "0")
+    (bundle_copy / "manifest.json").write_text(text[:digit] + str((int(text[digit]) % 9) + 1) + text[digit + 1:])
+    with pytest.raises(rb.BundleError, match=r"manifest\.json was changed after export"):
+        rb.load_bundle(bundle_copy)
+
+
+def test_unsealed_manifest_is_refused(bundle_copy):
+    _edit(bundle_copy, lambda m: m.pop(rb.SEAL_KEY), seal=False)
+    with pytest.raises(rb.BundleError, match="carries no 'manifest_sha256'"):
+        rb.load_bundle(bundle_copy)
+
+
+def test_seal_ignores_layout_but_not_values():
+    m = {"b": [1, 2.5, float("inf")], "a": {"z": "\u00e9", "y": None}}
+    shuffled = json.loads(json.dumps({"a": {"y": None, "z": "\u00e9"}, "b": [1, 2.5, float("inf")]}, indent=3))
+    assert rb.manifest_digest(m) == rb.manifest_digest(shuffled)
+    assert rb.manifest_digest(rb.seal_manifest(m)) == rb.manifest_digest(m)  # the seal is not part of itself
+    assert rb.manifest_digest(m) != rb.manifest_digest({**m, "b": [1, 2.5000001, float("inf")]})
+    assert rb.manifest_digest(m) != rb.manifest_digest({**m, "b": [1.0, 2.5, float("inf")]})  # 1 vs 1.0 is a change
 
 
 def test_format_version_mismatch_is_refused(bundle_copy):

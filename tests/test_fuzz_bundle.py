@@ -35,7 +35,7 @@ def test_the_base_manifest_loads_and_the_model_opens(target):
 
 @pytest.mark.parametrize("seed", [s for _, s in SEEDS], ids=[p.stem for p, _ in SEEDS])
 def test_committed_seed(target, seed):
-    outcome = target.run(target.seed_bytes(seed), open_model=seed.get("open_model", False))
+    outcome = fuzz.run_seed(target, seed, target.seed_bytes(seed))
     fuzz.check_seed(target, seed, outcome)
 
 
