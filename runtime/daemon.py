@@ -187,7 +187,10 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                 dev.disconnect()
             except Exception:  # noqa: BLE001
                 pass
-        journal.append({"type": "start_failed", "reason": str(exc), "t": time.time()})
+        try:
+            journal.append({"type": "start_failed", "reason": str(exc), "t": time.time()})
+        except JournalError as jexc:
+            log(f"journal {cfg.journal}: start_failed not recorded ({jexc})")
         journal.close()
         return EXIT_DEVICE
     try:
@@ -198,8 +201,16 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
                 evidence_factory=evidence_factory or default_evidence_factory(cfg),
                 items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log)
-    journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
-                    "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
+    try:
+        journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
+                        "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
+    except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
+        log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
+            "folder, then start again")
+        notifier.status(f"journal unwritable: {exc}")
+        _disconnect_all(camera, arm, gate)
+        journal.close()
+        return EXIT_USAGE
     cell.recover()
     beta = getattr(model, "beta", None)
     notifier.ready(f"ready: bundle {Path(cfg.bundle).name} verified and warm in {load_s:.1f} s"
@@ -218,7 +229,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         raise
     cell.shutdown(reason)
     _disconnect_all(camera, arm, gate)
-    notifier.stopping(f"stopped ({reason}); {len(cell.results)} items")
+    notifier.stopping(f"stopped ({reason}); {cell.items_done} items")
     notifier.close()
     return EXIT_OK
 

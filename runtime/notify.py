@@ -14,13 +14,19 @@ from __future__ import annotations
 import os
 import socket
 import time
+from collections import deque
+
+# The last messages, for tests and for what an operator asks about; the daemon runs for months,
+# so the record is a window (the soak showed an unbounded list as its only remaining RSS growth).
+KEEP_MESSAGES = 256
 
 
 class Notifier:
     def __init__(self, address: str | None = None, clock=time.monotonic) -> None:
         address = os.environ.get("NOTIFY_SOCKET") if address is None else address
         self.address = address or None
-        self.sent: list[str] = []  # every message, also when there is no socket (tests, logs)
+        self.sent: deque[str] = deque(maxlen=KEEP_MESSAGES)  # the last messages, also without a socket
+        self.n_sent = 0  # every message ever, for counters
         self._sock: socket.socket | None = None
         self._clock = clock
         usec = os.environ.get("WATCHDOG_USEC", "")
@@ -32,6 +38,7 @@ class Notifier:
 
     def _send(self, message: str) -> bool:
         self.sent.append(message)
+        self.n_sent += 1
         if not self.address:
             return False
         addr = self.address

@@ -69,8 +69,8 @@ def soak_section(s: dict) -> str:
             f"| journal | | {s['journal_mib']:.1f} MiB | | {s['journal_verdict']} |\n"
             + (f"\nHeld in memory at the end: {s['in_memory_journal_records']} journal records and "
                f"{s['in_memory_results']} item results (bounded windows; {s.get('items_done', s['items'])} items "
-               f"counted), {s['notifier_messages_held']} sd_notify messages (`Notifier.sent` keeps every "
-               "one - the remaining RSS slope, see Known bugs).\n" if "notifier_messages_held" in s else ""))
+               f"counted), {s['notifier_messages_held']} sd_notify messages (a window of the last "
+               "ones).\n" if "notifier_messages_held" in s else ""))
 
 
 def run(args) -> int:

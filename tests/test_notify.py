@@ -35,7 +35,7 @@ def test_abstract_socket_and_no_socket(monkeypatch):
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     quiet = Notifier()
     quiet.ready()
-    assert quiet.sent == ["READY=1"]  # recorded, nothing sent, no error
+    assert list(quiet.sent) == ["READY=1"]  # recorded, nothing sent, no error
 
 
 def test_watchdog_due_at_half_the_interval(monkeypatch):
@@ -47,3 +47,13 @@ def test_watchdog_due_at_half_the_interval(monkeypatch):
     assert not n.watchdog_due()
     t[0] = 5.0
     assert n.watchdog_due()
+
+
+def test_the_record_of_messages_is_bounded():
+    from vs2t_edge.runtime.notify import KEEP_MESSAGES
+
+    n = Notifier(address="")
+    for i in range(KEEP_MESSAGES * 3):
+        n.status(f"item {i}")
+    assert len(n.sent) == KEEP_MESSAGES and n.n_sent == KEEP_MESSAGES * 3
+    assert n.sent[-1] == f"STATUS=item {KEEP_MESSAGES * 3 - 1}"  # the newest are kept
