@@ -134,7 +134,7 @@ class ItemResult:
     item: Item
     label: str
     bin: int
-    outcome: str  # sorted | rejected_fault | aborted
+    outcome: str  # sorted | rejected_fault | unknown_outcome (gate ack lost) | aborted
     presses: int
     confidence: float
     stopped_by: str
@@ -363,6 +363,7 @@ class Cell:
         scores: list[dict] = []
         decision = None
         pre_written = False
+        gate_told = False  # a SORT went out: from here a lost ack means the flap may have moved
         label, bin_ = UNKNOWN, self.scene.reject_bin
         try:
             x0, y0 = self.scene.points_mm[0]
@@ -414,6 +415,7 @@ class Cell:
             pre_written = True
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
             self._check_time(t0)
+            gate_told = True
             try:
                 self.gate.sort(bin_)
             except GateError as exc:
@@ -430,10 +432,18 @@ class Cell:
             result = ItemResult(item, label, bin_, "sorted", presses, confidence, stopped_by, skipped,
                                 latencies, self.clock() - t0)
         except CellFault as fault:
-            self.latch_fault(f"item {number} ({item.id}): {fault.reason}", fault.kind)
+            # A SORT that timed out may have been executed with only its acks lost (docs/protocol.md):
+            # the piece is in its bin or the reject bin, and the record says so instead of claiming
+            # reject. A NAK, a latched gate, a jam or a reboot (the MCU boots to reject) did not route it.
+            uncertain = gate_told and fault.kind == "timeout"
+            outcome = "unknown_outcome" if uncertain else "rejected_fault"
+            reason = fault.reason + (f"; the piece may be in bin {bin_} or the reject bin - check both"
+                                     if uncertain else "")
+            self.latch_fault(f"item {number} ({item.id}): {reason}", fault.kind)
             self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
-                        outcome="rejected_fault", reason=fault.reason, presses=presses)
-            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "rejected_fault", presses, 0.0,
+                        outcome=outcome, reason=reason, presses=presses,
+                        **({"maybe_bin": bin_} if uncertain else {}))
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, presses, 0.0,
                                 "fault", skipped, latencies, self.clock() - t0)
         except StopRequested:
             # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
