@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 # Fitted on ../shared/real/taxim_calib by `python -m vs2t_edge.sim.realism` (least squares on 25
-# real ball presses, scored on the other 24: contact-disc MAE 38.4 -> 15.8 DN; docs/realism.md).
+# real ball presses, scored on the other 24: contact-disc MAE 40.70 -> 15.75 DN; docs/realism.md).
 # Rows: B, G, R (OpenCV order); columns: a (d/d gx), b (d/d gy), q (slope^2); slopes in mm/mm.
 # UNFITTED_LIGHTS is the symmetric three-LED guess we started from, kept for the report.
 FITTED_LIGHTS = np.array([
