@@ -495,7 +495,14 @@ def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | 
         arm = IsolatedURArm(ArmConfig(host=sim.host, **FAST_PRESS))
 
         def inject(r: Rig):
-            _at(r, 1, 1, lambda: getattr(sim, trigger)())
+            if trigger == "overforce_in_descent":
+                # the controller's protective stop trips on the way down, once the gel is in contact
+                _at(r, 1, 1, lambda: sim.set_faults(protective_stop_above_n=8.0))
+            elif trigger == "trigger_emergency_stop":
+                # the button is hit while the press is under way, not between commands
+                _at(r, 1, 1, lambda: threading.Timer(0.12, sim.trigger_emergency_stop).start())
+            else:
+                _at(r, 1, 1, lambda: getattr(sim, trigger)())
 
         def operator(r: Rig):
             def fix():
@@ -503,9 +510,14 @@ def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | 
                     sim.release_emergency_stop()
                 sim.reset()
             return fix
-        return _loop_row(w, inject=inject, operator_fix_for=operator, truths=["denim", "silk", "tweed"],
-                         arm=arm, expect_outcomes=expect_outcomes, fault_words=fault_words, retries=retries,
-                         max_presses=2)
+        words, problems = _loop_row(w, inject=inject, operator_fix_for=operator, truths=["denim", "silk", "tweed"],
+                                    arm=arm, expect_outcomes=expect_outcomes, fault_words=fault_words,
+                                    retries=retries, max_presses=2)
+        if trigger == "drop_connections":  # a clean run would pass too: the drop must have happened
+            drops = len(sim.get_log().get("drops", []))
+            _check(problems, drops >= 1, "the simulator never dropped the connection")
+            words += f"; {drops} drop(s)"
+        return words, problems
     finally:
         sim.stop()
 
@@ -519,7 +531,7 @@ def _need_rtde() -> str:
 
 
 def protective_stop_ursim(w: Path):
-    return _ursim_row(w, "trigger_protective_stop", {"sorted": 2, "rejected_fault": 1}, "protective")
+    return _ursim_row(w, "overforce_in_descent", {"sorted": 2, "rejected_fault": 1}, "protective")
 
 
 def emergency_stop_ursim(w: Path):
@@ -1021,7 +1033,8 @@ def daemon_sigkill(w: Path):
 HOSTILE_CONFIGS = {
     "alias bomb": "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\n"
                   "c: &c [*b, *b, *b, *b, *b, *b, *b, *b]\nd: [*c, *c, *c, *c, *c, *c, *c, *c]\n",
-    "python object tag": "bundle: !!python/object/apply:os.system ['echo pwned']\n",
+    # @MARK@ becomes a file in the row's folder: if any loader ran the tag, the file would exist
+    "python object tag": "bundle: !!python/object/apply:os.system ['touch @MARK@; echo pwned']\n",
     "not a mapping": "- 1\n- 2\n",
     "negative confidence": DAEMON_CONFIG.replace("confidence: 0.95", "confidence: -1"),
     "NaN press limit": DAEMON_CONFIG.replace("max_presses: 3", "max_presses: .nan"),
@@ -1037,9 +1050,10 @@ def hostile_configs(w: Path):
     w.mkdir(parents=True, exist_ok=True)
     problems: list[str] = []
     codes = {}
+    mark = w / "pwned"
     for name, text in HOSTILE_CONFIGS.items():
         path = w / (name.replace(" ", "_") + ".yaml")
-        path.write_text(text, encoding="utf-8", errors="surrogateescape")
+        path.write_text(text.replace("@MARK@", str(mark)), encoding="utf-8", errors="surrogateescape")
         path.chmod(0o640)
         t0 = time.monotonic()
         p = subprocess.run([sys.executable, "-m", "vs2t_edge.cli", "run", "--config", str(path)],
@@ -1049,7 +1063,8 @@ def hostile_configs(w: Path):
         _check(problems, path.name in p.stderr, f"{name}: the error does not name {path.name}")
         _check(problems, "Traceback" not in p.stderr, f"{name}: a traceback instead of words")
         _check(problems, time.monotonic() - t0 < 30, f"{name}: took {time.monotonic() - t0:.0f} s")
-    _check(problems, not (Path.cwd() / "pwned").exists(), "a tag ran a command")
+        _check(problems, "pwned" not in p.stdout, f"{name}: a tag ran a command (stdout {p.stdout[-80:]!r})")
+    _check(problems, not mark.exists(), f"a tag ran a command: {mark} exists")
     return f"{sum(c == 2 for c in codes.values())}/{len(codes)} refused with exit 2, file named", problems
 
 
@@ -1329,9 +1344,9 @@ SCENARIOS = [
              "press retried, all sorted", arm_connection_lost_fake),
     Scenario("item_over_time_budget", "loop", "piece exceeds item_timeout_s", "fault latched, piece rejected",
              item_over_time_budget),
-    Scenario("ursim_protective_stop", "ursim", "protective stop mid-press (UR simulator)",
+    Scenario("ursim_protective_stop", "ursim", "protective stop in the force descent (limit 8 N, UR simulator)",
              "fault latched, piece rejected, resumes after clear", protective_stop_ursim),
-    Scenario("ursim_emergency_stop", "ursim", "emergency stop mid-press (UR simulator)",
+    Scenario("ursim_emergency_stop", "ursim", "emergency stop 0.12 s into a press (UR simulator)",
              "fault latched, piece rejected, resumes after release + clear", emergency_stop_ursim),
     Scenario("ursim_connection_drop", "ursim", "controller drops the connection mid-press",
              "reconnect, press retried, all sorted", connection_drop_ursim),

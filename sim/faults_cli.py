@@ -37,9 +37,14 @@ def table(rows) -> str:
     return "\n".join(lines)
 
 
+TEMPLATE_MARKER = "<!-- generated sections (fault matrix, soak) go here; what follows is kept after them -->"
+
+
 def report(rows, soak: dict | None, seconds: float) -> str:
     here = Path(__file__).with_name("reliability_template.md")
-    head = here.read_text(encoding="utf-8") if here.exists() else ""
+    text = here.read_text(encoding="utf-8") if here.exists() else ""
+    # the template's hand-written text: above the marker before the generated sections, below it after
+    head, _, tail = text.partition(TEMPLATE_MARKER)
     n_pass = sum(r.passed for r in rows)
     n_pending = sum(bool(r.pending) for r in rows)
     known = [r for r in rows if r.result == "KNOWN BUG"]
@@ -54,6 +59,8 @@ def report(rows, soak: dict | None, seconds: float) -> str:
                    + "\n".join(f"* `{r.name}`: {r.known_bug}" for r in known) + "\n")
     if soak:
         out.append(soak_section(soak))
+    if tail.strip():
+        out.append(tail.strip() + "\n")
     return "\n".join(out) + "\n"
 
 

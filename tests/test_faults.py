@@ -60,6 +60,9 @@ def test_reliability_cli_writes_the_table(tmp_path, capsys):
     assert "| 1 | `protective_stop` | loop |" in text and "PASS" in text
     row2 = next(line for line in text.splitlines() if line.startswith("| 2 | `bundle_tampered` | bundle |"))
     assert row2.endswith(" |") and "| PASS |" in row2, row2  # really run, not pending
+    # the template's hand-written sections survive regeneration, in their places
+    assert text.index("## Bugs found and fixed") < text.index("## Fault matrix") < text.index("## Fuzzing")
+    assert "<!--" not in text
     assert faults_cli.run(p.parse_args(["--only", "no_such_row"])) == 2
     assert "unknown scenario" in capsys.readouterr().err
 
@@ -98,3 +101,14 @@ def test_known_bug_rows_are_listed_not_blocking(tmp_path, monkeypatch):
 def test_no_row_is_a_known_bug():
     """Issue 8: every row of the matrix passes in CI. A known-bug row is a documented failure, not a pass."""
     assert [s.name for s in faults.SCENARIOS if s.known_bug] == []
+
+
+def test_the_hostile_python_tag_would_be_caught(tmp_path):
+    """The row's check can fail: the same text through PyYAML's unsafe loader does run the command
+    and leaves the marker file the row looks for."""
+    import yaml
+
+    mark = tmp_path / "pwned"
+    text = faults.HOSTILE_CONFIGS["python object tag"].replace("@MARK@", str(mark))
+    yaml.unsafe_load(text)
+    assert mark.exists()
