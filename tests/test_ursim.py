@@ -3,6 +3,7 @@ ur_rtde client (RTDEControlInterface, RTDEReceiveInterface, DashboardClient) run
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import socket
 import struct
@@ -180,3 +181,42 @@ def test_real_ur_rtde_client_press_calls_and_protective_stop():
             ctl.disconnect()
             rcv.disconnect()
             dash.disconnect()
+
+
+def test_controller_force_limit_stops_a_move_into_the_table():
+    """The simulator's own force limit (PressScene.protective_stop_force_n), not an injected
+    threshold: a piece origin calibrated 2.5 mm too low makes move_above drive the real ur_rtde
+    client 1.5 mm into the 2 mm fabric (9 N at 6 N/mm). That is far below the 120 N default, so
+    only the 6 N limit of this scene can stop it: the controller goes into protective stop, the
+    receive interface reports it and the arm raises its typed safety stop."""
+    pytest.importorskip("rtde_control")
+    rtde_receive = pytest.importorskip("rtde_receive")
+    from vs2t_edge.runtime.arm import ArmConfig, URArm
+    from vs2t_edge.runtime.devices import ArmSafetyStop
+
+    scene = PressScene(protective_stop_force_n=6.0, home_pose=(0.40, -0.10, 0.106, 0.0, math.pi, 0.0))
+    too_low = scene.surface_z_m - 0.0025
+    config = ArmConfig(piece_origin_pose=(0.40, -0.10, too_low, 0.0, math.pi, 0.0), approach_height_mm=1.0,
+                       travel_speed_m_s=0.01, travel_accel_m_s2=0.5, move_timeout_s=5.0, reconnect_backoff_s=0.2)
+    with URSimProcess(scene, host=free_loopback_host()) as sim:
+        arm = URArm(dataclasses.replace(config, host=sim.host))
+        rcv = rtde_receive.RTDEReceiveInterface(sim.host, 125.0)
+        arm.connect()
+        try:
+            assert not rcv.isProtectiveStopped()
+            with pytest.raises(ArmSafetyStop) as exc:
+                arm.move_above(0.0, 0.0)
+            assert exc.value.kind == "protective_stop" and not exc.value.retryable
+            time.sleep(0.05)
+            assert rcv.isProtectiveStopped() and rcv.getSafetyMode() == 3
+            (mode, reason, force_n), = sim.get_log()["safety_stops"]
+            assert reason == "force over the limit"
+            assert 6.0 < force_n < 9.0  # stopped at the limit, before the 9 N the move would reach
+            # stopped where the limit was crossed: 1 mm into the fabric, short of the 1.5 mm target
+            assert rcv.getActualTCPPose()[2] == pytest.approx(scene.surface_z_m - 0.001, abs=2e-4)
+            with pytest.raises(ArmSafetyStop):
+                arm.move_above(0.0, 0.0)  # refused until the stop is cleared
+        finally:
+            arm.stop()
+            arm.disconnect()
+            rcv.disconnect()
