@@ -488,9 +488,15 @@ def _jsonable(x: Any) -> Any:
 def _atomic_write(path: Path, text: str) -> None:
     import os
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from vs2t_edge.runtime.journal import STATE_FILE_MODE, make_state_dir
+
+    make_state_dir(path.parent)  # STATE_DIR_MODE for folders made here
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, STATE_FILE_MODE)
+    # deleting FAULT clears a latched fault: never writable by others, whatever the umask or the
+    # mode a stale .tmp from a crash was left with
+    os.fchmod(fd, STATE_FILE_MODE)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(text)
         f.flush()
         os.fsync(f.fileno())

@@ -49,6 +49,29 @@ class JournalError(RuntimeError):
     pass
 
 
+# Modes of what the cell creates in its state folder, set after creation so that no umask can
+# change them: deleting FAULT clears a latched fault and the journal is the record of every
+# decision, so neither may be writable by other users (nor the folder listable by them).
+STATE_FILE_MODE = 0o640
+STATE_DIR_MODE = 0o750
+
+
+def make_state_dir(folder: Path) -> None:
+    """Create `folder` and its missing parents with STATE_DIR_MODE. Folders that already exist keep
+    their mode (an operator, or systemd's StateDirectoryMode=, chose it)."""
+    missing = []
+    folder = Path(folder)
+    while not folder.exists() and folder.parent != folder:
+        missing.append(folder)
+        folder = folder.parent
+    for d in reversed(missing):
+        try:
+            os.mkdir(d, STATE_DIR_MODE)
+        except FileExistsError:
+            continue  # made meanwhile by someone else: not ours to chmod
+        os.chmod(d, STATE_DIR_MODE)  # mkdir's mode went through the umask
+
+
 def _encode(rec: dict) -> bytes:
     body = json.dumps(rec, sort_keys=True, separators=(",", ":"), allow_nan=False)
     crc = zlib.crc32(body.encode("utf-8")) & 0xFFFFFFFF
@@ -115,9 +138,10 @@ class Journal:
     def open(cls, path: Path | str) -> "Journal":
         path = Path(path)
         created = not path.exists()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o640)
+        make_state_dir(path.parent)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, STATE_FILE_MODE)
         if created:
+            os.fchmod(fd, STATE_FILE_MODE)  # os.open's mode went through the umask
             _fsync_dir(path.parent)
         j = cls(path=path, _fd=fd)
         good_end = 0  # byte after the last good record
@@ -153,7 +177,7 @@ class Journal:
             raise
         torn = size - good_end
         if torn:
-            with open(path, "rb") as src, open(str(path) + ".torn", "ab") as f:
+            with open(path, "rb") as src, os.fdopen(_open_to_append(Path(str(path) + ".torn")), "ab") as f:
                 src.seek(good_end)
                 f.write(src.read())
                 f.flush()
@@ -259,6 +283,16 @@ class Journal:
 
 def _item_order(k: Any) -> tuple:
     return (0, k, "") if isinstance(k, int) else (1, 0, str(k))  # a hand-edited journal may hold odd ids
+
+
+def _open_to_append(path: Path) -> int:
+    """A descriptor appending to `path`; a file created here gets STATE_FILE_MODE whatever the umask."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL, STATE_FILE_MODE)
+    except FileExistsError:
+        return os.open(path, os.O_WRONLY | os.O_APPEND)
+    os.fchmod(fd, STATE_FILE_MODE)
+    return fd
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import stat
 import time
@@ -64,6 +65,59 @@ def test_journal_is_not_world_writable_or_readable(tmp_path):
     j.close()
     mode = stat.S_IMODE((tmp_path / "state" / "journal.jsonl").stat().st_mode)
     assert not mode & (stat.S_IWOTH | stat.S_IROTH), oct(mode)
+
+
+@pytest.fixture(params=[0o000, 0o077], ids=["umask000", "umask077"])
+def umask(request):
+    """The daemon's modes must not depend on the umask it was started with (a hand start, a
+    service manager without UMask=): the permissive one would leave FAULT deletable by anyone."""
+    old = os.umask(request.param)
+    try:
+        yield request.param
+    finally:
+        os.umask(old)
+
+
+def _modes(*paths: Path) -> dict[str, str]:
+    return {p.name: oct(stat.S_IMODE(p.stat().st_mode)) for p in paths}
+
+
+def test_state_files_and_folders_are_created_0640_and_0750_whatever_the_umask(tmp_path, umask):
+    from vs2t_edge.runtime.cell import _atomic_write
+    from vs2t_edge.runtime.journal import Journal
+
+    state = tmp_path / "var" / "state"
+    journal = state / "journal.jsonl"
+    j = Journal.open(journal)
+    j.append({"type": "start"})
+    j.close()
+    with open(journal, "ab") as f:
+        f.write(b'{"crc":1,"rec":{"type":"pre')  # power lost mid-write: the next open keeps it aside
+    j = Journal.open(journal)
+    assert j.torn_bytes > 0
+    j.close()
+    fault = state / "FAULT"
+    _atomic_write(fault, "item 3: gate jam\n")
+    elsewhere = tmp_path / "run" / "cell" / "STATUS"  # a file in a folder the journal did not make
+    (tmp_path / "run").mkdir(mode=0o700)
+    os.chmod(tmp_path / "run", 0o700)
+    _atomic_write(elsewhere, "sorting\n")
+    assert _modes(state.parent, state, elsewhere.parent) == {"var": "0o750", "state": "0o750", "cell": "0o750"}
+    assert _modes(journal, Path(f"{journal}.torn"), fault, elsewhere) == {
+        "journal.jsonl": "0o640", "journal.jsonl.torn": "0o640", "FAULT": "0o640", "STATUS": "0o640"}
+    assert oct(stat.S_IMODE((tmp_path / "run").stat().st_mode)) == "0o700"  # an existing folder is left alone
+
+
+def test_a_stale_fault_tmp_does_not_pass_its_mode_on(tmp_path, umask):
+    """A crash between writing FAULT.tmp and renaming it leaves the .tmp behind; the next latch
+    reuses the name and must not inherit a world-writable mode from it."""
+    from vs2t_edge.runtime.cell import _atomic_write
+
+    stale = tmp_path / "FAULT.tmp"
+    stale.write_text("old\n")
+    stale.chmod(0o666)
+    _atomic_write(tmp_path / "FAULT", "item 4: arm stopped\n")
+    assert _modes(tmp_path / "FAULT") == {"FAULT": "0o640"} and not stale.exists()
 
 
 def test_world_writable_config_is_refused(tmp_path):
