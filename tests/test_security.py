@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import socket
 import stat
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -13,6 +17,7 @@ import pytest
 from vs2t_edge.sim import faults
 
 PKG = Path(faults.__file__).resolve().parents[1]
+HERE = Path(__file__).parent
 
 
 def test_no_shell_invocation_in_runtime_bridge_sim():
@@ -23,39 +28,158 @@ def test_no_shell_invocation_in_runtime_bridge_sim():
     assert not hits, hits
 
 
-def _listening_inodes() -> set[str]:
-    out = set()
-    for name in ("tcp", "tcp6", "udp", "udp6"):
-        path = Path("/proc/net") / name
-        if path.exists():
-            for line in path.read_text().splitlines()[1:]:
-                f = line.split()
-                if name.startswith("tcp") and f[3] == "0A":  # LISTEN
-                    out.add(f[9])
-                elif name.startswith("udp") and f[2].endswith(":0000") is False:
-                    pass
-    return out
+# --- no listening socket ------------------------------------------------------------------------
+
+SO_ACCEPTCON = 0x10000  # __SO_ACCEPTCON in /proc/net/unix Flags: a listen()ing socket
+TCP_LISTEN, UDP_UNCONNECTED = "0A", "07"  # st column of /proc/net/{tcp,udp}; a connected UDP socket is 01
+UNIX_DGRAM = 2
+
+
+def _socket_inodes(pid: int) -> set[str]:
+    fd_dir = Path(f"/proc/{pid}/fd")
+    inodes = set()
+    for fd in fd_dir.iterdir():
+        try:
+            m = re.fullmatch(r"socket:\[(\d+)\]", os.readlink(fd))
+        except OSError:
+            continue  # closed meanwhile
+        if m:
+            inodes.add(m.group(1))
+    return inodes
+
+
+def receiving_sockets(pid: int) -> dict[str, str]:
+    """The sockets of process `pid` that others can reach, inode -> what it is: TCP in LISTEN, UDP
+    bound to a port and not connected (IPv4 and IPv6), Unix sockets in listen() (__SO_ACCEPTCON) and
+    Unix datagram sockets bound to a name. Outgoing connections (TCP or UDP connected to a peer,
+    a Unix client) and the unbound datagram socket sd_notify sends from are not listed."""
+    mine = _socket_inodes(pid)
+    net = Path(f"/proc/{pid}/net")  # the process's own network namespace
+    found: dict[str, str] = {}
+    for proto in ("tcp", "tcp6", "udp", "udp6"):
+        table = net / proto
+        if not table.exists():
+            continue
+        for line in table.read_text().splitlines()[1:]:
+            f = line.split()
+            local, st, inode = f[1], f[3], f[9]
+            if inode not in mine:
+                continue
+            if proto.startswith("tcp") and st == TCP_LISTEN:
+                found[inode] = f"{proto} listening on {local}"
+            elif proto.startswith("udp") and st == UDP_UNCONNECTED and not local.endswith(":0000"):
+                found[inode] = f"{proto} bound to {local}"
+    for line in (net / "unix").read_text().splitlines()[1:]:
+        f = line.split()  # Num RefCount Protocol Flags Type St Inode [Path]
+        flags, kind, inode = int(f[3], 16), int(f[4], 16), f[6]
+        name = f[7] if len(f) > 7 else ""
+        if inode not in mine:
+            continue
+        if flags & SO_ACCEPTCON:
+            found[inode] = f"unix listening on {name or '(unnamed)'}"
+        elif kind == UNIX_DGRAM and name:
+            found[inode] = f"unix datagram bound to {name}"
+    return found
+
+
+def _notify_server(tmp_path: Path) -> tuple[socket.socket, str]:
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path = str(tmp_path / "notify.sock")
+    server.bind(path)
+    server.settimeout(20)
+    return server, path
 
 
 def test_daemon_opens_no_listening_socket(tmp_path):
-    proc, journal = faults.start_daemon(tmp_path)
+    """The real daemon (tests/daemon_fake_main.py: production loop, sd_notify, journal) with a
+    NOTIFY_SOCKET, so its notify socket exists while it sorts: that one is allowed, nothing else."""
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(faults.DAEMON_CONFIG)
+    cfg.chmod(0o640)
+    server, notify = _notify_server(tmp_path)
+    env = dict(os.environ, NOTIFY_SOCKET=notify, PYTHONUNBUFFERED="1")
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen([sys.executable, str(HERE / "daemon_fake_main.py"), str(cfg)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
+        deadline = time.monotonic() + 20
+        while not server.recv(4096).startswith(b"READY=1"):
+            assert time.monotonic() < deadline, "no READY=1"
+        journal = tmp_path / "state" / "journal.jsonl"
         assert faults.wait_for(journal, lambda rs: sum(r["type"] == "final" for r in rs) >= 2)
-        fd_dir = Path(f"/proc/{proc.pid}/fd")
-        inodes = set()
-        for fd in fd_dir.iterdir():
-            try:
-                target = (fd_dir / fd.name).readlink()
-            except OSError:
-                continue
-            m = re.match(r"socket:\[(\d+)\]", str(target))
-            if m:
-                inodes.add(m.group(1))
-        listening = inodes & _listening_inodes()
-        assert not listening, f"daemon listens on socket inodes {listening}"
+        assert _socket_inodes(proc.pid), "the daemon holds no socket: its sd_notify socket was not seen"
+        listening = receiving_sockets(proc.pid)
+        assert not listening, f"the daemon listens: {listening}"
     finally:
         faults._stop(proc)
+        server.close()
 
+
+HELPER = r"""
+import json, socket, sys
+notify, tcp_port, udp_port, folder = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+S = socket.socket
+s = {}
+s["udp bound"] = S(socket.AF_INET, socket.SOCK_DGRAM)
+s["udp bound"].bind(("127.0.0.1", 0))
+try:
+    s["udp6 bound"] = S(socket.AF_INET6, socket.SOCK_DGRAM)
+    s["udp6 bound"].bind(("::1", 0))
+except OSError:
+    s.pop("udp6 bound").close()  # no IPv6 here
+s["tcp listening"] = S(socket.AF_INET, socket.SOCK_STREAM)
+s["tcp listening"].bind(("127.0.0.1", 0))
+s["tcp listening"].listen()
+s["unix listening"] = S(socket.AF_UNIX, socket.SOCK_STREAM)
+s["unix listening"].bind(folder + "/l.sock")
+s["unix listening"].listen()
+s["unix abstract listening"] = S(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+s["unix abstract listening"].bind("\0vs2t-test-%d" % tcp_port)
+s["unix abstract listening"].listen()
+s["unix datagram bound"] = S(socket.AF_UNIX, socket.SOCK_DGRAM)
+s["unix datagram bound"].bind(folder + "/d.sock")
+# what the daemon legitimately holds: the sd_notify sender, outgoing connections
+s["ok: sd_notify sender"] = S(socket.AF_UNIX, socket.SOCK_DGRAM)
+s["ok: sd_notify sender"].sendto(b"READY=1", notify)
+s["ok: tcp client"] = socket.create_connection(("127.0.0.1", tcp_port))
+s["ok: udp client"] = S(socket.AF_INET, socket.SOCK_DGRAM)
+s["ok: udp client"].connect(("127.0.0.1", udp_port))
+s["ok: udp client"].send(b"x")
+s["ok: unix client"] = S(socket.AF_UNIX, socket.SOCK_STREAM)
+s["ok: unix client"].connect(folder + "/l.sock")
+s["ok: unbound udp"] = S(socket.AF_INET, socket.SOCK_DGRAM)
+print(json.dumps({k: v.fileno() for k, v in s.items()}), flush=True)
+sys.stdin.read()
+"""
+
+
+def test_listening_check_flags_bound_and_listening_sockets_only(tmp_path):
+    """The same check on a helper that listens every way it could: each is flagged, while its
+    sd_notify sender and its outgoing TCP / UDP / Unix connections are not."""
+    server, notify = _notify_server(tmp_path)
+    tcp_server = socket.create_server(("127.0.0.1", 0))
+    udp_peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp_peer.bind(("127.0.0.1", 0))
+    proc = subprocess.Popen([sys.executable, "-c", HELPER, notify, str(tcp_server.getsockname()[1]),
+                             str(udp_peer.getsockname()[1]), str(tmp_path)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        fds = json.loads(proc.stdout.readline())
+        assert server.recv(64) == b"READY=1"
+        inode = {name: re.fullmatch(r"socket:\[(\d+)\]", os.readlink(f"/proc/{proc.pid}/fd/{fd}")).group(1)
+                 for name, fd in fds.items()}
+        flagged = receiving_sockets(proc.pid)
+        for name, ino in inode.items():
+            assert (ino in flagged) == (not name.startswith("ok:")), (name, flagged.get(ino))
+        assert set(flagged) == {ino for name, ino in inode.items() if not name.startswith("ok:")}, flagged
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=20)
+        for s in (server, tcp_server, udp_peer):
+            s.close()
+
+
+# --- safe file permissions -----------------------------------------------------------------------
 
 def test_journal_is_not_world_writable_or_readable(tmp_path):
     from vs2t_edge.runtime.journal import Journal
