@@ -66,6 +66,11 @@ _SCHEMA: dict[str, Any] = {
             "width_px": _leaf("int", 640, (16, 4096), "uvc: frame width"),
             "height_px": _leaf("int", 480, (16, 4096), "uvc: frame height"),
             "fps": _leaf("float", 30.0, (1.0, 240.0), "uvc: frame rate asked for"),
+            # V4L2's exposure_time_absolute, in its units of 100 us (1 = 0.1 ms .. 10000 = 1 s);
+            # absent = the camera's auto exposure. A GelSight's LEDs are constant, so a fixed
+            # exposure keeps frames comparable with the no-contact reference across a shift.
+            "exposure": _leaf("optfloat", None, (1.0, 10000.0),
+                              "uvc: manual exposure, V4L2 units of 100 us (absent: auto exposure)"),
             "timeout_s": _leaf("float", 2.0, (0.05, 60.0), "longest wait for one frame"),
             "path": _leaf("optpath", None, None, "replay: replay file; sim: dataset folder"),
         },

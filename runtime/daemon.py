@@ -84,7 +84,7 @@ def build_live_devices(cfg: CellConfig):
 
         dev = cam["device"]
         camera = UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
-                           fps=cam["fps"], read_timeout_s=cam["timeout_s"])
+                           fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"])
     else:
         from vs2t_edge.runtime.camera import ReplayCamera
 

@@ -182,6 +182,64 @@ def test_capture_reference_refuses_a_touched_gel():
     assert np.abs(reference.astype(int) - _pattern(0)).max() <= 3
 
 
+
+# --- the camera section of the cell config ------------------------------------------------------
+
+CELL_YAML = """\
+bundle: bundle
+devices:
+  camera:
+    kind: uvc
+    device: /dev/video2
+    fps: 25
+{camera_extra}  arm: {{kind: fake}}
+  gate: {{kind: fake}}
+scene:
+  fabrics:
+    - {{name: denim, kind: touched, bin: 1}}
+journal: state/journal.jsonl
+"""
+
+
+def _cell_config(tmp_path, camera_extra: str):
+    from vs2t_edge.runtime.config import load_config
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(CELL_YAML.format(camera_extra=camera_extra))
+    return path, lambda: load_config(path)
+
+
+def test_exposure_from_the_config_reaches_the_uvc_camera(tmp_path):
+    from vs2t_edge.runtime.daemon import build_live_devices
+
+    _, load = _cell_config(tmp_path, "    exposure: 156\n")
+    cfg = load()
+    assert cfg.camera["exposure"] == 156.0
+    camera, _arm, _gate = build_live_devices(cfg)
+    assert isinstance(camera, UVCCamera) and camera.device == "/dev/video2"
+    assert camera.requested == {"width": 640, "height": 480, "fps": 25.0, "exposure": 156.0}
+    # absent: the driver's auto exposure is left alone (connect() only sets what was asked)
+    _, load = _cell_config(tmp_path, "")
+    camera, _arm, _gate = build_live_devices(load())
+    assert camera.requested["exposure"] is None
+
+
+@pytest.mark.parametrize("extra, words", [
+    ("    exposure: 0\n", "devices.camera.exposure = 0.0: must be between 1.0 and 10000.0"),
+    ("    exposure: 20000\n", "devices.camera.exposure = 20000.0: must be between 1.0 and 10000.0"),
+    ("    exposure: auto\n", "devices.camera.exposure = 'auto': must be a number"),
+    ("    exposure_ms: 15\n", "devices.camera.exposure_ms: unknown key"),
+])
+def test_a_bad_exposure_names_file_line_and_key(tmp_path, extra, words):
+    from vs2t_edge.runtime.config import ConfigError
+
+    path, load = _cell_config(tmp_path, extra)
+    with pytest.raises(ConfigError) as exc:
+        load()
+    problems = exc.value.problems
+    assert len(problems) == 1 and problems[0].startswith(f"{path}:7: {words}"), problems  # line 7: the key's
+
+
 # --- real GelSight frames (skip on a machine without ../shared) -------------------------------
 
 needs_real = pytest.mark.skipif(not SHARED_REAL.is_dir(), reason="../shared/real is absent")
