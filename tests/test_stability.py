@@ -105,22 +105,148 @@ def _bad_frames(good: np.ndarray):
             "saturated": sat, "size": good[: h // 2], "dtype": good.astype(np.uint16), "shape": good[..., 0]}
 
 
-def test_bad_frames_are_refused_and_never_routed():
+# what the operator reads for each bad frame (runtime/preprocess.py): the problem, named. (A press
+# frame of the wrong size is reported against the item's reference frame, both sizes given.)
+_BAD_FRAME_WORDS = {"nonfinite": "contains NaN or Inf", "nonfinite_inf": "contains NaN or Inf",
+                    "black": "all black", "white": "all white", "saturated": "saturated; lower the exposure",
+                    "size": "size 160x120, expected 160x60", "dtype": "dtype uint16, expected uint8",
+                    "shape": "expected HxWx3"}
+
+
+def _counting_forward(m: TactileModel) -> list:
+    """Make ``m.forward`` (trunk -> heads -> router) record every batch that reaches it."""
+    calls, forward = [], m.forward
+    m.forward = lambda x: calls.append(x) or forward(x)
+    return calls
+
+
+def test_bad_frames_are_refused_by_name_before_the_model_runs():
     _, raws, ref = world_frames()
     m = TactileModel.load(shared_bundle("fp32"), threads=1)
     m.set_reference(ref)
+    ran = _counting_forward(m)
+    timing = dict(m.last_timing)
     ev = Evidence(CLASSES, 0.5, 3)
-    for kind, frame in _bad_frames(raws[0]).items():
+    bad = _bad_frames(raws[0])
+    assert set(bad) == set(_BAD_FRAME_WORDS)
+    for kind, frame in bad.items():
+        # as the cell loop does: a scored press goes to the evidence, a FrameError skips it
         with pytest.raises(FrameError) as e:
-            m.score_press(frame)
+            ev.add(m.score_press(frame))
         assert e.value.reason == kind.split("_")[0], kind
-        assert str(e.value)  # an operator-readable message
-    assert ev.presses == 0  # nothing reached the evidence: no bin was chosen from a bad frame
+        assert _BAD_FRAME_WORDS[kind] in str(e.value), (kind, str(e.value))
+    assert ran == []  # no bad frame reached the trunk, the heads or the router
+    assert ev.presses == 0 and m.last_timing == timing  # nor the evidence; no timing was taken
     for kind in ("black", "white", "saturated", "dtype"):
-        with pytest.raises(FrameError):
-            m.set_reference(_bad_frames(raws[0])[kind])
+        with pytest.raises(FrameError, match=_BAD_FRAME_WORDS[kind]) as e:
+            m.set_reference(bad[kind])
+        assert "reference frame" in str(e.value)
     m.set_reference(ref)
-    assert np.isfinite(m.score_press(raws[0]).novelty)  # the good frame still scores afterwards
+    s = m.score_press(raws[0])  # the good frame still scores afterwards, and can be routed
+    assert len(ran) == 1 and np.isfinite(s.novelty)
+    ev.add(s)
+    assert ev.presses == 1  # the same path does feed the evidence once a frame is good
+
+
+class _BadFrameCamera:
+    """The gel up: the good no-contact reference. Pressed: the next frame of ``pressed`` as is."""
+
+    def __init__(self, arm, reference: np.ndarray, pressed: list[np.ndarray]):
+        self.arm, self.reference, self.pressed, self.grabs = arm, reference, list(pressed), 0
+
+    def connect(self):
+        pass
+
+    def disconnect(self):
+        pass
+
+    def grab(self):
+        from vs2t_edge.runtime.devices import Frame
+
+        self.grabs += 1
+        is_pressed = bool(self.arm.calls) and self.arm.calls[-1] == "press"
+        image = self.pressed.pop(0) if is_pressed else self.reference
+        return Frame(image, float(self.grabs), self.grabs)
+
+
+def _cell_with(tmp_path, reference, pressed, max_presses):
+    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.runtime.journal import Journal
+    from vs2t_edge.runtime.notify import Notifier
+
+    arm, gate = FakeArm(), FakeGate()
+    arm.connect()
+    gate.connect()
+    model = TactileModel.load(shared_bundle("fp32"), threads=1)
+    ran = _counting_forward(model)
+    evidences: list[Evidence] = []
+
+    def evidence():
+        evidences.append(Evidence(CLASSES, 0.9, max_presses))
+        return evidences[-1]
+
+    scene = SceneSpec(bins={c: i + 1 for i, c in enumerate(CLASSES)}, reject_bin=0,
+                      points_mm=arm.config.grid_points_mm()[: len(pressed)], max_presses=max_presses,
+                      confidence=0.9, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
+    cell = Cell(camera=_BadFrameCamera(arm, reference, pressed), arm=arm, gate=gate, model=model,
+                journal=Journal.open(tmp_path / "journal.jsonl"), notifier=Notifier(address=""), scene=scene,
+                evidence_factory=evidence, items=ContinuousFeed(), sleep=lambda s: None)
+    return cell, gate, ran, evidences
+
+
+def test_bad_frames_in_the_cell_loop_are_journalled_and_never_routed(tmp_path):
+    """Every kind of bad press frame through the daemon's own loop (real bundle, real evidence):
+    each is skipped with its reason and message in the journal, none reaches the model or the
+    evidence, and the item - all its frames bad - goes to the reject bin as 'unknown'."""
+    from vs2t_edge.runtime.journal import read_records
+
+    _, raws, ref = world_frames()
+    bad = _bad_frames(raws[0])
+    cell, gate, ran, evidences = _cell_with(tmp_path, ref, list(bad.values()), max_presses=len(bad))
+    (result,) = cell.run(max_items=1)
+    recs = read_records(tmp_path / "journal.jsonl")
+    skipped = [r for r in recs if r["type"] == "frame_skipped"]
+    assert [r["reason"] for r in skipped] == [k.split("_")[0] for k in bad]
+    for r, kind in zip(skipped, bad):
+        assert _BAD_FRAME_WORDS[kind] in r["message"], (kind, r["message"])
+    assert ran == []  # no bad frame was scored
+    assert len(evidences) == 1 and evidences[0].presses == 0  # nor added to the item's evidence
+    (pre,) = [r for r in recs if r["type"] == "pre_sort"]
+    assert pre["presses"] == 0 and pre["scores"] == [] and pre["log_posterior"] is None
+    assert (pre["label"], pre["bin"], pre["stopped_by"]) == ("unknown", 0, "no_usable_frames")
+    assert (result.label, result.bin, result.skipped_frames) == ("unknown", 0, len(bad))
+    assert gate.sorted == [0]  # the gate was told the reject bin, never a fabric's bin
+    assert cell.fault is None  # bad frames are skipped, not a fault
+
+
+def test_good_frames_after_bad_ones_decide_on_the_good_ones_only(tmp_path):
+    _, raws, ref = world_frames()
+    bad = _bad_frames(raws[0])
+    frames = [bad["black"], raws[0], bad["nonfinite"], raws[1], raws[2]]
+    cell, gate, ran, evidences = _cell_with(tmp_path, ref, frames, max_presses=3)
+    (result,) = cell.run(max_items=1)
+    from vs2t_edge.runtime.journal import read_records
+
+    (pre,) = [r for r in read_records(tmp_path / "journal.jsonl") if r["type"] == "pre_sort"]
+    # a confident decision may stop early: the evidence saw exactly the good presses the loop
+    # scored (grid points 1, 3, 4), the bad ones at points 0 and 2 only as skipped
+    good_points = [1, 3, 4][: result.presses]
+    assert result.presses >= 1 and [sc["point"] for sc in pre["scores"]] == good_points
+    assert evidences[0].presses == result.presses == len(ran)
+    assert result.skipped_frames == (2 if result.presses >= 2 else 1)
+    assert gate.sorted == [result.bin]
+
+
+def test_a_bad_reference_frame_latches_a_fault_and_routes_nothing(tmp_path):
+    _, raws, ref = world_frames()
+    cell, gate, ran, evidences = _cell_with(tmp_path, np.zeros_like(ref), [raws[0]] * 3, max_presses=3)
+    (result,) = cell.run(max_items=1)
+    assert result.outcome == "rejected_fault" and "reference frame unusable" in cell.fault
+    assert "all black" in cell.fault
+    assert ran == [] and evidences[0].presses == 0
+    assert gate.sorted == [] and gate.to_reject_calls >= 1  # no sort at all; the gate sits at reject
 
 
 def test_int8_on_saturated_inputs_stays_finite_and_ordered():
