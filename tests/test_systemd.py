@@ -17,6 +17,7 @@ import pytest
 
 ROOT = Path(__file__).parents[1]
 UNIT = ROOT / "systemd" / "vs2t-edge.service"
+DROP_IN = ROOT / "systemd" / "site.conf.example"
 ANALYZE = shutil.which("systemd-analyze")
 needs_analyze = pytest.mark.skipif(ANALYZE is None, reason="systemd-analyze not installed "
                                    "(apt-get install systemd); unit not verified")
@@ -31,13 +32,47 @@ def unit_for_this_machine(tmp_path: Path) -> Path:
     return out
 
 
-def directives() -> dict[str, list[str]]:
+def directives(text: str | None = None) -> dict[str, list[str]]:
+    """Every assignment of the unit (or of `text`), repeated keys in order, empty resets kept."""
     found: dict[str, list[str]] = {}
-    for line in UNIT.read_text().splitlines():
+    for line in (UNIT.read_text() if text is None else text).splitlines():
         m = re.match(r"^([A-Za-z]+)=(.*)$", line.strip())
         if m:
             found.setdefault(m.group(1), []).append(m.group(2))
     return found
+
+
+def device_allow_problems(values: list[str]) -> list[str]:
+    """Issue 7: DeviceAllow names the camera's and the gate's device nodes, one each, nothing
+    else - a class (char-video4linux = every V4L2 node, char-* / block-* in general) or mknod
+    permission is a problem. `values` are the DeviceAllow= lines after the last empty reset."""
+    problems = []
+    for v in values:
+        node, _, perms = v.partition(" ")
+        if not node.startswith("/dev/"):
+            problems.append(f"DeviceAllow={v}: a device class, not one device node")
+        if not set(perms.strip()) <= set("rw"):
+            problems.append(f"DeviceAllow={v}: only r and w (no mknod)")
+    if len(values) != 2:
+        problems.append(f"DeviceAllow lists {len(values)} devices, expected the camera and the gate: {values}")
+    return problems
+
+
+def after_reset(values: list[str]) -> list[str]:
+    return values[len(values) - values[::-1].index(""):] if "" in values else values
+
+
+def security_device_acl(unit: Path) -> list[str] | None:
+    """The device ACL `systemd-analyze security` computes for the unit and its drop-ins
+    (`node:perms` each), None when this systemd does not print one."""
+    proc = subprocess.run([ANALYZE, "security", "--offline=true", str(unit)], capture_output=True, text=True,
+                          timeout=60)
+    line = next((ln for ln in proc.stdout.splitlines() if " DeviceAllow=" in ln), None)
+    return None if line is None else re.findall(r"(\S+:[rwm]+)\b", line)
+
+
+def acl_without_protect_clock(acl: list[str]) -> list[str]:
+    return [a for a in acl if a != "char-rtc:r"]  # ProtectClock=yes adds read access to the RTC
 
 
 @needs_analyze
@@ -78,8 +113,8 @@ def test_unit_has_the_contract():
                        ("DevicePolicy", "closed"), ("DynamicUser", "yes"), ("IPAddressDeny", "any")]:
         assert d[key] == [value], key
     assert d["StateDirectory"] == ["vs2t-edge"] and d["ReadWritePaths"] == ["/var/lib/vs2t-edge"]
-    allowed = [v.split()[0] for v in d["DeviceAllow"]]
-    assert allowed == ["char-video4linux", "/dev/ttyACM0"]  # the camera and the gate, nothing else
+    assert not device_allow_problems(d["DeviceAllow"]), device_allow_problems(d["DeviceAllow"])
+    assert [v.split()[0] for v in d["DeviceAllow"]] == ["/dev/video0", "/dev/ttyACM0"]  # the camera, the gate
     assert set(d["RestrictAddressFamilies"][0].split()) == {"AF_UNIX", "AF_INET"}
     assert "localhost" in d["IPAddressAllow"] and len(d["IPAddressAllow"]) == 2
 
@@ -90,12 +125,44 @@ def test_example_config_validates_and_matches_the_unit():
     cfg = load_config(ROOT / "systemd" / "cell.yaml")
     d = directives()
     assert cfg.arm.host in d["IPAddressAllow"]
-    assert any(v.startswith(cfg.gate["url"]) for v in d["DeviceAllow"])
+    nodes = [v.split()[0] for v in d["DeviceAllow"]]
+    assert cfg.camera["device"] in nodes and cfg.gate["url"] in nodes
     assert str(cfg.journal).startswith(d["ReadWritePaths"][0])
 
 
 def test_drop_in_example_parses():
     cp = configparser.ConfigParser(strict=False, interpolation=None)
     cp.optionxform = str
-    cp.read_string((ROOT / "systemd" / "site.conf.example").read_text())
+    cp.read_string(DROP_IN.read_text())
     assert "Service" in cp
+
+
+def test_drop_in_example_resets_and_names_device_nodes_only():
+    d = directives(DROP_IN.read_text())
+    assert d["DeviceAllow"][0] == "" and d["IPAddressAllow"][0] == ""  # resets the unit's lists first
+    assert not device_allow_problems(after_reset(d["DeviceAllow"])), device_allow_problems(d["DeviceAllow"])
+
+
+@pytest.mark.parametrize("line", ["char-video4linux rw", "char-usb_device rw", "block-sd rw", "/dev/video0 rwm"])
+def test_device_check_refuses_a_class_or_mknod(line):
+    unit = UNIT.read_text().replace("DeviceAllow=/dev/video0 rw", f"DeviceAllow={line}")
+    assert device_allow_problems(directives(unit)["DeviceAllow"])
+
+
+@needs_analyze
+def test_systemd_sees_only_the_two_device_nodes(tmp_path):
+    """systemd's own reading of DeviceAllow (its security report), for the unit alone and with the
+    site drop-in: the two nodes and nothing class-wide; the old class-wide unit is caught the same way."""
+    unit = unit_for_this_machine(tmp_path)
+    acl = security_device_acl(unit)
+    if acl is None:
+        pytest.skip("this systemd-analyze prints no DeviceAllow line in its security report")
+    assert sorted(acl_without_protect_clock(acl)) == ["/dev/ttyACM0:rw", "/dev/video0:rw"], acl
+    (tmp_path / "vs2t-edge.service.d").mkdir()
+    (tmp_path / "vs2t-edge.service.d" / "site.conf").write_text(DROP_IN.read_text())
+    proc = subprocess.run([ANALYZE, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "site.conf" not in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+    assert sorted(acl_without_protect_clock(security_device_acl(unit))) == ["/dev/ttyUSB0:rw", "/dev/video2:rw"]
+    shutil.rmtree(tmp_path / "vs2t-edge.service.d")
+    unit.write_text(unit.read_text().replace("DeviceAllow=/dev/video0 rw", "DeviceAllow=char-video4linux rw"))
+    assert "char-video4linux:rw" in security_device_acl(unit)
