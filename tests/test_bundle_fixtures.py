@@ -69,21 +69,41 @@ def world_frames(size: int = SIZE) -> tuple[np.ndarray, list[np.ndarray], np.nda
     return np.stack(xs).astype(np.float32), raws, ds.fabrics[0].load_reference()
 
 
-def make_bundle(out: Path, precision: str = "fp32", seed: int = 0, **kw) -> dict:
+def fit_fixture_router(name: str = "gaussian", seed: int = 0):
+    """(router ``name`` fitted as make_bundle fits it, its beta, the torch outputs it was fitted on).
+
+    Feature routers (gaussian, mahalanobis_*) are fitted on the tiny trunk's features of the first
+    40 presses; the logit routers (energy, max_softmax, calibrated_stacking) have nothing to fit.
+    beta is the 0.9 quantile of the router's novelty on those presses."""
     import torch
 
-    from vs2t_edge.export.export import write_bundle
     from vs2t_edge.runtime import novelty as nv
+
+    trunk, cls_t, cls_u = tiny_modules(seed)
+    x, _, _ = world_frames(SIZE)
+    with torch.no_grad():
+        f = trunk(torch.from_numpy(x[:40]))
+        lt, lu = (t.numpy() for t in (cls_t(f), cls_u(f)))
+        f = f.numpy()
+    if name in nv.FEATURE_ROUTERS:
+        router = nv.fit_router(name, f, keep_covariance=False)
+    else:
+        router = nv.fit_router(name, None)
+    beta = float(np.quantile(router.novelty(f, lt, logits_u=lu), 0.9))
+    return router, beta, (f, lt, lu)
+
+
+def make_bundle(out: Path, precision: str = "fp32", seed: int = 0, router: str = "gaussian", **kw) -> dict:
+    """Export the tiny modules through the real exporter with router ``router`` (any of
+    runtime.novelty.ROUTERS); returns the manifest."""
+    from vs2t_edge.export.export import write_bundle
     from vs2t_edge.runtime.preprocess import TactilePreprocess
 
     trunk, cls_t, cls_u = tiny_modules(seed)
     x, _, _ = world_frames(SIZE)
     calib, held, val = x[:40], x[40:60], x[60:]
-    with torch.no_grad():
-        f = trunk(torch.from_numpy(calib)).numpy()
-    router = nv.fit_router("gaussian", f, keep_covariance=False)
-    beta = float(np.quantile(router.novelty(f), 0.9))
-    args = dict(trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=TOUCHED, untouched=UNTOUCHED,
+    fitted, beta, _ = fit_fixture_router(router, seed)
+    args = dict(trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=fitted, touched=TOUCHED, untouched=UNTOUCHED,
                 preprocess=TactilePreprocess(size=SIZE), beta=beta, calibration=calib, trunk_precision=precision,
                 trunk_arch="tiny-test", validation=val, touched_heldout=held)
     args.update(kw)
