@@ -8,11 +8,14 @@ Three implementations of :class:`vs2t_edge.runtime.devices.TactileCamera`:
 * :class:`ReplayCamera` - recorded frames (a video file, an image folder or a glob), same
   interface; loops or ends with ``CameraError(kind="ended")``.
 * :class:`SimulatedCamera` - the simulated cell's sensor: a callable gives the frame of the
-  current press; faults (unplugged for N grabs, frozen, black, truncated) are injectable.
+  current press; faults (unplugged - a real disconnect until connect() -, frozen, black,
+  truncated, timeout) are injectable.
 
 Every grab goes through one guard: ``check_frame`` from the runtime (dtype, size, NaN, black,
 white, saturated) and frozen-frame detection (the same frame N times in a row: a hung driver
-hands out its last buffer again; a live sensor's noise never repeats bit for bit).
+hands out its last buffer again; a live sensor's noise never repeats bit for bit). The count
+goes on across a reconnect of a live or simulated camera (the cell reopens the camera before
+retrying a camera fault): a frozen image that survives a reopen is still frozen.
 Faults are ``CameraError(kind=...)`` with kind one of: unplugged, timeout, frozen, ended, corrupt.
 
 :class:`ContactCheck` answers "is the gel actually pressed?" from the difference to the
@@ -129,7 +132,8 @@ class UVCCamera(_CameraBase):
             applied["exposure"] = cap.get(cv2.CAP_PROP_EXPOSURE)
         self.settings_applied = applied
         self._cap = cap
-        self._guard.reset()
+        # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
+        # to the last one before it is the same hung buffer, not a fresh start
 
     def disconnect(self) -> None:
         if self._cap is not None:
@@ -271,8 +275,15 @@ class SimulatedCamera(_CameraBase):
 
     Sensor noise (``noise_levels``, 1-sigma in grey levels) is added to every grab, as a real
     sensor's would be, so that only an injected freeze repeats a frame bit for bit.
-    ``inject(kind, count)`` queues faults: unplugged (no frame), frozen (the last frame again),
-    black (a dark frame), truncated (a frame of the wrong size), timeout.
+    ``inject(kind, count)`` queues faults: unplugged, frozen (the last frame again), black (a dark
+    frame), truncated (a frame of the wrong size), timeout; each but unplugged spoils ``count`` grabs.
+
+    Unplugged is a real disconnect, as a UVC device vanishing from the bus is: the grab it lands
+    on fails, the camera is disconnected, and every grab after it fails (``CameraError``, kind
+    unplugged - retryable, the cable may come back) until ``connect()`` succeeds. ``connect()``
+    fails while the cable is out. ``inject("unplugged", count)`` pulls the cable at the next grab
+    (or connect) and it is back after ``count - 1`` more failed connects; ``unplug()`` pulls it
+    until ``replug()`` (the operator plugs it back in).
     """
 
     FAULTS = ("unplugged", "frozen", "black", "truncated", "timeout")
@@ -287,30 +298,74 @@ class SimulatedCamera(_CameraBase):
         self._faults: list[str] = []
         self._last: np.ndarray | None = None
         self._connected = False
+        self.cable_out = False
+        self._failed_connects_left: int | None = None  # while out: None = until replug()
+        self._lost = False  # unplugged since the last successful connect()
         self.grabs = 0
+        self.connects = 0  # connect() calls, successful or not
+        self.connected_count = 0  # successful ones
 
     def inject(self, kind: str, count: int = 1) -> None:
         if kind not in self.FAULTS:
             raise ValueError(f"unknown camera fault {kind!r}; known: {self.FAULTS}")
         self._faults.extend([kind] * count)
 
-    def connect(self) -> None:
-        if self._faults and self._faults[0] == "unplugged":
+    def unplug(self, failed_connects: int | None = None) -> None:
+        """The cable comes out now: disconnected; back after ``failed_connects`` failed
+        ``connect()`` calls, or (None) when ``replug()`` is called."""
+        self.cable_out = True
+        self._lost = True
+        self._connected = False
+        self._failed_connects_left = failed_connects
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def replug(self) -> None:
+        """The cable is back in: the next ``connect()`` succeeds (grabs still need it)."""
+        self.cable_out = False
+        self._failed_connects_left = None
+
+    def _pull_cable_if_queued(self) -> bool:
+        if not self._faults or self._faults[0] != "unplugged":
+            return False
+        n = 0
+        while self._faults and self._faults[0] == "unplugged":
             self._faults.pop(0)
+            n += 1
+        self.unplug(failed_connects=n - 1)
+        return True
+
+    def connect(self) -> None:
+        self.connects += 1
+        if self._pull_cable_if_queued():
             raise CameraError(f"{self.name}: cannot open (unplugged)", device=self.name, kind="unplugged")
+        if self.cable_out:
+            if self._failed_connects_left is None or self._failed_connects_left > 0:
+                if self._failed_connects_left is not None:
+                    self._failed_connects_left -= 1
+                raise CameraError(f"{self.name}: cannot open (unplugged)", device=self.name, kind="unplugged")
+            self.replug()
         self._connected = True
-        self._guard.reset()
+        self._lost = False
+        self.connected_count += 1
+        # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
+        # to the last one before it is the same hung buffer, not a fresh start
 
     def disconnect(self) -> None:
         self._connected = False
 
     def grab(self) -> Frame:
         if not self._connected:
+            if self._lost:
+                raise CameraError(f"{self.name}: not connected (unplugged); connect() again once it is back",
+                                  device=self.name, kind="unplugged")
             raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
         self.grabs += 1
-        fault = self._faults.pop(0) if self._faults else ""
-        if fault == "unplugged":
+        if self._pull_cable_if_queued():
             raise CameraError(f"{self.name}: no frame (unplugged)", device=self.name, kind="unplugged")
+        fault = self._faults.pop(0) if self._faults else ""
         if fault == "timeout":
             raise CameraError(f"{self.name}: no frame in time", device=self.name, kind="timeout")
         if fault == "frozen" and self._last is not None:

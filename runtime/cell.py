@@ -52,6 +52,7 @@ import threading
 
 from vs2t_edge.runtime.devices import (
     ArmSafetyStop,
+    CameraError,
     DeviceError,
     GateError,
 )
@@ -267,6 +268,9 @@ class Cell:
                 connect = getattr(self.arm, "connect", None)
                 if connect is not None:
                     connect()
+            # a camera that left the bus (cable out, driver reset) only comes back through a new
+            # open; still gone -> the clear fails and the fault latches again, naming the camera
+            self._reopen_camera("the operator's clear", raise_on_failure=True)
             self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
         except (DeviceError, JournalError) as exc:
             self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
@@ -318,8 +322,27 @@ class Cell:
         if self.stop_event.is_set():
             raise StopRequested()
 
+    def _reopen_camera(self, why: str, *, raise_on_failure: bool = False) -> str | None:
+        """Disconnect + connect the camera, the close guarded so a failing one does not skip the
+        open. Returns None once open again, else the open's error (raised if asked)."""
+        try:
+            self.camera.disconnect()
+        except Exception as exc:  # noqa: BLE001 - a half-dead device may fail to close; open anyway
+            self.log(f"camera disconnect before reopening failed ({exc}); opening anyway")
+        try:
+            self.camera.connect()
+        except DeviceError as exc:
+            self.log(f"camera did not reopen for {why}: {exc}")
+            if raise_on_failure:
+                raise
+            return str(exc)
+        self.log(f"camera reopened for {why}")
+        return None
+
     def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
-        """One press step with the retry policy: a retryable error is retried once."""
+        """One press step with the retry policy: a retryable error is retried once. Before the
+        retry of a camera fault the camera is reopened (a UVC device that vanished and came back
+        delivers nothing to the old handle); if it does not reopen, the retry has failed."""
         for attempt in (1, 2):
             self._check_time(t0)
             try:
@@ -340,6 +363,11 @@ class Cell:
                     self.arm.retract()
                 except DeviceError:
                     pass  # the retried step starts from move_above again
+                if isinstance(exc, CameraError):
+                    not_open = self._reopen_camera(f"the retry of {what}")
+                    if not_open is not None:
+                        raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
+                                        f"failed: {not_open}", "repeated_failure") from exc
         raise AssertionError("unreachable")
 
     def _press_once(self, x_mm: float, y_mm: float):

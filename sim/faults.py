@@ -400,16 +400,69 @@ def _at(rig: Rig, item: int, press: int, fn: Callable[[], None]) -> None:
     rig.arm.schedule[(item, press)] = fn
 
 
+def _unplug_camera(rig: Rig, item: int, press: int, *, for_good: bool) -> dict:
+    """Pull the simulated camera's cable just before that press: a real disconnect, every grab
+    fails until the camera is reopened. It is back for the first reopen, or (``for_good``) only
+    once the operator has plugged it back in (``rig.camera.replug``). Returns a dict the row
+    reads afterwards: ``connects`` = the camera's connect() calls when the cable came out."""
+    seen: dict = {}
+
+    def pull() -> None:
+        seen["connects"] = rig.camera.connects
+        rig.camera.unplug(failed_connects=None if for_good else 0)
+
+    _at(rig, item, press, pull)
+    return seen
+
+
 def camera_unplugged_and_back(w: Path):
-    # one grab fails (cable out), the next works (back in): the press is retried once
-    return _loop_row(w, inject=lambda r: _at(r, 1, 2, lambda: r.camera.inject("unplugged", 1)),
-                     expect_outcomes={"sorted": 4}, fault_words=None, retries=1)
+    # cable out mid-press, back at once: the loop reopens the camera before its one retry
+    # (without the reopen the retry's grab finds it still disconnected and latches a fault)
+    held: dict = {}
+
+    def inject(r: Rig) -> None:
+        held["rig"], held["seen"] = r, _unplug_camera(r, 1, 2, for_good=False)
+
+    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=1)
+    cam, seen = held["rig"].camera, held["seen"]
+    _check(problems, "connects" in seen, "the cable was never pulled")
+    _check(problems, cam.connects == seen.get("connects", 0) + 1 and not cam.cable_out,
+           f"expected one reopen after the unplug, the camera saw {cam.connects - seen.get('connects', 0)}")
+    return words + f"; camera reopened {cam.connected_count - 1}x", problems
 
 
 def camera_unplugged_for_good(w: Path):
-    # the retry fails too: latched fault, that piece rejected, the rest sorted after the clear
-    return _loop_row(w, inject=lambda r: _at(r, 1, 2, lambda: r.camera.inject("unplugged", 2)),
-                     expect_outcomes={"sorted": 3, "rejected_fault": 1}, fault_words="failed twice", retries=1)
+    # cable out mid-press and the retry's reopen fails: latched fault naming it, piece rejected;
+    # the operator plugs it back in and clears, the clear reopens the camera, the rest are sorted
+    # (without that reopen the next piece needs a retry of its own)
+    held: dict = {}
+
+    def inject(r: Rig) -> None:
+        held["rig"], held["seen"] = r, _unplug_camera(r, 1, 2, for_good=True)
+
+    def operator_fix(r: Rig):
+        def fix() -> None:
+            held["connects_at_fix"] = r.camera.connects
+            r.camera.replug()
+            grab = r.camera.grab
+
+            def first_grab_after_the_clear():  # was the camera open again before the loop used it?
+                held.setdefault("open_at_next_grab", r.camera.is_connected)
+                return grab()
+            r.camera.grab = first_grab_after_the_clear
+        return fix
+
+    words, problems = _loop_row(w, inject=inject, operator_fix_for=operator_fix,
+                                expect_outcomes={"sorted": 3, "rejected_fault": 1},
+                                fault_words="reopening the camera for the retry failed", retries=1)
+    cam, seen = held["rig"].camera, held["seen"]
+    _check(problems, "connects" in seen, "the cable was never pulled")
+    _check(problems, cam.connects == seen.get("connects", 0) + 2,
+           f"expected a failed reopen on the retry and one at the clear, got "
+           f"{cam.connects - seen.get('connects', 0)} connect() calls")
+    _check(problems, held.get("open_at_next_grab") is True and cam.connects == held.get("connects_at_fix", -9) + 1,
+           "the operator's clear did not reopen the camera")
+    return words + ("; camera reopened by the clear" if held.get("open_at_next_grab") else ""), problems
 
 
 def camera_frozen(w: Path):

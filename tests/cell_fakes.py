@@ -87,15 +87,27 @@ class FakeModel:
 class ScriptedCamera:
     """Returns a reference frame when the gel is up and the scripted frames when pressed.
 
-    ``script`` entries: an int grey level, "black" (a bad frame), or "error" (CameraError).
+    ``script`` entries: an int grey level, "black" (a bad frame), "error" (CameraError), or
+    "unplugged" (the cable comes out: that grab and every grab after it fail with an unplugged
+    CameraError until connect(); connect() fails while ``cable_out`` - set it back to False, as
+    the operator plugging it in, or leave ``back_on_reconnect`` True for a cable that is back at
+    once).
     """
 
     def __init__(self, arm, script, size=(48, 64)):
         self.arm, self.script, self.size = arm, list(script), size
         self.index = 0
         self.connected = False
+        self.connects = 0
+        self.cable_out = False
+        self.lost = False  # unplugged since the last successful connect()
+        self.back_on_reconnect = True
 
     def connect(self):
+        self.connects += 1
+        if self.cable_out and not self.back_on_reconnect:
+            raise CameraError("cannot open (unplugged)", device="camera", kind="unplugged")
+        self.cable_out = self.lost = False
         self.connected = True
 
     def disconnect(self):
@@ -109,6 +121,8 @@ class ScriptedCamera:
         self.disconnect()
 
     def grab(self):
+        if self.lost:
+            raise CameraError("not connected (unplugged)", device="camera", kind="unplugged")
         self.index += 1
         pressed = bool(self.arm.calls) and self.arm.calls[-1] == "press"
         if not pressed:
@@ -116,6 +130,10 @@ class ScriptedCamera:
         what = self.script.pop(0) if self.script else 100
         if what == "error":
             raise CameraError("no frame (injected)", device="camera", kind="timeout")
+        if what == "unplugged":
+            self.cable_out = self.lost = True
+            self.connected = False
+            raise CameraError("no frame (unplugged)", device="camera", kind="unplugged")
         if what == "black":
             return Frame(np.zeros(self.size + (3,), np.uint8), float(self.index), self.index)
         return Frame(np.full(self.size + (3,), int(what), np.uint8), float(self.index), self.index)

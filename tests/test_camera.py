@@ -133,11 +133,14 @@ def test_simulated_camera_faults():
     a, b = cam.grab().image, cam.grab().image
     assert not np.array_equal(a, b)  # sensor noise: two grabs of one press still differ
     assert np.abs(a.astype(int) - _pattern(0)).mean() < 2
-    cam.inject("unplugged", 2)
+    cam.inject("unplugged", 2)  # out at the next grab, back after one more failed connect
     for _ in range(2):
         with pytest.raises(CameraError) as exc:
             cam.grab()
-        assert exc.value.kind == "unplugged"
+        assert exc.value.kind == "unplugged" and exc.value.retryable
+    with pytest.raises(CameraError):
+        cam.connect()
+    cam.connect()
     cam.grab()
     cam.inject("frozen", 2)
     cam.grab()
@@ -155,6 +158,56 @@ def test_simulated_camera_faults():
     assert exc.value.reason == "size"
     press["i"] = 5
     assert np.abs(cam.grab().image.astype(int) - _pattern(5)).mean() < 2
+
+
+def test_simulated_unplug_is_a_disconnect_until_connect():
+    """As a UVC device gone from the bus: after the cable comes out every grab fails - also once
+    it is back - until connect() is called again; connect() fails while it is out."""
+    cam = SimulatedCamera(lambda: _pattern(0))
+    cam.connect()
+    cam.inject("unplugged")  # out at the next grab, back for the next connect
+    with pytest.raises(CameraError, match=r"no frame \(unplugged\)") as exc:
+        cam.grab()
+    assert exc.value.kind == "unplugged" and exc.value.retryable and cam.cable_out
+    for _ in range(3):  # no grab brings it back by itself
+        with pytest.raises(CameraError, match="not connected") as exc:
+            cam.grab()
+        assert exc.value.kind == "unplugged" and exc.value.retryable
+    cam.disconnect()
+    cam.connect()
+    assert not cam.cable_out and cam.connects == 2 and cam.connected_count == 2
+    cam.grab()
+    cam.unplug()  # out for good: until the operator plugs it back
+    for _ in range(3):
+        with pytest.raises(CameraError, match="cannot open"):
+            cam.connect()
+    with pytest.raises(CameraError, match="not connected"):
+        cam.grab()
+    cam.replug()
+    with pytest.raises(CameraError, match="not connected"):
+        cam.grab()  # back in, but not reopened yet
+    cam.connect()
+    assert np.abs(cam.grab().image.astype(int) - _pattern(0)).mean() < 2
+    assert cam.connects == 6 and cam.connected_count == 3
+
+
+def test_a_frozen_frame_is_still_frozen_after_a_reconnect():
+    """The cell reopens the camera before retrying a camera fault: a hung buffer that survives
+    the reopen must still be reported frozen, not admitted as a fresh first frame."""
+    cam = SimulatedCamera(lambda: _pattern(0), frozen_after=3)
+    cam.connect()
+    cam.grab()
+    cam.inject("frozen", 3)
+    cam.grab()
+    with pytest.raises(CameraError) as exc:
+        cam.grab()
+    assert exc.value.kind == "frozen"
+    cam.disconnect()
+    cam.connect()
+    with pytest.raises(CameraError) as exc:
+        cam.grab()  # the same image again, right after the reopen
+    assert exc.value.kind == "frozen"
+    cam.grab()  # a fresh (noisy) frame is admitted
 
 
 def test_contact_check_on_synthetic_frames():

@@ -261,3 +261,34 @@ def test_journal_write_failure_latches_and_the_clear_resolves_the_item(tmp_path,
     assert [(r["item"], r["outcome"]) for r in f] == [(1, "aborted"), (2, "sorted")] and f[0]["bin"] == 0
     assert results[-1].outcome == "sorted" and gate.sorted == [f[1]["bin"]] and f[1]["bin"] != 0
     assert jmod.Journal.open(journal.path).torn_bytes == 0
+
+
+def test_unplugged_camera_is_reopened_before_the_retry(tmp_path):
+    """A camera that vanished delivers nothing until it is reopened: the retry reopens it."""
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, "unplugged", 50])
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "sorted" and results[0].label == "denim" and cell.fault is None
+    assert cam.connects == 1 and cam.connected  # one disconnect + connect, before the retried press
+    retries = [r for r in read_records(journal.path) if r["type"] == "retry"]
+    assert [r["kind"] for r in retries] == ["unplugged"]
+
+
+def test_camera_gone_for_good_latches_and_the_clear_reopens_it(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [50, "unplugged"] + [60] * 6)
+    cam.back_on_reconnect = False
+    cell.run(max_items=1)
+    assert "reopening the camera for the retry failed" in cell.fault and "unplugged" in cell.fault
+    presses = arm.calls.count("press")
+    assert presses == 2  # no second press into a camera that did not reopen
+    # cleared while the cable is still out: the clear's reopen fails, the fault latches again
+    (tmp_path / "FAULT").unlink()
+    cell.run(max_items=2, stop_when=lambda: (tmp_path / "FAULT").exists())
+    assert "could not clear" in cell.fault and "unplugged" in cell.fault
+    assert arm.calls.count("press") == presses
+    # plugged back in and cleared: the clear reopens it and the next piece needs no retry
+    cam.back_on_reconnect = True
+    (tmp_path / "FAULT").unlink()
+    results = cell.run(max_items=2)
+    assert cell.fault is None and results[-1].outcome == "sorted" and results[-1].label == "silk"
+    recs = read_records(journal.path)
+    assert [r["type"] for r in recs].count("retry") == 1 and cam.connected
