@@ -68,6 +68,56 @@ def test_recommendation_uses_validation_not_test():
     assert s["methods"]["B"]["zsl_acc"]["mean"] == pytest.approx(0.99)
 
 
+def _fake_comparison(val_a=0.9, val_b=0.5):
+    """A comparison result as run_comparison returns it (two splits, methods A and B), no training."""
+    r = _fake_split_result(
+        val_zsl={"A": val_a, "B": val_b}, test_zsl={"A": 0.4, "B": 0.6},
+        val_ausuc={"A": {"gaussian": 0.3, "energy": 0.7}, "B": {"gaussian": 0.5, "energy": 0.4}},
+        test_ausuc={"A": {"gaussian": 0.3, "energy": 0.6}, "B": {"gaussian": 0.5, "energy": 0.4}})
+    r2 = json.loads(json.dumps(r))
+    r2["methods"]["A"]["val_zsl_acc"] -= 0.1
+    splits = [r, r2]
+    return {"splits": splits, "summary": cmp.summarise(splits),
+            "meta": {"command": "test", "features": "fake", "n_fabrics": 10, "n_presses": 100, "d_t": 4, "d_v": 4,
+                     "n_splits": 2, "split_sizes": "6/2/2", "budget": "none", "host": "test", "seconds": 0.0}}
+
+
+def test_regeneration_keeps_hand_written_text_below_the_marker(tmp_path):
+    out = tmp_path / "out"
+    paths = cmp.write_results(_fake_comparison(), out, name="page")
+    first = paths["md"].read_text()
+    assert first.rstrip("\n").endswith(cmp.HAND_MARKER) and first.count(cmp.HAND_MARKER) == 1
+    hand = "\n## Reading (hand-written)\n\nA wins on validation; the router choice is weak.\n"
+    paths["md"].write_text(first + hand)
+    # new numbers: the generated part changes, the hand text stays, once, at the end
+    cmp.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
+    second = paths["md"].read_text()
+    assert second.endswith(cmp.HAND_MARKER + "\n" + hand) and second.count("A wins on validation") == 1
+    assert second.count(cmp.HAND_MARKER) == 1 and second.split(cmp.HAND_MARKER)[0] != first.split(cmp.HAND_MARKER)[0]
+    cmp.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
+    assert paths["md"].read_text() == second  # regenerating is idempotent
+
+    # a page without the marker: refused by default, nothing written; replaced whole on request
+    paths["md"].write_text("# my page\n\nhand text with no marker\n")
+    json_before = paths["json"].read_text()
+    with pytest.raises(cmp.UnmarkedReportError, match=r"page\.md has no line"):
+        cmp.write_results(_fake_comparison(), out, name="page")
+    assert paths["md"].read_text() == "# my page\n\nhand text with no marker\n"
+    assert paths["json"].read_text() == json_before
+    cmp.write_results(_fake_comparison(), out, name="page", unmarked="replace")
+    replaced = paths["md"].read_text()
+    assert "hand text with no marker" not in replaced and replaced.rstrip("\n").endswith(cmp.HAND_MARKER)
+
+
+def test_compare_verb_refuses_an_unmarked_page_before_running(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    (tmp_path / "comparison.md").write_text("# hand-made\n")
+    code = main(["compare", "--toy", "--methods", "DAP", "--skip-real", "--out", str(tmp_path)])
+    assert code == 2 and "--replace-unmarked" in capsys.readouterr().err
+    assert not (tmp_path / "comparison.json").exists()
+
+
 def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
     torch.set_num_threads(1)
     table = cmp.toy_feature_table(n_fabrics=32, presses=15, d_t=32, d_v=16, noise=0.5)

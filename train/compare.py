@@ -745,19 +745,64 @@ def extract_feature_table(dataset_root: Path, size_px: int = 224, log: Callable[
                         ds.attribute_matrix().astype(np.float64), source=f"{dataset_root} (frozen EfficientNet-Lite0)")
 
 
-def write_results(result: dict, out_dir: Path, real: dict | None = None, name: str = "comparison") -> dict[str, Path]:
-    """``out_dir/{name}.md|json|png``."""
+# A report page is generated down to this line; everything from it on is hand-written (a reading
+# of the numbers, caveats) and is carried over verbatim when the page is regenerated.
+HAND_MARKER = "<!-- hand-written below: kept on regeneration -->"
+
+
+class UnmarkedReportError(ValueError):
+    """An existing report has no HAND_MARKER line, so which part is hand-written is unknown."""
+
+
+def hand_written_tail(path: Path, unmarked: str = "refuse") -> str:
+    """The hand-written part of the report at ``path``: from its first line that is exactly
+    ``HAND_MARKER`` to the end, the marker line included; "" when the file does not exist.
+
+    A file without the marker may hold hand text anywhere, so ``unmarked="refuse"`` (default)
+    raises ``UnmarkedReportError`` naming the file, and ``unmarked="replace"`` returns "" (the
+    file is then rewritten whole, its old text lost)."""
+    if unmarked not in ("refuse", "replace"):
+        raise ValueError(f"unmarked must be 'refuse' or 'replace', not {unmarked!r}")
+    path = Path(path)
+    if not path.is_file():
+        return ""
+    text = path.read_text()
+    offset = 0
+    for line in text.splitlines(keepends=True):
+        if line.strip() == HAND_MARKER:
+            return text[offset:]
+        offset += len(line)
+    if unmarked == "replace":
+        return ""
+    raise UnmarkedReportError(
+        f"{path} has no line '{HAND_MARKER}': regenerating would erase any hand-written text in it. "
+        f"Put that line above the hand-written part (everything from it on is kept), or replace the "
+        f"whole file (vs2t-edge compare --replace-unmarked)")
+
+
+def with_hand_text(generated: str, tail: str) -> str:
+    """The generated page followed by the kept hand-written tail (or a bare marker line, so that
+    text added below it later survives the next regeneration)."""
+    return generated.rstrip("\n") + "\n\n" + (tail or HAND_MARKER + "\n")
+
+
+def write_results(result: dict, out_dir: Path, real: dict | None = None, name: str = "comparison",
+                  unmarked: str = "refuse") -> dict[str, Path]:
+    """``out_dir/{name}.md|json|png``. The .md is generated down to ``HAND_MARKER``; the existing
+    page's text from that line on is kept (see ``hand_written_tail`` for a page without it: by
+    default nothing is written and ``UnmarkedReportError`` says why)."""
     from vs2t_edge.train.realdata_check import render_markdown as real_markdown
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"md": out_dir / f"{name}.md", "json": out_dir / f"{name}.json", "png": out_dir / f"{name}.png"}
+    tail = hand_written_tail(paths["md"], unmarked)  # before writing anything: a refusal leaves the old files
+    out_dir.mkdir(parents=True, exist_ok=True)
     result.setdefault("meta", {})["png"] = paths["png"].name
     payload = dict(result)
     if real is not None:
         payload["real_sensor_check"] = real
     paths["json"].write_text(json.dumps(payload, indent=1, default=float))
     plot(result, paths["png"])
-    paths["md"].write_text(render_markdown(result, real_markdown(real) if real else None))
+    paths["md"].write_text(with_hand_text(render_markdown(result, real_markdown(real) if real else None), tail))
     return paths
 
 
@@ -788,4 +833,5 @@ if __name__ == "__main__":
 __all__ = ["FeatureTable", "FabricSplit", "make_splits", "run_comparison", "summarise", "render_markdown", "plot",
            "toy_feature_table", "extract_feature_table", "write_results", "RunSource", "load_run",
            "read_run_splits", "run_budget", "finetuned_tables", "run_vs2t_numbers", "compare_with_run",
-           "check_splits", "pool_results"]
+           "check_splits", "pool_results", "HAND_MARKER", "UnmarkedReportError", "hand_written_tail",
+           "with_hand_text"]

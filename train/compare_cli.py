@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--real-result", type=Path, default=None,
                         help="reuse a real-sensor check JSON written by `python -m vs2t_edge.train.realdata_check --out`, "
                              "or the real_sensor_check of an earlier comparison JSON")
+    parser.add_argument("--replace-unmarked", action="store_true",
+                        help="rewrite a report page that has no hand-written marker line whole (default: refuse, "
+                             "since its hand-written text cannot be told from the generated part)")
     parser.add_argument("--real-splits", type=int, default=5)
     parser.add_argument("--real-epochs", type=int, default=8)
 
@@ -179,6 +182,12 @@ def _run(args: argparse.Namespace, torch) -> int:
     log(f"compare: {len(methods)} methods x {len(splits)} splits = {n_jobs} fits; features: {source}")
     name = args.out_name or (f"comparison_{run_src.profile.get('name', 'run')}" if run_src is not None
                              else "comparison")
+    unmarked = "replace" if args.replace_unmarked else "refuse"
+    try:  # now, not after the long run: a page whose hand-written text cannot be kept is refused up front
+        cmp.hand_written_tail(args.out / f"{name}.md", unmarked)
+    except cmp.UnmarkedReportError as exc:
+        print(f"vs2t-edge compare: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     partial = args.out / f"{name}.partial.json"  # per-split results so far; removed when the report is written
 
     def on_split(done: list[dict]) -> None:
@@ -218,7 +227,7 @@ def _run(args: argparse.Namespace, torch) -> int:
         else:
             log(f"real-sensor check skipped: {root} is absent")
     result["meta"]["seconds"] = time.time() - t0
-    paths = cmp.write_results(result, args.out, real, name=name)
+    paths = cmp.write_results(result, args.out, real, name=name, unmarked=unmarked)
     partial.unlink(missing_ok=True)
     rec = result["summary"]["recommendation"]
     print(f"recommended default: model {rec['model']}, router {rec['router']} (chosen on validation)")
