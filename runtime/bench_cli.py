@@ -1,7 +1,9 @@
 """`vs2t-edge bench BUNDLE... [--out DIR]`: the speed-for-accuracy table (runtime/bench.py).
 
 Prints the table; with --out writes bench.md, bench.json and (with matplotlib) pareto.png.
-Make the variants with `vs2t-edge export` (docs/results/bench/bench.md lists the commands).
+Make the variants with `vs2t-edge export`; for the committed run, docs/results/bench/bench.md's
+'How these bundles were made' rebuilds the export commands from bench.json and says what was not
+recorded (that section is written by hand: --out rewrites bench.md without it).
 """
 
 from __future__ import annotations
