@@ -152,7 +152,7 @@ def test_synth_cli_small_profile_writes_a_dataset_validate_data_accepts(tmp_path
     slow for the default suite (pyproject's addopts does not deselect ``slow``), so it runs only
     when asked for with ``-m slow``."""
     if "slow" not in (request.config.getoption("markexpr") or ""):
-        pytest.skip("the small profile takes ~30-60 s; run with `pytest -m slow`")
+        pytest.skip("the small profile takes 19-33 s on one worker; run with `pytest -m slow`")
     t0 = time.monotonic()
     made, checked = _synth_and_validate(tmp_path / "small", capsys, "--profile", "small", "--workers", "1")
     assert "20 fabrics, 500 presses (small, seed 0)" in made
