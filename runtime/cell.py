@@ -14,7 +14,10 @@ item source, the journal, the notifier and the clock. Per item::
 Retry policy (one table, so the behaviour is reviewable):
 
 * retryable device error (CameraError, PressFailed, ArmConnectionError): that press is tried
-  once more; a second failure latches a fault.
+  once more; a second failure latches a fault. Before the retry of a CameraError the camera is
+  reopened; if it does not reopen, the retry has failed.
+* with a ``contact_check``: a press frame that is still the no-contact reference is a
+  CameraError of kind ``no_contact`` (retried, not reopened for).
 * a bad frame (FrameError from preprocessing): skipped, counted, journalled, never used; the
   next grid point is pressed. An item whose frames are all bad is decided "unknown" -> reject.
 * ArmSafetyStop, any other device error, a gate error, an item over its time budget: a
@@ -60,6 +63,7 @@ from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 
 UNKNOWN = "unknown"
+NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
 
 
@@ -171,8 +175,12 @@ class Cell:
                  evidence_factory: Callable[[], Any], items: ItemSource,
                  clock: Callable[[], float] = time.monotonic, stop_event: threading.Event | None = None,
                  on_item: Callable[[ItemResult], None] | None = None, log: Callable[[str], None] | None = None,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+                 sleep: Callable[[float], None] = time.sleep, contact_check: Any = None) -> None:
         self.camera, self.arm, self.gate, self.model = camera, arm, gate, model
+        # runtime/camera.py ContactCheck (or anything with its read()): each press frame against
+        # the item's no-contact reference. None = not checked (see _require_contact).
+        self.contact_check = contact_check
+        self._reference_image = None
         self.journal, self.notifier, self.scene = journal, notifier, scene
         self.evidence_factory, self.items, self.clock = evidence_factory, items, clock
         self.stop_event = stop_event or threading.Event()
@@ -363,7 +371,7 @@ class Cell:
                     self.arm.retract()
                 except DeviceError:
                     pass  # the retried step starts from move_above again
-                if isinstance(exc, CameraError):
+                if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
                     not_open = self._reopen_camera(f"the retry of {what}")
                     if not_open is not None:
                         raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
@@ -377,7 +385,28 @@ class Cell:
             frame = self.camera.grab()
         finally:
             self.arm.retract()  # always lift the gel, also when the grab failed
+        self._require_contact(frame)
         return press, frame
+
+    def _require_contact(self, frame) -> None:
+        """A press frame that looks like the no-contact reference is no tactile reading: the
+        gel did not reach the piece (no piece, wrong height, a press that reported force on
+        nothing) or the camera shows a stale frame. Raised as a retryable camera fault, so the
+        press is retried once and a second one latches a fault naming it."""
+        check, reference = self.contact_check, self._reference_image
+        if check is None or reference is None:
+            return
+        image = getattr(frame, "image", None)
+        if getattr(image, "shape", None) != reference.shape or getattr(image, "dtype", None) != reference.dtype:
+            return  # a wrong-size or wrong-type frame is the frame check's to refuse (skipped, not retried)
+        reading = check.read(image, reference)
+        if not reading.pressed:
+            raise CameraError(
+                f"no contact: the press frame differs from the no-contact reference in "
+                f"{reading.area_fraction:.2%} of the image (peak {reading.peak_levels:.1f} grey levels; "
+                f"a press needs {check.min_area_fraction:.2%} over {check.threshold_levels:g}) - the gel "
+                "did not touch the piece (piece missing, wrong height?) or the frame is stale",
+                device="camera", kind=NO_CONTACT)
 
     def process_item(self, item: Item) -> ItemResult | None:
         t0 = self.clock()
@@ -400,11 +429,13 @@ class Cell:
                 self.arm.move_above(x0, y0)
                 return self.camera.grab()
 
+            self._reference_image = None  # never check a press against the last item's reference
             ref = self._step("reference frame", reference, t0)
             try:
                 self.model.set_reference(ref.image)
             except FrameError as exc:
                 raise CellFault(f"no-contact reference frame unusable: {exc}", "reference") from exc
+            self._reference_image = ref.image
             for k, (x_mm, y_mm) in enumerate(self.scene.points_mm):
                 if presses >= self.scene.max_presses:
                     break

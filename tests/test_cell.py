@@ -33,7 +33,8 @@ class OrderedGate(FakeGate):
         super().sort(bin_index)
 
 
-def make_cell(tmp_path, script, *, max_presses=4, confidence=0.95, gate=None, arm=None, items=None):
+def make_cell(tmp_path, script, *, max_presses=4, confidence=0.95, gate=None, arm=None, items=None,
+              contact_check=None):
     arm = arm or FakeArm()
     arm.connect()
     camera = ScriptedCamera(arm, script)
@@ -46,7 +47,7 @@ def make_cell(tmp_path, script, *, max_presses=4, confidence=0.95, gate=None, ar
     cell = Cell(camera=camera, arm=arm, gate=gate, model=FakeModel(VOTES, CLASSES), journal=journal,
                 notifier=Notifier(address=""), scene=scene,
                 evidence_factory=lambda: FakeEvidence(CLASSES, confidence, max_presses),
-                items=items or ContinuousFeed(), sleep=lambda s: None)
+                items=items or ContinuousFeed(), sleep=lambda s: None, contact_check=contact_check)
     return cell, arm, camera, gate, journal
 
 
@@ -292,3 +293,43 @@ def test_camera_gone_for_good_latches_and_the_clear_reopens_it(tmp_path):
     assert cell.fault is None and results[-1].outcome == "sorted" and results[-1].label == "silk"
     recs = read_records(journal.path)
     assert [r["type"] for r in recs].count("retry") == 1 and cam.connected
+
+
+REFERENCE = 100  # ScriptedCamera's gel-up frame: a pressed frame of 100 is the reference again
+
+
+def test_press_frame_identical_to_the_reference_is_retried_then_latches_no_contact(tmp_path):
+    """The gel never touched the piece: each press frame is the no-contact reference again. The
+    press is retried once (journalled like any retry), then a fault naming 'no contact' latches;
+    such a frame is never scored."""
+    from vs2t_edge.runtime.camera import ContactCheck
+
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [REFERENCE, REFERENCE, 50, 50],
+                                              contact_check=ContactCheck())
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "rejected_fault" and results[0].bin == 0 and gate.sorted == []
+    assert "no contact" in cell.fault and "failed twice" in cell.fault
+    assert cell.model.scored == 0 and arm.calls.count("press") == 2
+    recs = read_records(journal.path)
+    assert [(r["kind"], r["step"].split(" at ")[0]) for r in recs if r["type"] == "retry"] == [("no_contact", "press 0")]
+    fault = [r for r in recs if r["type"] == "fault"]
+    assert len(fault) == 1 and "no contact" in fault[0]["reason"]
+    assert cam.connects == 0  # not a camera fault: the camera is not reopened for it
+
+
+def test_no_contact_once_is_retried_and_the_piece_sorted(tmp_path):
+    from vs2t_edge.runtime.camera import ContactCheck
+
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [REFERENCE, 60, 60], contact_check=ContactCheck())
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "sorted" and results[0].label == "silk" and cell.fault is None
+    assert cell.model.scored == 2  # the untouched frame was never scored
+    assert [r["kind"] for r in read_records(journal.path) if r["type"] == "retry"] == ["no_contact"]
+
+
+def test_without_a_contact_check_the_loop_scores_an_untouched_frame(tmp_path):
+    # what the daemon does today (it gives the Cell no contact check, docs/cell.md says why)
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [REFERENCE, 60, 60])
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "sorted" and cell.model.scored == 3
+    assert not [r for r in read_records(journal.path) if r["type"] == "retry"]
