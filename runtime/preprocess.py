@@ -121,11 +121,13 @@ def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | PreparedRefere
         if reference is None:
             raise FrameError("no-contact reference frame missing", "reference")
         if not isinstance(reference, PreparedReference):
-            reference = check_frame(reference, frame.shape[:2], name="reference frame")
-            reference = PreparedReference(tuple(reference.shape[:2]), _crop_resize(reference, spec), spec)
+            reference = prepare_reference(reference, spec)
         if reference.frame_hw != tuple(frame.shape[:2]):
+            # Neither is "the" right size: say both. On the cell the reference is the item's own
+            # no-contact frame, so it is usually the press frame that is off.
             h, w = reference.frame_hw
-            raise FrameError(f"reference frame: size {w}x{h}, expected {frame.shape[1]}x{frame.shape[0]}", "size")
+            raise FrameError(f"frame: size {frame.shape[1]}x{frame.shape[0]} does not match the no-contact "
+                             f"reference frame's {w}x{h}", "size")
         if reference.spec != spec:
             raise ValueError("reference frame was prepared for another preprocessing")
         image = image - reference.resized

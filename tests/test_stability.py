@@ -106,10 +106,10 @@ def _bad_frames(good: np.ndarray):
 
 
 # what the operator reads for each bad frame (runtime/preprocess.py): the problem, named. (A press
-# frame of the wrong size is reported against the item's reference frame, both sizes given.)
+# frame of the wrong size is compared with the item's reference frame, both sizes given.)
 _BAD_FRAME_WORDS = {"nonfinite": "contains NaN or Inf", "nonfinite_inf": "contains NaN or Inf",
                     "black": "all black", "white": "all white", "saturated": "saturated; lower the exposure",
-                    "size": "size 160x120, expected 160x60", "dtype": "dtype uint16, expected uint8",
+                    "size": "frame: size 160x60 does not match the no-contact reference frame's 160x120", "dtype": "dtype uint16, expected uint8",
                     "shape": "expected HxWx3"}
 
 
