@@ -73,6 +73,15 @@ _SCHEMA: dict[str, Any] = {
                               "uvc: manual exposure, V4L2 units of 100 us (absent: auto exposure)"),
             "timeout_s": _leaf("float", 2.0, (0.05, 60.0), "longest wait for one frame"),
             "path": _leaf("optpath", None, None, "replay: replay file; sim: dataset folder"),
+            # Is the gel really pressed? (runtime/camera.py ContactCheck against the item's no-contact
+            # frame.) auto = on for a live sensor, off for replay and simulated frames, whose rendered
+            # imprints are fainter than a real GelSight's (docs/cell.md, "Contact check").
+            "contact_check": _leaf("str", "auto", ("auto", "on", "off"),
+                                   "press frames must differ from the no-contact frame: auto (uvc only), on, off"),
+            "contact_threshold_levels": _leaf("float", 12.0, (1.0, 255.0),
+                                              "contact check: change in grey levels that counts as an imprint"),
+            "contact_min_area": _leaf("float", 0.005, (0.0001, 0.5),
+                                      "contact check: fraction of the image that must change"),
         },
         "arm": {
             "kind": _leaf("str", "ur_rtde", ARM_KINDS, "ur_rtde (live robot), fake or sim (loopback simulator)"),

@@ -73,6 +73,17 @@ def default_evidence_factory(cfg: CellConfig) -> Callable[[], Any]:
     return lambda: Evidence(cfg.scene_classes, cfg.confidence, cfg.max_presses)
 
 
+def contact_check_for(cfg: CellConfig):
+    """The press-frame contact check the config asks for, or None (docs/cell.md, "Contact check")."""
+    cam = cfg.camera
+    on = cam["contact_check"] == "on" or (cam["contact_check"] == "auto" and cam["kind"] == "uvc")
+    if not on:
+        return None
+    from vs2t_edge.runtime.camera import ContactCheck
+
+    return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
+
+
 def build_live_devices(cfg: CellConfig):
     """Camera, arm and gate from the config (vendor modules imported only when chosen)."""
     cam, gate_cfg = cfg.camera, cfg.gate
@@ -200,7 +211,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     scene = SceneSpec.from_config(cfg)
     cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
                 evidence_factory=evidence_factory or default_evidence_factory(cfg),
-                items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log)
+                items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log,
+                contact_check=contact_check_for(cfg))
     try:
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})

@@ -163,3 +163,22 @@ def test_defaults_are_typed(tmp_path):
     cfg = load_config(write(tmp_path, GOOD.replace("journal: state/journal.jsonl\n", "")))
     assert cfg.journal == Path("/var/lib/vs2t-edge/journal.jsonl") and cfg.fault_file.name == "FAULT"
     assert isinstance(cfg.camera["fps"], float)
+
+
+def test_contact_check_is_on_for_a_live_sensor_and_off_for_replays_unless_asked(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import contact_check_for
+
+    def cfg(camera: str):
+        p = tmp_path / "c.yaml"
+        p.write_text("bundle: b\ndevices:\n  camera: " + camera + "\n  gate: {kind: fake}\n  arm: {kind: fake}\n"
+                     "scene:\n  reject_bin: 0\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n")
+        p.chmod(0o640)
+        return load_config(p)
+
+    live = contact_check_for(cfg("{kind: uvc}"))
+    assert live is not None and live.threshold_levels == 12.0 and live.min_area_fraction == 0.005
+    assert contact_check_for(cfg("{kind: replay, path: x.replay}")) is None
+    forced = contact_check_for(cfg("{kind: replay, path: x.replay, contact_check: 'on', contact_threshold_levels: 4}"))
+    assert forced is not None and forced.threshold_levels == 4.0
+    assert contact_check_for(cfg("{kind: uvc, contact_check: 'off'}")) is None
