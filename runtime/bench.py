@@ -361,7 +361,17 @@ def describe(bundle: Path) -> dict:
             "macs": int(tr.get("macs_per_frame", {}).get("total", 0)) or None,
             "bundle_mb": size_b / 1e6, "trunk_mb": (bundle / tr["file"]).stat().st_size / 1e6,
             "classes": [len(m["classes"]["touched"]), len(m["classes"]["untouched"])],
-            "run": m.get("provenance", {}).get("run")}
+            "run": m.get("provenance", {}).get("run"), "made_by": _made_by(m)}
+
+
+def _made_by(manifest: dict) -> dict:
+    """What the bundle says produced it, so the bench page can say how to make it again."""
+    prov = manifest.get("provenance", {}) if isinstance(manifest.get("provenance"), dict) else {}
+    data = prov.get("data", {}) if isinstance(prov.get("data"), dict) else {}
+    out = {"command": prov.get("command"), "git_commit": prov.get("git_commit"), "time_utc": prov.get("time_utc"),
+           "run": prov.get("run"), "dataset": data.get("dataset"), "split_seed": data.get("split_seed"),
+           "router": (manifest.get("router") or {}).get("name"), "operating_point": manifest.get("operating_point")}
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
@@ -410,7 +420,8 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
-        (out_dir / "bench.md").write_text(render_markdown(result))
+        md = out_dir / "bench.md"
+        md.write_text(render_markdown(result) + hand_written_tail(md))
         try:
             plot_pareto(result, out_dir / "pareto.png")
         except ImportError:
@@ -513,6 +524,32 @@ def render_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+HAND_WRITTEN = "<!-- hand-written below: kept when `vs2t-edge bench --out` rewrites this file -->"
+
+
+def hand_written_tail(md: Path) -> str:
+    """The part of an existing bench.md below the marker (notes people added), to keep on rewrite."""
+    try:
+        text = md.read_text(encoding="utf-8")
+    except OSError:
+        return ""
+    _, marker, tail = text.partition(HAND_WRITTEN)
+    return f"\n{HAND_WRITTEN}{tail}" if marker else ""
+
+
+def render_made_by(result: dict) -> list[str]:
+    rows = [r for r in result["variants"] if r.get("made_by")]
+    if not rows:
+        return []
+    lines = ["", "## How each bundle was made (from its manifest)", "",
+             "| variant | command | commit | dataset | router |", "|---|---|---|---|---|"]
+    for r in rows:
+        mb = r["made_by"]
+        lines.append(f"| {r['name']} | `{mb.get('command', '?')}` | {str(mb.get('git_commit', '?'))[:12]} | "
+                     f"{mb.get('dataset', '–')} | {mb.get('router', '?')} |")
+    return lines
+
+
 def render_markdown(result: dict) -> str:
     m, pk = result["machine"], result["peak"]
     lines = ["# Speed for accuracy: the bench", "",
@@ -554,6 +591,7 @@ def render_markdown(result: dict) -> str:
             lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
                 _f(d[k], "{:+.1f}") for k in ("press_H", "press_zsl", "item5_H", "sequential_H")) + f" | {'yes' if c['within_1_point'] else 'no'} |"
                 if d else "– | – | – | – | – |"))
+    lines += render_made_by(result)
     return "\n".join(lines) + "\n"
 
 

@@ -38,6 +38,23 @@ def test_bench_writes_table_json_and_plot(bench_result):
     for heading in ("## Variants", "## Outside the trunk", "## int8 against fp32", "## Against the targets"):
         assert heading in md
     assert (out / "pareto.png").stat().st_size > 1000
+    assert "## How each bundle was made (from its manifest)" in md
+
+
+def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_result, tmp_path):
+    from vs2t_edge.runtime import bench
+
+    result, out = bench_result
+    made = result["variants"][0]["made_by"]
+    assert made["git_commit"] and made["router"] and "command" in made  # from the bundle's manifest
+    md = tmp_path / "bench.md"
+    md.write_text("old generated text\n" + bench.HAND_WRITTEN + "\n\n## Notes\n\nkept\n")
+    md.write_text(bench.render_markdown(result) + bench.hand_written_tail(md))
+    text = md.read_text()
+    assert "old generated text" not in text and text.endswith("## Notes\n\nkept\n")
+    assert text.count(bench.HAND_WRITTEN) == 1 and "## How each bundle was made" in text
+    md.write_text("no marker here\n")
+    assert bench.hand_written_tail(md) == ""  # nothing marked: nothing kept
 
 
 def test_bench_numbers_are_measured_and_sane(bench_result):
