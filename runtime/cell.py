@@ -347,6 +347,16 @@ class Cell:
         self.log(f"camera reopened for {why}")
         return None
 
+    def _lift_gel(self, exc: DeviceError) -> None:
+        """Before latching a fault that is not a safety stop, lift the sensor off the piece: left
+        at depth after 'force never reached', the tool sits where the fabric will be put back (the
+        operator's fix then drives it into the piece and the controller protective-stops). A
+        safety stop is never moved out of; a failing retract is left for the operator."""
+        try:
+            self.arm.retract()
+        except DeviceError as lift_exc:
+            self.log(f"could not lift the sensor after {exc.kind}: {lift_exc}")
+
     def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
         """One press step with the retry policy: a retryable error is retried once. Before the
         retry of a camera fault the camera is reopened (a UVC device that vanished and came back
@@ -361,8 +371,10 @@ class Cell:
                 if isinstance(exc, GateError):
                     raise CellFault(f"gate fault during {what}: {exc}", exc.kind) from exc
                 if not exc.retryable:
+                    self._lift_gel(exc)
                     raise CellFault(f"{exc.device or 'device'} fault during {what}: {exc}", exc.kind) from exc
                 if attempt == 2:
+                    self._lift_gel(exc)
                     raise CellFault(f"{what} failed twice: {exc}", "repeated_failure") from exc
                 self.log(f"{what} failed ({exc}); retrying once")
                 self.journal.append({"type": "retry", "item": self._number, "step": what, "error": str(exc),
