@@ -48,13 +48,17 @@ def test_split_views_keep_untouched_tactile_out_of_training():
     assert np.allclose(v.train.x_t.mean(0), 0, atol=1e-4)
 
 
-def _fake_split_result(val_zsl, test_zsl, val_ausuc, test_ausuc):
+TACTILE_ONLY = {"A": ("tactile",), "B": ("tactile",)}  # cell-side inputs of the fake methods
+
+
+def _fake_split_result(val_zsl, test_zsl, val_ausuc, test_ausuc, seed=0):
     methods = {}
     for m in val_zsl:
         routers = {r: {"acc_t": 0.9, "acc_u": 0.5, "H": 0.6, "auroc": 0.8, "beta": 0.0,
                        "ausuc": test_ausuc[m][r], "val_ausuc": val_ausuc[m][r]} for r in val_ausuc[m]}
         methods[m] = {"zsl_acc": test_zsl[m], "val_zsl_acc": val_zsl[m], "routers": routers, "seconds": 1.0}
-    return {"split": {}, "cls_t_acc": 0.9, "methods": methods}
+    return {"split": {"touched": [], "validation": [], "untouched": [], "seed": seed}, "cls_t_acc": 0.9,
+            "methods": methods}
 
 
 def test_recommendation_uses_validation_not_test():
@@ -63,9 +67,40 @@ def test_recommendation_uses_validation_not_test():
         val_ausuc={"A": {"gaussian": 0.3, "energy": 0.7}, "B": {"gaussian": 0.9, "energy": 0.1}},
         test_ausuc={"A": {"gaussian": 0.9, "energy": 0.2}, "B": {"gaussian": 0.9, "energy": 0.9}},
     )
-    s = cmp.summarise([r, r])
+    s = cmp.summarise([r, r], TACTILE_ONLY)
     assert s["recommendation"]["model"] == "A" and s["recommendation"]["router"] == "energy"
     assert s["methods"]["B"]["zsl_acc"]["mean"] == pytest.approx(0.99)
+    assert s["recommendation"]["rule"] == cmp.RECOMMENDATION_RULE
+
+
+def test_the_rule_skips_methods_that_need_the_camera_on_the_cell():
+    r = _fake_split_result(
+        val_zsl={"A": 0.9, "B": 0.5}, test_zsl={"A": 0.4, "B": 0.99},
+        val_ausuc={"A": {"gaussian": 0.3, "energy": 0.7}, "B": {"gaussian": 0.9, "energy": 0.1}},
+        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.2}, "B": {"gaussian": 0.9, "energy": 0.9}})
+    rec = cmp.summarise([r], {"A": ("tactile", "visual"), "B": ("tactile",)})["recommendation"]
+    assert (rec["model"], rec["router"]) == ("B", "gaussian")  # A is better on validation but not deployable
+    assert rec["excluded"] == {"A": ["tactile", "visual"]} and rec["best_any_inputs"] == "A"
+    nobody = cmp.summarise([r], {"A": ("visual",), "B": ("tactile", "visual")})["recommendation"]
+    assert nobody["model"] is None and nobody["router"] is None
+    with pytest.raises(ValueError, match=r"no cell-side inputs recorded for \['A', 'B'\]"):
+        cmp.summarise([r])  # a method whose inputs nobody wrote down cannot be recommended
+    assert set(cmp.CELL_INPUTS) == set(cmp.all_methods())
+
+
+def test_cell_inputs_say_what_each_method_reads_per_press():
+    """CELL_INPUTS is data the rule trusts: a method listed as tactile-only must score untouched
+    classes without the camera (its logits ignore x_v), and one listed with visual must use it."""
+    torch.set_num_threads(1)
+    table = cmp.toy_feature_table(n_fabrics=10, presses=10, d_t=16, d_v=8, noise=0.5)
+    views = cmp.split_views(table, cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=2)[0])
+    budget = Budget(steps=5, batch=16, hidden=16, latent=4, cls_steps=5, n_synth_per_class=5)
+    x_t, x_v, _ = views.test_presses
+    other_v = np.random.default_rng(1).normal(size=x_v.shape).astype(x_v.dtype)
+    for name, cls in cmp.all_methods().items():
+        method = cls().fit(views.train, budget, 0)
+        reads_visual = not np.allclose(method.untouched_logits(x_t, x_v), method.untouched_logits(x_t, other_v))
+        assert reads_visual == ("visual" in cmp.CELL_INPUTS[name]), name
 
 
 def _fake_comparison(val_a=0.9, val_b=0.5):
@@ -76,8 +111,9 @@ def _fake_comparison(val_a=0.9, val_b=0.5):
         test_ausuc={"A": {"gaussian": 0.3, "energy": 0.6}, "B": {"gaussian": 0.5, "energy": 0.4}})
     r2 = json.loads(json.dumps(r))
     r2["methods"]["A"]["val_zsl_acc"] -= 0.1
+    r2["split"]["seed"] = 1
     splits = [r, r2]
-    return {"splits": splits, "summary": cmp.summarise(splits),
+    return {"splits": splits, "summary": cmp.summarise(splits, TACTILE_ONLY),
             "meta": {"command": "test", "features": "fake", "n_fabrics": 10, "n_presses": 100, "d_t": 4, "d_v": 4,
                      "n_splits": 2, "split_sizes": "6/2/2", "budget": "none", "host": "test", "seconds": 0.0}}
 
@@ -288,6 +324,63 @@ def test_compare_verb_on_a_run_uses_its_splits_and_reproduces_its_vs2t(tmp_path,
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_one_command_runs_the_whole_comparison_and_the_pages_rebuild_from_its_jsons(tmp_path, capsys):
+    """Issue 4's chain on a tiny run: `compare --run RUN --full` = the run's splits (fine-tuned
+    tactile features, the default), new splits, the real-sensor check (its folder absent here:
+    skipped), the recommendation pooled over every split, and both pages; then `--rebuild` from
+    the two JSONs alone gives the same pages and keeps hand-written text."""
+    from vs2t_edge.cli import main
+
+    torch.set_num_threads(1)
+    run, table, splits = _fake_run(tmp_path, with_stems=True)
+    metrics = json.loads((run / "metrics.json").read_text())
+    metrics["router"] = {"chosen": "energy", "rule": "highest mean validation AUSUC of VS2T-ZSL over splits"}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    out = tmp_path / "results"
+    code = main(["compare", "--run", str(run), "--full", "--splits", "2", "--extra-seed", "5", "--n-val", "2",
+                 "--n-untouched", "3", "--methods", "DAP,VT-FC-ZSL,VS2T-ZSL", "--real", str(tmp_path / "no_real"),
+                 "--out", str(out)])
+    io = capsys.readouterr()
+    assert code == 0, io.err
+    for stage in ("[stage 1/4: the run's 2 splits]", "[stage 2/4: 2 new random splits, seed 5]",
+                  "[stage 3/4: real-sensor check]", "real-sensor check skipped", "[stage 4/4:", "[2/2] split seed"):
+        assert stage in io.err
+    main_json, extra_json = json.loads((out / "comparison_tiny.json").read_text()), \
+        json.loads((out / "comparison_tiny_newsplits.json").read_text())
+    assert [r["split"]["seed"] for r in main_json["splits"]] == [s.seed for s in splits]
+    assert [r["split"]["seed"] for r in extra_json["splits"]] == [5000, 5001]
+    # the page's recommendation is the one rule over every split of both JSONs
+    rec = cmp.pool_results([main_json, extra_json])["summary"]["recommendation"]
+    assert main_json["pooled"]["summary"]["recommendation"] == rec and main_json["pooled"]["n_splits"] == 4
+    assert rec["model"] in ("DAP", "VS2T-ZSL") and rec["excluded"] == {"VT-FC-ZSL": ["tactile", "visual"]}
+    md = (out / "comparison_tiny.md").read_text()
+    assert f"Default model **{rec['model']}**, default router **{rec['router']}**." in md
+    assert cmp.RECOMMENDATION_RULE in md and "| VT-FC-ZSL | tactile + visual (not eligible) |" in md
+    assert "records router **energy** for its VS2T-ZSL" in md and "vs2t-edge compare --run" in md
+    extra_md = (out / "comparison_tiny_newsplits.md").read_text()
+    assert "see [comparison_tiny.md](comparison_tiny.md)" in extra_md and "Default model" in extra_md
+    assert f"recommended default: model {rec['model']}, router {rec['router']}" in io.out
+    for page in ("comparison_tiny", "comparison_tiny_newsplits"):
+        assert (out / f"{page}.png").stat().st_size > 5000 and not (out / f"{page}.partial.json").exists()
+        assert (out / f"{page}.md").read_text().rstrip("\n").endswith(cmp.HAND_MARKER)
+
+    hand = "\n## Reading (hand-written)\n\nThe tiny world says nothing about fabrics.\n"
+    (out / "comparison_tiny.md").write_text(md + hand)
+    code = main(["compare", "--rebuild", str(out / "comparison_tiny.json"),
+                 "--pool", str(out / "comparison_tiny_newsplits.json")])
+    assert code == 0, capsys.readouterr().err
+    assert (out / "comparison_tiny.md").read_text() == md + hand  # same generated part, hand text kept
+    assert (out / "comparison_tiny_newsplits.md").read_text() == extra_md
+    # pooling a JSON with itself would count its splits twice: refused, in words
+    assert main(["compare", "--rebuild", str(out / "comparison_tiny.json"),
+                 "--pool", str(out / "comparison_tiny.json")]) == 2
+    assert "more than once" in capsys.readouterr().err
+    # the router a run ships is only read from that run: another run's metrics.json is refused
+    assert main(["compare", "--rebuild", str(out / "comparison_tiny_newsplits.json"),
+                 "--run-metrics", str(run / "metrics.json")]) == 2
+    assert "is another run" in capsys.readouterr().err
+
+
 def test_finetuned_run_features_follow_the_run_recipe(tmp_path):
     torch.set_num_threads(1)
     run, table, splits = _fake_run(tmp_path, with_stems=True)
@@ -312,11 +405,12 @@ def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
         val_zsl={"A": 0.9, "B": 0.5}, test_zsl={"A": 0.1, "B": 0.9},
         val_ausuc={"A": {"gaussian": 0.2, "energy": 0.6}, "B": {"gaussian": 0.3, "energy": 0.4}},
         test_ausuc={"A": {"gaussian": 0.9, "energy": 0.1}, "B": {"gaussian": 0.9, "energy": 0.9}})
+    a2 = {**a, "split": {**a["split"], "seed": 1}}
     b = _fake_split_result(
         val_zsl={"A": 0.7, "B": 0.6}, test_zsl={"A": 0.1, "B": 0.9},
         val_ausuc={"A": {"gaussian": 0.25, "energy": 0.5}, "B": {"gaussian": 0.3, "energy": 0.4}},
-        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.1}, "B": {"gaussian": 0.9, "energy": 0.9}})
-    pooled = cmp.pool_results([{"splits": [a, a]}, {"splits": [b]}])
+        test_ausuc={"A": {"gaussian": 0.9, "energy": 0.1}, "B": {"gaussian": 0.9, "energy": 0.9}}, seed=1000)
+    pooled = cmp.pool_results([{"splits": [a, a2]}, {"splits": [b]}], TACTILE_ONLY)
     assert len(pooled["splits"]) == 3
     assert pooled["summary"]["methods"]["A"]["val_zsl_acc"]["mean"] == pytest.approx((0.9 + 0.9 + 0.7) / 3)
     assert pooled["summary"]["recommendation"] == {**pooled["summary"]["recommendation"], "model": "A",
@@ -325,4 +419,6 @@ def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
     c = _fake_split_result(val_zsl={"A": 0.9}, test_zsl={"A": 0.1}, val_ausuc={"A": {"gaussian": 0.2}},
                            test_ausuc={"A": {"gaussian": 0.9}})
     with pytest.raises(ValueError, match="different methods"):
-        cmp.pool_results([{"splits": [a]}, {"splits": [c]}])
+        cmp.pool_results([{"splits": [a]}, {"splits": [c]}], TACTILE_ONLY)
+    with pytest.raises(ValueError, match=r"same fabric split \(seed \[0\]\)"):
+        cmp.pool_results([{"splits": [a, a2]}, {"splits": [a]}], TACTILE_ONLY)  # would count split 0 twice

@@ -14,8 +14,11 @@ at the press, fabric index; one attribute row per fabric) and a list of fabric s
 - reported on test: ZSL accuracy (per-class mean over untouched presses, classes = untouched),
   GZSL acc_t / acc_u / H at the validation beta, and AUSUC per router.
 
-The recommendation (default model and router) uses validation numbers only: model by mean
-validation ZSL accuracy, router by mean validation AUSUC for that model.
+The recommendation (default model and router) is ``RECOMMENDATION_RULE``, implemented once by
+``recommend``: validation numbers only, model by mean validation ZSL accuracy among the methods the
+cell can run on tactile features alone (``CELL_INPUTS``), router by mean validation AUSUC for that
+model. A report page pools every comparison JSON of a run (``pool_into``, ``write_report_set``:
+the run's splits and new random splits) and prints the rule's choice over all their splits.
 
 A `vs2t-edge train` run folder can be the source (``load_run``): its exact splits (metrics.json,
 order and seeds kept), its budget (config.yaml), its frozen feature table, or (``finetuned_tables``)
@@ -261,7 +264,58 @@ def run_split(table: FeatureTable, split: FabricSplit, methods: dict[str, type[Z
     return result
 
 
-def summarise(split_results: list[dict]) -> dict:
+# What each method needs, per press on the cell, to score untouched classes: the inputs of its
+# ``untouched_logits``. The bundle (docs/bundle.md, DESIGN.md) carries the tactile trunk, CLS_t,
+# CLS_u and the router, and the cell sees a fabric only through the GelSight, so a method that
+# needs the camera crop at every press (VT-FC-ZSL maps [x_t, x_v] to attributes) cannot run there.
+# Every entry is checked against the method's code by tests/test_baselines_compare.py; a method
+# missing here cannot be recommended until its inputs are written down.
+CELL_INPUTS: dict[str, tuple[str, ...]] = {
+    "DAP": ("tactile",),
+    "VT-FC-ZSL": ("tactile", "visual"),
+    "Abderrahmane 2019": ("tactile",),
+    "Lee 2019": ("tactile",),
+    "f-CLSWGAN": ("tactile",),
+    "CADA-VAE": ("tactile",),
+    "f-VAEGAN": ("tactile",),
+    "VS2T-ZSL": ("tactile",),
+}
+CELL_SIDE_INPUTS = ("tactile",)  # what the cell has per press
+
+# The one rule that picks the default model and router, stated once; ``recommend`` implements it
+# and every report prints its result and this text.
+RECOMMENDATION_RULE = (
+    "model: among the methods whose cell-side inference needs tactile features only (compare.CELL_INPUTS; "
+    "the cell sees a fabric only through the GelSight and its bundle has no visual trunk), the one with the "
+    "highest mean validation ZSL accuracy; router: the highest mean validation AUSUC for that model; means "
+    "over every split of the run's comparison JSONs pooled (its own splits and the new ones); test numbers "
+    "are not read")
+
+
+def recommend(methods: dict, cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
+    """``RECOMMENDATION_RULE`` over ``summarise``'s per-method means. Ties go to the first method /
+    router in evaluation order. Also records the methods the constraint excluded and which method
+    would win without it. ``model`` and ``router`` are None when no compared method can run on the
+    cell."""
+    cell_inputs = CELL_INPUTS if cell_inputs is None else cell_inputs
+    unknown = [m for m in methods if m not in cell_inputs]
+    if unknown:
+        raise ValueError(f"no cell-side inputs recorded for {unknown}: add them to compare.CELL_INPUTS")
+    val_zsl = lambda m: methods[m]["val_zsl_acc"]["mean"]  # noqa: E731
+    eligible = [m for m in methods if set(cell_inputs[m]) <= set(CELL_SIDE_INPUTS)]
+    out = {"model": None, "router": None, "rule": RECOMMENDATION_RULE,
+           "excluded": {m: list(cell_inputs[m]) for m in methods if m not in eligible},
+           "best_any_inputs": max(methods, key=val_zsl)}
+    if eligible:
+        model = max(eligible, key=val_zsl)
+        rs = methods[model]["routers"]
+        out.update(model=model, router=max(rs, key=lambda r: rs[r]["val_ausuc"]["mean"]))
+    return out
+
+
+def summarise(split_results: list[dict], cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
+    """Per method mean ± std over splits, and ``recommend``'s choice (``cell_inputs`` defaults to
+    ``CELL_INPUTS``)."""
     methods = list(split_results[0]["methods"])
     routers = list(split_results[0]["methods"][methods[0]]["routers"])
     summary: dict = {"methods": {}}
@@ -273,14 +327,7 @@ def summarise(split_results: list[dict]) -> dict:
             ms["routers"][rt] = {k: _ms([r["routers"][rt][k] for r in rows])
                                  for k in ("acc_t", "acc_u", "H", "ausuc", "auroc", "val_ausuc")}
         summary["methods"][m] = ms
-    best_model = max(methods, key=lambda m: summary["methods"][m]["val_zsl_acc"]["mean"])
-    rs = summary["methods"][best_model]["routers"]
-    best_router = max(rs, key=lambda r: rs[r]["val_ausuc"]["mean"])
-    summary["recommendation"] = {
-        "model": best_model, "router": best_router,
-        "rule": "model: highest mean validation ZSL accuracy; router: highest mean validation AUSUC "
-                "for that model; test numbers were not looked at",
-    }
+    summary["recommendation"] = recommend(summary["methods"], cell_inputs)
     summary["cls_t_acc"] = _ms([r["cls_t_acc"] for r in split_results])
     return summary
 
@@ -294,50 +341,106 @@ def _pct(d: dict) -> str:
     return f"{100 * d['mean']:.2f} ± {100 * d['std']:.2f}"
 
 
+def _paired(splits: list[dict], a: Callable[[dict], float], b: Callable[[dict], float]) -> tuple[float, float]:
+    """Mean and standard error of the per-split difference a - b (points); se inf for one split."""
+    d = 100 * np.array([a(r) - b(r) for r in splits])
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
+
+
+def _lead(mean: float, se: float) -> str:
+    return "clear" if mean > 2 * se else "weak"
+
+
 def _evidence_strength(result: dict) -> str:
-    """Is the validation choice more than a coin toss? Paired over splits: the per-split
-    difference of validation ZSL accuracy between the chosen model and the runner-up, a clear
-    lead when its mean exceeds two standard errors."""
-    s = result["summary"]
-    vals = sorted(((ms["val_zsl_acc"]["mean"], m) for m, ms in s["methods"].items()), reverse=True)
-    n_routers = len(next(iter(s["methods"].values()))["routers"])
-    if len(vals) < 2 or n_routers < 2:
-        return "Strength of evidence: not assessed (fewer than two methods or routers compared)."
-    best, runner = vals[0][1], vals[1][1]
-    diffs = np.array([r["methods"][best]["val_zsl_acc"] - r["methods"][runner]["val_zsl_acc"]
-                      for r in result["splits"]])
-    se = diffs.std(ddof=1) / np.sqrt(len(diffs)) if len(diffs) > 1 else float("inf")
-    strong = diffs.mean() > 2 * se
+    """Is the rule's choice more than a coin toss? Paired over splits: the per-split difference of
+    validation ZSL accuracy between the chosen model and the next eligible one, of validation
+    AUSUC between the chosen router and the next one (and the paper's Gaussian); a clear lead when
+    the mean exceeds two standard errors. Also how far a method the constraint excluded leads."""
+    s, splits = result["summary"], result["splits"]
     rec = s["recommendation"]
-    rv = sorted(((v["val_ausuc"]["mean"], k) for k, v in s["methods"][best]["routers"].items()), reverse=True)
-    rd = np.array([r["methods"][best]["routers"][rv[0][1]]["val_ausuc"]
-                   - r["methods"][best]["routers"][rv[1][1]]["val_ausuc"] for r in result["splits"]])
-    rse = rd.std(ddof=1) / np.sqrt(len(rd)) if len(rd) > 1 else float("inf")
-    text = (f"Strength of evidence (paired over {len(diffs)} splits): {best} leads {runner} on validation ZSL by "
-            f"{100 * diffs.mean():.1f} points, standard error {100 * se:.1f}: "
-            f"{'a clear lead' if strong else 'within two standard errors, so the model choice is weak'}. "
-            f"Router {rec['router']} leads {rv[1][1]} on validation AUSUC by {100 * rd.mean():.1f} points, "
-            f"standard error {100 * rse:.1f}: {'clear' if rd.mean() > 2 * rse else 'weak'}.")
-    if rec["router"] != GAUSSIAN_ROUTER and GAUSSIAN_ROUTER in s["methods"][best]["routers"]:
-        gd = np.array([r["methods"][best]["routers"][rec["router"]]["val_ausuc"]
-                       - r["methods"][best]["routers"][GAUSSIAN_ROUTER]["val_ausuc"] for r in result["splits"]])
-        gse = gd.std(ddof=1) / np.sqrt(len(gd)) if len(gd) > 1 else float("inf")
-        text += (f" Against the paper's Gaussian router it leads by {100 * gd.mean():.1f} points, standard error "
-                 f"{100 * gse:.1f}: {'clear' if gd.mean() > 2 * gse else 'weak'}.")
-    return text
+    best = rec.get("model")
+    if best is None:
+        return "Strength of evidence: no compared method runs on tactile features alone, so nothing is chosen."
+    val = lambda m: (lambda r: r["methods"][m]["val_zsl_acc"])  # noqa: E731
+    rauc = lambda rt: (lambda r: r["methods"][best]["routers"][rt]["val_ausuc"])  # noqa: E731
+    others = sorted((m for m in s["methods"] if m != best and m not in rec.get("excluded", {})),
+                    key=lambda m: -s["methods"][m]["val_zsl_acc"]["mean"])
+    best_rs = s["methods"][best]["routers"]
+    routers = sorted(best_rs, key=lambda rt: -best_rs[rt]["val_ausuc"]["mean"])
+    parts = []
+    if others:
+        d, se = _paired(splits, val(best), val(others[0]))
+        parts.append(f"{best} leads {others[0]} on validation ZSL by {d:.1f} points, standard error {se:.1f}: "
+                     f"{'a clear lead' if d > 2 * se else 'within two standard errors, so the model choice is weak'}.")
+    lead = rec.get("best_any_inputs")
+    if lead and lead != best:
+        d, se = _paired(splits, val(lead), val(best))
+        parts.append(f"{lead} (needs {' + '.join(rec['excluded'].get(lead, []))} features per press on the cell, "
+                     f"so not eligible) leads {best} by {d:.1f} points, standard error {se:.1f} ({_lead(d, se)}).")
+    if len(routers) > 1:
+        d, se = _paired(splits, rauc(rec["router"]), rauc(routers[1]))
+        parts.append(f"Router {rec['router']} leads {routers[1]} on validation AUSUC by {d:.1f} points, "
+                     f"standard error {se:.1f}: {_lead(d, se)}.")
+        if rec["router"] != GAUSSIAN_ROUTER and GAUSSIAN_ROUTER in routers:
+            d, se = _paired(splits, rauc(rec["router"]), rauc(GAUSSIAN_ROUTER))
+            parts.append(f"Against the paper's Gaussian router it leads by {d:.1f} points, standard error "
+                         f"{se:.1f}: {_lead(d, se)}.")
+    if not parts:
+        return "Strength of evidence: not assessed (fewer than two methods or routers compared)."
+    return f"Strength of evidence (paired over {len(splits)} splits): " + " ".join(parts)
 
 
-def pool_results(results: list[dict]) -> dict:
+def _split_key(record: dict) -> tuple:
+    sp = record.get("split") or {}
+    return tuple(tuple(sp.get(k, ())) if isinstance(sp.get(k), list) else sp.get(k)
+                 for k in ("touched", "validation", "untouched", "seed"))
+
+
+def pool_results(results: list[dict], cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Several comparison results (same methods and routers, e.g. the run's splits and new
-    random splits on the same features) as one: their splits concatenated and summarised again,
-    with the evidence text; the recommendation rule is unchanged (validation only)."""
+    random splits on the same features) as one: their splits concatenated and summarised again
+    (so ``recommend``'s rule runs over all of them), with the evidence text. The same fabric split
+    twice would count twice: refused."""
     splits = [sp for r in results for sp in r["splits"]]
     methods = [list(r["splits"][0]["methods"]) for r in results]
     if any(m != methods[0] for m in methods):
         raise ValueError(f"results compare different methods: {methods}")
-    pooled = {"splits": splits, "summary": summarise(splits)}
+    keys = [_split_key(sp) for sp in splits]
+    dup = sorted({k[3] for k in keys if keys.count(k) > 1}, key=str)
+    if dup:
+        raise ValueError(f"the same fabric split (seed {dup}) appears more than once in the pooled results")
+    pooled = {"splits": splits, "summary": summarise(splits, cell_inputs)}
     pooled["evidence"] = _evidence_strength(pooled)
     return pooled
+
+
+def pool_into(result: dict, extra: list[tuple[str, dict]], label: str,
+              cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
+    """The recommendation of ``result``'s page: ``recommend`` over ``result``'s splits and every
+    ``extra`` (label, result)'s, pooled; stored in ``result["pooled"]`` with the rule's choice on
+    each source alone (so a page can show why the pooled choice and a per-source one differ) and,
+    when ``result["run_router"]`` names the router the trained run ships, how that router compares
+    with the pooled choice for VS2T-ZSL."""
+    sources = [(label, result), *extra]
+    pooled = pool_results([r for _, r in sources], cell_inputs)
+    out = {"sources": [lbl for lbl, _ in sources], "n_splits": len(pooled["splits"]),
+           "summary": pooled["summary"], "evidence": pooled["evidence"], "per_source": []}
+    for lbl, r in sources:
+        rec = summarise(r["splits"], cell_inputs)["recommendation"]
+        out["per_source"].append({"source": lbl, "n_splits": len(r["splits"]), "model": rec["model"],
+                                  "router": rec["router"]})
+    ship = (result.get("run_router") or {}).get("chosen")
+    methods = pooled["summary"]["methods"]
+    if ship and "VS2T-ZSL" in methods and ship in methods["VS2T-ZSL"]["routers"]:
+        rs = methods["VS2T-ZSL"]["routers"]
+        best = max(rs, key=lambda rt: rs[rt]["val_ausuc"]["mean"])  # the rule's router for the run's model
+        auc = lambda rt: (lambda r: r["methods"]["VS2T-ZSL"]["routers"][rt]["val_ausuc"])  # noqa: E731
+        d, se = _paired(pooled["splits"], auc(best), auc(ship))
+        own = summarise(result["splits"], cell_inputs)["methods"]["VS2T-ZSL"]["routers"]
+        out["shipped_router"] = {"router": ship, "pooled_best_for_vs2t": best, "lead": d, "se": se,
+                                 "run_splits_best_for_vs2t": max(own, key=lambda rt: own[rt]["val_ausuc"]["mean"])}
+    result["pooled"] = out
+    return out
 
 
 def compare_with_run(result: dict, run: RunSource) -> dict | None:
@@ -364,6 +467,89 @@ def _table4_row(name: str, ms: dict, paper_zsl, paper_g: dict | None) -> str:
             f"{opt(g, 'ausuc')} |")
 
 
+def _test_numbers(ms: dict, router: str) -> str:
+    return (f"ZSL {_pct(ms['zsl_acc'])}, GZSL H {_pct(ms['routers'][router]['H'])}, "
+            f"AUSUC {_pct(ms['routers'][router]['ausuc'])}")
+
+
+def _recommendation_section(result: dict) -> list[str]:
+    """The page's recommendation: ``RECOMMENDATION_RULE`` over the pooled splits when the page
+    pools several comparisons (``pool_into``), else over its own splits; a page pooled into
+    another says so and points there."""
+    pooled = result.get("pooled")
+    meta = result.get("meta", {})
+    if pooled is None:
+        s, n = result["summary"], len(result["splits"])
+        rec = s["recommendation"]
+        if meta.get("pooled_in"):
+            head = (f"## The rule on these {n} splits alone (validation only)", "",
+                    f"The recommendation pools these splits with the others: see "
+                    f"[{meta['pooled_in']}]({meta['pooled_in']}). On these splits alone the rule gives:")
+        else:
+            head = (f"## Recommendation (validation only, these {n} splits)",)
+        lines = ["", *head, ""]
+        if rec.get("model") is None:
+            return lines + [f"No compared method runs on tactile features alone: nothing to recommend. "
+                            f"Rule: {rec['rule']}.", ""]
+        return lines + [f"Default model **{rec['model']}**, default router **{rec['router']}**. Rule: {rec['rule']}.",
+                        f"On test (reported, not used to choose) this gives "
+                        f"{_test_numbers(s['methods'][rec['model']], rec['router'])}.", "",
+                        _evidence_strength(result), ""]
+    s = pooled["summary"]
+    rec, sm = s["recommendation"], s["methods"]
+    lines = ["", f"## Recommendation (validation only, pooled over {pooled['n_splits']} splits: "
+             f"{', '.join(pooled['sources'])})", ""]
+    if rec.get("model") is None:
+        return lines + [f"No compared method runs on tactile features alone: nothing to recommend. "
+                        f"Rule: {rec['rule']}.", ""]
+    rs = sm[rec["model"]]["routers"]
+    lines += [f"Default model **{rec['model']}**, default router **{rec['router']}**.", "",
+              f"The rule (stated once, as `compare.RECOMMENDATION_RULE`; applied by `compare.recommend`): "
+              f"{rec['rule']}.", "",
+              "| method | cell-side inputs per press | pooled val ZSL | its best val router (val AUSUC) |",
+              "| --- | --- | --- | --- |"]
+    for m in sorted(sm, key=lambda k: -sm[k]["val_zsl_acc"]["mean"]):
+        br = max(sm[m]["routers"], key=lambda r: sm[m]["routers"][r]["val_ausuc"]["mean"])
+        inputs = " + ".join(rec["excluded"][m]) + " (not eligible)" if m in rec["excluded"] else "tactile"
+        name = f"**{m}**" if m == rec["model"] else m
+        lines.append(f"| {name} | {inputs} | {_pct(sm[m]['val_zsl_acc'])} | {br} "
+                     f"({100 * sm[m]['routers'][br]['val_ausuc']['mean']:.1f}) |")
+    lines += ["", f"Validation AUSUC of {rec['model']} per router, pooled: "
+              + ", ".join(f"{r} {100 * rs[r]['val_ausuc']['mean']:.1f}"
+                          for r in sorted(rs, key=lambda r: -rs[r]['val_ausuc']['mean'])) + ".", "",
+              pooled["evidence"], "",
+              "The rule on each source alone (the pooled choice above is the recommendation):", "",
+              "| source | splits | model | router |", "| --- | --- | --- | --- |"]
+    for ps in pooled["per_source"]:
+        lines.append(f"| {ps['source']} | {ps['n_splits']} | {ps['model']} | {ps['router']} |")
+    lines += ["", f"On test (reported, not used to choose), pooled: {_test_numbers(sm[rec['model']], rec['router'])}.",
+              ""]
+    run_router = result.get("run_router") or {}
+    ship = pooled.get("shipped_router")
+    if run_router and ship:
+        src = run_router.get("source", "the run's metrics.json")
+        text = (f"**What the trained run ships.** `{src}` records router **{ship['router']}** for its VS2T-ZSL "
+                f"(its rule: {run_router.get('rule') or 'not recorded'}, over its own "
+                f"{len(result['splits'])} splits; this page's VS2T-ZSL row on those splits gives "
+                f"{ship['run_splits_best_for_vs2t']}). ")
+        if ship["router"] == rec["router"] and rec["model"] == "VS2T-ZSL":
+            text += "That is the router the rule recommends."
+        else:
+            text += (f"Pooled over {pooled['n_splits']} splits the rule gives {ship['pooled_best_for_vs2t']} for "
+                     f"VS2T-ZSL, {ship['lead']:.1f} validation AUSUC points ahead of {ship['router']} (standard error "
+                     f"{ship['se']:.1f}, {_lead(ship['lead'], ship['se'])})")
+            text += (f": the two differ because the run chose on its own splits' validation fabrics and this page on "
+                     f"all {pooled['n_splits']} splits. A bundle exported from that run routes with "
+                     f"{ship['router']}." if ship["pooled_best_for_vs2t"] != ship["router"] else ".")
+            if rec["model"] != "VS2T-ZSL":
+                text += f" The run's model is VS2T-ZSL; the rule recommends {rec['model']}."
+        lines += [text, ""]
+    elif result.get("run_vs2t") is not None:
+        lines += ["**What the trained run ships.** Its metrics.json records no router choice (older runs ship "
+                  "the paper's Gaussian).", ""]
+    return lines
+
+
 def render_markdown(result: dict, real_md: str | None = None) -> str:
     s = result["summary"]
     meta = result["meta"]
@@ -373,8 +559,13 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
     ]
     if meta.get("see_also"):
         lines += [meta["see_also"], ""]
+    if meta.get("full_command"):
+        lines += [f"Regenerate the whole comparison (the run's splits, new splits, the real-sensor check, the pooled "
+                  f"recommendation and these pages) with one command: `{meta['full_command']}`. Rebuild the pages "
+                  f"from the committed JSONs alone (no training): `{meta['rebuild_command']}`.", ""]
     lines += [
-        f"Regenerate: `{meta['command']}`. Features: {meta['features']} ({meta['n_fabrics']} fabrics, "
+        f"{'These numbers were made by' if meta.get('full_command') else 'Regenerate:'} `{meta['command']}`. "
+        f"Features: {meta['features']} ({meta['n_fabrics']} fabrics, "
         f"{meta['n_presses']} presses, d_t={meta['d_t']}, d_v={meta['d_v']}). {meta['n_splits']} splits "
         f"(touched/validation/untouched {meta['split_sizes']}{meta.get('splits_source', '')}). "
         f"Budget: {meta['budget']}. Wall time {meta['seconds']:.0f} s on {meta['host']}.",
@@ -415,13 +606,8 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
               "| method | " + " | ".join(routers) + " |", "| --- | " + " | ".join("---" for _ in routers) + " |"]
     for m, ms in s["methods"].items():
         lines.append(f"| {m} | " + " | ".join(f"{100 * ms['routers'][r]['H']['mean']:.1f}" for r in routers) + " |")
-    rec = s["recommendation"]
-    rm = s["methods"][rec["model"]]
-    lines += ["", "## Recommendation (chosen on validation fabrics only)", "",
-              f"Default model **{rec['model']}**, default router **{rec['router']}**. Rule: {rec['rule']}.",
-              f"On test this gives ZSL {_pct(rm['zsl_acc'])}, GZSL H {_pct(rm['routers'][rec['router']]['H'])}, "
-              f"AUSUC {_pct(rm['routers'][rec['router']]['ausuc'])}.", "", _evidence_strength(result), "",
-              f"![comparison]({meta.get('png', 'comparison.png')})", ""]
+    lines += _recommendation_section(result)
+    lines += [f"![comparison]({meta.get('png', 'comparison.png')})", ""]
     lines += ["## Methods and adaptations", "",
               "- All methods use the same features, splits, touched train/val/test presses, "
               "the same CLS_t, and the same fused visual+semantic condition [x_v, s] where they condition "
@@ -448,6 +634,9 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
 
 
 def plot(result: dict, path: Path) -> None:
+    """Test ZSL / GZSL per method and AUSUC per router; with a pooled recommendation (``pool_into``)
+    a second row shows what chose it: pooled validation ZSL per method (not-eligible methods
+    hatched) and the chosen model's pooled validation AUSUC per router."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -456,7 +645,9 @@ def plot(result: dict, path: Path) -> None:
     s = result["summary"]
     methods = list(s["methods"])
     routers = list(next(iter(s["methods"].values()))["routers"])
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    pooled = result.get("pooled")
+    fig, grid = plt.subplots(2 if pooled else 1, 2, figsize=(12, 8.4 if pooled else 4.2), squeeze=False)
+    axes = grid[0]
     x = np.arange(len(methods))
     ours = [100 * s["methods"][m]["zsl_acc"]["mean"] for m in methods]
     err = [100 * s["methods"][m]["zsl_acc"]["std"] for m in methods]
@@ -467,7 +658,7 @@ def plot(result: dict, path: Path) -> None:
     axes[0].bar(x + 0.27, paper, 0.27, label="paper ZSL acc (FabricVST)")
     axes[0].set_xticks(x, methods, rotation=30, ha="right")
     axes[0].set_ylabel("%")
-    axes[0].set_title("ZSL / GZSL per method")
+    axes[0].set_title(f"ZSL / GZSL per method (test, {len(result['splits'])} splits)")
     axes[0].legend(fontsize=8)
     w = 0.8 / len(routers)
     for k, r in enumerate(routers):
@@ -479,6 +670,35 @@ def plot(result: dict, path: Path) -> None:
     axes[1].set_ylabel("AUSUC %")
     axes[1].set_title("AUSUC per router (test)")
     axes[1].legend(fontsize=7, ncol=3, loc="upper center")
+    if pooled:
+        ps = pooled["summary"]
+        rec = ps["recommendation"]
+        order = sorted(ps["methods"], key=lambda m: -ps["methods"][m]["val_zsl_acc"]["mean"])
+        ax = grid[1][0]
+        xs = np.arange(len(order))
+        for i, m in enumerate(order):
+            ms = ps["methods"][m]["val_zsl_acc"]
+            n = ms["n"]
+            ax.bar(i, 100 * ms["mean"], 0.6, yerr=100 * ms["std"] / np.sqrt(max(n, 1)), capsize=3,
+                   color="tab:green" if m == rec["model"] else "tab:gray",
+                   hatch="//" if m in rec["excluded"] else None, edgecolor="black", linewidth=0.5)
+        ax.set_xticks(xs, order, rotation=30, ha="right")
+        ax.set_ylabel("validation ZSL %  (bar: mean, whisker: s.e.)")
+        ax.set_title(f"what chose the model: validation, {pooled['n_splits']} splits pooled\n"
+                     f"(green: chosen; hatched: needs the camera on the cell, not eligible)", fontsize=9)
+        ax = grid[1][1]
+        if rec["model"] is not None:
+            rs = ps["methods"][rec["model"]]["routers"]
+            rorder = sorted(rs, key=lambda r: -rs[r]["val_ausuc"]["mean"])
+            ax.bar(np.arange(len(rorder)), [100 * rs[r]["val_ausuc"]["mean"] for r in rorder], 0.6,
+                   yerr=[100 * rs[r]["val_ausuc"]["std"] / np.sqrt(max(rs[r]["val_ausuc"]["n"], 1)) for r in rorder],
+                   capsize=3, color=["tab:green" if r == rec["router"] else "tab:gray" for r in rorder])
+            ax.set_xticks(np.arange(len(rorder)), rorder, rotation=30, ha="right")
+            ship = (pooled.get("shipped_router") or {}).get("router")
+            note = f"; the trained run ships {ship}" if ship else ""
+            ax.set_title(f"what chose the router: {rec['model']}'s validation AUSUC, pooled\n"
+                         f"(green: chosen{note})", fontsize=9)
+            ax.set_ylabel("validation AUSUC %")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
@@ -545,6 +765,7 @@ class RunSource:
     profile: dict  # config.yaml "profile" ({} when config.yaml is absent)
     vs2t_splits: list[dict]  # the run's own VS2T-ZSL record per split (metrics.json), fractions
     budget: dict = field(default_factory=dict)  # config.yaml "budget" (newer runs write the full VS2TBudget)
+    router: dict = field(default_factory=dict)  # metrics.json "router": the router the run ships and its rule
 
 
 def read_run_splits(path: Path) -> tuple[list[FabricSplit], list[dict]]:
@@ -601,7 +822,21 @@ def load_run(run_dir: Path) -> RunSource:
         except (yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
             raise ValueError(f"{cfg}: unreadable profile/budget ({exc})") from exc
     vs2t_splits = [r.get("VS2T-ZSL", {}) for r in records]
-    return RunSource(run_dir, table, splits, profile, vs2t_splits, budget)
+    return RunSource(run_dir, table, splits, profile, vs2t_splits, budget, read_run_router(run_dir))
+
+
+def read_run_router(path: Path) -> dict:
+    """The router a training run ships: metrics.json's "router" ({"chosen", "rule"}) with the file
+    it came from under "source"; {} when the run does not record one (older runs: the Gaussian)."""
+    path = Path(path)
+    metrics = path / "metrics.json" if path.is_dir() else path
+    try:
+        router = json.loads(metrics.read_text()).get("router")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    if not isinstance(router, dict) or not router.get("chosen"):
+        return {}
+    return {"chosen": str(router["chosen"]), "rule": str(router.get("rule", "")), "source": str(metrics)}
 
 
 def run_budget(profile: dict, budget: dict | None = None, **overrides) -> Budget:
@@ -806,6 +1041,44 @@ def write_results(result: dict, out_dir: Path, real: dict | None = None, name: s
     return paths
 
 
+def full_command(run: str | Path, out_dir: str | Path, name: str, n_extra: int, extra_seed: int) -> str:
+    """The one command that regenerates a run's whole comparison (``vs2t-edge compare --full``)."""
+    return (f"vs2t-edge compare --run {run} --full --splits {n_extra} --extra-seed {extra_seed} --threads 1 "
+            f"--out {out_dir} --out-name {name}")
+
+
+def rebuild_command(main_json: str | Path, extra_jsons: list) -> str:
+    """The command that rebuilds a comparison's pages from its JSONs (``vs2t-edge compare --rebuild``)."""
+    return f"vs2t-edge compare --rebuild {main_json}" + "".join(f" --pool {p}" for p in extra_jsons)
+
+
+def write_report_set(main: tuple[str, dict], extra: list[tuple[str, dict]], out_dir: Path, real: dict | None = None,
+                     unmarked: str = "refuse", meta: dict | None = None,
+                     cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict[str, dict[str, Path]]:
+    """The pages of one comparison, in ``out_dir``: ``main`` (name, result) gets the recommendation
+    pooled over its splits and every ``extra`` (name, result)'s (``pool_into``) and the
+    real-sensor check (``real``, else the one main's JSON holds); each extra gets its own page that
+    points to main's. Every result is summarised again from its splits, so pages rebuilt from an
+    older JSON apply today's rule. ``meta`` entries (e.g. the regenerate commands) go into every
+    page's meta. Nothing is written when a page's hand-written text could not be kept."""
+    for n in [main[0], *(n for n, _ in extra)]:
+        hand_written_tail(out_dir / f"{n}.md", unmarked)
+    main_name, main_result = main
+    real = real if real is not None else main_result.pop("real_sensor_check", None)
+    for _, r in [main, *extra]:
+        r["summary"] = summarise(r["splits"], cell_inputs)
+        r.setdefault("meta", {}).update(meta or {})
+    pool_into(main_result, [(f"{n}.json", r) for n, r in extra], f"{main_name}.json", cell_inputs)
+    paths = {}
+    for n, r in extra:
+        r.pop("pooled", None)
+        r["meta"]["pooled_in"] = f"{main_name}.md"
+        paths[n] = write_results(r, out_dir, r.pop("real_sensor_check", None), n, unmarked)
+    main_result["meta"].pop("pooled_in", None)
+    paths[main_name] = write_results(main_result, out_dir, real, main_name, unmarked)
+    return paths
+
+
 def _main(argv: list[str] | None = None) -> int:
     """``python -m vs2t_edge.train.compare pool A.json B.json ...``: the validation-chosen default
     and its evidence over the splits of several comparison JSONs."""
@@ -818,6 +1091,9 @@ def _main(argv: list[str] | None = None) -> int:
     pooled = pool_results([json.loads(p.read_text()) for p in args.results])
     rec, sm = pooled["summary"]["recommendation"], pooled["summary"]["methods"]
     print(f"{len(pooled['splits'])} splits; default model {rec['model']}, router {rec['router']} ({rec['rule']})")
+    if rec["excluded"]:
+        print("  not eligible (cell-side inputs): "
+              + ", ".join(f"{m} ({' + '.join(v)})" for m, v in rec["excluded"].items()))
     for m in sorted(sm, key=lambda k: -sm[k]["val_zsl_acc"]["mean"]):
         best_r = max(sm[m]["routers"], key=lambda r: sm[m]["routers"][r]["val_ausuc"]["mean"])
         print(f"  {m:18s} val ZSL {_pct(sm[m]['val_zsl_acc'])}  best val router {best_r} "
@@ -834,4 +1110,5 @@ __all__ = ["FeatureTable", "FabricSplit", "make_splits", "run_comparison", "summ
            "toy_feature_table", "extract_feature_table", "write_results", "RunSource", "load_run",
            "read_run_splits", "run_budget", "finetuned_tables", "run_vs2t_numbers", "compare_with_run",
            "check_splits", "pool_results", "HAND_MARKER", "UnmarkedReportError", "hand_written_tail",
-           "with_hand_text"]
+           "with_hand_text", "CELL_INPUTS", "RECOMMENDATION_RULE", "recommend", "pool_into", "write_report_set",
+           "full_command", "rebuild_command", "read_run_router"]

@@ -1,7 +1,24 @@
 """`vs2t-edge compare`: regenerate the whole comparison (Table 4 rows, modern generators, GZSL
-routers with AUSUC, the real-sensor check) into docs/results/comparison.{md,json,png}.
+routers with AUSUC, the real-sensor check) into docs/results/comparison*.{md,json,png}.
 
-Feature sources, first match wins:
+One command for a training run's whole comparison (issue 4)::
+
+    vs2t-edge compare --run RUN --full [--splits 5] [--extra-seed 1] [--out docs/results]
+
+runs, with progress on stderr: (1) every method on the run's own splits, (2) on ``--splits`` new
+random splits of the run's features (``--extra-seed``), (3) the real-sensor check (skipped with a
+note when ../shared/real is absent; ``--real-result`` reuses an earlier one), (4) the
+recommendation: ``compare.RECOMMENDATION_RULE`` over the splits of (1) and (2) pooled. It writes
+``comparison_{profile}.*`` (the recommendation, the router the run ships, the real-sensor check)
+and ``comparison_{profile}_newsplits.*``. Rebuilding those pages from their JSONs, without the run
+folder or any training::
+
+    vs2t-edge compare --rebuild MAIN.json --pool EXTRA.json [--run-metrics RUN/metrics.json]
+
+Every page is generated down to the line ``compare.HAND_MARKER``; text below it is kept. A page
+without that line is refused before anything runs (``--replace-unmarked`` rewrites it whole).
+
+Feature sources for a single comparison, first match wins:
 
 - ``--run RUN``: a `vs2t-edge train` run folder. Its exact splits (metrics.json, in order, with
   their seeds), its budget (config.yaml; --steps/--hidden/--cls-steps override), and its tactile
@@ -21,12 +38,17 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 EXIT_OK, EXIT_USAGE = 0, 2
+
+
+class _Usage(Exception):
+    """Bad input, said in words; the verb exits 2."""
 
 
 def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
@@ -36,6 +58,20 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     src.add_argument("--features", type=Path, help="FeatureTable cache (.npz)")
     src.add_argument("--data", type=Path, help="dataset folder: extract frozen-trunk features here")
     src.add_argument("--toy", action="store_true", help="synthetic feature world (smoke run)")
+    whole = parser.add_argument_group("the whole comparison in one command, or its pages rebuilt")
+    whole.add_argument("--full", action="store_true",
+                       help="with --run: the run's splits, --splits new random splits (--extra-seed), the "
+                            "real-sensor check, the pooled recommendation and every page")
+    whole.add_argument("--extra-seed", type=int, default=1,
+                       help="with --full: seed of the new random splits (default 1; seed 0 draws the run's own)")
+    whole.add_argument("--rebuild", type=Path, default=None, metavar="MAIN.json",
+                       help="rebuild the pages from comparison JSONs (no training): MAIN gets the recommendation "
+                            "pooled over its splits and every --pool JSON's")
+    whole.add_argument("--pool", type=Path, action="append", default=[], metavar="EXTRA.json",
+                       help="with --rebuild: another comparison JSON to pool (repeatable)")
+    whole.add_argument("--run-metrics", type=Path, default=None,
+                       help="with --rebuild: the trained run's metrics.json, for the router it ships (kept in "
+                            "MAIN.json afterwards); its splits must be MAIN's")
     parser.add_argument("--tactile", choices=("finetuned", "frozen"), default="finetuned",
                         help="with --run: the run's per-split fine-tuned tactile features (default) or frozen ones")
     parser.add_argument("--new-splits", action="store_true",
@@ -72,6 +108,26 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--real-epochs", type=int, default=8)
 
 
+def _command_line(args: argparse.Namespace) -> str:
+    """The command as typed, rebuilt from the options that differ from their defaults (the
+    process's sys.argv is not this verb's when it runs in-process, e.g. under tests)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser, "compare")
+    defaults = vars(parser.parse_args([]))
+    parts = ["vs2t-edge compare"]
+    for dest, value in vars(args).items():
+        if dest not in defaults or value == defaults[dest]:
+            continue
+        opt = "--" + dest.replace("_", "-")
+        if value is True:
+            parts.append(opt)
+        elif isinstance(value, list):
+            parts += [f"{opt} {v}" for v in value]
+        else:
+            parts.append(f"{opt} {value}")
+    return " ".join(parts)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         import torch
@@ -84,33 +140,36 @@ def run(args: argparse.Namespace) -> int:
     # this verb: the flag is process-wide and would break IEEE subnormals for later code
     torch.set_flush_denormal(True)
     try:
+        if args.rebuild is not None:
+            return _rebuild(args)
         return _run(args, torch)
+    except _Usage as exc:
+        print(f"vs2t-edge compare: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     finally:
         torch.set_flush_denormal(False)
 
 
-def _run(args: argparse.Namespace, torch) -> int:
-    from vs2t_edge.train import compare as cmp
-    from vs2t_edge.train.baselines import Budget
-    from vs2t_edge.train.realdata_check import DEFAULT_ROOT, RealCheckConfig, run_check
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
 
-    t0 = time.time()
-    log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
-    run_src, table_for_split, notes = None, None, []
+
+def _load_features(args, cmp):
+    """(table, run source or None, per-split table function or None, source text)."""
+    run_src, table_for_split = None, None
     try:
         if args.run:
             run_src = cmp.load_run(args.run)
             table = run_src.table
             source = f"run {args.run}: {cmp.RUN_FEATURE_TABLE} ({table.source})"
             if args.tactile == "finetuned":
-                table_for_split = cmp.finetuned_tables(run_src, log=log)
+                table_for_split = cmp.finetuned_tables(run_src, log=_log)
                 source = (f"run {args.run}: tactile features of the run's stem cache through the trunk tail "
                           f"fine-tuned per split on touched-train presses (as `vs2t-edge train` does, same seeds); "
                           f"visual features frozen ({table.source})")
         elif args.features:
             if not args.features.is_file():
-                print(f"vs2t-edge compare: feature cache {args.features} does not exist", file=sys.stderr)
-                return EXIT_USAGE
+                raise _Usage(f"feature cache {args.features} does not exist")
             table = cmp.FeatureTable.load(args.features)
             source = f"cache {args.features} ({table.source})"
         elif args.data:
@@ -118,7 +177,7 @@ def _run(args: argparse.Namespace, torch) -> int:
                 table = cmp.FeatureTable.load(args.cache)
                 source = f"cache {args.cache} ({table.source})"
             else:
-                table = cmp.extract_feature_table(args.data, log=log, max_presses=args.max_presses)
+                table = cmp.extract_feature_table(args.data, log=_log, max_presses=args.max_presses)
                 if args.cache:
                     args.cache.parent.mkdir(parents=True, exist_ok=True)
                     table.save(args.cache)
@@ -130,20 +189,69 @@ def _run(args: argparse.Namespace, torch) -> int:
                                           private=1.5)
             source = table.source
         else:
-            print("vs2t-edge compare: give --run RUN, --features CACHE.npz, --data DATASET or --toy", file=sys.stderr)
-            return EXIT_USAGE
+            raise _Usage("give --run RUN, --features CACHE.npz, --data DATASET or --toy (or --rebuild MAIN.json)")
     except (ValueError, FileNotFoundError, OSError) as exc:
-        print(f"vs2t-edge compare: cannot read features: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        raise _Usage(f"cannot read features: {exc}") from exc
+    return table, run_src, table_for_split, source
 
+
+def _select_methods(args, cmp) -> dict:
     methods = cmp.all_methods()
-    if args.methods != "all":
-        wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
-        unknown = [m for m in wanted if m not in methods]
-        if unknown:
-            print(f"vs2t-edge compare: unknown method(s) {unknown}; known: {list(methods)}", file=sys.stderr)
-            return EXIT_USAGE
-        methods = {m: methods[m] for m in wanted}
+    if args.methods == "all":
+        return methods
+    wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [m for m in wanted if m not in methods]
+    if unknown:
+        raise _Usage(f"unknown method(s) {unknown}; known: {list(methods)}")
+    return {m: methods[m] for m in wanted}
+
+
+def _read_real_result(args, notes: list[str]) -> dict | None:
+    """The reused real-sensor check (--real-result), read before the long run: a bad path fails now."""
+    if args.real_result is None:
+        return None
+    try:
+        real = json.loads(args.real_result.read_text())
+        real = real.get("real_sensor_check", real)  # an earlier comparison JSON holds it under this key
+        real["summary"]
+    except (OSError, ValueError, KeyError, AttributeError) as exc:
+        raise _Usage(f"cannot read real-sensor result {args.real_result}: {exc}") from exc
+    notes.append(f"Real-sensor check: reused from {args.real_result}, not re-run (it does not depend on the "
+                 f"fabric splits).")
+    return real
+
+
+def _real_check(args) -> dict | None:
+    """The real-sensor check, or None (with a note on stderr) when its folder is absent."""
+    from vs2t_edge.train.realdata_check import DEFAULT_ROOT, RealCheckConfig, run_check
+
+    root = args.real or DEFAULT_ROOT
+    if not root.is_dir():
+        _log(f"real-sensor check skipped: {root} is absent")
+        return None
+    _log(f"real-sensor check on {root}")
+    return run_check(root, RealCheckConfig(n_splits=args.real_splits, epochs=args.real_epochs))
+
+
+def _check_pages(cmp, out: Path, names: list[str], unmarked: str) -> None:
+    """Refuse now, not after the long run, a page whose hand-written text could not be kept."""
+    for name in names:
+        try:
+            cmp.hand_written_tail(out / f"{name}.md", unmarked)
+        except cmp.UnmarkedReportError as exc:
+            raise _Usage(str(exc)) from exc
+
+
+def _run(args: argparse.Namespace, torch) -> int:
+    from vs2t_edge.train import compare as cmp
+    from vs2t_edge.train.baselines import Budget
+
+    t0 = time.time()
+    if args.full and (args.run is None or args.new_splits or args.splits_from is not None):
+        raise _Usage("--full needs --run RUN and draws its own new splits (no --new-splits / --splits-from)")
+    table, run_src, table_for_split, source = _load_features(args, cmp)
+    methods = _select_methods(args, cmp)
+    notes: list[str] = []
     try:
         if run_src is not None and not args.new_splits:
             splits, splits_source = run_src.splits, f"; exactly the splits of {args.run / 'metrics.json'}"
@@ -154,9 +262,17 @@ def _run(args: argparse.Namespace, torch) -> int:
             splits = cmp.make_splits(table.fabric_ids, args.splits, args.n_val, args.n_untouched, args.seed)
             splits_source = f"; random, seed {args.seed}"
         cmp.check_splits(table, splits)
+        extra_splits = []
+        if args.full:
+            extra_splits = cmp.make_splits(table.fabric_ids, args.splits, args.n_val, args.n_untouched,
+                                           args.extra_seed)
+            cmp.check_splits(table, extra_splits)
+            same = [sp.seed for sp in extra_splits if any(asdict(sp) == asdict(r) for r in splits)]
+            if same:
+                raise ValueError(f"--extra-seed {args.extra_seed} draws splits the run already has (seeds {same}); "
+                                 f"pooling them would count them twice: choose another --extra-seed")
     except (ValueError, FileNotFoundError, OSError) as exc:
-        print(f"vs2t-edge compare: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        raise _Usage(str(exc)) from exc
     if run_src is not None:
         budget = cmp.run_budget(run_src.profile, run_src.budget, steps=args.steps, hidden=args.hidden,
                                 cls_steps=args.cls_steps)
@@ -167,70 +283,134 @@ def _run(args: argparse.Namespace, torch) -> int:
                      + ", ".join(f"{k} {v}" for k, v in asdict(budget).items()) + ".")
     else:
         budget = Budget(steps=args.steps or 1500, hidden=args.hidden or 1024, cls_steps=args.cls_steps or 600)
-    real = None  # read before the long run: a bad path fails now
-    if args.real_result is not None:
-        try:
-            real = json.loads(args.real_result.read_text())
-            real = real.get("real_sensor_check", real)  # an earlier comparison JSON holds it under this key
-            real["summary"]
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"vs2t-edge compare: cannot read real-sensor result {args.real_result}: {exc}", file=sys.stderr)
-            return EXIT_USAGE
-        notes.append(f"Real-sensor check: reused from {args.real_result}, not re-run (it does not depend on the "
-                     f"fabric splits).")
-    n_jobs = len(splits) * len(methods)
-    log(f"compare: {len(methods)} methods x {len(splits)} splits = {n_jobs} fits; features: {source}")
+    real = _read_real_result(args, notes)
     name = args.out_name or (f"comparison_{run_src.profile.get('name', 'run')}" if run_src is not None
                              else "comparison")
+    extra_name = f"{name}_newsplits"
     unmarked = "replace" if args.replace_unmarked else "refuse"
-    try:  # now, not after the long run: a page whose hand-written text cannot be kept is refused up front
-        cmp.hand_written_tail(args.out / f"{name}.md", unmarked)
-    except cmp.UnmarkedReportError as exc:
-        print(f"vs2t-edge compare: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    partial = args.out / f"{name}.partial.json"  # per-split results so far; removed when the report is written
+    _check_pages(cmp, args.out, [name, extra_name] if args.full else [name], unmarked)
+    command = _command_line(args)
 
-    def on_split(done: list[dict]) -> None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        partial.write_text(json.dumps({"splits_done": len(done), "splits": done}, indent=1, default=float))
+    def compare(splits_now, page: str, splits_text: str, stage: str) -> dict:
+        n_jobs = len(splits_now) * len(methods)
+        _log(f"{stage}compare: {len(methods)} methods x {len(splits_now)} splits = {n_jobs} fits; features: {source} "
+             f"({time.time() - t0:.0f} s elapsed)")
+        partial = args.out / f"{page}.partial.json"  # per-split results so far; removed when the report is written
 
-    result = cmp.run_comparison(table, splits, budget, methods, log=log, table_for_split=table_for_split,
-                                on_split=on_split)
-    s0 = splits[0]
-    result["meta"] = {
-        "command": "vs2t-edge compare " + " ".join(sys.argv[2:] if len(sys.argv) > 2 else []),
-        "features": source, "n_fabrics": len(table.fabric_ids), "n_presses": int(len(table.fabric)),
-        "d_t": int(table.x_t.shape[1]), "d_v": int(table.x_v.shape[1]), "n_splits": len(splits),
-        "split_sizes": f"{len(s0.touched)}/{len(s0.validation)}/{len(s0.untouched)}",
-        "splits_source": splits_source,
-        "budget": f"steps {budget.steps}, hidden {budget.hidden}, batch {budget.batch}, latent {budget.latent}, "
-                  f"cls steps {budget.cls_steps}, {budget.n_synth_per_class} synthetic/class, GAN lr {budget.lr}",
-        "host": f"{platform.machine()} {torch.get_num_threads()} torch threads",
-        "seconds": 0.0, "notes": notes,
-    }
-    if name != "comparison" and (args.out / "comparison.md").is_file():
-        result["meta"]["see_also"] = ("The earlier comparison on its own random splits and frozen features is "
-                                      "[comparison.md](comparison.md) (with the real-sensor check).")
+        def on_split(done: list[dict]) -> None:
+            args.out.mkdir(parents=True, exist_ok=True)
+            partial.write_text(json.dumps({"splits_done": len(done), "splits": done}, indent=1, default=float))
+
+        t_start = time.time()
+        result = cmp.run_comparison(table, splits_now, budget, methods, log=_log, table_for_split=table_for_split,
+                                    on_split=on_split)
+        s0 = splits_now[0]
+        result["meta"] = {
+            "command": command,
+            "features": source, "n_fabrics": len(table.fabric_ids), "n_presses": int(len(table.fabric)),
+            "d_t": int(table.x_t.shape[1]), "d_v": int(table.x_v.shape[1]), "n_splits": len(splits_now),
+            "split_sizes": f"{len(s0.touched)}/{len(s0.validation)}/{len(s0.untouched)}",
+            "splits_source": splits_text,
+            "budget": f"steps {budget.steps}, hidden {budget.hidden}, batch {budget.batch}, latent {budget.latent}, "
+                      f"cls steps {budget.cls_steps}, {budget.n_synth_per_class} synthetic/class, GAN lr {budget.lr}",
+            "host": f"{platform.machine()} {torch.get_num_threads()} torch threads",
+            "seconds": time.time() - t_start, "notes": list(notes),
+        }
+        if args.run is not None:
+            result["meta"]["run"] = str(args.run)
+        if page != "comparison" and (args.out / "comparison.md").is_file():
+            result["meta"]["see_also"] = ("The earlier comparison on its own random splits and frozen features is "
+                                          "[comparison.md](comparison.md) (with the real-sensor check).")
+        return result
+
+    profile = run_src.profile.get("name", "run") if run_src is not None else ""
+    result = compare(splits, name, splits_source, f"[stage 1/4: the run's {len(splits)} splits] " if args.full else "")
     if run_src is not None and args.new_splits:
-        result["meta"]["title_suffix"] = (f" — {run_src.profile.get('name', 'run')} profile, the run's features, "
-                                          f"new random splits (seed {args.seed})")
+        result["meta"]["title_suffix"] = (f" — {profile} profile, the run's features, new random splits "
+                                          f"(seed {args.seed})")
     elif run_src is not None:
-        result["meta"]["title_suffix"] = f" — {run_src.profile.get('name', 'run')} profile (the VS2T run's splits)"
-        own = cmp.compare_with_run(result, run_src)
-        if own is None:
-            log(f"note: {args.run / 'metrics.json'} has no VS2T-ZSL record to show beside ours")
+        result["meta"]["title_suffix"] = f" — {profile} profile (the VS2T run's splits)"
+        if cmp.compare_with_run(result, run_src) is None:
+            _log(f"note: {args.run / 'metrics.json'} has no VS2T-ZSL record to show beside ours")
+        if run_src.router:
+            result["run_router"] = run_src.router
+    extra = None
+    if args.full:
+        extra = compare(extra_splits, extra_name, f"; random, seed {args.extra_seed}",
+                        f"[stage 2/4: {len(extra_splits)} new random splits, seed {args.extra_seed}] ")
+        extra["meta"]["title_suffix"] = (f" — {profile} profile, the run's features, new random splits "
+                                         f"(seed {args.extra_seed})")
+        _log(f"[stage 3/4: real-sensor check] ({time.time() - t0:.0f} s elapsed)")
     if real is None and not args.skip_real:
-        root = args.real or DEFAULT_ROOT
-        if root.is_dir():
-            log(f"real-sensor check on {root}")
-            real = run_check(root, RealCheckConfig(n_splits=args.real_splits, epochs=args.real_epochs))
-        else:
-            log(f"real-sensor check skipped: {root} is absent")
-    result["meta"]["seconds"] = time.time() - t0
-    paths = cmp.write_results(result, args.out, real, name=name, unmarked=unmarked)
-    partial.unlink(missing_ok=True)
-    rec = result["summary"]["recommendation"]
-    print(f"recommended default: model {rec['model']}, router {rec['router']} (chosen on validation)")
-    for p in paths.values():
+        real = _real_check(args)
+    if args.full:
+        _log(f"[stage 4/4: the recommendation over {len(splits) + len(extra_splits)} splits pooled, and the pages] "
+             f"({time.time() - t0:.0f} s elapsed)")
+        meta = {"full_command": cmp.full_command(args.run, args.out, name, len(extra_splits), args.extra_seed),
+                "rebuild_command": cmp.rebuild_command(args.out / f"{name}.json", [args.out / f"{extra_name}.json"])}
+        written = cmp.write_report_set((name, result), [(extra_name, extra)], args.out, real, unmarked, meta)
+        for page in (name, extra_name):
+            (args.out / f"{page}.partial.json").unlink(missing_ok=True)
+        rec = result["pooled"]["summary"]["recommendation"]
+        paths = [p for page in written.values() for p in page.values()]
+    else:
+        written = cmp.write_results(result, args.out, real, name=name, unmarked=unmarked)
+        (args.out / f"{name}.partial.json").unlink(missing_ok=True)
+        rec = result["summary"]["recommendation"]
+        paths = list(written.values())
+    print(f"recommended default: model {rec['model']}, router {rec['router']} (chosen on validation"
+          f"{', pooled over every split' if args.full else ''}); {time.time() - t0:.0f} s")
+    for p in paths:
         print(f"wrote {p}")
+    return EXIT_OK
+
+
+def _rebuild(args: argparse.Namespace) -> int:
+    """The pages of MAIN.json (+ --pool JSONs) rebuilt from the JSONs alone, today's rule applied."""
+    from vs2t_edge.train import compare as cmp
+
+    main_path, extra_paths = args.rebuild, list(args.pool)
+    out = main_path.parent
+    if any(p.parent.resolve() != out.resolve() for p in extra_paths):
+        raise _Usage("--rebuild and --pool JSONs must be in one folder (the pages link each other by name)")
+    loaded = {}
+    for p in [main_path, *extra_paths]:
+        try:
+            loaded[p] = json.loads(p.read_text())
+            loaded[p]["splits"][0]["methods"]
+        except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+            raise _Usage(f"cannot read comparison JSON {p}: {exc}") from exc
+    main = loaded[main_path]
+    if args.run_metrics is not None:
+        router = cmp.read_run_router(args.run_metrics)
+        if not router:
+            raise _Usage(f"{args.run_metrics} records no 'router' choice")
+        try:
+            run_splits, _ = cmp.read_run_splits(args.run_metrics)
+        except (ValueError, FileNotFoundError) as exc:
+            raise _Usage(str(exc)) from exc
+        if [asdict(s) for s in run_splits] != [r["split"] for r in main["splits"]]:
+            raise _Usage(f"{args.run_metrics} is another run: its splits are not {main_path}'s")
+        main["run_router"] = router
+    meta = main.get("meta", {})
+    run = meta.get("run") or (re.search(r"--run (\S+)", meta.get("command", "")) or [None, "RUN"])[1]
+    n_extra = sum(len(loaded[p]["splits"]) for p in extra_paths)
+    extra_seed = loaded[extra_paths[0]]["splits"][0]["split"].get("seed", 1000) // 1000 if extra_paths else 1
+    extra_name = extra_paths[0].stem if extra_paths else f"{main_path.stem}_newsplits"
+    full = cmp.full_command(run, out, main_path.stem, n_extra, extra_seed)
+    if extra_name != f"{main_path.stem}_newsplits" or len(extra_paths) > 1:
+        full += f" (its new splits go to {main_path.stem}_newsplits.*)"
+    commands = {"full_command": full, "rebuild_command": cmp.rebuild_command(main_path, extra_paths)}
+    unmarked = "replace" if args.replace_unmarked else "refuse"
+    try:
+        written = cmp.write_report_set((main_path.stem, main), [(p.stem, loaded[p]) for p in extra_paths], out,
+                                       None, unmarked, commands)
+    except ValueError as exc:  # different methods, the same split twice, an unmarked page
+        raise _Usage(str(exc)) from exc
+    rec = main["pooled"]["summary"]["recommendation"]
+    print(f"recommended default: model {rec['model']}, router {rec['router']} (chosen on validation, pooled over "
+          f"{main['pooled']['n_splits']} splits)")
+    for page in written.values():
+        for p in page.values():
+            print(f"wrote {p}")
     return EXIT_OK
