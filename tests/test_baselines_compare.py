@@ -352,6 +352,7 @@ def test_one_command_runs_the_whole_comparison_and_the_pages_rebuild_from_its_js
     # the page's recommendation is the one rule over every split of both JSONs
     rec = cmp.pool_results([main_json, extra_json])["summary"]["recommendation"]
     assert main_json["pooled"]["summary"]["recommendation"] == rec and main_json["pooled"]["n_splits"] == 4
+    assert (main_json["recommendation"]["model"], main_json["recommendation"]["router"]) == (rec["model"], rec["router"])
     assert rec["model"] in ("DAP", "VS2T-ZSL") and rec["excluded"] == {"VT-FC-ZSL": ["tactile", "visual"]}
     md = (out / "comparison_tiny.md").read_text()
     assert f"Default model **{rec['model']}**, default router **{rec['router']}**." in md

@@ -440,6 +440,10 @@ def pool_into(result: dict, extra: list[tuple[str, dict]], label: str,
         out["shipped_router"] = {"router": ship, "pooled_best_for_vs2t": best, "lead": d, "se": se,
                                  "run_splits_best_for_vs2t": max(own, key=lambda rt: own[rt]["val_ausuc"]["mean"])}
     result["pooled"] = out
+    # the page's answer, at the top of its JSON (summary.recommendation is the rule on its own splits alone)
+    rec = pooled["summary"]["recommendation"]
+    result["recommendation"] = {"model": rec["model"], "router": rec["router"], "rule": rec["rule"],
+                                "n_splits": out["n_splits"], "sources": out["sources"]}
     return out
 
 
