@@ -4,6 +4,9 @@ The bundle is written to a temporary folder, loaded with the cell's own verifica
 (runtime.inference.TactileModel.load) and only then moved to --out.
 ``--random-trunk ARCH --dataset D`` makes a latency-only bundle of an untrained trunk instead
 (used by the bench for ResNet50 when no trained run exists; its manifest says trained: false).
+``--router NAME`` ships router NAME (runtime.novelty.ROUTERS) instead of the run's own pick, refitted
+on the run's touched training presses with beta retuned on its validation fabrics (e.g.
+``--router max_softmax``, the recommendation of docs/results/comparison_paper.md).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from pathlib import Path
 
 
 def add_arguments(parser, verb: str) -> None:
+    from vs2t_edge.runtime.novelty import ROUTERS
+
     parser.add_argument("run", nargs="?", help="training run folder (RUN/artifacts/model.pt)")
     parser.add_argument("--out", required=True, help="bundle folder to write (replaced if it is a bundle)")
     parser.add_argument("--trunk-precision", choices=("fp32", "int8"), default="fp32",
@@ -26,6 +31,10 @@ def add_arguments(parser, verb: str) -> None:
                         help="how int8 activation ranges are set from the calibration presses (default minmax)")
     parser.add_argument("--float-convs", type=int, default=0,
                         help="keep the last N convolutions of the trunk in float when quantising (default 0)")
+    parser.add_argument("--router", default=None, metavar="NAME",
+                        help="GZSL router to ship, refitted on the run's touched training presses with beta tuned "
+                             "balanced on its validation fabrics (default: the run's stored router and beta); one of "
+                             + ", ".join(ROUTERS))
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the run's)")
     parser.add_argument("--random-trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), default=None,
                         help="latency-only bundle of an UNTRAINED trunk (needs --dataset and --size, no RUN)")
@@ -35,15 +44,23 @@ def add_arguments(parser, verb: str) -> None:
 def run(args) -> int:
     from vs2t_edge.export.export import ExportError, export_random_trunk, export_run
     from vs2t_edge.runtime.bundle import BundleError
+    from vs2t_edge.runtime.novelty import ROUTERS
 
     def log(msg: str) -> None:
         print(f"export: {msg}", file=sys.stderr, flush=True)
 
+    if args.router is not None and args.router not in ROUTERS:
+        print(f"export: unknown router '{args.router}'; known: {', '.join(ROUTERS)}", file=sys.stderr)
+        return 2
     t0 = time.time()
     try:
         if args.random_trunk:
             if args.run or not args.dataset or not args.size:
                 print("export: --random-trunk needs --dataset and --size and no RUN", file=sys.stderr)
+                return 2
+            if args.router is not None:
+                print("export: --router refits a trained run's router; a --random-trunk bundle has no run",
+                      file=sys.stderr)
                 return 2
             m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
                                     trunk_precision=args.trunk_precision,
@@ -58,7 +75,7 @@ def run(args) -> int:
             m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
                            calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
                            calibration_method=args.int8_calibration, float_convs=args.float_convs,
-                           threads=args.threads)
+                           router=args.router, threads=args.threads)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2
@@ -76,5 +93,6 @@ def run(args) -> int:
         q = checks["int8_vs_fp32_on_calibration"]
         print(f"  int8 vs fp32 on {q['frames']} touched presses: min feature cosine {q['feature_cosine_min']:.4f}, "
               f"CLS_t top-1 agreement {q['cls_t_top1_agreement']:.1%}")
+    print(f"  router {m['router']['name']}, beta {m['beta']:.6g}: {m['operating_point']}")
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")
     return 0

@@ -8,7 +8,9 @@ gating temperature, records a probe press with the outputs onnxruntime gives for
 every file and finally loads the folder with the cell's own ``TactileModel.load`` - a bundle
 that does not pass the runtime's verification is never left behind.
 
-``export_run`` reads a run folder (train/artifacts.py) and its dataset; ``export_random_trunk``
+``export_run`` reads a run folder (train/artifacts.py) and its dataset, and ships the run's stored
+router or, with ``router=NAME``, that router refitted on the run's touched training presses with
+beta retuned as training tunes it (``refit_router``); ``export_random_trunk``
 makes a latency-only bundle of an untrained trunk (ResNet50 latency without a trained run).
 """
 
@@ -375,6 +377,13 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
 # ------------------------------------------------------------------ from a training run
 
 
+def grid_presses(n_presses: int, max_presses: int | None) -> np.ndarray:
+    """The presses of one fabric that training's feature cache holds (train/features.py
+    ``extract_cache``): ``max_presses`` evenly spaced over the grid, or all of them."""
+    n = n_presses if max_presses is None else min(max_presses, n_presses)
+    return np.unique(np.linspace(0, n_presses - 1, n).round().astype(int))
+
+
 def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int,
                     max_presses: int | None) -> dict[str, dict[str, list[int]]]:
     """Which presses of each touched fabric trained the model (train/features.py
@@ -385,8 +394,7 @@ def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int
     out = {}
     for fid in touched:
         p = n_presses[fid]
-        n = p if max_presses is None else min(max_presses, p)
-        chosen = np.unique(np.linspace(0, p - 1, n).round().astype(int))
+        chosen = grid_presses(p, max_presses)
         perm = rng.permutation(len(chosen))
         n_va, n_te = max(1, round(0.1 * len(chosen))), max(1, round(0.2 * len(chosen)))
         out[fid] = {"val": sorted(chosen[perm[:n_va]].tolist()), "test": sorted(chosen[perm[n_va:n_va + n_te]].tolist()),
@@ -418,17 +426,111 @@ def _run_profile(run_dir: Path) -> dict:
     return data.get("profile", {}) or {}
 
 
+def check_zero_shot(sources: dict[str, Sequence[int]], untouched: Sequence[str], what: str) -> None:
+    """Zero-shot guard: no tactile press of an untouched fabric may shape what the bundle ships
+    (router, beta, gating). ``sources`` = {fabric id: press indices} about to be read for ``what``."""
+    leaked = sorted(fid for fid, idx in sources.items() if fid in set(untouched) and len(idx))
+    if leaked:
+        raise ExportError(f"zero-shot violated: {what} would read tactile presses of untouched fabric(s) "
+                          f"{', '.join(leaked)}; only touched and validation fabrics may be touched at export")
+
+
+def _outputs(trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module, x: np.ndarray, chunk: int = 32):
+    """(feature, logits_t, logits_u) of the torch modules the bundle's fp32 graphs are exported
+    from (they agree with onnxruntime to PARITY_TOLERANCE, which export checks)."""
+    with torch.no_grad():
+        outs = []
+        for i in range(0, len(x), chunk):
+            f = trunk(torch.from_numpy(np.ascontiguousarray(x[i:i + chunk])))
+            outs.append((f.numpy(), cls_t(f).numpy(), cls_u(f).numpy()))
+    return tuple(np.concatenate([o[k] for o in outs]) for k in range(3))
+
+
+def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module,
+                 touched: Sequence[str], untouched: Sequence[str], validation: Sequence[str],
+                 part: dict[str, dict[str, list[int]]], max_presses: int | None,
+                 log: Callable[[str], None] = lambda m: None) -> dict:
+    """Router ``name`` fitted and its beta tuned the way `vs2t-edge train` does it, on this run.
+
+    - fit: ``train.run.fit_router`` (the trainer's own call) on the trunk features and CLS_t
+      logits of the touched fabrics' TRAINING presses (``part[fid]["train"]``);
+    - beta: ``novelty.tune_threshold(..., "balanced")`` between the held-out touched presses
+      (``part[fid]["val"]``) and every cached press of the validation fabrics (``grid_presses``),
+      as ``train.compare`` tunes it (its touched_val vs val_presses).
+    Untouched fabrics are never read (``check_zero_shot``). Calibrated stacking scores the
+    validation presses with the bundle's CLS_u (the untouched classes): training scored them
+    with CLS_u retargeted to the validation fabrics, which the run does not keep.
+    Returns {"router", "beta", "heldout", "validation" (preprocessed frames, for the gating fit),
+    "provenance"}."""
+    from vs2t_edge.train.run import fit_router as trainer_fit_router  # train may not import export
+
+    if name not in nv.ROUTERS:
+        raise ExportError(f"unknown router '{name}'; known: {', '.join(nv.ROUTERS)}")
+    if not validation:
+        raise ExportError(f"router '{name}' needs the run's validation fabrics to tune beta; this run names none")
+    if set(validation) & set(touched) or set(validation) & set(untouched) or set(touched) & set(untouched):
+        raise ExportError("touched, validation and untouched fabrics must be disjoint")
+    fit_src = {fid: part[fid]["train"] for fid in touched}
+    held_src = {fid: part[fid]["val"] for fid in touched}
+    val_src = {fid: grid_presses(len(ds.by_id(fid).presses), max_presses).tolist() for fid in validation}
+    for what, src in (("the router fit", fit_src), ("beta (held-out touched presses)", held_src),
+                      ("beta (validation presses)", val_src)):
+        check_zero_shot(src, untouched, what)
+
+    def read(src: dict[str, list[int]], keep_frames: bool):
+        frames, outs = [], []
+        for fid, idx in src.items():  # per fabric: the paper run's ~1280 training frames are never all in memory
+            if idx:
+                x = _frames(ds, fid, idx, spec)
+                outs.append(_outputs(trunk, cls_t, cls_u, x))
+                if keep_frames:
+                    frames.append(x)
+        f, lt, lu = (np.concatenate([o[k] for o in outs]) for k in range(3))
+        return (np.concatenate(frames) if keep_frames else None), f, lt, lu
+
+    n_fit = sum(len(v) for v in fit_src.values())
+    log(f"refitting router {name} on {n_fit} training presses of {len(touched)} touched fabrics")
+    _, f, lt, _ = read(fit_src, keep_frames=False)
+    router = trainer_fit_router(name, f, lt)
+    x_held, *held = read(held_src, keep_frames=True)
+    x_val, *val = read(val_src, keep_frames=True)
+    nov_held, nov_val = _novelty(router, *held), _novelty(router, *val)
+    beta = nv.tune_threshold(nov_held, nov_val, "balanced")
+    kept, flagged = (float(r[0]) for r in nv.threshold_rates(nov_held, nov_val, [beta]))
+    log(f"beta {beta:.6g} balanced on {len(nov_held)} held-out touched vs {len(nov_val)} validation presses "
+        f"(touched kept {kept:.0%}, validation flagged {flagged:.0%})")
+    prov = {"name": name, "refitted_at_export": True,
+            "fit": "train.run.fit_router (as `vs2t-edge train` fits it) on the torch trunk's features and CLS_t "
+                   f"logits at {spec.size} px",
+            "fitted_on": {"presses": "data.touched_presses[fabric].train", "fabrics": list(touched), "count": n_fit},
+            "beta_rule": "runtime.novelty.tune_threshold balanced (mean of touched kept and validation flagged)",
+            "beta_tuned_on": {"touched_heldout": "data.touched_presses[fabric].val", "touched_heldout_count":
+                              len(nov_held), "validation_presses": val_src, "validation_count": len(nov_val)},
+            "beta_rates": {"touched_kept": kept, "validation_flagged": flagged}}
+    if name == "calibrated_stacking":
+        prov["note"] = ("validation presses scored with the bundle's CLS_u (untouched classes); training used CLS_u "
+                        "retargeted to the validation fabrics, which the run does not store")
+    return {"router": router, "beta": float(beta), "heldout": x_held, "validation": x_val, "provenance": prov}
+
+
 def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
-               float_convs: int = 0, log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
-    """Bundle of a training run (RUN/artifacts/model.pt and its dataset)."""
+               float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
+               threads: int = 2) -> dict:
+    """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
+
+    ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
+    refits that router and retunes beta on this run's touched and validation presses
+    (``refit_router``), e.g. the comparison's pooled recommendation instead of the run's own pick."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
+    if router is not None and router not in nv.ROUTERS:
+        raise ExportError(f"unknown router '{router}'; known: {', '.join(nv.ROUTERS)}")
     run_dir = Path(run_dir)
     art = load_run_artifacts(run_dir)
     trunk, cls_t, cls_u = build_modules(art)
-    router = load_router(art)
+    stored = load_router(art)
     spec = art.tactile_preprocess
     trained_size = spec.size
     if size is not None:
@@ -449,20 +551,36 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     log(f"reading {per} training presses from each of {len(calib_ids)} touched fabrics (calibration)")
     calib = np.concatenate([_frames(ds, fid, _spread(part[fid]["train"], per), spec) for fid in calib_ids])
     calib = calib[_spread(range(len(calib)), calibration_frames)]
-    heldout = np.concatenate([_frames(ds, fid, part[fid]["val"], spec) for fid in art.touched])
-    validation = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), 12), spec)
-                                 for fid in art.validation]) if art.validation else None
+    for what, fids in (("int8 calibration, parity and the probe", calib_ids),
+                       ("the gating fit (held-out touched presses)", art.touched),
+                       ("the gating fit (validation presses)", art.validation)):
+        check_zero_shot({fid: [0] for fid in fids}, art.untouched, what)
+    if router is None:
+        heldout = np.concatenate([_frames(ds, fid, part[fid]["val"], spec) for fid in art.touched])
+        validation = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), 12), spec)
+                                     for fid in art.validation]) if art.validation else None
+        chosen, beta = stored, art.beta
+        operating_point = f"{art.router_name} router, beta balanced on validation fabrics {', '.join(art.validation)}"
+        router_prov = {"name": art.router_name, "refitted_at_export": False,
+                       "source": "the run's stored router and beta (artifacts/model.pt)"}
+    else:
+        refit = refit_router(router, ds=ds, spec=spec, trunk=trunk, cls_t=cls_t, cls_u=cls_u, touched=art.touched,
+                             untouched=art.untouched, validation=art.validation, part=part, max_presses=max_presses,
+                             log=log)
+        chosen, beta, heldout, validation = refit["router"], refit["beta"], refit["heldout"], refit["validation"]
+        operating_point = (f"{router} router (refitted at export on touched training presses), beta balanced on "
+                           f"validation fabrics {', '.join(art.validation)} against held-out touched presses")
+        router_prov = {**refit["provenance"], "run_router": art.router_name, "run_beta": float(art.beta)}
     prov = {"run": str(run_dir.resolve()), "trained": True, "trained_size_px": trained_size,
             "data": {"dataset": str(ds_root.resolve()), "split_seed": seed, "max_presses": max_presses,
                      "validation": list(art.validation), "touched_presses": part,
-                     "calibration_fabrics": calib_ids}, "run_info": art.info}
-    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=art.touched,
-                        untouched=art.untouched, preprocess=spec, beta=art.beta, calibration=calib,
+                     "calibration_fabrics": calib_ids}, "router": router_prov, "run_info": art.info}
+    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
+                        untouched=art.untouched, preprocess=spec, beta=beta, calibration=calib,
                         trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
                         touched_heldout=heldout, provenance=prov, log=log, threads=threads,
                         calibration_method=calibration_method, float_convs=float_convs,
-                        operating_point=f"{art.router_name} router, beta balanced on validation fabrics "
-                                        f"{', '.join(art.validation)}")
+                        operating_point=operating_point)
 
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
@@ -512,4 +630,5 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
 
 
 __all__ = ["OPSET", "ExportError", "write_bundle", "export_run", "export_random_trunk", "press_partition",
+           "grid_presses", "refit_router", "check_zero_shot",
            "fit_gating_temperature", "gating_scale", "count_macs", "export_onnx", "graph_io"]

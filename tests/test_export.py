@@ -61,6 +61,9 @@ def test_export_run_fp32_and_int8_verify(tiny_run, tmp_path):
         assert set(data["calibration_fabrics"]) <= set(art.touched)
         assert not set(data["calibration_fabrics"]) & set(art.untouched + art.validation)
         assert m["gating"]["temperature"] > 0 and m["gating"]["scale"] > 0
+        # without --router: the run's stored router and beta, as before
+        assert m["router"]["name"] == art.router_name and m["beta"] == art.beta
+        assert m["provenance"]["router"]["refitted_at_export"] is False
         if prec == "int8":
             q = m["graphs"]["trunk"]["quantisation"]
             assert q["method"] == "static QDQ" and "per-channel" in q["weights"]
@@ -172,3 +175,84 @@ def test_export_cli_random_trunk_writes_latency_bundle(tmp_path, capsys):
     m = json.loads((out / "manifest.json").read_text())
     assert m["provenance"]["trained"] is False and m["graphs"]["trunk"]["macs_per_frame"]["total"] > 0
     assert "verified" in capsys.readouterr().out
+
+
+# ------------------------------------------------ export --router NAME (issue 4: ship any router)
+
+
+def _balanced_separation(model, ds, spec, touched_heldout, validation_presses):
+    """Mean of (held-out touched presses kept touched, validation presses flagged untouched) at
+    the bundle's beta, scored by the loaded bundle itself: 0.5 is chance (beta = +-inf)."""
+    x_t = np.concatenate([ex._frames(ds, fid, idx, spec) for fid, idx in touched_heldout.items() if idx])
+    x_v = np.concatenate([ex._frames(ds, fid, idx, spec) for fid, idx in validation_presses.items() if idx])
+    nt, nv_ = model.forward(x_t).novelty, model.forward(x_v).novelty
+    return 0.5 * (float(np.mean(nt <= model.beta)) + float(np.mean(nv_ > model.beta)))
+
+
+@pytest.mark.parametrize("name", ["max_softmax", "gaussian"])
+def test_export_router_refits_and_tunes_beta(tiny_run, tmp_path, monkeypatch, capsys, name):
+    """`export RUN --router NAME`: the bundle names NAME, loads with the cell's verification, its
+    beta separates held-out touched from validation presses at least as well as chance, the
+    provenance says it was refitted (and on which presses), and no untouched fabric's tactile data
+    is read anywhere in the export (zero-shot)."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime import dataset as rd
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    run, art = tiny_run
+    read: set[str] = set()
+    for meth in ("load_press", "load_reference"):
+        orig = getattr(rd.Fabric, meth)
+        monkeypatch.setattr(rd.Fabric, meth, lambda self, *a, _o=orig, **k: (read.add(self.id), _o(self, *a, **k))[1])
+    out = tmp_path / name
+    assert main(["export", str(run), "--out", str(out), "--router", name, "--calibration-frames", "8",
+                 "--threads", "1"]) == 0
+    assert f"router {name}" in capsys.readouterr().out
+    assert read and not read & set(art.untouched), f"untouched fabrics read: {sorted(read & set(art.untouched))}"
+    assert read <= set(art.touched) | set(art.validation)
+
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["router"]["name"] == name
+    model = TactileModel.load(out, threads=1)
+    assert model.router.name == name and model.beta == m["beta"]
+    assert name in m["operating_point"] and "balanced" in m["operating_point"]
+    assert all(v in m["operating_point"] for v in art.validation)
+    rp, data = m["provenance"]["router"], m["provenance"]["data"]
+    assert rp["refitted_at_export"] is True and rp["name"] == name and rp["run_router"] == art.router_name
+    assert rp["fitted_on"]["count"] == sum(len(data["touched_presses"][f]["train"]) for f in art.touched)
+    assert set(rp["beta_tuned_on"]["validation_presses"]) == set(art.validation)
+    assert m["checks"]["parity_torch_vs_onnxruntime"]["feature"] <= ex.PARITY_TOLERANCE
+    ds = load_dataset(tiny_world())
+    held = {f: data["touched_presses"][f]["val"] for f in art.touched}
+    sep = _balanced_separation(model, ds, model.preprocess_spec, held, rp["beta_tuned_on"]["validation_presses"])
+    assert sep >= 0.5
+
+
+def test_export_router_unknown_name_is_refused(tiny_run, tmp_path, capsys):
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.novelty import ROUTERS
+
+    run, _ = tiny_run
+    assert main(["export", str(run), "--out", str(tmp_path / "b"), "--router", "softmax"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown router 'softmax'" in err and all(r in err for r in ROUTERS)
+    assert not (tmp_path / "b").exists()
+    with pytest.raises(ex.ExportError, match="known: " + ", ".join(ROUTERS)):
+        ex.export_run(run, tmp_path / "b", router="softmax")
+
+
+def test_zero_shot_guard_refuses_untouched_presses(tiny_run):
+    """The guard itself: a press of an untouched fabric among the presses the router, beta or
+    gating would read is refused, and refit_router refuses validation fabrics that are untouched."""
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    _, art = tiny_run
+    ex.check_zero_shot({art.touched[0]: [1, 2], art.validation[0]: [0]}, art.untouched, "x")  # allowed
+    with pytest.raises(ex.ExportError, match="zero-shot violated: beta .* " + art.untouched[0]):
+        ex.check_zero_shot({art.untouched[0]: [3]}, art.untouched, "beta")
+    ds = load_dataset(tiny_world())
+    part = ex.press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, 0, None)
+    with pytest.raises(ex.ExportError, match="disjoint"):
+        ex.refit_router("gaussian", ds=ds, spec=art.tactile_preprocess, trunk=None, cls_t=None, cls_u=None,
+                        touched=art.touched, untouched=art.untouched, validation=art.untouched, part=part,
+                        max_presses=None)
