@@ -1,4 +1,5 @@
-"""`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]`."""
+"""`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]
+[--visual-tail frozen|finetuned]`."""
 
 from __future__ import annotations
 
@@ -18,6 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--weights", type=Path, help="trunk weights file (e.g. a torchvision resnet50 state dict)")
     parser.add_argument("--seed", type=int, help="split and training seed (default 0)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--visual-tail", choices=("frozen", "finetuned"),
+                        help="fine-tune the visual trunk's tail on touched fabrics' camera crops per split, or keep "
+                             "it frozen (profile default: frozen; docs/training.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.time()
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
-              seed=args.seed, figures=not args.no_figures)
+              seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

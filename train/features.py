@@ -1,16 +1,19 @@
-"""Feature extraction with a cached frozen stem, and tactile fine-tuning on TOUCHED fabrics only.
+"""Feature extraction with a cached frozen stem, and tail fine-tuning on TOUCHED fabrics only.
 
 The expensive part of a trunk (its stem, see ``trunks.py``) is run once per press and cached:
 - ``stem_t``: the tactile stem activation of ``preprocess_tactile(press, reference, spec)``
   (the runtime's one preprocessing function), float16;
-- ``x_v``: the visual feature of the camera crop at the press (frozen ImageNet trunk, ImageNet
-  normalisation) — the visual trunk is NOT fine-tuned (CPU budget; stated in the report);
+- ``stem_v``: the visual stem activation of the camera crop at the press (ImageNet
+  normalisation), float16 — so the visual tail can be fine-tuned as cheaply as the tactile one;
+- ``x_v``: the frozen trunk's visual feature of that crop (used when the visual tail is frozen,
+  the default; see docs/training.md "Visual tail: frozen or fine-tuned");
 - ``x_t0``: the frozen trunk's tactile feature (the baselines' ``FeatureTable`` uses it).
 
 Zero-shot guard: ``touched_training_rows`` is the only way fine-tuning gets rows; it returns the
 SAME touched-train presses ``compare.split_views`` uses for training (touched val/test presses
 stay out too) and refuses any row of a fabric outside ``split.touched``. ``finetune_tail``
-receives a copy of exactly those rows.
+receives a copy of exactly those rows — of ``stem_t`` for the tactile tail, of ``stem_v`` (the
+camera crops at those presses) for the visual tail.
 """
 
 from __future__ import annotations
@@ -43,13 +46,15 @@ class StemCache:
     fabric_ids: list[str]
     attributes: np.ndarray  # (F, 24)
     meta: dict
+    stem_v: np.ndarray | None = None  # (P, C, h, w) float16 visual stem; None in caches made before it existed
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
+        extra = {} if self.stem_v is None else {"stem_v": self.stem_v}
         np.savez(tmp, stem_t=self.stem_t, x_v=self.x_v, x_t0=self.x_t0, fabric=self.fabric,
                  fabric_ids=np.array(self.fabric_ids), attributes=self.attributes,
-                 meta=np.array(repr(sorted(self.meta.items()))))
+                 meta=np.array(repr(sorted(self.meta.items()))), **extra)
         tmp.replace(path)
 
     @classmethod
@@ -62,7 +67,8 @@ class StemCache:
             if expect_meta is not None and meta != expect_meta:
                 return None
             return cls(z["stem_t"], z["x_v"], z["x_t0"], z["fabric"].astype(np.int64),
-                       [str(s) for s in z["fabric_ids"]], z["attributes"].astype(np.float64), meta)
+                       [str(s) for s in z["fabric_ids"]], z["attributes"].astype(np.float64), meta,
+                       z["stem_v"] if "stem_v" in z.files else None)
 
 
 def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
@@ -76,14 +82,14 @@ def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
 @torch.no_grad()
 def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None = None,
                   batch: int = 64, progress: bool = True) -> StemCache:
-    """Read every press once: tactile stem activations, visual and frozen tactile features."""
+    """Read every press once: tactile and visual stem activations, frozen visual and tactile features."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 
     ds = load_dataset(dataset_root)
     spec = TactilePreprocess(size=size)
     trunk.eval()
-    stems, xv, xt0, fab = [], [], [], []
+    stems, stems_v, xv, xt0, fab = [], [], [], [], []
     t0 = time.time()
     total = sum(len(f.presses) if max_presses is None else min(max_presses, len(f.presses)) for f in ds.fabrics)
     total = max(total, 1)
@@ -101,7 +107,9 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
             a = trunk.stem(tac)
             stems.append(a.half().numpy())
             xt0.append(trunk.features_from_stem(a).numpy())
-            xv.append(trunk(vis).numpy())
+            av = trunk.stem(vis)
+            stems_v.append(av.half().numpy())
+            xv.append(trunk.features_from_stem(av).numpy())  # == trunk(vis)
             done += len(idx)
             if progress:
                 el = time.time() - t0
@@ -113,7 +121,8 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     return StemCache(np.concatenate(stems), np.concatenate(xv).astype(np.float32), np.concatenate(xt0).astype(np.float32),
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
-                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve())})
+                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve())},
+                     np.concatenate(stems_v))
 
 
 def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> tuple[np.ndarray, np.ndarray]:
@@ -137,9 +146,10 @@ def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> t
 
 def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_classes: int, *, epochs: int = 2,
                   max_rows: int | None = None, batch: int = 64, lr: float = 3e-4, seed: int = 0,
-                  progress: bool = True) -> Trunk:
+                  progress: bool = True, what: str = "tactile") -> Trunk:
     """A copy of ``trunk`` whose tail is fine-tuned (softmax over touched classes) on the given
-    touched-train stem activations. The stem is unchanged (frozen)."""
+    touched-train stem activations (tactile frames, or ``what="visual"`` the camera crops at those
+    presses). The stem is unchanged (frozen)."""
     out = copy.deepcopy(trunk)
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -163,7 +173,7 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
             loss.backward()
             opt.step()
         if progress:
-            print(f"\rfine-tune tactile tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
+            print(f"\rfine-tune {what} tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
                   f"({time.time() - t0:.0f} s)", end="", file=sys.stderr, flush=True)
     if progress:
         print(file=sys.stderr)

@@ -129,7 +129,8 @@ def render(m: dict) -> str:
     n_t, n_v, n_u = m["split_sizes"]
     lines = [f"# VS2T-ZSL on {Path(m['dataset']).name} ({prof['name']} profile)", "",
              f"{m['n_fabrics']} fabrics, {len(m['splits'])} seeded split(s) {n_t}/{n_v}/{n_u} "
-             f"(touched/validation/untouched); trunk {prof['trunk']} at {prof['size_px']} px; "
+             f"(touched/validation/untouched); trunk {prof['trunk']} at {prof['size_px']} px, visual tail "
+             f"{prof.get('visual_tail', 'frozen')}; "
              f"total {m['timing_s'].get('total', 0):.0f} s (features {m['timing_s']['features']:.0f} s, splits "
              f"{', '.join(f'{x:.0f}' for x in m['timing_s']['splits'])} s) on 2 shared CPU cores.", "",
              "Mean ± std over splits, %, test presses (per-class mean accuracy); ZSL val = the same model's "
