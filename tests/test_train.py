@@ -1,5 +1,6 @@
-"""VS2T-ZSL training: trunks, reproducibility, a trained generator beats an untrained one, and
-`vs2t-edge train` end to end on the tiny fabric world (run folder, artefacts round trip)."""
+"""VS2T-ZSL training: trunks, reproducibility, a trained generator beats an untrained one (toy
+features, the tiny fabric world, and behind ``-m slow`` the small profile), and `vs2t-edge train`
+end to end on the tiny fabric world (run folder, artefacts round trip)."""
 
 import json
 import time
@@ -87,13 +88,116 @@ def test_resnet50_loads_a_torchvision_named_state_dict(tmp_path):
         build_trunk("resnet50", weights_path=tmp_path / "bad.pth")
 
 
-def test_tiny_profile_end_to_end(tmp_path):
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory):
+    """The tiny synthetic fabric world (10 fabrics x 9 presses), generated once for this module;
+    tests only read it."""
     from vs2t_edge.sim.synth import generate
+
+    return generate(tmp_path_factory.mktemp("tiny_world") / "world", "tiny", 0, progress=False)
+
+
+def _generator_vs_untrained(dataset, profile: str, split_seeds) -> list[dict]:
+    """Per split: the full VS2T-ZSL trained with the profile's budget, and the same model with 0
+    generator steps (random E/G/D/VS-F; CLS_u still fitted on its output), on the fabric world's
+    features exactly as `vs2t-edge train` makes them (trunk seeded like the run, frozen stem, tactile
+    tail fine-tuned on the split's touched-train presses). Metrics (standardised units):
+    ``seen_*``: synthesised from the crops and attributes of touched fabrics' HELD-OUT presses,
+    against their real features — does G learn the world's tactile distribution; ``unseen_*``:
+    untouched (test) fabrics, against their real features — does it transfer (zero-shot);
+    ``w1``: per-class mean 1-D Wasserstein (``run.synth_quality``'s estimator); ``cos``: cosine of
+    real vs synthesised class means; ``zsl``: CLS_u accuracy on the untouched presses."""
+    from vs2t_edge.train.run import PROFILES
+
+    prof = PROFILES[profile]
+    budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
+                             n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
+                             hidden=prof.hidden)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as `vs2t-edge train` runs: 2 threads on the 2 shared cores were ~2x slower
+    try:
+        return _compare_generators(dataset, prof, budget, split_seeds)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _compare_generators(dataset, prof, budget, split_seeds) -> list[dict]:
+    from vs2t_edge.train import features as ft
+    from vs2t_edge.train.baselines import ZSLData
+    from vs2t_edge.train.run import n_holdout, synth_quality
+
+    torch.manual_seed(prof.seed)
+    trunk = build_trunk(prof.trunk, pretrained=True)
+    cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses, progress=False)
+    k = n_holdout(len(cache.fabric_ids))
+    out = []
+    for seed in split_seeds:
+        split = cmp.make_splits(cache.fabric_ids, 1, k, k, seed=seed)[0]
+        rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
+        tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=prof.ft_epochs,
+                                 max_rows=prof.ft_max_rows, seed=split.seed, progress=False)
+        table = cmp.FeatureTable(ft.features_from_stem(tuned, cache.stem_t), cache.x_v, cache.fabric,
+                                 cache.fabric_ids, cache.attributes)
+        views = cmp.split_views(table, split)
+        x_s, v_s, y_s = views.touched_test
+        seen = cmp.SplitViews(**{**views.__dict__, "test_presses": (x_s, v_s, y_s),
+                                 "train": ZSLData(**{**views.train.__dict__, "attr_u": views.train.attr_t, "v_u": v_s,
+                                                     "v_u_class": y_s, "names_u": views.train.names_t})})
+        row = {}
+        for name, steps in (("trained", None), ("untrained", 0)):
+            m = vs2t.VS2TZSL().fit(views.train, budget, seed=split.seed, steps=steps)
+            q_seen = synth_quality(m, seen, budget, split.seed)
+            q_unseen = synth_quality(m, views, budget, split.seed)
+            row[name] = {"seen_w1": q_seen["wasserstein"], "seen_cos": q_seen["cosine"],
+                         "unseen_w1": q_unseen["wasserstein"], "unseen_cos": q_unseen["cosine"],
+                         "zsl": _zsl(m, views)}
+        out.append(row)
+    return out
+
+
+def test_trained_generator_beats_untrained_on_the_tiny_fabric_world(tiny_world):
+    """On the tiny world (6 touched fabrics, a random-weight tiny trunk) the trained generator
+    reproduces touched fabrics' held-out presses far better than an untrained one: measured over
+    3 worlds x 4 splits, W1 0.22-0.46 vs 0.60-0.85 and class-mean cosine 0.76-0.95 vs -0.09-0.09,
+    every time. What it does NOT show is zero-shot transfer: on the 2 untouched fabrics W1, cosine
+    and ZSL did not separate trained from untrained (trained better in 5, 6 and 7 of those 12) —
+    the small-profile test below is the zero-shot claim. ~10 s after the world is built."""
+    for r in _generator_vs_untrained(tiny_world, "tiny", (0, 1, 2)):
+        t, u = r["trained"], r["untrained"]
+        assert t["seen_w1"] < 0.75 * u["seen_w1"], r
+        assert t["seen_cos"] > u["seen_cos"] + 0.4, r
+
+
+@pytest.mark.slow
+def test_trained_generator_beats_untrained_on_the_small_profile(tmp_path, request):
+    """Issue 3's claim on the small profile (20 fabrics, split 0 = the run's 14/3/3, EfficientNet-
+    Lite0 at 128 px). Measured on 6 splits before writing this: the class means the trained
+    generator synthesises for UNTOUCHED fabrics point more towards the real ones than an untrained
+    generator's (cosine, trained higher in all 6; split 0: 0.22 vs -0.02) and it reproduces
+    touched held-out presses better (W1 0.34-0.45 vs 0.45-0.58, cosine 0.61-0.76 vs ~0). Not
+    asserted, because they did not separate: untouched ZSL (3 classes; trained higher in 3 of 6
+    splits on test, 5 of 6 on validation, one tie) and untouched W1, which was LOWER for the
+    untrained generator in every split — its output is nearly constant near the touched mean, the
+    trained class means are no closer to the real ones (split 0: rms error 1.16 vs 1.15), and the
+    trained spread only adds W1 (docs/training.md). ~2 min (world 30 s, features 15 s, one split),
+    so only with ``-m slow``."""
+    if "slow" not in (request.config.getoption("markexpr") or ""):
+        pytest.skip("generates the small world and trains one split (~2 min); run with `pytest -m slow`")
+    from vs2t_edge.sim.synth import generate
+
+    data = generate(tmp_path / "small", "small", 0, progress=False, workers=1)
+    (r,) = _generator_vs_untrained(data, "small", (0,))
+    t, u = r["trained"], r["untrained"]
+    assert t["unseen_cos"] > u["unseen_cos"] + 0.1, r
+    assert t["seen_w1"] < u["seen_w1"] and t["seen_cos"] > u["seen_cos"] + 0.4, r
+
+
+def test_tiny_profile_end_to_end(tmp_path, tiny_world):
     from vs2t_edge.train.artifacts import build_modules, load_router, load_run_artifacts
     from vs2t_edge.train.cli import add_arguments, run
     import argparse
 
-    data = generate(tmp_path / "world", "tiny", 0, progress=False)
+    data = tiny_world
     out = tmp_path / "run"
     p = argparse.ArgumentParser()
     add_arguments(p, "train")
