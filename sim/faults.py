@@ -1363,6 +1363,65 @@ def bundle_manifest_edited(w: Path):
     return f"refused: {outcome[:120]}", problems
 
 
+def disk_full_at_start(w: Path):
+    """The state disk is full when the service starts: the journal cannot take its start record.
+    The real daemon code (run_daemon, real bundle, real sd_notify socket) must exit 2 in words,
+    never send READY, leave the gate at reject and sort nothing - and start once space is back."""
+    import shutil
+
+    import vs2t_edge.runtime.journal as jmod
+    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.gate import FakeGate
+
+    src = good_bundle()
+    if src is None:
+        return "skipped: no bundle (tests/replays/bundle absent; set VS2T_GOOD_BUNDLE)", []
+    w.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(src, w / "bundle")
+    (w / "cell.yaml").write_text(BUNDLE_CONFIG)
+    (w / "cell.yaml").chmod(0o640)
+    cfg = load_config(w / "cell.yaml")
+    problems: list[str] = []
+    real_append = jmod.Journal.append
+    full = {"on": True}
+
+    def append(self, rec):
+        if full["on"] and rec.get("type") == "start":
+            raise jmod.JournalWriteError(f"journal {self.path}: write failed: [Errno 28] No space left on device",
+                                         errno.ENOSPC, cut_back=True)
+        return real_append(self, rec)
+
+    outcomes = []
+    for attempt in ("full", "space freed"):
+        full["on"] = attempt == "full"
+        server, sock = _notify_socket()
+        logged: list[str] = []
+        gate = FakeGate()
+        jmod.Journal.append = append
+        try:
+            code = run_daemon(cfg, camera=_IdleCamera(), arm=FakeArm(), gate=gate, notifier=Notifier(str(sock)),
+                              items=Pieces([]), max_items=0, install_signals=False, log=logged.append)
+            msgs = _drain(server)
+        finally:
+            jmod.Journal.append = real_append
+            server.close()
+            shutil.rmtree(sock.parent, ignore_errors=True)
+        ready = any(m.startswith("READY=1") or "\nREADY=1" in m for m in msgs)
+        text = "\n".join(logged)
+        outcomes.append(f"{attempt}: exit {code}, READY {ready}")
+        if attempt == "full":
+            _check(problems, code == 2, f"disk full: exit {code}, expected 2")
+            _check(problems, not ready, "disk full: the daemon sent READY")
+            _check(problems, "No space left" in text and "Traceback" not in text,
+                   f"disk full: the reason is not said in words: {text[-200:]!r}")
+            _check(problems, gate.to_reject_calls >= 1 and gate.sorted == [], f"disk full: gate sorted {gate.sorted}")
+        else:
+            _check(problems, code == 0 and ready, f"space freed: exit {code}, READY {ready}: {text[-200:]!r}")
+    return "; ".join(outcomes), problems
+
+
 # --- the matrix -----------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -1433,6 +1492,9 @@ SCENARIOS = [
              "full, then the piece is aborted once and the rest sorted", disk_full),
     Scenario("disk_full_restart", "journal", "ENOSPC mid pre_sort write, service stopped while full",
              "cut back, no crash on stop; after space freed the restart resolves the piece", disk_full_restart),
+    Scenario("disk_full_at_start", "journal", "ENOSPC on the journal's start record (disk full at service start)",
+             "exit 2 in words, no READY, gate at reject, nothing sorted; starts once space is freed",
+             disk_full_at_start),
     Scenario("fsync_eio", "journal", "EIO from fsync of a final record after the gate moved",
              "cut back, fault latched; the clear resolves the piece as unknown_outcome", fsync_eio),
     Scenario("hostile_config", "config", "alias bomb, python tag, NaN, junk, ...",
