@@ -22,8 +22,9 @@ the run's splits and new random splits) and prints the rule's choice over all th
 
 A `vs2t-edge train` run folder can be the source (``load_run``): its exact splits (metrics.json,
 order and seeds kept), its budget (config.yaml), its frozen feature table, or (``finetuned_tables``)
-per split the tactile features its VS2T-ZSL saw (the run's stem cache through the trunk tail
-fine-tuned on that split's touched-train presses, same recipe and seed); the run's own VS2T-ZSL
+per split the features its VS2T-ZSL saw (the run's stem cache through the trunk tail fine-tuned
+on that split's touched-train presses, same recipe and seed; the visual tail too when config.yaml
+says ``visual_tail: finetuned``, and every method then reads those visual features); the run's own VS2T-ZSL
 numbers are kept beside this comparison's (``compare_with_run``). The VS2T-ZSL row itself is
 ``train/vs2t.py``'s model, so with the run's features and budget it reproduces the run.
 """
@@ -858,20 +859,42 @@ def run_budget(profile: dict, budget: dict | None = None, **overrides) -> Budget
     return vs2t.VS2TBudget(**kw)
 
 
+VISUAL_TAIL_SEED_OFFSET = 1  # `vs2t-edge train` tunes the visual tail with seed split seed + 1 (train/run.py)
+
+
+def run_visual_tail(run: RunSource) -> str:
+    """The visual tail the run's features went through: config.yaml ``profile.visual_tail``;
+    runs written before that field existed were frozen."""
+    vt = str(run.profile.get("visual_tail") or "frozen")
+    if vt not in ("frozen", "finetuned"):
+        raise ValueError(f"{run.run_dir / 'config.yaml'}: profile.visual_tail {vt!r} is neither 'frozen' nor "
+                         f"'finetuned'")
+    return vt
+
+
 def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
-                     weights: Path | None = None) -> Callable[[FabricSplit], FeatureTable]:
-    """Per split, the tactile features the VS2T run's models saw: its cached stem activations
-    through a copy of the trunk whose tail is fine-tuned on that split's touched-train presses,
-    with the run's epochs, row cap and seed (``train/features.py``, as `vs2t-edge train` does).
-    Visual features, fabrics and attributes are the cache's (the visual trunk is frozen)."""
+                     weights: Path | None = None, tactile: bool = True) -> Callable[[FabricSplit], FeatureTable]:
+    """Per split, the features the VS2T run's models saw: its cached stem activations through a
+    copy of the trunk whose tail is fine-tuned on that split's touched-train presses, with the
+    run's epochs, row cap and seed (``train/features.py``, as `vs2t-edge train` does) — the
+    tactile tail (``tactile=False``: the cache's frozen tactile features instead) and, when the
+    run's profile says ``visual_tail: finetuned``, the visual tail too (the camera crops at the
+    same touched-train presses, seed split seed + 1, as train/run.py); otherwise the cache's
+    frozen visual features. Every method of the comparison gets these visual features."""
     from vs2t_edge.train import features as ft
     from vs2t_edge.train.trunks import build_trunk
 
+    visual = run_visual_tail(run) == "finetuned"
     path = run.run_dir / RUN_STEM_CACHE
     cache = ft.StemCache.load(path)
     if cache is None:
         raise FileNotFoundError(f"{path} does not exist (fine-tuned features need the run's stem cache; "
-                                f"use frozen tactile features instead)")
+                                f"use frozen tactile features instead)" if not visual else
+                                f"{path} does not exist (the run fine-tuned its visual tail: its features "
+                                f"need the run's stem cache)")
+    if visual and cache.stem_v is None:
+        raise ValueError(f"{path} has no visual stem, but config.yaml says the run fine-tuned its visual tail "
+                         f"(profile.visual_tail: finetuned)")
     arch = str(run.profile.get("trunk", cache.meta.get("arch", "")))
     if cache.meta.get("arch") != arch:
         raise ValueError(f"{path}: stem cache of trunk {cache.meta.get('arch')!r}, config.yaml names {arch!r}")
@@ -883,16 +906,25 @@ def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
     trunk = build_trunk(arch, pretrained=True, weights_path=weights)
     epochs = int(run.profile.get("ft_epochs", 2))
     max_rows = run.profile.get("ft_max_rows", None)
+    what = " + ".join(w for w, on in (("tactile", tactile), ("visual", visual)) if on)
 
     def table_for(split: FabricSplit) -> FeatureTable:
         t0 = time.time()
         rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
-        tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs,
-                                 max_rows=max_rows, seed=split.seed, progress=False)
-        x_t = ft.features_from_stem(tuned, cache.stem_t)
-        log(f"  tactile tail fine-tuned on {len(rows)} touched-train presses ({time.time() - t0:.0f} s)")
-        return FeatureTable(x_t, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
-                            source=f"{path} (tail fine-tuned per split, seed = split seed)")
+        x_t, x_v = cache.x_t0, cache.x_v
+        if tactile:
+            tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs,
+                                     max_rows=max_rows, seed=split.seed, progress=False)
+            x_t = ft.features_from_stem(tuned, cache.stem_t)
+        if visual:  # finetune_tail copies the trunk: both tails start from the same weights, as in training
+            tuned_v = ft.finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=epochs,
+                                       max_rows=max_rows, seed=split.seed + VISUAL_TAIL_SEED_OFFSET,
+                                       progress=False, what="visual")
+            x_v = ft.features_from_stem(tuned_v, cache.stem_v)
+        log(f"  {what} tail fine-tuned on {len(rows)} touched-train presses ({time.time() - t0:.0f} s)")
+        return FeatureTable(x_t, x_v, cache.fabric, cache.fabric_ids, cache.attributes,
+                            source=f"{path} ({what} tail fine-tuned per split, seed = split seed"
+                                   + (f", visual + {VISUAL_TAIL_SEED_OFFSET}" if visual else "") + ")")
 
     return table_for
 
@@ -1112,7 +1144,7 @@ if __name__ == "__main__":
 
 __all__ = ["FeatureTable", "FabricSplit", "make_splits", "run_comparison", "summarise", "render_markdown", "plot",
            "toy_feature_table", "extract_feature_table", "write_results", "RunSource", "load_run",
-           "read_run_splits", "run_budget", "finetuned_tables", "run_vs2t_numbers", "compare_with_run",
+           "read_run_splits", "run_budget", "finetuned_tables", "run_visual_tail", "run_vs2t_numbers", "compare_with_run",
            "check_splits", "pool_results", "HAND_MARKER", "UnmarkedReportError", "hand_written_tail",
            "with_hand_text", "CELL_INPUTS", "RECOMMENDATION_RULE", "recommend", "pool_into", "write_report_set",
            "full_command", "rebuild_command", "read_run_router"]

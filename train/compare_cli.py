@@ -24,7 +24,10 @@ Feature sources for a single comparison, first match wins:
   their seeds), its budget (config.yaml; --steps/--hidden/--cls-steps override), and its tactile
   features: ``--tactile finetuned`` (default) re-runs the run's per-split tail fine-tuning from
   its stem cache, so every row sees the features the run's VS2T-ZSL saw; ``--tactile frozen``
-  uses features/feature_table.npz. The run's own VS2T-ZSL numbers are shown beside ours and the
+  uses features/feature_table.npz. Visual features follow the run's profile (config.yaml
+  ``profile.visual_tail``; absent = frozen): a run made with ``--visual-tail finetuned`` gets its
+  visual tail re-tuned per split as training did (seed split seed + 1) and every method reads
+  those visual features. The run's own VS2T-ZSL numbers are shown beside ours and the
   report goes to ``{--out}/comparison_{profile}.*``.
 - ``--features CACHE.npz`` (a FeatureTable cache, e.g. a run's features/feature_table.npz or a
   previous ``--data`` run's ``--cache``), ``--data DATASET`` (features extracted here with a
@@ -73,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                        help="with --rebuild: the trained run's metrics.json, for the router it ships (kept in "
                             "MAIN.json afterwards); its splits must be MAIN's")
     parser.add_argument("--tactile", choices=("finetuned", "frozen"), default="finetuned",
-                        help="with --run: the run's per-split fine-tuned tactile features (default) or frozen ones")
+                        help="with --run: the run's per-split fine-tuned tactile features (default) or frozen ones; "
+                             "visual features always follow the run's profile.visual_tail")
     parser.add_argument("--new-splits", action="store_true",
                         help="with --run: draw --splits random splits (--seed, --n-val, --n-untouched) instead of the "
                              "run's, e.g. more validation evidence on the run's features (no run VS2T numbers then)")
@@ -162,11 +166,18 @@ def _load_features(args, cmp):
             run_src = cmp.load_run(args.run)
             table = run_src.table
             source = f"run {args.run}: {cmp.RUN_FEATURE_TABLE} ({table.source})"
-            if args.tactile == "finetuned":
-                table_for_split = cmp.finetuned_tables(run_src, log=_log)
-                source = (f"run {args.run}: tactile features of the run's stem cache through the trunk tail "
-                          f"fine-tuned per split on touched-train presses (as `vs2t-edge train` does, same seeds); "
-                          f"visual features frozen ({table.source})")
+            visual_tuned = cmp.run_visual_tail(run_src) == "finetuned"
+            if args.tactile == "finetuned" or visual_tuned:
+                # the visual tail follows the run's profile (config.yaml profile.visual_tail), whatever --tactile
+                table_for_split = cmp.finetuned_tables(run_src, log=_log, tactile=args.tactile == "finetuned")
+                tac = ("tactile features of the run's stem cache through the trunk tail fine-tuned per split on "
+                       "touched-train presses" if args.tactile == "finetuned"
+                       else f"frozen tactile features ({table.source})")
+                vis = ("visual features through the visual tail fine-tuned per split on the camera crops at those "
+                       "presses (the run's profile: visual_tail finetuned)" if visual_tuned
+                       else f"visual features frozen ({table.source})")
+                source = (f"run {args.run}: {tac}; {vis} (as `vs2t-edge train` does, same seeds; every method "
+                          f"gets these features)")
         elif args.features:
             if not args.features.is_file():
                 raise _Usage(f"feature cache {args.features} does not exist")
