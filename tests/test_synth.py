@@ -146,13 +146,10 @@ def test_synth_cli_tiny_writes_a_dataset_validate_data_accepts(tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_synth_cli_small_profile_writes_a_dataset_validate_data_accepts(tmp_path, capsys, request):
+def test_synth_cli_small_profile_writes_a_dataset_validate_data_accepts(tmp_path, capsys):
     """The issue's own words, on the small profile with one worker: measured 19-33 s on the shared
-    2-core dev machine (under 90 s, so the whole profile, not a reduced number of fabrics). Too
-    slow for the default suite (pyproject's addopts does not deselect ``slow``), so it runs only
-    when asked for with ``-m slow``."""
-    if "slow" not in (request.config.getoption("markexpr") or ""):
-        pytest.skip("the small profile takes 19-33 s on one worker; run with `pytest -m slow`")
+    2-core dev machine (under 90 s, so the whole profile, not a reduced number of fabrics). It runs
+    in CI: the issue's "done when" is about this profile; `-m "not slow"` leaves it out locally."""
     t0 = time.monotonic()
     made, checked = _synth_and_validate(tmp_path / "small", capsys, "--profile", "small", "--workers", "1")
     assert "20 fabrics, 500 presses (small, seed 0)" in made

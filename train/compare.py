@@ -859,7 +859,6 @@ def run_budget(profile: dict, budget: dict | None = None, **overrides) -> Budget
     return vs2t.VS2TBudget(**kw)
 
 
-VISUAL_TAIL_SEED_OFFSET = 1  # `vs2t-edge train` tunes the visual tail with seed split seed + 1 (train/run.py)
 
 
 def run_visual_tail(run: RunSource) -> str:
@@ -870,6 +869,12 @@ def run_visual_tail(run: RunSource) -> str:
         raise ValueError(f"{run.run_dir / 'config.yaml'}: profile.visual_tail {vt!r} is neither 'frozen' nor "
                          f"'finetuned'")
     return vt
+
+
+def _visual_tail_seed(split_seed: int) -> int:
+    from vs2t_edge.train.run import visual_tail_seed  # run imports this module: import at call time
+
+    return visual_tail_seed(split_seed)
 
 
 def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
@@ -918,13 +923,13 @@ def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
             x_t = ft.features_from_stem(tuned, cache.stem_t)
         if visual:  # finetune_tail copies the trunk: both tails start from the same weights, as in training
             tuned_v = ft.finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=epochs,
-                                       max_rows=max_rows, seed=split.seed + VISUAL_TAIL_SEED_OFFSET,
+                                       max_rows=max_rows, seed=_visual_tail_seed(split.seed),
                                        progress=False, what="visual")
             x_v = ft.features_from_stem(tuned_v, cache.stem_v)
         log(f"  {what} tail fine-tuned on {len(rows)} touched-train presses ({time.time() - t0:.0f} s)")
         return FeatureTable(x_t, x_v, cache.fabric, cache.fabric_ids, cache.attributes,
                             source=f"{path} ({what} tail fine-tuned per split, seed = split seed"
-                                   + (f", visual + {VISUAL_TAIL_SEED_OFFSET}" if visual else "") + ")")
+                                   + (f", visual {_visual_tail_seed(split.seed)}" if visual else "") + ")")
 
     return table_for
 

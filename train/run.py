@@ -70,6 +70,12 @@ PROFILES = {
 }
 
 
+def visual_tail_seed(split_seed: int) -> int:
+    """The visual tail's fine-tuning seed (the tactile tail's is the split seed): one place, so
+    `compare --run` re-tunes exactly what training tuned."""
+    return split_seed + 1
+
+
 def n_holdout(n_fabrics: int) -> int:
     """Validation = untouched count: the paper's 5 of 50; 15 % (>= 2) for smaller worlds (3 of 20)."""
     return 5 if n_fabrics >= 50 else max(2, round(0.15 * n_fabrics))
@@ -133,7 +139,7 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
         # classes; untouched and validation crops only pass through the tuned tail afterwards
         t1 = time.time()
         tuned_v = ft.finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=prof.ft_epochs,
-                                   max_rows=prof.ft_max_rows, seed=split.seed + 1, what="visual")
+                                   max_rows=prof.ft_max_rows, seed=visual_tail_seed(split.seed), what="visual")
         x_v = ft.features_from_stem(tuned_v, cache.stem_v)
         t_ftv = time.time() - t1
     elif prof.visual_tail != "frozen":
