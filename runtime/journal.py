@@ -5,7 +5,9 @@ One line per record: ``{"crc": <crc32 of the body>, "rec": {...}}``. A record is
 so the cell writes the decision *before* telling the gate, and a power cut leaves either the
 whole record or a torn last line. ``Journal.open`` reads the file back, detects a torn or
 corrupt last line (no newline, bad JSON or bad CRC), moves those bytes to ``<journal>.torn``
-(kept for a human) and truncates the journal to its last good record.
+(kept for a human) and truncates the journal to its last good record. A journal (or ``.torn``)
+found more open than 0640 - readable or writable by other users, e.g. after a hand copy - is
+tightened to 0640 on open and the log says so; one that cannot be tightened is refused.
 
 Record types (field ``type``), see docs/cell.md for every field:
 
@@ -42,7 +44,7 @@ import zlib
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 
 class JournalError(RuntimeError):
@@ -133,17 +135,31 @@ class Journal:
     _max_item: int = 0
     _fault: dict | None = None  # the last fault record not followed by fault_cleared
     _broken: str = ""  # non-empty: a failed write could not be cut back; appends refused
+    mode_tightened_from: int | None = None  # the too-open mode an existing journal had on open
 
     @classmethod
-    def open(cls, path: Path | str) -> "Journal":
+    def open(cls, path: Path | str, *, log: Callable[[str], None] | None = None) -> "Journal":
+        """Open (or create) the journal, cut a torn tail. An existing journal more open than
+        STATE_FILE_MODE (e.g. 0666 from a hand copy) is tightened to it and ``log`` says so
+        (default: stderr, the service's log); if it cannot be tightened the open is refused."""
         path = Path(path)
         created = not path.exists()
         make_state_dir(path.parent)
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, STATE_FILE_MODE)
-        if created:
-            os.fchmod(fd, STATE_FILE_MODE)  # os.open's mode went through the umask
-            _fsync_dir(path.parent)
-        j = cls(path=path, _fd=fd)
+        tightened = None
+        try:
+            if created:
+                os.fchmod(fd, STATE_FILE_MODE)  # os.open's mode went through the umask
+                _fsync_dir(path.parent)
+            else:
+                tightened = _tighten(fd, path)
+        except BaseException:
+            os.close(fd)
+            raise
+        if tightened is not None:
+            (log or _stderr_log)(f"journal {path}: mode was {tightened[0]:04o} (readable or writable by "
+                                 f"others); tightened to {tightened[1]:04o}")
+        j = cls(path=path, _fd=fd, mode_tightened_from=None if tightened is None else tightened[0])
         good_end = 0  # byte after the last good record
         bad_at = None  # (record number, byte) of the first corrupt line
         n_good = 0
@@ -290,9 +306,41 @@ def _open_to_append(path: Path) -> int:
     try:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL, STATE_FILE_MODE)
     except FileExistsError:
-        return os.open(path, os.O_WRONLY | os.O_APPEND)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND)
+        try:
+            old = _tighten(fd, path)
+        except BaseException:
+            os.close(fd)
+            raise
+        if old is not None:
+            _stderr_log(f"{path}: mode was {old[0]:04o}; tightened to {old[1]:04o}")
+        return fd
     os.fchmod(fd, STATE_FILE_MODE)
     return fd
+
+
+def _tighten(fd: int, path: Path) -> tuple[int, int] | None:
+    """Remove every permission bit an existing state file has beyond STATE_FILE_MODE (never adds
+    one). Returns (old, new) mode when it changed anything; refuses (JournalError) when it cannot."""
+    import stat
+
+    old = stat.S_IMODE(os.fstat(fd).st_mode)
+    new = old & STATE_FILE_MODE
+    if new == old:
+        return None
+    try:
+        os.fchmod(fd, new)
+    except OSError as exc:
+        raise JournalError(f"journal {path}: mode {old:04o} lets other users read or change the record of "
+                           f"every decision, and it cannot be tightened ({exc.strerror or exc}); run "
+                           f"`chmod {new:o} {path}` as its owner") from exc
+    return old, new
+
+
+def _stderr_log(msg: str) -> None:
+    import sys
+
+    print(f"vs2t-edge: {msg}", file=sys.stderr, flush=True)
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -165,3 +165,66 @@ def test_a_write_that_cannot_be_cut_back_stops_all_later_appends(tmp_path, monke
     j.close()
     j2 = Journal.open(p)  # the restart cuts the torn half line; nothing before it is lost
     assert j2.torn_bytes > 0 and [r["type"] for r in j2.records] == ["start"]
+
+
+@pytest.mark.parametrize("mode,want", [(0o666, 0o640), (0o604, 0o600), (0o777, 0o640)])
+def test_an_existing_too_open_journal_is_tightened_and_logged(tmp_path, mode, want):
+    """Created files get 0640 whatever the umask; one that already exists (a hand copy, an old
+    version, a restore) used to be used as it was: 0666 let anyone rewrite the record."""
+    import stat
+
+    p = tmp_path / "j.jsonl"
+    with Journal.open(p) as j:
+        j.append({"type": "start"})
+    p.chmod(mode)
+    said: list[str] = []
+    j = Journal.open(p, log=said.append)
+    j.close()
+    assert stat.S_IMODE(p.stat().st_mode) == want
+    assert j.mode_tightened_from == mode
+    assert len(said) == 1 and f"{mode:04o}" in said[0] and f"{want:04o}" in said[0] and str(p) in said[0]
+    said.clear()
+    Journal.open(p, log=said.append).close()  # already tight: nothing to say, nothing changed
+    assert said == [] and stat.S_IMODE(p.stat().st_mode) == want
+
+
+def test_a_tight_journal_is_left_as_it_is(tmp_path):
+    import stat
+
+    p = tmp_path / "j.jsonl"
+    Journal.open(p).close()
+    p.chmod(0o600)  # tighter than 0640: never loosened
+    said: list[str] = []
+    j = Journal.open(p, log=said.append)
+    j.close()
+    assert stat.S_IMODE(p.stat().st_mode) == 0o600 and said == [] and j.mode_tightened_from is None
+
+
+def test_a_too_open_journal_that_cannot_be_tightened_is_refused(tmp_path, monkeypatch):
+    import os
+
+    p = tmp_path / "j.jsonl"
+    Journal.open(p).close()
+    p.chmod(0o666)
+
+    def eperm(fd, mode):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "fchmod", eperm)  # another user's file: only its owner may chmod it
+    with pytest.raises(JournalError, match=r"mode 0666 .*cannot be tightened.*chmod 640"):
+        Journal.open(p)
+
+
+def test_an_existing_too_open_torn_file_is_tightened(tmp_path):
+    import stat
+
+    p = tmp_path / "j.jsonl"
+    with Journal.open(p) as j:
+        j.append({"type": "start"})
+    torn = tmp_path / "j.jsonl.torn"
+    torn.write_bytes(b"old")
+    torn.chmod(0o666)
+    with open(p, "ab") as f:
+        f.write(b'{"crc":1,"rec":{"ty')
+    Journal.open(p).close()
+    assert stat.S_IMODE(torn.stat().st_mode) == 0o640 and torn.read_bytes().startswith(b"old")
