@@ -472,12 +472,43 @@ def camera_frozen(w: Path):
 
 
 def corrupt_frames(w: Path):
-    # a black and a truncated frame: the camera's frame guard refuses them (a retryable camera
-    # error), so the press is retried once each; neither frame is ever scored
-    def inject(r):
+    """A black and a truncated frame: the camera's frame guard refuses them (a retryable camera
+    error), so the press is retried once each. Checked directly, not from the retry count: the
+    guard refused exactly those two frames by reason, every frame the model scored has the
+    camera's size and is not black, and the journal's scores are exactly the frames scored."""
+    held: dict = {"refused": [], "scored": []}
+
+    def inject(r: Rig):
         _at(r, 1, 1, lambda: r.camera.inject("black", 1))
         _at(r, 2, 1, lambda: r.camera.inject("truncated", 1))
-    return _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=2)
+        grab, score = r.camera.grab, r.cell.model.score_press
+
+        def watched_grab():
+            try:
+                return grab()
+            except Exception as exc:  # noqa: BLE001 - recorded, then raised as the loop sees it
+                held["refused"].append((r.pieces.index, getattr(exc, "kind", ""), getattr(exc, "reason", "")))
+                raise
+
+        def watched_score(frame):
+            held["scored"].append((r.pieces.index, tuple(np.shape(frame)), float(np.max(frame))))
+            return score(frame)
+        r.camera.grab, r.cell.model.score_press = watched_grab, watched_score
+
+    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=2)
+    refused, scored = held["refused"], held["scored"]
+    _check(problems, [(i, k, why) for i, k, why in refused] == [(1, "corrupt", "black"), (2, "corrupt", "size")],
+           f"the frame guard refused {refused}, expected piece 1's black and piece 2's truncated frame")
+    bad = [s for s in scored if s[1] != (48, 64, 3) or s[2] == 0.0]
+    _check(problems, scored and not bad, f"frames scored that should not have been: {bad}")
+    journal_scores = [sc for r in read_records(w / "journal.jsonl") if r.get("type") == "pre_sort"
+                      for sc in r.get("scores", [])]
+    _check(problems, len(journal_scores) == len(scored),
+           f"the journal holds {len(journal_scores)} scores for {len(scored)} frames scored")
+    dark = [sc for sc in journal_scores if sc.get("novelty", 0.0) < 10.0]  # the grey model's novelty = mean level
+    _check(problems, not dark, f"a black frame's score reached the evidence: {dark}")
+    return words + (f"; guard refused {len(refused)} frames ({', '.join(f'piece {i} {why}' for i, _, why in refused)}),"
+                    f" {len(scored)} frames scored, {len(bad)} of them corrupt"), problems
 
 
 def all_frames_black(w: Path):
@@ -1299,7 +1330,17 @@ def _bundle_case(w: Path, src: Path, name: str, tamper: Callable[[Path], None] |
     _check(problems, all(wd in text for wd in words), f"{name}: the refusal does not say {words}: {text[-240:]!r}")
     _check(problems, not journal.exists(), f"{name}: the journal was opened (something could have moved)")
     shutil.rmtree(case, ignore_errors=True)
-    return text.splitlines()[0] if text else "", problems
+    return _refusal_reason(text, case / "bundle"), problems
+
+
+def _refusal_reason(text: str, bundle: Path) -> str:
+    """The daemon's refusal in words without the temporary paths: 'bundle B refused: bundle B:
+    WHY' -> 'WHY' (the row's folder is a fresh /tmp name on every run)."""
+    first = text.splitlines()[0] if text else ""
+    for prefix in (f"bundle {bundle} refused: ", f"bundle {bundle}: "):
+        if first.startswith(prefix):
+            first = first[len(prefix):]
+    return first.replace(str(bundle), "<bundle>")
 
 
 def bundle_tampered(w: Path):
@@ -1360,7 +1401,8 @@ def bundle_manifest_edited(w: Path):
     outcome, problems = _bundle_case(w, src, name, tamper, words)
     if problems:
         return "NOT refused: the daemon starts on a manifest whose beta was edited (the seal did not catch it)", problems
-    return f"refused: {outcome[:120]}", problems
+    _check(problems, bool(outcome) and "/" not in outcome.split(" (")[0], f"the reason is not in words: {outcome!r}")
+    return f"refused before READY, exit 2, journal never opened: {outcome[:240]}", problems
 
 
 def disk_full_at_start(w: Path):
