@@ -76,14 +76,31 @@ class Fabric:
     presses: tuple[Press, ...]
     geometry: SensorGeometry
 
+    # The readers every consumer goes through (train, export, calibrate, the simulated cell):
+    # a frame that cannot be decoded or has the wrong size raises DatasetError naming fabric,
+    # file and problem, the same message validate_dataset(deep=True) gives.
+
     def load_camera(self) -> np.ndarray:
-        return read_image(self.camera_path)
+        side = self.geometry.camera_image_px
+        return self._load_checked("camera image", self.camera_path, (side, side), _CAMERA_KEY)
 
     def load_reference(self) -> np.ndarray:
-        return read_image(self.reference_path)
+        return self._load_checked("no-contact reference frame", self.reference_path, self._frame_shape)
 
     def load_press(self, i: int) -> np.ndarray:
-        return read_image(self.presses[i].path)
+        p = self.presses[i]
+        return self._load_checked(f"press {p.index}", p.path, self._frame_shape)
+
+    @property
+    def _frame_shape(self) -> tuple[int, int]:
+        return self.geometry.frame_height_px, self.geometry.frame_width_px
+
+    def _load_checked(self, label: str, path: Path, want_hw: tuple[int, int],
+                      key: str = "") -> np.ndarray:
+        image, problem = _read_checked(self, label, path, want_hw, key)
+        if problem is not None:
+            raise DatasetError(self.folder.parent, [problem])
+        return image
 
     def visual_crop(self, i: int, camera: np.ndarray | None = None) -> np.ndarray:
         """The camera image's view of the patch under press ``i`` (same field as the gel)."""
@@ -331,10 +348,7 @@ def _read_fabric(root: Path, fid: str, name: str, index_attrs: np.ndarray, geome
                  problems: list[str]) -> Fabric | None:
     folder = root / fid
     where = f"fabric '{fid}'"
-    for a, b in EXCLUSIVE_PAIRS:
-        ia, ib = ATTRIBUTES.index(a), ATTRIBUTES.index(b)
-        if index_attrs[ia] and index_attrs[ib]:
-            problems.append(f"{where} (fabrics.csv): exclusive attributes '{a}' and '{b}' are both true")
+    problems.extend(f"{where} (fabrics.csv): {p}" for p in _pair_conflicts(index_attrs))
     doc_path = folder / "fabric.yaml"
     if not doc_path.is_file():
         problems.append(f"{where}: {fid}/fabric.yaml missing")
@@ -359,8 +373,14 @@ def _read_fabric(root: Path, fid: str, name: str, index_attrs: np.ndarray, geome
             problems.append(f"{where}: {fid}/fabric.yaml unknown attribute(s) {unknown}")
         if missing:
             problems.append(f"{where}: {fid}/fabric.yaml missing attribute(s) {missing}")
-        if not unknown and not missing:
-            by_name = np.array([attrs_doc[a] for a in ATTRIBUTES])
+        bad = [a for a in ATTRIBUTES if a in attrs_doc and attrs_doc[a] not in (0, 1)]
+        if bad:
+            problems.append(f"{where}: {fid}/fabric.yaml attribute(s) {bad} must be 0 or 1")
+        if not unknown and not missing and not bad:
+            by_name = np.array([int(attrs_doc[a]) for a in ATTRIBUTES])
+            # each source is checked for exclusive pairs on its own, so the message names the pair
+            # and the file instead of only saying that the two files disagree
+            problems.extend(f"{where} ({fid}/fabric.yaml): {p}" for p in _pair_conflicts(by_name))
             if not np.array_equal(by_name, index_attrs):
                 diff = [ATTRIBUTES[i] for i in np.flatnonzero(by_name != index_attrs)]
                 problems.append(f"{where}: attributes in {fid}/fabric.yaml and fabrics.csv disagree on {diff}")
@@ -399,24 +419,44 @@ def _read_fabric(root: Path, fid: str, name: str, index_attrs: np.ndarray, geome
                   camera_path=camera, reference_path=reference, presses=tuple(presses), geometry=geometry)
 
 
+def _pair_conflicts(attrs: np.ndarray) -> list[str]:
+    """One message per exclusive pair whose both sides are true in ``attrs`` (paper order)."""
+    return [f"exclusive attributes '{a}' and '{b}' are both true" for a, b in EXCLUSIVE_PAIRS
+            if attrs[ATTRIBUTES.index(a)] and attrs[ATTRIBUTES.index(b)]]
+
+
+_CAMERA_KEY = " (camera.image_px: the 80 mm piece is square)"
+
+
+def _read_checked(fabric: Fabric, label: str, path: Path, want_hw: tuple[int, int],
+                  key: str) -> tuple[np.ndarray | None, str | None]:
+    """Decode one image of ``fabric`` and check its size: (image, None) or (None, problem)."""
+    where = f"fabric '{fabric.id}' {label}"
+    try:
+        rel = path.relative_to(fabric.folder.parent).as_posix()
+    except ValueError:
+        rel = str(path)
+    if not path.is_file():
+        return None, f"{where}: {rel} missing"
+    try:
+        image = read_image(path)
+    except ValueError:
+        return None, f"{where}: {rel} is not a readable image"
+    if image.shape[:2] != tuple(want_hw):
+        return None, (f"{where}: {rel} is {image.shape[1]}x{image.shape[0]}, "
+                      f"dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}")
+    return image, None
+
+
 def _check_images(fabric: Fabric, problems: list[str]) -> None:
-    where = f"fabric '{fabric.id}'"
-    want = (fabric.geometry.frame_height_px, fabric.geometry.frame_width_px)
-    paths = [("no-contact reference frame", fabric.reference_path)] + [
-        (f"press {p.index}", p.path) for p in fabric.presses]
-    for label, path in paths:
+    frame_hw = (fabric.geometry.frame_height_px, fabric.geometry.frame_width_px)
+    side = fabric.geometry.camera_image_px
+    paths = [("no-contact reference frame", fabric.reference_path, frame_hw, "")] + [
+        (f"press {p.index}", p.path, frame_hw, "") for p in fabric.presses] + [
+        ("camera image", fabric.camera_path, (side, side), _CAMERA_KEY)]
+    for label, path, want, key in paths:
         if not path.is_file():
-            continue  # already reported
-        try:
-            image = read_image(path)
-        except ValueError:
-            problems.append(f"{where} {label}: {path.name} is not a readable image")
-            continue
-        if image.shape[:2] != want:
-            problems.append(f"{where} {label}: {path.name} is {image.shape[1]}x{image.shape[0]}, "
-                            f"dataset.yaml says {want[1]}x{want[0]}")
-    if fabric.camera_path.is_file():
-        try:
-            read_image(fabric.camera_path)
-        except ValueError:
-            problems.append(f"{where} camera image: {fabric.camera_path.name} is not a readable image")
+            continue  # already reported by _read_fabric
+        _, problem = _read_checked(fabric, label, path, want, key)
+        if problem is not None:
+            problems.append(problem)
