@@ -32,6 +32,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from vs2t_edge.train import progress
+
 # --------------------------------------------------------------------------------------------
 # the data one split gives every method
 # --------------------------------------------------------------------------------------------
@@ -117,10 +119,15 @@ def _t(a) -> torch.Tensor:
     return torch.as_tensor(np.asarray(a), dtype=torch.float32)
 
 
-def batches(n: int, batch: int, steps: int, gen: torch.Generator):
-    """``steps`` random mini-batches of indices (with replacement across batches)."""
-    for _ in range(steps):
-        yield torch.randint(0, n, (min(batch, n),), generator=gen)
+def batches(n: int, batch: int, steps: int, gen: torch.Generator, label: str | None = None):
+    """``steps`` random mini-batches of indices (with replacement across batches); with ``label``,
+    the loop's progress on stderr (``progress.steps``: a terminal only, or ``VS2T_PROGRESS=1``)."""
+
+    def draw():
+        for _ in range(steps):
+            yield torch.randint(0, n, (min(batch, n),), generator=gen)
+
+    return progress.steps(draw(), steps, label) if label else draw()
 
 
 @dataclass
@@ -149,13 +156,13 @@ class SoftmaxClassifier(nn.Module):
 
 def train_classifier(x: np.ndarray, y: np.ndarray, n_classes: int, *, steps: int = 600, batch: int = 128,
                      lr: float = 1e-3, hidden: list[int] | None = None, seed: int = 0,
-                     weight_decay: float = 1e-4) -> SoftmaxClassifier:
+                     weight_decay: float = 1e-4, label: str = "CLS") -> SoftmaxClassifier:
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     clf = SoftmaxClassifier(x.shape[1], n_classes, hidden)
     opt = torch.optim.Adam(clf.parameters(), lr=lr, weight_decay=weight_decay)
     xt, yt = _t(x), torch.as_tensor(np.asarray(y), dtype=torch.long)
-    for idx in batches(len(xt), batch, steps, gen):
+    for idx in batches(len(xt), batch, steps, gen, label=label):
         loss = F.cross_entropy(clf(xt[idx]), yt[idx])
         opt.zero_grad()
         loss.backward()
@@ -226,7 +233,7 @@ class DAP(ZSLMethod):
         self.model = nn.Linear(data.d_t, data.attr_t.shape[1])
         opt = torch.optim.Adam(self.model.parameters(), lr=1e-3, weight_decay=1e-4)
         x, a = _t(data.x_t), _t(data.attr_t[data.y])
-        for idx in batches(len(x), budget.batch * 2, budget.cls_steps * 2, gen):
+        for idx in batches(len(x), budget.batch * 2, budget.cls_steps * 2, gen, label=f"{self.name} attributes"):
             loss = attribute_bce_loss(self.model(x[idx]), a[idx])
             opt.zero_grad()
             loss.backward()
@@ -259,7 +266,7 @@ class VTFCZSL(DAP):
         opt = torch.optim.Adam(self.model.parameters(), lr=1e-3, weight_decay=1e-4)
         x = _t(np.concatenate([data.x_t, data.x_v], axis=1))
         a = _t(data.attr_t[data.y])
-        for idx in batches(len(x), budget.batch * 2, budget.cls_steps * 2, gen):
+        for idx in batches(len(x), budget.batch * 2, budget.cls_steps * 2, gen, label=f"{self.name} attributes"):
             loss = attribute_bce_loss(self.model(x[idx]), a[idx])
             opt.zero_grad()
             loss.backward()
@@ -330,7 +337,7 @@ class _GenerativeZSL(ZSLMethod):
 
     def _fit_cls_u(self, data, budget, seed):
         xs, ys = self.synthesise(data, budget, seed)
-        self.cls_u = train_classifier(xs, ys, data.n_u, steps=budget.cls_steps, seed=seed)
+        self.cls_u = train_classifier(xs, ys, data.n_u, steps=budget.cls_steps, seed=seed, label=f"{self.name} CLS_u")
 
     def retarget(self, data, budget, seed):
         self._fit_cls_u(data, budget, seed)
@@ -358,7 +365,7 @@ class Abderrahmane2019(_GenerativeZSL):
         self.cvae = _CVAE(data.d_t, data.attr_t.shape[1], budget.hidden, budget.latent)
         opt = torch.optim.Adam(self.cvae.parameters(), lr=1e-3)
         x, c = _t(data.x_t), _t(data.attr_t[data.y])
-        for step, idx in enumerate(batches(len(x), budget.batch, budget.steps, gen)):
+        for step, idx in enumerate(batches(len(x), budget.batch, budget.steps, gen, label=f"{self.name} generator")):
             x_rec, mu, logvar = self.cvae(x[idx], c[idx])
             # KL warm-up (Bowman et al. 2016) so the decoder does not ignore the latent at first
             loss = cvae_loss(x[idx], x_rec, mu, logvar, kl_weight=min(1.0, step / (0.3 * budget.steps)))
@@ -406,7 +413,7 @@ class Lee2019(_GenerativeZSL):
         opt_g = torch.optim.Adam(self.G.parameters(), lr=2e-4, betas=(0.5, 0.999))
         opt_d = torch.optim.Adam(self.D.parameters(), lr=2e-4, betas=(0.5, 0.999))
         x, c = _t(data.x_t), _t(data.x_v)
-        for idx in batches(len(x), budget.batch, budget.steps, gen):
+        for idx in batches(len(x), budget.batch, budget.steps, gen, label=f"{self.name} generator"):
             xb, cb = x[idx], c[idx]
             fake = self.G(torch.cat([cb, torch.randn(len(idx), self.noise_dim)], 1))
             d_loss = pix2pix_discriminator_loss(self.D(torch.cat([cb, xb], 1)),

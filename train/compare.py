@@ -234,7 +234,7 @@ def run_split(table: FeatureTable, split: FabricSplit, methods: dict[str, type[Z
     torch.manual_seed(seed)
     t0 = time.time()
     cls_t = train_classifier(views.train.x_t, views.train.y, views.train.n_t, hidden=[512, 512],
-                             steps=budget.cls_steps * 2, seed=seed)
+                             steps=budget.cls_steps * 2, seed=seed, label="CLS_t")
     x_tr = views.train.x_t
     fitted = {}
     for name in routers:

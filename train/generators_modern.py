@@ -163,7 +163,8 @@ class FCLSWGAN(_FusedConditionGenerator):
         cond = data.condition_t()
         d_c = cond.shape[1]
         # the classifier whose loss steers G is trained on real touched features and frozen
-        self.cls_t = train_classifier(data.x_t, data.y, data.n_t, steps=budget.cls_steps, seed=seed)
+        self.cls_t = train_classifier(data.x_t, data.y, data.n_t, steps=budget.cls_steps, seed=seed,
+                                      label=f"{self.name} CLS_t")
         for p in self.cls_t.parameters():
             p.requires_grad_(False)
         self.G = ConditionalGenerator(budget.latent, d_c, budget.hidden, data.d_t)
@@ -174,7 +175,7 @@ class FCLSWGAN(_FusedConditionGenerator):
         # budget.steps counts generator steps; critic steps are n_critic times as many but
         # cheaper; to keep methods comparable in wall time we divide the generator steps.
         g_steps = max(1, budget.steps // 2)
-        it = batches(len(x), budget.batch, g_steps * (self.n_critic + 1), gen)
+        it = batches(len(x), budget.batch, g_steps * (self.n_critic + 1), gen, label=f"{self.name} generator")
         for _ in range(g_steps):
             for _ in range(self.n_critic):
                 idx = next(it)
@@ -214,7 +215,7 @@ class FVAEGAN(_FusedConditionGenerator):
         opt_d = torch.optim.Adam(self.D.parameters(), lr=budget.lr, betas=(0.5, 0.999))
         x, c = _t(data.x_t), _t(cond)
         g_steps = max(1, budget.steps // 2)
-        it = batches(len(x), budget.batch, g_steps * (self.n_critic + 1), gen)
+        it = batches(len(x), budget.batch, g_steps * (self.n_critic + 1), gen, label=f"{self.name} generator")
         for _ in range(g_steps):
             for _ in range(self.n_critic):
                 idx = next(it)
@@ -284,7 +285,7 @@ class CADAVAE(ZSLMethod):
         opt = torch.optim.Adam(self.net.parameters(), lr=1.5e-4, amsgrad=True)
         x, c = _t(data.x_t), _t(cond)
         n = budget.steps
-        for step, idx in enumerate(batches(len(x), budget.batch, n, gen)):
+        for step, idx in enumerate(batches(len(x), budget.batch, n, gen, label=f"{self.name} generator")):
             out = self.net(x[idx], c[idx])
             losses = cada_vae_loss(
                 x[idx], c[idx], out,
@@ -311,7 +312,7 @@ class CADAVAE(ZSLMethod):
                 zs.append((mu + torch.randn(mu.shape, generator=gen_s) * torch.exp(0.5 * lv)).numpy())
                 ys.append(np.full(len(pick), k))
         self.cls_u = train_classifier(np.concatenate(zs), np.concatenate(ys), data.n_u, steps=budget.cls_steps,
-                                      lr=1e-3, seed=seed)
+                                      lr=1e-3, seed=seed, label=f"{self.name} CLS_u")
         return self
 
     def embed(self, x_t: np.ndarray) -> np.ndarray:

@@ -162,7 +162,7 @@ class VS2TZSL(_GenerativeZSL):
         opts = [o for o in (opt_e, opt_g, opt_d) if o is not None]
         scheds = ([torch.optim.lr_scheduler.CosineAnnealingLR(o, max(1, n_steps)) for o in opts]
                   if getattr(budget, "lr_decay", "none") == "cosine" else [])
-        for step, idx in enumerate(batches(len(x_all), budget.batch, n_steps, gen)):
+        for step, idx in enumerate(batches(len(x_all), budget.batch, n_steps, gen, label=f"{self.name} generator")):
             x, c = x_all[idx], c_all[idx]
             if cond_noise > 0:
                 c = c + cond_noise * torch.randn(c.shape, generator=gen)
@@ -214,7 +214,7 @@ class VS2TZSL(_GenerativeZSL):
 
     def _fit_cls_u(self, data: ZSLData, budget: Budget, seed: int) -> None:
         xs, ys = self.synthesise(data, budget, seed)
-        self.cls_u = train_cls(xs, ys, data.n_u, steps=budget.cls_steps, seed=seed)
+        self.cls_u = train_cls(xs, ys, data.n_u, steps=budget.cls_steps, seed=seed, label=f"{self.name} CLS_u")
         self.cls_u_by_classes[tuple(data.names_u)] = self.cls_u
 
     def untouched_logits(self, x_t, x_v):
@@ -222,14 +222,14 @@ class VS2TZSL(_GenerativeZSL):
 
 
 def train_cls(x: np.ndarray, y: np.ndarray, n_classes: int, *, steps: int = 600, batch: int = 128, lr: float = 1e-3,
-              seed: int = 0, weight_decay: float = 1e-4) -> Classifier:
+              seed: int = 0, weight_decay: float = 1e-4, label: str = "CLS") -> Classifier:
     """CLS (512-512-n) with softmax cross-entropy, seeded."""
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     clf = Classifier(x.shape[1], n_classes)
     opt = torch.optim.Adam(clf.parameters(), lr=lr, weight_decay=weight_decay)
     xt, yt = _t(x), torch.as_tensor(np.asarray(y), dtype=torch.long)
-    for idx in batches(len(xt), batch, steps, gen):
+    for idx in batches(len(xt), batch, steps, gen, label=label):
         loss = torch.nn.functional.cross_entropy(clf(xt[idx]), yt[idx])
         opt.zero_grad()
         loss.backward()
