@@ -1072,13 +1072,29 @@ def daemon_sigterm(w: Path):
            f"last record {recs[-1]}")
     _check(problems, a["finals"][-1]["outcome"] == "aborted" and a["finals"][-1]["bin"] == REJECT,
            f"the item in hand ended as {a['finals'][-1]}")
+    last_before = max(r["item"] for r in recs if r.get("type") == "item")
+
+    def after_restart(rs: list) -> list:
+        starts = [i for i, r in enumerate(rs) if r["type"] == "start"]
+        return rs[starts[1] + 1:] if len(starts) >= 2 else []
+
     proc2, _ = start_daemon(w)  # restart: nothing open, carries on with new numbers
-    wait_for(journal, lambda rs: sum(r["type"] == "start" for r in rs) == 2 and rs[-1]["type"] == "final")
+    ok2 = wait_for(journal, lambda rs: sum(r["type"] == "final" and r.get("outcome") == "sorted"
+                                           for r in after_restart(rs)) >= 3)
     code2, err2 = _stop(proc2)
-    a2 = audit(journal, _daemon_truths(read_records(journal)))
+    recs2 = read_records(journal)
+    a2 = audit(journal, _daemon_truths(recs2))
     problems += a2["problems"]
     _check(problems, code2 == 0, f"restart exit code {code2}: {err2[-300:]}")
-    return _outcome_words(a2, f"exit {code} then restart exit {code2}"), problems
+    new = after_restart(recs2)
+    sorted_new = [r for r in new if r["type"] == "final" and r.get("outcome") == "sorted"]
+    _check(problems, ok2 and len(sorted_new) >= 3, f"the restarted daemon sorted {len(sorted_new)} pieces (wanted 3)")
+    _check(problems, all(r["item"] > last_before for r in new if "item" in r),
+           f"the restart reused item numbers <= {last_before}: {sorted({r['item'] for r in new if 'item' in r})}")
+    _check(problems, not [r for r in new if r["type"] == "final" and r["item"] <= last_before],
+           "the restart wrote a final record for an item the first run had closed")
+    return _outcome_words(a2, f"exit {code}; restart sorted {len(sorted_new)} more (items {last_before + 1}+), "
+                              f"exit {code2}"), problems
 
 
 def daemon_sigkill(w: Path):
