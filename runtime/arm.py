@@ -72,7 +72,11 @@ _BOUNDS: dict[str, tuple[float, float]] = {
     "grid_step_x_mm": (1.0, 20.0),
     "grid_step_y_mm": (1.0, 20.0),
     "piece_mm": (10.0, 200.0),
+    # the piece's turn about base z: any orientation is within half a turn either way
+    "piece_yaw_rad": (-math.pi, math.pi),
 }
+_INT_KEYS = ("reconnect_attempts",)  # counts: 2.5 attempts is a typo, not a setting
+GRID_N = 15  # the paper's 15 x 15 press grid; config.py's N_GRID_X / N_GRID_Y are this
 
 
 @dataclass(frozen=True)
@@ -108,8 +112,19 @@ class ArmConfig:
     def validate(self) -> "ArmConfig":
         for key, (lo, hi) in _BOUNDS.items():
             value = getattr(self, key)
+            if key in _INT_KEYS and (not isinstance(value, int) or isinstance(value, bool)):
+                raise ArmConfigError(f"arm.{key} = {value!r}: must be a whole number between {lo} and {hi}")
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not lo <= value <= hi:
                 raise ArmConfigError(f"arm.{key} = {value!r}: must be between {lo} and {hi}")
+        # The 15 x 15 grid, centred, must fit on the piece (press_grid_mm refuses it later, when
+        # the daemon builds its scene - too late for validate-config to say so).
+        largest = self.piece_mm / (GRID_N - 1)
+        for key in ("grid_step_x_mm", "grid_step_y_mm"):
+            step = getattr(self, key)
+            if (GRID_N - 1) * step > self.piece_mm:  # press_grid_mm's own test, to the last bit
+                raise ArmConfigError(f"arm.{key} = {step!r}: the {GRID_N} x {GRID_N} press grid would span "
+                                     f"{(GRID_N - 1) * step:g} mm, more than the {self.piece_mm:g} mm piece "
+                                     f"(piece_mm); at most {math.floor(largest * 1000) / 1000:g} mm")
         if self.force_max_n <= self.force_n + self.force_tolerance_n:
             raise ArmConfigError(f"arm.force_max_n = {self.force_max_n}: must exceed force_n + "
                                  f"force_tolerance_n ({self.force_n + self.force_tolerance_n})")
@@ -117,7 +132,7 @@ class ArmConfig:
             raise ArmConfigError(f"arm.contact_threshold_n = {self.contact_threshold_n}: must be below force_n")
         if len(self.piece_origin_pose) != 6 or not all(math.isfinite(v) for v in self.piece_origin_pose):
             raise ArmConfigError(f"arm.piece_origin_pose = {self.piece_origin_pose!r}: needs 6 finite numbers")
-        if len(self.tool_offset_mm) != 3 or any(abs(v) > 200 for v in self.tool_offset_mm):
+        if len(self.tool_offset_mm) != 3 or not all(math.isfinite(v) and abs(v) <= 200 for v in self.tool_offset_mm):
             raise ArmConfigError(f"arm.tool_offset_mm = {self.tool_offset_mm!r}: needs 3 numbers within 200 mm")
         if not isinstance(self.host, str) or not self.host:
             raise ArmConfigError("arm.host: the robot's address is missing")
@@ -138,7 +153,7 @@ class ArmConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def grid_points_mm(self, n_x: int = 15, n_y: int = 15) -> list[tuple[float, float]]:
+    def grid_points_mm(self, n_x: int = GRID_N, n_y: int = GRID_N) -> list[tuple[float, float]]:
         from vs2t_edge.runtime.dataset import press_grid_mm
 
         return press_grid_mm(n_x, n_y, self.grid_step_x_mm, self.grid_step_y_mm, self.piece_mm)

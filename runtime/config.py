@@ -21,13 +21,13 @@ from typing import Any
 
 import yaml
 
-from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError
+from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
 ARM_KINDS = ("ur_rtde", "fake", "sim")
 GATE_KINDS = ("serial", "sim", "fake")
 GRID_ORDERS = ("spread", "rows", "list")
-N_GRID_X = N_GRID_Y = 15  # the paper's 15 x 15 grid of press points on the 8 cm piece
+N_GRID_X = N_GRID_Y = GRID_N  # 15: the paper's 15 x 15 grid of press points on the 8 cm piece
 
 
 class ConfigError(ValueError):

@@ -35,6 +35,29 @@ def test_config_bounds_name_the_key(key, value):
         dataclasses.replace(ArmConfig(), **{key: value}).validate()
 
 
+@pytest.mark.parametrize("key,value", [
+    ("piece_yaw_rad", float("nan")), ("piece_yaw_rad", float("inf")), ("piece_yaw_rad", 4.0),
+    ("reconnect_attempts", 2.5), ("reconnect_attempts", True),
+])
+def test_yaw_is_finite_and_bounded_and_attempts_are_counts(key, value):
+    with pytest.raises(ArmConfigError, match=f"arm.{key} = {value!r}"):
+        dataclasses.replace(ArmConfig(), **{key: value}).validate()
+    assert ArmConfig(piece_yaw_rad=-math.pi / 2, reconnect_attempts=2).validate()
+
+
+@pytest.mark.parametrize("key", ["grid_step_x_mm", "grid_step_y_mm"])
+def test_a_grid_step_too_wide_for_the_piece_is_refused_naming_the_largest(key):
+    """10 mm steps are within the key's own bounds but the 15 x 15 grid would span 140 mm of an
+    80 mm piece; the error must come from validate(), not later from press_grid_mm."""
+    with pytest.raises(ArmConfigError, match=rf"arm.{key} = 10.0: .*140 mm.*80 mm piece.*at most 5.714 mm"):
+        ArmConfig(**{key: 10.0}).validate()
+    largest = ArmConfig(**{key: 80 / 14}).validate()  # exactly the piece: accepted, and usable
+    assert len(largest.grid_points_mm()) == 225
+    steps = {"grid_step_x_mm": 3.5, "grid_step_y_mm": 3.5, key: 4.9}  # a smaller piece: its largest step
+    with pytest.raises(ArmConfigError, match=rf"arm.{key} = 4.9: .*68.6 mm.*50 mm piece.*at most 3.571 mm"):
+        ArmConfig(piece_mm=50.0, **steps).validate()
+
+
 def test_config_cross_checks_and_unknown_keys():
     with pytest.raises(ArmConfigError, match="force_max_n"):
         ArmConfig(force_n=20.0, force_max_n=20.5).validate()

@@ -68,6 +68,29 @@ def test_each_problem_names_file_line_and_key(tmp_path, edit, line, words):
         assert f"{path}:{line}:" in msg
 
 
+@pytest.mark.parametrize("edit, words", [
+    ("grid_step_x_mm: 10", "devices.arm.grid_step_x_mm = 10: the 15 x 15 press grid would span 140 mm, more "
+                           "than the 80 mm piece (piece_mm); at most 5.714 mm"),
+    ("piece_yaw_rad: .nan", "devices.arm.piece_yaw_rad = nan: must be between"),
+    ("reconnect_attempts: 2.5", "devices.arm.reconnect_attempts = 2.5: must be a whole number"),
+])
+def test_arm_geometry_and_counts_are_refused_at_load_naming_the_line(tmp_path, edit, words, capsys):
+    """Each of these passed validate-config before; the grid one then crashed the daemon in
+    SceneSpec.from_config (press_grid_mm's ValueError)."""
+    path = write(tmp_path, GOOD.replace("    force_n: 15.0\n", f"    force_n: 15.0\n    {edit}\n"))
+    assert main(["validate-config", str(path)]) == 2
+    assert f"{path}:8: {words}" in capsys.readouterr().err
+
+
+def test_the_widest_grid_that_fits_loads_and_builds_the_scene(tmp_path):
+    from vs2t_edge.runtime.cell import SceneSpec
+
+    path = write(tmp_path, GOOD.replace("    force_n: 15.0\n", "    force_n: 15.0\n    grid_step_x_mm: 5.714\n"))
+    points = SceneSpec.from_config(load_config(path)).points_mm
+    xs = sorted({x for x, _ in points})
+    assert len(points) == 225 and xs[0] >= 0.0 and xs[-1] <= 80.0
+
+
 def test_all_problems_reported_at_once(tmp_path):
     text = GOOD.replace("threads: 1", "threads: 0").replace("max_presses: 6", "max_presses: 0")
     with pytest.raises(ConfigError) as info:
