@@ -748,48 +748,58 @@ def gate_reboot(w: Path):
 # --- journal rows ---------------------------------------------------------------------------
 
 def power_loss_mid_write(w: Path):
-    """The power goes while the pre_sort record is half written: on restart the torn tail is cut
-    and kept aside, and the open item gets exactly one final record (aborted, reject bin)."""
+    """The power goes while the pre_sort record is half written: the restarted cell (a new rig on
+    the same state folder, as the service restarts) cuts the torn tail on open and keeps it aside,
+    its recovery gives the open item exactly one final record (aborted, reject bin), and it sorts on."""
+    from vs2t_edge.runtime.journal import _encode
+
     w.mkdir(parents=True, exist_ok=True)
     rig = build_rig(w, ["denim", "silk"])
     rig.cell.run(max_items=1)
-    rig.cell.journal.close()
+    rig.cell.journal.close()  # every append was fsynced: what is on disk is what the power cut left
     # piece 2 started, then the power went mid pre_sort write
-    from vs2t_edge.runtime.journal import _encode
-
     line = _encode({"type": "item", "item": 2, "item_id": "piece-0001", "t": 0.0})
     torn = _encode({"type": "pre_sort", "item": 2, "item_id": "piece-0001", "label": "silk", "bin": 2})
+    torn_part = torn[: len(torn) // 2]
     with open(rig.journal_path, "ab") as f:
-        f.write(line + torn[: len(torn) // 2])
-    rig2 = build_rig(w / "restart", ["wool"])  # a fresh cell on the same journal
-    rig2.cell.journal.close()
+        f.write(line + torn_part)
+    good_size = rig.journal_path.stat().st_size - len(torn_part)
     problems: list[str] = []
-    j = Journal.open(rig.journal_path)
-    torn_bytes = j.torn_bytes  # already cut by the first reopen? count the .torn file instead
-    j.close()
-    from vs2t_edge.runtime.arm import FakeArm
-    rig3 = _reopen_rig(w, rig.journal_path, ["wool"])
-    run_rig(rig3)
+    rig2 = _reopen_rig(w, rig.journal_path, ["wool"])  # the restart: same journal, recover() ran
+    cut = rig2.cell.journal.torn_bytes
+    recovered = [r for r in read_records(rig.journal_path) if r.get("type") == "final"]
+    run_rig(rig2)
     a = audit(rig.journal_path, {"piece-0000": "denim", "piece-0001": "silk", "piece-0000b": "wool"})
     problems += a["problems"]
     kept = Path(str(rig.journal_path) + ".torn")
-    _check(problems, kept.exists() and kept.stat().st_size == len(torn) // 2,
-           f"torn bytes not kept aside in {kept.name}")
+    _check(problems, cut == len(torn_part), f"the restart's journal cut {cut} bytes, the torn tail was {len(torn_part)}")
+    _check(problems, kept.exists() and kept.read_bytes() == torn_part,
+           f"the torn bytes are not kept aside in {kept.name}")
+    data = rig.journal_path.read_bytes()
+    _check(problems, data.endswith(b"\n") and len(read_records(rig.journal_path)) == data.count(b"\n"),
+           "the journal still holds a partial or corrupt line")
+    _check(problems, not list(w.glob("run-*")), "the restart opened another journal")
     f2 = [r for r in a["finals"] if r["item"] == 2]
     _check(problems, len(f2) == 1 and f2[0]["outcome"] == "aborted" and f2[0]["bin"] == REJECT,
            f"open item 2 resolved as {f2}")
-    _check(problems, a["outcomes"].get("sorted", 0) == 2, f"outcomes {a['outcomes']}")
-    del torn_bytes, FakeArm
-    return _outcome_words(a, f"{kept.stat().st_size if kept.exists() else 0} torn bytes kept aside"), problems
+    _check(problems, [r["item"] for r in recovered] == [1, 2],
+           f"the restart's recovery (before any new piece) closed items {[r['item'] for r in recovered]}, wanted [1, 2]")
+    wool = [r for r in a["finals"] if r.get("item_id") == "piece-0000b"]
+    _check(problems, len(wool) == 1 and wool[0]["item"] == 3 and wool[0]["outcome"] == "sorted",
+           f"the piece after the restart: {wool}")
+    _check(problems, rig.journal_path.stat().st_size > good_size, "nothing was written after the restart")
+    return _outcome_words(a, f"restart cut {cut} torn bytes (kept aside), recovery aborted item 2 once, "
+                             "then sorted on"), problems
 
 
 def _reopen_rig(w: Path, journal_path: Path, truths: list[str]) -> Rig:
-    """A cell restarted on an existing journal (recover() runs in build_rig)."""
-    sub = w / f"run-{len(list(w.glob('run-*')))}"
-    sub.mkdir(parents=True)
-    (sub / "journal.jsonl").symlink_to(journal_path)
-    rig = build_rig(sub, truths)
-    for it in rig.pieces.items:  # distinct piece ids from the first run's
+    """The service restarted: a new cell on the same state folder, so the same journal file is
+    reopened (its torn tail cut) and recover() runs in build_rig. Piece ids get a "b" so that they
+    differ from the first run's."""
+    rig = build_rig(journal_path.parent, truths)
+    if rig.journal_path.resolve() != Path(journal_path).resolve():
+        raise AssertionError(f"the restarted rig opened {rig.journal_path}, not {journal_path}")
+    for it in rig.pieces.items:
         object.__setattr__(it, "id", it.id + "b")
     return rig
 
