@@ -413,12 +413,15 @@ def pressed_deformation(p: FabricParams, surface: Surface, x_mm: float, y_mm: fl
 
 
 def _render_fabric(args: tuple) -> tuple:
-    index, params, attrs, profile_name, seed = args
+    index, params, attrs, profile_name, seed, *rest = args
     prof = PROFILES[profile_name]
+    markers = rest[0] if rest else prof.markers
     p: FabricParams = params
     surface = Surface(p)
+    # Markers only darken the gel (no random draws), so switching them off leaves every other
+    # pixel of the world as it was: same seed, same fabrics, same presses, no dots.
     sensor = GelSight(width_px=prof.frame_px[0], height_px=prof.frame_px[1], mm_per_px=15.0 / prof.frame_px[0],
-                      markers=prof.markers)
+                      markers=markers)
     rng = np.random.default_rng([seed, index, 7])
     bg = background(sensor, seed=seed * 1000 + index)
     reference = reference_frame(bg, sensor, rng)
@@ -453,13 +456,17 @@ def fabric_name(i: int, p: FabricParams) -> str:
 
 
 def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: bool = True,
-             n_fabrics: int | None = None, workers: int | None = None) -> Path:
-    """Write a fabric-world dataset (docs/dataset.md) to ``root``; deterministic from ``seed``."""
+             n_fabrics: int | None = None, workers: int | None = None, markers: bool = True) -> Path:
+    """Write a fabric-world dataset (docs/dataset.md) to ``root``; deterministic from ``seed``.
+
+    ``markers=False`` renders the GelSight frames without marker dots (a sensor with an unmarked
+    gel); everything else is the same world as with markers."""
     if profile not in PROFILES:
         raise ValueError(f"unknown profile '{profile}'; choose one of {sorted(PROFILES)}")
     prof = PROFILES[profile]
     if n_fabrics is not None:
         prof = replace(prof, n_fabrics=int(n_fabrics))
+    markers = bool(markers and prof.markers)
     root = Path(root)
     world = draw_world(prof.n_fabrics, seed)
     label_rng = np.random.default_rng([seed, 99])
@@ -467,11 +474,14 @@ def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: 
     w, h = prof.frame_px
     geometry = SensorGeometry(frame_width_px=w, frame_height_px=h, field_width_mm=15.0,
                               field_height_mm=round(15.0 * h / w, 4), camera_image_px=prof.camera_px)
-    write_dataset_meta(root, geometry, {"generator": "vs2t-edge fabric world (sim/synth.py)", "profile": profile,
-                                        "seed": seed, "n_fabrics": prof.n_fabrics, "grid": list(prof.grid)})
+    provenance = {"generator": "vs2t-edge fabric world (sim/synth.py)", "profile": profile,
+                  "seed": seed, "n_fabrics": prof.n_fabrics, "grid": list(prof.grid)}
+    if not markers:  # recorded only when off, so a default world's dataset.yaml stays byte-identical
+        provenance["markers"] = False
+    write_dataset_meta(root, geometry, provenance)
     ids = [f"f{i:02d}" for i in range(len(world))]
     names = [fabric_name(i, p) for i, p in enumerate(world)]
-    jobs = [(i, p, a, profile, seed) for i, (p, a) in enumerate(zip(world, attrs))]
+    jobs = [(i, p, a, profile, seed, markers) for i, (p, a) in enumerate(zip(world, attrs))]
     start = time.monotonic()
     n_workers = workers if workers is not None else min(2, len(jobs))
     done = 0

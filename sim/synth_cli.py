@@ -18,6 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fabrics", type=int, default=None, help="override the profile's number of fabrics")
     parser.add_argument("--workers", type=int, default=None, help="processes (default: 2)")
+    parser.add_argument("--no-markers", dest="markers", action="store_false",
+                        help="render the GelSight frames without marker dots (an unmarked gel); "
+                             "the world is otherwise the same as with markers")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -26,13 +29,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"synth: {out} exists and is not empty; choose a new folder", file=sys.stderr)
         return 2
     t0 = time.monotonic()
-    generate(out, args.profile, seed=args.seed, n_fabrics=args.fabrics, workers=args.workers)
+    generate(out, args.profile, seed=args.seed, n_fabrics=args.fabrics, workers=args.workers, markers=args.markers)
     try:
         ds = validate_dataset(out, deep=False)
     except DatasetError as exc:  # would be a bug in the world: say so loudly
         print(f"synth: the generated dataset does not validate:\n{exc}", file=sys.stderr)
         return 1
     n = sum(len(f.presses) for f in ds.fabrics)
-    print(f"{out}: {len(ds.fabrics)} fabrics, {n} presses ({args.profile}, seed {args.seed}) "
+    print(f"{out}: {len(ds.fabrics)} fabrics, {n} presses ({args.profile}, seed {args.seed}"
+          f"{'' if args.markers else ', no markers'}) "
           f"in {time.monotonic() - t0:.1f} s")
     return 0

@@ -7,6 +7,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -14,7 +15,7 @@ from vs2t_edge.cli import main
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS
 from vs2t_edge.runtime.dataset import load_dataset, validate_dataset
 from vs2t_edge.sim import synth
-from vs2t_edge.sim.gelsight import GelSight
+from vs2t_edge.sim.gelsight import GelSight, marker_mask
 
 
 def _digest(root: Path) -> str:
@@ -45,6 +46,40 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tiny, tmp_path):
     other = synth.generate(tmp_path / "other", "tiny", seed=4, progress=False, n_fabrics=4, workers=1)
     assert _digest(again) == _digest(tiny)
     assert _digest(other) != _digest(tiny)
+
+
+def _dark_dots(image: np.ndarray) -> int:
+    """Marker-sized dark blobs: pixels 20 % darker than their 11-px median neighbourhood."""
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    dark = (gray < 0.8 * cv2.medianBlur(gray, 11).astype(np.float32)).astype(np.uint8)
+    return cv2.connectedComponents(dark)[0] - 1
+
+
+def test_no_markers_renders_the_same_world_without_dots(tiny, tmp_path, capsys):
+    """`vs2t-edge synth --no-markers`: the reference frames have no marker dots, and every pixel
+    away from the markers is the same as in the default world of the same seed (which keeps its
+    dots and its dataset.yaml without a 'markers' key)."""
+    out = tmp_path / "plain"
+    assert main(["synth", str(out), "--profile", "tiny", "--fabrics", "4", "--seed", "3", "--workers", "1",
+                 "--no-markers"]) == 0
+    assert "no markers" in capsys.readouterr().out
+    with_dots, without = load_dataset(tiny), validate_dataset(out, deep=True)
+    assert without.meta["provenance"]["markers"] is False and "markers" not in with_dots.meta["provenance"]
+    g = with_dots.geometry
+    mask = marker_mask(GelSight(width_px=g.frame_width_px, height_px=g.frame_height_px,
+                                mm_per_px=15.0 / g.frame_width_px), np.random.default_rng(0))
+    expected_dots = len(np.arange(0.9, 15.0, 1.8)) * len(np.arange(0.9, 15.0 * 120 / 160, 1.8))  # 1.8 mm pitch
+    for a, b in zip(with_dots.fabrics, without.fabrics):
+        ref_a, ref_b = a.load_reference(), b.load_reference()
+        assert _dark_dots(ref_a) == expected_dots and _dark_dots(ref_b) == 0, a.name
+        changed = np.any(ref_a != ref_b, axis=-1)
+        assert changed.any() and np.all(mask[changed] > 0), a.name  # only marker pixels differ
+        centres = mask > 0.5
+        assert ref_a[centres].mean() < 0.8 * ref_b[centres].mean()  # where the dots were, now plain gel
+        for k in range(len(a.presses)):
+            same = np.all(a.load_press(k) == b.load_press(k), axis=-1).mean()
+            assert same > 0.75, (a.name, k, same)  # the presses are the same fabric, markers aside
+        assert np.array_equal(a.load_camera(), b.load_camera())
 
 
 def _press(p: synth.FabricParams, force_n: float = 15.0) -> np.ndarray:
