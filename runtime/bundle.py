@@ -36,9 +36,42 @@ from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 FORMAT = "vs2t-bundle"
 FORMAT_VERSION = 1
-# Opsets this runtime accepts for the default ONNX domain. 17 is the oldest the exporter writes
-# (LayerNormalization, current QDQ ops); the upper bound is what onnxruntime 1.17+ executes.
-MIN_OPSET, MAX_OPSET = 17, 21
+# Opsets this runtime accepts for the default ONNX domain (ai.onnx).
+# MIN_OPSET: the oldest any exporter of this project wrote (17, before the move to 20; those
+# bundles still load). MAX_OPSET: the newest opset the INSTALLED onnxruntime implements. ONNX
+# Runtime's compatibility docs (onnxruntime.ai/docs/reference/compatibility.html and
+# docs/Versioning.md, "Version matrix") say a release implements the opsets of the ONNX release it
+# is built on, and runs every model stamped with an opset from 7 up to that one; the release's
+# CPU kernel registry (get_all_opkernel_def) lists each kernel from the opset that introduced its
+# current version, so its highest default-domain version is that opset (28 for onnxruntime 1.32;
+# never above it, so never too generous). Without the registry: 20, what onnxruntime 1.17 - the
+# oldest pyproject.toml allows - implements per that matrix.
+MIN_OPSET = 17
+ORT_FLOOR_OPSET = 20
+
+
+def onnxruntime_max_opset() -> int:
+    """The newest ai.onnx opset the installed onnxruntime implements (see MAX_OPSET above)."""
+    try:
+        from onnxruntime.capi import onnxruntime_pybind11_state as _ort
+
+        versions = [int(k.version_range[0]) for k in _ort.get_all_opkernel_def()
+                    if k.domain in ("", "ai.onnx") and k.provider == "CPUExecutionProvider"]
+    except Exception:  # no onnxruntime here, or a build without the registry call: the documented floor
+        return ORT_FLOOR_OPSET
+    return max([ORT_FLOOR_OPSET, *versions])
+
+
+MAX_OPSET = onnxruntime_max_opset()
+
+
+def _ort_version() -> str:
+    try:
+        import onnxruntime
+
+        return onnxruntime.__version__
+    except ImportError:
+        return "(not installed)"
 MANIFEST = "manifest.json"
 # The manifest's own digest, kept inside it. It catches corruption and hand edits; it is not a
 # signature - whoever can rewrite the folder can recompute it (docs/bundle.md, "What the hashes prove").
@@ -383,9 +416,13 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
         declared = _int(_need(manifest, root, "graphs", key, "opset"), root, f"graphs.{key}.opset", 1, 1000)
         if ops[""] != declared:
             raise BundleError(root, f"{path.name}: opset {ops['']}, the manifest says {declared}")
-        if not MIN_OPSET <= ops[""] <= MAX_OPSET:
-            raise BundleError(root, f"{path.name}: opset {ops['']} outside what this runtime runs "
-                                    f"({MIN_OPSET}..{MAX_OPSET})")
+        if ops[""] < MIN_OPSET:
+            raise BundleError(root, f"{path.name}: opset {ops['']} is older than this runtime accepts "
+                                    f"({MIN_OPSET}..{MAX_OPSET}); re-export the run with this version's exporter")
+        if ops[""] > MAX_OPSET:
+            raise BundleError(root, f"{path.name}: opset {ops['']} is newer than the installed onnxruntime "
+                                    f"{_ort_version()} implements (up to {MAX_OPSET}); upgrade onnxruntime "
+                                    "or re-export with an older opset")
         for section in ("inputs", "outputs"):
             _shapes(g.get(section), root, f"graphs.{key}.{section}")
         opsets[key] = ops
@@ -519,6 +556,6 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"{n} class names in the manifest")
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
+__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
            "read_manifest", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]

@@ -107,9 +107,66 @@ def test_format_version_mismatch_is_refused(bundle_copy):
 
 
 def test_opset_mismatch_is_refused(bundle_copy):
-    _edit(bundle_copy, lambda m: m["graphs"]["trunk"].__setitem__("opset", 18))
-    with pytest.raises(rb.BundleError, match=r"trunk\.onnx: opset 17, the manifest says 18"):
+    real = rb.read_onnx_opsets(bundle_copy / "trunk.onnx")[""]
+    _edit(bundle_copy, lambda m: m["graphs"]["trunk"].__setitem__("opset", real + 1))
+    with pytest.raises(rb.BundleError, match=rf"trunk\.onnx: opset {real}, the manifest says {real + 1}"):
         TactileModel.load(bundle_copy)
+
+
+def _stamp_opset(b, version):
+    """trunk.onnx re-stamped with another ai.onnx opset, hash and manifest updated to match (as an
+    exporter of that opset would have written it): only the opset range can refuse it."""
+    import onnx
+
+    model = onnx.load(str(b / "trunk.onnx"))
+    for imp in model.opset_import:
+        if imp.domain in ("", "ai.onnx"):
+            imp.version = version
+    onnx.save(model, str(b / "trunk.onnx"))
+
+    def declare(m):
+        m["graphs"]["trunk"]["opset"] = version
+        m["files"]["trunk.onnx"] = rb.sha256_file(b / "trunk.onnx")
+    _edit(b, declare)
+
+
+def test_export_opset_is_within_what_the_installed_onnxruntime_runs():
+    """MAX_OPSET comes from the installed onnxruntime's kernel registry (1.32: 28), the exporter's
+    opset (the newest torch's TorchScript exporter writes) is inside the accepted range, and the
+    documented floor (onnxruntime 1.17, the oldest pyproject allows, implements 20) covers it."""
+    import onnxruntime
+
+    export = pytest.importorskip("vs2t_edge.export.export")
+    assert rb.MAX_OPSET == rb.onnxruntime_max_opset() >= rb.ORT_FLOOR_OPSET
+    if tuple(int(v) for v in onnxruntime.__version__.split(".")[:2]) >= (1, 32):
+        assert rb.MAX_OPSET >= 28
+    assert rb.MIN_OPSET <= export.OPSET <= rb.ORT_FLOOR_OPSET <= rb.MAX_OPSET
+    assert rb.read_onnx_opsets(shared_bundle("fp32") / "trunk.onnx")[""] == export.OPSET
+
+
+def test_opset_newer_than_onnxruntime_is_refused_with_the_reason(bundle_copy):
+    _stamp_opset(bundle_copy, rb.MAX_OPSET + 1)
+    with pytest.raises(rb.BundleError, match=rf"trunk\.onnx: opset {rb.MAX_OPSET + 1} is newer than the installed "
+                                             rf"onnxruntime .* implements \(up to {rb.MAX_OPSET}\); upgrade"):
+        TactileModel.load(bundle_copy)
+
+
+def test_opset_older_than_accepted_is_refused_with_the_reason(bundle_copy):
+    _stamp_opset(bundle_copy, rb.MIN_OPSET - 1)
+    with pytest.raises(rb.BundleError, match=rf"trunk\.onnx: opset {rb.MIN_OPSET - 1} is older than this runtime "
+                                             r"accepts .*re-export"):
+        TactileModel.load(bundle_copy)
+
+
+def test_committed_opset_17_bundle_still_loads():
+    """tests/replays/bundle was exported at opset 17, before the exporter moved to 20; it is not
+    re-exported (replay outcomes depend on it) and must keep loading."""
+    from pathlib import Path
+
+    b = Path(__file__).parent / "replays" / "bundle"
+    assert rb.read_onnx_opsets(b / "trunk.onnx")[""] == 17
+    model = TactileModel.load(b, threads=1)
+    assert max(model.probe_errors.values()) <= 1e-3
 
 
 def test_shape_mismatch_is_refused(bundle_copy):
