@@ -12,8 +12,10 @@ Three implementations of :class:`vs2t_edge.runtime.devices.TactileCamera`:
   truncated, timeout) are injectable.
 
 Every grab goes through one guard: ``check_frame`` from the runtime (dtype, size, NaN, black,
-white, saturated) and frozen-frame detection (the same frame N times in a row: a hung driver
-hands out its last buffer again; a live sensor's noise never repeats bit for bit). The count
+white, saturated) and frozen-frame detection (the same frame ``frozen_after`` times in a row: a
+hung driver hands out its last buffer again; a live sensor's noise never repeats bit for bit).
+The default, 2, raises ``CameraFrozen`` at the first frame identical to the one before it, so a
+frozen frame is never handed to the model (config ``devices.camera.frozen_after``). The count
 goes on across a reconnect of a live or simulated camera (the cell reopens the camera before
 retrying a camera fault): a frozen image that survives a reopen is still frozen.
 Faults are ``CameraError(kind=...)`` with kind one of: unplugged, timeout, frozen, ended, corrupt.
@@ -34,10 +36,11 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from vs2t_edge.runtime.devices import CameraError, Frame, NotConnectedError
+from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
 from vs2t_edge.runtime.preprocess import FrameError, check_frame
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+FROZEN_AFTER = 2  # identical consecutive frames that are a frozen camera: the first repeat
 
 
 class _FrameGuard:
@@ -66,8 +69,9 @@ class _FrameGuard:
         if self._last is not None and image.shape == self._last.shape and np.array_equal(image, self._last):
             self._repeats += 1
             if self._repeats >= self.frozen_after:
-                raise CameraError(f"{self.name}: the same frame {self._repeats} times in a row; "
-                                  "the camera is frozen", device=self.name, kind="frozen")
+                raise CameraFrozen(f"{self.name}: the same frame {self._repeats} times in a row (bit for bit; "
+                                   "a live sensor's noise never repeats); the camera is frozen",
+                                   device=self.name, kind="frozen")
         else:
             self._repeats = 1
         self._last = image
@@ -94,17 +98,23 @@ class UVCCamera(_CameraBase):
 
     def __init__(self, device: int | str = 0, *, width: int | None = None, height: int | None = None,
                  fps: float | None = None, exposure: float | None = None, read_timeout_s: float = 1.0,
-                 frozen_after: int = 5, flush_frames: int = 2, expected_hw: tuple[int, int] | None = None,
-                 api_preference: int = cv2.CAP_ANY) -> None:
+                 frozen_after: int = FROZEN_AFTER, flush_frames: int = 2, buffer_size: int | None = 1,
+                 expected_hw: tuple[int, int] | None = None, api_preference: int = cv2.CAP_ANY) -> None:
         if read_timeout_s <= 0:
             raise ValueError("read_timeout_s must be positive")
         if flush_frames < 0:
             raise ValueError("flush_frames must be >= 0")
+        if buffer_size is not None and buffer_size < 1:
+            raise ValueError("buffer_size must be >= 1 (or None: the driver's default)")
         self.device = device
         self.name = f"camera {device}"
         self.requested = {"width": width, "height": height, "fps": fps, "exposure": exposure}
         self.read_timeout_s = read_timeout_s
         self.flush_frames = flush_frames  # V4L2 queues a few buffers: drop those taken before the press
+        # V4L2 queues 4 buffers by default: at 30 fps a grab could return a frame 130 ms old, taken
+        # before the gel settled. One buffer (CAP_PROP_BUFFERSIZE, honoured by the V4L2 backend)
+        # bounds that to one frame, which flush_frames then drops.
+        self.buffer_size = buffer_size
         self.api_preference = api_preference
         self.settings_applied: dict[str, float | None] = {}
         self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
@@ -130,6 +140,9 @@ class UVCCamera(_CameraBase):
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)
             cap.set(cv2.CAP_PROP_EXPOSURE, float(req["exposure"]))
             applied["exposure"] = cap.get(cv2.CAP_PROP_EXPOSURE)
+        if self.buffer_size is not None:
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, float(self.buffer_size))
+            applied["buffersize"] = cap.get(cv2.CAP_PROP_BUFFERSIZE) or None  # 0: backend ignores it
         self.settings_applied = applied
         self._cap = cap
         # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
@@ -193,7 +206,7 @@ def _list_images(source: str | Path) -> list[Path]:
 class ReplayCamera(_CameraBase):
     """Recorded frames through the camera interface: a video file, an image folder or a glob."""
 
-    def __init__(self, source: str | Path, *, loop: bool = False, frozen_after: int = 5,
+    def __init__(self, source: str | Path, *, loop: bool = False, frozen_after: int = FROZEN_AFTER,
                  expected_hw: tuple[int, int] | None = None) -> None:
         self.source = str(source)
         self.name = f"replay {Path(self.source).name}"
@@ -289,7 +302,7 @@ class SimulatedCamera(_CameraBase):
     FAULTS = ("unplugged", "frozen", "black", "truncated", "timeout")
 
     def __init__(self, frame_fn: Callable[[], np.ndarray], *, noise_levels: float = 1.0, seed: int = 0,
-                 frozen_after: int = 5, expected_hw: tuple[int, int] | None = None) -> None:
+                 frozen_after: int = FROZEN_AFTER, expected_hw: tuple[int, int] | None = None) -> None:
         self.frame_fn = frame_fn
         self.name = "simulated camera"
         self.noise_levels = noise_levels
@@ -309,6 +322,10 @@ class SimulatedCamera(_CameraBase):
         if kind not in self.FAULTS:
             raise ValueError(f"unknown camera fault {kind!r}; known: {self.FAULTS}")
         self._faults.extend([kind] * count)
+
+    def clear_faults(self) -> None:
+        """Drop the faults still queued (the operator power-cycles the sensor)."""
+        self._faults.clear()
 
     def unplug(self, failed_connects: int | None = None) -> None:
         """The cable comes out now: disconnected; back after ``failed_connects`` failed
@@ -383,6 +400,22 @@ class SimulatedCamera(_CameraBase):
 
 
 SceneCamera = SimulatedCamera  # the name the cell's simulated scene uses
+
+
+def camera_from_config(cam: dict):
+    """The live camera a config's ``devices.camera`` section describes (kind uvc or replay).
+
+    ``cam`` is ``CellConfig.camera`` (validated by runtime/config.py, bounds in docs/cell.md);
+    kind ``sim`` is built by the simulated cell, not here.
+    """
+    if cam["kind"] == "uvc":
+        dev = cam["device"]
+        return UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
+                         fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"],
+                         flush_frames=cam["flush_frames"], frozen_after=cam["frozen_after"])
+    if cam["kind"] == "replay":
+        return ReplayCamera(cam["path"], frozen_after=cam["frozen_after"])
+    raise ValueError(f"devices.camera.kind = {cam['kind']!r}: built by the simulated cell, not from a config")
 
 
 # --- contact --------------------------------------------------------------------------------

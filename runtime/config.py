@@ -47,8 +47,15 @@ class ConfigError(ValueError):
 REQUIRED = object()
 
 
-def _leaf(kind: str, default: Any, bounds: Any = None, help_text: str = "") -> dict:
-    return {"__leaf__": True, "kind": kind, "default": default, "bounds": bounds, "help": help_text}
+def _leaf(kind: str, default: Any, bounds: Any = None, help_text: str = "", why: str = "") -> dict:
+    """``why``: said after an out-of-bounds error, when the bound is not obvious from the key."""
+    return {"__leaf__": True, "kind": kind, "default": default, "bounds": bounds, "help": help_text, "why": why}
+
+
+# systemd/vs2t-edge.service's WatchdogSec. A press grabs once and, after a camera fault, once more;
+# the loop pings between presses, so 2 x the frame timeout plus the arm's moves must stay well under it.
+SYSTEMD_WATCHDOG_S = 30.0
+CAMERA_TIMEOUT_MAX_S = 10.0
 
 
 _ARM_PRESS_KEYS = {name: f for name, f in ArmConfig.__dataclass_fields__.items() if name != "host"}
@@ -71,7 +78,13 @@ _SCHEMA: dict[str, Any] = {
             # exposure keeps frames comparable with the no-contact reference across a shift.
             "exposure": _leaf("optfloat", None, (1.0, 10000.0),
                               "uvc: manual exposure, V4L2 units of 100 us (absent: auto exposure)"),
-            "timeout_s": _leaf("float", 2.0, (0.05, 60.0), "longest wait for one frame"),
+            "timeout_s": _leaf("float", 2.0, (0.05, CAMERA_TIMEOUT_MAX_S), "longest wait for one frame",
+                               why=f"a hung grab must become a latched camera fault, not a kill by systemd's "
+                                   f"WatchdogSec={SYSTEMD_WATCHDOG_S:g} s (a press and its retry each wait this long)"),
+            "flush_frames": _leaf("int", 2, (0, 30),
+                                  "uvc: buffered frames dropped before each grab (taken before the press settled)"),
+            "frozen_after": _leaf("int", 2, (2, 100),
+                                  "identical consecutive frames that are a frozen-camera fault (2: the first repeat)"),
             "path": _leaf("optpath", None, None, "replay: replay file; sim: dataset folder"),
             # Is the gel really pressed? (runtime/camera.py ContactCheck against the item's no-contact
             # frame.) auto = on for a live sensor, off for replay and simulated frames, whose rendered
@@ -310,7 +323,8 @@ class _Checker:
         if bounds is not None and kind in ("float", "optfloat", "int"):
             lo, hi = bounds
             if not lo <= value <= hi:
-                self.err(key, f"{key} = {value!r}: must be between {lo} and {hi}")
+                why = f" ({spec['why']})" if spec.get("why") else ""
+                self.err(key, f"{key} = {value!r}: must be between {lo} and {hi}{why}")
         elif bounds is not None and kind == "str" and value not in bounds:
             self.err(key, f"{key} = {value!r}: must be one of {', '.join(bounds)}")
         return value

@@ -41,6 +41,11 @@ class CameraError(DeviceError):
     retryable = True
 
 
+class CameraFrozen(CameraError):
+    """The frame repeats the previous one bit for bit (kind ``frozen``): the driver handed out its
+    last buffer again. Never scored; retried once after a reopen like any camera fault."""
+
+
 @dataclass(frozen=True)
 class Frame:
     image: np.ndarray  # HxWx3 uint8, BGR as OpenCV delivers it

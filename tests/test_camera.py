@@ -67,9 +67,9 @@ def test_replay_loops(video):
 
 
 def test_uvc_camera_through_videocapture_on_a_path(video):
-    # A file path exercises the same cv2.VideoCapture code a /dev/video path does.
-    with UVCCamera(str(video), width=W, height=H, flush_frames=0, read_timeout_s=2.0) as cam:
-        assert cam.settings_applied["width"] == W and cam.settings_applied["height"] == H
+    # A file path exercises the same cv2.VideoCapture read path a /dev/video path does (a file
+    # ignores size, fps, exposure and buffer settings: those are tested with _RecordingCapture).
+    with UVCCamera(str(video), flush_frames=0, read_timeout_s=2.0) as cam:
         first = cam.grab()
         assert np.abs(first.image.astype(int) - _pattern(0)).mean() < 4.0
         for _ in range(9):
@@ -83,6 +83,97 @@ def test_uvc_flush_drops_buffered_frames(video):
     with UVCCamera(str(video), flush_frames=2) as cam:
         image = cam.grab().image
     assert np.abs(image.astype(int) - _pattern(2)).mean() < 4.0  # frames 0 and 1 were stale
+
+
+class _RecordingCapture:
+    """A cv2.VideoCapture for a UVC driver: records every set(), answers get() with what the
+    driver accepted (it clamps the frame rate and rounds the exposure, as V4L2 drivers do),
+    and counts grab()/read() calls. Frames carry sensor noise unless ``frozen``."""
+
+    instances: list = []
+
+    def __init__(self, device, api=None):
+        self.device, self.api = device, api
+        self.sets: list[tuple[int, float]] = []
+        self.props = {cv2.CAP_PROP_FRAME_WIDTH: 640.0, cv2.CAP_PROP_FRAME_HEIGHT: 480.0, cv2.CAP_PROP_FPS: 30.0,
+                      cv2.CAP_PROP_EXPOSURE: 0.0, cv2.CAP_PROP_BUFFERSIZE: 4.0}
+        self.grabs = self.reads = 0
+        self.frozen = False
+        self._rng = np.random.default_rng(0)
+        self._frame = None
+        _RecordingCapture.instances.append(self)
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        self.sets.append((prop, value))
+        if prop == cv2.CAP_PROP_FPS:
+            value = min(value, 30.0)  # the sensor's top rate
+        elif prop == cv2.CAP_PROP_EXPOSURE:
+            value = float(round(value / 10) * 10)  # the driver's exposure step
+        self.props[prop] = value
+        return True
+
+    def get(self, prop):
+        return self.props.get(prop, 0.0)
+
+    def grab(self):
+        self.grabs += 1
+        return True
+
+    def read(self):
+        self.reads += 1
+        if self._frame is None or not self.frozen:
+            h, w = int(self.props[cv2.CAP_PROP_FRAME_HEIGHT]), int(self.props[cv2.CAP_PROP_FRAME_WIDTH])
+            self._frame = self._rng.integers(90, 130, (h, w, 3), dtype=np.uint8)
+        return True, self._frame.copy()
+
+    def release(self):
+        pass
+
+
+@pytest.fixture
+def recording_capture(monkeypatch):
+    _RecordingCapture.instances = []
+    monkeypatch.setattr(cv2, "VideoCapture", _RecordingCapture)
+    return _RecordingCapture.instances
+
+
+def test_uvc_settings_reach_the_driver_and_what_it_accepted_is_read_back(recording_capture):
+    with UVCCamera("/dev/video2", width=320, height=240, fps=60.0, exposure=156.0, flush_frames=3) as cam:
+        cap = recording_capture[0]
+        assert cap.device == "/dev/video2"
+        assert dict(cap.sets) == {cv2.CAP_PROP_FRAME_WIDTH: 320.0, cv2.CAP_PROP_FRAME_HEIGHT: 240.0,
+                                  cv2.CAP_PROP_FPS: 60.0, cv2.CAP_PROP_AUTO_EXPOSURE: 1,
+                                  cv2.CAP_PROP_EXPOSURE: 156.0, cv2.CAP_PROP_BUFFERSIZE: 1.0}
+        # manual exposure is switched on before the exposure is written, or the driver ignores it
+        props = [prop for prop, _ in cap.sets]
+        assert props.index(cv2.CAP_PROP_AUTO_EXPOSURE) < props.index(cv2.CAP_PROP_EXPOSURE)
+        assert cam.settings_applied == {"width": 320.0, "height": 240.0, "fps": 30.0, "exposure": 160.0,
+                                        "buffersize": 1.0}
+        image = cam.grab().image
+        assert image.shape == (240, 320, 3)
+        assert (cap.grabs, cap.reads) == (3, 1)  # the buffered frames were dropped before the read
+        cam.grab()
+        assert (cap.grabs, cap.reads) == (6, 2)
+
+
+def test_uvc_without_settings_leaves_the_driver_alone_but_the_buffer(recording_capture):
+    with UVCCamera(0):
+        cap = recording_capture[0]
+    assert cap.sets == [(cv2.CAP_PROP_BUFFERSIZE, 1.0)]  # size, fps, auto exposure: the driver's own
+
+
+def test_a_frozen_uvc_stream_is_a_fault_at_the_first_repeated_frame(recording_capture):
+    from vs2t_edge.runtime.devices import CameraFrozen
+
+    with UVCCamera(0, flush_frames=0) as cam:
+        cam.grab()
+        recording_capture[0].frozen = True  # the driver hands out its last buffer again
+        with pytest.raises(CameraFrozen) as exc:
+            cam.grab()
+    assert exc.value.kind == "frozen" and exc.value.retryable and "2 times in a row" in str(exc.value)
 
 
 def test_uvc_missing_device_is_unplugged(tmp_path):
@@ -121,6 +212,21 @@ def test_expected_size_enforced(video):
         with pytest.raises(CameraError) as exc:
             cam.grab()
     assert exc.value.reason == "size"
+
+
+def test_the_default_threshold_refuses_the_first_repeated_frame():
+    """A live sensor never gives two bit-identical frames: the first repeat is a frozen camera,
+    so no frozen frame reaches the model (the cell scores every frame grab() returns)."""
+    from vs2t_edge.runtime.devices import CameraFrozen
+
+    cam = SimulatedCamera(lambda: _pattern(0))
+    cam.connect()
+    fresh = [cam.grab() for _ in range(20)]  # noisy frames of one press are all admitted
+    assert len({f.image.tobytes() for f in fresh}) == 20
+    cam.inject("frozen", 1)
+    with pytest.raises(CameraFrozen, match="2 times in a row"):
+        cam.grab()
+    cam.grab()
 
 
 def test_simulated_camera_faults():
@@ -262,6 +368,29 @@ def _cell_config(tmp_path, camera_extra: str):
     return path, lambda: load_config(path)
 
 
+def test_capture_settings_from_the_config_reach_the_camera(tmp_path):
+    from vs2t_edge.runtime.camera import camera_from_config
+
+    _, load = _cell_config(tmp_path, "    timeout_s: 4.5\n    flush_frames: 5\n    frozen_after: 3\n")
+    camera = camera_from_config(load().camera)
+    assert isinstance(camera, UVCCamera) and camera.device == "/dev/video2" and camera.buffer_size == 1
+    assert (camera.read_timeout_s, camera.flush_frames, camera._guard.frozen_after) == (4.5, 5, 3)
+    _, load = _cell_config(tmp_path, "")
+    camera = camera_from_config(load().camera)
+    assert (camera.read_timeout_s, camera.flush_frames, camera._guard.frozen_after) == (2.0, 2, 2)  # defaults
+
+
+def test_the_frame_timeout_stays_below_the_units_watchdog():
+    """A hung grab (and its retry) must become a latched camera fault, not a SIGABRT from
+    systemd: the bound on devices.camera.timeout_s is checked against the unit file."""
+    from vs2t_edge.runtime.config import _SCHEMA
+
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "vs2t-edge.service").read_text()
+    watchdog_s = float(next(line.split("=", 1)[1] for line in unit.splitlines() if line.startswith("WatchdogSec=")))
+    _lo, hi = _SCHEMA["devices"]["camera"]["timeout_s"]["bounds"]
+    assert 2 * hi < watchdog_s, (hi, watchdog_s)
+
+
 def test_exposure_from_the_config_reaches_the_uvc_camera(tmp_path):
     from vs2t_edge.runtime.daemon import build_live_devices
 
@@ -282,6 +411,11 @@ def test_exposure_from_the_config_reaches_the_uvc_camera(tmp_path):
     ("    exposure: 20000\n", "devices.camera.exposure = 20000.0: must be between 1.0 and 10000.0"),
     ("    exposure: auto\n", "devices.camera.exposure = 'auto': must be a number"),
     ("    exposure_ms: 15\n", "devices.camera.exposure_ms: unknown key"),
+    ("    timeout_s: 45\n", "devices.camera.timeout_s = 45.0: must be between 0.05 and 10.0 (a hung grab must "
+                          "become a latched camera fault, not a kill by systemd's WatchdogSec=30 s"),
+    ("    flush_frames: -1\n", "devices.camera.flush_frames = -1: must be between 0 and 30"),
+    ("    flush_frames: 1.5\n", "devices.camera.flush_frames = 1.5: must be a whole number"),
+    ("    frozen_after: 1\n", "devices.camera.frozen_after = 1: must be between 2 and 100"),
 ])
 def test_a_bad_exposure_names_file_line_and_key(tmp_path, extra, words):
     from vs2t_edge.runtime.config import ConfigError
