@@ -1,7 +1,9 @@
 """`vs2t-edge reliability`: run the fault matrix (sim/faults.py) and write docs/reliability.md.
 
-The table's numbers are measured on this run; the prose around it (soak, fuzzing, security) is
-read from the last soak JSON (``--soak-json``, written by ``python -m vs2t_edge.sim.soak``).
+The table's numbers are measured on this run; the soak section is read from the last soak JSON
+(``--soak-json``, written by ``python -m vs2t_edge.sim.soak``); the hand-written prose (what the
+rows do, bugs found, fuzzing, security: what is enforced and which test checks it) comes from
+sim/reliability_template.md.
 """
 
 from __future__ import annotations

@@ -61,7 +61,9 @@ def test_reliability_cli_writes_the_table(tmp_path, capsys):
     row2 = next(line for line in text.splitlines() if line.startswith("| 2 | `bundle_tampered` | bundle |"))
     assert row2.endswith(" |") and "| PASS |" in row2, row2  # really run, not pending
     # the template's hand-written sections survive regeneration, in their places
-    assert text.index("## Bugs found and fixed") < text.index("## Fault matrix") < text.index("## Fuzzing")
+    assert (text.index("## Bugs found and fixed") < text.index("## Fault matrix") < text.index("## Fuzzing")
+            < text.index("## Security"))
+    assert "systemd-analyze security --offline=true" in text  # the command that measures the score
     assert "<!--" not in text
     assert faults_cli.run(p.parse_args(["--only", "no_such_row"])) == 2
     assert "unknown scenario" in capsys.readouterr().err
@@ -112,3 +114,19 @@ def test_the_hostile_python_tag_would_be_caught(tmp_path):
     text = faults.HOSTILE_CONFIGS["python object tag"].replace("@MARK@", str(mark))
     yaml.unsafe_load(text)
     assert mark.exists()
+
+
+def test_the_security_section_names_tests_that_exist():
+    """Every test the report's Security section cites as the check of a promise is a real test."""
+    import re
+    from pathlib import Path
+
+    from vs2t_edge.sim import faults_cli
+
+    text = Path(faults_cli.__file__).with_name("reliability_template.md").read_text()
+    section = text[text.index("## Security"):]
+    named = set(re.findall(r"\b(test_\w+)(?!\w|\.py)", section))  # not the module names
+    assert len(named) >= 10, named
+    tests = Path(__file__).parent
+    defined = {m for f in tests.glob("test_*.py") for m in re.findall(r"^def (test_\w+)", f.read_text(), re.M)}
+    assert named <= defined, sorted(named - defined)
