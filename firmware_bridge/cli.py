@@ -1,10 +1,13 @@
-"""Hand commands for the gate: ``vs2t-edge sort BIN``, ``gate-status``, ``gate-clear``.
+"""Hand commands for the gate: ``vs2t-edge sort BIN``, ``sort status``, ``sort clear``.
+
+``gate-status`` and ``gate-clear`` are the older names of ``sort status`` and ``sort clear``
+and stay as aliases (scripts and docs use them).
 
 For commissioning and tests. Each command is its own host session: it connects, does one
 thing and disconnects. Between hand commands nobody sends heartbeats, so a gate left alone
 for more than a second fails safe (reject, HEARTBEAT_LOST latched) — that is the fail-safe
 working. ``sort`` therefore arms a gate latched by BOOT or HEARTBEAT_LOST before routing
-(``--no-arm`` refuses instead); a JAM latch always needs ``gate-clear`` after someone freed
+(``--no-arm`` refuses instead); a JAM latch always needs ``sort clear`` after someone freed
 the flap. ``--simulate`` runs the command against the MCU simulator on a fresh pty.
 
 Exit codes: 0 ok, 2 bad usage (no port, bad bin), 3 gate fault (timeout, NAK, jam, latched,
@@ -24,13 +27,23 @@ EXIT_OK, EXIT_USAGE, EXIT_DEVICE = 0, 2, 3  # the values of vs2t_edge.cli (this 
 PORT_ENV = "VS2T_GATE_PORT"
 
 
+SUBCOMMANDS = {"status": "gate-status", "clear": "gate-clear"}  # `sort WORD` -> the verb it stands for
+
+
 def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     if verb == "sort":
-        parser.add_argument("bin", type=int, metavar="BIN", help="bin to route to (0 is the reject bin)")
+        parser.usage = "vs2t-edge sort {BIN,status,clear} [options]"
+        parser.add_argument("bin", metavar="BIN|status|clear",
+                            help="a bin to route to (0 is the reject bin); `status`: ask the gate for its "
+                                 "state (exits 3 when latched: fault or failsafe); `clear`: clear a latched "
+                                 "fault (after freeing a jammed flap)")
         parser.add_argument("--no-arm", action="store_true",
-                            help="do not clear a boot or heartbeat-lost latch before sorting")
+                            help="sort BIN: do not clear a boot or heartbeat-lost latch before sorting")
+        parser.epilog = "`vs2t-edge gate-status` and `vs2t-edge gate-clear` are aliases of `sort status` / `sort clear`"
     if verb == "gate-status":
-        parser.epilog = "exits 3 when the gate is latched (fault or failsafe)"
+        parser.epilog = "exits 3 when the gate is latched (fault or failsafe); alias: vs2t-edge sort status"
+    if verb == "gate-clear":
+        parser.epilog = "alias: vs2t-edge sort clear"
     parser.add_argument("--port", default=os.environ.get(PORT_ENV),
                         help=f"serial port or pyserial URL of the gate (default: ${PORT_ENV})")
     parser.add_argument("--timeout-s", type=float, default=0.5, help="reply timeout per attempt, seconds")
@@ -45,12 +58,33 @@ def _describe(report: GateReport) -> str:
             f"boot {report.boot_id}, up {report.uptime_ms / 1000:.1f} s, {report.sorts_done} sorts since boot")
 
 
+def _resolve(args: argparse.Namespace) -> tuple[str, str] | int:
+    """(the verb to run, the name to say in messages), or EXIT_USAGE after saying why."""
+    if args.verb != "sort":
+        return args.verb, args.verb
+    word = str(args.bin).strip()
+    if word.lower() in SUBCOMMANDS:
+        if args.no_arm:
+            print(f"vs2t-edge sort {word.lower()}: --no-arm applies to sort BIN only", file=sys.stderr)
+            return EXIT_USAGE
+        return SUBCOMMANDS[word.lower()], f"sort {word.lower()}"
+    try:
+        args.bin = int(word)
+    except ValueError:
+        print(f"vs2t-edge sort: {word!r} is neither a bin number nor status or clear", file=sys.stderr)
+        return EXIT_USAGE
+    return "sort", "sort"
+
+
 def run(args: argparse.Namespace) -> int:
-    verb = args.verb
+    resolved = _resolve(args)
+    if isinstance(resolved, int):
+        return resolved
+    action, verb = resolved
     if args.timeout_s <= 0 or args.retries < 0:
         print(f"vs2t-edge {verb}: --timeout-s must be > 0 and --retries >= 0", file=sys.stderr)
         return EXIT_USAGE
-    if verb == "sort" and not 0 <= args.bin <= 255:
+    if action == "sort" and not 0 <= args.bin <= 255:
         print(f"vs2t-edge sort: bin {args.bin} is out of range (0..255; 0 is reject)", file=sys.stderr)
         return EXIT_USAGE
     simulator = None
@@ -65,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
               f"set {PORT_ENV}, or use --simulate", file=sys.stderr)
         return EXIT_USAGE
     arm: tuple[str, ...] = ()
-    if verb == "sort" and not args.no_arm:
+    if action == "sort" and not args.no_arm:
         arm = ("boot", "heartbeat_lost")
     # No heartbeat thread: a hand command is one short exchange.
     client = GateClient(port, timeout_s=args.timeout_s, retries=args.retries, heartbeat_period_s=None,
@@ -74,10 +108,10 @@ def run(args: argparse.Namespace) -> int:
         report = client.connect()
         if client.armed_from:
             print(f"note: the gate was latched ({client.armed_from}); armed it", file=sys.stderr)
-        if verb == "sort":
+        if action == "sort":
             client.sort(args.bin)
             print(f"sorted to bin {args.bin}" + (" (reject)" if args.bin == p.REJECT_BIN else ""))
-        elif verb == "gate-clear":
+        elif action == "gate-clear":
             client.clear()
             print("gate cleared: " + _describe(client.status()))
         else:

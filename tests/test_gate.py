@@ -371,6 +371,46 @@ def test_cli_sort_status_clear_against_the_simulator(sim, capsys):
     assert sim.executed == [3, 1]
 
 
+def test_cli_sort_status_and_sort_clear_as_the_issue_names_them(sim, capsys):
+    """`vs2t-edge sort BIN`, `sort status`, `sort clear` (issue 6); gate-status / gate-clear stay
+    as aliases and say the same."""
+    port = ["--port", sim.device_path, "--timeout-s", "0.3"]
+    assert cli_main(["sort", "5", *port]) == 0
+    assert cli_main(["sort", "status", *port]) == 0
+    out = capsys.readouterr().out
+    assert "gate ready, flap at bin 5 of 8" in out and "1 sorts since boot" in out
+    sim.jam()
+    assert cli_main(["sort", "2", *port]) == 3
+    capsys.readouterr()
+    assert cli_main(["sort", "status", *port]) == 3  # latched: a device fault to a script asking
+    status = capsys.readouterr().out
+    assert "gate fault (jam)" in status
+    assert cli_main(["gate-status", *port]) == 3
+    assert capsys.readouterr().out.split(", up ")[0] == status.split(", up ")[0]  # the alias says the same
+    sim.jam(False)
+    assert cli_main(["sort", "clear", *port]) == 0
+    assert "gate cleared: gate ready" in capsys.readouterr().out
+    assert cli_main(["sort", "status", *port]) == 0
+    assert cli_main(["sort", "1", *port]) == 0
+    assert sim.executed == [5, 1]  # status and clear moved nothing
+    capsys.readouterr()
+    assert cli_main(["sort", "stauts", *port]) == 2
+    assert "neither a bin number nor status or clear" in capsys.readouterr().err
+    assert cli_main(["sort", "clear", "--no-arm", *port]) == 2
+    assert sim.executed == [5, 1]
+
+
+def test_cli_help_names_sort_status_and_clear(capsys):
+    with pytest.raises(SystemExit):
+        cli_main(["sort", "--help"])
+    text = capsys.readouterr().out
+    assert "{BIN,status,clear}" in text and "gate-status" in text and "gate-clear" in text
+    with pytest.raises(SystemExit):
+        cli_main(["--help"])
+    top = capsys.readouterr().out
+    assert "sort status" in top and "sort clear" in top
+
+
 def test_cli_sort_arms_a_heartbeat_lost_gate_unless_told_not_to(capsys):
     path, sim = start_simulated_gate(heartbeat_timeout_ms=200, move_time_ms=MOVE_MS)
     try:

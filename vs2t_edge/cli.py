@@ -39,9 +39,10 @@ VERBS: dict[str, tuple[str, str]] = {
     "calibrate-threshold": ("vs2t_edge.runtime.calibrate", "choose the novelty threshold beta from presses"),
     "record": ("vs2t_edge.runtime.record_cli", "record a live session into a replay file"),
     "replay": ("vs2t_edge.runtime.replay_cli", "run the daemon from a replay file and compare decisions"),
-    "sort": ("vs2t_edge.firmware_bridge.cli", "send one sort command to the gate by hand"),
-    "gate-status": ("vs2t_edge.firmware_bridge.cli", "ask the gate for its status"),
-    "gate-clear": ("vs2t_edge.firmware_bridge.cli", "clear a latched gate fault"),
+    "sort": ("vs2t_edge.firmware_bridge.cli", "the gate by hand: sort BIN routes to a bin, sort status "
+             "asks its state, sort clear clears a latched fault"),
+    "gate-status": ("vs2t_edge.firmware_bridge.cli", "ask the gate for its status (alias of sort status)"),
+    "gate-clear": ("vs2t_edge.firmware_bridge.cli", "clear a latched gate fault (alias of sort clear)"),
     "reliability": ("vs2t_edge.sim.faults_cli", "run the fault matrix and write docs/reliability.md"),
 }
 
