@@ -2,11 +2,14 @@
 
 Per bundle (a variant: trunk, input size, fp32/int8):
 
-- speed, in a fresh subprocess per bundle so peak memory is the bundle's own: trunk latency at
-  batch 1 with 1 and 2 onnxruntime threads (p50/p99 over timed runs on real preprocessed presses),
-  everything per press outside the trunk timed by stage (PNG decode, preprocess, heads, router,
-  decision incl. the evidence update), peak RSS (VmHWM) next to a baseline process that imports
-  the same modules and loads nothing;
+- speed, in a fresh subprocess per bundle so peak memory is the bundle's own, with 1 and 2
+  onnxruntime threads: the trunk alone at batch 1 (p50/p99 over timed runs on real preprocessed
+  presses), and the whole press as the cell pays it, end to end (decode of the camera's MJPEG
+  frame - the press frame encoded once as JPEG q=95, cv2.imdecode timed - preprocess, trunk,
+  heads, router, decision, evidence update): p50/p99 of the press and of the press minus its own
+  trunk run ("outside the trunk", decode included, what the < 2 ms target is judged on), stage
+  medians; PNG decode (replays and the bench only) apart; peak RSS (VmHWM) next to a baseline
+  process that imports the same modules and loads nothing;
 - the compute limit: MACs per frame (counted from the graph at export, manifest
   ``graphs.trunk.macs_per_frame``) / this machine's measured GEMM peak (``measure_peak``), and
   the fraction of it the trunk reaches;
@@ -157,9 +160,39 @@ def _import_runtime() -> None:
     from vs2t_edge.runtime import evidence, inference  # noqa: F401
 
 
+JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC camera's MJPEG stream
+STAGES = ("decode_mjpeg", "preprocess", "trunk", "heads", "router", "decision", "evidence")
+OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
+
+
+def press_stages(model, jpeg: bytes, evidence) -> dict[str, float]:
+    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
+    GelSight streams MJPEG; cv2.VideoCapture decodes it with the same libjpeg as cv2.imdecode),
+    preprocess, trunk, heads, router, decision (TactileModel.score_press) and the evidence update."""
+    import cv2
+
+    t0 = time.perf_counter()
+    frame = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    t1 = time.perf_counter()
+    s = model.score_press(frame)
+    tm = dict(model.last_timing)
+    t2 = time.perf_counter()
+    evidence.add(s)
+    t3 = time.perf_counter()
+    return {"decode_mjpeg": 1e3 * (t1 - t0), "preprocess": tm["preprocess_ms"], "trunk": tm["trunk_ms"],
+            "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
+            "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
+
+
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
                  n_frames: int = 16) -> dict:
-    """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS."""
+    """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
+
+    Per thread count: the trunk alone (``latency``) and the whole press (``press``: MJPEG decode +
+    preprocess + trunk + heads + router + decision + evidence, timed end to end per press; its
+    ``outside`` = that press minus its own trunk run), each as p50/p99 over the timed presses.
+    ``overhead_ms`` / ``overhead_p99_ms`` are the stage medians / p99 at the largest thread count;
+    PNG decode (what replays and the bench pay, not the camera) is timed apart."""
     import cv2
 
     from vs2t_edge.runtime.dataset import load_dataset
@@ -167,10 +200,12 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     from vs2t_edge.runtime.inference import TactileModel
 
     _import_runtime()
-    out: dict[str, Any] = {"latency": {}, "overhead_ms": {}}
+    out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": JPEG_QUALITY}
     raw_png: list[bytes] = []
+    jpegs: list[bytes] = []
     ref = None
     model = None
+    stages: dict[str, list[float]] = {}
     for t in threads_list:
         model = TactileModel.load(bundle, threads=t)
         if ref is None:
@@ -182,8 +217,14 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
             ref = fab.load_reference()
             for i in _spread(list(range(len(fab.presses))), n_frames):
                 raw_png.append(fab.presses[i].path.read_bytes())
+            for b in raw_png:  # encoded once: the camera's work, not the cell's
+                ok, enc = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
+                                       [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                if not ok:
+                    raise RuntimeError(f"{bundle}: could not JPEG-encode a press frame")
+                jpegs.append(enc.tobytes())
         model.set_reference(ref)
-        frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in raw_png]
+        frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in jpegs]
         xs = [model.preprocess(f) for f in frames]
         sess, name = model._trunk, model._trunk_in
         for x in xs[:3]:
@@ -199,26 +240,36 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
             sess.run(None, {name: x})
             times.append(1e3 * (time.perf_counter() - t0))
         out["latency"][str(t)] = {"p50_ms": _pct(times, 50), "p99_ms": _pct(times, 99), "runs": n}
-    # everything per press outside the trunk, on the last (2-thread) model, real frames
-    stages: dict[str, list[float]] = {k: [] for k in ("decode", "preprocess", "heads", "router", "decision", "evidence")}
-    for k in range(max(60, 4 * len(raw_png))):
-        b = raw_png[k % len(raw_png)]
-        t0 = time.perf_counter()
-        frame = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
-        stages["decode"].append(1e3 * (time.perf_counter() - t0))
-        s = model.score_press(frame)
-        tm = model.last_timing
-        for key in ("preprocess", "heads", "router", "decision"):
-            stages[key].append(tm[f"{key}_ms"])
+        # the whole press, as the cell runs it with t threads
+        stages = {k: [] for k in (*STAGES, "press")}
+        png: list[float] = []
         ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
-        t0 = time.perf_counter()
-        ev.add(s)
-        stages["evidence"].append(1e3 * (time.perf_counter() - t0))
-    out["overhead_ms"] = {k: _pct(v, 50) for k, v in stages.items()}
-    # The cell's camera hands over decoded frames; PNG decode is the bench's (and replay's) own cost.
-    out["overhead_ms"]["cell"] = float(sum(v for k, v in out["overhead_ms"].items() if k != "decode"))
-    out["overhead_ms"]["total"] = out["overhead_ms"]["cell"] + out["overhead_ms"]["decode"]
-    out["overhead_p99_ms"] = {k: _pct(v, 99) for k, v in stages.items()}
+        for k in range(3):
+            press_stages(model, jpegs[k % len(jpegs)], ev)
+        n_press = int(min(400, max(60, 4 * len(jpegs), budget_s / max(est + 1e-3, 1e-4))))
+        for k in range(n_press):
+            if k % SEQ_MAX_PRESSES == 0:  # a new item every 9 presses, as the cell's evidence would
+                ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+            for key, v in press_stages(model, jpegs[k % len(jpegs)], ev).items():
+                stages[key].append(v)
+            t0 = time.perf_counter()  # beside each press (same process state), not in its total
+            cv2.imdecode(np.frombuffer(raw_png[k % len(raw_png)], np.uint8), cv2.IMREAD_COLOR)
+            png.append(1e3 * (time.perf_counter() - t0))
+        press = np.asarray(stages["press"])
+        outside = press - np.asarray(stages["trunk"])
+        out["press"][str(t)] = {"p50_ms": _pct(press, 50), "p99_ms": _pct(press, 99),
+                                "outside_p50_ms": _pct(outside, 50), "outside_p99_ms": _pct(outside, 99),
+                                "runs": n_press, "stages_p50_ms": {k: _pct(v, 50) for k, v in stages.items()}}
+    tmax = str(max(threads_list))
+    out["overhead_ms"] = {k: _pct(stages[k], 50) for k in OUTSIDE_STAGES}
+    out["overhead_ms"]["decode_png"] = _pct(png, 50)
+    # what the target is judged on: everything per press outside the trunk, decode included (the
+    # median of (press - its trunk), measured end to end, not a sum of stage medians)
+    out["overhead_ms"]["cell"] = out["press"][tmax]["outside_p50_ms"]
+    out["overhead_p99_ms"] = {k: _pct(stages[k], 99) for k in OUTSIDE_STAGES}
+    out["overhead_p99_ms"]["decode_png"] = _pct(png, 99)
+    out["overhead_p99_ms"]["cell"] = out["press"][tmax]["outside_p99_ms"]
+    out["frame_hw"] = list(frames[0].shape[:2])
     out["peak_rss_mb"] = _vm_hwm_mb()
     return out
 
@@ -471,7 +522,7 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
 
 # The issue's targets (benchmarked, not timed tests).
 TARGET_OF_LIMIT = 1.25  # the ResNet50 trunk within 1.25x of this CPU's compute limit, batch 1, 2 threads
-TARGET_CELL_MS = 2.0  # everything per press outside the trunk (preprocess, heads, router, decision, evidence)
+TARGET_CELL_MS = 2.0  # everything per press outside the trunk: decode (MJPEG), preprocess, heads, router, decision, evidence
 TARGET_INT8_POINTS = 1.0  # int8 within 1 point of fp32 accuracy
 
 
@@ -484,9 +535,22 @@ def targets(result: dict) -> list[dict]:
             rows.append({"variant": r["name"], "target": f"trunk p50 (2 threads) <= {TARGET_OF_LIMIT}x compute limit",
                          "measured": f"{r['latency']['2']['p50_ms']:.1f} ms = {ratio:.2f}x the {r['limit_ms']['2']:.1f} ms limit",
                          "met": ratio <= TARGET_OF_LIMIT})
-        cell = r["overhead_ms"].get("cell")
-        if cell is not None:
-            rows.append({"variant": r["name"], "target": f"per press outside the trunk < {TARGET_CELL_MS:g} ms",
+        o = r["overhead_ms"]
+        cell = o.get("cell")
+        if cell is not None and "decode_mjpeg" in o:
+            t = max(r.get("press", {"2": None}), key=int)
+            rest = cell - o["decode_mjpeg"]
+            miss = "" if cell < TARGET_CELL_MS else (
+                f"; misses by {cell - TARGET_CELL_MS:.2f} ms" + (" (decode alone takes the budget)" if o["decode_mjpeg"] >= TARGET_CELL_MS
+                                                                  else " even without decode" if rest >= TARGET_CELL_MS
+                                                                  else ", met without decode"))
+            rows.append({"variant": r["name"],
+                         "target": f"per press outside the trunk, decode included, < {TARGET_CELL_MS:g} ms (p50, {t} threads)",
+                         "measured": f"{cell:.2f} ms = MJPEG decode {o['decode_mjpeg']:.2f} + the rest {rest:.2f}"
+                                     f" (p99 {r['overhead_p99_ms']['cell']:.2f}){miss}",
+                         "met": cell < TARGET_CELL_MS})
+        elif cell is not None:  # a bench.json from before decode was timed: the rest only
+            rows.append({"variant": r["name"], "target": f"per press outside the trunk, decode NOT included, < {TARGET_CELL_MS:g} ms",
                          "measured": f"{cell:.2f} ms", "met": cell < TARGET_CELL_MS})
     for c in result.get("comparisons", []):
         if c.get("delta_points"):
@@ -502,6 +566,7 @@ def _f(v, fmt="{:.1f}") -> str:
 
 def render_table(result: dict) -> str:
     hdr = ("| variant | trunk | px | prec | MMAC | p50 1t | p99 1t | p50 2t | p99 2t | limit 2t | of peak 2t "
+           "| press p50 1t | press p99 1t | press p50 2t | press p99 2t "
            "| outside trunk | RSS MB | bundle MB | ZSL/press | H/press | H 1 | H 3 | H 5 | H 9 | seq presses | seq H | seq unknown |")
     lines = [hdr, "|" + "---|" * (hdr.count("|") - 1)]
     for r in result["variants"]:
@@ -518,7 +583,8 @@ def render_table(result: dict) -> str:
             _f(lat.get("1", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("1", {}).get("p99_ms"), "{:.2f}"),
             _f(lat.get("2", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("2", {}).get("p99_ms"), "{:.2f}"),
             _f(r.get("limit_ms", {}).get("2"), "{:.2f}"), _f(r.get("fraction_of_peak", {}).get("2"), "{:.0%}"),
-            _f(r["overhead_ms"].get("cell", r["overhead_ms"]["total"]), "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"),
+            *(_f(r.get("press", {}).get(t, {}).get(q), "{:.2f}") for t in ("1", "2") for q in ("p50_ms", "p99_ms")),
+            _f(r["overhead_ms"].get("cell", r["overhead_ms"].get("total")), "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"),
             _f(r["bundle_mb"], "{:.1f}"),
             *acc]) + " |")
     return "\n".join(lines)
@@ -557,7 +623,7 @@ def render_markdown(result: dict) -> str:
              f"{', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}"
              f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}), onnxruntime "
              f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
-             "at batch 1; ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
+             "at batch 1, and of the whole press (*press*: MJPEG decode to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
              "", "## Compute peak of this machine", "",
              "| precision | 1 thread | 2 threads | how |", "|---|---|---|---|"]
     for p in ("fp32", "int8"):
@@ -565,20 +631,33 @@ def render_markdown(result: dict) -> str:
                      f"| {pk[p]['2']['how']}, fastest of 15 |")
     lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
               "## Variants", "", render_table(result), "",
-              "Columns: latency in ms (trunk only); *outside trunk* = median ms per press of preprocess + "
-              "heads + router + decision + evidence update, what the cell adds to the trunk (target < 2 ms; PNG decode, "
-              "which only the bench and replays pay, is listed apart below); RSS = peak resident memory of a process that "
+              "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
+              "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
+              f"press frame encoded once as JPEG q={JPEG_QUALITY}, cv2.imdecode timed) + preprocess + trunk + heads + "
+              "router + decision + evidence update, timed end to end per press; *outside trunk* = median over presses of "
+              "(press - its own trunk run) at 2 threads, decode included: what the target (< 2 ms) is judged on (medians do "
+              "not add: *press* p50 can exceed trunk p50 + outside p50, since a trunk run between other work wakes "
+              "onnxruntime's thread pool instead of finding it spinning, as the trunk-alone loop does); RSS = "
+              "peak resident memory of a process that "
               f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
               f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training; H = harmonic mean of "
               "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
               f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
-              "counted wrong).", "", "## Outside the trunk, per press (median ms)", "",
-              "| variant | preprocess | heads | router | decision | evidence | cell total | PNG decode (bench only) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "counted wrong).", "", "## Outside the trunk, per press (ms)", "",
+              "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
+              "trunk run), decode included, at 1 and 2 threads (stage medians do not add up to it exactly). "
+              "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",
+              "",
+              "| variant | frame px | MJPEG decode | preprocess | heads | router | decision | evidence "
+              "| outside p50 1t | outside p99 1t | outside p50 2t | outside p99 2t | PNG decode (replays) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["variants"]:
-        o = r["overhead_ms"]
-        lines.append(f"| {r['name']} | " + " | ".join(_f(o.get(k), "{:.3f}") for k in
-                                                     ("preprocess", "heads", "router", "decision", "evidence", "cell", "decode")) + " |")
+        o, pr = r["overhead_ms"], r.get("press", {})
+        hw = r.get("frame_hw")
+        lines.append(f"| {r['name']} | {f'{hw[1]}x{hw[0]}' if hw else '–'} | " + " | ".join(
+            [_f(o.get(k), "{:.3f}") for k in ("decode_mjpeg", "preprocess", "heads", "router", "decision", "evidence")]
+            + [_f(pr.get(t, {}).get(q), "{:.3f}") for t in ("1", "2") for q in ("outside_p50_ms", "outside_p99_ms")]
+            + [_f(o.get("decode_png", o.get("decode")), "{:.3f}")]) + " |")
     tg = targets(result)
     if tg:
         lines += ["", "## Against the targets", "", "| variant | target | measured | met |", "|---|---|---|---|"]

@@ -63,11 +63,20 @@ def test_bench_numbers_are_measured_and_sane(bench_result):
     result, _ = bench_result
     for r in result["variants"]:
         for t in ("1", "2"):
-            lat = r["latency"][t]
+            lat, pr = r["latency"][t], r["press"][t]
             assert 0 < lat["p50_ms"] <= lat["p99_ms"] < 1000 and lat["runs"] >= 3
+            # per press, per thread count: the whole press and what lies outside its trunk
+            assert 0 < pr["p50_ms"] <= pr["p99_ms"] < 1000 and pr["runs"] >= 60
+            st = pr["stages_p50_ms"]
+            assert all(st[k] > 0 for k in bench.STAGES)
+            # outside_i = press_i - trunk_i <= press_i, and >= each of its stages (decode included),
+            # press by press; medians and p99s keep a pointwise order
+            assert 0 < pr["outside_p50_ms"] <= pr["p50_ms"] and pr["outside_p99_ms"] <= pr["p99_ms"]
+            assert pr["outside_p50_ms"] >= max(st[k] for k in bench.OUTSIDE_STAGES)
+            assert pr["p50_ms"] >= max(st[k] for k in bench.STAGES)
         o = r["overhead_ms"]
-        assert o["cell"] == pytest.approx(sum(o[k] for k in ("preprocess", "heads", "router", "decision", "evidence")))
-        assert o["decode"] > 0 and r["peak_rss_mb"] > result["baseline_rss_mb"] > 0
+        assert o["decode_mjpeg"] > 0 and o["decode_png"] > 0 and r["jpeg_quality"] == 95
+        assert r["peak_rss_mb"] > result["baseline_rss_mb"] > 0
         assert 0 < r["fraction_of_peak"]["2"] and r["macs"] > 0
         a = r["accuracy"]
         for v in (a["press"]["zsl"], a["press"]["H"], a["sequential"]["H"], *(a["items"][str(k)]["H"] for k in bench.ITEM_PRESSES)):
@@ -78,6 +87,97 @@ def test_bench_numbers_are_measured_and_sane(bench_result):
     assert pair["within_1_point"] == all(abs(v) <= 1.0 for v in pair["delta_points"].values())
 
 
+def test_press_timing_is_end_to_end_and_includes_decode(bench_result, monkeypatch):
+    """press_stages under a clock that advances 1 ms per reading: the press is the whole span from
+    before the MJPEG decode to after the evidence update (every reading in between is 1 ms of work,
+    gaps between stages included), decode is one of its stages, and press - trunk (what the < 2 ms
+    target is judged on) holds every stage but the trunk."""
+    import time as _time
+
+    import cv2
+    import numpy as np
+
+    from vs2t_edge.runtime import bench
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.inference import TactileModel
+
+    result, _ = bench_result
+    model = TactileModel.load(result["variants"][0]["bundle"], threads=1)
+    fab = load_dataset(model.manifest["provenance"]["data"]["dataset"]).by_id(model.touched[0])
+    model.set_reference(fab.load_reference())
+    ok, jpeg = cv2.imencode(".jpg", fab.load_press(0), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    ev = Evidence(model.classes)
+    reads = []
+
+    def clock():
+        reads.append(None)
+        return len(reads) * 1e-3
+
+    monkeypatch.setattr(_time, "perf_counter", clock)
+    st = bench.press_stages(model, jpeg.tobytes(), ev)
+    monkeypatch.undo()
+    assert st["press"] == pytest.approx(len(reads) - 1)  # first to last reading, nothing left out
+    assert st["decode_mjpeg"] == pytest.approx(1.0) and ev.presses == 1
+    outside = st["press"] - st["trunk"]
+    assert outside >= sum(st[k] for k in bench.OUTSIDE_STAGES) - 1e-9
+    assert set(bench.OUTSIDE_STAGES) == set(bench.STAGES) - {"trunk"} and "decode_mjpeg" in bench.OUTSIDE_STAGES
+    assert np.isfinite(list(st.values())).all()
+
+
+def test_press_accuracy_matches_an_independent_count(bench_result):
+    """The per-press numbers of the table, recomputed here press by press through the cell's own
+    frame path (set_reference + preprocess + forward) with plain loops: hard route at beta, touched
+    correct = kept touched and argmax logits_t right, untouched correct = routed untouched and
+    argmax logits_u right, per-class means, H the harmonic mean. The presses are those the bundle
+    never trained on (checked against the manifest's partition)."""
+    import numpy as np
+
+    from vs2t_edge.runtime import bench
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+
+    result, _ = bench_result
+    for r in result["variants"]:
+        model = TactileModel.load(r["bundle"], threads=1)
+        ds = load_dataset(model.manifest["provenance"]["data"]["dataset"])
+        part = model.manifest["provenance"]["data"]["touched_presses"]
+        presses = bench.eval_presses(model.manifest, ds, 3)
+        per_class_t, per_class_u, zsl = [], [], []
+        for fid, idx in presses.items():
+            assert idx
+            if fid in model.touched:
+                assert not set(idx) & set(part[fid]["train"] + part[fid]["val"])
+            fab = ds.by_id(fid)
+            model.set_reference(fab.load_reference())
+            hits, zhits = [], []
+            # one batch per fabric, as the bench scores them: this untrained bundle's novelties sit
+            # within 1e-5 of beta, where batch-1 and batch-N summation orders can flip a route
+            o = model.forward(np.concatenate([model.preprocess(fab.load_press(i)) for i in idx]))
+            for j in range(len(idx)):
+                routed_untouched = float(o.novelty[j]) > model.beta
+                if fid in model.touched:
+                    hits.append((not routed_untouched) and model.touched[int(np.argmax(o.logits_t[j]))] == fid)
+                else:
+                    right = model.untouched[int(np.argmax(o.logits_u[j]))] == fid
+                    hits.append(routed_untouched and right)
+                    zhits.append(right)
+            (per_class_t if fid in model.touched else per_class_u).append(sum(hits) / len(hits))
+            if zhits:
+                zsl.append(sum(zhits) / len(zhits))
+        acc_t, acc_u = sum(per_class_t) / len(per_class_t), sum(per_class_u) / len(per_class_u)
+        h = 0.0 if acc_t + acc_u == 0 else 2 * acc_t * acc_u / (acc_t + acc_u)
+        a = r["accuracy"]["press"]
+        assert a["acc_t"] == pytest.approx(100 * acc_t, abs=1e-6)
+        assert a["acc_u"] == pytest.approx(100 * acc_u, abs=1e-6)
+        assert a["H"] == pytest.approx(100 * h, abs=1e-6)
+        assert a["zsl"] == pytest.approx(100 * sum(zsl) / len(zsl), abs=1e-6)
+        assert r["accuracy"]["eval_presses"] == {
+            "touched": sum(len(presses[f]) for f in model.touched),
+            "untouched": sum(len(presses[f]) for f in model.untouched)}
+
+
 def test_targets_follow_the_measurements(bench_result):
     from vs2t_edge.runtime import bench
 
@@ -85,7 +185,18 @@ def test_targets_follow_the_measurements(bench_result):
     rows = bench.targets(result)
     cell = {t["variant"]: t for t in rows if "outside the trunk" in t["target"]}
     for r in result["variants"]:
-        assert cell[r["name"]]["met"] == (r["overhead_ms"]["cell"] < bench.TARGET_CELL_MS)
+        row = cell[r["name"]]
+        assert "decode included" in row["target"] and "MJPEG decode" in row["measured"]
+        assert row["met"] == (r["press"]["2"]["outside_p50_ms"] < bench.TARGET_CELL_MS)
+    # a miss says by how much and whether decode is to blame
+    fake = json.loads(json.dumps(result))
+    v = fake["variants"][0]
+    v["overhead_ms"].update(cell=2.5, decode_mjpeg=0.9)
+    (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
+    assert not row["met"] and "misses by 0.50 ms, met without decode" in row["measured"]
+    v["overhead_ms"].update(cell=2.5, decode_mjpeg=0.2)
+    (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
+    assert "even without decode" in row["measured"]
     # a ResNet50 row is judged against its compute limit
     fake = json.loads(json.dumps(result))
     v = fake["variants"][0]
