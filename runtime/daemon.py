@@ -90,16 +90,9 @@ def build_live_devices(cfg: CellConfig):
     if cam["kind"] == "sim":
         raise ConfigError(cfg.path, [f"{cfg.path}: devices.camera.kind = sim is built by the simulated cell "
                                      "(`vs2t-edge demo`), not by `run`"])
-    if cam["kind"] == "uvc":
-        from vs2t_edge.runtime.camera import UVCCamera
+    from vs2t_edge.runtime.camera import camera_from_config
 
-        dev = cam["device"]
-        camera = UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
-                           fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"])
-    else:
-        from vs2t_edge.runtime.camera import ReplayCamera
-
-        camera = ReplayCamera(cam["path"])
+    camera = camera_from_config(cam)
     if cfg.arm_kind == "ur_rtde":
         # ur_rtde in a worker process: a client crash (it can segfault on a flapping link)
         # costs one press, not the service (docs/arm.md).

@@ -404,6 +404,10 @@ def test_exposure_from_the_config_reaches_the_uvc_camera(tmp_path):
     _, load = _cell_config(tmp_path, "")
     camera, _arm, _gate = build_live_devices(load())
     assert camera.requested["exposure"] is None
+    # the staleness settings reach the camera `run` builds, not only camera_from_config's
+    _, load = _cell_config(tmp_path, "    flush_frames: 5\n    frozen_after: 3\n")
+    camera, _arm, _gate = build_live_devices(load())
+    assert (camera.flush_frames, camera._guard.frozen_after) == (5, 3)
 
 
 @pytest.mark.parametrize("extra, words", [
