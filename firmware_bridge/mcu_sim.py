@@ -382,7 +382,7 @@ def start_simulated_gate(*, faults: LineFaults | None = None, transport: str = "
 
 def main() -> int:  # pragma: no cover - manual commissioning aid
     path, sim = start_simulated_gate()
-    print(f"simulated gate on {path} (Ctrl-C to stop); try: VS2T_GATE_PORT={path} vs2t-edge gate-status",
+    print(f"simulated gate on {path} (Ctrl-C to stop); try: VS2T_GATE_PORT={path} vs2t-edge sort status",
           flush=True)
     try:
         while True:
