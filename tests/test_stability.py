@@ -41,18 +41,40 @@ def test_log_softmax_of_pm_1e4_is_exact():
 
 
 def test_evidence_over_225_extreme_presses_does_not_underflow():
+    """All 225 presses accumulated (a decision returned early is ignored and the presses keep
+    coming): logits of +-1e4, novelty swinging +-1e3 around beta, the item's class (TOUCHED[1])
+    winning 60 % of presses and a random other class the rest by gaps of ~1e4. After every press
+    the posterior is finite and normalised; at the end it equals a float64 reference summed with
+    math.fsum, and TOUCHED[1] leads."""
     rng = np.random.default_rng(0)
-    ev = Evidence(CLASSES, confidence=1.0, max_presses=225)  # confidence 1: never stops early... unless exact
-    d = None
+    true = CLASSES.index(TOUCHED[1])
+    ev = Evidence(CLASSES, confidence=0.95, max_presses=225)
+    per_press = []
     for k in range(225):
         lt, lu = rng.uniform(-1e4, 1e4, (1, 3)), rng.uniform(-1e4, 1e4, (1, 2))
-        lp = gzsl_log_posterior(lt, lu, np.array([rng.uniform(-10, 10)]), 0.0, 1.0)[0]
-        d = ev.add(_score(lp))
-        if d is not None:
-            break
-    d = d or ev.decide()
-    assert all(math.isfinite(v) for v in d.log_posterior.values())
-    assert 0.0 <= d.confidence <= 1.0 and abs(sum(math.exp(v) for v in d.log_posterior.values()) - 1) < 1e-9
+        winner = true if rng.random() < 0.6 else int(rng.choice([c for c in range(len(CLASSES)) if c != true]))
+        if winner < 3:
+            lt[0, winner] = lt.max() + 1e4
+            nov = rng.uniform(-1e3, -1.0)  # routed touched
+        else:
+            lu[0, winner - 3] = lu.max() + 1e4
+            nov = rng.uniform(1.0, 1e3)
+        lp = gzsl_log_posterior(lt, lu, np.array([nov]), 0.0, 1.0)[0]
+        per_press.append(lp)
+        ev.add(_score(lp))
+        post = np.array(list(ev.decide().log_posterior.values()))
+        assert np.all(np.isfinite(post)) and abs(sum(math.exp(v) for v in post) - 1) < 1e-9, f"press {k + 1}"
+    d = ev.decide()
+    assert ev.presses == d.presses == 225
+    # reference: per press renormalised over the scene, summed exactly, renormalised
+    ref = []
+    for c in range(len(CLASSES)):
+        ref.append(math.fsum(float(lp[c] - np.logaddexp.reduce(lp)) for lp in per_press))
+    ref = np.array(ref) - np.logaddexp.reduce(np.array(ref))
+    got = np.array([d.log_posterior[c] for c in CLASSES])
+    assert np.all(np.isfinite(got)) and np.max(np.abs(got - ref)) <= 1e-6 * max(1.0, np.max(np.abs(ref)))
+    assert min(ref) < -1e5  # the losers really are ~1e5+ nats behind: exp() of them underflows
+    assert d.label == TOUCHED[1] and d.confidence == pytest.approx(1.0)
 
 
 def test_evidence_over_225_mild_presses_accumulates_exactly():
