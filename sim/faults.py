@@ -213,11 +213,15 @@ class Rig:
 
 
 def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_presses: int = 3,
-              operator_fix: Callable[[], None] | None = None, item_timeout_s: float = 60.0) -> Rig:
+              operator_fix: Callable[[], None] | None = None, item_timeout_s: float = 60.0,
+              model=None, evidence_factory: Callable[[], Any] | None = None, bins: dict | None = None,
+              frames: Callable[[FaultArm, Pieces], Callable[[], np.ndarray]] | None = None) -> Rig:
     """A cell on the given (or fake) arm and gate; the operator clears a latched fault at once.
 
     ``operator_fix`` is what the operator does at the machine before removing the fault file
     (release a stop, free a jam); the loop's own ``clear_fault`` then clears the devices.
+    ``model``, ``evidence_factory``, ``bins`` and ``frames`` replace the grey-level fake model,
+    its evidence, its scene bins and its frames (the soak's real inference path).
     """
     from vs2t_edge.runtime.arm import FakeArm
     from vs2t_edge.runtime.camera import SimulatedCamera
@@ -231,14 +235,14 @@ def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_pres
 
         arm = FakeArm(config=ArmConfig(**FAST_PRESS))
     farm = FaultArm(arm, pieces)
-    camera = SimulatedCamera(grey_frames(farm, pieces), noise_levels=1.0, seed=0, expected_hw=(48, 64))
+    camera = SimulatedCamera((frames or grey_frames)(farm, pieces), noise_levels=1.0, seed=0, expected_hw=(48, 64))
     gate = gate if gate is not None else FakeGate()
     for dev in (gate, farm, camera):
         dev.connect()
     journal_path = workdir / "journal.jsonl"
     fault_file = workdir / "FAULT"
     points = farm.config.grid_points_mm()
-    scene = SceneSpec(bins=dict(BINS), reject_bin=REJECT, points_mm=points[:12], max_presses=max_presses,
+    scene = SceneSpec(bins=dict(bins or BINS), reject_bin=REJECT, points_mm=points[:12], max_presses=max_presses,
                       confidence=0.95, item_timeout_s=item_timeout_s, wait_item_timeout_s=0.01,
                       fault_file=fault_file)
     operator: list = []
@@ -252,9 +256,10 @@ def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_pres
             operator.append(fault_file.read_text().strip())
             fault_file.unlink()
 
-    cell = Cell(camera=camera, arm=farm, gate=gate, model=GreyModel(), journal=Journal.open(journal_path),
+    cell = Cell(camera=camera, arm=farm, gate=gate, model=model or GreyModel(), journal=Journal.open(journal_path),
                 notifier=Notifier(address=""), scene=scene,
-                evidence_factory=lambda: GreyEvidence(CLASSES, 0.95, max_presses), items=pieces, sleep=sleep)
+                evidence_factory=evidence_factory or (lambda: GreyEvidence(CLASSES, 0.95, max_presses)),
+                items=pieces, sleep=sleep)
     cell.recover()
     return Rig(cell, farm, camera, gate, pieces, journal_path, fault_file, operator)
 

@@ -69,13 +69,16 @@ def report(rows, soak: dict | None, seconds: float) -> str:
 def soak_section(s: dict) -> str:
     return ("## Soak (last run)\n\n"
             f"`{s.get('command', 'python -m vs2t_edge.sim.soak')}`: {s['presses']} presses, {s['items']} pieces in "
-            f"{s['seconds']:.0f} s ({s.get('arm', '?')} arm, {s.get('gate', '?')} gate).\n\n"
+            f"{s['seconds']:.0f} s ({s.get('arm', '?')} arm, {s.get('gate', '?')} gate; model: "
+            f"{s.get('model', 'grey-level fake model')}).\n\n"
             "| measure | first 10 % | last 10 % | slope (per 1000 presses) | verdict |\n|---|---|---|---|---|\n"
             f"| RSS (MiB) | {s['rss_first_mib']:.1f} | {s['rss_last_mib']:.1f} | {s['rss_slope_mib_per_kpress']:+.3f} MiB | "
             f"{s['rss_verdict']} |\n"
             f"| press cycle (ms, median) | {s['press_ms_first']:.2f} | {s['press_ms_last']:.2f} | "
             f"{s['press_ms_slope_per_kpress']:+.3f} ms | {s['latency_verdict']} |\n"
-            f"| journal | | {s['journal_mib']:.1f} MiB | | {s['journal_verdict']} |\n"
+            + (f"| scoring (model.score_press, ms, median) | {s['score_ms_first']:.2f} | {s['score_ms_last']:.2f} | "
+               f"{s['score_ms_slope_per_kpress']:+.3f} ms | {s['score_verdict']} |\n" if "score_verdict" in s else "")
+            + f"| journal | | {s['journal_mib']:.1f} MiB | | {s['journal_verdict']} |\n"
             + (f"\nHeld in memory at the end: {s['in_memory_journal_records']} journal records and "
                f"{s['in_memory_results']} item results (bounded windows; {s.get('items_done', s['items'])} items "
                f"counted), {s['notifier_messages_held']} sd_notify messages (a window of the last "

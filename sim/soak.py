@@ -1,15 +1,22 @@
 """Soak: the simulated cell sorting for a long bounded run, memory and latency tracked.
 
-    python -m vs2t_edge.sim.soak --presses 5000 [--gate pty|fake] [--json docs/results/soak.json]
+    python -m vs2t_edge.sim.soak --presses 5000 [--gate pty|fake] [--model onnx|grey] [--json docs/results/soak.json]
 
 The cell is the fault matrix's rig (sim/faults.py): the real loop, journal (fsynced), the gate
 host driver against the MCU simulator on a pty (default), FakeArm and the simulated camera with
-sensor noise, the grey-level fake model. Every ``--sample`` presses it records the process RSS
-(/proc/self/statm) and the press cycle times since the last sample. It reports, over the run
-after a 10 % warm-up, the least-squares slope of RSS and of the median press cycle per 1000
-presses, and the first and last 10 % levels. Verdicts: RSS "no growth" when the slope is under
-``--rss-limit-mib`` per 1000 presses; latency "no drift" when the last 10 % median is within 20 %
-of the first 10 %.
+sensor noise. The model (``--model onnx``, the default) is the real inference path on the
+committed bundle tests/replays/bundle (or ``--bundle``): TactileModel's preprocessing,
+onnxruntime at 1 thread and router, the real Evidence rule, fed the real 64 x 48 frames the
+reference replays recorded (per piece its no-contact reference and its press frames in turn);
+``--model grey`` is the fault matrix's grey-level fake (loop, journal and gate only). Every
+``--sample`` presses it records the process RSS (/proc/self/statm), the press cycle times and
+the model's scoring times since the last sample. It reports, over the run after a 10 % warm-up,
+the least-squares slope of RSS, of the median press cycle and of the median scoring time per
+1000 presses, and the first and last 10 % levels. Verdicts: RSS "no growth" when the slope is
+under ``--rss-limit-mib`` per 1000 presses; latency and scoring "no drift" when the last 10 %
+median is within 20 % of the first 10 %. With the real model a sorted piece may be in the wrong
+bin (a tiny test model): the journal audit checks the loop's promises (one final per piece,
+nothing lost, faults to reject) and the bins right are counted, not required.
 
 What is measured is the daemon's own state (loop, journal, notifier, gate host driver). The
 test doubles' logs that a real cell does not have - FakeArm.calls, FakeGate.sorted, the MCU
@@ -67,8 +74,72 @@ def slope_per_k(x: list[float], y: list[float]) -> float:
     return float(a * 1000.0)
 
 
+REPLAYS = ("touched", "untouched", "unknown", "fault")
+
+
+def default_bundle() -> Path:
+    return Path(__file__).resolve().parents[1] / "tests" / "replays" / "bundle"
+
+
+def onnx_path(bundle: Path, max_presses: int = 3, confidence: float = 0.95):
+    """The real inference path for the rig: the bundle's TactileModel (preprocess, onnxruntime at
+    1 thread, router), the real Evidence rule over the reference replays' scene, and the real
+    frames those replays recorded (64 x 48 px; per piece its no-contact reference and its press
+    frames in turn, the camera adds its sensor noise). Returns build_rig keywords and the
+    recorded truths to cycle through."""
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.replay import ReplayFile
+
+    replays = bundle.parent if (bundle.parent / "touched.replay").is_dir() else default_bundle().parent
+    recorded: list[tuple[str, np.ndarray, list[np.ndarray]]] = []  # (truth, reference, presses)
+    scene_fabrics = None
+    for name in REPLAYS:
+        rf = ReplayFile.open(replays / f"{name}.replay")
+        scene_fabrics = scene_fabrics or rf.index["config"]["scene"]["fabrics"]
+        for item, (ref, pressed) in zip(rf.index["items"], rf.frames_by_item()):
+            if pressed:
+                recorded.append((item["truth"], ref, pressed))
+    model = TactileModel.load(bundle, threads=1)
+    bins = {f["name"]: int(f["bin"]) for f in scene_fabrics}
+    classes = list(bins)
+
+    def frames(arm, pieces):
+        state = {"piece": -1, "k": 0, "was_pressed": False}
+
+        def frame() -> np.ndarray:
+            i = pieces.index
+            _, ref, pressed = recorded[i % len(recorded)]
+            if i != state["piece"]:
+                state.update(piece=i, k=0, was_pressed=False)
+            if not arm.pressed:
+                state["was_pressed"] = False
+                return ref
+            if not state["was_pressed"]:  # a new press: the next recorded press frame
+                state["was_pressed"] = True
+                state["k"] += 1
+            return pressed[(state["k"] - 1) % len(pressed)]
+        return frame
+
+    rig_kw = {"model": model, "bins": bins, "frames": frames, "max_presses": max_presses,
+              "evidence_factory": lambda: Evidence(classes, confidence, max_presses)}
+    return rig_kw, [t for t, _, _ in recorded]
+
+
+def _shown(path: Path) -> str:
+    root = Path(__file__).resolve().parents[1]
+    try:
+        return str(Path(path).resolve().relative_to(root))
+    except ValueError:
+        return str(path)
+
+
 def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Path | None = None,
-         rss_limit_mib: float = 0.5, progress: bool = True) -> dict:
+         rss_limit_mib: float = 0.5, progress: bool = True, model: str = "onnx",
+         bundle: Path | None = None) -> dict:
+    """``model``: "onnx" (default) runs the real inference path on ``bundle`` (default: the
+    committed tests/replays/bundle) with the reference replays' frames; "grey" the fault
+    matrix's grey-level fake model (the loop, journal and gate only)."""
     from vs2t_edge.sim.faults import TRUTHS, build_rig
 
     own = workdir is None
@@ -78,8 +149,15 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
         from vs2t_edge.runtime.gate import simulated_serial_gate
 
         gate = simulated_serial_gate(timeout_s=0.5)
-    truths = [TRUTHS[i % len(TRUTHS)] for i in range(presses)]  # at least one press per piece
-    rig = build_rig(workdir, truths, gate=gate)
+    if model == "onnx":
+        bundle = Path(bundle) if bundle is not None else default_bundle()
+        rig_kw, cycle = onnx_path(bundle)
+    elif model == "grey":
+        rig_kw, cycle = {}, TRUTHS
+    else:
+        raise ValueError(f"soak: model {model!r}, expected 'onnx' or 'grey'")
+    truths = [cycle[i % len(cycle)] for i in range(presses)]  # at least one press per piece
+    rig = build_rig(workdir, truths, gate=gate, **rig_kw)
     inner_press = rig.arm.inner.press
     stamps: list[float] = []  # press start times of the current sample window only
     n_pressed = 0
@@ -91,6 +169,17 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
         return inner_press()
 
     rig.arm.inner.press = timed_press
+    score_ms: list[float] = []  # model.score_press wall time of the current sample window only
+    real_score = rig.cell.model.score_press
+
+    def timed_score(frame):
+        t = time.perf_counter()
+        try:
+            return real_score(frame)
+        finally:
+            score_ms.append((time.perf_counter() - t) * 1000.0)
+
+    rig.cell.model.score_press = timed_score
     samples: list[dict] = []
     last_n = 0
     t0 = time.monotonic()
@@ -104,12 +193,15 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
             _trim_test_doubles(rig.arm, rig.gate, rig.camera)
             samples.append({"presses": n, "rss_mib": rss_mib(), "press_ms_median": float(np.median(cycles)),
                             "press_ms_p95": float(np.percentile(cycles, 95)), "t_s": time.monotonic() - t0,
+                            "score_ms_median": float(np.median(score_ms)) if score_ms else 0.0,
                             "notifier_messages": len(rig.cell.notifier.sent)})
+            score_ms.clear()
             last_n = n
             if progress:
                 s = samples[-1]
                 print(f"\rsoak: {n}/{presses} presses, RSS {s['rss_mib']:.1f} MiB, press cycle "
-                      f"{s['press_ms_median']:.2f} ms", end="", file=sys.stderr, flush=True)
+                      f"{s['press_ms_median']:.2f} ms, scoring {s['score_ms_median']:.2f} ms", end="",
+                      file=sys.stderr, flush=True)
         return n >= presses
 
     try:
@@ -126,15 +218,29 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     seconds = time.monotonic() - t0
     from vs2t_edge.sim.faults import audit
 
-    a = audit(rig.journal_path, {it.id: it.truth for it in rig.pieces.items})
+    # the grey model is exact, so every sorted piece must be in its own bin; the real model may be
+    # wrong (a tiny test model): its bins are counted below, the audit checks the loop's promises
+    a = audit(rig.journal_path, {it.id: it.truth for it in rig.pieces.items} if model == "grey" else None)
+    truth_of = {it.id: it.truth for it in rig.pieces.items}
+    bins = rig.cell.scene.bins
+    sorted_right = sum(f.get("outcome") == "sorted" and f["bin"] == bins.get(truth_of.get(f.get("item_id")), -1)
+                       for f in a["finals"])
+    to_reject = sum(f["bin"] == rig.cell.scene.reject_bin for f in a["finals"])
     journal_mib = rig.journal_path.stat().st_size / 2**20
     warm = samples[max(1, len(samples) // 10):]
     k = max(1, len(samples) // 10)
     first, last = samples[:k], samples[-k:]
     x = [s["presses"] for s in warm]
     res = {
-        "command": f"python -m vs2t_edge.sim.soak --presses {presses} --gate {gate_kind}",
+        "command": f"python -m vs2t_edge.sim.soak --presses {presses} --gate {gate_kind} --model {model}",
         "presses": n_pressed, "items": len(a["finals"]), "seconds": seconds, "arm": "FakeArm",
+        "model": (f"real inference path: bundle {_shown(bundle)} (TactileModel: preprocess, onnxruntime 1 thread, "
+                  "router) + Evidence, the reference replays' frames" if model == "onnx"
+                  else "grey-level fake model"),
+        "score_ms_first": float(np.median([s["score_ms_median"] for s in first])),
+        "score_ms_last": float(np.median([s["score_ms_median"] for s in last])),
+        "score_ms_slope_per_kpress": slope_per_k(x, [s["score_ms_median"] for s in warm]),
+        "sorted_to_truth_bin": int(sorted_right), "to_reject_bin": int(to_reject),
         "gate": "MCU simulator (pty)" if gate_kind == "pty" else "FakeGate",
         "rss_first_mib": float(np.mean([s["rss_mib"] for s in first])),
         "rss_last_mib": float(np.mean([s["rss_mib"] for s in last])),
@@ -151,6 +257,8 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
                           else f"GROWS ({res['rss_slope_mib_per_kpress']:.2f} MiB / 1000 presses)")
     drift = res["press_ms_last"] / max(res["press_ms_first"], 1e-9) - 1.0
     res["latency_verdict"] = "no drift" if abs(drift) < 0.2 else f"DRIFT ({drift:+.0%})"
+    sdrift = res["score_ms_last"] / max(res["score_ms_first"], 1e-9) - 1.0
+    res["score_verdict"] = "no drift" if abs(sdrift) < 0.2 else f"DRIFT ({sdrift:+.0%})"
     res["journal_verdict"] = (f"{1024 * journal_mib / max(res['items'], 1):.2f} KiB per piece, "
                               + ("one final per piece" if not a["problems"] else "; ".join(a["problems"])))
     if own:
@@ -167,12 +275,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample", type=int, default=100, help="presses per sample")
     ap.add_argument("--rss-limit-mib", type=float, default=0.5, help="largest acceptable RSS slope per 1000 presses")
     ap.add_argument("--json", type=Path, default=None, help="write the result (with every sample) here")
+    ap.add_argument("--model", choices=["onnx", "grey"], default="onnx",
+                    help="onnx: the real inference path on --bundle (default); grey: the fake grey-level model")
+    ap.add_argument("--bundle", type=Path, default=None, help="bundle for --model onnx (default: tests/replays/bundle)")
     a = ap.parse_args(argv)
     if a.presses < 10 * a.sample:
         print(f"--presses must be at least 10 x --sample ({10 * a.sample})", file=sys.stderr)
         return 2
-    res = soak(a.presses, gate_kind=a.gate, sample=a.sample, rss_limit_mib=a.rss_limit_mib)
-    print(f"{res['presses']} presses, {res['items']} pieces, {res['seconds']:.0f} s")
+    res = soak(a.presses, gate_kind=a.gate, sample=a.sample, rss_limit_mib=a.rss_limit_mib, model=a.model,
+               bundle=a.bundle)
+    print(f"{res['presses']} presses, {res['items']} pieces, {res['seconds']:.0f} s; {res['model']}")
+    print(f"scoring (model.score_press) median {res['score_ms_first']:.2f} -> {res['score_ms_last']:.2f} ms, slope "
+          f"{res['score_ms_slope_per_kpress']:+.3f} ms/1000 presses; {res['sorted_to_truth_bin']} pieces in their "
+          f"fabric's bin, {res['to_reject_bin']} to reject")
     print(f"RSS {res['rss_first_mib']:.1f} -> {res['rss_last_mib']:.1f} MiB, slope "
           f"{res['rss_slope_mib_per_kpress']:+.3f} MiB/1000 presses: {res['rss_verdict']}")
     print(f"press cycle median {res['press_ms_first']:.2f} -> {res['press_ms_last']:.2f} ms, slope "
@@ -183,7 +298,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(res, indent=1))
-    ok = not res["problems"] and res["rss_verdict"] == "no growth" and res["latency_verdict"] == "no drift"
+    ok = (not res["problems"] and res["rss_verdict"] == "no growth" and res["latency_verdict"] == "no drift"
+          and res["score_verdict"] == "no drift")
     return 0 if ok else 1
 
 
