@@ -6,6 +6,10 @@ step — tactile tail fine-tuning, E/G/D/VS-F, CLS_u, CLS_t, the Gaussian — re
 values, a trained parameter would become NaN and the test fails. The visual tail, when it is
 fine-tuned, may learn from touched training fabrics' camera crops only: the same poisoning of
 the untouched and validation fabrics' crop activations must leave it finite.
+
+End to end, ``run.run_split`` (with the deployed artefacts) and ``compare.run_split`` run twice,
+clean and with every input of the untouched fabrics poisoned (frames, crops, features, attributes):
+every touched- and validation-side artefact must be bit-identical, only untouched test outputs move.
 """
 
 import numpy as np
@@ -56,32 +60,50 @@ def test_no_untouched_tactile_value_reaches_training():
     assert np.isnan(views.test_presses[0]).all()  # the untouched tactile data exists only for testing
 
 
-def test_fine_tuning_rows_refuse_a_fabric_outside_touched(monkeypatch):
-    stem, x_v, fabric, ids, attrs = _world()
-    split = cmp.make_splits(ids, 1, 2, 2, seed=3)[0]
-    # a refactor that hands fine-tuning an untouched fabric's rows must fail loudly
-    leaky = cmp.FabricSplit(touched=split.touched + [split.untouched[0]], validation=split.validation,
-                            untouched=split.untouched, seed=split.seed)
-    rows, _ = ft.touched_training_rows(fabric, ids, leaky)  # by itself it just follows the list ...
-    assert np.isin(fabric[rows], [ids.index(split.untouched[0])]).any()
-    # ... so the run builds fine-tuning rows from the split's touched list only, never another list
+def test_a_split_calling_an_untouched_fabric_touched_is_refused_before_fine_tuning(monkeypatch):
+    """Fine-tuning rows follow the split's touched list; a split (a refactor, a hand-edited
+    metrics.json) that also lists an untouched or validation fabric as touched is refused with
+    ZeroShotViolation by ``touched_training_rows`` — before `vs2t-edge train` fine-tunes anything."""
     from vs2t_edge.train import run
 
+    stem, x_v, fabric, ids, attrs = _world()
+    split = cmp.make_splits(ids, 1, 2, 2, seed=3)[0]
+    for other in (split.untouched[0], split.validation[0]):
+        leaky = cmp.FabricSplit(touched=split.touched + [other], validation=split.validation,
+                                untouched=split.untouched, seed=split.seed)
+        with pytest.raises(ft.ZeroShotViolation, match=other):
+            ft.touched_training_rows(fabric, ids, leaky)
+
+        def spy(*a, **kw):
+            raise AssertionError("fine-tuning ran on a leaky split")
+
+        monkeypatch.setattr(ft, "finetune_tail", spy)
+        cache = ft.StemCache(stem.astype(np.float16), x_v, x_v, fabric, ids, attrs, {})
+        with pytest.raises(ft.ZeroShotViolation):
+            run.run_split(cache, build_trunk("tiny"), leaky, run.PROFILES["tiny"], vs2t.VS2TBudget())
+
+
+def test_run_fine_tunes_on_the_splits_touched_training_rows_only(monkeypatch):
+    """run.run_split hands the tactile tail exactly the split's touched-train rows (count and classes)."""
+    from vs2t_edge.train import run
+
+    stem, x_v, fabric, ids, attrs = _world()
+    split = cmp.make_splits(ids, 1, 2, 2, seed=3)[0]
     seen = {}
-    real = ft.finetune_tail
 
     def spy(trunk, stem_rows, y, n_classes, **kw):
         seen["n"] = n_classes
-        seen["rows"] = len(stem_rows)
+        seen["rows"] = np.asarray(stem_rows, dtype=np.float32)
         raise RuntimeError("stop")
 
     monkeypatch.setattr(ft, "finetune_tail", spy)
     cache = ft.StemCache(stem.astype(np.float16), x_v, x_v, fabric, ids, attrs, {})
     with pytest.raises(RuntimeError, match="stop"):
         run.run_split(cache, build_trunk("tiny"), split, run.PROFILES["tiny"], vs2t.VS2TBudget())
+    rows, _ = ft.touched_training_rows(fabric, ids, split)
     assert seen["n"] == len(split.touched)
-    assert seen["rows"] == len(ft.touched_training_rows(fabric, ids, split)[0])
-    del real
+    assert np.array_equal(seen["rows"], stem[rows].astype(np.float16).astype(np.float32))
+    assert set(fabric[rows]) == {ids.index(f) for f in split.touched}
 
 
 def test_visual_fine_tuning_sees_touched_training_crops_only(monkeypatch):
@@ -140,3 +162,164 @@ def test_visual_fine_tuning_guard_catches_a_leak():
     y = np.arange(len(fabric)) % len(split.touched)
     leaky = ft.finetune_tail(trunk, stem_v, y, len(split.touched), epochs=1, progress=False, what="visual")
     assert not _finite(leaky)
+
+
+# --------------------------------------------------------------------------------------------
+# end to end: run.run_split and compare.run_split, clean vs every untouched input poisoned
+# --------------------------------------------------------------------------------------------
+
+# What may differ between the clean and the poisoned run: numbers measured on the untouched
+# (test) fabrics' presses, and timings. Everything else is touched- or validation-side.
+TEST_SIDE_KEYS = {"zsl_acc", "acc_u", "H", "ausuc", "auroc", "wasserstein", "cosine"}
+TIMING_KEYS = {"seconds", "finetune_s", "finetune_visual_s"}
+# calibrated stacking scores touched test presses with CLS_u of the untouched classes too, so its
+# touched-test GZSL accuracy is a test-side number; every other router's acc_t reads CLS_t only
+READS_CLS_U = {"calibrated_stacking"}
+
+
+def _poisonable_world(poison: bool):
+    """The tiny stem world with, when ``poison``, every input of the untouched (test) fabrics
+    replaced: tactile frames (stem activations and frozen tactile features), camera crops (visual
+    stem and frozen visual features) by large finite noise — the routers refuse NaN when they score
+    a press, and bit-identity with the clean run below catches any leak a NaN would — and their
+    attribute rows flipped (CLS_u legitimately reads them)."""
+    stem, x_v, fabric, ids, attrs = _world()
+    rng = np.random.default_rng(7)
+    stem_v = rng.normal(size=stem.shape).astype(np.float32)
+    x_t0 = rng.normal(size=(len(fabric), 16)).astype(np.float32)
+    split = cmp.make_splits(ids, 1, 2, 2, seed=3)[0]
+    if poison:
+        bad = np.isin(fabric, [ids.index(f) for f in split.untouched])
+        noise = np.random.default_rng(99)
+        for a in (stem, stem_v, x_v, x_t0):
+            a[bad] = (50 * noise.normal(size=a[bad].shape) + 20).astype(np.float32)
+        u = [ids.index(f) for f in split.untouched]
+        attrs[u] = 1 - attrs[u]
+    cache = ft.StemCache(stem.astype(np.float16), x_v, x_t0, fabric, ids, attrs, {}, stem_v.astype(np.float16))
+    return cache, split
+
+
+def _differing_leaves(a, b, path=()):
+    if isinstance(a, dict):
+        assert set(a) == set(b), path
+        return [p for k in a for p in _differing_leaves(a[k], b[k], path + (k,))]
+    if isinstance(a, (list, tuple)):
+        assert len(a) == len(b), path
+        return [p for i, (x, y) in enumerate(zip(a, b)) for p in _differing_leaves(x, y, path + (i,))]
+    same = a == b or (isinstance(a, float) and np.isnan(a) and isinstance(b, float) and np.isnan(b))
+    return [] if same else [path]
+
+
+def _only_test_side_changed(clean: dict, poisoned: dict) -> list:
+    diff = _differing_leaves(clean, poisoned)
+    touched = [p for p in diff if p[-1] not in TEST_SIDE_KEYS | TIMING_KEYS
+               and not (p[-1] == "acc_t" and len(p) >= 2 and p[-2] in READS_CLS_U)]
+    assert not touched, f"a touched- or validation-side number moved when only untouched inputs changed: {touched}"
+    test_side = [p for p in diff if p[-1] in TEST_SIDE_KEYS]
+    assert test_side, "the poison did not reach the untouched test outputs (the check would be vacuous)"
+    return test_side
+
+
+def _plain(o):
+    """Arrays as nested lists, so ``_differing_leaves`` compares them element by element."""
+    if isinstance(o, dict):
+        return {k: _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
+    return np.asarray(o).tolist() if isinstance(o, np.ndarray) else o
+
+
+def _state(module) -> dict:
+    return {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+
+def _same_state(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def _method_states(m) -> dict:
+    """Every trained module of a fitted method (after ``retarget`` to the validation fabrics, as
+    compare.run_split leaves it), and its CLS_u per class set."""
+    out = {k: _state(v) for k, v in vars(m).items() if isinstance(v, torch.nn.Module)}
+    for classes, clf in getattr(m, "cls_u_by_classes", {}).items():
+        out[("cls_u",) + classes] = _state(clf)
+    return out
+
+
+@pytest.mark.parametrize("visual_tail", ["frozen", "finetuned"])
+def test_training_run_split_is_blind_to_every_untouched_input(visual_tail):
+    """`vs2t-edge train`'s own split runner (run.run_split: tail fine-tuning, every VS2T variant and
+    ablation, CLS_t, every router and its validation beta) and the deployed artefacts, run twice:
+    once clean, once with the untouched fabrics' frames, crops, features and attributes poisoned.
+    Every touched-side artefact must be bit-identical; only untouched test outputs may move."""
+    from vs2t_edge.train import run
+
+    prof = run.PROFILES["tiny"]
+    prof = type(prof)(**{**prof.__dict__, "visual_tail": visual_tail, "ft_epochs": 1})
+    budget = vs2t.VS2TBudget(steps=15, cls_steps=10, n_synth_per_class=10, hidden=32, latent=8)
+    outs = {}
+    for poison in (False, True):
+        cache, split = _poisonable_world(poison)
+        torch.manual_seed(0)  # the tiny trunk's random init, as `vs2t-edge train` seeds it
+        trunk = build_trunk("tiny")
+        trunk.stem = torch.nn.Identity()  # the cached activations are the stem's output
+        o = run.run_split(cache, trunk, split, prof, budget)
+        arts = {r: run._deploy_artifacts("world", prof, split, o, budget, r) for r in prof.routers}
+        outs[poison] = (o, arts, split)
+    (clean, arts_c, split), (pois, arts_p, _) = outs[False], outs[True]
+    changed = _only_test_side_changed(clean["result"], pois["result"])
+    assert any(p[:2] == ("methods", "VS2T-ZSL") for p in changed)
+    # the trained parts: tactile tail, every variant's E / G / D / VS-F and its validation CLS_u
+    assert _same_state(_state(clean["trunk"]), _state(pois["trunk"]))
+    assert set(clean["fitted"]) == set(vs2t.VARIANTS)
+    for name, m in clean["fitted"].items():
+        a, b = _method_states(m), _method_states(pois["fitted"][name])
+        u = ("cls_u",) + tuple(split.untouched)
+        for k in a:
+            if k in (u, "cls_u"):  # run.run_split points cls_u at the untouched CLS_u afterwards
+                assert not _same_state(a[k], b[k]), (name, k)  # the untouched CLS_u did read the poison
+            else:
+                assert _same_state(a[k], b[k]), f"{name}: {k} changed with untouched inputs only"
+    # the deployed bundle: all but the untouched CLS_u identical, for every router it can ship
+    for r in prof.routers:
+        ac, ap = arts_c[r], arts_p[r]
+        assert _same_state(ac.trunk_state, ap.trunk_state) and _same_state(ac.cls_t_state, ap.cls_t_state)
+        assert np.array_equal(ac.feature_mean, ap.feature_mean) and np.array_equal(ac.feature_std, ap.feature_std)
+        assert not _differing_leaves(_plain(ac.router_params), _plain(ap.router_params)) and ac.beta == ap.beta, r
+        assert (ac.touched, ac.validation, ac.untouched) == (ap.touched, ap.validation, ap.untouched)
+        assert not _same_state(ac.cls_u_state, ap.cls_u_state)
+
+
+def test_compare_run_split_is_blind_to_every_untouched_input():
+    """The comparison's split runner (compare.run_split, every row of compare.all_methods: DAP,
+    VT-FC-ZSL, Abderrahmane, Lee, f-CLSWGAN, CADA-VAE, f-VAEGAN, VS2T-ZSL), clean vs untouched
+    tactile features, visual features and attributes poisoned: CLS_t, each method's trained
+    weights (left retargeted to the validation fabrics), every router's beta and validation
+    numbers are bit-identical; only the untouched test outputs move."""
+    from vs2t_edge.train.baselines import Budget
+
+    budget = Budget(steps=12, batch=16, hidden=32, latent=4, cls_steps=8, n_synth_per_class=8)
+    made, results = {}, {}
+    for poison in (False, True):
+        cache, split = _poisonable_world(poison)
+        table = cmp.FeatureTable(cache.x_t0, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
+        fitted = {}
+
+        def recording(name, cls, fitted=fitted):
+            def fit(self, *a, **k):
+                fitted[name] = self
+                return cls.fit(self, *a, **k)
+            return type(cls.__name__, (cls,), {"fit": fit})
+
+        methods = {n: recording(n, c) for n, c in cmp.all_methods().items()}
+        results[poison] = cmp.run_split(table, split, methods, budget, log=lambda *_: None)
+        made[poison] = fitted
+    changed = _only_test_side_changed(results[False], results[True])
+    assert {p[1] for p in changed if p[0] == "methods"} == set(made[False])  # every row read its poison
+    for name, m in made[False].items():
+        a, b = _method_states(m), _method_states(made[True][name])
+        assert a, name
+        u = ("cls_u",) + tuple(split.untouched)
+        for k in a:
+            if k != u:
+                assert _same_state(a[k], b[k]), f"{name}: {k} changed with untouched inputs only"
