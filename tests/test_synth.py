@@ -179,6 +179,18 @@ def test_attributes_alone_number_measures_label_noise_below_the_coarseness_cap(m
         assert abs(difficulty.attribute_identification(params, attrs, seed=0) - cap) < 0.03, seed
 
 
+def test_sample_sheet_is_written_losslessly(tiny, tmp_path):
+    """The PNG holds the sheet's exact pixels: no rounding to coarse grey steps (which showed as
+    blotches in the flat parts of the GelSight frames)."""
+    from vs2t_edge.sim import sample_sheet
+
+    out = tmp_path / "sheet.png"
+    assert sample_sheet.main([str(tiny), "--out", str(out)]) == 0
+    drawn = sample_sheet.sheet(tiny)
+    assert drawn.shape[0] > 28 + 3 * sample_sheet.TILE_H  # a header and a row per fabric (4 here)
+    assert np.array_equal(cv2.imread(str(out)), drawn)
+
+
 # --- the `vs2t-edge synth` verb end to end (issue 2: "Done when `vs2t-edge synth` with the small
 # profile writes a dataset the loader accepts"), in-process through the CLI's main(argv)
 
