@@ -75,6 +75,78 @@ def test_float32_scores_agree_with_float64_across_feature_norms(name, scale):
     np.testing.assert_allclose(fast, ref, rtol=F32_RTOL)
 
 
+class _Session:
+    """Stands in for an onnxruntime session: returns the given outputs, so TactileModel.forward
+    runs the cell's own router path (float32 parameters, float32 scoring) on chosen features."""
+
+    def __init__(self, name, outputs):
+        self._name, self.outputs = name, outputs
+
+    def get_inputs(self):
+        return [type("I", (), {"name": self._name})()]
+
+    def run(self, names, feeds):
+        return self.outputs(feeds[self._name])
+
+
+def _cell_model(router, beta):
+    """A TactileModel whose router is ``router`` as the cell gets it from a bundle (saved with
+    to_params, read back with from_params, then inference._float32_router), and whose trunk
+    'outputs' are whatever features forward is given."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.runtime.inference import TactileModel
+
+    loaded = nv.Router.from_params({k: np.asarray(v) for k, v in router.to_params().items()})
+    bundle = SimpleNamespace(manifest={}, touched=("t0", "t1"), untouched=("u0",), classes=("t0", "t1", "u0"),
+                             beta=beta, gating_temperature=1.0, gating_scale=None, router=loaded, preprocess=None)
+    trunk = _Session("image", lambda x: [np.asarray(x, np.float32)])
+    heads = _Session("feature", lambda f: [np.zeros((len(f), 2), np.float32), np.zeros((len(f), 1), np.float32)])
+    model = TactileModel(bundle, trunk, heads, threads=1)
+    assert model.router.mean.dtype == np.float32 and model.router.whitening.dtype == np.float32
+    return model
+
+
+def _check_cell_against_float64(router, q32):
+    """The cell's novelty (TactileModel.forward, float32) against float64 scoring with the
+    float64 parameters of the same float32 features: the squared distance part within F32_RTOL,
+    the log-density constant exact, the ranking and the route at a mid beta the same."""
+    ref = router.novelty(q32.astype(np.float64))  # float64 throughout
+    m2_ref = router.squared_mahalanobis(q32.astype(np.float64))
+    beta = float(np.median(ref))
+    model = _cell_model(router, beta)
+    got = model.forward(q32).novelty
+    assert got.dtype == np.float64 and np.all(np.isfinite(got))
+    np.testing.assert_array_less(np.abs(got - ref), F32_RTOL * np.maximum(np.abs(m2_ref), 1e-30) + 1e-9 * np.abs(ref))
+    far = np.abs(ref - beta) > 2 * F32_RTOL * np.abs(m2_ref) + 1e-9 * np.abs(ref)  # not within rounding of beta
+    assert np.array_equal((got > beta)[far], (ref > beta)[far])
+    order = np.argsort(ref)
+    gaps = np.diff(ref[order]) > 2 * F32_RTOL * np.abs(m2_ref[order][1:])
+    assert np.all(np.diff(got[order])[gaps] > 0)
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e-3, 1.0, 1e3, 1e6])
+@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+def test_cell_float32_novelty_agrees_with_float64_across_feature_norms(name, scale):
+    """Trunk features at norms 1e-6..1e6 (fit and presses at the same scale): the novelty the cell
+    computes in TactileModel.forward, not only squared_mahalanobis."""
+    x = _relu_features(n=120, d=256, seed=4) * scale
+    r = nv.fit_router(name, x)
+    q = (_relu_features(n=60, d=256, seed=5) * scale).astype(np.float32)
+    _check_cell_against_float64(r, q)
+
+
+@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+def test_cell_float32_novelty_of_presses_from_1e_minus6_to_1e6(name):
+    """Fitted at norm ~1, presses whose features have norms 1e-6..1e6 (dead channels at 1e6):
+    finite, and within F32_RTOL of float64, through the cell's forward."""
+    r = nv.fit_router(name, _relu_features(n=80, d=128, seed=6))
+    direction = np.abs(np.random.default_rng(7).normal(size=128))
+    q = np.stack([direction * s for s in np.logspace(-6, 6, 13)]).astype(np.float32)
+    q[-3:, :20] = np.float32(1e6)
+    _check_cell_against_float64(r, q)
+
+
 @pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
 def test_float32_far_outliers_do_not_overflow(name):
     """Fit at norm ~1, score presses with norms up to 1e6 in float32: no inf, same ranking."""
