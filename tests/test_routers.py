@@ -42,9 +42,15 @@ def test_target_false_untouched():
 
 def test_separated_scores_give_beta_between_the_groups():
     assert nv.tune_threshold([1, 2, 3], [10, 11]) == pytest.approx(6.5)
-    # reversed groups: the best is to call everything touched (beta=+inf) or untouched (-inf)
-    b = nv.tune_threshold([10, 11], [1, 2, 3])
-    assert b in (np.inf, -np.inf)
+    # reversed groups (touched scores above untouched): no finite gap does better than routing all
+    # one way (balanced score 0.5); the tie goes to the lowest beta, -inf: everything flagged
+    t, u = [10, 11], [1, 2, 3]
+    b = nv.tune_threshold(t, u)
+    assert b == -np.inf
+    kept, flagged = nv.threshold_rates(t, u, [b])
+    assert (kept[0], flagged[0]) == (0.0, 1.0)
+    k, f = nv.threshold_rates(t, u, [0.5, 1.5, 2.5, 6.5, 10.5, 11.5])
+    assert np.all(0.5 * (k + f) <= 0.5)
 
 
 def test_beta_extremes_route_all_or_none():
@@ -119,6 +125,7 @@ def test_ausuc_is_within_unit_square_and_dominated_by_perfect(t, u):
     ones_t, ones_u = np.ones(len(t), bool), np.ones(len(u), bool)
     a = nv.ausuc(t, ones_t, u, ones_u)
     assert -1e-12 <= a <= 1 + 1e-12
-    assert a == pytest.approx(nv.auroc(t, u) * 0 + a)  # finite
+    # with every head wrong no operating point classifies anything: the curve is 0
+    assert nv.ausuc(t, ~ones_t, u, ~ones_u) == 0.0
     # with perfect heads AUSUC equals the AUROC of the router (ties count half)
     assert a == pytest.approx(nv.auroc(t, u), abs=1e-9)
