@@ -256,3 +256,40 @@ def test_zero_shot_guard_refuses_untouched_presses(tiny_run):
         ex.refit_router("gaussian", ds=ds, spec=art.tactile_preprocess, trunk=None, cls_t=None, cls_u=None,
                         touched=art.touched, untouched=art.untouched, validation=art.untouched, part=part,
                         max_presses=None)
+
+
+# ------------------------------------------------ a bundle from a real training run (issue 5's "done when")
+
+
+def test_bundle_from_a_real_tiny_training_run_passes_runtime_verification(tmp_path, capsys):
+    """`train` on the tiny profile (the real trainer: trunk, tactile tail, VS2T-ZSL, router chosen
+    on validation), then `export` of that run folder, fp32 and int8: each bundle passes the cell's
+    verification (TactileModel.load and `verify-bundle`), names the run's classes, router and beta,
+    records which presses trained it, and scores a press of an untouched fabric finitely."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.train.artifacts import load_run_artifacts
+    from vs2t_edge.train.run import train
+
+    world = tiny_world()
+    run = tmp_path / "run"
+    train(world, run, profile="tiny", figures=False)
+    art = load_run_artifacts(run)
+    ds = load_dataset(world)
+    for prec in ("fp32", "int8"):
+        out = tmp_path / f"bundle_{prec}"
+        m = ex.export_run(run, out, trunk_precision=prec, calibration_frames=16)
+        assert main(["verify-bundle", str(out), "--threads", "1"]) == 0
+        assert f"bundle {out}: ok" in capsys.readouterr().out
+        model = TactileModel.load(out, threads=1)
+        assert list(model.touched) == list(art.touched) and list(model.untouched) == list(art.untouched)
+        assert m["router"]["name"] == art.router_name and model.beta == pytest.approx(art.beta)
+        assert m["provenance"]["trained"] is True and m["provenance"]["run"] == str(run.resolve())
+        assert m["graphs"]["trunk"]["opset"] == ex.OPSET and m["graphs"]["trunk"]["precision"] == prec
+        part = m["provenance"]["data"]["touched_presses"]
+        assert set(part) == set(art.touched) and all(part[f]["train"] for f in art.touched)
+        fab = ds.by_id(art.untouched[0])
+        model.set_reference(fab.load_reference())
+        s = model.score_press(fab.load_press(0))
+        assert set(s.log_posterior) == set(model.classes)
+        assert all(np.isfinite(v) for v in s.log_posterior.values()) and np.isfinite(s.novelty)
