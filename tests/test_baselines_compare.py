@@ -504,3 +504,38 @@ def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
         cmp.pool_results([{"splits": [a]}, {"splits": [c]}], TACTILE_ONLY)
     with pytest.raises(ValueError, match=r"same fabric split \(seed \[0\]\)"):
         cmp.pool_results([{"splits": [a, a2]}, {"splits": [a]}], TACTILE_ONLY)  # would count split 0 twice
+
+
+def test_methods_section_says_what_vs2t_conditions_on():
+    """The generated "Methods and adaptations" text follows the budget the JSON records: VS2T-ZSL's
+    visual condition is each fabric's clipped mean crop feature (``visual_condition: fabric``) or
+    the clipped per-press feature, while f-CLSWGAN / CADA-VAE / f-VAEGAN read the raw per-press
+    one — never "all share the same [x_v, s]"."""
+    import copy
+
+    from vs2t_edge.train import vs2t
+
+    base = json.loads((Path(__file__).parents[1] / "docs/results/comparison_paper_v3.json").read_text())
+    assert base["budget"]["visual_condition"] == "fabric"
+
+    def methods_text(budget):
+        r = copy.deepcopy(base)
+        r["budget"] = budget
+        md = cmp.render_markdown(r)
+        return md[md.index("## Methods and adaptations"):]
+
+    fabric = methods_text(base["budget"])
+    assert "same fused visual+semantic condition" not in fabric
+    assert "f-CLSWGAN, CADA-VAE and f-VAEGAN condition on the fused" in fabric and "at each press, as it is" in fabric
+    assert "VS2T-ZSL also conditions on [x_v, s] (through VS-F), but its x_v is each fabric's mean crop feature" in fabric
+    assert f"±{vs2t.CLIP_SD:g} standard deviations" in fabric
+    press = methods_text({**base["budget"], "visual_condition": "press"})
+    assert "its x_v is the crop feature at each press, every channel clipped" in press and "mean crop" not in press
+    old = methods_text({k: v for k, v in base["budget"].items() if k != "visual_condition"})
+    assert "records no `visual_condition`" in old and "clipped" not in old
+    pca = methods_text({**base["budget"], "cond_pca": 8})
+    assert "top 8 whitened principal components" in pca
+    no_vs2t = copy.deepcopy(base)
+    for sp in no_vs2t["splits"]:
+        sp["methods"].pop("VS2T-ZSL")
+    assert "VS2T-ZSL also conditions" not in cmp.render_markdown(no_vs2t)

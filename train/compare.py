@@ -555,6 +555,33 @@ def _recommendation_section(result: dict) -> list[str]:
     return lines
 
 
+def _vs2t_condition_lines(result: dict) -> list[str]:
+    """What VS2T-ZSL's condition was in this JSON, from the budget it records (``VS2TBudget``
+    fields; ``train/vs2t.py`` ``VS2TZSL._visual``), not what today's default would be."""
+    if not any("VS2T-ZSL" in sp["methods"] for sp in result.get("splits", [])):
+        return []
+    from vs2t_edge.train.vs2t import CLIP_SD
+
+    b = result.get("budget", {})
+    vc = b.get("visual_condition")
+    clip = f"every channel clipped to ±{CLIP_SD:g} standard deviations of the touched training presses"
+    if vc == "fabric":
+        x_v = (f"each fabric's mean crop feature ({clip} first; `visual_condition: fabric`), the same for all "
+               f"of a fabric's presses, so within-fabric variation must come from its latent")
+    elif vc == "press":
+        x_v = f"the crop feature at each press, {clip} (`visual_condition: press`)"
+    else:
+        x_v = ("the crop feature at each press as the other generators read it (this JSON's budget records no "
+               "`visual_condition`: it predates the per-fabric condition and the clip)")
+    extra = []
+    if int(b.get("cond_pca", 0) or 0) > 0:
+        extra.append(f"projected on its top {int(b['cond_pca'])} whitened principal components (touched presses)")
+    if float(b.get("cond_noise", 0.0) or 0.0) > 0:
+        extra.append(f"with Gaussian noise of std {b['cond_noise']} on the condition in training")
+    tail = f", {'; '.join(extra)}" if extra else ""
+    return [f"- VS2T-ZSL also conditions on [x_v, s] (through VS-F), but its x_v is {x_v}{tail}."]
+
+
 def render_markdown(result: dict, real_md: str | None = None) -> str:
     s = result["summary"]
     meta = result["meta"]
@@ -614,11 +641,12 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
     lines += _recommendation_section(result)
     lines += [f"![comparison]({meta.get('png', 'comparison.png')})", ""]
     lines += ["## Methods and adaptations", "",
-              "- All methods use the same features, splits, touched train/val/test presses, "
-              "the same CLS_t, and the same fused visual+semantic condition [x_v, s] where they condition "
-              "on both (f-CLSWGAN, CADA-VAE, f-VAEGAN, VS2T-ZSL). DAP uses tactile only; VT-FC-ZSL maps "
-              "[x_t, x_v] to attributes; Abderrahmane 2019 conditions on attributes only; Lee 2019 on "
-              "the visual feature only.",
+              "- All methods use the same features, splits, touched train/val/test presses and the same CLS_t. "
+              "f-CLSWGAN, CADA-VAE and f-VAEGAN condition on the fused visual+semantic [x_v, s] with x_v the "
+              "standardised visual feature of the camera crop at each press, as it is (for an untouched fabric: "
+              "each of its crops). DAP uses tactile only; VT-FC-ZSL maps [x_t, x_v] to attributes; "
+              "Abderrahmane 2019 conditions on attributes only; Lee 2019 on the per-press visual feature only.",
+              *_vs2t_condition_lines(result),
               "- Lee 2019 is adapted to feature level: a pix2pix-style conditional GAN from the crop's "
               "visual feature to the tactile feature (BCE adversarial + 100 x L1), not image-to-image.",
               "- f-VAEGAN is the inductive f-VAEGAN-D2 without D2 (D2 needs unlabelled untouched "
