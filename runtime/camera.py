@@ -213,6 +213,7 @@ class ReplayCamera(_CameraBase):
         self.loop = loop
         self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
         self._files: list[Path] | None = None
+        self._listed: list[Path] | None = None
         self._video = None
         self._pos = 0
         self._connected = False
@@ -230,19 +231,27 @@ class ReplayCamera(_CameraBase):
         return 0
 
     def connect(self) -> None:
+        """Open the recording; a reopen (the cell's camera retry) resumes where it stopped.
+
+        A recording stands in for a live sensor, whose frames go on in time while it is
+        reconnected: starting again at frame 0 would score the next pieces on the first
+        piece's frames (and hit the same bad file again).
+        """
         if self.is_video:
             video = cv2.VideoCapture(self.source)
             if not video.isOpened():
                 raise CameraError(f"{self.name}: cannot open video {self.source}", device=self.name,
                                   kind="unplugged")
+            if self._pos:
+                video.set(cv2.CAP_PROP_POS_FRAMES, self._pos)
             self._video = video
         else:
-            files = _list_images(self.source)
+            # the list is taken once: a frame file that vanishes later is reported by name at its grab
+            files = self._listed if self._listed is not None else _list_images(self.source)
             if not files:
                 raise CameraError(f"{self.name}: no images at {self.source}", device=self.name,
                                   kind="unplugged")
-            self._files = files
-        self._pos = 0
+            self._files = self._listed = files
         self._guard.reset()
         self._connected = True
 
@@ -271,7 +280,8 @@ class ReplayCamera(_CameraBase):
                 self._pos += 1
                 image = cv2.imread(str(path), cv2.IMREAD_COLOR)
                 if image is None:
-                    raise CameraError(f"{self.name}: cannot decode {path}", device=self.name, kind="corrupt")
+                    problem = "cannot decode" if path.exists() else "frame file missing:"
+                    raise CameraError(f"{self.name}: {problem} {path}", device=self.name, kind="corrupt")
                 return self._guard.admit(image, f" ({path.name})")
             if not self.loop or attempt:
                 break

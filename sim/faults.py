@@ -1758,13 +1758,7 @@ SCENARIOS = [
              "refused by the frame guard, press retried, never scored; all sorted", corrupt_frames),
     Scenario("replay_camera_bad_frames", "loop", "ReplayCamera: a corrupt and a missing frame file",
              "each refused naming the file, press retried on the next recorded frame, none scored twice; all sorted",
-             replay_camera_bad_frames,
-             known_bug="runtime/camera.py (owner of ReplayCamera) + runtime/cell.py: the cell reopens the camera "
-                       "before a camera retry, and ReplayCamera.connect() rewinds to the first frame (and re-lists "
-                       "the folder), so after a bad frame the recording starts again: the next pieces are scored on "
-                       "the first piece's frames and sorted into its bin (silk and wool -> denim's bin), and the bad "
-                       "file is hit again. Fix: a reopen keeps the position and the file list (rewind only on the "
-                       "first connect)"),
+             replay_camera_bad_frames),
     Scenario("camera_covered", "loop", "black frames on a press and its retry",
              "camera fault latched naming 'all black', piece rejected; rest sorted", all_frames_black),
     Scenario("protective_stop", "loop", "protective stop mid-press (FakeArm)",

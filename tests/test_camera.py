@@ -207,6 +207,34 @@ def test_corrupt_and_black_images_named(tmp_path):
         assert exc.value.kind == "corrupt" and exc.value.reason == "black"
 
 
+def test_a_reopened_recording_resumes_where_it_stopped(tmp_path, video):
+    """The cell reopens the camera before a retry; a recording, standing in for a live sensor,
+    must go on from where it was - not score the next pieces on the first frames again."""
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), _pattern(i))
+    cam = ReplayCamera(tmp_path)
+    cam.connect()
+    first = [cam.grab().image for _ in range(2)]
+    (tmp_path / "f0.png").unlink()  # listed once: a later reopen does not shift the frames
+    cam.disconnect()
+    cam.connect()
+    third = cam.grab().image
+    assert np.array_equal(third, _pattern(2)) and not np.array_equal(third, first[0])
+    (tmp_path / "f3.png").unlink()
+    with pytest.raises(CameraError, match="frame file missing: .*f3.png"):
+        cam.grab()
+    cam.disconnect()
+
+    with ReplayCamera(video) as cam:
+        frames = [cam.grab().image for _ in range(3)]
+        cam.disconnect()
+        cam.connect()
+        resumed = cam.grab().image
+    with ReplayCamera(video) as cam:
+        expected = [cam.grab().image for _ in range(4)][3]
+    assert np.array_equal(resumed, expected) and not np.array_equal(resumed, frames[0])
+
+
 def test_expected_size_enforced(video):
     with ReplayCamera(video, expected_hw=(240, 320)) as cam:
         with pytest.raises(CameraError) as exc:
