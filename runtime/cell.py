@@ -22,6 +22,11 @@ Retry policy (one table, so the behaviour is reviewable):
   next grid point is pressed. An item whose frames are all bad is decided "unknown" -> reject.
 * ArmSafetyStop, any other device error, a gate error, an item over its time budget: a
   latched fault.
+* any other exception (an onnxruntime RuntimeError from the model, a device used while not
+  connected, a bug): a latched fault of kind ``internal``, its type and text as the reason and
+  its traceback in the log - sensor lifted, arm stopped, gate to reject, the item's final record
+  ``rejected_fault`` (``unknown_outcome`` once a SORT went out), the fault file written. Only
+  KeyboardInterrupt/SystemExit end the loop (the daemon shuts down safely and re-raises).
 
 Latched fault (Klipper's shutdown): arm.stop(), gate.to_reject(), the reason in the journal,
 in STATUS and in the fault file — each step guarded so one failing step does not skip the
@@ -46,6 +51,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import traceback
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -132,6 +138,13 @@ class CellFault(Exception):
 
 class StopRequested(Exception):
     pass
+
+
+class _Done(Exception):
+    """Cell.run's own end (max_items, stop_when): not a fault."""
+
+
+INTERNAL = "internal"  # fault kind of an exception the loop has no rule for (Cell._latch_internal)
 
 
 @dataclass
@@ -294,35 +307,54 @@ class Cell:
         """Sort until stopped (SIGTERM sets stop_event), ``max_items`` done by this Cell, or
         stop_when() is true. Returns the last (up to RECENT_RESULTS) results; ``on_item`` sees all."""
         while not self.stop_event.is_set():
-            self.notifier.ping_if_due()
-            if max_items is not None and self.items_done >= max_items:
-                break
-            if stop_when is not None and stop_when():
-                break
-            if self.fault is not None:
-                if not self.fault_cleared_by_operator():
-                    self.sleep(min(0.2, self.scene.wait_item_timeout_s))
-                    continue
-                if not self.clear_fault():
-                    continue
-            self.notifier.status(f"waiting for item ({self.outcomes['sorted']} sorted)")
-            item = self.items.next_item(self.scene.wait_item_timeout_s)
-            if item is None:
-                continue
             try:
-                result = self.process_item(item)
-            except JournalError as exc:
-                # the record was cut back; the item stays open in the journal and is resolved
-                # when the operator clears (or at restart). Nothing moves meanwhile.
-                self.latch_fault(f"item {self._number} ({item.id}): journal write failed: {exc}", "journal")
-                continue
-            if result is not None:
-                self.results.append(result)
-                self.items_done += 1
-                self.outcomes[result.outcome] += 1
-                if self.on_item is not None:
-                    self.on_item(result)
+                self._run_once(max_items, stop_when)
+            except _Done:
+                break
+            except Exception as exc:  # noqa: BLE001 - outside an item (feeder, notifier, clear): latch too
+                self._latch_internal(exc, "")
         return list(self.results)
+
+    def _latch_internal(self, exc: BaseException, where: str) -> str:
+        """An exception the loop has no rule for (a model RuntimeError, a device used while not
+        connected, a bug) latches a fault like any other: without it the service would exit,
+        systemd would restart it and the cell would resume with no operator. The traceback goes
+        to the log; the reason names the exception's type and text."""
+        reason = f"{where}internal error: {type(exc).__name__}: {exc}"
+        self.log("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip())
+        self.latch_fault(reason, INTERNAL)
+        return reason
+
+    def _run_once(self, max_items: int | None, stop_when: Callable[[], bool] | None) -> None:
+        """One turn of the loop: wait out a latched fault, or take and sort one item."""
+        self.notifier.ping_if_due()
+        if max_items is not None and self.items_done >= max_items:
+            raise _Done()
+        if stop_when is not None and stop_when():
+            raise _Done()
+        if self.fault is not None:
+            if not self.fault_cleared_by_operator():
+                self.sleep(min(0.2, self.scene.wait_item_timeout_s))
+                return
+            if not self.clear_fault():
+                return
+        self.notifier.status(f"waiting for item ({self.outcomes['sorted']} sorted)")
+        item = self.items.next_item(self.scene.wait_item_timeout_s)
+        if item is None:
+            return
+        try:
+            result = self.process_item(item)
+        except JournalError as exc:
+            # the record was cut back; the item stays open in the journal and is resolved
+            # when the operator clears (or at restart). Nothing moves meanwhile.
+            self.latch_fault(f"item {self._number} ({item.id}): journal write failed: {exc}", "journal")
+            return
+        if result is not None:
+            self.results.append(result)
+            self.items_done += 1
+            self.outcomes[result.outcome] += 1
+            if self.on_item is not None:
+                self.on_item(result)
 
     def _check_time(self, t0: float) -> None:
         if self.clock() - t0 > self.scene.item_timeout_s:
@@ -356,6 +388,13 @@ class Cell:
             self.arm.retract()
         except DeviceError as lift_exc:
             self.log(f"could not lift the sensor after {exc.kind}: {lift_exc}")
+
+    def _lift_gel_after(self, what: str) -> None:
+        """_lift_gel for a fault with no device error behind it: any failure is only logged."""
+        try:
+            self.arm.retract()
+        except Exception as lift_exc:  # noqa: BLE001 - the latch has already stopped the arm
+            self.log(f"could not lift the sensor after {what}: {lift_exc}")
 
     def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
         """One press step with the retry policy: a retryable error is retried once. Before the
@@ -433,6 +472,7 @@ class Cell:
         decision = None
         pre_written = False
         gate_told = False  # a SORT went out: from here a lost ack means the flap may have moved
+        final_written = False
         label, bin_ = UNKNOWN, self.scene.reject_bin
         try:
             x0, y0 = self.scene.points_mm[0]
@@ -500,6 +540,7 @@ class Cell:
                     raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind) from exc
             self._final(number, item.id, label=label, bin_=bin_, outcome="sorted", confidence=confidence,
                         presses=presses)
+            final_written = True
             result = ItemResult(item, label, bin_, "sorted", presses, confidence, stopped_by, skipped,
                                 latencies, self.clock() - t0)
         except CellFault as fault:
@@ -527,6 +568,23 @@ class Cell:
                         reason="service stopping", presses=presses)
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", presses, 0.0, "stop",
                                 skipped, latencies, self.clock() - t0)
+        except JournalError:
+            raise  # Cell.run latches it; the item stays open in the journal (see the module doc)
+        except Exception as exc:  # noqa: BLE001 - no rule for it: latch like any other fault
+            # The gate may have executed a SORT that was sent before the exception: the record says
+            # the outcome is unknown instead of claiming reject. An item already finalised (the
+            # exception came after its final record) keeps that record.
+            self._lift_gel_after(type(exc).__name__)  # first, as _step does before a CellFault
+            reason = self._latch_internal(exc, f"item {number} ({item.id}): ")
+            uncertain = gate_told and not final_written
+            outcome = "unknown_outcome" if uncertain else "rejected_fault"
+            if not final_written:
+                note = f"; the piece may be in bin {bin_} or the reject bin - check both" if uncertain else ""
+                self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
+                            outcome=outcome, reason=reason + note, presses=presses,
+                            **({"maybe_bin": bin_} if uncertain else {}))
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, presses, 0.0,
+                                "fault", skipped, latencies, self.clock() - t0)
         return result
 
     def shutdown(self, reason: str = "stopped") -> None:

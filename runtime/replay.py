@@ -54,8 +54,12 @@ class ReplayError(ValueError):
     """A replay file that cannot be read, named with what is wrong."""
 
 
-class ReplayDivergence(RuntimeError):
-    """The replayed cell asked for something the recording does not have (it took another path)."""
+class ReplayDivergence(BaseException):
+    """The replayed cell asked for something the recording does not have (it took another path).
+
+    A BaseException, like KeyboardInterrupt: it ends the replay run, it is not a cell fault. As an
+    Exception the cell loop would latch it as an internal fault and the replay would report a
+    decision mismatch instead of saying where the paths parted."""
 
 
 def _error_to_json(exc: dv.DeviceError) -> dict:

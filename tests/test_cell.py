@@ -333,3 +333,86 @@ def test_without_a_contact_check_the_loop_scores_an_untouched_frame(tmp_path):
     results = cell.run(max_items=1)
     assert results[0].outcome == "sorted" and cell.model.scored == 3
     assert not [r for r in read_records(journal.path) if r["type"] == "retry"]
+
+
+# --- an exception the loop has no rule for (issue 7 audit, item 1) -----------------------------
+
+def test_model_runtime_error_latches_an_internal_fault_instead_of_escaping(tmp_path):
+    """An onnxruntime RuntimeError from score_press used to escape Cell.run: the daemon re-raised,
+    no FAULT file, systemd restarted the service and the cell sorted on with no operator."""
+    logged: list[str] = []
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60] * 10)
+    cell.log = logged.append
+    original, n = cell.model.score_press, {"calls": 0}
+
+    def flaky(frame):
+        n["calls"] += 1
+        if n["calls"] == 2:
+            raise RuntimeError("[ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION (injected)")
+        return original(frame)
+
+    cell.model.score_press = flaky
+    results = cell.run(max_items=2, stop_when=lambda: cell.fault is not None and n["calls"] >= 2)
+    assert [r.outcome for r in results] == ["rejected_fault"] and results[0].bin == 0
+    assert "internal error: RuntimeError: [ONNXRuntimeError]" in cell.fault
+    assert "RuntimeError" in (tmp_path / "FAULT").read_text()
+    recs = read_records(journal.path)
+    fault = [r for r in recs if r["type"] == "fault"]
+    assert len(fault) == 1 and fault[0]["kind"] == "internal"
+    assert [r["outcome"] for r in finals(journal.path)] == ["rejected_fault"]
+    assert Journal.open(journal.path).unresolved_items() == []  # nothing lost
+    # sensor lifted before the stop, then gate to reject; nothing sorted
+    assert arm.calls[-2:] == ["retract", "stop"] and gate.to_reject_calls >= 1 and gate.sorted == []
+    assert any("Traceback" in m and "flaky" in m for m in logged)  # the traceback is in the log
+    # a restart refuses until the operator clears
+    cell2, arm2, *_ = make_cell(tmp_path, [60] * 4)
+    cell2.recover()
+    cell2.run(max_items=1, stop_when=lambda: True)
+    assert cell2.fault and "RuntimeError" in cell2.fault and arm2.calls.count("press") == 0
+    (tmp_path / "FAULT").unlink()
+    assert cell2.run(max_items=1)[-1].outcome == "sorted"
+
+
+class DeadLinkGate(OrderedGate):
+    """The gate's port went away between the pre-sort record and the SORT: NotConnectedError, a
+    DeviceError the loop's gate rule (GateError) did not know."""
+
+    def sort(self, bin_index):
+        from vs2t_edge.runtime.devices import NotConnectedError
+
+        super().sort(bin_index)  # the flap moved; the ack path then fails
+        raise NotConnectedError("gate used while not connected", device="gate")
+
+
+def test_not_connected_gate_after_the_sort_is_an_unknown_outcome(tmp_path):
+    gate = DeadLinkGate(tmp_path / "journal.jsonl")
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60], gate=gate)
+    results = cell.run(max_items=1)
+    assert results[0].outcome == "unknown_outcome"
+    f = finals(journal.path)
+    assert len(f) == 1 and f[0]["outcome"] == "unknown_outcome" and f[0]["maybe_bin"] == BINS["silk"]
+    assert f[0]["bin"] == 0 and "NotConnectedError" in f[0]["reason"] and "check both" in f[0]["reason"]
+    assert (tmp_path / "FAULT").exists() and "stop" in arm.calls and gate.to_reject_calls >= 1
+
+
+def test_an_exception_outside_an_item_latches_too(tmp_path):
+    class BrokenFeed:
+        def next_item(self, timeout_s):
+            raise ValueError("feeder sent garbage (injected)")
+
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60], items=BrokenFeed())
+    cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    assert "internal error: ValueError: feeder sent garbage" in cell.fault
+    assert (tmp_path / "FAULT").exists()
+
+
+def test_keyboard_interrupt_still_ends_the_loop(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60])
+
+    def interrupted(frame):
+        raise KeyboardInterrupt
+
+    cell.model.score_press = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        cell.run(max_items=1)
+    assert not (tmp_path / "FAULT").exists()

@@ -207,3 +207,45 @@ def test_full_disk_at_start_exits_2_in_words(tmp_path, monkeypatch):
     assert "cannot write the start record" in text and "No space left" in text, text
     assert gate.to_reject_calls >= 1 and gate.sorted == []
     assert not gate._connected and not arm.connected
+
+
+def test_a_model_crash_latches_a_fault_and_a_restart_refuses_until_cleared(tmp_path):
+    """An onnxruntime RuntimeError mid-item: run_daemon used to re-raise it (no FAULT file; systemd
+    restarted the service, which sorted on with no operator). Now the fault latches, the service
+    keeps running in fault and stops cleanly (exit 0), and the next start stays latched."""
+    from cell_fakes import FakeModel, ScriptedCamera
+    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.runtime.notify import Notifier
+
+    class CrashingModel(FakeModel):
+        def score_press(self, frame):
+            raise RuntimeError("[ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION : Non-zero status code (injected)")
+
+    cfg_path = tmp_path / "cell.yaml"
+    cfg_path.write_text(CONFIG)
+    cfg = load_config(cfg_path)
+
+    def start_once(model, logged, stop_when):
+        arm, gate = FakeArm(config=cfg.arm), FakeGate()
+        code = run_daemon(cfg, model=model, camera=ScriptedCamera(arm, [50] * 10), arm=arm, gate=gate,
+                          notifier=Notifier(""), max_items=1, install_signals=False, log=logged.append,
+                          stop_when=stop_when)
+        return code, arm, gate
+
+    logged: list[str] = []
+    code, arm, gate = start_once(CrashingModel({50: "denim"}, cfg.scene_classes), logged, cfg.fault_file.exists)
+    assert code == 0
+    assert "RuntimeError" in cfg.fault_file.read_text()
+    assert any("Traceback" in m for m in logged) and "stop" in arm.calls and gate.sorted == []
+    recs = read_records(cfg.journal)
+    assert [r["kind"] for r in recs if r["type"] == "fault"] == ["internal"]
+    assert [r["outcome"] for r in recs if r["type"] == "final"] == ["rejected_fault"]
+    # the restart (systemd's, or the operator's) does not resume on its own
+    polls = iter(range(20))
+    code, arm, gate = start_once(FakeModel({50: "denim"}, cfg.scene_classes), [],
+                                 lambda: next(polls, None) is None)  # 20 turns: one item if not latched
+    assert code == 0 and arm.calls.count("press") == 0 and cfg.fault_file.exists()
+    assert [r["type"] for r in read_records(cfg.journal)].count("final") == 1
