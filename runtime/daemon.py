@@ -60,11 +60,24 @@ def load_model(cfg: CellConfig):
     from vs2t_edge.runtime.inference import TactileModel
 
     model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta_override(cfg))
-    missing = [f.name for f in cfg.fabrics if f.name not in list(model.touched) + list(model.untouched)]
+    check_scene_against_bundle(cfg, model)
+    return model
+
+
+def check_scene_against_bundle(cfg: CellConfig, model) -> None:
+    """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
+    scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
+    config or a wrong bundle, and the cell would sort it with the wrong expectation."""
+    touched, untouched = list(model.touched), list(model.untouched)
+    missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
     if missing:
         raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
-                         f"(touched: {list(model.touched)}, untouched: {list(model.untouched)})")
-    return model
+                         f"(touched: {touched}, untouched: {untouched})")
+    wrong = [f"{f.name} (scene: {f.kind}, bundle: {'touched' if f.name in touched else 'untouched'})"
+             for f in cfg.fabrics if (f.name in touched) != (f.kind == "touched")]
+    if wrong:
+        raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
+                         "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
 
 
 def default_evidence_factory(cfg: CellConfig) -> Callable[[], Any]:

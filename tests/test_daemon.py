@@ -249,3 +249,32 @@ def test_a_model_crash_latches_a_fault_and_a_restart_refuses_until_cleared(tmp_p
                                  lambda: next(polls, None) is None)  # 20 turns: one item if not latched
     assert code == 0 and arm.calls.count("press") == 0 and cfg.fault_file.exists()
     assert [r["type"] for r in read_records(cfg.journal)].count("final") == 1
+
+
+@pytest.mark.parametrize("fabric,declared,bundle_kind", [("f01", "touched", "untouched"),
+                                                         ("f04", "untouched", "touched")])
+def test_scene_kind_that_disagrees_with_the_bundle_is_refused(tmp_path, fabric, declared, bundle_kind):
+    """load_model used to check only that a scene name is some class of the bundle: a zero-shot
+    fabric declared touched (or the reverse) started sorting."""
+    import yaml
+
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import load_model
+
+    scene = {"reject_bin": 0, "fabrics": [{"name": "f00", "kind": "touched", "bin": 1},
+                                          {"name": "f04", "kind": "touched", "bin": 2},
+                                          {"name": "f01", "kind": "untouched", "bin": 3}]}
+    config = {"bundle": str((HERE / "replays" / "bundle").resolve()), "threads": 1,
+              "devices": {"camera": {"kind": "replay", "path": "frames"}, "arm": {"kind": "fake"},
+                          "gate": {"kind": "fake"}},
+              "scene": scene, "journal": str(tmp_path / "journal.jsonl")}
+    (tmp_path / "good.yaml").write_text(yaml.safe_dump(config))
+    assert load_model(load_config(tmp_path / "good.yaml")) is not None  # the scene as the bundle has it
+    for f in scene["fabrics"]:
+        if f["name"] == fabric:
+            f["kind"] = declared
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(config))
+    with pytest.raises(ValueError) as err:
+        load_model(load_config(tmp_path / "bad.yaml"))
+    assert f"{fabric} (scene: {declared}, bundle: {bundle_kind})" in str(err.value)
+    assert "bad.yaml" in str(err.value)
