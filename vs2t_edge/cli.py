@@ -76,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         missing = exc.name or "?"
-        if missing.split(".")[0] in {"torch", "onnx", "efficientnet_lite_pytorch", "matplotlib", "tqdm", "scipy"}:
+        if missing.split(".")[0] in {"torch", "onnx", "efficientnet_lite_pytorch", "matplotlib", "scipy"}:
             print(
                 f"vs2t-edge {verb}: needs the optional package '{missing}'. "
                 "Install the training extra: pip install 'vs2t-edge[train]'",
