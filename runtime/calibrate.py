@@ -14,8 +14,16 @@ else drawn with OpenCV: the cell has no matplotlib) and a CSV beside it.
 
 The new beta is written atomically (temp file, fsync, rename) to
 ``<bundle>.beta_override.json`` next to the bundle - the bundle itself stays as its hashes say
-- with the previous override kept as ``...json.prev`` and the history inside the file. The
-daemon reads it at start (a config ``beta_override`` wins over it).
+- with the previous override kept as ``...json.prev`` and the history inside the file.
+
+Which beta the daemon uses is the service config's to say (runtime/daemon.resolve_beta_override):
+its ``beta_override`` number first, then the file its ``beta_override_file`` names, then the
+default file above. So with ``--config CELL.yaml`` (the service's config; its bundle is the one
+calibrated unless ``--bundle`` is given too, and then they must agree) the override goes where
+that daemon reads it: the file ``beta_override_file`` names, else the default file; and a config
+with a ``beta_override`` number is refused (exit 2, nothing written) - that number would shadow any
+file, the new beta would be silently ignored. Without ``--config`` the default file is written and
+the message says it is used only if the service's config sets neither key.
 
 Refuses (exit 2, in words) with fewer than ``--min-presses`` per group, non-finite scores, all
 scores equal, or a best balanced accuracy no better than chance.
@@ -286,7 +294,10 @@ def novelty_from_replays(model, files: list[Path]) -> list[float]:
 
 
 def add_arguments(parser, verb: str) -> None:
-    parser.add_argument("--bundle", required=True, help="the deployed bundle folder")
+    parser.add_argument("--bundle", default=None, help="the deployed bundle folder (default: the --config's)")
+    parser.add_argument("--config", default=None,
+                        help="the service's cell config: write the override where that daemon reads it, refuse "
+                             "if its beta_override would shadow it")
     parser.add_argument("--dataset", help="dataset folder: bundle classes = touched, others = validation")
     parser.add_argument("--validation", nargs="*", help="with --dataset: only these fabrics (names or ids) "
                                                         "are validation fabrics")
@@ -300,8 +311,39 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--dry-run", action="store_true", help="print the beta, write nothing")
 
 
+def _override_target(args) -> tuple[Path | None, Path | None, str]:
+    """(bundle, override file to write, problem): where the daemon of ``--config`` reads beta."""
+    if args.config is None:
+        if args.bundle is None:
+            return None, None, "give --bundle (the deployed bundle) or --config (the service's config)"
+        bundle = Path(args.bundle)
+        return bundle, override_path_for(bundle), ""
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        return None, None, str(exc)
+    bundle = Path(cfg.bundle)
+    if args.bundle is not None and Path(args.bundle).resolve() != bundle.resolve():
+        return None, None, (f"--bundle {args.bundle} is not the bundle {args.config} deploys ({bundle}); "
+                            "calibrate the bundle the service runs")
+    if cfg.beta_override is not None:
+        return bundle, None, (f"{args.config}: beta_override = {cfg.beta_override:g} is set, and the daemon uses it "
+                              "before any override file - a new beta written now would be ignored. Remove "
+                              "beta_override from the config and run again (--dry-run prints the beta "
+                              "without writing)")
+    return bundle, Path(cfg.beta_override_file) if cfg.beta_override_file else override_path_for(bundle), ""
+
+
 def run(args) -> int:
-    bundle = Path(args.bundle)
+    bundle, override, problem = _override_target(args)
+    if problem and not (args.dry_run and bundle is not None):
+        print(f"calibrate-threshold: {problem}", file=sys.stderr)
+        return 2
+    if problem:  # --dry-run: say it, write nothing anyway
+        print(f"calibrate-threshold: note: {problem}", file=sys.stderr)
+        override = override_path_for(bundle)
     if not args.dataset and not (args.touched_replay and args.validation_replay):
         print("calibrate-threshold: give --dataset, or both --touched-replay and --validation-replay",
               file=sys.stderr)
@@ -333,7 +375,6 @@ def run(args) -> int:
         return 2
     png = Path(args.curve) if args.curve else bundle.parent / f"{bundle.name}.beta_curve.png"
     old = float(model.beta) if getattr(model, "beta", None) is not None else None
-    override = override_path_for(bundle)
     try:
         in_force = read_beta_override(override)
     except CalibrationError:
@@ -347,8 +388,11 @@ def run(args) -> int:
     if args.dry_run:
         return 0
     had_old = override.exists()
+    override.parent.mkdir(parents=True, exist_ok=True)  # a beta_override_file in a folder not made yet
     sources = args.dataset or " ".join(["touched:", *args.touched_replay, "validation:", *args.validation_replay])
     path = write_beta_override(override, cal, bundle_beta=old, source=sources)
     print(f"written {path}" + (f" (previous kept as {path.name}.prev)" if had_old else "")
-          + "; restart the service to use it")
+          + ("; restart the service to use it" if args.config else
+             "; the service uses it after a restart if its config sets neither beta_override nor "
+             "beta_override_file (give --config to check and to write where the config points)"))
     return 0

@@ -280,3 +280,59 @@ def test_cli_from_replay_files_with_the_real_bundle(tmp_path, capsys):
     assert strict > beta
     assert read_beta_override(override_path_for(bundle).with_name("bundle.beta_override.json.prev")) == beta
     assert json.loads(override_path_for(bundle).read_text())["history"][-1]["beta"] == beta
+
+
+def _calibrate_with_config(tmp_path, monkeypatch, extra_config: str, *extra_args):
+    from vs2t_edge.cli import main
+
+    _fake_inference(monkeypatch, ["denim", "silk"], ["wool"])
+    if not (tmp_path / "ds").exists():
+        _grey_dataset(tmp_path / "ds", {"denim": 50, "silk": 60, "velvet": 80, "tweed": 90})
+    (tmp_path / "bundle").mkdir(exist_ok=True)
+    (tmp_path / "c.yaml").write_text(
+        "bundle: bundle\ndevices: {camera: {kind: replay, path: x}, arm: {kind: fake}, gate: {kind: fake}}\n"
+        "scene: {fabrics: [{name: denim, kind: touched, bin: 1}]}\njournal: j.jsonl\n" + extra_config)
+    return main(["calibrate-threshold", "--config", str(tmp_path / "c.yaml"), "--dataset", str(tmp_path / "ds"),
+                 *extra_args])
+
+
+def test_a_config_beta_override_that_would_shadow_the_new_beta_is_refused(tmp_path, monkeypatch, capsys):
+    """calibrate used to write <bundle>.beta_override.json and say 'restart the service to use it'
+    while the config's beta_override made the daemon ignore it."""
+    code = _calibrate_with_config(tmp_path, monkeypatch, "beta_override: 1.5\n")
+    err = capsys.readouterr().err
+    assert code == 2 and "beta_override = 1.5" in err and "ignored" in err and "c.yaml" in err
+    assert not override_path_for(tmp_path / "bundle").exists()
+    # --dry-run still prints the beta (and says why it would not be used)
+    assert _calibrate_with_config(tmp_path, monkeypatch, "beta_override: 1.5\n", "--dry-run") == 0
+    got = capsys.readouterr()
+    assert got.out.startswith("beta ") and "would be ignored" in got.err
+    assert not override_path_for(tmp_path / "bundle").exists()
+
+
+def test_the_override_goes_where_the_config_points_and_the_daemon_uses_it(tmp_path, monkeypatch, capsys):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import resolve_beta_override
+
+    assert _calibrate_with_config(tmp_path, monkeypatch, "beta_override_file: site/beta.json\n") == 0
+    out = capsys.readouterr().out
+    target = tmp_path / "site" / "beta.json"
+    assert f"written {target}" in out and "restart the service to use it" in out
+    assert not override_path_for(tmp_path / "bundle").exists()  # not where the daemon would not look
+    beta = read_beta_override(target)
+    assert 64 <= beta <= 76
+    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == pytest.approx(beta)
+
+
+def test_without_config_the_message_says_when_the_file_is_used(tmp_path, monkeypatch, capsys):
+    from vs2t_edge.cli import main
+
+    _fake_inference(monkeypatch, ["denim", "silk"], ["wool"])
+    _grey_dataset(tmp_path / "ds", {"denim": 50, "silk": 60, "velvet": 80, "tweed": 90})
+    (tmp_path / "bundle").mkdir()
+    assert main(["calibrate-threshold", "--bundle", str(tmp_path / "bundle"), "--dataset", str(tmp_path / "ds")]) == 0
+    assert "if its config sets neither beta_override nor beta_override_file" in capsys.readouterr().out
+    # a --bundle that is not the config's is refused before any scoring
+    (tmp_path / "other").mkdir()
+    assert _calibrate_with_config(tmp_path, monkeypatch, "", "--bundle", str(tmp_path / "other")) == 2
+    assert "is not the bundle" in capsys.readouterr().err
