@@ -5,11 +5,19 @@ first, the devices are single-user), for ``--max-items`` pieces, recording every
 telemetry, gate call and decision. The session journals beside the replay, not into the
 service's journal. A latched fault ends the recording (the fault is part of it). The simulated
 cell records through `vs2t-edge demo --record DIR`.
+
+Ctrl-C (SIGINT) or SIGTERM ends the recording as SIGTERM ends the service - the item in hand is
+aborted to the reject bin at the next press boundary, gate to reject, arm stopped - and what was
+recorded until then is saved (exit 0, ``meta.stopped_by`` names the signal); an exception is
+re-raised only after the save. Exit codes: 0 recorded (all items, or until a signal), 2 config or
+bundle refused, 3 a device fault at start.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from pathlib import Path
 
 
@@ -25,6 +33,20 @@ def run(args) -> int:
     from vs2t_edge.runtime.daemon import build_live_devices, default_evidence_factory, load_model
     from vs2t_edge.runtime.replay import record_session
 
+    # Handlers first: a signal during the bundle check stops the session before it starts; from
+    # then on the daemon's loop sees stop_event at its next press boundary.
+    stop_event = threading.Event()
+
+    def on_signal(signum, _frame) -> None:
+        name = signal.Signals(signum).name
+        if not stop_event.is_set():
+            print(f"record: {name}: finishing the item in hand safely, then saving what was recorded",
+                  file=sys.stderr, flush=True)
+        stop_event.signal_name = name  # type: ignore[attr-defined] - read by record_session's meta
+        stop_event.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     try:
         cfg = load_config(args.config)
         camera, arm, gate = build_live_devices(cfg)
@@ -40,12 +62,13 @@ def run(args) -> int:
 
     out = record_session(cfg, Path(args.out), model=model, camera=camera, arm=arm, gate=gate,
                          items=ContinuousFeed(limit=args.max_items), evidence_factory=default_evidence_factory(cfg),
-                         log=lambda m: print(m, file=sys.stderr))
+                         log=lambda m: print(m, file=sys.stderr), stop_event=stop_event)
     index = ReplayFile.open(out).index
     finals = [d for d in index["decisions"] if d["type"] == "final"]
     faults = [d for d in index["decisions"] if d["type"] == "fault"]
     code = int(index["meta"].get("daemon_exit") or 0)
     print(f"recorded {len(finals)} of {args.max_items} items into {out}"
+          + (f"; stopped by {index['meta']['stopped_by']}" if index["meta"].get("stopped_by") else "")
           + (f"; ended latched: {faults[-1]['reason']}" if faults and len(finals) < args.max_items else ""))
     if code != 0:
         print(f"record: the daemon stopped with exit {code} (see the messages above); the replay holds what "

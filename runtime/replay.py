@@ -623,13 +623,20 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
 
 def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items, evidence_factory=None,
                    max_items: int | None = None, operator_clear=None, meta: dict | None = None,
-                   on_item=None, log=lambda m: None) -> Path:
+                   on_item=None, log=lambda m: None, install_signals: bool = False,
+                   stop_event: threading.Event | None = None) -> Path:
     """Run the daemon on the given devices, recording everything into the replay folder ``out``.
 
     The session journals into a fresh journal beside the replay (``out``.journal.jsonl), so the
     reference decisions are this session's alone. ``operator_clear()`` is called when a fault
     is latched: it fixes the cause (in simulation: clears the injected fault) and returns True
     to clear the fault, which is recorded; returning False ends the session in fault.
+
+    What was recorded is saved however the session ends: ``install_signals`` lets SIGINT/SIGTERM
+    stop it as they stop the service (the item in hand aborted to reject, ``meta.stopped_by`` names
+    the signal), and an exception escaping the daemon is re-raised only after the save
+    (``meta.crashed`` names it). A session cut short mid-item does not replay as is (its last item
+    has no more device events); its frames and decisions are there for calibration and review.
     """
     import dataclasses
 
@@ -657,16 +664,30 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
         exhausted = getattr(items, "exhausted", None)
         return bool(exhausted and exhausted())
 
-    code = run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
-               gate=RecordingGate(gate, rec), items=r_items, evidence_factory=evidence_factory,
-               notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when, install_signals=False,
-               on_item=on_item, log=log)
+    stop_event = stop_event or threading.Event()
+    code: int | None = None
+    crashed: BaseException | None = None
+    try:
+        code = run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
+                          gate=RecordingGate(gate, rec), items=r_items, evidence_factory=evidence_factory,
+                          notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when,
+                          install_signals=install_signals, stop_event=stop_event, on_item=on_item, log=log)
+    except BaseException as exc:  # noqa: BLE001 - saved below, then re-raised
+        crashed = exc
     raw = json.loads(json.dumps(cfg.raw, default=str))
-    records = read_records(journal)
+    records = read_records(journal) if journal.exists() else []
     start = next((r for r in records if r.get("type") == "start"), {})
     # The beta the session ran with: a replay uses it, so a later calibration does not change it.
     # and how the session ended (0 clean, 2 refused, 3 device fault at start), for `vs2t-edge record`.
+    stop = next((r for r in reversed(records) if r.get("type") == "stop"), {})
     meta = dict(meta or {}, beta=start.get("beta"), daemon_exit=code)
+    if stop_event.is_set() and crashed is None:
+        meta["stopped_by"] = getattr(stop_event, "signal_name", None) or stop.get("reason") or "stop requested"
+    if crashed is not None:
+        meta["crashed"] = f"{type(crashed).__name__}: {crashed}"
     folder = rec.save(out, raw, records, meta)
-    journal.unlink()
+    if journal.exists():
+        journal.unlink()
+    if crashed is not None:
+        raise crashed
     return folder

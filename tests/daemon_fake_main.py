@@ -3,6 +3,9 @@
 Used by tests/test_daemon.py: ``python tests/daemon_fake_main.py CONFIG [--score-delay-s S]``.
 The model and devices are the in-test fakes; everything else - signals, sd_notify, journal,
 the loop - is the production code path.
+
+``--record OUT`` runs `vs2t-edge record --config CONFIG --out OUT` instead (tests/test_replay.py),
+its bundle and devices swapped for the same fakes: the CLI's signal handling and saving are real.
 """
 
 from __future__ import annotations
@@ -49,8 +52,11 @@ def main() -> int:
     ap.add_argument("--score-delay-s", type=float, default=0.05)
     ap.add_argument("--load-delay-s", type=float, default=0.0)
     ap.add_argument("--sort-delay-s", type=float, default=0.0)
+    ap.add_argument("--record", default=None, help="run `vs2t-edge record --out RECORD` on the fakes")
     a = ap.parse_args()
     cfg = load_config(a.config)
+    if a.record:
+        return record(a, cfg)
     time.sleep(a.load_delay_s)  # READY must come only after the model is loaded
     arm = FakeArm(config=cfg.arm)
     classes = cfg.scene_classes
@@ -58,6 +64,19 @@ def main() -> int:
     camera = ScriptedCamera(arm, [50, 60] * 100000)  # alternating votes: items need every press
     return run_daemon(cfg, model=model, camera=camera, arm=arm, gate=SlowGate(delay_s=a.sort_delay_s),
                       evidence_factory=lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
+
+
+def record(a, cfg) -> int:
+    from vs2t_edge import cli
+    from vs2t_edge.runtime import daemon
+
+    classes = cfg.scene_classes
+    arm = FakeArm(config=cfg.arm)
+    daemon.load_model = lambda _cfg: SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes,
+                                               delay_s=a.score_delay_s)
+    daemon.build_live_devices = lambda _cfg: (ScriptedCamera(arm, [50, 60] * 100000), arm, FakeGate())
+    daemon.default_evidence_factory = lambda _cfg: (lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
+    return cli.main(["record", "--config", a.config, "--out", a.record, "--max-items", "100000"])
 
 
 if __name__ == "__main__":

@@ -164,3 +164,63 @@ def test_any_index_is_opened_or_refused_with_a_replay_error(tmp_path, body):
         ReplayFile.open(tmp_path)
     except ReplayError:
         pass
+
+
+def test_record_cli_saves_what_was_recorded_on_sigint(tmp_path):
+    """`vs2t-edge record` had no signal handlers: Ctrl-C raised KeyboardInterrupt before the save
+    and the whole live recording was lost."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from vs2t_edge.runtime.journal import read_records
+
+    (tmp_path / "cell.yaml").write_text(CONFIG)
+    out = tmp_path / "live.replay"
+    journal = out.with_name(out.name + ".journal.jsonl")
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).parent / "daemon_fake_main.py"),
+                             str(tmp_path / "cell.yaml"), "--record", str(out), "--score-delay-s", "0.02"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            if journal.exists() and sum(r["type"] == "final" for r in read_records(journal)) >= 2:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert "stopped by SIGINT" in stdout and "SIGINT: finishing the item in hand safely" in stderr
+    rf = ReplayFile.open(out)
+    assert rf.index["meta"]["stopped_by"] == "SIGINT"
+    finals = [d for d in rf.index["decisions"] if d["type"] == "final"]
+    assert len(finals) >= 2 and len(finals) == len(rf.index["items"])  # every piece taken has its record
+    assert all(d["outcome"] in ("sorted", "aborted") for d in finals)
+    assert len(list((out / "frames").glob("*.png"))) == sum(1 for e in rf.index["events"] if e.get("frame")) > 0
+    assert not journal.exists()
+
+
+def test_an_exception_ending_a_recording_is_raised_after_the_save(tmp_path):
+    class InterruptedModel(type(model())):
+        def score_press(self, frame):
+            if self.scored == 3:
+                raise KeyboardInterrupt  # Ctrl-C where no handler catches it (a library call)
+            return super().score_press(frame)
+
+    (tmp_path / "cell.yaml").write_text(CONFIG)
+    cfg = load_config(tmp_path / "cell.yaml")
+    arm = FakeArm(config=cfg.arm)
+    with pytest.raises(KeyboardInterrupt):
+        record_session(cfg, tmp_path / "s.replay", model=InterruptedModel(VOTES, CLASSES),
+                       camera=ScriptedCamera(arm, [50, 50, 60, 60, 70, 70]), arm=arm, gate=FakeGate(),
+                       items=ContinuousFeed(limit=3), evidence_factory=evidence)
+    rf = ReplayFile.open(tmp_path / "s.replay")
+    assert rf.index["meta"]["crashed"].startswith("KeyboardInterrupt")
+    assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == ["denim"]
+    assert sum(1 for e in rf.index["events"] if e.get("frame")) >= 4
