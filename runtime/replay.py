@@ -43,6 +43,12 @@ from vs2t_edge.runtime.devices import Frame, PressResult
 
 FORMAT = "vs2t-edge-replay"
 VERSION = 1
+# The safety steps of a fault, a stop and a start. Kept in their own list ``safety_steps``, not in
+# ``events``: they are called inside guards that must not fail, so the replay devices do not answer
+# them from the event queues (a divergence raised there would cut the latch short); the replay
+# logs each call and compares the sequence after the run. A file recorded before they were
+# (no ``safety_steps`` key) replays as before, its safety steps not compared.
+SAFETY_CALLS = frozenset({("arm", "stop"), ("gate", "to_reject")})
 DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped", "retry")
 SCORE_RTOL, SCORE_ATOL = 1e-3, 1e-3  # onnxruntime thread counts and CPUs differ in the last bits
 
@@ -84,6 +90,7 @@ class Recorder:
         self.events: list[dict] = []
         self.frames: list[bytes] = []
         self.items: list[dict] = []
+        self.safety_steps: list[dict] = []  # arm.stop / gate.to_reject calls, in order (SAFETY_CALLS)
         self.item_index = -1  # index into items of the piece in hand
         self._lock = threading.Lock()
 
@@ -92,6 +99,10 @@ class Recorder:
             ev = {"item": self.item_index, "dev": dev, "call": call, **fields}
             self.events.append(ev)
             return ev
+
+    def safety_step(self, dev: str, call: str, **fields) -> None:
+        with self._lock:
+            self.safety_steps.append({"item": self.item_index, "dev": dev, "call": call, **fields})
 
     def add_frame(self, image: np.ndarray) -> str:
         ok, buf = cv2.imencode(".png", image)
@@ -111,6 +122,7 @@ class Recorder:
             (tmp / "frames" / f"{i:06d}.png").write_bytes(data)
         index = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                  "meta": meta or {}, "config": config, "items": self.items, "events": self.events,
+                 "safety_steps": self.safety_steps,
                  "decisions": decisions_of(journal_records)}
         (tmp / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
         if folder.exists():
@@ -157,6 +169,17 @@ class _RecordingDevice:
 
     def __getattr__(self, name):
         attr = getattr(self.inner, name)
+        if (self.DEV, name) in SAFETY_CALLS and callable(attr):
+            def safety(*args):
+                try:
+                    result = attr(*args)
+                except Exception as exc:  # noqa: BLE001 - recorded, then raised as the device did
+                    self.rec.safety_step(self.DEV, name, error=f"{type(exc).__name__}: {exc}")
+                    raise
+                self.rec.safety_step(self.DEV, name)
+                return result
+
+            return safety
         if name not in self.RECORDED or not callable(attr):
             return attr
 
@@ -195,12 +218,12 @@ def _plain(x: Any) -> Any:
 
 class RecordingArm(_RecordingDevice):
     DEV = "arm"
-    RECORDED = ("move_above", "press", "retract")
+    RECORDED = ("move_above", "press", "retract")  # and stop, into safety_steps (SAFETY_CALLS)
 
 
 class RecordingGate(_RecordingDevice):
     DEV = "gate"
-    RECORDED = ("sort", "clear")
+    RECORDED = ("sort", "clear")  # and to_reject, into safety_steps (SAFETY_CALLS)
 
 
 class RecordingItems:
@@ -346,6 +369,14 @@ def _check_index(index: Any, path: Path) -> None:
             if not (isinstance(r.get("tcp_pose", []), list) and all(_number(v) for v in r.get("tcp_pose", []))
                     and isinstance(r.get("telemetry", {}), dict)):
                 raise ReplayError(f"{path}: events[{i}] press result: tcp_pose must be numbers, telemetry an object")
+    steps = index.get("safety_steps", [])
+    if not isinstance(steps, list):
+        raise ReplayError(f"{path}: 'safety_steps' must be a list")
+    for i, st in enumerate(steps):
+        if not (isinstance(st, dict) and isinstance(st.get("item"), int) and not isinstance(st.get("item"), bool)
+                and isinstance(st.get("dev"), str) and isinstance(st.get("call"), str)
+                and (st["dev"], st["call"]) in SAFETY_CALLS):
+            raise ReplayError(f"{path}: safety_steps[{i}] needs item (number) and dev/call arm/stop or gate/to_reject")
     for i, d in enumerate(index["decisions"]):
         if not isinstance(d, dict) or not isinstance(d.get("type"), str):
             raise ReplayError(f"{path}: decisions[{i}] needs a 'type'")
@@ -358,12 +389,32 @@ class _Queues:
         self.rf = rf
         self.by: dict[tuple[int, str], deque] = defaultdict(deque)
         self.clears: dict[int, int] = defaultdict(int)  # operator clears after item i
+        # Safety steps are called inside guards that must not fail (a fault latch, a stop), so they
+        # are not answered from the queues (a divergence raised there would be swallowed or skip
+        # the rest of the latch): each call is logged and the sequence compared after the run.
+        steps = rf.index.get("safety_steps")  # None: recorded before safety steps were
+        self.safety_recorded: list[tuple[int, str, str]] | None = (
+            None if steps is None else [(st["item"], st["dev"], st["call"]) for st in steps])
+        self.safety_called: list[tuple[int, str, str]] = []
         for ev in rf.index["events"]:
             if ev["dev"] == "operator":
                 self.clears[ev["item"]] += 1
             else:
                 self.by[(ev["item"], ev["dev"])].append(ev)
         self.item_index = -1
+
+    def safety_call(self, dev: str, call: str) -> None:
+        self.safety_called.append((self.item_index, dev, call))
+
+    def safety_mismatches(self) -> list[str]:
+        """The fault's safety steps the replay made against the recorded ones (exact, in order)."""
+        if self.safety_recorded is None or self.safety_recorded == self.safety_called:
+            return []
+        rec, now = self.safety_recorded, self.safety_called
+        i = next((k for k, (a, b) in enumerate(zip(rec, now)) if a != b), min(len(rec), len(now)))
+        say = lambda seq: f"{seq[i][1]}.{seq[i][2]} at item {seq[i][0]}" if i < len(seq) else "nothing more"
+        return [f"safety steps (arm.stop, gate.to_reject): {len(rec)} recorded, {len(now)} now; "
+                f"call {i}: recorded {say(rec)}, now {say(now)}"]
 
     def pop(self, dev: str, call: str) -> dict:
         q = self.by[(self.item_index, dev)]
@@ -428,19 +479,21 @@ class ReplayArm(_ReplayBase):
         self._replay("retract", ())
 
     def stop(self) -> None:
-        pass  # best effort on the live arm; nothing to replay
+        self.q.safety_call("arm", "stop")  # compared after the run (_Queues.safety_mismatches)
 
     def clear_protective_stop(self) -> None:
         pass
 
 
 class ReplayGate(_ReplayBase):
-    """Sorts and clears answer as recorded; to_reject/status are the simulated gate's."""
+    """Sorts and clears answer as recorded; to_reject is logged for the comparison and moves the
+    flap to the configured reject bin; status is the simulated gate's."""
 
-    def __init__(self, queues: _Queues) -> None:
+    def __init__(self, queues: _Queues, reject_bin: int = 0) -> None:
         super().__init__(queues)
         self.sorted: list[int] = []
-        self.bin = 0
+        self.reject_bin = reject_bin
+        self.bin = reject_bin
 
     def sort(self, bin_index: int) -> None:
         ev = self.q.pop("gate", "sort")
@@ -458,7 +511,8 @@ class ReplayGate(_ReplayBase):
             raise _error_from_json(ev["error"])
 
     def to_reject(self) -> None:
-        self.bin = 0
+        self.q.safety_call("gate", "to_reject")
+        self.bin = self.reject_bin
 
     def status(self) -> dv.GateStatus:
         return dv.GateStatus(state="ready", bin=self.bin)
@@ -604,7 +658,7 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
         said: list[str] = []  # the daemon's log, kept to say why it refused to start
         try:
             code = run_daemon(cfg, model=model, camera=ReplayCameraDevice(queues), arm=ReplayArm(queues),
-                              gate=ReplayGate(queues), items=items, evidence_factory=evidence_factory,
+                              gate=ReplayGate(queues, cfg.reject_bin), items=items, evidence_factory=evidence_factory,
                               notifier=Notifier(address=""), stop_when=stop_when, install_signals=False,
                               log=said.append)
             if code != 0:
@@ -613,11 +667,15 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
         except ReplayDivergence as exc:
             diverged = str(exc)
         new = decisions_of(read_records(cfg.journal)) if cfg.journal.exists() else []
+    safety = [] if diverged else queues.safety_mismatches()
+    if update_refs and safety:
+        # the recorded device events are not references: --update-refs cannot accept other calls
+        diverged = safety[0] + " - the recording is stale for this code; re-record it"
     report = ReplayReport(Path(file), len(rf.index["items"]), decisions=new, diverged=diverged)
     if update_refs and not diverged:
         rf.save_decisions(new)
     elif not diverged:
-        report.mismatches = compare(rf.index["decisions"], new)
+        report.mismatches = compare(rf.index["decisions"], new) + safety
     return report
 
 

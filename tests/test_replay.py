@@ -224,3 +224,77 @@ def test_an_exception_ending_a_recording_is_raised_after_the_save(tmp_path):
     assert rf.index["meta"]["crashed"].startswith("KeyboardInterrupt")
     assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == ["denim"]
     assert sum(1 for e in rf.index["events"] if e.get("frame")) >= 4
+
+
+# --- the fault's safety steps (arm.stop, gate.to_reject) are recorded and compared -------------
+
+def test_safety_steps_are_recorded_and_a_replay_that_skips_them_mismatches(tmp_path, monkeypatch):
+    """arm.stop and gate.to_reject were not recorded and the replay devices stubbed them: a
+    regression that stopped sending them replayed as identical."""
+    from vs2t_edge.runtime import cell as cell_mod
+
+    out, _ = record(tmp_path, [50, 50, 60, 60, 70, 70], 3, fail_next=["protective_stop"])
+    rf = ReplayFile.open(out)
+    safety = [(e["item"], e["dev"], e["call"]) for e in rf.index["safety_steps"]]
+    # start: gate to reject; item 0's protective stop: arm stopped, gate to reject; end: both again
+    assert safety[0] == (-1, "gate", "to_reject") and (0, "arm", "stop") in safety and (0, "gate", "to_reject") in safety
+    assert run_replay(out, model=model(), evidence_factory=evidence).ok
+
+    real_latch = cell_mod.Cell.latch_fault
+
+    def latch_without_reject(self, reason, kind="fault"):
+        gate, self.gate.to_reject = self.gate.to_reject, lambda: None  # the regression
+        try:
+            real_latch(self, reason, kind)
+        finally:
+            self.gate.to_reject = gate
+
+    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch_without_reject)
+    report = run_replay(out, model=model(), evidence_factory=evidence)
+    assert not report.ok and any("gate.to_reject at item 0" in m for m in report.mismatches), report.mismatches
+    # --update-refs cannot accept it: the recording itself would be wrong
+    report = run_replay(out, model=model(), evidence_factory=evidence, update_refs=True)
+    assert "re-record" in report.diverged
+
+
+def test_replay_gate_goes_to_the_configured_reject_bin(tmp_path):
+    from vs2t_edge.runtime.replay import ReplayGate, _Queues
+
+    out, _ = record(tmp_path, [50, 50], 1)
+    gate = ReplayGate(_Queues(ReplayFile.open(out)), reject_bin=5)
+    gate.bin = 2
+    gate.to_reject()
+    assert gate.status().bin == 5
+
+
+def test_a_file_recorded_before_safety_steps_still_replays(tmp_path, monkeypatch):
+    from vs2t_edge.runtime import cell as cell_mod
+
+    out, _ = record(tmp_path, [50, 50, 60, 60, 70, 70], 3, fail_next=["protective_stop"])
+    index = json.loads((out / "index.json").read_text())
+    del index["safety_steps"]
+    (out / "index.json").write_text(json.dumps(index))
+    report = run_replay(out, model=model(), evidence_factory=evidence)
+    assert report.ok, report.mismatches + [report.diverged]
+    # nothing recorded to compare with: a latch without gate.to_reject is not (cannot be) flagged
+    real_latch = cell_mod.Cell.latch_fault
+
+    def latch_without_reject(self, reason, kind="fault"):
+        gate, self.gate.to_reject = self.gate.to_reject, lambda: None
+        try:
+            real_latch(self, reason, kind)
+        finally:
+            self.gate.to_reject = gate
+
+    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch_without_reject)
+    assert run_replay(out, model=model(), evidence_factory=evidence).ok
+
+
+def test_malformed_safety_steps_are_refused_in_words(tmp_path):
+    out, _ = record(tmp_path, [50, 50], 1)
+    index = json.loads((out / "index.json").read_text())
+    for bad in ({"item": 0, "dev": ["arm"], "call": "stop"}, {"item": True, "dev": "arm", "call": "stop"},
+                {"item": 0, "dev": "arm", "call": "press"}, "stop"):
+        (out / "index.json").write_text(json.dumps(dict(index, safety_steps=[bad])))
+        with pytest.raises(ReplayError, match=r"safety_steps\[0\]"):
+            ReplayFile.open(out)
