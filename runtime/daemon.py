@@ -5,6 +5,7 @@ Start-up order (each step says what it is doing in STATUS=):
 1. load and validate the config (exit 2 on any problem; ExecStartPre has checked it already);
 2. load the bundle: hashes, shapes, versions verified, sessions warmed, probe input checked
    against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says;
+   once all passed, a log and STATUS line "... probe check passed ..." (READY=1 comes after it);
 3. open the journal (a torn last record is cut and kept aside), resolve an item the last run
    left between its pre-sort and final records, restore a latched fault from the fault file;
 4. connect camera, arm and gate - exit 3 on a device fault (systemd restarts, within limits);
@@ -174,6 +175,12 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
             log(f"bundle {cfg.bundle} refused: {exc}")
             return EXIT_USAGE
     load_s = time.monotonic() - t0
+    probe = getattr(model, "probe_errors", None)
+    if probe:  # TactileModel.load returned: hashes, shapes, warm-up and probe check all passed
+        said = (f"bundle {Path(cfg.bundle).name} verified (hashes, shapes), warmed up, probe check passed "
+                f"(max relative error {max(probe.values()):.2g}) in {load_s:.1f} s")
+        log(said)
+        notifier.status(said)
     try:
         journal = Journal.open(cfg.journal)
     except (JournalError, OSError) as exc:

@@ -278,3 +278,92 @@ def test_scene_kind_that_disagrees_with_the_bundle_is_refused(tmp_path, fabric, 
         load_model(load_config(tmp_path / "bad.yaml"))
     assert f"{fabric} (scene: {declared}, bundle: {bundle_kind})" in str(err.value)
     assert "bad.yaml" in str(err.value)
+
+
+def _run_real_bundle(tmp_path, bundle, *, until_ready: bool):
+    """`vs2t-edge run` (the real verb, the real load_model) on a copy of tests/replays/bundle with
+    the replayed camera and the in-process arm and gate; the notify socket's messages in order."""
+    import json
+
+    import yaml
+
+    ref = json.loads((HERE / "replays" / "touched.replay" / "index.json").read_text())
+    config = {"bundle": str(bundle), "threads": 1,
+              "devices": {"camera": {"kind": "replay", "path": str((HERE / "replays" / "touched.replay" / "frames"))},
+                          "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
+              "scene": ref["config"]["scene"], "evidence": ref["config"]["evidence"],
+              "journal": str(tmp_path / "state" / "journal.jsonl"), "watchdog": {"wait_item_timeout_s": 0.05}}
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
+    sock_path = str(tmp_path / "n.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(60)
+    env = dict(os.environ, NOTIFY_SOCKET=sock_path, PYTHONUNBUFFERED="1")
+    env.pop("WATCHDOG_USEC", None)
+    proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge", "run", "--config", str(tmp_path / "cell.yaml")],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    msgs: list[str] = []
+    try:
+        if until_ready:
+            msgs = receive_until(server, lambda m: m.startswith("READY=1"), limit_s=60)
+            proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+        server.settimeout(0.2)
+        try:
+            while True:
+                msgs.append(server.recv(4096).decode())
+        except socket.timeout:
+            pass
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        server.close()
+    return proc.returncode, msgs, err
+
+
+def test_ready_comes_only_after_the_real_bundle_is_verified_warm_and_probed(tmp_path):
+    """test_ready_watchdog_status_then_graceful_sigterm's fake model cannot show the load order;
+    this runs the `run` verb on the committed bundle: READY=1 only after the probe check's line."""
+    import shutil
+
+    shutil.copytree(HERE / "replays" / "bundle", tmp_path / "bundle")
+    code, msgs, err = _run_real_bundle(tmp_path, tmp_path / "bundle", until_ready=True)
+    assert code == 0, err
+    probe_at = next(i for i, m in enumerate(msgs) if "probe check passed" in m)
+    ready_at = next(i for i, m in enumerate(msgs) if m.startswith("READY=1"))
+    assert any(m.startswith("STATUS=loading bundle") for m in msgs[:probe_at])
+    assert probe_at < ready_at and sum(m.startswith("READY=1") for m in msgs) == 1
+    assert "probe check passed" in err and err.index("probe check passed") < err.index("SIGTERM")
+
+
+@pytest.mark.parametrize("damage", ["graph_byte_flipped", "probe_expected_off"])
+def test_a_damaged_real_bundle_never_sends_ready_and_exits_2(tmp_path, damage):
+    import json
+    import shutil
+
+    import numpy as np
+
+    from vs2t_edge.runtime.bundle import SEAL_KEY, seal_manifest
+
+    b = tmp_path / "bundle"
+    shutil.copytree(HERE / "replays" / "bundle", b)
+    if damage == "graph_byte_flipped":  # caught by the hashes, before any session opens
+        data = bytearray((b / "heads.onnx").read_bytes())
+        data[len(data) // 2] ^= 0x01
+        (b / "heads.onnx").write_bytes(bytes(data))
+        words = "heads.onnx"
+    else:  # hashes re-made to match: only the warm-up's probe run can catch it
+        exp = dict(np.load(b / "probe_expected.npz"))
+        exp["novelty"] = exp["novelty"] * 1.01
+        np.savez(b / "probe_expected.npz", **exp)
+        import hashlib
+
+        m = json.loads((b / "manifest.json").read_text())
+        m["files"]["probe_expected.npz"] = hashlib.sha256((b / "probe_expected.npz").read_bytes()).hexdigest()
+        m.pop(SEAL_KEY, None)
+        (b / "manifest.json").write_text(json.dumps(seal_manifest(m), indent=1))
+        words = "probe check failed: 'novelty'"
+    code, msgs, err = _run_real_bundle(tmp_path, b, until_ready=False)
+    assert code == 2, err
+    assert words in err and not any(m.startswith("READY=1") for m in msgs)
+    assert not any("probe check passed" in m for m in msgs)
