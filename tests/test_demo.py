@@ -1,0 +1,111 @@
+"""`vs2t-edge demo`'s sorting path, end to end on a tiny world: the CLI's run() with the world,
+training and export stages cached (the committed tiny-trunk bundle tests/replays/bundle, trained
+on the reference world that sim.scene.make_reference_world makes with seed 0), then the daemon
+sorting a stream on the simulated cell (in-process arm and gate for speed; ~5 s on 2 cores).
+
+What is asserted is structure and arithmetic, not a good accuracy: the bundle is a tiny test
+model (GZSL H 53.8 on its split) and its accuracy on a short stream is not a robust number. Every
+piece of the stream has exactly one final record in the journal, its bin is the scene's bin of its
+label (the reject bin for unknown, off-scene labels and faults), and the totals the demo prints and
+writes (accuracy, presses per piece, per kind) are recomputed from the journal and the stream.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from vs2t_edge.runtime.journal import read_records
+
+HERE = Path(__file__).parent
+BUNDLE = HERE / "replays" / "bundle"
+N_ITEMS = 10
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    from vs2t_edge.cli import main
+    from vs2t_edge.sim.scene import make_reference_world
+
+    work = tmp_path_factory.mktemp("demo")
+    make_reference_world(work / "dataset", seed=0, progress=False)
+    shutil.copytree(BUNDLE, work / "bundle")
+    (work / "run").mkdir()
+    params = {"profile": "small", "seed": 0}  # the demo's defaults: its stage markers say "cached"
+    for stage in ("synth", "train", "export"):
+        (work / f".stage-{stage}.json").write_text(json.dumps({"params": params}))
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["demo", "--workdir", str(work), "--items", str(N_ITEMS), "--arm", "fake", "--gate", "fake",
+                     "--threads", "1", "--max-presses", "3", "--fault-at", "2:1"])
+    return code, out.getvalue(), work
+
+
+def test_the_demo_runs_from_cached_stages(demo_run):
+    code, out, work = demo_run
+    assert code == 0, out
+    assert "[1/4] fabric world: cached" in out and "[3/4] export: cached" in out  # nothing was retrained
+    assert (work / "demo_summary.json").is_file() and (work / "journal.jsonl").is_file()
+
+
+def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):
+    code, out, work = demo_run
+    records = read_records(work / "journal.jsonl")
+    items = [r for r in records if r["type"] == "item"]
+    finals = [r for r in records if r["type"] == "final"]
+    assert len(items) == N_ITEMS and [f["item"] for f in finals] == [i["item"] for i in items]
+    scene = json.loads(json.dumps(__import__("yaml").safe_load((work / "cell.yaml").read_text())))["scene"]
+    bins = {f["name"]: f["bin"] for f in scene["fabrics"]}
+    for f in finals:
+        if f["outcome"] == "sorted":
+            assert f["bin"] == bins.get(f["label"], scene["reject_bin"]), f
+        else:
+            assert f["bin"] == scene["reject_bin"], f
+    # the injected protective stop (item 2, press 1): latched, rejected, cleared, sorting went on
+    assert finals[2]["outcome"] == "rejected_fault"
+    assert [r["type"] for r in records].count("fault_cleared") == 1
+    assert all(f["outcome"] == "sorted" for i, f in enumerate(finals) if i != 2)
+    # a pre_sort before every sorted final, with the same decision
+    pre = {r["item"]: r for r in records if r["type"] == "pre_sort"}
+    assert all((pre[f["item"]]["label"], pre[f["item"]]["bin"]) == (f["label"], f["bin"])
+               for f in finals if f["outcome"] == "sorted")
+
+
+def test_printed_and_written_totals_match_the_journal(demo_run):
+    code, out, work = demo_run
+    summary = json.loads((work / "demo_summary.json").read_text())
+    finals = [r for r in read_records(work / "journal.jsonl") if r["type"] == "final"]
+    cfg = __import__("yaml").safe_load((work / "cell.yaml").read_text())
+    kinds = {f["name"]: f["kind"] for f in cfg["scene"]["fabrics"]}
+    rows = summary["rows"]
+    assert summary["items"] == len(rows) == len(finals) == N_ITEMS
+    truth = {}
+    for row, f in zip(rows, finals):
+        assert (row["item"], row["label"], row["bin"], row["outcome"]) == (f["item_id"], f["label"], f["bin"],
+                                                                           f["outcome"])
+        truth[row["item"]] = row["truth"]
+    # the scoring rule, recomputed from the journal: a scene piece needs its own label, an
+    # off-scene piece anything but a scene label; only a sorted piece counts
+    correct = [f["outcome"] == "sorted" and ((f["label"] == truth[f["item_id"]]) if truth[f["item_id"]] in kinds
+                                             else (f["label"] not in kinds)) for f in finals]
+    assert [r["correct"] for r in rows] == correct
+    assert summary["accuracy"] == pytest.approx(sum(correct) / N_ITEMS)
+    assert summary["presses_per_item"] == pytest.approx(sum(f["presses"] for f in finals) / N_ITEMS)
+    for kind in set(kinds.get(t, "off-scene") for t in truth.values()):
+        mine = [c for f, c in zip(finals, correct) if kinds.get(truth[f["item_id"]], "off-scene") == kind]
+        assert summary["accuracy_by_kind"][kind] == pytest.approx(sum(mine) / len(mine))
+    # what is printed is what was computed
+    m = re.search(r"accuracy ([0-9.]+)% over (\d+) pieces", out)
+    assert m and int(m.group(2)) == N_ITEMS and float(m.group(1)) == pytest.approx(100 * summary["accuracy"], abs=0.05)
+    m = re.search(r"presses per piece ([0-9.]+);", out)
+    assert m and float(m.group(1)) == pytest.approx(summary["presses_per_item"], abs=0.005)
+    per_item = [line for line in out.splitlines() if re.match(r"\S+\s+\S+ .*-> .* bin \d+ ", line)]
+    assert len(per_item) == N_ITEMS
+    assert all(1 <= f["presses"] <= 3 for f in finals if f["outcome"] == "sorted")  # --max-presses 3
