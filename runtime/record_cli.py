@@ -28,11 +28,6 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.cell import ContinuousFeed
-    from vs2t_edge.runtime.config import ConfigError, load_config
-    from vs2t_edge.runtime.daemon import build_live_devices, default_evidence_factory, load_model
-    from vs2t_edge.runtime.replay import record_session
-
     # Handlers first: a signal during the bundle check stops the session before it starts; from
     # then on the daemon's loop sees stop_event at its next press boundary.
     stop_event = threading.Event()
@@ -45,8 +40,20 @@ def run(args) -> int:
         stop_event.signal_name = name  # type: ignore[attr-defined] - read by record_session's meta
         stop_event.set()
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _record(args, stop_event)
+    finally:  # a caller in the same process (tests, a shell) gets its own handlers back
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _record(args, stop_event: threading.Event) -> int:
+    from vs2t_edge.runtime.cell import ContinuousFeed
+    from vs2t_edge.runtime.config import ConfigError, load_config
+    from vs2t_edge.runtime.daemon import build_live_devices, default_evidence_factory, load_model
+    from vs2t_edge.runtime.replay import record_session
+
     try:
         cfg = load_config(args.config)
         camera, arm, gate = build_live_devices(cfg)

@@ -298,3 +298,14 @@ def test_malformed_safety_steps_are_refused_in_words(tmp_path):
         (out / "index.json").write_text(json.dumps(dict(index, safety_steps=[bad])))
         with pytest.raises(ReplayError, match=r"safety_steps\[0\]"):
             ReplayFile.open(out)
+
+
+def test_record_cli_gives_the_callers_signal_handlers_back(tmp_path):
+    import signal
+
+    from vs2t_edge.cli import main
+
+    before = signal.getsignal(signal.SIGINT)
+    (tmp_path / "cell.yaml").write_text(CONFIG.replace("bundle: bundle", f"bundle: {tmp_path / 'none'}"))
+    assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(tmp_path / "x.replay")]) == 2
+    assert signal.getsignal(signal.SIGINT) is before
