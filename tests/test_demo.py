@@ -12,12 +12,15 @@ writes (accuracy, presses per piece, per kind) are recomputed from the journal a
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import re
 import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
 from vs2t_edge.runtime.journal import read_records
 
@@ -38,9 +41,6 @@ def demo_run(tmp_path_factory):
     params = {"profile": "small", "seed": 0}  # the demo's defaults: its stage markers say "cached"
     for stage in ("synth", "train", "export"):
         (work / f".stage-{stage}.json").write_text(json.dumps({"params": params}))
-    import contextlib
-    import io
-
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         code = main(["demo", "--workdir", str(work), "--items", str(N_ITEMS), "--arm", "fake", "--gate", "fake",
@@ -61,7 +61,7 @@ def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):
     items = [r for r in records if r["type"] == "item"]
     finals = [r for r in records if r["type"] == "final"]
     assert len(items) == N_ITEMS and [f["item"] for f in finals] == [i["item"] for i in items]
-    scene = json.loads(json.dumps(__import__("yaml").safe_load((work / "cell.yaml").read_text())))["scene"]
+    scene = yaml.safe_load((work / "cell.yaml").read_text())["scene"]
     bins = {f["name"]: f["bin"] for f in scene["fabrics"]}
     for f in finals:
         if f["outcome"] == "sorted":
@@ -82,7 +82,7 @@ def test_printed_and_written_totals_match_the_journal(demo_run):
     code, out, work = demo_run
     summary = json.loads((work / "demo_summary.json").read_text())
     finals = [r for r in read_records(work / "journal.jsonl") if r["type"] == "final"]
-    cfg = __import__("yaml").safe_load((work / "cell.yaml").read_text())
+    cfg = yaml.safe_load((work / "cell.yaml").read_text())
     kinds = {f["name"]: f["kind"] for f in cfg["scene"]["fabrics"]}
     rows = summary["rows"]
     assert summary["items"] == len(rows) == len(finals) == N_ITEMS
