@@ -84,7 +84,8 @@ def test_press_partition_is_the_trainers(tiny_run):
     counts = {f: 20 + 3 * i for i, f in enumerate(ids)}
     touched = ids[1:5]
     fabric = np.concatenate([np.full(counts[f], i) for i, f in enumerate(ids)])
-    rows, _ = touched_training_rows(fabric, ids, SimpleNamespace(touched=touched, seed=3))
+    rows, _ = touched_training_rows(fabric, ids, SimpleNamespace(touched=touched, untouched=ids[5:6],
+                                                                 validation=ids[6:], seed=3))
     start = {f: int(np.flatnonzero(fabric == i)[0]) for i, f in enumerate(ids)}
     part = ex.press_partition(counts, touched, seed=3, max_presses=None)
     want = sorted(start[f] + p for f in touched for p in part[f]["train"])
