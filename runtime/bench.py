@@ -432,6 +432,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     from vs2t_edge.runtime.inference import TactileModel
 
     t_start = time.time()
+    machine = _machine()  # the load average before the bench's own work raises it
     log("measuring this machine's GEMM peak (1 and 2 threads, fp32 and int8)")
     peak = {p: {str(t): measure_peak(t, p) for t in threads} for p in ("fp32", "int8")}
     base = _run_worker(["--baseline"])
@@ -462,7 +463,8 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
             del model
         rows.append(row)
-    result = {"machine": _machine(), "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
+    machine["load_avg_at_end"] = list(os.getloadavg())  # includes the bench itself
+    result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
               "seconds": round(time.time() - t_start, 1),
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     result["comparisons"] = compare_pairs(rows)
@@ -621,7 +623,8 @@ def render_markdown(result: dict) -> str:
     lines = ["# Speed for accuracy: the bench", "",
              f"Measured {result['time_utc']} on {m['cpu']} ({m['cores']} cores; load average at start "
              f"{', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}"
-             f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}), onnxruntime "
+             f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}"
+             f"{'; at the end, with the bench itself, ' + ', '.join(f'{v:.2f}' for v in m['load_avg_at_end']) if 'load_avg_at_end' in m else ''}), onnxruntime "
              f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
              "at batch 1, and of the whole press (*press*: MJPEG decode to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
              "", "## Compute peak of this machine", "",

@@ -205,3 +205,21 @@ def test_targets_follow_the_measurements(bench_result):
     assert limit_row["met"] and "1.24x" in limit_row["measured"]
     v["latency"]["2"]["p50_ms"] = 12.6
     assert not [t for t in bench.targets(fake) if "compute limit" in t["target"]][0]["met"]
+
+
+def test_load_average_is_read_before_the_bench_loads_the_machine(tmp_path, monkeypatch):
+    """The page warns when the machine was busy; that reading must come before the bench's own
+    work (it once came at the end and called every quiet run busy)."""
+    import os
+
+    from vs2t_edge.runtime import bench
+
+    readings = iter([[0.1, 0.1, 0.1], [1.9, 1.0, 0.5]])
+    monkeypatch.setattr(os, "getloadavg", lambda: next(readings))
+    monkeypatch.setattr(bench, "measure_peak", lambda t, p: {"macs_per_s": 1e9, "how": "fake"})
+    monkeypatch.setattr(bench, "_run_worker", lambda args: {"peak_rss_mb": 100.0})
+    result = bench.run_bench([], None, threads=(1, 2), log=lambda m: None)
+    assert result["machine"]["load_avg_at_start"] == [0.1, 0.1, 0.1]
+    assert result["machine"]["load_avg_at_end"] == [1.9, 1.0, 0.5]
+    page = bench.render_markdown(result)
+    assert "load average at start 0.10, 0.10, 0.10" in page and "busy" not in page.split("\n")[2]
