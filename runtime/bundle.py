@@ -325,7 +325,7 @@ def verify_seal(root: Path, manifest: dict) -> None:
         raise BundleError(root, f"{MANIFEST} cannot be re-serialised to check its seal ({str(exc)[:120]})") from None
     if actual != seal:
         raise BundleError(root, f"{MANIFEST} was changed after export: its content hashes to {actual[:12]}..., "
-                                f"'{SEAL_KEY}' says {_short(seal)[:12]}... (set beta with calibrate-threshold's "
+                                f"'{SEAL_KEY}' says {seal[:12] if isinstance(seal, str) else _short(seal)}... (set beta with calibrate-threshold's "
                                 "override, never by editing the manifest)")
 
 
