@@ -250,6 +250,21 @@ def orderings(s: dict) -> dict:
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None) -> dict:
+    """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
+
+    Denormal floats are flushed to zero while it runs (they can slow CPU steps many-fold) and
+    restored after: the flag is process-wide, and left on it breaks IEEE subnormals for whatever
+    runs next in the same process (hypothesis, numpy reductions near the float limits).
+    """
+    torch.set_flush_denormal(True)
+    try:
+        return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail)
+    finally:
+        torch.set_flush_denormal(False)
+
+
+def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
+           weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail)) if v is not None})
@@ -261,7 +276,6 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     torch.manual_seed(prof.seed)
     # one thread: on 2 cores shared with other jobs, 2 threads were ~2x slower per step (measured)
     torch.set_num_threads(int(os.environ.get("VS2T_TORCH_THREADS", "1")))
-    torch.set_flush_denormal(True)  # denormal floats in small activations can slow CPU steps many-fold
     trunk = build_trunk(prof.trunk, pretrained=True, weights_path=weights)
     import yaml
 
