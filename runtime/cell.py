@@ -312,7 +312,13 @@ class Cell:
             except _Done:
                 break
             except Exception as exc:  # noqa: BLE001 - outside an item (feeder, notifier, clear): latch too
-                self._latch_internal(exc, "")
+                if self.fault is None:
+                    self._latch_internal(exc, "")
+                else:
+                    # already latched: an error that repeats on every turn (a broken notifier, an
+                    # unreadable fault file) must not append a fault record per turn in a tight loop
+                    self.log(f"while latched ({self.fault}): {type(exc).__name__}: {exc}")
+                    self.sleep(min(1.0, self.scene.wait_item_timeout_s))
         return list(self.results)
 
     def _latch_internal(self, exc: BaseException, where: str) -> str:

@@ -406,6 +406,30 @@ def test_an_exception_outside_an_item_latches_too(tmp_path):
     assert (tmp_path / "FAULT").exists()
 
 
+def test_an_error_repeating_every_turn_latches_once_not_in_a_tight_loop(tmp_path):
+    """A notifier that fails on every turn latches one fault; the loop then waits instead of
+    writing a fault record per turn (which would fill the disk in seconds)."""
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60], items=[])
+    turns = []
+
+    def broken_ping():
+        turns.append(1)
+        if len(turns) >= 40:
+            cell.stop_event.set()  # a bound for the old behaviour, which never slept
+        raise OSError("notify socket gone (injected)")
+
+    def sleep(s):
+        if len(turns) >= 20:
+            cell.stop_event.set()  # the SIGTERM path: the loop's own checks come after the ping
+
+    cell.notifier.ping_if_due = broken_ping
+    cell.sleep = sleep
+    cell.run()
+    faults = [r for r in read_records(journal.path) if r["type"] == "fault"]
+    assert len(turns) >= 20 and len(faults) == 1, (len(turns), faults)
+    assert "internal error: OSError: notify socket gone" in faults[0]["reason"]
+
+
 def test_keyboard_interrupt_still_ends_the_loop(tmp_path):
     cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60])
 
