@@ -230,3 +230,17 @@ def test_synth_cli_small_profile_writes_a_dataset_validate_data_accepts(tmp_path
     assert "20 fabrics, 500 presses (small, seed 0)" in made
     assert "ok — 20 fabrics, 500 presses, frames 320x240, camera 500 px" in checked
     print(f"synth + validate-data, small profile, one worker: {time.monotonic() - t0:.1f} s")
+
+
+def test_synth_defaults_to_the_fabricvst_sized_world():
+    """Issue 2: frames 640x480 and a 1000 px camera image by default (smaller worlds by name)."""
+    import argparse
+
+    from vs2t_edge.sim import synth_cli
+    from vs2t_edge.sim.synth import PROFILES
+
+    parser = argparse.ArgumentParser()
+    synth_cli.add_arguments(parser, "synth")
+    prof = PROFILES[parser.parse_args(["out"]).profile]
+    assert (prof.frame_px, prof.camera_px, prof.n_fabrics) == ((640, 480), 1000, 50)
+
