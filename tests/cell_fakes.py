@@ -143,3 +143,22 @@ def strict_model_frame_check(frame):
     check_frame(frame)
     if frame.mean() < 3:
         raise FrameError("black", "black")
+
+
+def latch_skipping(monkeypatch, device: str, call: str) -> None:
+    """Patch Cell.latch_fault so that, while it runs, ``cell.<device>.<call>()`` does nothing:
+    the regression of a latch that no longer sends that safety step (arm.stop, gate.to_reject)."""
+    from vs2t_edge.runtime import cell as cell_mod
+
+    real_latch = cell_mod.Cell.latch_fault
+
+    def latch(self, *args, **kwargs):
+        dev = getattr(self, device)
+        sent = getattr(dev, call)
+        setattr(dev, call, lambda: None)
+        try:
+            real_latch(self, *args, **kwargs)
+        finally:
+            setattr(dev, call, sent)
+
+    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch)

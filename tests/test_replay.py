@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera, latch_skipping
 from vs2t_edge.runtime.arm import FakeArm
 from vs2t_edge.runtime.cell import ContinuousFeed
 from vs2t_edge.runtime.config import load_config
@@ -231,8 +231,6 @@ def test_an_exception_ending_a_recording_is_raised_after_the_save(tmp_path):
 def test_safety_steps_are_recorded_and_a_replay_that_skips_them_mismatches(tmp_path, monkeypatch):
     """arm.stop and gate.to_reject were not recorded and the replay devices stubbed them: a
     regression that stopped sending them replayed as identical."""
-    from vs2t_edge.runtime import cell as cell_mod
-
     out, _ = record(tmp_path, [50, 50, 60, 60, 70, 70], 3, fail_next=["protective_stop"])
     rf = ReplayFile.open(out)
     safety = [(e["item"], e["dev"], e["call"]) for e in rf.index["safety_steps"]]
@@ -240,16 +238,7 @@ def test_safety_steps_are_recorded_and_a_replay_that_skips_them_mismatches(tmp_p
     assert safety[0] == (-1, "gate", "to_reject") and (0, "arm", "stop") in safety and (0, "gate", "to_reject") in safety
     assert run_replay(out, model=model(), evidence_factory=evidence).ok
 
-    real_latch = cell_mod.Cell.latch_fault
-
-    def latch_without_reject(self, reason, kind="fault"):
-        gate, self.gate.to_reject = self.gate.to_reject, lambda: None  # the regression
-        try:
-            real_latch(self, reason, kind)
-        finally:
-            self.gate.to_reject = gate
-
-    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch_without_reject)
+    latch_skipping(monkeypatch, "gate", "to_reject")  # the regression
     report = run_replay(out, model=model(), evidence_factory=evidence)
     assert not report.ok and any("gate.to_reject at item 0" in m for m in report.mismatches), report.mismatches
     # --update-refs cannot accept it: the recording itself would be wrong
@@ -268,8 +257,6 @@ def test_replay_gate_goes_to_the_configured_reject_bin(tmp_path):
 
 
 def test_a_file_recorded_before_safety_steps_still_replays(tmp_path, monkeypatch):
-    from vs2t_edge.runtime import cell as cell_mod
-
     out, _ = record(tmp_path, [50, 50, 60, 60, 70, 70], 3, fail_next=["protective_stop"])
     index = json.loads((out / "index.json").read_text())
     del index["safety_steps"]
@@ -277,16 +264,7 @@ def test_a_file_recorded_before_safety_steps_still_replays(tmp_path, monkeypatch
     report = run_replay(out, model=model(), evidence_factory=evidence)
     assert report.ok, report.mismatches + [report.diverged]
     # nothing recorded to compare with: a latch without gate.to_reject is not (cannot be) flagged
-    real_latch = cell_mod.Cell.latch_fault
-
-    def latch_without_reject(self, reason, kind="fault"):
-        gate, self.gate.to_reject = self.gate.to_reject, lambda: None
-        try:
-            real_latch(self, reason, kind)
-        finally:
-            self.gate.to_reject = gate
-
-    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch_without_reject)
+    latch_skipping(monkeypatch, "gate", "to_reject")
     assert run_replay(out, model=model(), evidence_factory=evidence).ok
 
 

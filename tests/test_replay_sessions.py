@@ -211,19 +211,10 @@ def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
 def test_the_fault_session_catches_a_latch_that_no_longer_stops_the_arm(monkeypatch):
     """fault.replay records the protective stop's safety steps (``safety_steps``): a cell that
     stopped sending arm.stop on a latched fault must not replay as identical."""
-    from vs2t_edge.runtime import cell as cell_mod
+    from cell_fakes import latch_skipping
     from vs2t_edge.runtime.replay import ReplayFile, run_replay
 
     assert any(st["call"] == "stop" for st in ReplayFile.open(HERE / "fault.replay").index["safety_steps"])
-    real_latch = cell_mod.Cell.latch_fault
-
-    def latch_without_stop(self, reason, kind="fault"):
-        stop, self.arm.stop = self.arm.stop, lambda: None
-        try:
-            real_latch(self, reason, kind)
-        finally:
-            self.arm.stop = stop
-
-    monkeypatch.setattr(cell_mod.Cell, "latch_fault", latch_without_stop)
+    latch_skipping(monkeypatch, "arm", "stop")
     report = run_replay(HERE / "fault.replay", bundle=BUNDLE)
     assert not report.ok and any("safety steps" in m for m in report.mismatches), report.mismatches
