@@ -475,28 +475,35 @@ def camera_unplugged_for_good(w: Path):
     return words + ("; camera reopened by the clear" if held.get("open_at_next_grab") else ""), problems
 
 
+def _record_scores(rig: Rig, note: Callable[[np.ndarray], Any]) -> list:
+    """Wrap the rig's model: ``note(frame)`` of every frame it scores, in order, in the list returned."""
+    scored: list = []
+    score = rig.cell.model.score_press
+
+    def recording(frame):
+        scored.append(note(frame))
+        return score(frame)
+    rig.cell.model.score_press = recording
+    return scored
+
+
 def camera_frozen(w: Path):
     # From press 1 of piece-0001 on, the driver hands out its last buffer (the piece's no-contact
     # frame) again, until the operator power-cycles the sensor. The first repeat is CameraFrozen
     # (frozen_after 2), the press is retried after a reopen, still frozen: the fault latches on
     # piece-0001 itself, which is rejected with no decision; the rest are sorted after the clear.
     # (With frozen_after 5 piece-0001 was decided on 3 frozen frames and the fault hit piece-0002.)
-    held: dict = {"scored": []}  # (piece id, frame bytes) of every frame the model scored
+    held: dict = {}
 
     def inject(r: Rig) -> None:
-        held["rig"], score = r, r.cell.model.score_press
-
-        def recording(frame):
-            held["scored"].append((r.pieces.current.id, np.asarray(frame).tobytes()))
-            return score(frame)
-        r.cell.model.score_press = recording
+        # (piece id, frame bytes) of every frame the model scored
+        held["scored"] = _record_scores(r, lambda frame: (r.pieces.current.id, np.asarray(frame).tobytes()))
         _at(r, 1, 1, lambda: r.camera.inject("frozen", 1000))
 
     words, problems = _loop_row(w, inject=inject, operator_fix_for=lambda r: r.camera.clear_faults,
                                 expect_outcomes={"rejected_fault": 1, "sorted": 3}, fault_words="same frame",
-                                retries=1)
-    recs = read_records(held["rig"].journal_path)
-    faults = [r.get("reason", "") for r in recs if r.get("type") == "fault"]
+                                retries=1, holder_out=held)
+    recs, faults = held["audit"]["records"], held["audit"]["faults"]
     _check(problems, len(faults) == 1 and "(piece-0001)" in faults[0],
            f"expected the fault on piece-0001, the first frozen piece, got {faults}")
     final = next((r for r in recs if r.get("type") == "final" and r.get("item_id") == "piece-0001"), {})
@@ -517,12 +524,12 @@ def corrupt_frames(w: Path):
     error), so the press is retried once each. Checked directly, not from the retry count: the
     guard refused exactly those two frames by reason, every frame the model scored has the
     camera's size and is not black, and the journal's scores are exactly the frames scored."""
-    held: dict = {"refused": [], "scored": []}
+    held: dict = {"refused": []}
 
     def inject(r: Rig):
         _at(r, 1, 1, lambda: r.camera.inject("black", 1))
         _at(r, 2, 1, lambda: r.camera.inject("truncated", 1))
-        grab, score = r.camera.grab, r.cell.model.score_press
+        grab = r.camera.grab
 
         def watched_grab():
             try:
@@ -530,19 +537,18 @@ def corrupt_frames(w: Path):
             except Exception as exc:  # noqa: BLE001 - recorded, then raised as the loop sees it
                 held["refused"].append((r.pieces.index, getattr(exc, "kind", ""), getattr(exc, "reason", "")))
                 raise
+        r.camera.grab = watched_grab
+        held["scored"] = _record_scores(r, lambda frame: (r.pieces.index, tuple(np.shape(frame)),
+                                                          float(np.max(frame))))
 
-        def watched_score(frame):
-            held["scored"].append((r.pieces.index, tuple(np.shape(frame)), float(np.max(frame))))
-            return score(frame)
-        r.camera.grab, r.cell.model.score_press = watched_grab, watched_score
-
-    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=2)
+    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=2,
+                                holder_out=held)
     refused, scored = held["refused"], held["scored"]
-    _check(problems, [(i, k, why) for i, k, why in refused] == [(1, "corrupt", "black"), (2, "corrupt", "size")],
+    _check(problems, refused == [(1, "corrupt", "black"), (2, "corrupt", "size")],
            f"the frame guard refused {refused}, expected piece 1's black and piece 2's truncated frame")
     bad = [s for s in scored if s[1] != (48, 64, 3) or s[2] == 0.0]
     _check(problems, scored and not bad, f"frames scored that should not have been: {bad}")
-    journal_scores = [sc for r in read_records(w / "journal.jsonl") if r.get("type") == "pre_sort"
+    journal_scores = [sc for r in held["audit"]["records"] if r.get("type") == "pre_sort"
                       for sc in r.get("scores", [])]
     _check(problems, len(journal_scores) == len(scored),
            f"the journal holds {len(journal_scores)} scores for {len(scored)} frames scored")
@@ -712,8 +718,9 @@ def arm_connection_lost_fake(w: Path):
     def inject(r: Rig) -> None:
         _at(r, 1, 2, lambda: setattr(link, "drop_in_next_press", True))
 
+    held: dict = {}
     words, problems = _loop_row(w, inject=inject, arm=link, expect_outcomes={"sorted": 4}, fault_words=None,
-                                retries=1)
+                                retries=1, holder_out=held)
     log = link.log
     after = log[log.index("drop") + 1:] if "drop" in log else []
     _check(problems, "drop" in log, "the link never dropped")
@@ -721,7 +728,7 @@ def arm_connection_lost_fake(w: Path):
            f"expected one reconnect right after the drop, got {link.reconnects}: {after[:4]}")
     _check(problems, "press" in after and "move_above" in after and after.index("move_above") < after.index("press"),
            f"the press was not retried from move_above after the reconnect: {after[:6]}")
-    retry = [r for r in read_records(w / "journal.jsonl") if r.get("type") == "retry"]
+    retry = held["audit"]["retries"]
     _check(problems, len(retry) == 1 and retry[0].get("item") == 2 and retry[0].get("kind") == "connection_lost"
            and retry[0].get("step", "").startswith("press"),
            f"the retry record does not name piece 2's press and the lost link: {retry}")
