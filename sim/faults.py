@@ -1568,36 +1568,53 @@ def _drain(server) -> list[str]:
             return msgs
 
 
+def _bundle_cell(case: Path, src: Path, tamper: Callable[[Path], None] | None = None):
+    """Copy the good bundle to ``case``/bundle (then ``tamper`` it), write the cell.yaml that uses
+    it, and load that config."""
+    import shutil
+
+    from vs2t_edge.runtime.config import load_config
+
+    shutil.copytree(src, case / "bundle")
+    (case / "cell.yaml").write_text(BUNDLE_CONFIG)
+    (case / "cell.yaml").chmod(0o640)
+    if tamper is not None:
+        tamper(case / "bundle")
+    return load_config(case / "cell.yaml")
+
+
+def _run_bundle_daemon(cfg, gate=None) -> tuple[int, bool, str]:
+    """The real daemon code (run_daemon) on ``cfg`` with a real sd_notify socket, nothing to sort:
+    (exit code, whether it sent READY, what it logged)."""
+    import shutil
+
+    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.gate import FakeGate
+
+    server, sock = _notify_socket()
+    logged: list[str] = []
+    try:
+        code = run_daemon(cfg, camera=_IdleCamera(), arm=FakeArm(), gate=gate if gate is not None else FakeGate(),
+                          notifier=Notifier(str(sock)), items=Pieces([]), max_items=0, install_signals=False,
+                          log=logged.append)
+        msgs = _drain(server)
+    finally:
+        server.close()
+        shutil.rmtree(sock.parent, ignore_errors=True)
+    ready = any(m.startswith("READY=1") or "\nREADY=1" in m for m in msgs)
+    return code, ready, "\n".join(logged)
+
+
 def _bundle_case(w: Path, src: Path, name: str, tamper: Callable[[Path], None] | None,
                  words: tuple[str, ...]) -> tuple[str, list[str]]:
     """Copy the good bundle, tamper it, start the real daemon code (run_daemon) on it with a real
     sd_notify socket: exit 2, the refusal names the file, never READY, the journal never opened."""
     import shutil
 
-    from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
-
     case = w / name.split(" (")[0].replace(" ", "_")
-    shutil.copytree(src, case / "bundle")
-    (case / "cell.yaml").write_text(BUNDLE_CONFIG)
-    (case / "cell.yaml").chmod(0o640)
-    if tamper is not None:
-        tamper(case / "bundle")
-    cfg = load_config(case / "cell.yaml")
-    server, sock = _notify_socket()
-    logged: list[str] = []
+    code, ready, text = _run_bundle_daemon(_bundle_cell(case, src, tamper))
     problems: list[str] = []
-    try:
-        code = run_daemon(cfg, camera=_IdleCamera(), arm=FakeArm(), gate=FakeGate(), notifier=Notifier(str(sock)),
-                          items=Pieces([]), max_items=0, install_signals=False, log=logged.append)
-        msgs = _drain(server)
-    finally:
-        server.close()
-        shutil.rmtree(sock.parent, ignore_errors=True)
-    text = "\n".join(logged)
-    ready = any(m.startswith("READY=1") or "\nREADY=1" in m for m in msgs)
     journal = case / "state" / "journal.jsonl"
     if tamper is None:  # the control: the same copy untouched starts
         _check(problems, code == 0 and ready, f"untampered copy: exit {code}, READY {ready}: {text[-200:]}")
@@ -1686,58 +1703,38 @@ def disk_full_at_start(w: Path):
     """The state disk is full when the service starts: the journal cannot take its start record.
     The real daemon code (run_daemon, real bundle, real sd_notify socket) must exit 2 in words,
     never send READY, leave the gate at reject and sort nothing - and start once space is back."""
-    import shutil
-
     import vs2t_edge.runtime.journal as jmod
-    from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.gate import FakeGate
 
     src = good_bundle()
     if src is None:
         return "skipped: no bundle (tests/replays/bundle absent; set VS2T_GOOD_BUNDLE)", []
     w.mkdir(parents=True, exist_ok=True)
-    shutil.copytree(src, w / "bundle")
-    (w / "cell.yaml").write_text(BUNDLE_CONFIG)
-    (w / "cell.yaml").chmod(0o640)
-    cfg = load_config(w / "cell.yaml")
+    cfg = _bundle_cell(w, src)
     problems: list[str] = []
     real_append = jmod.Journal.append
-    full = {"on": True}
 
     def append(self, rec):
-        if full["on"] and rec.get("type") == "start":
+        if rec.get("type") == "start":
             raise jmod.JournalWriteError(f"journal {self.path}: write failed: [Errno 28] No space left on device",
                                          errno.ENOSPC, cut_back=True)
         return real_append(self, rec)
 
-    outcomes = []
-    for attempt in ("full", "space freed"):
-        full["on"] = attempt == "full"
-        server, sock = _notify_socket()
-        logged: list[str] = []
-        gate = FakeGate()
-        jmod.Journal.append = append
-        try:
-            code = run_daemon(cfg, camera=_IdleCamera(), arm=FakeArm(), gate=gate, notifier=Notifier(str(sock)),
-                              items=Pieces([]), max_items=0, install_signals=False, log=logged.append)
-            msgs = _drain(server)
-        finally:
-            jmod.Journal.append = real_append
-            server.close()
-            shutil.rmtree(sock.parent, ignore_errors=True)
-        ready = any(m.startswith("READY=1") or "\nREADY=1" in m for m in msgs)
-        text = "\n".join(logged)
-        outcomes.append(f"{attempt}: exit {code}, READY {ready}")
-        if attempt == "full":
-            _check(problems, code == 2, f"disk full: exit {code}, expected 2")
-            _check(problems, not ready, "disk full: the daemon sent READY")
-            _check(problems, "No space left" in text and "Traceback" not in text,
-                   f"disk full: the reason is not said in words: {text[-200:]!r}")
-            _check(problems, gate.to_reject_calls >= 1 and gate.sorted == [], f"disk full: gate sorted {gate.sorted}")
-        else:
-            _check(problems, code == 0 and ready, f"space freed: exit {code}, READY {ready}: {text[-200:]!r}")
+    gate = FakeGate()
+    jmod.Journal.append = append  # the disk is full
+    try:
+        code, ready, text = _run_bundle_daemon(cfg, gate)
+    finally:
+        jmod.Journal.append = real_append
+    outcomes = [f"full: exit {code}, READY {ready}"]
+    _check(problems, code == 2, f"disk full: exit {code}, expected 2")
+    _check(problems, not ready, "disk full: the daemon sent READY")
+    _check(problems, "No space left" in text and "Traceback" not in text,
+           f"disk full: the reason is not said in words: {text[-200:]!r}")
+    _check(problems, gate.to_reject_calls >= 1 and gate.sorted == [], f"disk full: gate sorted {gate.sorted}")
+    code, ready, text = _run_bundle_daemon(cfg)  # space freed
+    outcomes.append(f"space freed: exit {code}, READY {ready}")
+    _check(problems, code == 0 and ready, f"space freed: exit {code}, READY {ready}: {text[-200:]!r}")
     return "; ".join(outcomes), problems
 
 
