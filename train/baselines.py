@@ -25,6 +25,7 @@ All training is CPU torch with small, fixed budgets and a seed; nothing here rea
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -117,6 +118,19 @@ def mlp(sizes: list[int], final_act: nn.Module | None = None, slope: float = 0.2
 
 def _t(a) -> torch.Tensor:
     return torch.as_tensor(np.asarray(a), dtype=torch.float32)
+
+
+@contextmanager
+def flush_denormals():
+    """Denormal floats flushed to zero inside (they can slow CPU steps many-fold), off again after:
+    the flag is process-wide, and left on it breaks IEEE subnormals for whatever runs next in the
+    same process (hypothesis, numpy reductions near the float limits). `vs2t-edge train` and
+    `vs2t-edge compare` both run under it, so their numerics match."""
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
 
 
 def batches(n: int, batch: int, steps: int, gen: torch.Generator, label: str | None = None):
@@ -445,5 +459,5 @@ __all__ = [
     "ZSLData", "FeatureScaler", "Budget", "ZSLMethod", "BASELINES", "PAPER_ZSL", "PAPER_GZSL_VS2T",
     "DAP", "VTFCZSL", "Abderrahmane2019", "Lee2019", "train_classifier", "predict_logits",
     "dap_class_log_posterior", "attribute_bce_loss", "cvae_loss", "gaussian_kl",
-    "pix2pix_generator_loss", "pix2pix_discriminator_loss", "mlp",
+    "pix2pix_generator_loss", "pix2pix_discriminator_loss", "mlp", "flush_denormals",
 ]

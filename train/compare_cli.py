@@ -139,19 +139,17 @@ def run(args: argparse.Namespace) -> int:
         print("vs2t-edge compare: needs the [train] extra (torch)", file=sys.stderr)
         return 4
 
+    from vs2t_edge.train.baselines import flush_denormals
+
     torch.set_num_threads(max(1, args.threads))
-    # as `vs2t-edge train` (same numerics; denormals can slow CPU steps many-fold), and only for
-    # this verb: the flag is process-wide and would break IEEE subnormals for later code
-    torch.set_flush_denormal(True)
     try:
-        if args.rebuild is not None:
-            return _rebuild(args)
-        return _run(args, torch)
+        with flush_denormals():  # as `vs2t-edge train` (same numerics), and only for this verb
+            if args.rebuild is not None:
+                return _rebuild(args)
+            return _run(args, torch)
     except _Usage as exc:
         print(f"vs2t-edge compare: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    finally:
-        torch.set_flush_denormal(False)
 
 
 def _log(msg: str) -> None:

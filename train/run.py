@@ -26,7 +26,7 @@ from vs2t_edge.train import compare as cmp
 from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
-from vs2t_edge.train.baselines import predict_logits, train_classifier
+from vs2t_edge.train.baselines import flush_denormals, predict_logits, train_classifier
 from vs2t_edge.train.trunks import build_trunk
 
 
@@ -251,16 +251,9 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
-
-    Denormal floats are flushed to zero while it runs (they can slow CPU steps many-fold) and
-    restored after: the flag is process-wide, and left on it breaks IEEE subnormals for whatever
-    runs next in the same process (hypothesis, numpy reductions near the float limits).
-    """
-    torch.set_flush_denormal(True)
-    try:
+    Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
+    with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail)
-    finally:
-        torch.set_flush_denormal(False)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
