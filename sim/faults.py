@@ -34,6 +34,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -748,10 +749,10 @@ def item_over_time_budget(w: Path):
 
 # --- UR simulator rows (real ur_rtde client in a worker process, loopback simulator) ---------
 
-def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | None, retries=None):
-    pytest_skip = _need_rtde()
-    if pytest_skip:
-        return pytest_skip, ["ur_rtde not installed"]
+@contextmanager
+def _ursim_arm():
+    """(the loopback UR simulator, an IsolatedURArm on it: the real ur_rtde client); the simulator
+    is stopped on leaving."""
     from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
     from vs2t_edge.sim.scene import FAST_PRESS
     from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
@@ -759,8 +760,16 @@ def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | 
     sim = URSimProcess(PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0)),
                        host=free_loopback_host()).start()
     try:
-        arm = IsolatedURArm(ArmConfig(host=sim.host, **FAST_PRESS))
+        yield sim, IsolatedURArm(ArmConfig(host=sim.host, **FAST_PRESS))
+    finally:
+        sim.stop()
 
+
+def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | None, retries=None):
+    pytest_skip = _need_rtde()
+    if pytest_skip:
+        return pytest_skip, ["ur_rtde not installed"]
+    with _ursim_arm() as (sim, arm):
         def inject(r: Rig):
             if trigger == "overforce_in_descent":
                 # the controller's protective stop trips on the way down, once the gel is in contact
@@ -769,7 +778,7 @@ def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | 
                 # the button is hit while the press is under way, not between commands
                 _at(r, 1, 1, lambda: threading.Timer(0.12, sim.trigger_emergency_stop).start())
             else:
-                _at(r, 1, 1, lambda: getattr(sim, trigger)())
+                raise ValueError(f"_ursim_row: unknown trigger {trigger!r}")
 
         def operator(r: Rig):
             def fix():
@@ -777,12 +786,9 @@ def _ursim_row(w: Path, trigger: str, expect_outcomes: dict, fault_words: str | 
                     sim.release_emergency_stop()
                 sim.reset()
             return fix
-        words, problems = _loop_row(w, inject=inject, operator_fix_for=operator, truths=["denim", "silk", "tweed"],
-                                    arm=arm, expect_outcomes=expect_outcomes, fault_words=fault_words,
-                                    retries=retries, max_presses=2)
-        return words, problems
-    finally:
-        sim.stop()
+        return _loop_row(w, inject=inject, operator_fix_for=operator, truths=["denim", "silk", "tweed"],
+                         arm=arm, expect_outcomes=expect_outcomes, fault_words=fault_words,
+                         retries=retries, max_presses=2)
 
 
 def _need_rtde() -> str:
@@ -809,16 +815,11 @@ def connection_drop_ursim(w: Path):
     pytest_skip = _need_rtde()
     if pytest_skip:
         return pytest_skip, ["ur_rtde not installed"]
-    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
-    from vs2t_edge.sim.scene import FAST_PRESS
-    from vs2t_edge.sim.ursim import CMD_ZERO_FT, PressScene, URSimProcess, free_loopback_host
+    from vs2t_edge.sim.ursim import CMD_ZERO_FT
 
-    sim = URSimProcess(PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0)),
-                       host=free_loopback_host()).start()
     seen: dict = {}
     calls: list[dict] = []  # every press call on the arm: start, end, error, reconnects in its telemetry
-    try:
-        arm = IsolatedURArm(ArmConfig(host=sim.host, **FAST_PRESS))
+    with _ursim_arm() as (sim, arm):
         real_press = arm.press
 
         def press():
@@ -854,8 +855,6 @@ def connection_drop_ursim(w: Path):
         rig = seen["rig"]
         drops = len(sim.get_log().get("drops", []))
         zero_ft = sim.get_log().get("commands", []).count(CMD_ZERO_FT)
-    finally:
-        sim.stop()
     at = seen.get("at")
     _check(problems, drops == 1 and at is not None, f"{drops} drops; the force-mode drop did not fire")
     hit = [c for c in calls if at is not None and c["start"] <= at <= c.get("end", 0.0)]
@@ -882,22 +881,13 @@ def force_never_reached_ursim(w: Path):
     pytest_skip = _need_rtde()
     if pytest_skip:
         return pytest_skip, ["ur_rtde not installed"]
-    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
-    from vs2t_edge.sim.scene import FAST_PRESS
-    from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
-
-    sim = URSimProcess(PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0)),
-                       host=free_loopback_host()).start()
-    try:
-        arm = IsolatedURArm(ArmConfig(host=sim.host, **FAST_PRESS))
+    with _ursim_arm() as (sim, arm):
         return _loop_row(w, inject=lambda r: _at(r, 1, 1, lambda: sim.set_faults(no_surface=True)),
                          # the operator puts the fabric back; the controller is not reset: the cell
                          # lifted the sensor before latching, so nothing is in the way
                          operator_fix_for=lambda r: (lambda: sim.set_faults(no_surface=False)),
                          truths=["denim", "silk", "tweed"], arm=arm, max_presses=2,
                          expect_outcomes={"sorted": 2, "rejected_fault": 1}, fault_words="twice", retries=1)
-    finally:
-        sim.stop()
 
 
 # --- pty gate rows (real host driver, MCU simulator on a pty) ---------------------------------
