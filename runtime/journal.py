@@ -143,27 +143,15 @@ class Journal:
         STATE_FILE_MODE (e.g. 0666 from a hand copy) is tightened to it and ``log`` says so
         (default: stderr, the service's log); if it cannot be tightened the open is refused."""
         path = Path(path)
-        created = not path.exists()
         make_state_dir(path.parent)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, STATE_FILE_MODE)
-        tightened = None
-        try:
-            if created:
-                os.fchmod(fd, STATE_FILE_MODE)  # os.open's mode went through the umask
-                _fsync_dir(path.parent)
-            else:
-                tightened = _tighten(fd, path)
-        except BaseException:
-            os.close(fd)
-            raise
-        if tightened is not None:
-            (log or _stderr_log)(f"journal {path}: mode was {tightened[0]:04o} (readable or writable by "
-                                 f"others); tightened to {tightened[1]:04o}")
-        j = cls(path=path, _fd=fd, mode_tightened_from=None if tightened is None else tightened[0])
+        fd, created, was_mode = _open_state_file(path, os.O_RDWR, log)
+        j = cls(path=path, _fd=fd, mode_tightened_from=was_mode)
         good_end = 0  # byte after the last good record
         bad_at = None  # (record number, byte) of the first corrupt line
         n_good = 0
         try:
+            if created:
+                _fsync_dir(path.parent)
             # One streaming pass. Only the tail may be torn or corrupt; a corrupt line with real
             # records after it is a damaged journal and is refused (a human looks at it).
             with open(path, "rb") as f:
@@ -193,7 +181,8 @@ class Journal:
             raise
         torn = size - good_end
         if torn:
-            with open(path, "rb") as src, os.fdopen(_open_to_append(Path(str(path) + ".torn")), "ab") as f:
+            torn_fd = _open_state_file(Path(str(path) + ".torn"), os.O_WRONLY, log)[0]
+            with open(path, "rb") as src, os.fdopen(torn_fd, "ab") as f:
                 src.seek(good_end)
                 f.write(src.read())
                 f.flush()
@@ -301,22 +290,31 @@ def _item_order(k: Any) -> tuple:
     return (0, k, "") if isinstance(k, int) else (1, 0, str(k))  # a hand-edited journal may hold odd ids
 
 
-def _open_to_append(path: Path) -> int:
-    """A descriptor appending to `path`; a file created here gets STATE_FILE_MODE whatever the umask."""
+def _open_state_file(path: Path, flags: int, log: Callable[[str], None] | None) -> tuple[int, bool, int | None]:
+    """A descriptor on ``path`` (``flags`` | O_APPEND), the file created if missing. One created
+    here gets STATE_FILE_MODE whatever the umask; an existing one more open than that is tightened
+    and ``log`` says so (default: stderr, the service's log), or refused (JournalError) if it
+    cannot be. Returns (fd, created, the mode it had before tightening or None)."""
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL, STATE_FILE_MODE)
+        fd = os.open(path, flags | os.O_APPEND | os.O_CREAT | os.O_EXCL, STATE_FILE_MODE)
+        created = True
     except FileExistsError:
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND)
-        try:
-            old = _tighten(fd, path)
-        except BaseException:
-            os.close(fd)
-            raise
-        if old is not None:
-            _stderr_log(f"{path}: mode was {old[0]:04o}; tightened to {old[1]:04o}")
-        return fd
-    os.fchmod(fd, STATE_FILE_MODE)
-    return fd
+        fd = os.open(path, flags | os.O_APPEND)
+        created = False
+    tightened = None
+    try:
+        if created:
+            os.fchmod(fd, STATE_FILE_MODE)  # os.open's mode went through the umask
+        else:
+            tightened = _tighten(fd, path)
+    except BaseException:
+        os.close(fd)
+        raise
+    if tightened is None:
+        return fd, created, None
+    (log or _stderr_log)(f"journal {path}: mode was {tightened[0]:04o} (readable or writable by others); "
+                         f"tightened to {tightened[1]:04o}")
+    return fd, created, tightened[0]
 
 
 def _tighten(fd: int, path: Path) -> tuple[int, int] | None:
