@@ -1006,7 +1006,7 @@ def power_loss_mid_write(w: Path):
         f.write(line + torn_part)
     good_size = rig.journal_path.stat().st_size - len(torn_part)
     problems: list[str] = []
-    rig2 = _reopen_rig(w, rig.journal_path, ["wool"])  # the restart: same journal, recover() ran
+    rig2 = _reopen_rig(rig.journal_path, ["wool"])  # the restart: same journal, recover() ran
     cut = rig2.cell.journal.torn_bytes
     recovered = [r for r in read_records(rig.journal_path) if r.get("type") == "final"]
     run_rig(rig2)
@@ -1017,7 +1017,7 @@ def power_loss_mid_write(w: Path):
     _check(problems, kept.exists() and kept.read_bytes() == torn_part,
            f"the torn bytes are not kept aside in {kept.name}")
     data = rig.journal_path.read_bytes()
-    _check(problems, data.endswith(b"\n") and len(read_records(rig.journal_path)) == data.count(b"\n"),
+    _check(problems, data.endswith(b"\n") and len(a["records"]) == data.count(b"\n"),
            "the journal still holds a partial or corrupt line")
     _check(problems, not list(w.glob("run-*")), "the restart opened another journal")
     f2 = [r for r in a["finals"] if r["item"] == 2]
@@ -1033,13 +1033,11 @@ def power_loss_mid_write(w: Path):
                              "then sorted on"), problems
 
 
-def _reopen_rig(w: Path, journal_path: Path, truths: list[str]) -> Rig:
-    """The service restarted: a new cell on the same state folder, so the same journal file is
-    reopened (its torn tail cut) and recover() runs in build_rig. Piece ids get a "b" so that they
-    differ from the first run's."""
+def _reopen_rig(journal_path: Path, truths: list[str]) -> Rig:
+    """The service restarted: a new cell on the same state folder (build_rig's journal.jsonl
+    there), so the same journal file is reopened (its torn tail cut) and recover() runs in
+    build_rig. Piece ids get a "b" so that they differ from the first run's."""
     rig = build_rig(journal_path.parent, truths)
-    if rig.journal_path.resolve() != Path(journal_path).resolve():
-        raise AssertionError(f"the restarted rig opened {rig.journal_path}, not {journal_path}")
     for it in rig.pieces.items:
         object.__setattr__(it, "id", it.id + "b")
     return rig
@@ -1173,7 +1171,7 @@ def disk_failure(w: Path, *, mode: str):
     expect_gate = [BINS["denim"], BINS["silk"]] if how == "fsync" else [BINS["denim"]]
     if mode == "restart":
         _check(problems, gate_sorted == expect_gate, f"gate sorted {gate_sorted}; only piece 0 was decided on disk")
-        rig2 = _reopen_rig(w, rig.journal_path, ["wool"])
+        rig2 = _reopen_rig(rig.journal_path, ["wool"])
         run_rig(rig2)
         truths_by_id = {"piece-0000": "denim", "piece-0001": "silk", "piece-0000b": "wool"}
         expect_finals = 3
