@@ -19,7 +19,6 @@ camera crops at those presses) for the visual tail.
 from __future__ import annotations
 
 import copy
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from vs2t_edge.train.progress import Line
 from vs2t_edge.train.trunks import IMAGENET_MEAN, IMAGENET_STD, Trunk
 
 CACHE_VERSION = 1
@@ -90,6 +90,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     spec = TactilePreprocess(size=size)
     trunk.eval()
     stems, stems_v, xv, xt0, fab = [], [], [], [], []
+    line = Line()
     t0 = time.time()
     total = sum(len(f.presses) if max_presses is None else min(max_presses, len(f.presses)) for f in ds.fabrics)
     total = max(total, 1)
@@ -113,11 +114,11 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
             done += len(idx)
             if progress:
                 el = time.time() - t0
-                print(f"\rfeatures: fabric {k + 1}/{len(ds.fabrics)}, press {done}/{total} "
-                      f"({el:.0f} s, ~{el / done * (total - done):.0f} s left)", end="", file=sys.stderr, flush=True)
+                line.draw(f"features: fabric {k + 1}/{len(ds.fabrics)}, press {done}/{total} "
+                          f"({el:.0f} s, ~{el / done * (total - done):.0f} s left)")
         fab.append(np.full(n, k))
     if progress:
-        print(file=sys.stderr)
+        line.keep()
     return StemCache(np.concatenate(stems), np.concatenate(xv).astype(np.float32), np.concatenate(xt0).astype(np.float32),
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
@@ -163,6 +164,7 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
     head = nn.Linear(out.feature_dim, n_classes)
     opt = torch.optim.Adam([{"params": out.tail.parameters(), "lr": lr}, {"params": head.parameters(), "lr": 10 * lr}])
     out.tail.train()
+    line = Line()
     t0 = time.time()
     for ep in range(epochs):
         perm = torch.randperm(len(yt), generator=gen)
@@ -175,10 +177,10 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
             loss.backward()
             opt.step()
         if progress:
-            print(f"\rfine-tune {what} tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
-                  f"({time.time() - t0:.0f} s)", end="", file=sys.stderr, flush=True)
+            line.draw(f"fine-tune {what} tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
+                      f"({time.time() - t0:.0f} s)")
     if progress:
-        print(file=sys.stderr)
+        line.keep()
     out.eval()
     return out
 

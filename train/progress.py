@@ -1,7 +1,7 @@
-"""Progress of the long training loops (generator, classifiers, every compared method's fit) on
-stderr, in the carriage-return style of feature extraction (``features.py``): one line rewritten
-in place, ``label: step i/n (elapsed s, ~left s)``, erased when the loop ends so the per-method
-log lines stay readable.
+"""Progress on stderr as one line rewritten in place (``Line``, carriage return): feature
+extraction and tail fine-tuning (``features.py``) and the long training loops (``steps``:
+generator, classifiers, every compared method's fit), ``label: step i/n (elapsed s, ~left s)``,
+erased when the loop ends so the per-method log lines stay readable.
 
 Shown only when stderr is a terminal; ``VS2T_PROGRESS=1`` forces it (a log file, a test),
 ``VS2T_PROGRESS=0`` silences it. It only prints: it draws no random numbers and touches no
@@ -31,31 +31,47 @@ def enabled() -> bool:
         return False
 
 
+class Line:
+    """One stderr line rewritten in place; a shorter message is padded over a longer earlier one."""
+
+    def __init__(self) -> None:
+        self.width = 0
+
+    def draw(self, msg: str) -> None:
+        self.width = max(self.width, len(msg))
+        print(f"\r{msg:<{self.width}}", end="", file=sys.stderr, flush=True)
+
+    def erase(self) -> None:
+        if self.width:
+            print(f"\r{'':<{self.width}}\r", end="", file=sys.stderr, flush=True)
+            self.width = 0
+
+    def keep(self) -> None:
+        """Leave the last message standing and move on to a new line."""
+        print(file=sys.stderr)
+        self.width = 0
+
+
 def steps(it: Iterable[T], total: int, label: str) -> Iterator[T]:
     """Yield ``it``'s items unchanged, drawing ``label: step i/total`` on stderr when ``enabled()``."""
     if not enabled() or total <= 0:
         yield from it
         return
     t0 = last = time.monotonic()
-    width = 0
+    line = Line()
     for done, item in enumerate(it):  # done = steps finished before this one
         now = time.monotonic()
         if done + 1 >= total:
             # erased before the last step is handed out: a consumer that stops calling next()
             # at exactly ``total`` items (generators_modern's critic loops) still leaves a clean line
-            if width:
-                print(f"\r{'':<{width}}\r", end="", file=sys.stderr, flush=True)
-                width = 0
+            line.erase()
         elif done == 0 or now - last >= MIN_INTERVAL_S:
             el = now - t0
             left = f", ~{el / done * (total - done):.0f} s left" if done else ""
-            msg = f"{label}: step {done + 1}/{total} ({el:.0f} s{left})"
-            width = max(width, len(msg))
-            print(f"\r{msg:<{width}}", end="", file=sys.stderr, flush=True)
+            line.draw(f"{label}: step {done + 1}/{total} ({el:.0f} s{left})")
             last = now
         yield item
-    if width:
-        print(f"\r{'':<{width}}\r", end="", file=sys.stderr, flush=True)
+    line.erase()
 
 
-__all__ = ["ENV", "enabled", "steps"]
+__all__ = ["ENV", "Line", "enabled", "steps"]
