@@ -74,6 +74,12 @@ def slope_per_k(x: list[float], y: list[float]) -> float:
     return float(a * 1000.0)
 
 
+def drift_verdict(first: float, last: float) -> str:
+    """"no drift" when ``last`` is within 20 % of ``first``."""
+    drift = last / max(first, 1e-9) - 1.0
+    return "no drift" if abs(drift) < 0.2 else f"DRIFT ({drift:+.0%})"
+
+
 REPLAYS = ("touched", "untouched", "unknown", "fault")
 
 
@@ -220,8 +226,8 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
 
     # the grey model is exact, so every sorted piece must be in its own bin; the real model may be
     # wrong (a tiny test model): its bins are counted below, the audit checks the loop's promises
-    a = audit(rig.journal_path, {it.id: it.truth for it in rig.pieces.items} if model == "grey" else None)
     truth_of = {it.id: it.truth for it in rig.pieces.items}
+    a = audit(rig.journal_path, truth_of if model == "grey" else None)
     bins = rig.cell.scene.bins
     sorted_right = sum(f.get("outcome") == "sorted" and f["bin"] == bins.get(truth_of.get(f.get("item_id")), -1)
                        for f in a["finals"])
@@ -255,10 +261,8 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     }
     res["rss_verdict"] = ("no growth" if res["rss_slope_mib_per_kpress"] < rss_limit_mib
                           else f"GROWS ({res['rss_slope_mib_per_kpress']:.2f} MiB / 1000 presses)")
-    drift = res["press_ms_last"] / max(res["press_ms_first"], 1e-9) - 1.0
-    res["latency_verdict"] = "no drift" if abs(drift) < 0.2 else f"DRIFT ({drift:+.0%})"
-    sdrift = res["score_ms_last"] / max(res["score_ms_first"], 1e-9) - 1.0
-    res["score_verdict"] = "no drift" if abs(sdrift) < 0.2 else f"DRIFT ({sdrift:+.0%})"
+    res["latency_verdict"] = drift_verdict(res["press_ms_first"], res["press_ms_last"])
+    res["score_verdict"] = drift_verdict(res["score_ms_first"], res["score_ms_last"])
     res["journal_verdict"] = (f"{1024 * journal_mib / max(res['items'], 1):.2f} KiB per piece, "
                               + ("one final per piece" if not a["problems"] else "; ".join(a["problems"])))
     if own:
