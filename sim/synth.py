@@ -413,9 +413,8 @@ def pressed_deformation(p: FabricParams, surface: Surface, x_mm: float, y_mm: fl
 
 
 def _render_fabric(args: tuple) -> tuple:
-    index, params, attrs, profile_name, seed, *rest = args
+    index, params, attrs, profile_name, seed, markers = args
     prof = PROFILES[profile_name]
-    markers = rest[0] if rest else prof.markers
     p: FabricParams = params
     surface = Surface(p)
     # Markers only darken the gel (no random draws), so switching them off leaves every other
