@@ -63,11 +63,12 @@ def _resolve(args: argparse.Namespace) -> tuple[str, str] | int:
     if args.verb != "sort":
         return args.verb, args.verb
     word = str(args.bin).strip()
-    if word.lower() in SUBCOMMANDS:
+    sub = word.lower()
+    if sub in SUBCOMMANDS:
         if args.no_arm:
-            print(f"vs2t-edge sort {word.lower()}: --no-arm applies to sort BIN only", file=sys.stderr)
+            print(f"vs2t-edge sort {sub}: --no-arm applies to sort BIN only", file=sys.stderr)
             return EXIT_USAGE
-        return SUBCOMMANDS[word.lower()], f"sort {word.lower()}"
+        return SUBCOMMANDS[sub], f"sort {sub}"
     try:
         args.bin = int(word)
     except ValueError:
