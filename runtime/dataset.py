@@ -436,12 +436,10 @@ def _read_checked(fabric: Fabric, label: str, path: Path, want_hw: tuple[int, in
         rel = path.relative_to(fabric.folder.parent).as_posix()
     except ValueError:
         rel = str(path)
-    if not path.is_file():
-        return None, f"{where}: {rel} missing"
     try:
         image = read_image(path)
-    except ValueError:
-        return None, f"{where}: {rel} is not a readable image"
+    except ValueError:  # read_image says which; the file is looked for again only then
+        return None, f"{where}: {rel} {'is not a readable image' if path.is_file() else 'missing'}"
     if image.shape[:2] != tuple(want_hw):
         return None, (f"{where}: {rel} is {image.shape[1]}x{image.shape[0]}, "
                       f"dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}")
