@@ -89,12 +89,13 @@ def test_resnet50_loads_a_torchvision_named_state_dict(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tiny_world(tmp_path_factory):
-    """The tiny synthetic fabric world (10 fabrics x 9 presses), generated once for this module;
+def tiny_world():
+    """The tiny synthetic fabric world (10 fabrics x 9 presses): the one test_bundle_fixtures
+    generates once per test session for the bundle and export tests (same profile, same seed);
     tests only read it."""
-    from vs2t_edge.sim.synth import generate
+    from test_bundle_fixtures import tiny_world as shared_tiny_world
 
-    return generate(tmp_path_factory.mktemp("tiny_world") / "world", "tiny", 0, progress=False)
+    return shared_tiny_world()
 
 
 def _generator_vs_untrained(dataset, profile: str, split_seeds) -> list[dict]:
