@@ -385,22 +385,16 @@ class Cell:
         self.log(f"camera reopened for {why}")
         return None
 
-    def _lift_gel(self, exc: DeviceError) -> None:
+    def _lift_gel(self, after: str, failures: type[Exception] = DeviceError) -> None:
         """Before latching a fault that is not a safety stop, lift the sensor off the piece: left
         at depth after 'force never reached', the tool sits where the fabric will be put back (the
         operator's fix then drives it into the piece and the controller protective-stops). A
-        safety stop is never moved out of; a failing retract is left for the operator."""
+        safety stop is never moved out of; a failing retract (``failures``: a device error, or
+        any Exception after an internal fault) is logged and left for the operator."""
         try:
             self.arm.retract()
-        except DeviceError as lift_exc:
-            self.log(f"could not lift the sensor after {exc.kind}: {lift_exc}")
-
-    def _lift_gel_after(self, what: str) -> None:
-        """_lift_gel for a fault with no device error behind it: any failure is only logged."""
-        try:
-            self.arm.retract()
-        except Exception as lift_exc:  # noqa: BLE001 - the latch has already stopped the arm
-            self.log(f"could not lift the sensor after {what}: {lift_exc}")
+        except failures as lift_exc:
+            self.log(f"could not lift the sensor after {after}: {lift_exc}")
 
     def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
         """One press step with the retry policy: a retryable error is retried once. Before the
@@ -416,10 +410,10 @@ class Cell:
                 if isinstance(exc, GateError):
                     raise CellFault(f"gate fault during {what}: {exc}", exc.kind) from exc
                 if not exc.retryable:
-                    self._lift_gel(exc)
+                    self._lift_gel(exc.kind)
                     raise CellFault(f"{exc.device or 'device'} fault during {what}: {exc}", exc.kind) from exc
                 if attempt == 2:
-                    self._lift_gel(exc)
+                    self._lift_gel(exc.kind)
                     raise CellFault(f"{what} failed twice: {exc}", "repeated_failure") from exc
                 self.log(f"{what} failed ({exc}); retrying once")
                 self.journal.append({"type": "retry", "item": self._number, "step": what, "error": str(exc),
@@ -580,7 +574,7 @@ class Cell:
             # The gate may have executed a SORT that was sent before the exception: the record says
             # the outcome is unknown instead of claiming reject. An item already finalised (the
             # exception came after its final record) keeps that record.
-            self._lift_gel_after(type(exc).__name__)  # first, as _step does before a CellFault
+            self._lift_gel(type(exc).__name__, Exception)  # first, as _step does before a CellFault
             reason = self._latch_internal(exc, f"item {number} ({item.id}): ")
             uncertain = gate_told and not final_written
             outcome = "unknown_outcome" if uncertain else "rejected_fault"
