@@ -37,15 +37,32 @@ def start(tmp_path, *extra, env_extra=None):
     cfg = tmp_path / "cell.yaml"
     cfg.write_text(CONFIG)
     sock_path = str(tmp_path / "notify.sock")
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    server.bind(sock_path)
-    server.settimeout(20)
+    server = notify_server(sock_path, timeout_s=20)
     env = dict(os.environ, NOTIFY_SOCKET=sock_path, WATCHDOG_USEC="400000", PYTHONUNBUFFERED="1")
     env.pop("WATCHDOG_PID", None)
     env.update(env_extra or {})
     proc = subprocess.Popen([sys.executable, str(HERE / "daemon_fake_main.py"), str(cfg), *extra], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, server, tmp_path / "state" / "journal.jsonl"
+
+
+def notify_server(sock_path: str, timeout_s: float) -> socket.socket:
+    """The NOTIFY_SOCKET end systemd would hold: a bound datagram socket."""
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(timeout_s)
+    return server
+
+
+def drain(server, quiet_s=0.2) -> list[str]:
+    """Every message still queued (or arriving within ``quiet_s`` of the last one)."""
+    server.settimeout(quiet_s)
+    msgs = []
+    try:
+        while True:
+            msgs.append(server.recv(4096).decode())
+    except socket.timeout:
+        return msgs
 
 
 def receive_until(server, pred, limit_s=20.0):
@@ -135,18 +152,11 @@ def test_bad_bundle_exits_2_without_ready(tmp_path):
     cfg = tmp_path / "cell.yaml"
     cfg.write_text(CONFIG)
     sock_path = str(tmp_path / "n.sock")
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    server.bind(sock_path)
-    server.settimeout(0.2)
+    server = notify_server(sock_path, timeout_s=0.2)
     env = dict(os.environ, NOTIFY_SOCKET=sock_path)
     proc = subprocess.run([sys.executable, "-m", "vs2t_edge", "run", "--config", str(cfg)], env=env,
                           capture_output=True, text=True, timeout=60)
-    msgs = []
-    try:
-        while True:
-            msgs.append(server.recv(4096).decode())
-    except socket.timeout:
-        pass
+    msgs = drain(server)
     server.close()
     assert proc.returncode == 2, proc.stderr
     assert "bundle" in proc.stderr and not any(m.startswith("READY=1") for m in msgs)
@@ -295,9 +305,7 @@ def _run_real_bundle(tmp_path, bundle, *, until_ready: bool):
               "journal": str(tmp_path / "state" / "journal.jsonl"), "watchdog": {"wait_item_timeout_s": 0.05}}
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     sock_path = str(tmp_path / "n.sock")
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    server.bind(sock_path)
-    server.settimeout(60)
+    server = notify_server(sock_path, timeout_s=60)
     env = dict(os.environ, NOTIFY_SOCKET=sock_path, PYTHONUNBUFFERED="1")
     env.pop("WATCHDOG_USEC", None)
     proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge", "run", "--config", str(tmp_path / "cell.yaml")],
@@ -307,13 +315,8 @@ def _run_real_bundle(tmp_path, bundle, *, until_ready: bool):
         if until_ready:
             msgs = receive_until(server, lambda m: m.startswith("READY=1"), limit_s=60)
             proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-        server.settimeout(0.2)
-        try:
-            while True:
-                msgs.append(server.recv(4096).decode())
-        except socket.timeout:
-            pass
+        _out, err = proc.communicate(timeout=60)
+        msgs += drain(server)
     finally:
         if proc.poll() is None:
             proc.kill()
