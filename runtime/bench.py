@@ -206,6 +206,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     ref = None
     model = None
     stages: dict[str, list[float]] = {}
+    frames: list[np.ndarray] = []
     for t in threads_list:
         model = TactileModel.load(bundle, threads=t)
         if ref is None:
@@ -223,8 +224,8 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                 if not ok:
                     raise RuntimeError(f"{bundle}: could not JPEG-encode a press frame")
                 jpegs.append(enc.tobytes())
+            frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in jpegs]
         model.set_reference(ref)
-        frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in jpegs]
         xs = [model.preprocess(f) for f in frames]
         sess, name = model._trunk, model._trunk_in
         for x in xs[:3]:
