@@ -207,7 +207,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     model = None
     stages: dict[str, list[float]] = {}
     frames: list[np.ndarray] = []
-    for t in threads_list:
+    for t in sorted(threads_list):  # ascending: the stages left at the end are the largest count's
         model = TactileModel.load(bundle, threads=t)
         if ref is None:
             ds_root = _dataset_of(model.manifest, dataset)
