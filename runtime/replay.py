@@ -681,8 +681,7 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
 
 def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items, evidence_factory=None,
                    max_items: int | None = None, operator_clear=None, meta: dict | None = None,
-                   on_item=None, log=lambda m: None, install_signals: bool = False,
-                   stop_event: threading.Event | None = None) -> Path:
+                   on_item=None, log=lambda m: None, stop_event: threading.Event | None = None) -> Path:
     """Run the daemon on the given devices, recording everything into the replay folder ``out``.
 
     The session journals into a fresh journal beside the replay (``out``.journal.jsonl), so the
@@ -690,9 +689,10 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     is latched: it fixes the cause (in simulation: clears the injected fault) and returns True
     to clear the fault, which is recorded; returning False ends the session in fault.
 
-    What was recorded is saved however the session ends: ``install_signals`` lets SIGINT/SIGTERM
-    stop it as they stop the service (the item in hand aborted to reject, ``meta.stopped_by`` names
-    the signal), and an exception escaping the daemon is re-raised only after the save
+    What was recorded is saved however the session ends: ``stop_event`` (set by the caller's
+    SIGINT/SIGTERM handler, runtime/record_cli.py) stops it as a signal stops the service (the item
+    in hand aborted to reject, ``meta.stopped_by`` names the signal from the event's
+    ``signal_name``), and an exception escaping the daemon is re-raised only after the save
     (``meta.crashed`` names it). A session cut short mid-item does not replay as is (its last item
     has no more device events); its frames and decisions are there for calibration and review.
     """
@@ -729,7 +729,7 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
         code = run_daemon(cfg, model=model, camera=RecordingCamera(camera, rec), arm=RecordingArm(arm, rec),
                           gate=RecordingGate(gate, rec), items=r_items, evidence_factory=evidence_factory,
                           notifier=Notifier(address=""), max_items=max_items, stop_when=stop_when,
-                          install_signals=install_signals, stop_event=stop_event, on_item=on_item, log=log)
+                          install_signals=False, stop_event=stop_event, on_item=on_item, log=log)
     except BaseException as exc:  # noqa: BLE001 - saved below, then re-raised
         crashed = exc
     raw = json.loads(json.dumps(cfg.raw, default=str))
