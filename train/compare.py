@@ -899,12 +899,6 @@ def run_visual_tail(run: RunSource) -> str:
     return vt
 
 
-def _visual_tail_seed(split_seed: int) -> int:
-    from vs2t_edge.train.run import visual_tail_seed  # run imports this module: import at call time
-
-    return visual_tail_seed(split_seed)
-
-
 def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
                      weights: Path | None = None, tactile: bool = True) -> Callable[[FabricSplit], FeatureTable]:
     """Per split, the features the VS2T run's models saw: its cached stem activations through a
@@ -943,21 +937,13 @@ def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
 
     def table_for(split: FabricSplit) -> FeatureTable:
         t0 = time.time()
-        rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
-        x_t, x_v = cache.x_t0, cache.x_v
-        if tactile:
-            tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs,
-                                     max_rows=max_rows, seed=split.seed, progress=False)
-            x_t = ft.features_from_stem(tuned, cache.stem_t)
-        if visual:  # finetune_tail copies the trunk: both tails start from the same weights, as in training
-            tuned_v = ft.finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=epochs,
-                                       max_rows=max_rows, seed=_visual_tail_seed(split.seed),
-                                       progress=False, what="visual")
-            x_v = ft.features_from_stem(tuned_v, cache.stem_v)
-        log(f"  {what} tail fine-tuned on {len(rows)} touched-train presses ({time.time() - t0:.0f} s)")
-        return FeatureTable(x_t, x_v, cache.fabric, cache.fabric_ids, cache.attributes,
+        # training's own per-split fine-tuning (run.run_split calls the same function)
+        feats = ft.finetune_split(cache, trunk, split, epochs=epochs, max_rows=max_rows, tactile=tactile,
+                                  visual=visual, progress=False)
+        log(f"  {what} tail fine-tuned on {feats.n_rows} touched-train presses ({time.time() - t0:.0f} s)")
+        return FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
                             source=f"{path} ({what} tail fine-tuned per split, seed = split seed"
-                                   + (f", visual {_visual_tail_seed(split.seed)}" if visual else "") + ")")
+                                   + (f", visual {ft.visual_tail_seed(split.seed)}" if visual else "") + ")")
 
     return table_for
 

@@ -185,6 +185,49 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
     return out
 
 
+def visual_tail_seed(split_seed: int) -> int:
+    """The visual tail's fine-tuning seed (the tactile tail's is the split seed)."""
+    return split_seed + 1
+
+
+@dataclass
+class SplitFeatures:
+    """``finetune_split``'s result: features of every press, and what it took."""
+
+    x_t: np.ndarray
+    x_v: np.ndarray
+    n_rows: int  # touched-train presses the tails were fine-tuned on
+    tactile_trunk: Trunk | None  # the tactile-tuned trunk (None: tactile features frozen)
+    seconds_t: float  # rows + tactile tail
+    seconds_v: float  # visual tail (0 when frozen)
+
+
+def finetune_split(cache: StemCache, trunk: Trunk, split, *, epochs: int, max_rows: int | None,
+                   tactile: bool = True, visual: bool = False, progress: bool = True) -> SplitFeatures:
+    """The features of one split as `vs2t-edge train` makes them (and `compare --run` re-makes
+    them): ``split``'s touched-train rows, the tactile tail fine-tuned on them (seed split seed)
+    and, with ``visual``, the visual tail on the camera crops at the same presses (seed
+    ``visual_tail_seed``); each tail starts from ``trunk``'s weights (``finetune_tail`` copies it).
+    A tail not fine-tuned gives the cache's frozen features."""
+    t0 = time.time()
+    rows, y = touched_training_rows(cache.fabric, cache.fabric_ids, split)
+    x_t, x_v, tuned = cache.x_t0, cache.x_v, None
+    if tactile:
+        tuned = finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs, max_rows=max_rows,
+                              seed=split.seed, progress=progress)
+        x_t = features_from_stem(tuned, cache.stem_t)
+    t_t, t_v = time.time() - t0, 0.0
+    if visual:
+        # the camera crops at the same touched-train presses, softmax over the same touched
+        # classes; untouched and validation crops only pass through the tuned tail afterwards
+        t1 = time.time()
+        tuned_v = finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=epochs, max_rows=max_rows,
+                                seed=visual_tail_seed(split.seed), progress=progress, what="visual")
+        x_v = features_from_stem(tuned_v, cache.stem_v)
+        t_v = time.time() - t1
+    return SplitFeatures(x_t, x_v, len(rows), tuned, t_t, t_v)
+
+
 @torch.no_grad()
 def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.ndarray:
     trunk.eval()
@@ -193,4 +236,4 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
 
 
 __all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "touched_training_rows", "finetune_tail",
-           "features_from_stem"]
+           "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]

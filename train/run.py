@@ -70,12 +70,6 @@ PROFILES = {
 }
 
 
-def visual_tail_seed(split_seed: int) -> int:
-    """The visual tail's fine-tuning seed (the tactile tail's is the split seed): one place, so
-    `compare --run` re-tunes exactly what training tuned."""
-    return split_seed + 1
-
-
 def n_holdout(n_fabrics: int) -> int:
     """Validation = untouched count: the paper's 5 of 50; 15 % (>= 2) for smaller worlds (3 of 20)."""
     return 5 if n_fabrics >= 50 else max(2, round(0.15 * n_fabrics))
@@ -128,35 +122,23 @@ def synth_quality(method, views: cmp.SplitViews, budget, seed: int) -> dict:
 
 def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile, budget) -> dict:
     t0 = time.time()
-    rows, y = ft.touched_training_rows(cache.fabric, cache.fabric_ids, split)
-    tuned = ft.finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=prof.ft_epochs,
-                             max_rows=prof.ft_max_rows, seed=split.seed)
-    x_t = ft.features_from_stem(tuned, cache.stem_t)
-    t_ft = time.time() - t0
-    x_v, t_ftv = cache.x_v, 0.0
-    if prof.visual_tail == "finetuned":
-        # the camera crops at the same touched-train presses, softmax over the same touched
-        # classes; untouched and validation crops only pass through the tuned tail afterwards
-        t1 = time.time()
-        tuned_v = ft.finetune_tail(trunk, cache.stem_v[rows], y, len(split.touched), epochs=prof.ft_epochs,
-                                   max_rows=prof.ft_max_rows, seed=visual_tail_seed(split.seed), what="visual")
-        x_v = ft.features_from_stem(tuned_v, cache.stem_v)
-        t_ftv = time.time() - t1
-    elif prof.visual_tail != "frozen":
+    if prof.visual_tail not in VISUAL_TAILS:
         raise ValueError(f"visual_tail {prof.visual_tail!r}: choose one of {', '.join(VISUAL_TAILS)}")
-    table = cmp.FeatureTable(x_t, x_v, cache.fabric, cache.fabric_ids, cache.attributes)
+    feats = ft.finetune_split(cache, trunk, split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
+                              visual=prof.visual_tail == "finetuned")
+    table = cmp.FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     classes = vs2t.all_variants()
     result = cmp.run_split(table, split, classes, budget, routers=tuple(prof.routers), log=_log)
-    result["finetune_s"] = round(t_ft, 1)
+    result["finetune_s"] = round(feats.seconds_t, 1)
     result["visual_tail"] = prof.visual_tail
-    result["finetune_visual_s"] = round(t_ftv, 1)
+    result["finetune_visual_s"] = round(feats.seconds_v, 1)
     views = cmp.split_views(table, split)
     fitted = {name: cls.instances[-1] for name, cls in classes.items()}
     for name, m in fitted.items():
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
     result["seconds"] = round(time.time() - t0, 1)
-    return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": tuned}
+    return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk}
 
 
 def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray) -> nv.Router:
