@@ -887,8 +887,6 @@ def run_budget(profile: dict, budget: dict | None = None, **overrides) -> Budget
     return vs2t.VS2TBudget(**kw)
 
 
-
-
 def run_visual_tail(run: RunSource) -> str:
     """The visual tail the run's features went through: config.yaml ``profile.visual_tail``;
     runs written before that field existed were frozen."""
