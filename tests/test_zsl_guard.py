@@ -68,17 +68,17 @@ def test_a_split_calling_an_untouched_fabric_touched_is_refused_before_fine_tuni
 
     stem, x_v, fabric, ids, attrs = _world()
     split = cmp.make_splits(ids, 1, 2, 2, seed=3)[0]
+
+    def spy(*a, **kw):
+        raise AssertionError("fine-tuning ran on a leaky split")
+
+    monkeypatch.setattr(ft, "finetune_tail", spy)
+    cache = ft.StemCache(stem.astype(np.float16), x_v, x_v, fabric, ids, attrs, {})
     for other in (split.untouched[0], split.validation[0]):
         leaky = cmp.FabricSplit(touched=split.touched + [other], validation=split.validation,
                                 untouched=split.untouched, seed=split.seed)
         with pytest.raises(ft.ZeroShotViolation, match=other):
             ft.touched_training_rows(fabric, ids, leaky)
-
-        def spy(*a, **kw):
-            raise AssertionError("fine-tuning ran on a leaky split")
-
-        monkeypatch.setattr(ft, "finetune_tail", spy)
-        cache = ft.StemCache(stem.astype(np.float16), x_v, x_v, fabric, ids, attrs, {})
         with pytest.raises(ft.ZeroShotViolation):
             run.run_split(cache, build_trunk("tiny"), leaky, run.PROFILES["tiny"], vs2t.VS2TBudget())
 
