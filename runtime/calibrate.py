@@ -3,7 +3,9 @@
 Inputs: presses of fabrics the model was trained on ("touched") and of validation fabrics it
 never saw, either from a dataset folder (fabrics named as bundle classes count as touched,
 the rest - or those given by ``--validation`` - as validation) or from replay files
-(``--touched-replay`` / ``--validation-replay``: every press in the file is of that group).
+(``--touched-replay`` / ``--validation-replay``: every press in the file is of that group), or
+live on the cell (``--config`` with ``--live-touched N --live-validation M``: two `vs2t-edge
+record` sessions on the config's devices, kept as replay files, then read as above).
 Each press is scored by the deployed bundle (same preprocessing, same model) to its novelty.
 
 beta is chosen as the paper does - maximise the mean of the two accuracies (touched kept as
@@ -303,6 +305,14 @@ def add_arguments(parser, verb: str) -> None:
                                                         "are validation fabrics")
     parser.add_argument("--touched-replay", nargs="*", default=[], help="replay files of touched fabrics")
     parser.add_argument("--validation-replay", nargs="*", default=[], help="replay files of validation fabrics")
+    parser.add_argument("--live-touched", type=int, default=0, metavar="N",
+                        help="with --config and --live-validation: press N pieces of touched fabrics live on the "
+                             "cell (recorded as `vs2t-edge record` does), then M validation pieces, and calibrate "
+                             "on those presses (stop the service first: the devices are single-user)")
+    parser.add_argument("--live-validation", type=int, default=0, metavar="M",
+                        help="pieces of validation fabrics to press live after the touched ones")
+    parser.add_argument("--live-dir", default=None,
+                        help="where the live sessions are kept (default: calibration/ beside the bundle)")
     parser.add_argument("--target-false-untouched", type=float, default=None,
                         help="max fraction of touched presses flagged untouched (default: the paper's rule)")
     parser.add_argument("--min-presses", type=int, default=20, help="refuse with fewer presses per group")
@@ -336,6 +346,34 @@ def _override_target(args) -> tuple[Path | None, Path | None, str]:
     return bundle, Path(cfg.beta_override_file) if cfg.beta_override_file else override_path_for(bundle), ""
 
 
+def _record_live(args, bundle: Path) -> int:
+    """Live presses: one `vs2t-edge record` session per group on the config's devices, kept as
+    replay files (the evidence behind the new beta) and then read like --touched-replay /
+    --validation-replay. Returns an exit code, 0 when both sessions were recorded."""
+    import argparse
+
+    from vs2t_edge.runtime import record_cli
+
+    if args.config is None or args.live_touched < 1 or args.live_validation < 1:
+        print("calibrate-threshold: live presses need --config (the cell's devices) and both "
+              "--live-touched N and --live-validation M (pieces, at least 1 each)", file=sys.stderr)
+        return 2
+    folder = Path(args.live_dir) if args.live_dir else bundle.parent / "calibration"
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    for group, pieces, into in (("touched", args.live_touched, args.touched_replay),
+                                ("validation", args.live_validation, args.validation_replay)):
+        out = folder / f"{group}-{stamp}.replay"
+        print(f"calibrate-threshold: feed {pieces} piece(s) of {group} fabrics; recording into {out}",
+              file=sys.stderr, flush=True)
+        code = record_cli.run(argparse.Namespace(config=args.config, out=str(out), max_items=pieces))
+        if code:
+            print(f"calibrate-threshold: the {group} session ended with exit {code}; nothing calibrated "
+                  f"(what was recorded is in {folder})", file=sys.stderr)
+            return code
+        into.append(str(out))
+    return 0
+
+
 def run(args) -> int:
     bundle, override, problem = _override_target(args)
     if problem and not (args.dry_run and bundle is not None):
@@ -344,9 +382,13 @@ def run(args) -> int:
     if problem:  # --dry-run: say it, write nothing anyway
         print(f"calibrate-threshold: note: {problem}", file=sys.stderr)
         override = override_path_for(bundle)
+    if args.live_touched or args.live_validation:
+        code = _record_live(args, bundle)
+        if code:
+            return code
     if not args.dataset and not (args.touched_replay and args.validation_replay):
-        print("calibrate-threshold: give --dataset, or both --touched-replay and --validation-replay",
-              file=sys.stderr)
+        print("calibrate-threshold: give --dataset, both --touched-replay and --validation-replay, or "
+              "--config with --live-touched N and --live-validation M", file=sys.stderr)
         return 2
     if args.target_false_untouched is not None and not 0.0 <= args.target_false_untouched <= 1.0:
         print("calibrate-threshold: --target-false-untouched must be between 0 and 1", file=sys.stderr)

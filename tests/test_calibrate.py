@@ -336,3 +336,55 @@ def test_without_config_the_message_says_when_the_file_is_used(tmp_path, monkeyp
     (tmp_path / "other").mkdir()
     assert _calibrate_with_config(tmp_path, monkeypatch, "", "--bundle", str(tmp_path / "other")) == 2
     assert "is not the bundle" in capsys.readouterr().err
+
+
+def test_live_presses_are_recorded_per_group_and_calibrated(tmp_path, monkeypatch, capsys):
+    """Issue 7: calibrate-threshold takes presses live, not only from a dataset or replay files.
+    Two real `record` sessions run on the config's devices (fake arm and gate; a replay camera of
+    the committed sessions' frames stands in for the sensor, touched pieces first, then
+    validation pieces), and the beta is chosen on the presses they recorded."""
+    import shutil
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime import daemon
+    from vs2t_edge.runtime.camera import ReplayCamera
+    from vs2t_edge.runtime.replay import ReplayFile
+
+    shutil.copytree(REPLAYS / "bundle", tmp_path / "bundle")
+    groups = {"touched": ["touched"], "validation": ["untouched", "unknown"]}
+    for group, sessions in groups.items():
+        folder = tmp_path / f"frames_{group}"
+        folder.mkdir()
+        frames = [f for s in sessions for f in sorted((REPLAYS / f"{s}.replay" / "frames").iterdir())]
+        for i, f in enumerate(frames):
+            shutil.copy(f, folder / f"{i:06d}.png")
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\njournal: journal.jsonl\nthreads: 1\n"
+        "devices: {camera: {kind: replay, path: frames_touched}, arm: {kind: fake}, gate: {kind: fake}}\n"
+        "evidence: {confidence: 0.95, max_presses: 3}\n"
+        "scene: {reject_bin: 0, fabrics: [{name: f00, kind: touched, bin: 1}, {name: f04, kind: touched, bin: 2},"
+        " {name: f08, kind: touched, bin: 3}, {name: f01, kind: untouched, bin: 4}]}\n")
+    cameras = iter(["frames_touched", "frames_validation"])  # the operator feeds the next group
+    build = daemon.build_live_devices
+
+    def devices(cfg):
+        _camera, arm, gate = build(cfg)
+        return ReplayCamera(tmp_path / next(cameras)), arm, gate
+
+    monkeypatch.setattr(daemon, "build_live_devices", devices)
+    monkeypatch.chdir(tmp_path)
+    code = main(["calibrate-threshold", "--config", "cell.yaml", "--live-touched", "2", "--live-validation", "2",
+                 "--min-presses", "2", "--threads", "1"])
+    got = capsys.readouterr()
+    assert code == 0, got.err[-2000:]
+    live = sorted((tmp_path / "calibration").glob("*.replay"))
+    assert [p.name.split("-")[0] for p in live] == ["touched", "validation"]
+    for p in live:
+        finals = [d for d in ReplayFile.open(p).index["decisions"] if d["type"] == "final"]
+        assert len(finals) == 2, (p, finals)
+    data = json.loads(override_path_for(tmp_path / "bundle").read_text())
+    assert data["source"].startswith("touched: ") and live[0].name in data["source"] and live[1].name in data["source"]
+    assert data["n_touched"] >= 2 and data["n_validation"] >= 2 and f"beta {data['beta']:.6g}" in got.out
+    # without both groups or without --config: a usage error naming what is missing, nothing recorded
+    assert main(["calibrate-threshold", "--bundle", "bundle", "--live-touched", "2"]) == 2
+    assert "--live-validation" in capsys.readouterr().err
