@@ -243,4 +243,3 @@ def test_synth_defaults_to_the_fabricvst_sized_world():
     synth_cli.add_arguments(parser, "synth")
     prof = PROFILES[parser.parse_args(["out"]).profile]
     assert (prof.frame_px, prof.camera_px, prof.n_fabrics) == ((640, 480), 1000, 50)
-
