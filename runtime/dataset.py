@@ -154,6 +154,21 @@ def crop_at(image: np.ndarray, x_mm: float, y_mm: float, geometry: SensorGeometr
     return padded[y0 + pad:y0 + pad + h, x0 + pad:x0 + pad + w].copy()
 
 
+PRESS_FRACTIONS = (0.7, 0.1, 0.2)  # training, validation, test presses of a touched fabric
+
+
+def press_partition(n: int) -> tuple[range, range, range]:
+    """Which of a touched fabric's ``n`` presses (in press order) fit, validate and test: earlier
+    presses fit, later ones test - the cell is trained on what it touched before and meets the
+    piece again afterwards, so a random permutation (neighbouring presses on both sides) flatters.
+    At least one validation and one test press."""
+    if n < 3:
+        raise ValueError(f"{n} presses: need at least 3 to fit, validate and test")
+    n_va, n_te = max(1, round(PRESS_FRACTIONS[1] * n)), max(1, round(PRESS_FRACTIONS[2] * n))
+    n_tr = n - n_va - n_te
+    return range(0, n_tr), range(n_tr, n_tr + n_va), range(n_tr + n_va, n)
+
+
 def press_grid_mm(n_x: int = 15, n_y: int = 15, step_x_mm: float = 4.9, step_y_mm: float = 4.6,
                   piece_mm: float = PIECE_MM) -> list[tuple[float, float]]:
     """Press centres of an n_x x n_y grid centred on the piece, row by row."""

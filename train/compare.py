@@ -4,7 +4,8 @@ Input is a feature table (one row per press: tactile feature, visual feature of 
 at the press, fabric index; one attribute row per fabric) and a list of fabric splits
 (touched / validation / untouched). Per split:
 
-- touched presses of each touched fabric are divided train 70 % / val 10 % / test 20 % (seeded);
+- touched presses of each touched fabric are divided by press order (runtime.dataset.press_partition):
+  the first 70 % train, the next 10 % validation, the last 20 % test - earlier presses fit, later test;
 - CLS_t (the paper's CLS 512-512-n) is trained on touched train presses, shared by all methods;
 - every method is fitted on touched train presses and gives CLS_u for the untouched fabrics, and
   (``retarget``) a CLS_u for the validation fabrics;
@@ -135,18 +136,19 @@ class SplitViews:
 
 
 def split_views(table: FeatureTable, split: FabricSplit) -> SplitViews:
+    from vs2t_edge.runtime.dataset import press_partition
+
     index = {f: i for i, f in enumerate(table.fabric_ids)}
-    rng = np.random.default_rng(split.seed + 17)
     tr_rows, va_rows, te_rows = [], [], []
     for k, fid in enumerate(split.touched):
-        rows = rng.permutation(np.flatnonzero(table.fabric == index[fid]))
+        rows = np.flatnonzero(table.fabric == index[fid])  # press order: earlier presses fit, later test
         n = len(rows)
         if n < 5:
             raise ValueError(f"fabric {fid}: {n} presses, need at least 5 to split train/val/test")
-        n_va, n_te = max(1, round(0.1 * n)), max(1, round(0.2 * n))
-        va_rows.append((rows[:n_va], k))
-        te_rows.append((rows[n_va:n_va + n_te], k))
-        tr_rows.append((rows[n_va + n_te:], k))
+        p_tr, p_va, p_te = press_partition(n)
+        va_rows.append((rows[p_va], k))
+        te_rows.append((rows[p_te], k))
+        tr_rows.append((rows[p_tr], k))
 
     def gather(parts):
         rows = np.concatenate([r for r, _ in parts])

@@ -128,7 +128,8 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
 
 def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> tuple[np.ndarray, np.ndarray]:
     """(rows, class index) of the touched TRAINING presses of ``split`` — the same partition
-    (seed split.seed + 17; 10 % val, 20 % test, rest train per fabric) as ``compare.split_views``."""
+    (``runtime.dataset.press_partition``: the first 70 % of each fabric's presses in press order;
+    the next 10 % validate, the last 20 % test) as ``compare.split_views``."""
     # the rows below follow split.touched, so a split that also calls an untouched or validation
     # fabric touched would hand its tactile data to fine-tuning: refuse it here, where every
     # training path (run.run_split, compare.finetuned_tables) takes its rows
@@ -136,14 +137,15 @@ def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> t
     if leak:
         raise ZeroShotViolation(f"split (seed {split.seed}) lists {leak} as touched and as untouched/validation: "
                                 f"their tactile data would reach fine-tuning")
+    from vs2t_edge.runtime.dataset import press_partition
+
     index = {f: i for i, f in enumerate(fabric_ids)}
-    rng = np.random.default_rng(split.seed + 17)
     rows, ys = [], []
     for k, fid in enumerate(split.touched):
-        r = rng.permutation(np.flatnonzero(fabric == index[fid]))
-        n_va, n_te = max(1, round(0.1 * len(r))), max(1, round(0.2 * len(r)))
-        rows.append(r[n_va + n_te:])
-        ys.append(np.full(len(r) - n_va - n_te, k))
+        r = np.flatnonzero(fabric == index[fid])  # in press order (extract_cache keeps it)
+        train = r[press_partition(len(r))[0]]
+        rows.append(train)
+        ys.append(np.full(len(train), k))
     return np.concatenate(rows), np.concatenate(ys)
 
 
