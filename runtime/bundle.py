@@ -180,6 +180,7 @@ class Bundle:
     probe_expected: dict[str, np.ndarray]
     probe_tolerance: dict[str, float]
     opsets: dict[str, dict[str, int]] = field(default_factory=dict)
+    scene_model: Any = None  # runtime.scene_model.SceneModel, or None for a bundle without one (router path)
 
     def path(self, key: str) -> Path:
         return self.root / self.manifest["graphs"][key]["file"]
@@ -334,6 +335,8 @@ def _used_files(manifest: dict) -> dict[str, Any]:
     used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in GRAPH_KEYS}
     used.update({"router.file": _get(manifest, "router", "file"), "probe.input": _get(manifest, "probe", "input"),
                  "probe.expected": _get(manifest, "probe", "expected")})
+    if "decision" in manifest:
+        used["decision.file"] = _get(manifest, "decision", "file")
     return used
 
 
@@ -441,6 +444,8 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     if rdim is not None and rdim != dim:
         raise BundleError(root, f"{router_file.name}: router fitted on {rdim}-d features, feature_dim is {dim}")
 
+    scene_model = _load_scene_model(root, manifest, touched + untouched, dim)
+
     probe_in = _inside(root, _need(manifest, root, "probe", "input"), "probe.input")
     probe_exp = _inside(root, _need(manifest, root, "probe", "expected"), "probe.expected")
     try:
@@ -464,7 +469,33 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
                  for k in ("feature", "logits", "novelty")}
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
-                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets)
+                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model)
+
+
+def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int):
+    """The optional scene decision model (runtime/scene_model.py); None when the manifest has none."""
+    if "decision" not in manifest:
+        return None
+    from vs2t_edge.runtime.scene_model import KIND, SceneModel, SceneModelError
+
+    kind = _need(manifest, root, "decision", "kind")
+    if kind != KIND:
+        raise BundleError(root, f"manifest.json 'decision.kind' = {_short(kind)}: this runtime knows {KIND!r}")
+    path = _inside(root, _need(manifest, root, "decision", "file"), "decision.file")
+    try:
+        with _npz(path, root, "decision.file") as z:
+            model = SceneModel.from_params({k: z[k] for k in z.files})
+    except (*_DATA_ERRORS, SceneModelError) as exc:
+        raise BundleError(root, f"{path.name} ('decision.file'): {exc}") from None
+    if model.classes != classes:
+        raise BundleError(root, f"{path.name}: scene model classes {list(model.classes)[:6]}... are not the "
+                                f"manifest's classes in order")
+    if set(model.untouched) != set(classes[len(classes) - len(model.untouched):]) or \
+            len(model.untouched) != len(_get(manifest, "classes", "untouched") or []):
+        raise BundleError(root, f"{path.name}: scene model's untouched classes are not the manifest's")
+    if model.dim != dim:
+        raise BundleError(root, f"{path.name}: scene model fitted on {model.dim}-d features, feature_dim is {dim}")
+    return model
 
 
 # What reading a listed data file may raise when the manifest points a key at the wrong kind of

@@ -81,10 +81,19 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
                          "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
 
 
-def default_evidence_factory(cfg: CellConfig) -> Callable[[], Any]:
+def default_evidence_factory(cfg: CellConfig, model: Any = None) -> Callable[[], Any]:
+    """The item evidence for the config's scene. With a bundle that carries a scene model (``model``
+    given), its operating point - evidence weight, off-scene checks, the confidence per kind fitted
+    for the mis-sort target - is used; ``evidence.confidence`` written in the config overrides the
+    bundle's touched confidence."""
     from vs2t_edge.runtime.evidence import Evidence
 
-    return lambda: Evidence(cfg.scene_classes, cfg.confidence, cfg.max_presses)
+    opts = model.evidence_options() if model is not None and hasattr(model, "evidence_options") else {}
+    confidence = cfg.confidence
+    scene_model = getattr(model, "scene_model", None)
+    if scene_model is not None and "confidence" not in ((cfg.raw or {}).get("evidence") or {}):
+        confidence = scene_model.confidence
+    return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
 
 
 def contact_check_for(cfg: CellConfig):
@@ -223,7 +232,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         pass
     scene = SceneSpec.from_config(cfg)
     cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
-                evidence_factory=evidence_factory or default_evidence_factory(cfg),
+                evidence_factory=evidence_factory or default_evidence_factory(cfg, model),
                 items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log,
                 contact_check=contact_check_for(cfg))
     try:

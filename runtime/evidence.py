@@ -2,10 +2,22 @@
 
 Each press gives a normalised log posterior over the bundle's classes (runtime/inference.py).
 Only the scene's classes count: the per-press posterior is restricted to them and renormalised,
-then log posteriors are summed (independent presses, uniform prior) and renormalised with a
-stable logsumexp, so 225 presses never underflow. Stop when the leading class reaches
-``confidence`` (after ``min_presses``) or at ``max_presses``; at the limit an unconfident item
-is "unknown" (the reject bin).
+then log posteriors are summed, each multiplied by ``weight`` (1: independent presses; below 1:
+presses of one piece are not independent - they share the piece, and a model's error on a fabric
+repeats on every press - so summing them at full weight makes the posterior overconfident; the
+bundle's scene model carries a weight fitted on validation fabrics, runtime/scene_model.py), and
+renormalised with a stable logsumexp, so 225 presses never underflow. Stop when the leading class
+reaches ``confidence`` (after ``min_presses``) or at ``max_presses``; at the limit an unconfident
+item is "unknown" (the reject bin).
+
+Off-scene checks (off unless set; the scene model sets both):
+- ``open_threshold``: the mean over presses of the smallest squared distance to a scene class
+  (``PressScore.sq_distance``) above it means the piece is like none of the scene's fabrics;
+- ``known_margin``: a bundle class outside the scene whose summed (weighted) log posterior beats
+  the leading scene class's by more than it means the piece is a fabric the cell knows that this
+  job does not list.
+Either makes the item "unknown" (``stopped_by`` "off_scene"), confident or not.
+``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
 """
 from __future__ import annotations
 
@@ -23,7 +35,7 @@ class ItemDecision:
     confidence: float
     presses: int
     log_posterior: dict[str, float]
-    stopped_by: str  # "confident" | "press_limit"
+    stopped_by: str  # "confident" | "press_limit" | "off_scene"
 
 
 def _logsumexp(x: np.ndarray) -> float:
@@ -35,7 +47,9 @@ def _logsumexp(x: np.ndarray) -> float:
 
 class Evidence:
     def __init__(self, scene_classes, confidence: float = 0.95, max_presses: int = 9,
-                 min_presses: int = 1, unknown_floor: float | None = None):
+                 min_presses: int = 1, unknown_floor: float | None = None, *, weight: float = 1.0,
+                 open_threshold: float = math.inf, known_margin: float = math.inf,
+                 class_confidence: dict[str, float] | None = None):
         self.classes = list(dict.fromkeys(scene_classes))
         if not self.classes:
             raise ValueError("Evidence: the scene has no classes")
@@ -43,9 +57,23 @@ class Evidence:
             raise ValueError(f"Evidence: confidence = {confidence} must be in (0, 1]")
         if max_presses < 1 or min_presses < 1 or min_presses > max_presses:
             raise ValueError(f"Evidence: need 1 <= min_presses ({min_presses}) <= max_presses ({max_presses})")
+        if not 0.0 < weight <= 1.0:
+            raise ValueError(f"Evidence: weight = {weight} must be in (0, 1]")
+        if math.isnan(open_threshold) or math.isnan(known_margin):
+            raise ValueError("Evidence: open_threshold and known_margin must not be NaN")
         self.confidence, self.max_presses, self.min_presses = confidence, max_presses, min_presses
+        self.weight, self.open_threshold, self.known_margin = weight, open_threshold, known_margin
+        # the posterior that sorts into a class when it differs from ``confidence`` (the scene model
+        # asks more of an untouched class, whose mean the generator synthesised, than of a touched one)
+        self._needed = np.array([float((class_confidence or {}).get(c, confidence)) for c in self.classes])
+        if not np.all((self._needed > 0) & (self._needed <= 1)):
+            raise ValueError(f"Evidence: class_confidence {class_confidence} must be in (0, 1]")
+        self._outside: dict[str, float] = {}  # weighted sums of log posteriors of bundle classes outside the scene
+        self._inside = np.zeros(len(self.classes), dtype=np.float64)  # the same, unrenormalised, for scene classes
+        self._open_sum, self._open_n = 0.0, 0
         # below this leading posterior the item is "unknown" even at the limit (default: confidence)
         self.unknown_floor = confidence if unknown_floor is None else unknown_floor
+        self._floor_given = unknown_floor is not None
         self._acc = np.zeros(len(self.classes), dtype=np.float64)
         self.presses = 0
 
@@ -62,26 +90,46 @@ class Evidence:
             raise ValueError("Evidence: press score has NaN log posterior")
         if not np.any(np.isfinite(v)):  # no scene class possible from this press: uninformative
             v = np.zeros_like(v)
+        if math.isfinite(self.known_margin):
+            self._inside += self.weight * np.maximum(v, -1e300)
+            for c, val in lp.items():
+                if c not in self.classes:
+                    self._outside[c] = self._outside.get(c, 0.0) + self.weight * max(float(val), -1e300)
+        d2 = getattr(score, "sq_distance", None)
+        if math.isfinite(self.open_threshold) and d2:
+            self._open_sum += min(float(d2[c]) for c in self.classes)
+            self._open_n += 1
         v = v - _logsumexp(v)
-        self._acc = self._acc + np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
+        self._acc = self._acc + self.weight * np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
         self.presses += 1
-        post = self._posterior()
-        i = int(np.argmax(post))
-        if self.presses >= self.min_presses and math.exp(post[i]) >= self.confidence:
-            return self._make(post, "confident")
-        if self.presses >= self.max_presses:
-            return self._make(post, "press_limit")
-        return None
+        return self._check(final=False)
 
     def decide(self) -> ItemDecision:
+        return self._check(final=True)
+
+    def off_scene(self) -> bool:
+        """Whether the presses so far say the piece is none of the scene's fabrics (module doc)."""
+        if self._open_n and self._open_sum / self._open_n > self.open_threshold:
+            return True
+        if self._outside:
+            best_in = float(np.max(self._inside))
+            return max(self._outside.values()) > best_in + self.known_margin
+        return False
+
+    def _check(self, final: bool) -> ItemDecision | None:
         post = self._posterior()
         i = int(np.argmax(post))
-        if self.presses >= self.min_presses and math.exp(post[i]) >= self.confidence:
+        confident = self.presses >= self.min_presses and math.exp(float(post[i])) >= self._needed[i]
+        if confident and not self.off_scene():
             return self._make(post, "confident")
-        return self._make(post, "press_limit")
+        if final or self.presses >= self.max_presses:
+            return self._make(post, "off_scene" if self.off_scene() else "press_limit")
+        return None
 
     def _make(self, post: np.ndarray, stopped_by: str) -> ItemDecision:
         i = int(np.argmax(post))
         conf = math.exp(float(post[i]))
-        label = self.classes[i] if (stopped_by == "confident" or conf >= self.unknown_floor) else UNKNOWN
+        floor = self.unknown_floor if self._floor_given else float(self._needed[i])
+        sure = stopped_by == "confident" or (stopped_by == "press_limit" and conf >= floor)
+        label = self.classes[i] if sure else UNKNOWN
         return ItemDecision(label, conf, self.presses, {c: float(p) for c, p in zip(self.classes, post)}, stopped_by)

@@ -41,6 +41,9 @@ class PressScore:
     novelty: float  # router score, higher = more likely untouched
     untouched: bool  # novelty > beta
     latency_ms: float
+    # squared distance to every bundle class in the scene model's space (runtime/scene_model.py);
+    # None when the bundle has no scene model (its log posterior is then the router's, below)
+    sq_distance: dict[str, float] | None = None
 
 
 def log_sigmoid(z: np.ndarray) -> np.ndarray:
@@ -115,6 +118,7 @@ class TactileModel:
         self.temperature: float = bundle.gating_temperature
         self.gate_scale: float | None = bundle.gating_scale
         self.router = _float32_router(bundle.router)
+        self.scene_model = bundle.scene_model
         self.preprocess_spec = bundle.preprocess
         self.threads = threads
         self._trunk, self._heads = trunk_session, heads_session
@@ -206,15 +210,28 @@ class TactileModel:
         t2 = time.perf_counter()
         if not (np.all(np.isfinite(out.logits_t)) and np.all(np.isfinite(out.logits_u))):
             raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
-        lp = self.log_posterior(out)[0]
         novelty = float(out.novelty[0])
-        score = PressScore(log_posterior=dict(zip(self.classes, (float(v) for v in lp))), novelty=novelty,
-                           untouched=bool(novelty > self.beta), latency_ms=0.0)
+        sq = None
+        if self.scene_model is not None:
+            lp_all, d2 = self.scene_model.log_posterior(out.feature, dtype=np.float32)
+            lp, sq = lp_all[0], dict(zip(self.classes, (float(v) for v in d2[0])))
+        else:
+            lp = self.log_posterior(out)[0]
+        log_posterior = dict(zip(self.classes, (float(v) for v in lp)))
         t3 = time.perf_counter()
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
         self.last_timing = timing
-        return PressScore(score.log_posterior, score.novelty, score.untouched, timing["total_ms"])
+        return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq)
+
+    def evidence_options(self) -> dict:
+        """What the bundle's operating point says about accumulating evidence (``runtime.evidence.Evidence``
+        keyword arguments); empty for a bundle without a scene model."""
+        m = self.scene_model
+        if m is None:
+            return {}
+        return {"weight": m.evidence_weight, "open_threshold": m.open_threshold, "known_margin": m.known_margin,
+                "class_confidence": {c: m.untouched_confidence for c in m.untouched}}
 
 
 __all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",

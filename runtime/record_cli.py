@@ -68,7 +68,7 @@ def _record(args, stop_event: threading.Event) -> int:
     from vs2t_edge.runtime.replay import ReplayFile
 
     out = record_session(cfg, Path(args.out), model=model, camera=camera, arm=arm, gate=gate,
-                         items=ContinuousFeed(limit=args.max_items), evidence_factory=default_evidence_factory(cfg),
+                         items=ContinuousFeed(limit=args.max_items), evidence_factory=default_evidence_factory(cfg, model),
                          log=lambda m: print(m, file=sys.stderr), stop_event=stop_event)
     index = ReplayFile.open(out).index
     finals = [d for d in index["decisions"] if d["type"] == "final"]

@@ -75,7 +75,7 @@ def record(a, cfg) -> int:
     daemon.load_model = lambda _cfg: SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes,
                                                delay_s=a.score_delay_s)
     daemon.build_live_devices = lambda _cfg: (ScriptedCamera(arm, [50, 60] * 100000), arm, FakeGate())
-    daemon.default_evidence_factory = lambda _cfg: (lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
+    daemon.default_evidence_factory = lambda _cfg, _model=None: (lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
     return cli.main(["record", "--config", a.config, "--out", a.record, "--max-items", "100000"])
 
 

@@ -1,0 +1,202 @@
+"""The scene decision: one classifier over exactly the classes a scene lists, and a way to say "none of them".
+
+Every bundle class is a Gaussian with one shared covariance in a low-dimensional subspace of the
+tactile feature (linear discriminant analysis, as in the generative GZSL protocol of f-CLSWGAN /
+f-VAEGAN: real features of the touched fabrics, features synthesised by the generator for the
+untouched ones, one softmax). The subspace is the top ``k`` principal axes of the touched training
+presses; the shared covariance is their within-class scatter there (shrunk towards its mean
+variance), folded into the projection so that distances in the model's space are Mahalanobis
+distances. Touched class means are real presses' means; untouched class means are the means of the
+generator's samples - the generator never saw an untouched fabric's tactile data.
+
+Per press the model gives, for every bundle class c, the squared distance d2_c and the score
+
+    s_c = -d2_c / (2 T) + b [c untouched]
+
+``T`` (temperature) and ``b`` (the untouched bias of calibrated stacking, Chao et al. 2016:
+synthesised means sit off the real ones, so untouched classes need a head start) are fitted on
+validation fabrics only (train/decision.py). A scene's classifier is the softmax of s over the
+scene's classes: restricting the model to a scene is picking rows, no retraining, no torch.
+
+Off-scene pieces are told by two numbers that ``runtime.evidence.Evidence`` accumulates over an
+item: the mean over presses of ``min_{c in scene} d2_c`` (far from every scene class: something
+never seen; refused above ``open_threshold``), and whether a bundle class outside the scene
+explains the presses better than the best scene class by ``known_margin`` (a fabric the cell knows
+that does not belong to this job). Both thresholds are fitted on validation fabrics too.
+
+Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
+scored on the cell.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+PARAMS_VERSION = 1
+KIND = "scene_gaussian"
+
+
+class SceneModelError(ValueError):
+    """The scene model's parameters are unusable, or it was asked about a class it does not have."""
+
+
+@dataclass(frozen=True)
+class SceneModel:
+    classes: tuple[str, ...]  # bundle classes, touched first, in the manifest's order
+    untouched: frozenset[str]
+    center: np.ndarray = field(repr=False)  # (D,) float64
+    basis: np.ndarray = field(repr=False)  # (D, k) float64: projection and whitening in one
+    means: np.ndarray = field(repr=False)  # (C, k) float64, class means in the whitened subspace
+    temperature: float = 1.0
+    untouched_bias: float = 0.0
+    evidence_weight: float = 1.0  # per-press log posteriors are multiplied by it before summing
+    open_threshold: float = math.inf  # mean over an item's presses of min scene d2; above: off-scene
+    known_margin: float = math.inf  # log evidence a non-scene class needs over the scene's best to refuse
+    confidence: float = 0.95  # leading scene posterior that sorts an item into a touched class
+    untouched_confidence: float = 0.95  # ... into an untouched class (both chosen for the mis-sort target)
+    info: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def dim(self) -> int:
+        return int(self.center.shape[0])
+
+    @property
+    def k(self) -> int:
+        return int(self.basis.shape[1])
+
+    def _cast(self, dtype) -> tuple[np.ndarray, np.ndarray]:
+        cache = self.__dict__.setdefault("_cast_cache", {})
+        dtype = np.dtype(dtype)
+        if dtype not in cache:
+            cache[dtype] = (self.center.astype(dtype), np.ascontiguousarray(self.basis, dtype=dtype))
+        return cache[dtype]
+
+    def project(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
+        x = np.asarray(features)
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise SceneModelError(f"scene model: features of shape {x.shape}, expected (N, {self.dim})")
+        if not np.all(np.isfinite(x)):
+            raise SceneModelError("scene model: features contain NaN or Inf")
+        center, basis = self._cast(dtype)
+        return ((x.astype(dtype, copy=False) - center) @ basis).astype(np.float64)
+
+    def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
+        z = self.project(features, dtype)
+        return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ self.means.T
+                + np.sum(self.means * self.means, axis=1)[None, :]).clip(min=0.0)
+
+    def scores(self, sq_distances: np.ndarray) -> np.ndarray:
+        """(N, C) class scores s_c (module doc) from squared distances."""
+        is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
+        return -0.5 * np.asarray(sq_distances, np.float64) / self.temperature + self.untouched_bias * is_u
+
+    def log_posterior(self, features: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+        """(log softmax of the scores over all bundle classes, squared distances), both (N, C)."""
+        d2 = self.sq_distances(features, dtype)
+        s = self.scores(d2)
+        m = s.max(axis=1, keepdims=True)
+        return s - (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True))), d2
+
+    def subset(self, classes) -> "SceneModel":
+        """The same model over ``classes`` only (bundle classes, in the given order)."""
+        missing = [c for c in classes if c not in self.classes]
+        if missing:
+            raise SceneModelError(f"scene model has no class {missing}")
+        rows = [self.classes.index(c) for c in classes]
+        return SceneModel(tuple(classes), frozenset(c for c in classes if c in self.untouched), self.center,
+                          self.basis, self.means[rows], self.temperature, self.untouched_bias,
+                          self.evidence_weight, self.open_threshold, self.known_margin, self.confidence,
+                          self.untouched_confidence, dict(self.info))
+
+    # ------------------------------------------------------------------ fitting (numpy)
+
+    @classmethod
+    def fit(cls, touched_x: np.ndarray, touched_y: np.ndarray, touched: list[str],
+            untouched_x: np.ndarray, untouched_y: np.ndarray, untouched: list[str], *, k: int = 64,
+            shrinkage: float = 0.1) -> "SceneModel":
+        """Subspace, shared covariance and touched means from real touched training presses
+        (``touched_y`` indexes ``touched``); untouched means from synthesised features."""
+        x = np.asarray(touched_x, np.float64)
+        y = np.asarray(touched_y)
+        if x.ndim != 2 or len(x) != len(y) or len(x) < 2:
+            raise SceneModelError(f"scene model: need (N, D) touched features with N labels, got {x.shape}")
+        center = x.mean(axis=0)
+        _, _, vt = np.linalg.svd(x - center, full_matrices=False)
+        k = int(min(k, vt.shape[0]))
+        proj = vt[:k].T
+        z = (x - center) @ proj
+        means_t = np.stack([z[y == c].mean(axis=0) for c in range(len(touched))])
+        w = z - means_t[y]
+        cov = w.T @ w / max(len(w) - len(touched), 1)
+        cov = (1.0 - shrinkage) * cov + shrinkage * (np.trace(cov) / k) * np.eye(k)
+        evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
+        evals = np.maximum(evals, 1e-12 * max(float(evals.max()), 1e-30))
+        white = evecs / np.sqrt(evals)[None, :]
+        basis = proj @ white
+        zu = (np.asarray(untouched_x, np.float64) - center) @ basis
+        uy = np.asarray(untouched_y)
+        means_u = np.stack([zu[uy == c].mean(axis=0) for c in range(len(untouched))]) if untouched else \
+            np.zeros((0, k))
+        return cls(tuple(touched) + tuple(untouched), frozenset(untouched), center, basis,
+                   np.concatenate([means_t @ white, means_u]), info={"k": k, "shrinkage": float(shrinkage)})
+
+    # ------------------------------------------------------------------ (de)serialisation
+
+    def to_params(self) -> dict[str, Any]:
+        return {"kind": KIND, "params_version": PARAMS_VERSION, "classes": np.array(self.classes),
+                "untouched": np.array([c in self.untouched for c in self.classes]),
+                "center": np.array(self.center), "basis": np.array(self.basis), "means": np.array(self.means),
+                "temperature": float(self.temperature), "untouched_bias": float(self.untouched_bias),
+                "evidence_weight": float(self.evidence_weight), "open_threshold": float(self.open_threshold),
+                "known_margin": float(self.known_margin), "confidence": float(self.confidence),
+                "untouched_confidence": float(self.untouched_confidence)}
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
+        def scalar(key: str) -> float:
+            if key not in params:
+                raise SceneModelError(f"scene model parameters lack '{key}'")
+            try:
+                return float(np.asarray(params[key]).reshape(()))
+            except (TypeError, ValueError):
+                raise SceneModelError(f"scene model '{key}' is not a number") from None
+
+        if str(np.asarray(params.get("kind", "")).reshape(())) != KIND:
+            raise SceneModelError(f"scene model parameters are not '{KIND}'")
+        if int(scalar("params_version")) != PARAMS_VERSION:
+            raise SceneModelError(f"scene model parameters version {params['params_version']}, "
+                                  f"this runtime reads {PARAMS_VERSION}")
+        for key in ("classes", "untouched", "center", "basis", "means"):
+            if key not in params:
+                raise SceneModelError(f"scene model parameters lack '{key}'")
+        classes = tuple(str(c) for c in np.asarray(params["classes"]).reshape(-1))
+        flags = np.asarray(params["untouched"]).reshape(-1).astype(bool)
+        center = np.asarray(params["center"], np.float64).reshape(-1)
+        basis = np.asarray(params["basis"], np.float64)
+        means = np.asarray(params["means"], np.float64)
+        d = center.shape[0]
+        if basis.ndim != 2 or basis.shape[0] != d or means.shape != (len(classes), basis.shape[1]) \
+                or flags.shape != (len(classes),):
+            raise SceneModelError(f"scene model shapes disagree: center {center.shape}, basis {basis.shape}, "
+                                  f"means {means.shape}, {len(classes)} classes")
+        if not (np.all(np.isfinite(center)) and np.all(np.isfinite(basis)) and np.all(np.isfinite(means))):
+            raise SceneModelError("scene model parameters contain NaN or Inf")
+        temperature, bias = scalar("temperature"), scalar("untouched_bias")
+        weight, conf, conf_u = scalar("evidence_weight"), scalar("confidence"), scalar("untouched_confidence")
+        open_thr, margin = scalar("open_threshold"), scalar("known_margin")
+        if not (temperature > 0 and math.isfinite(temperature) and math.isfinite(bias)
+                and 0 < weight <= 1 and 0 < conf <= 1 and 0 < conf_u <= 1 and not math.isnan(open_thr)
+                and not math.isnan(margin)):
+            raise SceneModelError(f"scene model scalars out of range: temperature {temperature}, bias {bias}, "
+                                  f"evidence_weight {weight}, confidence {conf}/{conf_u}, open_threshold {open_thr}, "
+                                  f"known_margin {margin}")
+        return cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
+                   temperature, bias, weight, open_thr, margin, conf, conf_u)
+
+
+__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION"]

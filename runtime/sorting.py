@@ -1,0 +1,231 @@
+"""How a sorting line judges the cell: per item, by its bins.
+
+Each piece ends in one of three ways:
+
+- **right**: a scene fabric in its own bin, or an off-scene piece in the reject bin;
+- **mis-sort**: a piece in a bin that is not its own and not the reject bin - bad cloth in a good
+  batch, found late and expensive (an off-scene piece sorted as a scene fabric is one);
+- **reject**: a scene fabric in the reject bin - a person looks at it.
+
+Pieces are counted by kind: touched (a scene fabric the cell was trained on), untouched (a scene
+fabric it knows only zero-shot) and off-scene (any fabric the scene does not list). The same
+functions score the demo's stream, the bench's scenes and training's scene evaluation
+(``simulate_scenes``: items drawn from held-out presses, decided by the cell's own
+``runtime.evidence.Evidence``), so every report counts the same way.
+
+Also here: the risk-coverage curve (mis-sort rate against the fraction of items sorted, as the
+confidence needed to sort moves), the expected calibration error of a posterior, and the
+temperature that minimises a posterior's negative log likelihood. Numpy only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from vs2t_edge.runtime.evidence import UNKNOWN
+
+RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
+OUTCOMES = (RIGHT, MIS_SORT, REJECT)
+KINDS = ("touched", "untouched", "off-scene")
+
+
+def outcome(truth: str, label: str, scene: Iterable[str], sorted_: bool = True) -> str:
+    """right / mis-sort / reject of one piece. ``sorted_`` False: the cell sent it to the reject
+    bin whatever its label (a fault)."""
+    scene = set(scene)
+    to_reject = (not sorted_) or label == UNKNOWN or label not in scene
+    if truth not in scene:
+        return RIGHT if to_reject else MIS_SORT
+    if to_reject:
+        return REJECT
+    return RIGHT if label == truth else MIS_SORT
+
+
+@dataclass(frozen=True)
+class ItemRecord:
+    truth: str
+    kind: str  # touched | untouched | off-scene
+    label: str  # what the cell decided (UNKNOWN: reject bin)
+    confidence: float  # the leading scene class's posterior
+    presses: int
+    outcome: str
+    candidate: str = ""  # the leading scene class, sorted or not (for the risk-coverage curve)
+    off_scene: bool = False  # the off-scene checks refused it (never sorted at any confidence)
+
+
+def record(truth: str, kind: str, decision, scene: Sequence[str], sorted_: bool = True) -> ItemRecord:
+    """An ItemRecord from a ``runtime.evidence.ItemDecision`` (or anything with label, confidence,
+    presses, stopped_by and log_posterior)."""
+    lp = getattr(decision, "log_posterior", None) or {}
+    candidate = max(lp, key=lp.get) if lp else decision.label
+    return ItemRecord(truth, kind, decision.label, float(decision.confidence), int(decision.presses),
+                      outcome(truth, decision.label, scene, sorted_), candidate,
+                      getattr(decision, "stopped_by", "") == "off_scene")
+
+
+def _rates(records: Sequence[ItemRecord]) -> dict:
+    n = len(records)
+    out = {o: (sum(r.outcome == o for r in records) / n if n else math.nan) for o in OUTCOMES}
+    out["n"] = n
+    out["presses"] = float(np.mean([r.presses for r in records])) if n else math.nan
+    return out
+
+
+def summarise(records: Sequence[ItemRecord], seconds_per_press: float | None = None,
+              seconds_per_item: float = 0.0) -> dict:
+    """Rates of right / mis-sort / reject over all items and per kind, presses per item, and items
+    per minute when the arm's time per press (and per item: reference frame, gate) is given."""
+    out = {"all": _rates(records), "by_kind": {k: _rates([r for r in records if r.kind == k]) for k in KINDS
+                                               if any(r.kind == k for r in records)}}
+    if seconds_per_press is not None and records:
+        per_item = seconds_per_item + seconds_per_press * out["all"]["presses"]
+        out["items_per_min"] = 60.0 / per_item if per_item > 0 else math.inf
+    return out
+
+
+def risk_coverage(records: Sequence[ItemRecord]) -> dict:
+    """Mis-sort rate (of all items) against coverage (fraction of items sorted) as the confidence
+    needed to sort moves from 1 down to 0, at the presses each item took. An item the off-scene
+    checks refused is never sorted. Returns the curve's points and the area under it (lower is better)."""
+    n = len(records)
+    if not n:
+        return {"coverage": [], "mis_sort": [], "threshold": [], "area": math.nan}
+    sortable = [r for r in records if not r.off_scene and r.candidate]
+    sortable.sort(key=lambda r: -r.confidence)
+    cov, mis, thr = [0.0], [0.0], [1.0]
+    wrong = 0
+    for i, r in enumerate(sortable):
+        in_scene_right = r.candidate == r.truth
+        wrong += 0 if in_scene_right else 1
+        cov.append((i + 1) / n)
+        mis.append(wrong / n)
+        thr.append(r.confidence)
+    area = float(np.sum(np.diff(cov) * (np.asarray(mis[1:]) + np.asarray(mis[:-1])) / 2)) if len(cov) > 1 else 0.0
+    return {"coverage": cov, "mis_sort": mis, "threshold": thr, "area": area}
+
+
+def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, n_bins: int = 10) -> float:
+    """ECE: the confidence-weighted gap between confidence and accuracy over equal-width bins."""
+    conf = np.asarray(confidence, np.float64).reshape(-1)
+    ok = np.asarray(correct, np.float64).reshape(-1)
+    if conf.size == 0:
+        return math.nan
+    edges = np.linspace(0.0, 1.0, n_bins + 1)
+    idx = np.clip(np.digitize(conf, edges[1:-1], right=True), 0, n_bins - 1)
+    total = 0.0
+    for b in range(n_bins):
+        m = idx == b
+        if m.any():
+            total += m.mean() * abs(conf[m].mean() - ok[m].mean())
+    return float(total)
+
+
+def _nll(scores: np.ndarray, labels: np.ndarray, t: float) -> float:
+    s = scores / t
+    m = s.max(axis=1, keepdims=True)
+    lse = (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True)))[:, 0]
+    return float(np.mean(lse - s[np.arange(len(labels)), labels]))
+
+
+def fit_temperature(scores: np.ndarray, labels: np.ndarray, lo: float = 1e-2, hi: float = 1e3) -> float:
+    """T > 0 minimising the NLL of softmax(scores / T) (temperature scaling, Guo et al. 2017): a
+    log-spaced scan, then a golden-section refinement (the NLL is unimodal in log T)."""
+    scores = np.asarray(scores, np.float64)
+    labels = np.asarray(labels, np.int64)
+    grid = np.geomspace(lo, hi, 41)
+    i = int(np.argmin([_nll(scores, labels, t) for t in grid]))
+    a, b = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, len(grid) - 1)])
+    g = (math.sqrt(5) - 1) / 2
+    for _ in range(40):
+        c, d = b - g * (b - a), a + g * (b - a)
+        if _nll(scores, labels, math.exp(c)) < _nll(scores, labels, math.exp(d)):
+            b = d
+        else:
+            a = c
+    return float(math.exp((a + b) / 2))
+
+
+def log_softmax(scores: np.ndarray) -> np.ndarray:
+    s = np.asarray(scores, np.float64)
+    m = s.max(axis=1, keepdims=True)
+    return s - (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True)))
+
+
+# ------------------------------------------------------------------ scenes drawn from held-out presses
+
+
+@dataclass(frozen=True)
+class Press:
+    """What ``Evidence.add`` reads of a press (a ``runtime.inference.PressScore`` has the same)."""
+
+    log_posterior: dict
+    sq_distance: dict | None = None
+
+
+@dataclass(frozen=True)
+class Scene:
+    touched: tuple[str, ...]
+    untouched: tuple[str, ...]
+    off_scene: tuple[str, ...]
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        return self.touched + self.untouched
+
+    def kind(self, fabric: str) -> str:
+        return "touched" if fabric in self.touched else "untouched" if fabric in self.untouched else "off-scene"
+
+
+def draw_scenes(touched: Sequence[str], untouched: Sequence[str], off_pool: Sequence[str], n_scenes: int, *,
+                n_touched: int = 5, n_untouched: int = 3, n_off: int = 3, seed: int = 0) -> list[Scene]:
+    """Seeded scenes: ``n_touched`` of the touched fabrics, ``n_untouched`` of the untouched ones,
+    and ``n_off`` off-scene fabrics from ``off_pool`` plus the touched and untouched ones the scene
+    left out (fabrics the cell knows that this job does not list)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_scenes):
+        st = tuple(sorted(rng.choice(touched, min(n_touched, len(touched)), replace=False).tolist()))
+        su = tuple(sorted(rng.choice(untouched, min(n_untouched, len(untouched)), replace=False).tolist())) \
+            if len(untouched) else ()
+        pool = [f for f in list(touched) + list(untouched) + list(off_pool) if f not in st and f not in su]
+        so = tuple(sorted(rng.choice(pool, min(n_off, len(pool)), replace=False).tolist())) if pool else ()
+        out.append(Scene(st, su, so))
+    return out
+
+
+def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
+                    evidence_factory: Callable[[Scene], object], *, items_per_fabric: int = 4,
+                    max_presses: int = 5, seed: int = 0) -> list[ItemRecord]:
+    """Items of every scene fabric and off-scene fabric, each a random order of that fabric's
+    held-out ``presses`` fed to the cell's own evidence (``evidence_factory(scene)``) until it
+    decides or the presses (``max_presses``) run out."""
+    rng = np.random.default_rng(seed)
+    records = []
+    for scene in scenes:
+        for fabric in scene.classes + scene.off_scene:
+            pool = presses[fabric]
+            for _ in range(items_per_fabric):
+                order = rng.permutation(len(pool))[:max_presses]
+                ev = evidence_factory(scene)
+                decision = None
+                for i in order:
+                    decision = ev.add(pool[i])
+                    if decision is not None:
+                        break
+                if decision is None:
+                    decision = ev.decide()
+                records.append(record(fabric, scene.kind(fabric), decision, scene.classes))
+    return records
+
+
+def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
+    return [asdict(r) for r in records]
+
+
+__all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
+           "risk_coverage", "expected_calibration_error", "fit_temperature", "log_softmax", "Press", "Scene",
+           "draw_scenes", "simulate_scenes", "as_dict"]
