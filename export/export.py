@@ -234,12 +234,13 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
                  validation: np.ndarray | None = None, touched_heldout: np.ndarray | None = None,
                  gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
-                 opset: int = OPSET,
+                 opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
-    touched presses for the gating temperature."""
+    touched presses for the gating temperature; ``scene_model``: ``runtime.scene_model.SceneModel``
+    parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md)."""
     from vs2t_edge.runtime.inference import TactileModel
 
     if trunk_precision not in ("fp32", "int8"):
@@ -331,6 +332,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
         np.save(tmp / "probe_input.npy", probe)
         np.savez(tmp / "probe_expected.npz", feature=f, logits_t=lt, logits_u=lu, novelty=np.asarray(nov, np.float64))
         np.savez(tmp / "router.npz", **{k: np.asarray(v) for k, v in router.to_params().items()})
+        if scene_model is not None:
+            np.savez(tmp / "decision.npz", **{k: np.asarray(v) for k, v in scene_model.items()})
 
         graphs = {}
         for key, path in (("trunk", trunk_file), ("heads", tmp / "heads.onnx")):
@@ -348,6 +351,11 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
             "feature_dim": dim,
             "graphs": graphs,
             "router": {"name": router.name, "file": "router.npz"},
+            **({"decision": {"kind": str(scene_model["kind"]), "file": "decision.npz",
+                             "rule": "per press: softmax over the scene's classes of -d2/(2 T) + b [untouched] "
+                                     "(runtime/scene_model.py); per item: weighted evidence, off-scene checks, "
+                                     "confidence per kind (runtime/evidence.py); fitted on validation fabrics"}}
+               if scene_model is not None else {}),
             "beta": float(beta),
             "operating_point": operating_point,
             "gating": {"transform": "asinh", "scale": scale, "temperature": float(gating_temperature), "how": how,
@@ -390,17 +398,17 @@ def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int
                     max_presses: int | None) -> dict[str, dict[str, list[int]]]:
     """Which presses of each touched fabric trained the model (train/features.py
     ``extract_cache`` + ``touched_training_rows``: evenly spaced ``max_presses`` of the grid, then
-    per fabric 10 % val, 20 % test, rest train with rng(seed + 17)). Returns
+    ``runtime.dataset.press_partition`` in press order: earlier presses train, later ones validate
+    and test). ``seed`` is kept for callers; the partition no longer draws. Returns
     {fabric: {"train": [...], "val": [...], "test": [...], "unused": [...]}} in press indices."""
-    rng = np.random.default_rng(seed + 17)
+    from vs2t_edge.runtime.dataset import press_partition as by_order
+
     out = {}
     for fid in touched:
         p = n_presses[fid]
         chosen = grid_presses(p, max_presses)
-        perm = rng.permutation(len(chosen))
-        n_va, n_te = max(1, round(0.1 * len(chosen))), max(1, round(0.2 * len(chosen)))
-        out[fid] = {"val": sorted(chosen[perm[:n_va]].tolist()), "test": sorted(chosen[perm[n_va:n_va + n_te]].tolist()),
-                    "train": sorted(chosen[perm[n_va + n_te:]].tolist()),
+        tr, va, te = by_order(len(chosen))
+        out[fid] = {"val": chosen[va].tolist(), "test": chosen[te].tolist(), "train": chosen[tr].tolist(),
                     "unused": sorted(set(range(p)) - set(chosen.tolist()))}
     return out
 
@@ -582,7 +590,8 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
                         touched_heldout=heldout, provenance=prov, log=log, threads=threads,
                         calibration_method=calibration_method, float_convs=float_convs,
-                        operating_point=operating_point)
+                        operating_point=operating_point,
+                        scene_model=art.scene_model if router is None else None)
 
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,

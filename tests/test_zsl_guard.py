@@ -211,11 +211,20 @@ def _differing_leaves(a, b, path=()):
 
 
 def _only_test_side_changed(clean: dict, poisoned: dict) -> list:
+    # the scene decision's test scenes are made of the untouched fabrics' presses: all test side,
+    # structure included (the risk-coverage curve has one point per distinct confidence)
+    clean, poisoned = dict(clean), dict(poisoned)
+    scene_test = []
+    if "scene_decision" in clean:
+        a, b = dict(clean["scene_decision"]), dict(poisoned["scene_decision"])
+        if a.pop("test") != b.pop("test"):
+            scene_test = [("scene_decision", "test")]
+        clean["scene_decision"], poisoned["scene_decision"] = a, b
     diff = _differing_leaves(clean, poisoned)
     touched = [p for p in diff if p[-1] not in TEST_SIDE_KEYS | TIMING_KEYS
                and not (p[-1] == "acc_t" and len(p) >= 2 and p[-2] in READS_CLS_U)]
     assert not touched, f"a touched- or validation-side number moved when only untouched inputs changed: {touched}"
-    test_side = [p for p in diff if p[-1] in TEST_SIDE_KEYS]
+    test_side = [p for p in diff if p[-1] in TEST_SIDE_KEYS] + scene_test
     assert test_side, "the poison did not reach the untouched test outputs (the check would be vacuous)"
     return test_side
 
@@ -288,6 +297,16 @@ def test_training_run_split_is_blind_to_every_untouched_input(visual_tail):
         assert not _differing_leaves(_plain(ac.router_params), _plain(ap.router_params)) and ac.beta == ap.beta, r
         assert (ac.touched, ac.validation, ac.untouched) == (ap.touched, ap.validation, ap.untouched)
         assert not _same_state(ac.cls_u_state, ap.cls_u_state)
+        # the scene decision (train/decision.py): subspace, whitening, touched means and every
+        # scalar chosen on validation are blind to the untouched fabrics; only their synthesised
+        # means (from their camera crops and attributes, poisoned here) move
+        sc, sp = ac.scene_model, ap.scene_model
+        n_t = len(ac.touched)
+        for key in set(sc) - {"means"}:
+            assert np.array_equal(np.asarray(sc[key]), np.asarray(sp[key])), f"scene model '{key}' read untouched data"
+        assert np.array_equal(sc["means"][:n_t], sp["means"][:n_t])
+        assert not np.array_equal(sc["means"][n_t:], sp["means"][n_t:])
+    assert any(p[:2] == ("scene_decision", "test") for p in changed)  # the test scenes did read them
 
 
 def test_compare_run_split_is_blind_to_every_untouched_input():

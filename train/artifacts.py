@@ -42,6 +42,9 @@ class RunArtifacts:
     touched_fabric_ids: list[str] = field(default_factory=list)  # int8 calibration presses come from these
     cls_hidden: tuple[int, ...] = (512, 512)
     info: dict = field(default_factory=dict)
+    # runtime.scene_model.SceneModel.to_params() of the deployment split (train/decision.py), or
+    # None for runs made before the scene decision (their bundles decide with the router)
+    scene_model: dict | None = None
 
     @property
     def tactile_preprocess(self) -> TactilePreprocess:

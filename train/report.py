@@ -174,6 +174,7 @@ def render(m: dict) -> str:
             lines.append(f"| {k} | {t['mean_diff']:+.1f} ± {t['se']:.1f} ({t['wins']}/{t['n']}) | "
                          f"{v['mean_diff']:+.1f} ± {v['se']:.1f} ({v['wins']}/{v['n']}) |")
         lines.append("")
+    lines += scene_lines(m.get("splits", []))
     if "figures" in m:
         lines += ["Figures (split 0): `figures/confusion.png` (multimodal / visual / semantic), "
                   "`figures/pca_real_vs_synth.png`, `figures/class_cosine.png`, `figures/threshold_curve.png`.", "",
@@ -182,4 +183,45 @@ def render(m: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["figures", "render"]
+def _ms(values) -> str:
+    v = 100 * np.asarray([x for x in values if x == x], dtype=float)
+    return f"{v.mean():.1f} ± {v.std():.1f}" if v.size else "-"
+
+
+def scene_lines(splits: list[dict]) -> list[str]:
+    """Per item, as a sorting line counts (runtime/sorting.py): the scene decision on scenes of each
+    split's test fabrics, mean ± std over splits."""
+    sd = [s["scene_decision"] for s in splits if "scene_decision" in s]
+    if not sd:
+        return []
+    n_sc = sd[0]["test"].get("n_scenes", "?")
+    out = ["## Per item, by bins: the scene decision (train/decision.py)", "",
+           f"Scenes of 5 touched + 3 untouched TEST fabrics ({n_sc} per split; touched pieces show only their "
+           "test presses), off-scene pieces of the fabrics a scene leaves out and of the validation fabrics "
+           "(never a class of the model); items decided by the cell's own evidence, at most 5 presses. "
+           "Operating point chosen on the validation fabrics only, for at most "
+           f"{100 * sd[0]['validation']['target_mis_sort']:.0f} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
+           "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
+    kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
+    for kind in kinds:
+        rs = [d["test"]["all"] if kind == "all" else d["test"]["by_kind"].get(kind, {}) for d in sd]
+        pr = np.mean([r.get("presses", np.nan) for r in rs])
+        out.append(f"| {kind} | {_ms([r.get('right') for r in rs])} | {_ms([r.get('mis-sort') for r in rs])} | "
+                   f"{_ms([r.get('reject') for r in rs])} | {pr:.2f} |")
+    val = [d["validation"]["validation"]["all"] for d in sd]
+    out += ["", f"Validation (what chose the operating point): right {_ms([v['right'] for v in val])}, mis-sort "
+                f"{_ms([v['mis-sort'] for v in val])}, reject {_ms([v['reject'] for v in val])}; the mis-sort target "
+                f"was met on validation in {sum(d['validation']['meets_target_on_validation'] for d in sd)} of "
+                f"{len(sd)} split(s).",
+            f"Calibration: per-press expected calibration error {_ms([d['test']['press_ece']['before'] for d in sd])} "
+            f"before, {_ms([d['test']['press_ece']['after'] for d in sd])} after temperature and bias (fitted on "
+            f"validation); per item {_ms([d['test']['item_ece'] for d in sd])}. Area under the risk-coverage curve "
+            f"(mis-sorts of all items against the share sorted) {_ms([d['test']['risk_coverage']['area'] for d in sd])}.",
+            "", "Chosen per split: " + "; ".join(
+                f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, weight "
+                f"{c['evidence_weight']:g}, margin {c['known_margin']:g}, confidence {c['confidence']:g}/"
+                f"{c['untouched_confidence']:g}" for c in (d["validation"]["chosen"] for d in sd)), ""]
+    return out
+
+
+__all__ = ["figures", "render", "scene_lines"]

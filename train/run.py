@@ -137,8 +137,36 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     for name, m in fitted.items():
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
+    scene_model, result["scene_decision"] = scene_decision(fitted["VS2T-ZSL"], views, split, budget)
     result["seconds"] = round(time.time() - t0, 1)
-    return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk}
+    return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk,
+            "scene_model": scene_model}
+
+
+def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget) -> tuple:
+    """The scene decision of one split (train/decision.py): chosen on its validation fabrics, scored
+    on scenes of its test fabrics (the validation fabrics are the strangers: never a class of the
+    deployed model), beside today's route (CLS_t / CLS_u by the paper's Gaussian router at its
+    validation beta) on the same scenes."""
+    from vs2t_edge.train import decision as dc
+
+    synth_u = method.synthesise(views.train, budget, split.seed)
+    synth_v = method.synthesise(views.val, budget, split.seed)
+    x_tv, _, y_tv = views.touched_val
+    x_vp, _, y_vp = views.val_presses
+    model, chosen = dc.fit_scene_decision(
+        views.train.x_t, views.train.y, list(split.touched), (x_tv, y_tv), list(split.validation), (x_vp, y_vp),
+        synth_v, list(split.untouched), synth_u, seed=split.seed, log=_log)
+    x_tt, _, y_tt = views.touched_test
+    x_up, _, y_up = views.test_presses
+    strangers = {f: x_vp[y_vp == c] for c, f in enumerate(split.validation)}
+    test = dc.evaluate_scenes(model, list(split.touched), (x_tt, y_tt), list(split.untouched), (x_up, y_up),
+                              off_pool=strangers, seed=split.seed)
+    a = test["all"]
+    _log(f"scene decision, test scenes: right {a['right']:.1%}, mis-sort {a['mis-sort']:.1%}, reject {a['reject']:.1%}, "
+         f"{a['presses']:.1f} presses per item")
+    chosen = {k: v for k, v in chosen.items() if k != "tried"}
+    return model, {"validation": chosen, "test": test}
 
 
 def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray) -> nv.Router:
@@ -172,7 +200,8 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
         cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
         router_name=router_name, router_params=router.to_params(), beta=float(g["beta"]),
         validation=list(split.validation), dataset=str(Path(dataset).resolve()),
-        touched_fabric_ids=list(split.touched), info={"profile": prof.name, "split_seed": seed})
+        touched_fabric_ids=list(split.touched), info={"profile": prof.name, "split_seed": seed},
+        scene_model=out["scene_model"].to_params() if out.get("scene_model") is not None else None)
 
 
 def _stat(vals) -> dict:

@@ -1,0 +1,211 @@
+"""The scene decision, fitted and calibrated on validation fabrics only (runtime/scene_model.py).
+
+Per split (``fit_scene_decision``):
+
+1. a *validation model*: the touched fabrics' real training presses, and the validation fabrics
+   playing the untouched part (their means synthesised by the generator from camera and
+   attributes, as the untouched fabrics' will be) - so every choice below is made on fabrics whose
+   tactile data no training step saw, and never on the split's untouched (test) fabrics;
+2. for each subspace size ``k``: temperature and untouched bias by the class-balanced negative log
+   likelihood of the touched fabrics' validation presses and the validation fabrics' presses
+   (temperature scaling with a calibrated-stacking bias); the ``k`` with the lowest one is kept;
+3. the item rule - evidence weight, known-class margin and the confidence that sorts - by
+   simulating scenes of validation fabrics (``runtime.sorting.simulate_scenes``: the cell's own
+   ``Evidence`` on held-out presses): the most pieces in the right bin among the settings whose
+   mis-sort rate meets ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set
+   threshold accepts ``OPEN_ACCEPT`` of the in-scene validation presses;
+4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
+
+``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
+untouched fabrics' presses) with the same simulation; ``press_tables`` gives the cell's per-press
+view (log posterior and squared distances) that both use.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.scene_model import SceneModel
+
+K_CHOICES = (32, 64, 128)
+BIASES = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
+WEIGHTS = (1.0, 0.5, 0.25)
+MARGINS = (0.0, 2.0, math.inf)
+CONFIDENCES = (0.5, 0.7, 0.9, 0.97, 0.99, 0.999)
+# open-set threshold candidates: quantiles of the squared distance of in-scene validation presses
+# to their own class (1.0: no threshold)
+OPEN_QUANTILES = (0.8, 0.9, 0.95, 0.99, 1.0)
+N_SCENES = 12
+MAX_PRESSES = 5
+
+
+def press_tables(model: SceneModel, rows: dict[str, np.ndarray]) -> dict[str, list[so.Press]]:
+    """Per fabric, its presses as the cell scores them with ``model``."""
+    out = {}
+    for fabric, x in rows.items():
+        lp, d2 = model.log_posterior(x)
+        out[fabric] = [so.Press(dict(zip(model.classes, a.tolist())), dict(zip(model.classes, b.tolist())))
+                       for a, b in zip(lp, d2)]
+    return out
+
+
+def _balanced_nll(scores: np.ndarray, labels: np.ndarray) -> float:
+    lp = so.log_softmax(scores)
+    per = -lp[np.arange(len(labels)), labels]
+    return float(np.mean([per[labels == c].mean() for c in np.unique(labels)]))
+
+
+def _fit_t_b(d2: np.ndarray, labels: np.ndarray, is_u: np.ndarray) -> tuple[float, float, float]:
+    """(temperature, untouched bias, balanced NLL) by a scan over both."""
+    best = (math.inf, 1.0, 0.0)
+    for b in BIASES:
+        for t in np.geomspace(0.05, 200.0, 33):
+            nll = _balanced_nll(-0.5 * d2 / t + b * is_u, labels)
+            if nll < best[0]:
+                best = (nll, float(t), float(b))
+    return best[1], best[2], best[0]
+
+
+def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES):
+    """The evidence the cell builds for a scene from the model's operating point."""
+    def make(scene: so.Scene):
+        return Evidence(scene.classes, model.confidence, max_presses, weight=model.evidence_weight,
+                        open_threshold=model.open_threshold, known_margin=model.known_margin,
+                        class_confidence={c: model.untouched_confidence for c in model.untouched})
+    return make
+
+
+def _score(summary: dict, target: float) -> tuple:
+    a = summary["all"]
+    return (a["mis-sort"] <= target, a["right"] - (0 if a["mis-sort"] <= target else 10 * a["mis-sort"]))
+
+
+def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[str],
+                       touched_val: tuple[np.ndarray, np.ndarray], val_fabrics: list[str],
+                       val_presses: tuple[np.ndarray, np.ndarray], synth_val: tuple[np.ndarray, np.ndarray],
+                       untouched: list[str], synth_u: tuple[np.ndarray, np.ndarray], *,
+                       target_mis_sort: float = 0.01, seed: int = 0, log=lambda m: None) -> tuple[SceneModel, dict]:
+    """The deployed scene model and what its choice was based on (validation only, module doc).
+
+    ``touched_val``: touched fabrics' validation presses (x, index into ``touched``);
+    ``val_presses``: the validation fabrics' presses (x, index into ``val_fabrics``); ``synth_*``:
+    the generator's samples (x, class index) for the validation and the untouched fabrics."""
+    xv_t, yv_t = touched_val
+    xv_u, yv_u = val_presses
+    # One validation fabric (when there are three or more) plays a fabric the cell has never seen:
+    # the validation model gets no synthesised mean for it, so the open-set threshold is chosen
+    # against a real stranger instead of only accepting a share of the known ones.
+    n_in = len(val_fabrics) - 1 if len(val_fabrics) >= 3 else len(val_fabrics)
+    val_in, strangers = list(val_fabrics[:n_in]), list(val_fabrics[n_in:])
+    rows = {touched[c]: xv_t[yv_t == c] for c in range(len(touched))}
+    rows.update({val_fabrics[c]: xv_u[yv_u == c] for c in range(len(val_fabrics))})
+    keep = yv_u < n_in
+    labels = np.concatenate([yv_t, len(touched) + yv_u[keep]])
+    x_known = np.concatenate([xv_t, xv_u[keep]])
+    synth_keep = synth_val[1] < n_in
+    scenes = so.draw_scenes(touched, val_in, tuple(strangers), N_SCENES, n_untouched=min(3, len(val_in)), seed=seed)
+    # the subspace by validation NLL after temperature scaling (the item rule below is cheap to
+    # search for one k, not for each)
+    fits = []
+    for k in K_CHOICES:
+        vm = SceneModel.fit(train_x, train_y, touched, synth_val[0][synth_keep], synth_val[1][synth_keep], val_in, k=k)
+        d2 = vm.sq_distances(x_known)
+        is_u = np.array([c in vm.untouched for c in vm.classes], np.float64)
+        nll0 = _balanced_nll(-0.5 * d2, labels)
+        t, b, nll = _fit_t_b(d2, labels, is_u)
+        log(f"scene decision k={k}: temperature {t:.3g}, untouched bias {b:g}, validation NLL {nll0:.2f} -> {nll:.2f}")
+        fits.append((nll, k, nll0, t, b, vm, d2[np.arange(len(labels)), labels]))
+    nll, k, nll0, t, b, vm, own_d2 = min(fits, key=lambda f: f[0])
+    vm = replace(vm, temperature=t, untouched_bias=b)
+    # The item rule by coordinate search (each knob over its values with the others held, three
+    # rounds): a full grid of the six knobs would cost thousands of simulated scene sets.
+    grid = {"untouched_bias": sorted({0.0, b / 2, b}), "open_quantile": OPEN_QUANTILES, "evidence_weight": WEIGHTS,
+            "known_margin": MARGINS, "confidence": CONFIDENCES, "untouched_confidence": CONFIDENCES}
+    point = {"untouched_bias": b, "open_quantile": 1.0, "evidence_weight": 0.5, "known_margin": 2.0,
+             "confidence": 0.9, "untouched_confidence": 0.9}
+    tables_by_bias: dict[float, dict] = {}
+    tried: dict[tuple, tuple] = {}
+
+    def trial(p: dict) -> tuple:
+        key = tuple(sorted(p.items()))
+        if key not in tried:
+            bias = p["untouched_bias"]
+            if bias not in tables_by_bias:
+                tables_by_bias[bias] = press_tables(replace(vm, untouched_bias=bias), rows)
+            q = p["open_quantile"]
+            cand = replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
+                           known_margin=p["known_margin"], confidence=p["confidence"],
+                           untouched_confidence=p["untouched_confidence"],
+                           open_threshold=float(np.quantile(own_d2, q)) if q < 1 else math.inf)
+            s = so.summarise(so.simulate_scenes(scenes, tables_by_bias[bias], evidence_for(cand), seed=seed))
+            tried[key] = (_score(s, target_mis_sort), cand, s)
+        return tried[key]
+
+    for _ in range(3):
+        for knob, values in grid.items():
+            point[knob] = max(values, key=lambda v: trial({**point, knob: v})[0])
+    best = trial(point)
+    best = (best[0], best[1], best[2], {"nll_before": nll0, "nll_after": nll, "k": k})
+    tried_rows = [{**dict(key), "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
+                   "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, _, s) in tried.items()]
+    _, chosen, val_summary, nll = best
+    deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
+    deployed = replace(deployed, temperature=chosen.temperature, untouched_bias=chosen.untouched_bias,
+                       evidence_weight=chosen.evidence_weight, open_threshold=chosen.open_threshold,
+                       known_margin=chosen.known_margin, confidence=chosen.confidence,
+                       untouched_confidence=chosen.untouched_confidence, info={**deployed.info, "target_mis_sort": target_mis_sort})
+    report = {"chosen": {"k": chosen.k, "temperature": chosen.temperature, "untouched_bias": chosen.untouched_bias,
+                         "evidence_weight": chosen.evidence_weight, "known_margin": chosen.known_margin,
+                         "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
+                         "open_threshold": chosen.open_threshold},
+              "validation": val_summary, "validation_nll": nll, "target_mis_sort": target_mis_sort,
+              "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
+              "tried": tried_rows}
+    log(f"scene decision chosen on validation: k={chosen.k}, weight {chosen.evidence_weight:g}, "
+        f"margin {chosen.known_margin:g}, confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): right {val_summary['all']['right']:.1%}, "
+        f"mis-sort {val_summary['all']['mis-sort']:.1%}, reject {val_summary['all']['reject']:.1%}")
+    return deployed, report
+
+
+def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
+                    untouched: list[str], untouched_presses: tuple[np.ndarray, np.ndarray], *,
+                    off_pool: dict[str, np.ndarray] | None = None, n_scenes: int = N_SCENES, seed: int = 0,
+                    items_per_fabric: int = 4) -> dict:
+    """Item-level numbers on scenes of the split's test fabrics (module doc), the risk-coverage
+    curve and the per-press and per-item calibration error."""
+    xt, yt = touched_test
+    xu, yu = untouched_presses
+    rows = {touched[c]: xt[yt == c] for c in range(len(touched))}
+    rows.update({untouched[c]: xu[yu == c] for c in range(len(untouched))})
+    rows.update(off_pool or {})
+    tables = press_tables(model, rows)
+    n_u = min(3, len(untouched))
+    scenes = so.draw_scenes(touched, untouched, tuple(off_pool or ()), n_scenes, n_untouched=n_u, seed=seed + 1)
+    recs = so.simulate_scenes(scenes, tables, evidence_for(model), seed=seed + 1, items_per_fabric=items_per_fabric)
+    out = so.summarise(recs)
+    rc = so.risk_coverage(recs)
+    out["risk_coverage"] = {"area": rc["area"], "coverage": rc["coverage"][::max(1, len(rc["coverage"]) // 50)],
+                            "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
+    in_scene = [r for r in recs if r.kind != "off-scene"]
+    out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
+                                                    [r.candidate == r.truth for r in in_scene])
+    # per press over all bundle classes
+    x = np.concatenate([xt, xu])
+    lab = np.concatenate([yt, len(touched) + yu])
+    d2 = model.sq_distances(x)
+    raw = so.log_softmax(-0.5 * d2)
+    cal = so.log_softmax(model.scores(d2))
+    out["press_ece"] = {"before": so.expected_calibration_error(np.exp(raw.max(1)), raw.argmax(1) == lab),
+                        "after": so.expected_calibration_error(np.exp(cal.max(1)), cal.argmax(1) == lab)}
+    out["press_accuracy"] = float(np.mean(cal.argmax(1) == lab))
+    out["n_scenes"] = n_scenes
+    return out
+
+
+__all__ = ["fit_scene_decision", "evaluate_scenes", "press_tables", "evidence_for", "K_CHOICES"]
