@@ -2,7 +2,8 @@
 
 Stages (each cached in the work folder and skipped when re-run with the same settings):
 
-1. the fabric world: ``vs2t_edge.sim.synth.generate`` (profile ``small``) -> ``DIR/dataset``;
+1. the fabric world: ``vs2t_edge.sim.synth.generate`` (profile ``demo``: 24 fabrics of 6 kinds, 4 of
+   each, so every fabric the cell never touches has touched siblings) -> ``DIR/dataset``;
 2. training: ``vs2t-edge train DIR/dataset --profile small --out DIR/run`` (a child process:
    torch stays out of this one);
 3. export: ``vs2t-edge export DIR/run --out DIR/bundle`` (verified ONNX bundle);
@@ -12,8 +13,12 @@ Stages (each cached in the work folder and skipped when re-run with the same set
    touched and untouched fabrics (the scene) and the dataset's other fabrics (off-scene: they
    must go to the reject bin).
 
-Prints a line per item (truth, decision, bin, presses, confidence, model latency) and the
-totals: accuracy, presses per item, latency, time per item, time per stage; writes them to
+The job (the scene) is 4 of the bundle's touched and 3 of its untouched fabrics, one bin each; the
+stream adds off-scene pieces of a touched fabric the job leaves out and of a fabric the bundle has
+never seen. Touched pieces show only presses no training step saw. Prints a line per item (truth,
+its bin, decision, bin, presses, confidence, latency: right / rejected / MIS-SORTED) and the totals
+as a sorting line counts them (runtime/sorting.py): per kind, right bin, mis-sort, reject; presses
+per piece, pieces per minute, latency, time per stage; writes them to
 ``DIR/demo_summary.json``. ``--record FILE`` also records the sorting session as a replay.
 """
 
@@ -25,6 +30,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
+
+
+# world profile -> training profile (the demo's world trains with the small profile's budget)
+TRAIN_PROFILE = {"demo": "small"}
 
 
 def _stage_done(marker: Path, params: dict) -> bool:
@@ -74,7 +85,7 @@ def prepare(workdir: Path, *, profile: str, seed: int, force: bool, log) -> tupl
     if force or not _stage_done(marker, params) or not run.is_dir():
         log(f"[2/4] training ({profile}) -> {run}")
         t0 = time.monotonic()
-        _child(["train", str(dataset), "--profile", profile, "--out", str(run)], "training")
+        _child(["train", str(dataset), "--profile", TRAIN_PROFILE.get(profile, profile), "--out", str(run)], "training")
         times["train_s"] = time.monotonic() - t0
         _mark(marker, params, times["train_s"])
         force = True
@@ -93,55 +104,83 @@ def prepare(workdir: Path, *, profile: str, seed: int, force: bool, log) -> tupl
     return dataset, bundle, times
 
 
+def choose_scene(touched: list[str], untouched: list[str], others: list[str], seed: int,
+                 n_touched: int = 4, n_untouched: int = 3) -> tuple[list[str], list[str], list[str]]:
+    """The demo's sorting job: ``n_touched`` of the bundle's touched fabrics and ``n_untouched`` of
+    its untouched ones (one bin each on the 8-bin gate, bin 0 rejects), drawn with the seed; the
+    off-scene pieces are one touched fabric the job leaves out (the cell knows it) and one fabric the
+    bundle has never seen (a validation fabric)."""
+    rng = np.random.default_rng(seed)
+    st = sorted(rng.choice(touched, min(n_touched, len(touched)), replace=False).tolist())
+    su = sorted(rng.choice(untouched, min(n_untouched, len(untouched)), replace=False).tolist())
+    left = [f for f in touched if f not in st]
+    off = ([str(rng.choice(left))] if left else []) + ([str(rng.choice(others))] if others else [])
+    return st, su, off
+
+
+def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
+    """The touched fabrics' presses that no training step saw (the test part of
+    ``runtime.dataset.press_partition``): a touched piece in the demo shows only these."""
+    from vs2t_edge.runtime.dataset import press_partition
+
+    out = {}
+    for fid in bundle_touched:
+        n = len(ds.by_id(fid).presses)
+        out[fid] = list(press_partition(n)[2])
+    return out
+
+
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
-                gate_kind: str, max_presses: int, confidence: float, threads: int, record: Path | None,
+                gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log) -> dict:
+    from vs2t_edge.runtime import sorting as so
     from vs2t_edge.runtime.daemon import default_evidence_factory, run_daemon
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
-    from vs2t_edge.sim.scene import (
-        SimulatedCell,
-        assign_bins,
-        item_stream,
-        scene_config_yaml,
-        score_run,
-        write_scene_config,
-    )
+    from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
-    touched, untouched = list(model.touched), list(model.untouched)
     ds = load_dataset(dataset)
+    known = set(model.touched) | set(model.untouched)
+    strangers = [f.id for f in ds.fabrics if f.id not in known]
+    touched, untouched, off_scene = choose_scene(list(model.touched), list(model.untouched), strangers, seed)
     scene_names = set(touched) | set(untouched)
-    off_scene = [f.id for f in ds.fabrics if f.id not in scene_names][:max(1, len(scene_names) // 4)]
-    # Bundle classes are dataset ids; the printout adds the fabric's name for the operator.
     names_of = {f.id: f.name for f in ds.fabrics}
-    # Scene pieces are the touched and untouched fabrics; a few off-scene pieces test the reject path.
-    names = touched + untouched + off_scene
-    items = item_stream(ds, names, n_items, seed=seed)
+    # Mostly the job's own fabrics, as on a line; each off-scene fabric as often as one scene fabric.
+    items = item_stream(ds, touched + untouched + off_scene, n_items, seed=seed)
     fabrics = assign_bins(touched, untouched)
     journal = workdir / "journal.jsonl"
     if journal.exists():
         journal.unlink()
     kinds = {n: k for n, k, _ in fabrics}
-    rows_printed = []
+    bins = {n: b for n, _, b in fabrics}
+    records: list = []
+    rows: list[dict] = []
 
     def on_item(r) -> None:
         truth = r.item.truth
-        tk = kinds.get(truth, "off-scene")
-        ok = (r.label == truth) if truth in scene_names else (r.label not in scene_names)
+        kind = kinds.get(truth, "off-scene")
+        o = so.outcome(truth, r.label, scene_names, sorted_=r.outcome == "sorted")
+        records.append(so.ItemRecord(truth, kind, r.label, float(r.confidence), int(r.presses), o))
+        rows.append({"item": r.item.id, "truth": truth, "kind": kind, "label": r.label, "bin": r.bin,
+                     "outcome": r.outcome, "result": o, "presses": r.presses, "confidence": float(r.confidence)})
         lat = sum(r.latency_ms) / len(r.latency_ms) if r.latency_ms else float("nan")
-        said = f"{r.label} {names_of.get(r.label, '')}".strip()
-        line = (f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} ({tk:9s}) -> {said:>26s}  bin {r.bin}  "
-                f"{r.presses} presses  "
-                f"conf {r.confidence:.2f}  {lat:6.1f} ms/press  {r.item_s:5.1f} s  "
-                f"{'ok' if ok and r.outcome == 'sorted' else 'WRONG' if r.outcome == 'sorted' else r.outcome}")
-        rows_printed.append(line)
-        log(line)
+        said = "reject" if r.label not in scene_names else f"{r.label} {names_of.get(r.label, '')}"
+        mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
+        if r.outcome != "sorted":
+            mark += f" ({r.outcome})"
+        own = f"bin {bins[truth]}" if truth in bins else "reject"
+        log(f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} ({kind:9s}, its bin: {own:6s}) -> "
+            f"{said:>26s}  bin {r.bin}  {r.presses} press{'es' if r.presses != 1 else '  '}  "
+            f"conf {r.confidence:.2f}  {lat:5.1f} ms/press  {r.item_s:4.1f} s  {mark}")
 
-    with SimulatedCell(dataset, items, arm_kind=arm_kind, gate_kind=gate_kind) as cell:
+    allowed = held_out_presses(ds, list(model.touched))
+    with SimulatedCell(dataset, items, arm_kind=arm_kind, gate_kind=gate_kind, allowed_presses=allowed) as cell:
         data = scene_config_yaml(bundle=bundle, dataset=dataset, journal=journal, fabrics=fabrics,
-                                 arm_host=cell.arm_host, confidence=confidence, max_presses=max_presses,
+                                 arm_host=cell.arm_host, confidence=confidence or 0.9, max_presses=max_presses,
                                  threads=threads)
+        if confidence is None:  # the bundle's operating point decides (runtime/daemon.py)
+            del data["evidence"]["confidence"]
         cfg = write_scene_config(workdir / "cell.yaml", data)
         if fault_at is not None:
             cell.schedule_fault(fault_at[0], fault_at[1], "protective_stop")
@@ -152,13 +191,16 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
             results_holder.append(r)
             on_item(r)
 
-        log(f"[4/4] sorting {n_items} pieces: scene {len(touched)} touched + {len(untouched)} untouched fabrics, "
-            f"{len(off_scene)} off-scene; arm {arm_kind}, gate {gate_kind}")
+        log(f"[4/4] sorting {n_items} pieces: the job is {len(touched)} touched + {len(untouched)} untouched "
+            f"fabrics ({', '.join(f'{f} bin {bins[f]}' for f in touched + untouched)}); off-scene pieces of "
+            f"{', '.join(off_scene)} must go to the reject bin 0; arm {arm_kind}, gate {gate_kind}; touched pieces "
+            "show only presses no training step saw")
+        evidence = default_evidence_factory(cfg, model)
         if record is not None:
             from vs2t_edge.runtime.replay import record_session
 
             record_session(cfg, record, model=model, camera=cell.camera, arm=cell.arm, gate=cell.gate,
-                           items=cell.source, evidence_factory=default_evidence_factory(cfg),
+                           items=cell.source, evidence_factory=evidence,
                            operator_clear=cell.operator_clear, on_item=capture,
                            meta={"made_by": "vs2t-edge demo", "seed": seed})
         else:
@@ -171,29 +213,50 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 return cell.source.exhausted()
 
             run_daemon(cfg, model=model, camera=cell.camera, arm=cell.arm, gate=cell.gate, items=cell.source,
-                       evidence_factory=default_evidence_factory(cfg), on_item=capture, stop_when=stop_when,
+                       evidence_factory=evidence, on_item=capture, stop_when=stop_when,
                        install_signals=False, log=lambda m: log(f"  daemon: {m}"))
         sort_s = time.monotonic() - t0
-    summary = score_run(results_holder, items, scene_names)
-    summary["sort_s"] = sort_s
-    by_kind: dict[str, list[bool]] = {}
-    for row in summary["rows"]:
-        by_kind.setdefault(kinds.get(row["truth"], "off-scene"), []).append(row["correct"])
-    summary["accuracy_by_kind"] = {k: sum(v) / len(v) for k, v in by_kind.items()}
+    lat = [x for r in results_holder for x in r.latency_ms]
+    item_s = [r.item_s for r in results_holder]
+    summary = so.summarise(records)
+    summary.update(scene={"touched": touched, "untouched": untouched, "off_scene": off_scene, "bins": bins},
+                   items=len(records), sort_s=sort_s, rows=rows,
+                   latency_ms_median=float(np.median(lat)) if lat else float("nan"),
+                   latency_ms_p95=float(np.percentile(lat, 95)) if lat else float("nan"),
+                   item_s_median=float(np.median(item_s)) if item_s else float("nan"),
+                   items_per_min=60.0 * len(item_s) / sum(item_s) if item_s and sum(item_s) > 0 else float("nan"))
     return summary
+
+
+def report_lines(summary: dict) -> str:
+    """The totals a sorting line reads: per kind, right bin / mis-sorted / rejected; presses; speed."""
+    a = summary["all"]
+    lines = [f"{a['n']} pieces: {a['right']:.1%} in the right bin, {a['mis-sort']:.1%} MIS-SORTED (wrong bin), "
+             f"{a['reject']:.1%} rejected (reject bin, a person looks)"]
+    for kind, r in summary["by_kind"].items():
+        lines.append(f"  {kind:9s} {r['n']:3d} pieces: right {r['right']:6.1%}  mis-sorted {r['mis-sort']:6.1%}  "
+                     f"rejected {r['reject']:6.1%}  ({r['presses']:.1f} presses each)")
+    lines.append(f"presses per piece {a['presses']:.2f}; {summary['items_per_min']:.1f} pieces per minute with the "
+                 f"simulated arm in real time ({summary['item_s_median']:.1f} s per piece); model latency median "
+                 f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press")
+    return "\n".join(lines)
 
 
 def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--workdir", default="vs2t-demo", help="work folder; stages are cached there")
-    parser.add_argument("--items", type=int, default=24, help="pieces in the stream (default 24)")
-    parser.add_argument("--profile", default="small", help="world and training profile (default small)")
+    parser.add_argument("--items", type=int, default=30, help="pieces in the stream (default 30)")
+    parser.add_argument("--profile", default="demo",
+                        help="fabric world (sim/synth.py PROFILES; default demo: 24 fabrics of 6 kinds, 7 x 7 presses); "
+                             "training uses the small profile for the demo world and the world's own otherwise")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--arm", choices=("ursim", "fake"), default="ursim",
                         help="ursim: real ur_rtde client against the loopback simulator (default)")
     parser.add_argument("--gate", choices=("pty", "fake"), default="pty",
                         help="pty: gate host driver against the MCU simulator (default)")
     parser.add_argument("--max-presses", type=int, default=5)
-    parser.add_argument("--confidence", type=float, default=0.95)
+    parser.add_argument("--confidence", type=float, default=None,
+                        help="posterior that sorts a piece (default: the bundle's operating point, chosen on "
+                             "validation fabrics for at most 1 %% mis-sorts)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--fault-at", default=None, metavar="ITEM:PRESS",
                         help="inject a protective stop at that press of that item (0-based item)")
@@ -229,12 +292,8 @@ def run(args) -> int:
                           fault_at=fault_at, log=log)
     summary["stage_s"] = {k: round(v, 1) for k, v in times.items()}
     summary["total_s"] = time.monotonic() - t0
-    by_kind = ", ".join(f"{k} {v:.0%}" for k, v in sorted(summary["accuracy_by_kind"].items()))
     log("")
-    log(f"accuracy {summary['accuracy']:.1%} over {summary['items']} pieces ({by_kind})")
-    log(f"presses per piece {summary['presses_per_item']:.2f}; model latency median "
-        f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press; "
-        f"{summary['item_s_median']:.1f} s per piece (simulated arm in real time)")
+    log(report_lines(summary))
     stages = ", ".join(f"{k.removesuffix('_s')} {v:.0f} s" for k, v in summary["stage_s"].items()) or "all stages cached"
     log(f"time: {stages}; sorting {summary['sort_s']:.0f} s; total {summary['total_s']:.0f} s")
     (workdir / "demo_summary.json").write_text(json.dumps(summary, indent=1, default=float))

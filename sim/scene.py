@@ -159,8 +159,13 @@ class TrackingArm:
 class DatasetFrames:
     """The frame under the gel: reference when up, nearest recorded press when pressed."""
 
-    def __init__(self, dataset: Dataset, items: SceneItems, arm: TrackingArm, cache_size: int = 256) -> None:
+    def __init__(self, dataset: Dataset, items: SceneItems, arm: TrackingArm, cache_size: int = 256,
+                 allowed: dict[str, list[int]] | None = None) -> None:
         self.dataset, self.items, self.arm = dataset, items, arm
+        # per fabric id, the recorded presses a piece may show (None: all); the demo keeps the
+        # touched fabrics to presses no training step saw (runtime.dataset.press_partition)
+        self.allowed = allowed or {}
+        self._shown: dict[tuple, int] = {}  # (item id, arm point) -> recorded press shown
         self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self.cache_size = cache_size
         self._fallback: np.ndarray | None = None
@@ -175,16 +180,23 @@ class DatasetFrames:
             self._cache.popitem(last=False)
         return image
 
-    def nearest_press(self, fabric: Fabric, x_mm: float, y_mm: float) -> int:
-        d = [(p.x_mm - x_mm) ** 2 + (p.y_mm - y_mm) ** 2 for p in fabric.presses]
-        return int(np.argmin(d))
+    def nearest_press(self, fabric: Fabric, x_mm: float, y_mm: float, taken: set[int] = frozenset()) -> int:
+        """The recorded press nearest to the arm's point among the allowed ones not yet shown for
+        this piece (all of them again once every allowed press was shown)."""
+        ok = [i for i in (self.allowed.get(fabric.id) or range(len(fabric.presses))) if i not in taken] or \
+            list(self.allowed.get(fabric.id) or range(len(fabric.presses)))
+        return min(ok, key=lambda i: (fabric.presses[i].x_mm - x_mm) ** 2 + (fabric.presses[i].y_mm - y_mm) ** 2)
 
     def __call__(self) -> np.ndarray:
         item = self.items.current
         fabric = self.dataset.by_id(item.fabric_id) if item else self.dataset.fabrics[0]
         if not self.arm.pressed or self.arm.target is None:
             return self._load((fabric.id, "ref"), fabric.load_reference)
-        k = self.nearest_press(fabric, *self.arm.target)
+        key = (item.id if item else "", tuple(self.arm.target))
+        if key not in self._shown:  # one recorded press per point of a piece, never one press twice
+            taken = {k for (it, _), k in self._shown.items() if it == key[0]}
+            self._shown[key] = self.nearest_press(fabric, *self.arm.target, taken=taken)
+        k = self._shown[key]
         return self._load((fabric.id, k), lambda: fabric.load_press(k))
 
 
@@ -236,6 +248,7 @@ class SimulatedCell:
     gate_kind: str = "pty"
     camera_seed: int = 0
     press_settings: dict = field(default_factory=lambda: dict(FAST_PRESS))
+    allowed_presses: dict | None = None  # fabric id -> press indices a piece may show (DatasetFrames)
     sim: Any = None
     camera: Any = None
     arm: Any = None
@@ -259,7 +272,7 @@ class SimulatedCell:
         else:
             inner = FakeArm(config=ArmConfig(**self.press_settings))
         self.arm = TrackingArm(inner, self.source, sim=self.sim)
-        frames = DatasetFrames(self.dataset, self.source, self.arm)
+        frames = DatasetFrames(self.dataset, self.source, self.arm, allowed=self.allowed_presses)
         g = self.dataset.geometry
         self.camera = SimulatedCamera(frames, noise_levels=1.0, seed=self.camera_seed,
                                       expected_hw=None)

@@ -17,8 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     # the demo and the tests name their smaller profiles
     parser.add_argument("--profile", choices=sorted(PROFILES), default="paper",
                         help="paper (default: 50 fabrics x 225 presses, 640x480 frames, 1000 px camera; "
-                             "~35 min on 2 cores, 5 GB), small (the demo: 20 x 25, 320x240, 25 s), "
-                             "tiny (tests, seconds)")
+                             "~12-35 min on 2 cores, 5 GB), demo (the main job's world: 24 x 49, 320x240, "
+                             "~2-4 min), small (20 x 25, 320x240, 25 s), tiny (tests, seconds)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fabrics", type=int, default=None, help="override the profile's number of fabrics")
     parser.add_argument("--workers", type=int, default=None, help="processes (default: 2)")
