@@ -7,7 +7,7 @@ Every reply carries the MCU's boot id, so a reboot is noticed on the next exchan
 
 Any pyserial URL works: a device path (``/dev/ttyACM0``, a pty's ``/dev/pts/N``), ``loop://``,
 ``socket://host:port``. Errors are ``GateClientError`` with ``kind`` in
-timeout / nak / jam / fault_latched / link; ``runtime.gate`` turns them into the runtime's
+timeout / nak / jam / fault_latched / link / bad_ack; ``runtime.gate`` turns them into the runtime's
 ``GateError``. This module imports pyserial and the stdlib only.
 """
 
@@ -26,17 +26,21 @@ from vs2t_edge.firmware_bridge import protocol as p
 
 log = logging.getLogger(__name__)
 
-ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link")
+# bad_ack: an ACK of a SORT or CLEAR (right CRC, SEQ and type) that reports something else than
+# what was asked - another bin, a moving or latched gate, a fault. The flap's position is then
+# what the gate says, not what the host asked: never a success.
+ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link", "bad_ack")
 
 
 class GateClientError(RuntimeError):
     """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name."""
 
-    def __init__(self, message: str, *, kind: str, reason: str = "") -> None:
+    def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None) -> None:
         super().__init__(message)
         assert kind in ERROR_KINDS, kind
         self.kind = kind
         self.reason = reason
+        self.reported_bin = reported_bin  # bad_ack: the bin the gate's ACK says the flap is at
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,7 @@ class GateClient:
         self.last_fault = ""
         self.fault_reports: list[p.FaultReport] = []  # unsolicited FAULT frames, in order
         self.retransmissions = 0
+        self.bad_acks = 0  # ACKs of SORT/CLEAR that contradicted the request (_require_ack_of)
         self.heartbeats_ok = 0
         self.heartbeat_errors = 0
 
@@ -198,6 +203,7 @@ class GateClient:
             self._refuse_after_reboot()  # a reboot explains a NAK better than the NAK does
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, f"sort to bin {bin_index}")
+            self._require_ack_of(reply, bin_index, f"sort to bin {bin_index}")
 
     def status(self) -> GateReport:
         with self._lock:
@@ -215,6 +221,8 @@ class GateClient:
             reply = self._request(p.CLEAR, b"", check_reboot=False)
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, "clear")
+            # CLEAR's ACK comes once the flap is back at reject with the latch gone (protocol.md)
+            self._require_ack_of(reply, p.REJECT_BIN, "clear")
             self._boot_id = reply.boot_id
             self._reboot = None
         self.start_heartbeat()
@@ -238,6 +246,24 @@ class GateClient:
             old, new = self._reboot
             raise GateClientError(f"the gate controller rebooted (boot id {old} -> {new}); the item in flight "
                                   "may not have been routed; clear the gate to continue", kind="link")
+
+    def _require_ack_of(self, ack: p.Ack, bin_index: int, what: str) -> None:
+        """The ACK of a SORT or CLEAR is the gate's word that the flap reached ``bin_index`` and the
+        gate is READY with no fault. An ACK reporting anything else contradicts the request - the
+        flap is where the gate says, or nobody knows where - so it is a fault, never a success."""
+        wrong = []
+        if ack.bin != bin_index:
+            wrong.append(f"the flap at bin {ack.bin}")
+        if ack.state != p.STATE_READY:
+            wrong.append(f"state {_state_name(ack.state)}")
+        if ack.fault != p.FAULT_NONE:
+            wrong.append(f"fault {_fault_name(ack.fault)}")
+        if wrong:
+            self.bad_acks += 1
+            log.error("%s: the gate's ACK reports %s", what, ", ".join(wrong))
+            raise GateClientError(f"{what}: the gate acknowledged it but reports {', '.join(wrong)} - the ACK "
+                                  f"contradicts the request, so the flap's position is not known",
+                                  kind="bad_ack", reason="contradicting_ack", reported_bin=ack.bin)
 
     def _nak_error(self, nak: p.Nak, what: str) -> GateClientError:
         reason = p.NAK_NAMES.get(nak.reason, f"unknown({nak.reason})")

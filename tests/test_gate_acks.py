@@ -1,0 +1,114 @@
+"""Issue 17, the gate: an ACK is believed only when it reports what was asked; FAULT floods are
+bounded; a gate found latched at start latches the cell before any piece is pressed.
+
+The host driver talks to the MCU simulator over a real pty; the lying MCU is the simulator with
+``LineFaults.lie_acks`` (right CRC, SEQ and type, fields replaced)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from vs2t_edge.firmware_bridge import protocol as p
+from vs2t_edge.firmware_bridge.gate_client import GateClient, GateClientError
+from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
+from vs2t_edge.runtime.devices import GateError
+from vs2t_edge.runtime.gate import SerialGate
+
+MOVE_MS = 40
+
+
+@pytest.fixture
+def sim():
+    path, simulator = start_simulated_gate(move_time_ms=MOVE_MS)
+    yield simulator
+    simulator.stop()
+
+
+@pytest.fixture
+def client(sim):
+    gate = GateClient(sim.device_path, timeout_s=0.3, retries=3, heartbeat_period_s=0.1)
+    gate.connect()
+    yield gate
+    gate.disconnect()
+
+
+def wait_for(predicate, timeout_s=2.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+# The lies the adversary told: the flap at another bin, the gate latched or still moving.
+LIES = {
+    "another bin": dict(lie_bin=7),
+    "reject bin": dict(lie_bin=0),
+    "fault (jam)": dict(lie_state=p.STATE_FAULT, lie_fault=p.FAULT_JAM),
+    "failsafe": dict(lie_state=p.STATE_FAILSAFE, lie_fault=p.FAULT_HEARTBEAT_LOST, lie_bin=0),
+    "busy": dict(lie_state=p.STATE_BUSY),
+    "fault code while ready": dict(lie_fault=p.FAULT_BOOT),
+}
+
+
+def _lie(sim, **fields) -> None:
+    for name, value in fields.items():
+        setattr(sim.faults, name, value)
+    sim.faults.lie_acks = 1
+
+
+@pytest.mark.parametrize("lie", LIES)
+def test_an_ack_that_contradicts_the_sort_is_a_fault_not_a_success(sim, client, lie):
+    _lie(sim, **LIES[lie])
+    with pytest.raises(GateClientError) as caught:
+        client.sort(5)
+    assert caught.value.kind == "bad_ack"
+    assert "contradicts" in str(caught.value)
+    assert caught.value.reported_bin == LIES[lie].get("lie_bin", 5)
+    assert sim.lies_told == 1 and client.bad_acks == 1
+    assert client.retransmissions == 0  # an answer, not a silence: not retried
+    client.sort(5)  # an honest ACK is believed again
+    assert sim.executed == [5, 5]
+
+
+def test_the_runtime_gate_reports_a_contradicting_ack_as_a_gate_error(sim):
+    gate = SerialGate(sim.device_path, timeout_s=0.3)
+    with gate:
+        _lie(sim, lie_bin=3)
+        with pytest.raises(GateError) as caught:
+            gate.sort(5)
+    assert caught.value.kind == "bad_ack" and caught.value.reported_bin == 3
+    assert not caught.value.retryable
+
+
+@pytest.mark.parametrize("lie", ["another bin", "fault (jam)", "busy"])
+def test_a_clear_ack_that_contradicts_the_clear_is_refused(sim, client, lie):
+    sim.reboot()  # a latch to clear: the MCU rebooted
+    with pytest.raises(GateClientError):
+        client.sort(2)
+    _lie(sim, **LIES[lie])
+    with pytest.raises(GateClientError) as caught:
+        client.clear()
+    assert caught.value.kind == "bad_ack"
+    with pytest.raises(GateClientError, match="rebooted"):
+        client.sort(2)  # the reboot was not acknowledged by a clear nobody can believe
+    client.clear()  # an honest clear does it
+    client.sort(2)
+    assert sim.executed == [2]
+
+
+def test_to_reject_does_not_believe_a_contradicting_ack_and_lets_the_gate_fail_safe():
+    path, sim = start_simulated_gate(move_time_ms=MOVE_MS, heartbeat_timeout_ms=300)
+    try:
+        with GateClient(path, timeout_s=0.15, heartbeat_period_s=0.08) as client:
+            client.sort(4)
+            _lie(sim, lie_bin=4)  # the ACK of SORT 0 says the flap is still at bin 4
+            client.to_reject()  # never raises
+            # not believed: heartbeats stop, the MCU's own watchdog puts the flap at reject
+            assert wait_for(lambda: sim.state == p.STATE_FAILSAFE, 2.0)
+            assert sim.firmware.bin == p.REJECT_BIN and client.bad_acks == 1
+    finally:
+        sim.stop()
