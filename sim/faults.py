@@ -986,6 +986,41 @@ def gate_reboot(w: Path):
     return _gate_row(w, lambda s: s.reboot(), {"sorted": 3, "rejected_fault": 1}, "boot id")
 
 
+# What a lying MCU's ACK of a SORT reports instead of "READY at the bin asked" (LineFaults fields).
+ACK_LIES = {
+    "another bin": {"lie_bin": 7},
+    "jam": {"lie_state": 2, "lie_fault": 2},  # FAULT / JAM, at the bin asked
+    "failsafe at reject": {"lie_state": 3, "lie_fault": 1, "lie_bin": 0},  # FAILSAFE / HEARTBEAT_LOST
+    "busy": {"lie_state": 1},
+}
+
+
+def ack_contradicts_sort(w: Path):
+    """The MCU acknowledges item 2's SORT with the right CRC, SEQ and type, but the ACK reports
+    the flap at another bin, or the gate jammed, fail-safe or still moving. The piece must not be
+    journalled sorted: a fault latches naming the contradiction, the record says unknown_outcome
+    with the bin asked (and the bin reported), and after the operator's clear the rest are sorted."""
+    words, problems = [], []
+    for name, lie in ACK_LIES.items():
+        def set_fault(sim, lie=lie):
+            for field_, value in lie.items():
+                setattr(sim.faults, field_, value)
+            sim.faults.lie_acks = 1
+
+        outcome, probs = _gate_row(w / name.replace(" ", "_"), set_fault, {"sorted": 3, "unknown_outcome": 1},
+                                   "contradicts",
+                                   fired=lambda g, s: "" if s.lies_told == 1 else f"{s.lies_told} lies told")
+        finals = audit(w / name.replace(" ", "_") / "journal.jsonl")["finals"]
+        odd = [f for f in finals if f["outcome"] != "sorted"]
+        reported = lie.get("lie_bin", BINS["silk"])
+        _check(probs, len(odd) == 1 and odd[0].get("maybe_bin") == BINS["silk"]
+               and odd[0].get("reported_bin", BINS["silk"]) == reported,
+               f"the piece's record does not name the bin asked ({BINS['silk']}) and reported ({reported}): {odd}")
+        words.append(f"{name}: {outcome.split(';')[0]}")
+        problems += [f"{name}: {p}" for p in probs]
+    return "; ".join(words), problems
+
+
 # --- journal rows ---------------------------------------------------------------------------
 
 def power_loss_mid_write(w: Path):
@@ -1231,9 +1266,12 @@ watchdog: {wait_item_timeout_s: 0.05}
 """
 
 
-def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08) -> int:
+def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08,
+                 gate_url: str | None = None) -> int:
     """The real daemon with fake devices and the grey model (``python -m vs2t_edge.sim.faults
-    daemon-child CONFIG``): signals, journal, recovery are the production code path."""
+    daemon-child CONFIG [GATE_URL]``): signals, journal, recovery are the production code path.
+    With ``gate_url`` the gate is the real host driver on that port (an MCU simulator in another
+    process, so it outlives this one, as the real gate outlives a killed service)."""
     from vs2t_edge.runtime.arm import FakeArm
     from vs2t_edge.runtime.camera import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
@@ -1261,12 +1299,18 @@ def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float 
     pieces = Endless([])
     arm = FaultArm(FakeArm(config=cfg.arm), pieces)
     camera = SimulatedCamera(grey_frames(arm, pieces), noise_levels=1.0, seed=0)
-    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=MovingGate(), items=pieces,
+    if gate_url:
+        from vs2t_edge.runtime.gate import SerialGate
+
+        gate = SerialGate(gate_url, timeout_s=0.3)
+    else:
+        gate = MovingGate()
+    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=gate, items=pieces,
                       evidence_factory=lambda: GreyEvidence(CLASSES, cfg.confidence, cfg.max_presses),
                       notifier=Notifier(address=""))
 
 
-def start_daemon(w: Path) -> tuple[subprocess.Popen, Path]:
+def start_daemon(w: Path, gate_url: str | None = None) -> tuple[subprocess.Popen, Path]:
     w.mkdir(parents=True, exist_ok=True)
     cfg = w / "cell.yaml"
     if not cfg.exists():
@@ -1274,7 +1318,8 @@ def start_daemon(w: Path) -> tuple[subprocess.Popen, Path]:
         cfg.chmod(0o640)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("NOTIFY_SOCKET", None)
-    proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.sim.faults", "daemon-child", str(cfg)], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.sim.faults", "daemon-child", str(cfg),
+                             *([gate_url] if gate_url else [])], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, w / "state" / "journal.jsonl"
 
@@ -1789,6 +1834,9 @@ SCENARIOS = [
              gate_jam),
     Scenario("gate_reboot", "pty gate", "MCU reboots mid-run", "fault latched (boot id changed), cleared, resumes",
              gate_reboot),
+    Scenario("gate_ack_contradicts", "pty gate", "ACK of a SORT reports another bin / jam / fail-safe / busy "
+             "(right CRC, SEQ, type)", "never journalled sorted: fault latched, piece unknown_outcome with the bins "
+             "asked and reported; resumes after clear", ack_contradicts_sort),
     Scenario("daemon_sigterm", "daemon", "SIGTERM mid-item, restart",
              "item in hand aborted to reject, exit 0, restart carries on", daemon_sigterm),
     Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart",
@@ -1841,7 +1889,7 @@ def run_scenario(sc: Scenario, workdir: Path | None = None) -> Row:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["daemon-child"]:
-        return daemon_child(argv[1])
+        return daemon_child(argv[1], gate_url=argv[2] if len(argv) > 2 else None)
     names = set(argv)
     rows = [run_scenario(s) for s in SCENARIOS if not names or s.name in names]
     for r in rows:

@@ -112,3 +112,34 @@ def test_to_reject_does_not_believe_a_contradicting_ack_and_lets_the_gate_fail_s
             assert sim.firmware.bin == p.REJECT_BIN and client.bad_acks == 1
     finally:
         sim.stop()
+
+
+def test_the_daemon_journals_a_contradicted_sort_as_a_fault_never_sorted(tmp_path):
+    """End to end: the real daemon (a subprocess) on the real host driver; the MCU simulator in
+    this process lies once in the ACK of a SORT after the daemon has sorted a piece honestly."""
+    from vs2t_edge.runtime.journal import read_records
+    from vs2t_edge.sim import faults
+
+    path, sim = start_simulated_gate(move_time_ms=MOVE_MS)
+    try:
+        proc, journal = faults.start_daemon(tmp_path, gate_url=path)
+        try:
+            assert faults.wait_for(journal, lambda rs: any(r.get("outcome") == "sorted" for r in rs), limit_s=60)
+            _lie(sim, lie_bin=7)
+            latched = faults.wait_for(journal, lambda rs: any(r["type"] == "fault" for r in rs), limit_s=30)
+        finally:
+            code, err = faults._stop(proc)
+        executed = sim.executed
+    finally:
+        sim.stop()
+    assert code == 0, err[-500:]
+    recs = read_records(journal)
+    finals = [r for r in recs if r["type"] == "final"]
+    assert latched and sim.lies_told == 1
+    assert [r["kind"] for r in recs if r["type"] == "fault"] == ["bad_ack"]
+    odd = [f for f in finals if f["outcome"] != "sorted"]
+    assert [f["outcome"] for f in odd] == ["unknown_outcome"]
+    assert odd[0]["bin"] == 0 and odd[0]["reported_bin"] == 7 and "contradicts" in odd[0]["reason"]
+    # every sorted record matches a move the MCU made, and the lied-about move is accounted for
+    assert faults._moves_match_journal(executed, finals) == ""
+    assert faults.audit(journal, faults._daemon_truths(recs))["problems"] == []
