@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 # bad_ack: an ACK of a SORT or CLEAR (right CRC, SEQ and type) that reports something else than
 # what was asked - another bin, a moving or latched gate, a fault. The flap's position is then
 # what the gate says, not what the host asked: never a success.
+FAULT_REPORTS_KEPT = 64  # the most recent unsolicited FAULT frames a client keeps
+
 ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link", "bad_ack")
 
 
@@ -99,7 +101,11 @@ class GateClient:
         self.last_state = ""
         self.armed_from = ""  # the latch connect() cleared, if any
         self.last_fault = ""
-        self.fault_reports: list[p.FaultReport] = []  # unsolicited FAULT frames, in order
+        # Unsolicited FAULT frames, the most recent FAULT_REPORTS_KEPT in order: a gate (or a line)
+        # that floods FAULT frames must not grow the host's memory; the rest are only counted.
+        self.fault_reports: collections.deque[p.FaultReport] = collections.deque(maxlen=FAULT_REPORTS_KEPT)
+        self.fault_reports_seen = 0
+        self._last_logged_report: p.FaultReport | None = None
         self.retransmissions = 0
         self.bad_acks = 0  # ACKs of SORT/CLEAR that contradicted the request (_require_ack_of)
         self.heartbeats_ok = 0
@@ -358,11 +364,19 @@ class GateClient:
         except (serial.SerialException, OSError, TypeError) as exc:
             raise GateClientError(f"reading from the gate on {self.port} failed: {exc}", kind="link") from exc
 
+    @property
+    def fault_reports_dropped(self) -> int:
+        """FAULT frames received but no longer kept in ``fault_reports``."""
+        return self.fault_reports_seen - len(self.fault_reports)
+
     def _on_fault_report(self, report: p.FaultReport) -> None:
         self.fault_reports.append(report)
+        self.fault_reports_seen += 1
         self._note_state(report.state, report.fault)
-        log.warning("gate reports fault %s (state %s, bin %d)", _fault_name(report.fault),
-                    _state_name(report.state), report.bin)
+        if report != self._last_logged_report:  # a flood of the same report is one log line
+            self._last_logged_report = report
+            log.warning("gate reports fault %s (state %s, bin %d; %d FAULT frames so far)",
+                        _fault_name(report.fault), _state_name(report.state), report.bin, self.fault_reports_seen)
         self._check_boot(report.boot_id)
 
     def _note_state(self, state: int, fault: int) -> None:

@@ -986,6 +986,35 @@ def gate_reboot(w: Path):
     return _gate_row(w, lambda s: s.reboot(), {"sorted": 3, "rejected_fault": 1}, "boot id")
 
 
+def fault_flood(w: Path):
+    """A stuck MCU (or the line) floods FAULT frames mid-run - 5000 JAM reports while the gate in
+    fact works: the host keeps only the most recent few (the rest counted) and sorts on the
+    honest ACKs."""
+    from vs2t_edge.firmware_bridge import protocol as gp
+    from vs2t_edge.firmware_bridge.gate_client import FAULT_REPORTS_KEPT
+
+    def flood(sim) -> None:
+        report = gp.FaultReport(gp.FAULT_JAM, gp.STATE_FAULT, 3, sim.firmware.boot_id).pack()
+        frame = gp.encode_frame(1, gp.FAULT, report)
+        for _ in range(20):
+            sim.inject_noise(frame * 250)
+            time.sleep(0.01)  # the heartbeats read in between, as from a real UART
+
+    seen: dict = {}
+
+    def fired(gate, sim) -> str:
+        c = gate.client
+        seen.update(kept=len(c.fault_reports), seen=c.fault_reports_seen)
+        if c.fault_reports_seen < 1000:
+            return f"only {c.fault_reports_seen} FAULT frames reached the host"
+        if len(c.fault_reports) != FAULT_REPORTS_KEPT or c.fault_reports_dropped + FAULT_REPORTS_KEPT != seen["seen"]:
+            return f"kept {len(c.fault_reports)} of {c.fault_reports_seen} FAULT frames (bound {FAULT_REPORTS_KEPT})"
+        return ""
+
+    words, problems = _gate_row(w, flood, {"sorted": 4}, None, fired=fired)
+    return words + f"; host kept {seen.get('kept')} of {seen.get('seen')} FAULT frames", problems
+
+
 # What a lying MCU's ACK of a SORT reports instead of "READY at the bin asked" (LineFaults fields).
 ACK_LIES = {
     "another bin": {"lie_bin": 7},
@@ -1837,6 +1866,8 @@ SCENARIOS = [
     Scenario("gate_ack_contradicts", "pty gate", "ACK of a SORT reports another bin / jam / fail-safe / busy "
              "(right CRC, SEQ, type)", "never journalled sorted: fault latched, piece unknown_outcome with the bins "
              "asked and reported; resumes after clear", ack_contradicts_sort),
+    Scenario("gate_fault_flood", "pty gate", "5000 FAULT frames (jam) sent mid-run, gate working",
+             "host keeps the last 64 and counts the rest; all sorted", fault_flood),
     Scenario("daemon_sigterm", "daemon", "SIGTERM mid-item, restart",
              "item in hand aborted to reject, exit 0, restart carries on", daemon_sigterm),
     Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart",

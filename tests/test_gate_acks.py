@@ -143,3 +143,35 @@ def test_the_daemon_journals_a_contradicted_sort_as_a_fault_never_sorted(tmp_pat
     # every sorted record matches a move the MCU made, and the lied-about move is accounted for
     assert faults._moves_match_journal(executed, finals) == ""
     assert faults.audit(journal, faults._daemon_truths(recs))["problems"] == []
+
+
+# --- a flood of FAULT frames ------------------------------------------------------------------------
+
+def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client, caplog):
+    from vs2t_edge.firmware_bridge import gate_client
+
+    kept = getattr(gate_client, "FAULT_REPORTS_KEPT", 64)  # getattr: on a client without a bound, fail below
+
+    def seen() -> int:
+        return getattr(client, "fault_reports_seen", len(client.fault_reports))
+
+    boot_id = client.status().boot_id
+    frame = p.encode_frame(9, p.FAULT, p.FaultReport(p.FAULT_JAM, p.STATE_FAULT, 3, boot_id).pack())
+    sent = 0
+    with caplog.at_level("WARNING", logger="vs2t_edge.firmware_bridge.gate_client"):
+        for _ in range(40):  # 40 bursts of 250 frames, read by the heartbeats in between
+            sim.inject_noise(frame * 250)
+            sent += 250
+            time.sleep(0.02)
+        last = -1
+        while seen() != last:  # until the heartbeats have read what arrived
+            last = seen()
+            time.sleep(0.5)
+        client.status()
+    n_seen = seen()
+    assert n_seen >= 1000, (n_seen, sent)  # a flood arrived (a full pty buffer loses some: a UART would)
+    assert len(client.fault_reports) == kept
+    assert client.fault_reports_dropped == n_seen - kept
+    assert all(r.fault == p.FAULT_JAM for r in client.fault_reports)
+    floods = [r for r in caplog.records if "reports fault" in r.getMessage()]
+    assert len(floods) == 1  # the same report ten thousand times is one log line
