@@ -175,3 +175,76 @@ def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client,
     assert all(r.fault == p.FAULT_JAM for r in client.fault_reports)
     floods = [r for r in caplog.records if "reports fault" in r.getMessage()]
     assert len(floods) == 1  # the same report ten thousand times is one log line
+
+
+# --- a gate found latched at start ----------------------------------------------------------------
+
+def _daemon_in_process(tmp_path, gate, truths, *, stop_when):
+    """The real daemon (run_daemon) on the fault matrix's fake arm, camera and grey model."""
+    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.runtime.camera import SimulatedCamera
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.notify import Notifier
+    from vs2t_edge.sim import faults
+
+    (tmp_path / "cell.yaml").write_text(faults.DAEMON_CONFIG)
+    (tmp_path / "cell.yaml").chmod(0o640)
+    cfg = load_config(tmp_path / "cell.yaml")
+    pieces = faults.Pieces(truths)
+    arm = faults.FaultArm(FakeArm(config=cfg.arm), pieces)
+    camera = SimulatedCamera(faults.grey_frames(arm, pieces), noise_levels=1.0, seed=0)
+    code = run_daemon(cfg, model=faults.GreyModel(), camera=camera, arm=arm, gate=gate, items=pieces,
+                      evidence_factory=lambda: faults.GreyEvidence(faults.CLASSES, 0.95, 3),
+                      notifier=Notifier(address=""), install_signals=False, stop_when=stop_when,
+                      log=lambda m: None)
+    return code, arm, cfg
+
+
+@pytest.mark.parametrize("latch", ["heartbeat_lost", "jam"])
+def test_a_gate_latched_at_start_latches_the_cell_before_any_piece_is_pressed(tmp_path, latch):
+    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.runtime.journal import read_records
+
+    gate = FakeGate()
+    if latch == "heartbeat_lost":
+        gate.lose_heartbeat()  # the service was down longer than the gate's heartbeat timeout
+    else:
+        gate.jam_next_sort()
+        gate.connect()
+        with pytest.raises(GateError):
+            gate.sort(1)
+    fault_file = tmp_path / "state" / "FAULT"
+    code, arm, cfg = _daemon_in_process(tmp_path, gate, ["denim", "silk"], stop_when=fault_file.exists)
+    assert code == 0
+    recs = read_records(cfg.journal)
+    types = [r["type"] for r in recs]
+    assert "fault" in types and "item" not in types  # latched before the first piece
+    fault = next(r for r in recs if r["type"] == "fault")
+    assert fault["kind"] == "fault_latched" and "gate latched at start" in fault["reason"] and latch in fault["reason"]
+    assert arm.press_count == 0 and gate.sorted == []
+    assert latch in fault_file.read_text()
+
+
+def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_path):
+    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.runtime.journal import read_records
+
+    gate = FakeGate()
+    gate.lose_heartbeat()
+    fault_file = tmp_path / "state" / "FAULT"
+    cleared = []
+
+    def operator_then_done():
+        if fault_file.exists():  # the operator checks the gate and clears (vs2t-edge run --clear-fault)
+            cleared.append(fault_file.read_text())
+            fault_file.unlink()
+        return len(gate.sorted) >= 2
+
+    code, arm, cfg = _daemon_in_process(tmp_path, gate, ["denim", "silk"], stop_when=operator_then_done)
+    assert code == 0 and len(cleared) == 1
+    recs = read_records(cfg.journal)
+    assert [r["type"] for r in recs if r["type"] in ("fault", "fault_cleared", "item")][:3] == \
+        ["fault", "fault_cleared", "item"]
+    assert [r["outcome"] for r in recs if r["type"] == "final"] == ["sorted", "sorted"]
+    assert gate.sorted == [1, 2]
