@@ -405,8 +405,27 @@ def start_simulated_gate(*, faults: LineFaults | None = None, transport: str = "
     return sim.device_path, sim
 
 
-def main() -> int:  # pragma: no cover - manual commissioning aid
-    path, sim = start_simulated_gate()
+def main(argv: list[str] | None = None) -> int:
+    """A simulated gate in its own process, up until SIGINT/SIGTERM: for commissioning practice,
+    and for tests where the gate must outlive the service (a killed daemon does not kill the real
+    gate). Prints its device path on the first line; on exit, ``executed [bins]`` (JSON) - the
+    moves SORT made - so a test can reconcile them with the journal."""
+    import argparse
+    import json
+    import signal
+
+    parser = argparse.ArgumentParser(prog="python -m vs2t_edge.firmware_bridge.mcu_sim")
+    parser.add_argument("--transport", choices=("pty", "tcp"), default="pty")
+    parser.add_argument("--move-ms", type=int, default=60, help="time a move takes")
+    parser.add_argument("--heartbeat-timeout-ms", type=int, default=p.HEARTBEAT_TIMEOUT_MS)
+    args = parser.parse_args(argv)
+
+    def stop(_signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    path, sim = start_simulated_gate(transport=args.transport, move_time_ms=args.move_ms,
+                                     heartbeat_timeout_ms=args.heartbeat_timeout_ms)
     print(f"simulated gate on {path} (Ctrl-C to stop); try: VS2T_GATE_PORT={path} vs2t-edge sort status",
           flush=True)
     try:
@@ -416,6 +435,7 @@ def main() -> int:  # pragma: no cover - manual commissioning aid
         pass
     finally:
         sim.stop()
+        print("executed " + json.dumps(sim.executed), flush=True)
     return 0
 
 

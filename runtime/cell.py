@@ -227,6 +227,7 @@ class Cell:
             if pre.get("type") == "pre_sort":
                 rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
                                   bin_=self.scene.reject_bin, outcome="unknown_outcome",
+                                  maybe_bin=pre.get("bin", self.scene.reject_bin),
                                   note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
                                        "and before the gate's ack; the gate may have moved - check the bins")
                 self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")

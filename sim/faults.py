@@ -922,21 +922,35 @@ def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, 
 
 def _moves_match_journal(executed: list[int], finals: list[dict]) -> str:
     """The MCU's non-reject moves are exactly the journal's sorted pieces, in order; a piece whose
-    ack was lost (``unknown_outcome``, ``maybe_bin``) may account for moves to that bin, and must
-    account for them: a move the journal cannot explain is a piece in a bin nobody knows of."""
+    outcome is unknown (``unknown_outcome`` with ``maybe_bin``: ack lost, ack contradicted, killed
+    after its pre_sort) may account for moves to that bin - none, one, or two if the cell retried
+    the sort - and must account for them: a move the journal cannot explain is a piece in a bin
+    nobody knows of. Matched with backtracking: an unknown piece whose SORT never got out must not
+    swallow the next sorted piece's move to the same bin."""
     moved = [b for b in executed if b != REJECT]
-    i = 0
+    steps = []
     for f in sorted(finals, key=lambda r: r["item"]):
         if f["outcome"] == "sorted" and f["bin"] != REJECT:
-            if i >= len(moved) or moved[i] != f["bin"]:
-                return f"gate moved to {moved} (non-reject) but the journal sorted item {f['item']} to bin {f['bin']}"
-            i += 1
-        elif f["outcome"] == "unknown_outcome" and "maybe_bin" in f:
-            while i < len(moved) and moved[i] == f["maybe_bin"]:
-                i += 1
-    if i != len(moved):
-        return f"gate moved to {moved} (non-reject); the journal accounts for the first {i} only"
-    return ""
+            steps.append(("sorted", f["bin"], f["item"]))
+        elif f["outcome"] == "unknown_outcome" and f.get("maybe_bin") not in (None, REJECT):
+            steps.append(("maybe", f["maybe_bin"], f["item"]))
+    # every count of moves the journal so far can account for (the matcher's states, no recursion)
+    accounted = {0}
+    for kind, bin_, _item in steps:
+        if kind == "sorted":
+            accounted = {j + 1 for j in accounted if j < len(moved) and moved[j] == bin_}
+        else:
+            more = set(accounted)
+            for j in accounted:
+                while j < len(moved) and moved[j] == bin_:
+                    j += 1
+                    more.add(j)
+            accounted = more
+    if len(moved) in accounted:
+        return ""
+    journal = ", ".join(f"item {item} {'sorted to' if kind == 'sorted' else 'maybe in'} bin {bin_}"
+                        for kind, bin_, item in steps)
+    return f"gate moved to {list(moved)} (non-reject) but the journal says: {journal or 'nothing sorted'}"
 
 
 def _retransmitted(gate, sim) -> str:
@@ -1420,37 +1434,155 @@ def daemon_sigterm(w: Path):
                               f"exit {code2}"), problems
 
 
+class GateProcess:
+    """The MCU simulator in its own process (``python -m vs2t_edge.firmware_bridge.mcu_sim``): a
+    gate that outlives a killed daemon, as the real one does. ``executed`` (the SORT moves it
+    made) is known once ``stop()`` has run."""
+
+    def __init__(self, move_ms: int = 80) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.firmware_bridge.mcu_sim",
+                                      "--move-ms", str(move_ms)],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        first = self.proc.stdout.readline()  # "simulated gate on /dev/pts/N ..."
+        if " on " not in first:
+            self.proc.kill()
+            raise RuntimeError(f"the MCU simulator did not start: {first!r} {self.proc.stderr.read()[-300:]}")
+        self.path = first.split(" on ", 1)[1].split()[0]
+        self.executed: list[int] | None = None
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, _err = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _err = self.proc.communicate()
+        for line in out.splitlines():
+            if line.startswith("executed "):
+                self.executed = json.loads(line[len("executed "):])
+
+    def __enter__(self) -> "GateProcess":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class Operator:
+    """Clears a latched fault as soon as it appears (``vs2t-edge run --clear-fault``), for daemon rows."""
+
+    def __init__(self, w: Path) -> None:
+        self.fault_file = w / "state" / "FAULT"
+        self.cleared: list[str] = []
+
+    def waiting(self, pred: Callable[[list], bool]) -> Callable[[list], bool]:
+        def check(recs: list) -> bool:
+            if self.fault_file.exists():
+                self.cleared.append(self.fault_file.read_text().strip())
+                self.fault_file.unlink()
+            return pred(recs)
+        return check
+
+
+def _after_start(recs: list, n: int) -> list:
+    """The records after the ``n``-th start record (1-based), [] before it."""
+    starts = [i for i, r in enumerate(recs) if r["type"] == "start"]
+    return recs[starts[n - 1] + 1:] if len(starts) >= n else []
+
+
+def _gate_reconciled(problems: list[str], gate: GateProcess, finals: list[dict]) -> str:
+    _check(problems, gate.executed is not None, "the MCU simulator did not report its moves")
+    executed = gate.executed or []
+    why = _moves_match_journal(executed, finals)
+    _check(problems, not why, why)
+    return f"gate executed {executed}"
+
+
 def daemon_sigkill(w: Path):
     """kill -9 mid-item (both right after a pre_sort and mid-press, alternately), restart: the open
-    item gets exactly one final record (unknown_outcome after pre_sort, aborted before)."""
+    item gets exactly one final record (unknown_outcome with the bin it may be in after pre_sort,
+    aborted before). The gate is the MCU simulator in its own process, so it outlives each kill as
+    the real gate does and its moves must reconcile with the journal: one move per sorted piece, a
+    killed sort's move (if the SORT got out) accounted by its unknown_outcome. Once the service
+    stays down past the gate's heartbeat timeout: the restart finds the gate fail-safe and latches
+    a fault before pressing, which the operator clears."""
     problems: list[str] = []
     seen = Counter()
+    operator = Operator(w)
     journal = w / "state" / "journal.jsonl"
-    for round_, after in enumerate(["pre_sort", "item", "pre_sort", "item"]):
-        proc, journal = start_daemon(w)
-        starts = sum(r["type"] == "start" for r in read_records(journal))
-        ok = wait_for(journal, lambda rs: sum(r["type"] == "start" for r in rs) > starts
-                      and sum(r["type"] == "final" for r in rs) > 0 and rs[-1]["type"] == after)
-        if proc.poll() is None:
-            proc.kill()  # SIGKILL: no handler, no shutdown record
-        proc.wait(timeout=10)
-        recs = read_records(journal)
-        open_ = {r["item"] for r in recs if r["type"] == after} - {r["item"] for r in recs if r["type"] == "final"}
-        if ok and open_:
-            seen[after] += 1
-    proc, journal = start_daemon(w)
-    wait_for(journal, lambda rs: sum(r["type"] == "start" for r in rs) == 5 and rs[-1]["type"] == "final")
-    code, err = _stop(proc)
+    with GateProcess() as gate:
+        for round_, after in enumerate(["pre_sort", "item", "pre_sort", "item"]):
+            proc, journal = start_daemon(w, gate_url=gate.path)
+            starts = sum(r["type"] == "start" for r in read_records(journal))
+            ok = wait_for(journal, operator.waiting(
+                lambda rs: any(r["type"] == "final" for r in _after_start(rs, starts + 1)) and rs[-1]["type"] == after))
+            if proc.poll() is None:
+                proc.kill()  # SIGKILL: no handler, no shutdown record, the gate left where it was
+            proc.wait(timeout=10)
+            recs = read_records(journal)
+            open_ = {r["item"] for r in recs if r["type"] == after} - {r["item"] for r in recs if r["type"] == "final"}
+            if ok and open_:
+                seen[after] += 1
+            if round_ == 1:
+                time.sleep(1.5)  # down longer than the gate's heartbeat timeout: it fails safe
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok = wait_for(journal, operator.waiting(lambda rs: any(r.get("outcome") == "sorted" for r in _after_start(rs, 5))))
+        code, err = _stop(proc)
     recs = read_records(journal)
     a = audit(journal, _daemon_truths(recs))
     problems += a["problems"]
     _check(problems, code == 0, f"final exit {code}: {err[-300:]}")
+    _check(problems, ok, "the last restart sorted nothing")
     _check(problems, seen["pre_sort"] >= 1 and seen["item"] >= 1,
            f"kills that left an item open: {dict(seen)} (timing; rerun)")
     o = a["outcomes"]
     _check(problems, o.get("unknown_outcome", 0) == seen["pre_sort"],
            f"{o.get('unknown_outcome', 0)} unknown_outcome for {seen['pre_sort']} kills after pre_sort")
-    return _outcome_words(a, f"{sum(seen.values())} kills left an item open"), problems
+    _check(problems, all(r.get("maybe_bin") is not None for r in a["finals"] if r["outcome"] == "unknown_outcome"),
+           "an unknown_outcome record does not name the bin the gate may have moved to")
+    at_start = [f for f in a["faults"] if f.startswith("gate latched at start")]
+    _check(problems, at_start and len(at_start) == len(a["faults"]),
+           f"faults: {a['faults']} (wanted only 'gate latched at start', at least once)")
+    _check(problems, len(operator.cleared) == len(a["faults"]), f"operator cleared {len(operator.cleared)} times")
+    moves = _gate_reconciled(problems, gate, a["finals"])
+    n_sorted = sum(f["outcome"] == "sorted" and f["bin"] != REJECT for f in a["finals"])
+    n_killed_moves = sum(b != REJECT for b in gate.executed or []) - n_sorted
+    return _outcome_words(a, f"{sum(seen.values())} kills left an item open; {len(at_start)} gate latched at "
+                             f"start, cleared; {moves} ({n_killed_moves} made for a killed sort, "
+                             "accounted by its unknown_outcome)"), problems
+
+
+def gate_latched_at_start(w: Path):
+    """The service is killed and stays down 1.5 s, past the gate's heartbeat timeout: the gate (its
+    own process) fails safe. The restarted daemon must see the latch before pressing a piece - a
+    fault record before any item record - and sort again once the operator has cleared it."""
+    problems: list[str] = []
+    operator = Operator(w)
+    with GateProcess() as gate:
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok = wait_for(journal, lambda rs: sum(r.get("outcome") == "sorted" for r in rs) >= 2)
+        proc.kill()
+        proc.wait(timeout=10)
+        time.sleep(1.5)
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok2 = wait_for(journal, lambda rs: any(r["type"] == "fault" for r in _after_start(rs, 2)))
+        first_after = [r["type"] for r in _after_start(read_records(journal), 2) if r["type"] in ("fault", "item")][:1]
+        ok3 = wait_for(journal, operator.waiting(
+            lambda rs: sum(r.get("outcome") == "sorted" for r in _after_start(rs, 2)) >= 2))
+        code, err = _stop(proc)
+    recs = read_records(journal)
+    a = audit(journal, _daemon_truths(recs))
+    problems += a["problems"]
+    _check(problems, ok and ok2 and ok3, f"never saw: 2 sorted {ok}, a fault after restart {ok2}, "
+                                         f"2 sorted after the clear {ok3}")
+    _check(problems, first_after == ["fault"], f"after the restart the first of fault/item was {first_after}")
+    _check(problems, len(a["faults"]) == 1 and "heartbeat_lost" in a["faults"][0],
+           f"expected one fault naming heartbeat_lost, got {a['faults']}")
+    _check(problems, len(operator.cleared) == 1, f"operator cleared {len(operator.cleared)} times")
+    _check(problems, code == 0, f"exit {code}: {err[-300:]}")
+    moves = _gate_reconciled(problems, gate, a["finals"])
+    return _outcome_words(a, moves), problems
 
 
 # --- config rows ----------------------------------------------------------------------------
@@ -1870,8 +2002,13 @@ SCENARIOS = [
              "host keeps the last 64 and counts the rest; all sorted", fault_flood),
     Scenario("daemon_sigterm", "daemon", "SIGTERM mid-item, restart",
              "item in hand aborted to reject, exit 0, restart carries on", daemon_sigterm),
-    Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart",
-             "open item resolved once: unknown_outcome / aborted", daemon_sigkill),
+    Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart; the gate "
+             "(MCU simulator, own process) survives, once past its heartbeat timeout",
+             "open item resolved once: unknown_outcome (bin it may be in) / aborted; gate moves reconcile with the "
+             "journal; a fail-safe gate latched at start and cleared", daemon_sigkill),
+    Scenario("gate_latched_at_start", "daemon", "service down 1.5 s (past the gate's heartbeat timeout), restart",
+             "fault latched before any piece is pressed, cleared by the operator, sorting resumes; moves reconcile",
+             gate_latched_at_start),
     Scenario("power_loss_mid_write", "journal", "power lost mid pre_sort write (torn last line)",
              "torn tail cut and kept aside, open item aborted once", power_loss_mid_write),
     Scenario("disk_full", "journal", "ENOSPC mid pre_sort write (half lands; injected os.write)",
