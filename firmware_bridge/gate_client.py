@@ -221,6 +221,11 @@ class GateClient:
             return GateReport(_state_name(reply.state), reply.bin, _fault_name(reply.fault), reply.n_bins,
                               reply.boot_id, reply.uptime_ms, reply.sorts_done, seq)
 
+    def heartbeat(self) -> None:
+        """One HEARTBEAT now, retransmitted like any request (the background thread sends its own)."""
+        with self._lock:
+            self._request(p.HEARTBEAT, b"")
+
     def clear(self) -> None:
         """Clear a latched fault (and acknowledge a reboot); the flap goes back to reject (bin 0)."""
         with self._lock:

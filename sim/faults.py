@@ -894,18 +894,25 @@ def force_never_reached_ursim(w: Path):
 
 def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, fault_words: str | None,
               fix: Callable[[Any], None] | None = None, timeout_s: float = 0.3,
-              fired: Callable[[Any, Any], str] | None = None):
+              fired: Callable[[Any, Any], str] | None = None, seed: int = 1,
+              exercise: Callable[[Any], None] | None = None):
     """``fired(gate, sim)``: why the injected fault did not happen ("" when it did), so a row
-    cannot pass because the line stayed clean."""
+    cannot pass because the line stayed clean. ``exercise(gate)`` runs right after the fault is
+    set (more traffic on the faulty line); ``seed`` seeds the line's noise."""
     from vs2t_edge.firmware_bridge.mcu_sim import LineFaults
     from vs2t_edge.runtime.gate import simulated_serial_gate
 
-    faults = LineFaults(seed=1)
+    faults = LineFaults(seed=seed)
     gate = simulated_serial_gate(faults=faults, timeout_s=timeout_s)
     sim = gate.simulator
 
+    def at_fault() -> None:
+        set_fault(sim)
+        if exercise is not None:
+            exercise(gate)
+
     def inject(r: Rig):
-        _at(r, 1, 1, lambda: set_fault(sim))
+        _at(r, 1, 1, at_fault)
 
     words, problems = _loop_row(w, inject=inject, gate=gate, expect_outcomes=expect_outcomes,
                                 fault_words=fault_words,
@@ -958,9 +965,47 @@ def _retransmitted(gate, sim) -> str:
     return "" if n >= 1 else "the host never retransmitted"
 
 
+NOISE_SEEDS = (1, 2, 3)
+NOISE_EXCHANGES = 100  # STATUS + HEARTBEAT pairs per seed on the noisy line, beside the cell's own traffic
+
+
 def serial_noise(w: Path):
-    return _gate_row(w, lambda s: setattr(s.faults, "noise_bytes", 7), {"sorted": 4}, None,
-                     fired=lambda g, s: "" if g._client._reader.dropped_bytes > 0 else "the host dropped no byte")
+    """7 random bytes (sync bytes included) before every MCU frame, on several seeds and hundreds
+    of frames: every frame the MCU sent must come out of the host's parser - none lost. A parser
+    that drops a whole false frame (CRC mismatch) swallows the good frame starting inside it; the
+    cell would still sort (a retransmission recovers), so only the count shows it. The stream is
+    flushed with non-sync bytes at the end, as the next traffic would, so a frame still waiting
+    behind an undisproved false start is counted, not lost."""
+    from vs2t_edge.firmware_bridge.protocol import MAX_FRAME
+
+    words, problems = [], []
+    for seed in NOISE_SEEDS:
+        counts: dict = {}
+
+        def exercise(gate) -> None:
+            for _ in range(NOISE_EXCHANGES):
+                gate.client.status()
+                gate.client.heartbeat()
+
+        def fired(gate, sim, counts=counts) -> str:
+            reader = gate.client._reader
+            reader.feed(bytes(MAX_FRAME))  # the stream goes on: disproves any false start left
+            counts.update(sent=sim.tx_frames, parsed=reader.frames, dropped=reader.dropped_bytes)
+            if reader.dropped_bytes == 0:
+                return "the host dropped no byte"
+            if sim.tx_frames < 2 * NOISE_EXCHANGES:
+                return f"only {sim.tx_frames} frames on the noisy line"
+            return ""
+
+        outcome, probs = _gate_row(w / f"seed{seed}", lambda s: setattr(s.faults, "noise_bytes", 7), {"sorted": 4},
+                                   None, fired=fired, seed=seed, exercise=exercise)
+        _check(probs, counts.get("parsed") == counts.get("sent"),
+               f"the MCU sent {counts.get('sent')} frames, the host parsed {counts.get('parsed')}: "
+               f"{(counts.get('sent') or 0) - (counts.get('parsed') or 0)} lost")
+        words.append(f"seed {seed}: {outcome.split(';')[0]}, {counts.get('parsed')}/{counts.get('sent')} frames "
+                     f"parsed, {counts.get('dropped')} noise bytes dropped")
+        problems += [f"seed {seed}: {p}" for p in probs]
+    return "; ".join(words), problems
 
 
 def dropped_ack(w: Path):
@@ -1980,8 +2025,8 @@ SCENARIOS = [
              "piece (refused 1 s)", "reconnect, the interrupted press redone, all sorted", connection_drop_ursim),
     Scenario("ursim_force_never_reached", "ursim", "nothing under the tool (force never reached)",
              "retried once, then fault; piece rejected", force_never_reached_ursim),
-    Scenario("gate_serial_noise", "pty gate", "7 noise bytes before every MCU frame", "all sorted, one move each",
-             serial_noise),
+    Scenario("gate_serial_noise", "pty gate", "7 noise bytes before every MCU frame; 3 seeds, 200+ frames each",
+             "every MCU frame parsed by the host (none lost); all sorted, one move each", serial_noise),
     Scenario("gate_dropped_ack", "pty gate", "MCU's ack lost", "retransmitted, sorted once", dropped_ack),
     Scenario("gate_dropped_request", "pty gate", "host's sort frame lost", "retransmitted, sorted once",
              dropped_request),

@@ -248,3 +248,45 @@ def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_pa
         ["fault", "fault_cleared", "item"]
     assert [r["outcome"] for r in recs if r["type"] == "final"] == ["sorted", "sorted"]
     assert gate.sorted == [1, 2]
+
+
+# --- the fault matrix's noise row must catch a parser that loses frames ---------------------------
+
+def _lossy_check_frame(buf):
+    """The classic resync bug docs/protocol.md warns of: on a CRC mismatch drop the whole frame
+    LEN announces, not just up to the next sync - a good frame starting inside a false one is lost."""
+    answer = _good_check_frame(buf)
+    if answer.kind == p.DROP and len(buf) > 1 and buf[0] == p.SYNC and buf[1] <= p.MAX_PAYLOAD:
+        return p.Check(p.DROP, min(len(buf), p.MIN_FRAME + buf[1]))
+    return answer
+
+
+_good_check_frame = p.check_frame
+
+
+def test_the_lossy_parser_really_loses_noise_prefixed_frames():
+    import random
+
+    rng = random.Random(5)
+    frame = p.encode_frame(3, p.ACK, p.Ack(p.SORT, 0, 1, 0, 1).pack())
+    stream = b"".join(bytes(rng.choice((p.SYNC, rng.randrange(256))) for _ in range(7)) + frame for _ in range(2000))
+    good, lossy = p.FrameReader(), p.FrameReader()
+    n_good = len(good.feed(stream + bytes(p.MAX_FRAME)))
+    try:
+        p.check_frame = _lossy_check_frame
+        n_lossy = len(lossy.feed(stream + bytes(p.MAX_FRAME)))
+    finally:
+        p.check_frame = _good_check_frame
+    assert n_good == 2000
+    assert 0.02 < 1 - n_lossy / 2000 < 0.2  # a few percent lost: what the noise row must see
+
+
+def test_the_serial_noise_row_fails_with_a_parser_that_loses_frames(tmp_path, monkeypatch):
+    from vs2t_edge.sim import faults
+
+    monkeypatch.setattr(p, "check_frame", _lossy_check_frame)
+    # one seed of the row's three is enough to see it (and each lost frame costs a timeout)
+    monkeypatch.setattr(faults, "NOISE_SEEDS", faults.NOISE_SEEDS[1:2])
+    row = faults.run_scenario(next(s for s in faults.SCENARIOS if s.name == "gate_serial_noise"), tmp_path)
+    assert not row.passed
+    assert any("lost" in problem for problem in row.problems), row.problems
