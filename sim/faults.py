@@ -1064,8 +1064,8 @@ def fault_flood(w: Path):
     def fired(gate, sim) -> str:
         c = gate.client
         seen.update(kept=len(c.fault_reports), seen=c.fault_reports_seen)
-        if c.fault_reports_seen < 1000:
-            return f"only {c.fault_reports_seen} FAULT frames reached the host"
+        if c.fault_reports_seen <= 4 * FAULT_REPORTS_KEPT:  # a pty loses what the host does not read in time
+            return f"only {c.fault_reports_seen} FAULT frames reached the host: no flood"
         if len(c.fault_reports) != FAULT_REPORTS_KEPT or c.fault_reports_dropped + FAULT_REPORTS_KEPT != seen["seen"]:
             return f"kept {len(c.fault_reports)} of {c.fault_reports_seen} FAULT frames (bound {FAULT_REPORTS_KEPT})"
         return ""

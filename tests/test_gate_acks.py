@@ -169,7 +169,7 @@ def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client,
             time.sleep(0.5)
         client.status()
     n_seen = seen()
-    assert n_seen >= 1000, (n_seen, sent)  # a flood arrived (a full pty buffer loses some: a UART would)
+    assert n_seen > 4 * kept, (n_seen, sent)  # a flood arrived (a full pty buffer loses some: a UART would)
     assert len(client.fault_reports) == kept
     assert client.fault_reports_dropped == n_seen - kept
     assert all(r.fault == p.FAULT_JAM for r in client.fault_reports)
