@@ -99,6 +99,7 @@ class GateClient:
         self._hb_stop = threading.Event()
         self._hb_thread: threading.Thread | None = None
         self.last_state = ""
+        self.last_bin = p.REJECT_BIN  # the flap's bin in the gate's last reply or report
         self.armed_from = ""  # the latch connect() cleared, if any
         self.last_fault = ""
         # Unsolicited FAULT frames, the most recent FAULT_REPORTS_KEPT in order: a gate (or a line)
@@ -227,13 +228,18 @@ class GateClient:
             self._request(p.HEARTBEAT, b"")
 
     def clear(self) -> None:
-        """Clear a latched fault (and acknowledge a reboot); the flap goes back to reject (bin 0)."""
+        """Clear a latched fault (and acknowledge a reboot): the flap goes back to reject (bin 0); on
+        a READY gate a harmless no-op."""
         with self._lock:
+            # CLEAR of a latched gate ACKs once the flap is back at reject; CLEAR of a READY gate is a
+            # harmless ACK with the flap where it was (protocol.md). The host's last word from the
+            # gate may be a beat old, so reject is always a right answer.
+            allowed = (p.REJECT_BIN,) + ((self.last_bin,) if self.last_state == "ready" else ())
             reply = self._request(p.CLEAR, b"", check_reboot=False)
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, "clear")
-            # CLEAR's ACK comes once the flap is back at reject with the latch gone (protocol.md)
-            self._require_ack_of(reply, p.REJECT_BIN, "clear")
+            expected = reply.bin if reply.bin in allowed else p.REJECT_BIN
+            self._require_ack_of(reply, expected, "clear")
             self._boot_id = reply.boot_id
             self._reboot = None
         self.start_heartbeat()
@@ -306,7 +312,7 @@ class GateClient:
                 self._write(frame)
                 reply = self._wait_reply(seq, msg_type, time.monotonic() + self.timeout_s)
                 if reply is not None:
-                    self._note_state(reply.state, reply.fault)
+                    self._note_state(reply.state, reply.fault, reply.bin)
                     if check_reboot:
                         self._check_boot(reply.boot_id)
                     return reply
@@ -377,16 +383,17 @@ class GateClient:
     def _on_fault_report(self, report: p.FaultReport) -> None:
         self.fault_reports.append(report)
         self.fault_reports_seen += 1
-        self._note_state(report.state, report.fault)
+        self._note_state(report.state, report.fault, report.bin)
         if report != self._last_logged_report:  # a flood of the same report is one log line
             self._last_logged_report = report
             log.warning("gate reports fault %s (state %s, bin %d; %d FAULT frames so far)",
                         _fault_name(report.fault), _state_name(report.state), report.bin, self.fault_reports_seen)
         self._check_boot(report.boot_id)
 
-    def _note_state(self, state: int, fault: int) -> None:
+    def _note_state(self, state: int, fault: int, bin_index: int) -> None:
         self.last_state = _state_name(state)
         self.last_fault = _fault_name(fault)
+        self.last_bin = bin_index
 
     def _check_boot(self, boot_id: int) -> None:
         if self._boot_id is not None and boot_id != self._boot_id and self._reboot is None:

@@ -100,6 +100,24 @@ def test_a_clear_ack_that_contradicts_the_clear_is_refused(sim, client, lie):
     assert sim.executed == [2]
 
 
+def test_clear_of_a_ready_gate_is_a_harmless_ack_where_the_flap_is(sim, client):
+    """protocol.md: CLEAR while READY is a harmless ACK - the flap stays at its bin. That ACK is
+    no contradiction; the same bin reported after clearing a latch would be one."""
+    client.sort(3)
+    client.clear()
+    assert client.status().bin == 3 and client.bad_acks == 0
+    with GateClient(sim.device_path, timeout_s=0.3, heartbeat_period_s=None) as by_hand:  # `vs2t-edge sort clear`
+        by_hand.clear()
+    sim.jam()
+    with pytest.raises(GateClientError):
+        client.sort(5)  # latched FAULT/JAM, the flap stuck short of bin 5
+    sim.jam(False)
+    _lie(sim, lie_bin=3)  # cleared, but the flap "is" where it was before the latch
+    with pytest.raises(GateClientError) as caught:
+        client.clear()
+    assert caught.value.kind == "bad_ack"
+
+
 def test_to_reject_does_not_believe_a_contradicting_ack_and_lets_the_gate_fail_safe():
     path, sim = start_simulated_gate(move_time_ms=MOVE_MS, heartbeat_timeout_ms=300)
     try:
