@@ -26,11 +26,11 @@ from vs2t_edge.firmware_bridge import protocol as p
 
 log = logging.getLogger(__name__)
 
+FAULT_REPORTS_KEPT = 64  # the most recent unsolicited FAULT frames a client keeps
+
 # bad_ack: an ACK of a SORT or CLEAR (right CRC, SEQ and type) that reports something else than
 # what was asked - another bin, a moving or latched gate, a fault. The flap's position is then
 # what the gate says, not what the host asked: never a success.
-FAULT_REPORTS_KEPT = 64  # the most recent unsolicited FAULT frames a client keeps
-
 ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link", "bad_ack")
 
 
