@@ -930,34 +930,35 @@ def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, 
 def _moves_match_journal(executed: list[int], finals: list[dict]) -> str:
     """The MCU's non-reject moves are exactly the journal's sorted pieces, in order; a piece whose
     outcome is unknown (``unknown_outcome`` with ``maybe_bin``: ack lost, ack contradicted, killed
-    after its pre_sort) may account for moves to that bin - none, one, or two if the cell retried
-    the sort - and must account for them: a move the journal cannot explain is a piece in a bin
-    nobody knows of. Matched with backtracking: an unknown piece whose SORT never got out must not
-    swallow the next sorted piece's move to the same bin."""
+    after its pre_sort) may account for moves to that bin or to its ``reported_bin`` - none, one,
+    or two if the cell retried the sort - and must account for them: a move the journal cannot
+    explain is a piece in a bin nobody knows of. Every way of splitting the moves is tried, so an
+    unknown piece whose SORT never got out does not swallow the next piece's move to the same bin."""
     moved = [b for b in executed if b != REJECT]
-    steps = []
+    steps: list[tuple[str, set, int]] = []
     for f in sorted(finals, key=lambda r: r["item"]):
         if f["outcome"] == "sorted" and f["bin"] != REJECT:
-            steps.append(("sorted", f["bin"], f["item"]))
-        elif f["outcome"] == "unknown_outcome" and f.get("maybe_bin") not in (None, REJECT):
-            steps.append(("maybe", f["maybe_bin"], f["item"]))
+            steps.append(("sorted to", {f["bin"]}, f["item"]))
+        elif f["outcome"] == "unknown_outcome":
+            maybe = {f.get("maybe_bin"), f.get("reported_bin")} - {None, REJECT}
+            if maybe:
+                steps.append(("maybe in", maybe, f["item"]))
     # every count of moves the journal so far can account for (the matcher's states, no recursion)
     accounted = {0}
-    for kind, bin_, _item in steps:
-        if kind == "sorted":
-            accounted = {j + 1 for j in accounted if j < len(moved) and moved[j] == bin_}
+    for kind, bins, _item in steps:
+        if kind == "sorted to":
+            accounted = {j + 1 for j in accounted if j < len(moved) and moved[j] in bins}
         else:
             more = set(accounted)
             for j in accounted:
-                while j < len(moved) and moved[j] == bin_:
+                while j < len(moved) and moved[j] in bins:
                     j += 1
                     more.add(j)
             accounted = more
     if len(moved) in accounted:
         return ""
-    journal = ", ".join(f"item {item} {'sorted to' if kind == 'sorted' else 'maybe in'} bin {bin_}"
-                        for kind, bin_, item in steps)
-    return f"gate moved to {list(moved)} (non-reject) but the journal says: {journal or 'nothing sorted'}"
+    journal = ", ".join(f"item {item} {kind} bin {'/'.join(map(str, sorted(bins)))}" for kind, bins, item in steps)
+    return f"gate moved to {moved} (non-reject) but the journal says: {journal or 'nothing sorted'}"
 
 
 def _retransmitted(gate, sim) -> str:

@@ -308,3 +308,22 @@ def test_the_serial_noise_row_fails_with_a_parser_that_loses_frames(tmp_path, mo
     row = faults.run_scenario(next(s for s in faults.SCENARIOS if s.name == "gate_serial_noise"), tmp_path)
     assert not row.passed
     assert any("lost" in problem for problem in row.problems), row.problems
+
+
+def test_the_moves_reconciliation_tries_every_split():
+    """Seen in a daemon_sigkill run: item 4 was killed after its pre_sort before its SORT got out,
+    item 6 was sorted to the same bin. A greedy match gave item 6's move to item 4 and failed."""
+    from vs2t_edge.sim.faults import _moves_match_journal
+
+    def final(item, outcome, bin_=0, **extra):
+        return {"item": item, "outcome": outcome, "bin": bin_, **extra}
+
+    finals = [final(1, "sorted", 1), final(2, "unknown_outcome", maybe_bin=2),
+              final(4, "unknown_outcome", maybe_bin=1), final(6, "sorted", 1)]
+    assert _moves_match_journal([0, 1, 2, 1], finals) == ""
+    assert _moves_match_journal([0, 1, 2, 1, 1], finals) == ""  # item 4's move did happen
+    assert "journal says" in _moves_match_journal([0, 1, 2], finals)  # item 6 sorted without a move
+    assert "journal says" in _moves_match_journal([0, 1, 2, 1, 3], finals)  # a move nobody knows of
+    # a contradicted ACK: the flap may have gone where the gate reported
+    contradicted = [final(1, "unknown_outcome", maybe_bin=2, reported_bin=7)]
+    assert _moves_match_journal([7], contradicted) == "" and _moves_match_journal([2], contradicted) == ""
