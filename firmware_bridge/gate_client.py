@@ -7,7 +7,7 @@ Every reply carries the MCU's boot id, so a reboot is noticed on the next exchan
 
 Any pyserial URL works: a device path (``/dev/ttyACM0``, a pty's ``/dev/pts/N``), ``loop://``,
 ``socket://host:port``. Errors are ``GateClientError`` with ``kind`` in
-timeout / nak / jam / fault_latched / link; ``runtime.gate`` turns them into the runtime's
+timeout / nak / jam / fault_latched / link / bad_ack; ``runtime.gate`` turns them into the runtime's
 ``GateError``. This module imports pyserial and the stdlib only.
 """
 
@@ -26,17 +26,23 @@ from vs2t_edge.firmware_bridge import protocol as p
 
 log = logging.getLogger(__name__)
 
-ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link")
+FAULT_REPORTS_KEPT = 64  # the most recent unsolicited FAULT frames a client keeps
+
+# bad_ack: an ACK of a SORT or CLEAR (right CRC, SEQ and type) that reports something else than
+# what was asked - another bin, a moving or latched gate, a fault. The flap's position is then
+# what the gate says, not what the host asked: never a success.
+ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link", "bad_ack")
 
 
 class GateClientError(RuntimeError):
     """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name."""
 
-    def __init__(self, message: str, *, kind: str, reason: str = "") -> None:
+    def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None) -> None:
         super().__init__(message)
         assert kind in ERROR_KINDS, kind
         self.kind = kind
         self.reason = reason
+        self.reported_bin = reported_bin  # bad_ack: the bin the gate's ACK says the flap is at
 
 
 @dataclass(frozen=True)
@@ -93,10 +99,16 @@ class GateClient:
         self._hb_stop = threading.Event()
         self._hb_thread: threading.Thread | None = None
         self.last_state = ""
+        self.last_bin = p.REJECT_BIN  # the flap's bin in the gate's last reply or report
         self.armed_from = ""  # the latch connect() cleared, if any
         self.last_fault = ""
-        self.fault_reports: list[p.FaultReport] = []  # unsolicited FAULT frames, in order
+        # Unsolicited FAULT frames, the most recent FAULT_REPORTS_KEPT in order: a gate (or a line)
+        # that floods FAULT frames must not grow the host's memory; the rest are only counted.
+        self.fault_reports: collections.deque[p.FaultReport] = collections.deque(maxlen=FAULT_REPORTS_KEPT)
+        self.fault_reports_seen = 0
+        self._last_logged_report: p.FaultReport | None = None
         self.retransmissions = 0
+        self.bad_acks = 0  # ACKs of SORT/CLEAR that contradicted the request (_require_ack_of)
         self.heartbeats_ok = 0
         self.heartbeat_errors = 0
 
@@ -198,6 +210,7 @@ class GateClient:
             self._refuse_after_reboot()  # a reboot explains a NAK better than the NAK does
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, f"sort to bin {bin_index}")
+            self._require_ack_of(reply, bin_index, f"sort to bin {bin_index}")
 
     def status(self) -> GateReport:
         with self._lock:
@@ -209,12 +222,24 @@ class GateClient:
             return GateReport(_state_name(reply.state), reply.bin, _fault_name(reply.fault), reply.n_bins,
                               reply.boot_id, reply.uptime_ms, reply.sorts_done, seq)
 
-    def clear(self) -> None:
-        """Clear a latched fault (and acknowledge a reboot); the flap goes back to reject (bin 0)."""
+    def heartbeat(self) -> None:
+        """One HEARTBEAT now, retransmitted like any request (the background thread sends its own)."""
         with self._lock:
+            self._request(p.HEARTBEAT, b"")
+
+    def clear(self) -> None:
+        """Clear a latched fault (and acknowledge a reboot): the flap goes back to reject (bin 0); on
+        a READY gate a harmless no-op."""
+        with self._lock:
+            # CLEAR of a latched gate ACKs once the flap is back at reject; CLEAR of a READY gate is a
+            # harmless ACK with the flap where it was (protocol.md). The host's last word from the
+            # gate may be a beat old, so reject is always a right answer.
+            allowed = (p.REJECT_BIN,) + ((self.last_bin,) if self.last_state == "ready" else ())
             reply = self._request(p.CLEAR, b"", check_reboot=False)
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, "clear")
+            expected = reply.bin if reply.bin in allowed else p.REJECT_BIN
+            self._require_ack_of(reply, expected, "clear")
             self._boot_id = reply.boot_id
             self._reboot = None
         self.start_heartbeat()
@@ -238,6 +263,24 @@ class GateClient:
             old, new = self._reboot
             raise GateClientError(f"the gate controller rebooted (boot id {old} -> {new}); the item in flight "
                                   "may not have been routed; clear the gate to continue", kind="link")
+
+    def _require_ack_of(self, ack: p.Ack, bin_index: int, what: str) -> None:
+        """The ACK of a SORT or CLEAR is the gate's word that the flap reached ``bin_index`` and the
+        gate is READY with no fault. An ACK reporting anything else contradicts the request - the
+        flap is where the gate says, or nobody knows where - so it is a fault, never a success."""
+        wrong = []
+        if ack.bin != bin_index:
+            wrong.append(f"the flap at bin {ack.bin}")
+        if ack.state != p.STATE_READY:
+            wrong.append(f"state {_state_name(ack.state)}")
+        if ack.fault != p.FAULT_NONE:
+            wrong.append(f"fault {_fault_name(ack.fault)}")
+        if wrong:
+            self.bad_acks += 1
+            log.error("%s: the gate's ACK reports %s", what, ", ".join(wrong))
+            raise GateClientError(f"{what}: the gate acknowledged it but reports {', '.join(wrong)} - the ACK "
+                                  f"contradicts the request, so the flap's position is not known",
+                                  kind="bad_ack", reason="contradicting_ack", reported_bin=ack.bin)
 
     def _nak_error(self, nak: p.Nak, what: str) -> GateClientError:
         reason = p.NAK_NAMES.get(nak.reason, f"unknown({nak.reason})")
@@ -269,7 +312,7 @@ class GateClient:
                 self._write(frame)
                 reply = self._wait_reply(seq, msg_type, time.monotonic() + self.timeout_s)
                 if reply is not None:
-                    self._note_state(reply.state, reply.fault)
+                    self._note_state(reply.state, reply.fault, reply.bin)
                     if check_reboot:
                         self._check_boot(reply.boot_id)
                     return reply
@@ -332,16 +375,25 @@ class GateClient:
         except (serial.SerialException, OSError, TypeError) as exc:
             raise GateClientError(f"reading from the gate on {self.port} failed: {exc}", kind="link") from exc
 
+    @property
+    def fault_reports_dropped(self) -> int:
+        """FAULT frames received but no longer kept in ``fault_reports``."""
+        return self.fault_reports_seen - len(self.fault_reports)
+
     def _on_fault_report(self, report: p.FaultReport) -> None:
         self.fault_reports.append(report)
-        self._note_state(report.state, report.fault)
-        log.warning("gate reports fault %s (state %s, bin %d)", _fault_name(report.fault),
-                    _state_name(report.state), report.bin)
+        self.fault_reports_seen += 1
+        self._note_state(report.state, report.fault, report.bin)
+        if report != self._last_logged_report:  # a flood of the same report is one log line
+            self._last_logged_report = report
+            log.warning("gate reports fault %s (state %s, bin %d; %d FAULT frames so far)",
+                        _fault_name(report.fault), _state_name(report.state), report.bin, self.fault_reports_seen)
         self._check_boot(report.boot_id)
 
-    def _note_state(self, state: int, fault: int) -> None:
+    def _note_state(self, state: int, fault: int, bin_index: int) -> None:
         self.last_state = _state_name(state)
         self.last_fault = _fault_name(fault)
+        self.last_bin = bin_index
 
     def _check_boot(self, boot_id: int) -> None:
         if self._boot_id is not None and boot_id != self._boot_id and self._reboot is None:

@@ -187,6 +187,13 @@ class LineFaults:
     drop_rx: int = 0  # lose the next N frames the host sends (never reach the firmware)
     duplicate_tx: int = 0  # send the next N MCU frames twice
     noise_bytes: int = 0  # random bytes (sync bytes included) written before every MCU frame
+    # A lying MCU (firmware bug, wrong firmware, a corrupted byte the CRC happened to pass): the
+    # next ``lie_acks`` ACKs of a SORT or CLEAR go out with their fields replaced by those set
+    # here (None keeps the true value), CRC recomputed, SEQ and type right.
+    lie_acks: int = 0
+    lie_bin: int | None = None
+    lie_state: int | None = None
+    lie_fault: int | None = None
     seed: int = 0
     rng: random.Random = field(init=False, repr=False)
 
@@ -220,6 +227,7 @@ class MCUSimulator:
         self.reader = p.FrameReader()
         self.rx_frames: list[p.Frame] = []  # every valid frame that reached the firmware
         self.tx_frames = 0
+        self.lies_told = 0  # ACKs sent with replaced fields (LineFaults.lie_acks)
         self._outbox: list[tuple[float, bytes]] = []  # (due time, frame)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="mcu-sim", daemon=True)
@@ -342,8 +350,25 @@ class MCUSimulator:
                     self._queue(frame)
                 self._flush_due()
 
+    def _lie(self, frame: bytes) -> bytes:
+        """``frame`` as the lying MCU sends it (LineFaults.lie_acks), or unchanged."""
+        faults = self.faults
+        if faults.lie_acks <= 0 or frame[3] != p.ACK:
+            return frame
+        decoded = p.decode_frame(frame)
+        ack = p.parse_reply(decoded)
+        if ack.acked_type not in (p.SORT, p.CLEAR):
+            return frame
+        faults.lie_acks -= 1
+        lie = p.Ack(ack.acked_type, ack.state if faults.lie_state is None else faults.lie_state,
+                    ack.bin if faults.lie_bin is None else faults.lie_bin,
+                    ack.fault if faults.lie_fault is None else faults.lie_fault, ack.boot_id)
+        self.lies_told += 1
+        return p.encode_frame(decoded.seq, p.ACK, lie.pack())
+
     def _queue(self, frame: bytes) -> None:
         faults = self.faults
+        frame = self._lie(frame)
         if faults.drop_tx > 0:
             faults.drop_tx -= 1
             return
@@ -380,8 +405,27 @@ def start_simulated_gate(*, faults: LineFaults | None = None, transport: str = "
     return sim.device_path, sim
 
 
-def main() -> int:  # pragma: no cover - manual commissioning aid
-    path, sim = start_simulated_gate()
+def main(argv: list[str] | None = None) -> int:
+    """A simulated gate in its own process, up until SIGINT/SIGTERM: for commissioning practice,
+    and for tests where the gate must outlive the service (a killed daemon does not kill the real
+    gate). Prints its device path on the first line; on exit, ``executed [bins]`` (JSON) - the
+    moves SORT made - so a test can reconcile them with the journal."""
+    import argparse
+    import json
+    import signal
+
+    parser = argparse.ArgumentParser(prog="python -m vs2t_edge.firmware_bridge.mcu_sim")
+    parser.add_argument("--transport", choices=("pty", "tcp"), default="pty")
+    parser.add_argument("--move-ms", type=int, default=60, help="time a move takes")
+    parser.add_argument("--heartbeat-timeout-ms", type=int, default=p.HEARTBEAT_TIMEOUT_MS)
+    args = parser.parse_args(argv)
+
+    def stop(_signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    path, sim = start_simulated_gate(transport=args.transport, move_time_ms=args.move_ms,
+                                     heartbeat_timeout_ms=args.heartbeat_timeout_ms)
     print(f"simulated gate on {path} (Ctrl-C to stop); try: VS2T_GATE_PORT={path} vs2t-edge sort status",
           flush=True)
     try:
@@ -391,6 +435,7 @@ def main() -> int:  # pragma: no cover - manual commissioning aid
         pass
     finally:
         sim.stop()
+        print("executed " + json.dumps(sim.executed), flush=True)
     return 0
 
 

@@ -227,6 +227,7 @@ class Cell:
             if pre.get("type") == "pre_sort":
                 rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
                                   bin_=self.scene.reject_bin, outcome="unknown_outcome",
+                                  maybe_bin=pre.get("bin", self.scene.reject_bin),
                                   note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
                                        "and before the gate's ack; the gate may have moved - check the bins")
                 self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
@@ -547,14 +548,19 @@ class Cell:
             # A SORT that timed out may have been executed with only its acks lost (docs/protocol.md):
             # the piece is in its bin or the reject bin, and the record says so instead of claiming
             # reject. A NAK, a latched gate, a jam or a reboot (the MCU boots to reject) did not route it.
-            uncertain = gate_told and fault.kind == "timeout"
+            # An ACK that contradicts the sort (bad_ack: another bin, a latched or moving gate) is no
+            # more certain than a lost one: the flap is where the gate says, or nobody knows.
+            uncertain = gate_told and fault.kind in ("timeout", "bad_ack")
             outcome = "unknown_outcome" if uncertain else "rejected_fault"
-            reason = fault.reason + (f"; the piece may be in bin {bin_} or the reject bin - check both"
-                                     if uncertain else "")
+            reported = getattr(fault.__cause__, "reported_bin", None) if fault.kind == "bad_ack" else None
+            also = f", bin {reported} (where the gate says the flap is)" if reported not in (None, bin_) else ""
+            reason = fault.reason + (f"; the piece may be in bin {bin_}{also} or the reject bin - check "
+                                     f"{'them' if also else 'both'}" if uncertain else "")
             self.latch_fault(f"item {number} ({item.id}): {reason}", fault.kind)
             self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
                         outcome=outcome, reason=reason, presses=presses,
-                        **({"maybe_bin": bin_} if uncertain else {}))
+                        **({"maybe_bin": bin_} if uncertain else {}),
+                        **({"reported_bin": reported} if also else {}))
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, presses, 0.0,
                                 "fault", skipped, latencies, self.clock() - t0)
         except StopRequested:

@@ -9,6 +9,8 @@ Start-up order (each step says what it is doing in STATUS=):
 3. open the journal (a torn last record is cut and kept aside), resolve an item the last run
    left between its pre-sort and final records, restore a latched fault from the fault file;
 4. connect camera, arm and gate - exit 3 on a device fault (systemd restarts, within limits);
+   a gate found latched (fault or fail-safe, e.g. after a stop longer than its heartbeat
+   timeout) latches a fault before the first piece is pressed;
 5. READY=1, then the loop (runtime/cell.py) with WATCHDOG=1 pings and STATUS= lines.
 
 SIGTERM/SIGINT: the current item is aborted at the next press boundary (gel lifted, gate to
@@ -246,6 +248,10 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         journal.close()
         return EXIT_USAGE
     cell.recover()
+    if cell.fault is None:
+        latched = gate_latched_at_start(gate)
+        if latched:
+            cell.latch_fault(*latched)
     beta = getattr(model, "beta", None)
     notifier.ready(f"ready: bundle {Path(cfg.bundle).name} verified and warm in {load_s:.1f} s"
                    + (f", beta {beta:.4g}" if isinstance(beta, (int, float)) else "")
@@ -266,6 +272,21 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     notifier.stopping(f"stopped ({reason}); {cell.items_done} items")
     notifier.close()
     return EXIT_OK
+
+
+def gate_latched_at_start(gate) -> tuple[str, str] | None:
+    """(reason, kind) when the gate refuses to route right now, else None. A gate that latched while
+    no service fed it (down longer than its heartbeat timeout, a jam, a reboot) is seen here, before
+    the first piece is pressed - not by the sort after the piece's presses - and latched as any gate
+    fault: nothing moves until the operator's clear, which clears the gate too."""
+    try:
+        status = gate.status()
+    except DeviceError as exc:
+        return f"gate status at start failed: {exc}", exc.kind
+    if status.state in ("fault", "failsafe"):
+        return (f"gate latched at start: {status.state} ({status.fault or 'no reason given'}), flap at bin "
+                f"{status.bin} - it routes nothing until cleared; check the gate, then clear", "fault_latched")
+    return None
 
 
 def _float_or_none(x) -> float | None:

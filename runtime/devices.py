@@ -107,7 +107,8 @@ class Arm(Protocol):
 # --- gate ---------------------------------------------------------------------------------
 
 class GateError(DeviceError):
-    """kind: timeout (no ack after retries), nak, jam, fault_latched, link."""
+    """kind: timeout (no ack after retries), nak, jam, fault_latched, link, bad_ack (an ACK that
+    reports another bin or state than the one asked; ``reported_bin`` is the bin it reports)."""
 
 
 @dataclass(frozen=True)

@@ -894,18 +894,25 @@ def force_never_reached_ursim(w: Path):
 
 def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, fault_words: str | None,
               fix: Callable[[Any], None] | None = None, timeout_s: float = 0.3,
-              fired: Callable[[Any, Any], str] | None = None):
+              fired: Callable[[Any, Any], str] | None = None, seed: int = 1,
+              exercise: Callable[[Any], None] | None = None):
     """``fired(gate, sim)``: why the injected fault did not happen ("" when it did), so a row
-    cannot pass because the line stayed clean."""
+    cannot pass because the line stayed clean. ``exercise(gate)`` runs right after the fault is
+    set (more traffic on the faulty line); ``seed`` seeds the line's noise."""
     from vs2t_edge.firmware_bridge.mcu_sim import LineFaults
     from vs2t_edge.runtime.gate import simulated_serial_gate
 
-    faults = LineFaults(seed=1)
+    faults = LineFaults(seed=seed)
     gate = simulated_serial_gate(faults=faults, timeout_s=timeout_s)
     sim = gate.simulator
 
+    def at_fault() -> None:
+        set_fault(sim)
+        if exercise is not None:
+            exercise(gate)
+
     def inject(r: Rig):
-        _at(r, 1, 1, lambda: set_fault(sim))
+        _at(r, 1, 1, at_fault)
 
     words, problems = _loop_row(w, inject=inject, gate=gate, expect_outcomes=expect_outcomes,
                                 fault_words=fault_words,
@@ -922,21 +929,36 @@ def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, 
 
 def _moves_match_journal(executed: list[int], finals: list[dict]) -> str:
     """The MCU's non-reject moves are exactly the journal's sorted pieces, in order; a piece whose
-    ack was lost (``unknown_outcome``, ``maybe_bin``) may account for moves to that bin, and must
-    account for them: a move the journal cannot explain is a piece in a bin nobody knows of."""
+    outcome is unknown (``unknown_outcome`` with ``maybe_bin``: ack lost, ack contradicted, killed
+    after its pre_sort) may account for moves to that bin or to its ``reported_bin`` - none, one,
+    or two if the cell retried the sort - and must account for them: a move the journal cannot
+    explain is a piece in a bin nobody knows of. Every way of splitting the moves is tried, so an
+    unknown piece whose SORT never got out does not swallow the next piece's move to the same bin."""
     moved = [b for b in executed if b != REJECT]
-    i = 0
+    steps: list[tuple[str, set, int]] = []
     for f in sorted(finals, key=lambda r: r["item"]):
         if f["outcome"] == "sorted" and f["bin"] != REJECT:
-            if i >= len(moved) or moved[i] != f["bin"]:
-                return f"gate moved to {moved} (non-reject) but the journal sorted item {f['item']} to bin {f['bin']}"
-            i += 1
-        elif f["outcome"] == "unknown_outcome" and "maybe_bin" in f:
-            while i < len(moved) and moved[i] == f["maybe_bin"]:
-                i += 1
-    if i != len(moved):
-        return f"gate moved to {moved} (non-reject); the journal accounts for the first {i} only"
-    return ""
+            steps.append(("sorted to", {f["bin"]}, f["item"]))
+        elif f["outcome"] == "unknown_outcome":
+            maybe = {f.get("maybe_bin"), f.get("reported_bin")} - {None, REJECT}
+            if maybe:
+                steps.append(("maybe in", maybe, f["item"]))
+    # every count of moves the journal so far can account for (the matcher's states, no recursion)
+    accounted = {0}
+    for kind, bins, _item in steps:
+        if kind == "sorted to":
+            accounted = {j + 1 for j in accounted if j < len(moved) and moved[j] in bins}
+        else:
+            more = set(accounted)
+            for j in accounted:
+                while j < len(moved) and moved[j] in bins:
+                    j += 1
+                    more.add(j)
+            accounted = more
+    if len(moved) in accounted:
+        return ""
+    journal = ", ".join(f"item {item} {kind} bin {'/'.join(map(str, sorted(bins)))}" for kind, bins, item in steps)
+    return f"gate moved to {moved} (non-reject) but the journal says: {journal or 'nothing sorted'}"
 
 
 def _retransmitted(gate, sim) -> str:
@@ -944,9 +966,47 @@ def _retransmitted(gate, sim) -> str:
     return "" if n >= 1 else "the host never retransmitted"
 
 
+NOISE_SEEDS = (1, 2, 3)
+NOISE_EXCHANGES = 100  # STATUS + HEARTBEAT pairs per seed on the noisy line, beside the cell's own traffic
+
+
 def serial_noise(w: Path):
-    return _gate_row(w, lambda s: setattr(s.faults, "noise_bytes", 7), {"sorted": 4}, None,
-                     fired=lambda g, s: "" if g._client._reader.dropped_bytes > 0 else "the host dropped no byte")
+    """7 random bytes (sync bytes included) before every MCU frame, on several seeds and hundreds
+    of frames: every frame the MCU sent must come out of the host's parser - none lost. A parser
+    that drops a whole false frame (CRC mismatch) swallows the good frame starting inside it; the
+    cell would still sort (a retransmission recovers), so only the count shows it. The stream is
+    flushed with non-sync bytes at the end, as the next traffic would, so a frame still waiting
+    behind an undisproved false start is counted, not lost."""
+    from vs2t_edge.firmware_bridge.protocol import MAX_FRAME
+
+    words, problems = [], []
+    for seed in NOISE_SEEDS:
+        counts: dict = {}
+
+        def exercise(gate) -> None:
+            for _ in range(NOISE_EXCHANGES):
+                gate.client.status()
+                gate.client.heartbeat()
+
+        def fired(gate, sim, counts=counts) -> str:
+            reader = gate.client._reader
+            reader.feed(bytes(MAX_FRAME))  # the stream goes on: disproves any false start left
+            counts.update(sent=sim.tx_frames, parsed=reader.frames, dropped=reader.dropped_bytes)
+            if reader.dropped_bytes == 0:
+                return "the host dropped no byte"
+            if sim.tx_frames < 2 * NOISE_EXCHANGES:
+                return f"only {sim.tx_frames} frames on the noisy line"
+            return ""
+
+        outcome, probs = _gate_row(w / f"seed{seed}", lambda s: setattr(s.faults, "noise_bytes", 7), {"sorted": 4},
+                                   None, fired=fired, seed=seed, exercise=exercise)
+        _check(probs, counts.get("parsed") == counts.get("sent"),
+               f"the MCU sent {counts.get('sent')} frames, the host parsed {counts.get('parsed')}: "
+               f"{(counts.get('sent') or 0) - (counts.get('parsed') or 0)} lost")
+        words.append(f"seed {seed}: {outcome.split(';')[0]}, {counts.get('parsed')}/{counts.get('sent')} frames "
+                     f"parsed, {counts.get('dropped')} noise bytes dropped")
+        problems += [f"seed {seed}: {p}" for p in probs]
+    return "; ".join(words), problems
 
 
 def dropped_ack(w: Path):
@@ -984,6 +1044,70 @@ def gate_jam(w: Path):
 
 def gate_reboot(w: Path):
     return _gate_row(w, lambda s: s.reboot(), {"sorted": 3, "rejected_fault": 1}, "boot id")
+
+
+def fault_flood(w: Path):
+    """A stuck MCU (or the line) floods FAULT frames mid-run - 5000 JAM reports while the gate in
+    fact works: the host keeps only the most recent few (the rest counted) and sorts on the
+    honest ACKs."""
+    from vs2t_edge.firmware_bridge import protocol as gp
+    from vs2t_edge.firmware_bridge.gate_client import FAULT_REPORTS_KEPT
+
+    def flood(sim) -> None:
+        report = gp.FaultReport(gp.FAULT_JAM, gp.STATE_FAULT, 3, sim.firmware.boot_id).pack()
+        frame = gp.encode_frame(1, gp.FAULT, report)
+        for _ in range(20):
+            sim.inject_noise(frame * 250)
+            time.sleep(0.01)  # the heartbeats read in between, as from a real UART
+
+    seen: dict = {}
+
+    def fired(gate, sim) -> str:
+        c = gate.client
+        seen.update(kept=len(c.fault_reports), seen=c.fault_reports_seen)
+        if c.fault_reports_seen <= 4 * FAULT_REPORTS_KEPT:  # a pty loses what the host does not read in time
+            return f"only {c.fault_reports_seen} FAULT frames reached the host: no flood"
+        if len(c.fault_reports) != FAULT_REPORTS_KEPT or c.fault_reports_dropped + FAULT_REPORTS_KEPT != seen["seen"]:
+            return f"kept {len(c.fault_reports)} of {c.fault_reports_seen} FAULT frames (bound {FAULT_REPORTS_KEPT})"
+        return ""
+
+    words, problems = _gate_row(w, flood, {"sorted": 4}, None, fired=fired)
+    return words + f"; host kept {seen.get('kept')} of {seen.get('seen')} FAULT frames", problems
+
+
+# What a lying MCU's ACK of a SORT reports instead of "READY at the bin asked" (LineFaults fields).
+ACK_LIES = {
+    "another bin": {"lie_bin": 7},
+    "jam": {"lie_state": 2, "lie_fault": 2},  # FAULT / JAM, at the bin asked
+    "failsafe at reject": {"lie_state": 3, "lie_fault": 1, "lie_bin": 0},  # FAILSAFE / HEARTBEAT_LOST
+    "busy": {"lie_state": 1},
+}
+
+
+def ack_contradicts_sort(w: Path):
+    """The MCU acknowledges item 2's SORT with the right CRC, SEQ and type, but the ACK reports
+    the flap at another bin, or the gate jammed, fail-safe or still moving. The piece must not be
+    journalled sorted: a fault latches naming the contradiction, the record says unknown_outcome
+    with the bin asked (and the bin reported), and after the operator's clear the rest are sorted."""
+    words, problems = [], []
+    for name, lie in ACK_LIES.items():
+        def set_fault(sim, lie=lie):
+            for field_, value in lie.items():
+                setattr(sim.faults, field_, value)
+            sim.faults.lie_acks = 1
+
+        outcome, probs = _gate_row(w / name.replace(" ", "_"), set_fault, {"sorted": 3, "unknown_outcome": 1},
+                                   "contradicts",
+                                   fired=lambda g, s: "" if s.lies_told == 1 else f"{s.lies_told} lies told")
+        finals = audit(w / name.replace(" ", "_") / "journal.jsonl")["finals"]
+        odd = [f for f in finals if f["outcome"] != "sorted"]
+        reported = lie.get("lie_bin", BINS["silk"])
+        _check(probs, len(odd) == 1 and odd[0].get("maybe_bin") == BINS["silk"]
+               and odd[0].get("reported_bin", BINS["silk"]) == reported,
+               f"the piece's record does not name the bin asked ({BINS['silk']}) and reported ({reported}): {odd}")
+        words.append(f"{name}: {outcome.split(';')[0]}")
+        problems += [f"{name}: {p}" for p in probs]
+    return "; ".join(words), problems
 
 
 # --- journal rows ---------------------------------------------------------------------------
@@ -1231,9 +1355,12 @@ watchdog: {wait_item_timeout_s: 0.05}
 """
 
 
-def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08) -> int:
+def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08,
+                 gate_url: str | None = None) -> int:
     """The real daemon with fake devices and the grey model (``python -m vs2t_edge.sim.faults
-    daemon-child CONFIG``): signals, journal, recovery are the production code path."""
+    daemon-child CONFIG [GATE_URL]``): signals, journal, recovery are the production code path.
+    With ``gate_url`` the gate is the real host driver on that port (an MCU simulator in another
+    process, so it outlives this one, as the real gate outlives a killed service)."""
     from vs2t_edge.runtime.arm import FakeArm
     from vs2t_edge.runtime.camera import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
@@ -1261,12 +1388,18 @@ def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float 
     pieces = Endless([])
     arm = FaultArm(FakeArm(config=cfg.arm), pieces)
     camera = SimulatedCamera(grey_frames(arm, pieces), noise_levels=1.0, seed=0)
-    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=MovingGate(), items=pieces,
+    if gate_url:
+        from vs2t_edge.runtime.gate import SerialGate
+
+        gate = SerialGate(gate_url, timeout_s=0.3)
+    else:
+        gate = MovingGate()
+    return run_daemon(cfg, model=SlowGrey(), camera=camera, arm=arm, gate=gate, items=pieces,
                       evidence_factory=lambda: GreyEvidence(CLASSES, cfg.confidence, cfg.max_presses),
                       notifier=Notifier(address=""))
 
 
-def start_daemon(w: Path) -> tuple[subprocess.Popen, Path]:
+def start_daemon(w: Path, gate_url: str | None = None) -> tuple[subprocess.Popen, Path]:
     w.mkdir(parents=True, exist_ok=True)
     cfg = w / "cell.yaml"
     if not cfg.exists():
@@ -1274,7 +1407,8 @@ def start_daemon(w: Path) -> tuple[subprocess.Popen, Path]:
         cfg.chmod(0o640)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("NOTIFY_SOCKET", None)
-    proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.sim.faults", "daemon-child", str(cfg)], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.sim.faults", "daemon-child", str(cfg),
+                             *([gate_url] if gate_url else [])], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, w / "state" / "journal.jsonl"
 
@@ -1346,37 +1480,155 @@ def daemon_sigterm(w: Path):
                               f"exit {code2}"), problems
 
 
+class GateProcess:
+    """The MCU simulator in its own process (``python -m vs2t_edge.firmware_bridge.mcu_sim``): a
+    gate that outlives a killed daemon, as the real one does. ``executed`` (the SORT moves it
+    made) is known once ``stop()`` has run."""
+
+    def __init__(self, move_ms: int = 80) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "vs2t_edge.firmware_bridge.mcu_sim",
+                                      "--move-ms", str(move_ms)],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        first = self.proc.stdout.readline()  # "simulated gate on /dev/pts/N ..."
+        if " on " not in first:
+            self.proc.kill()
+            raise RuntimeError(f"the MCU simulator did not start: {first!r} {self.proc.stderr.read()[-300:]}")
+        self.path = first.split(" on ", 1)[1].split()[0]
+        self.executed: list[int] | None = None
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, _err = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _err = self.proc.communicate()
+        for line in out.splitlines():
+            if line.startswith("executed "):
+                self.executed = json.loads(line[len("executed "):])
+
+    def __enter__(self) -> "GateProcess":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class Operator:
+    """Clears a latched fault as soon as it appears (``vs2t-edge run --clear-fault``), for daemon rows."""
+
+    def __init__(self, w: Path) -> None:
+        self.fault_file = w / "state" / "FAULT"
+        self.cleared: list[str] = []
+
+    def waiting(self, pred: Callable[[list], bool]) -> Callable[[list], bool]:
+        def check(recs: list) -> bool:
+            if self.fault_file.exists():
+                self.cleared.append(self.fault_file.read_text().strip())
+                self.fault_file.unlink()
+            return pred(recs)
+        return check
+
+
+def _after_start(recs: list, n: int) -> list:
+    """The records after the ``n``-th start record (1-based), [] before it."""
+    starts = [i for i, r in enumerate(recs) if r["type"] == "start"]
+    return recs[starts[n - 1] + 1:] if len(starts) >= n else []
+
+
+def _gate_reconciled(problems: list[str], gate: GateProcess, finals: list[dict]) -> str:
+    _check(problems, gate.executed is not None, "the MCU simulator did not report its moves")
+    executed = gate.executed or []
+    why = _moves_match_journal(executed, finals)
+    _check(problems, not why, why)
+    return f"gate executed {executed}"
+
+
 def daemon_sigkill(w: Path):
     """kill -9 mid-item (both right after a pre_sort and mid-press, alternately), restart: the open
-    item gets exactly one final record (unknown_outcome after pre_sort, aborted before)."""
+    item gets exactly one final record (unknown_outcome with the bin it may be in after pre_sort,
+    aborted before). The gate is the MCU simulator in its own process, so it outlives each kill as
+    the real gate does and its moves must reconcile with the journal: one move per sorted piece, a
+    killed sort's move (if the SORT got out) accounted by its unknown_outcome. Once the service
+    stays down past the gate's heartbeat timeout: the restart finds the gate fail-safe and latches
+    a fault before pressing, which the operator clears."""
     problems: list[str] = []
     seen = Counter()
+    operator = Operator(w)
     journal = w / "state" / "journal.jsonl"
-    for round_, after in enumerate(["pre_sort", "item", "pre_sort", "item"]):
-        proc, journal = start_daemon(w)
-        starts = sum(r["type"] == "start" for r in read_records(journal))
-        ok = wait_for(journal, lambda rs: sum(r["type"] == "start" for r in rs) > starts
-                      and sum(r["type"] == "final" for r in rs) > 0 and rs[-1]["type"] == after)
-        if proc.poll() is None:
-            proc.kill()  # SIGKILL: no handler, no shutdown record
-        proc.wait(timeout=10)
-        recs = read_records(journal)
-        open_ = {r["item"] for r in recs if r["type"] == after} - {r["item"] for r in recs if r["type"] == "final"}
-        if ok and open_:
-            seen[after] += 1
-    proc, journal = start_daemon(w)
-    wait_for(journal, lambda rs: sum(r["type"] == "start" for r in rs) == 5 and rs[-1]["type"] == "final")
-    code, err = _stop(proc)
+    with GateProcess() as gate:
+        for round_, after in enumerate(["pre_sort", "item", "pre_sort", "item"]):
+            proc, journal = start_daemon(w, gate_url=gate.path)
+            starts = sum(r["type"] == "start" for r in read_records(journal))
+            ok = wait_for(journal, operator.waiting(
+                lambda rs: any(r["type"] == "final" for r in _after_start(rs, starts + 1)) and rs[-1]["type"] == after))
+            if proc.poll() is None:
+                proc.kill()  # SIGKILL: no handler, no shutdown record, the gate left where it was
+            proc.wait(timeout=10)
+            recs = read_records(journal)
+            open_ = {r["item"] for r in recs if r["type"] == after} - {r["item"] for r in recs if r["type"] == "final"}
+            if ok and open_:
+                seen[after] += 1
+            if round_ == 1:
+                time.sleep(1.5)  # down longer than the gate's heartbeat timeout: it fails safe
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok = wait_for(journal, operator.waiting(lambda rs: any(r.get("outcome") == "sorted" for r in _after_start(rs, 5))))
+        code, err = _stop(proc)
     recs = read_records(journal)
     a = audit(journal, _daemon_truths(recs))
     problems += a["problems"]
     _check(problems, code == 0, f"final exit {code}: {err[-300:]}")
+    _check(problems, ok, "the last restart sorted nothing")
     _check(problems, seen["pre_sort"] >= 1 and seen["item"] >= 1,
            f"kills that left an item open: {dict(seen)} (timing; rerun)")
     o = a["outcomes"]
     _check(problems, o.get("unknown_outcome", 0) == seen["pre_sort"],
            f"{o.get('unknown_outcome', 0)} unknown_outcome for {seen['pre_sort']} kills after pre_sort")
-    return _outcome_words(a, f"{sum(seen.values())} kills left an item open"), problems
+    _check(problems, all(r.get("maybe_bin") is not None for r in a["finals"] if r["outcome"] == "unknown_outcome"),
+           "an unknown_outcome record does not name the bin the gate may have moved to")
+    at_start = [f for f in a["faults"] if f.startswith("gate latched at start")]
+    _check(problems, at_start and len(at_start) == len(a["faults"]),
+           f"faults: {a['faults']} (wanted only 'gate latched at start', at least once)")
+    _check(problems, len(operator.cleared) == len(a["faults"]), f"operator cleared {len(operator.cleared)} times")
+    moves = _gate_reconciled(problems, gate, a["finals"])
+    n_sorted = sum(f["outcome"] == "sorted" and f["bin"] != REJECT for f in a["finals"])
+    n_killed_moves = sum(b != REJECT for b in gate.executed or []) - n_sorted
+    return _outcome_words(a, f"{sum(seen.values())} kills left an item open; {len(at_start)} gate latched at "
+                             f"start, cleared; {moves} ({n_killed_moves} made for a killed sort, "
+                             "accounted by its unknown_outcome)"), problems
+
+
+def gate_latched_at_start(w: Path):
+    """The service is killed and stays down 1.5 s, past the gate's heartbeat timeout: the gate (its
+    own process) fails safe. The restarted daemon must see the latch before pressing a piece - a
+    fault record before any item record - and sort again once the operator has cleared it."""
+    problems: list[str] = []
+    operator = Operator(w)
+    with GateProcess() as gate:
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok = wait_for(journal, lambda rs: sum(r.get("outcome") == "sorted" for r in rs) >= 2)
+        proc.kill()
+        proc.wait(timeout=10)
+        time.sleep(1.5)
+        proc, journal = start_daemon(w, gate_url=gate.path)
+        ok2 = wait_for(journal, lambda rs: any(r["type"] == "fault" for r in _after_start(rs, 2)))
+        first_after = [r["type"] for r in _after_start(read_records(journal), 2) if r["type"] in ("fault", "item")][:1]
+        ok3 = wait_for(journal, operator.waiting(
+            lambda rs: sum(r.get("outcome") == "sorted" for r in _after_start(rs, 2)) >= 2))
+        code, err = _stop(proc)
+    recs = read_records(journal)
+    a = audit(journal, _daemon_truths(recs))
+    problems += a["problems"]
+    _check(problems, ok and ok2 and ok3, f"never saw: 2 sorted {ok}, a fault after restart {ok2}, "
+                                         f"2 sorted after the clear {ok3}")
+    _check(problems, first_after == ["fault"], f"after the restart the first of fault/item was {first_after}")
+    _check(problems, len(a["faults"]) == 1 and "heartbeat_lost" in a["faults"][0],
+           f"expected one fault naming heartbeat_lost, got {a['faults']}")
+    _check(problems, len(operator.cleared) == 1, f"operator cleared {len(operator.cleared)} times")
+    _check(problems, code == 0, f"exit {code}: {err[-300:]}")
+    moves = _gate_reconciled(problems, gate, a["finals"])
+    return _outcome_words(a, moves), problems
 
 
 # --- config rows ----------------------------------------------------------------------------
@@ -1774,8 +2026,8 @@ SCENARIOS = [
              "piece (refused 1 s)", "reconnect, the interrupted press redone, all sorted", connection_drop_ursim),
     Scenario("ursim_force_never_reached", "ursim", "nothing under the tool (force never reached)",
              "retried once, then fault; piece rejected", force_never_reached_ursim),
-    Scenario("gate_serial_noise", "pty gate", "7 noise bytes before every MCU frame", "all sorted, one move each",
-             serial_noise),
+    Scenario("gate_serial_noise", "pty gate", "7 noise bytes before every MCU frame; 3 seeds, 200+ frames each",
+             "every MCU frame parsed by the host (none lost); all sorted, one move each", serial_noise),
     Scenario("gate_dropped_ack", "pty gate", "MCU's ack lost", "retransmitted, sorted once", dropped_ack),
     Scenario("gate_dropped_request", "pty gate", "host's sort frame lost", "retransmitted, sorted once",
              dropped_request),
@@ -1789,10 +2041,20 @@ SCENARIOS = [
              gate_jam),
     Scenario("gate_reboot", "pty gate", "MCU reboots mid-run", "fault latched (boot id changed), cleared, resumes",
              gate_reboot),
+    Scenario("gate_ack_contradicts", "pty gate", "ACK of a SORT reports another bin / jam / fail-safe / busy "
+             "(right CRC, SEQ, type)", "never journalled sorted: fault latched, piece unknown_outcome with the bins "
+             "asked and reported; resumes after clear", ack_contradicts_sort),
+    Scenario("gate_fault_flood", "pty gate", "5000 FAULT frames (jam) sent mid-run, gate working",
+             "host keeps the last 64 and counts the rest; all sorted", fault_flood),
     Scenario("daemon_sigterm", "daemon", "SIGTERM mid-item, restart",
              "item in hand aborted to reject, exit 0, restart carries on", daemon_sigterm),
-    Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart",
-             "open item resolved once: unknown_outcome / aborted", daemon_sigkill),
+    Scenario("daemon_sigkill", "daemon", "SIGKILL mid-item (after pre_sort / mid-press) x4, restart; the gate "
+             "(MCU simulator, own process) survives, once past its heartbeat timeout",
+             "open item resolved once: unknown_outcome (bin it may be in) / aborted; gate moves reconcile with the "
+             "journal; a fail-safe gate latched at start and cleared", daemon_sigkill),
+    Scenario("gate_latched_at_start", "daemon", "service down 1.5 s (past the gate's heartbeat timeout), restart",
+             "fault latched before any piece is pressed, cleared by the operator, sorting resumes; moves reconcile",
+             gate_latched_at_start),
     Scenario("power_loss_mid_write", "journal", "power lost mid pre_sort write (torn last line)",
              "torn tail cut and kept aside, open item aborted once", power_loss_mid_write),
     Scenario("disk_full", "journal", "ENOSPC mid pre_sort write (half lands; injected os.write)",
@@ -1841,7 +2103,7 @@ def run_scenario(sc: Scenario, workdir: Path | None = None) -> Row:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["daemon-child"]:
-        return daemon_child(argv[1])
+        return daemon_child(argv[1], gate_url=argv[2] if len(argv) > 2 else None)
     names = set(argv)
     rows = [run_scenario(s) for s in SCENARIOS if not names or s.name in names]
     for r in rows:

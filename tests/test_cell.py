@@ -191,6 +191,7 @@ def test_restart_resolves_item_left_between_pre_sort_and_final(tmp_path):
     cell, arm, cam, gate, journal = make_cell(tmp_path, [50, 50])
     resolved = cell.recover()
     assert len(resolved) == 1 and resolved[0]["outcome"] == "unknown_outcome" and resolved[0]["bin"] == 0
+    assert resolved[0]["maybe_bin"] == 2  # the bin the gate may have moved to, for reconciling its moves
     cell.run(max_items=1)
     f = finals(path)
     assert [r["item"] for r in f] == [7, 8]  # exactly one final per item, numbering continues
