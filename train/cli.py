@@ -18,6 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), help="feature trunk")
     parser.add_argument("--weights", type=Path, help="trunk weights file (e.g. a torchvision resnet50 state dict)")
     parser.add_argument("--seed", type=int, help="split and training seed (default 0)")
+    parser.add_argument("--max-presses", type=int, metavar="N",
+                        help="presses per fabric to extract features from, in press order (0: all; profile "
+                             "default: all, 45 for paper)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--visual-tail", choices=("frozen", "finetuned"),
                         help="fine-tune the visual trunk's tail on touched fabrics' camera crops per split, or keep "
@@ -38,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
     if args.splits is not None and args.splits < 1:
         print("vs2t-edge train: --splits must be at least 1", file=sys.stderr)
         return 2
+    if args.max_presses is not None and not (args.max_presses == 0 or args.max_presses >= 5):
+        print("vs2t-edge train: --max-presses must be 0 (all) or at least 5 (train, validation and test presses)",
+              file=sys.stderr)
+        return 2
     if args.weights is not None and not args.weights.is_file():
         print(f"vs2t-edge train: weights file {args.weights} does not exist", file=sys.stderr)
         return 2
@@ -45,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.time()
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
-              seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail)
+              seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
+              max_presses=args.max_presses)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

@@ -260,18 +260,23 @@ def orderings(s: dict) -> dict:
 
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
-          visual_tail: str | None = None) -> dict:
+          visual_tail: str | None = None, max_presses: int | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
+    ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
-        return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail)
+        return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
+                      max_presses)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
-           weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None) -> dict:
+           weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
+           max_presses: int | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail)) if v is not None})
+    if max_presses is not None:
+        prof = replace(prof, max_presses=max_presses or None)
     if prof.visual_tail not in VISUAL_TAILS:
         raise ValueError(f"visual_tail {prof.visual_tail!r}: choose one of {', '.join(VISUAL_TAILS)}")
     out_dir = Path(out_dir)
