@@ -223,6 +223,18 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world):
     chosen = m["router"]["chosen"]
     v = m["summary"]["VS2T-ZSL"]["routers"][chosen]
     assert f"| {chosen} | {v['val_ausuc']['mean']:.1f} | {v['ausuc']['mean']:.1f} |" in report
+    # the scene decision: per item by bins on test scenes, every item in exactly one outcome, and
+    # the same one-softmax model's per-press GZSL beside it; the report prints those numbers
+    sd = split["scene_decision"]["test"]
+    for kind in ("touched", "untouched", "off-scene"):
+        r = sd["by_kind"][kind]
+        assert r["n"] > 0 and r["right"] + r["mis-sort"] + r["reject"] == pytest.approx(1.0), kind
+    g = sd["press_gzsl"]
+    assert 0 <= g["acc_t"] <= 1 and 0 <= g["acc_u"] <= 1
+    assert g["H"] == pytest.approx(2 * g["acc_t"] * g["acc_u"] / (g["acc_t"] + g["acc_u"]) if g["acc_t"] + g["acc_u"] else 0)
+    a = sd["all"]
+    assert f"| all | {100 * a['right']:.1f} ± 0.0 | {100 * a['mis-sort']:.1f} ± 0.0 | {100 * a['reject']:.1f} ± 0.0 |" in report
+    assert f"H {100 * g['H']:.1f} ± 0.0 (paper: H 84.27)" in report
     # CLS_t learnt the touched fabrics of the tiny world: 6 classes, chance 16.7 %; measured 91.7 %
     n_t = m["split_sizes"][0]
     assert n_t == 6 and split["cls_t_acc"] >= 3.0 / n_t, split["cls_t_acc"]

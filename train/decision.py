@@ -204,6 +204,14 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["press_ece"] = {"before": so.expected_calibration_error(np.exp(raw.max(1)), raw.argmax(1) == lab),
                         "after": so.expected_calibration_error(np.exp(cal.max(1)), cal.argmax(1) == lab)}
     out["press_accuracy"] = float(np.mean(cal.argmax(1) == lab))
+    # the paper's per-press protocol for the same one-softmax model over every bundle class (no
+    # router): per-class mean accuracy on touched test presses and on untouched presses, and H
+    pred = cal.argmax(1)
+    acc_t = float(np.mean([np.mean(pred[lab == c] == c) for c in range(len(touched)) if np.any(lab == c)]))
+    acc_u = float(np.mean([np.mean(pred[lab == c] == c) for c in range(len(touched), len(touched) + len(untouched))
+                           if np.any(lab == c)])) if len(untouched) else float("nan")
+    out["press_gzsl"] = {"acc_t": acc_t, "acc_u": acc_u,
+                         "H": 2 * acc_t * acc_u / (acc_t + acc_u) if acc_t + acc_u > 0 else 0.0}
     out["n_scenes"] = n_scenes
     return out
 
