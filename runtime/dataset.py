@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS, N_ATTRIBUTES
+from vs2t_edge.runtime.files import InputRefused, read_image_file
 
 FORMAT_NAME = "vs2t-dataset"
 FORMAT_VERSION = 1
@@ -130,15 +131,27 @@ class Dataset:
         return np.stack([f.attributes for f in self.fabrics]).astype(np.uint8)
 
 
-def read_image(path: Path | str) -> np.ndarray:
-    """Decode an image file as HxWx3 uint8 BGR; raise ValueError naming the file otherwise."""
+def read_image(path: Path | str, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode an image file as HxWx3 uint8 BGR; raise ValueError naming the file otherwise.
+
+    The file must be a regular file (a FIFO would block the read forever); its size is read from
+    the header and refused before decoding when it is over runtime/files.py's caps or not
+    ``expected_hw`` (height, width). It is decoded as stored: a grey, RGBA or 16-bit image is
+    refused, not converted - a GelSight sends 8-bit BGR, and a converted grey frame was scored
+    with full confidence into a wrong bin.
+    """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file missing")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if image is None:
-        raise ValueError(f"{path}: not a readable image")
+    try:
+        image = read_image_file(path, expected_hw)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    # InputRefused is a ValueError naming the file and the problem: it passes through
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        raise InputRefused(f"{path}: {channels} channel(s) of {image.dtype}, expected 3 channels of uint8 "
+                           "(8-bit colour, as the sensor sends)", "format")
     return image
 
 
@@ -437,12 +450,18 @@ def _read_checked(fabric: Fabric, label: str, path: Path, want_hw: tuple[int, in
     except ValueError:
         rel = str(path)
     try:
-        image = read_image(path)
+        image = read_image(path, want_hw)
+    except InputRefused as exc:
+        if exc.reason == "size":  # from the header, before decoding
+            head = exc.header
+            got = f"{head.width}x{head.height}" if head else "another size"
+            return None, f"{where}: {rel} is {got}, dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}"
+        detail = str(exc).split(": ", 1)[-1]
+        if exc.reason in ("format", "corrupt"):
+            return None, f"{where}: {rel} is not a readable image ({detail})"
+        return None, f"{where}: {rel} refused: {detail}"
     except ValueError:  # read_image says which; the file is looked for again only then
         return None, f"{where}: {rel} {'is not a readable image' if path.is_file() else 'missing'}"
-    if image.shape[:2] != tuple(want_hw):
-        return None, (f"{where}: {rel} is {image.shape[1]}x{image.shape[0]}, "
-                      f"dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}")
     return image, None
 
 

@@ -40,6 +40,7 @@ import yaml
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.cell import Item
 from vs2t_edge.runtime.devices import Frame, PressResult
+from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
 
 FORMAT = "vs2t-edge-replay"
 VERSION = 1
@@ -277,8 +278,12 @@ class ReplayFile:
         path = folder / "index.json"
         if not path.is_file():
             raise ReplayError(f"{folder}: not a replay file (no index.json)")
+        if not inside(folder, path):
+            raise ReplayError(f"{path}: a link to outside the replay folder; nothing outside it is read")
         try:
-            index = json.loads(path.read_bytes())
+            index = json.loads(read_regular_file(path, MAX_REPLAY_INDEX_BYTES, "replay index"))
+        except InputRefused as exc:
+            raise ReplayError(str(exc)) from None
         except OSError as exc:
             raise ReplayError(f"{path}: cannot be read ({exc.strerror or exc})") from None
         except RecursionError:
@@ -295,12 +300,19 @@ class ReplayFile:
         return cls(folder, index)
 
     def load_frame(self, name: str) -> np.ndarray:
+        """The frame as stored (the frame check refuses a grey, RGBA or 16-bit one). Refused
+        before reading: a frame whose path, links resolved, leaves the replay folder (the index
+        names only ``frames/NNNNNN.png``, and a link must not widen that), a FIFO (it would block
+        the read forever) and an image over the size caps (before it is decoded)."""
         path = self.folder / name
-        data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-        if image is None:
-            raise ReplayError(f"{path}: frame missing or unreadable")
-        return image
+        if not inside(self.folder, path):
+            raise ReplayError(f"{path}: a link to outside the replay folder; nothing outside it is read")
+        try:
+            return read_image_file(path)
+        except InputRefused as exc:
+            raise ReplayError(f"{path}: frame refused: {str(exc).split(': ', 1)[-1]}") from None
+        except OSError as exc:
+            raise ReplayError(f"{path}: frame missing or unreadable ({exc.strerror or exc})") from None
 
     def frames_by_item(self):
         """(reference frame, pressed frames) per item: the first grab of an item is its reference."""
