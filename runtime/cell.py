@@ -65,12 +65,14 @@ from vs2t_edge.runtime.devices import (
     DeviceError,
     GateError,
 )
+from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 
 UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
+MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
 
 
 @dataclass(frozen=True)
@@ -214,7 +216,11 @@ class Cell:
         resolved = self._resolve_open_items()
         ff = self.scene.fault_file
         if ff is not None and ff.exists():
-            reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"
+            try:  # bounded, and never a FIFO's endless wait: the fault stays latched either way
+                text = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
+            except (OSError, ValueError) as exc:
+                text = f"fault file {ff} unreadable ({exc})"
+            reason = text.strip() or "fault latched before restart"
             self.fault = reason
             self.notifier.status(f"FAULT (latched before restart): {reason}")
         return resolved

@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
+from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
 ARM_KINDS = ("ur_rtde", "fake", "sim")
@@ -470,14 +471,25 @@ def _read_private(path: Path) -> str:
     is checked on the open file descriptor (fstat), so the file cannot be swapped between the
     check and the read. Group-writable is allowed (an operators' group owning /etc/vs2t-edge).
     """
-    fd = os.open(path, os.O_RDONLY)
+    # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer, for ever
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     with os.fdopen(fd, "rb") as f:
-        mode = os.fstat(f.fileno()).st_mode
+        st = os.fstat(f.fileno())
+        mode = st.st_mode
+        if not stat.S_ISREG(mode):
+            raise ConfigError(path, [f"{path}: not a regular file (a FIFO, device or folder); a cell config is "
+                                     "a YAML file"])
+        if st.st_size > MAX_CONFIG_BYTES:  # a 5 MB YAML took 73 s and 1.6 GB to reach its error
+            raise ConfigError(path, [f"{path}: {st.st_size} bytes; a cell config is a few KB (at most "
+                                     f"{MAX_CONFIG_BYTES})"])
         if mode & stat.S_IWOTH:
             raise ConfigError(path, [f"{path}: world-writable (mode {stat.S_IMODE(mode):o}): any local user "
                                      f"could change which bundle and journal the cell uses; fix with "
                                      f"`chmod o-w {path}`"])
-        return f.read().decode("utf-8")
+        data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:  # grew after the fstat
+            raise ConfigError(path, [f"{path}: more than {MAX_CONFIG_BYTES} bytes; a cell config is a few KB"])
+        return data.decode("utf-8")
 
 
 def schema_reference() -> list[tuple[str, str, str, str]]:

@@ -140,7 +140,13 @@ def clear_fault(cfg: CellConfig) -> int:
     if not ff.exists():
         print(f"no latched fault ({ff} absent)")
         return EXIT_OK
-    reason = ff.read_text(encoding="utf-8", errors="replace").strip()
+    from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
+    from vs2t_edge.runtime.files import read_regular_file
+
+    try:
+        reason = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace").strip()
+    except (OSError, ValueError) as exc:  # a FIFO or a huge file there is no reason to print; remove it
+        reason = f"(fault file unreadable: {exc})"
     ff.unlink()
     print(f"fault cleared: {reason}\nthe running service clears the gate and arm and resumes sorting")
     return EXIT_OK
