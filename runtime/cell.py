@@ -86,17 +86,21 @@ class ItemSource(Protocol):
 
 
 class ContinuousFeed:
-    """Live cell: the feeder presents the next piece as soon as the last one is sorted."""
+    """Live cell: the feeder presents the next piece as soon as the last one is sorted.
 
-    def __init__(self, limit: int | None = None) -> None:
-        self.limit, self.count = limit, 0
+    Pieces are numbered from ``first_number``: the daemon passes the journal's next item number,
+    so a restarted service goes on where the last one stopped instead of naming the next piece
+    ``piece-000001`` again (two pieces with one id would make the journal ambiguous)."""
+
+    def __init__(self, limit: int | None = None, first_number: int = 1) -> None:
+        self.limit, self.count, self.first_number = limit, 0, first_number
 
     def next_item(self, timeout_s: float) -> Item | None:
         if self.limit is not None and self.count >= self.limit:
             time.sleep(min(timeout_s, 0.05))
             return None
         self.count += 1
-        return Item(id=f"piece-{self.count:06d}")
+        return Item(id=f"piece-{self.first_number + self.count - 1:06d}")
 
     def exhausted(self) -> bool:
         return self.limit is not None and self.count >= self.limit

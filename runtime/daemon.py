@@ -230,7 +230,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     scene = SceneSpec.from_config(cfg)
     cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
                 evidence_factory=evidence_factory or default_evidence_factory(cfg),
-                items=items or ContinuousFeed(), stop_event=stop_event, on_item=on_item, log=log,
+                items=items or ContinuousFeed(first_number=journal.next_item_number()), stop_event=stop_event, on_item=on_item, log=log,
                 contact_check=contact_check_for(cfg))
     try:
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
