@@ -118,13 +118,17 @@ class SceneSpec:
     item_timeout_s: float = 60.0
     wait_item_timeout_s: float = 1.0
     fault_file: Path | None = None
+    bounds: Any = None  # runtime/budget.py StepBounds: device waits the watchdog is fed through
 
     @classmethod
     def from_config(cls, cfg) -> "SceneSpec":
+        from vs2t_edge.runtime.budget import bounds_of
+
         return cls(bins={f.name: f.bin for f in cfg.fabrics}, reject_bin=cfg.reject_bin,
                    points_mm=cfg.press_points_mm(), max_presses=cfg.max_presses,
                    confidence=cfg.confidence, item_timeout_s=cfg.item_timeout_s,
-                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file)
+                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file,
+                   bounds=bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate))
 
     @property
     def classes(self) -> list[str]:
@@ -261,6 +265,10 @@ class Cell:
         """Arm stopped, gate to reject, reason journalled and reported; every step guarded."""
         self.fault = reason
         steps: list[str] = []
+        try:
+            self.notifier.ping_if_due()  # the stop and to-reject below are un-leased waits
+        except Exception:  # noqa: BLE001 - a failing notifier must not skip the latch
+            pass
         for what, fn in (("arm.stop", self.arm.stop), ("gate.to_reject", self.gate.to_reject)):
             try:
                 fn()
@@ -410,10 +418,12 @@ class Cell:
         """One press step with the retry policy: a retryable error is retried once. Before the
         retry of a camera fault the camera is reopened (a UVC device that vanished and came back
         delivers nothing to the old handle); if it does not reopen, the retry has failed."""
+        bounds = self.scene.bounds
         for attempt in (1, 2):
             self._check_time(t0)
             try:
-                return fn()
+                with self.notifier.bounded_wait(bounds.press_try_s if bounds else None):
+                    return fn()
             except ArmSafetyStop as exc:
                 raise CellFault(f"arm safety stop during {what}: {exc}", exc.kind) from exc
             except DeviceError as exc:
@@ -428,15 +438,17 @@ class Cell:
                 self.log(f"{what} failed ({exc}); retrying once")
                 self.journal.append({"type": "retry", "item": self._number, "step": what, "error": str(exc),
                                      "kind": exc.kind})
-                try:
-                    self.arm.retract()
-                except DeviceError:
-                    pass  # the retried step starts from move_above again
-                if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
-                    not_open = self._reopen_camera(f"the retry of {what}")
-                    if not_open is not None:
-                        raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
-                                        f"failed: {not_open}", "repeated_failure") from exc
+                with self.notifier.bounded_wait(bounds.retry_prep_s if bounds else None):
+                    try:
+                        self.arm.retract()
+                    except DeviceError:
+                        pass  # the retried step starts from move_above again
+                    not_open = None
+                    if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
+                        not_open = self._reopen_camera(f"the retry of {what}")
+                if not_open is not None:
+                    raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
+                                    f"failed: {not_open}", "repeated_failure") from exc
         raise AssertionError("unreachable")
 
     def _press_once(self, x_mm: float, y_mm: float):
@@ -513,6 +525,7 @@ class Cell:
                     self.journal.append({"type": "frame_skipped", "item": number, "point": k,
                                          "reason": exc.reason, "message": str(exc)})
                     self.log(f"item {number}: frame of press {k} skipped ({exc.reason})")
+                    self.notifier.ping_if_due()
                     continue
                 presses += 1
                 latencies.append(float(getattr(score, "latency_ms", 0.0)))
@@ -537,6 +550,7 @@ class Cell:
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
             self._check_time(t0)
             gate_told = True
+            self.notifier.ping_if_due()  # the sort and its retry are un-leased: budget.unleased_waits
             try:
                 self.gate.sort(bin_)
             except GateError as exc:

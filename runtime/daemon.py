@@ -199,8 +199,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     if camera is None or arm is None or gate is None:
         try:
             camera, arm, gate = build_live_devices(cfg)
-        except ConfigError as exc:
-            log(str(exc))
+        except (ConfigError, ValueError) as exc:  # ValueError: a driver refusing its settings
+            # (validation checks the drivers' constraints, so this is a gap to report, in words)
+            log(str(exc) if isinstance(exc, ConfigError) else f"{cfg.path}: a device refused its settings: {exc}")
             journal.close()
             return EXIT_USAGE
     connected: list[Any] = []
