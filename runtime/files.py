@@ -32,7 +32,8 @@ MAX_JSON_BYTES = 16 * 1024 * 1024  # a bundle manifest is ~10 KB; a 24-item repl
 MAX_REPLAY_INDEX_BYTES = 64 * 1024 * 1024  # a long recorded session (thousands of items)
 MAX_IMAGE_BYTES = 64 * 1024 * 1024  # a 640x480 PNG frame is ~0.5 MB; a 4096^2 photo < 50 MB
 MAX_IMAGE_SIDE_PX = 8192  # config bounds camera frames at 4096 px a side; camera photos 8192
-MAX_IMAGE_PIXELS = 4096 * 4096 * 2  # 32 Mpx: 96 MB as uint8 BGR, ~400 MB as float32 in preprocessing
+MAX_IMAGE_PIXELS = 4096 * 4096 * 2  # 32 Mpx (camera photos of a dataset): 96 MB as uint8 BGR
+MAX_FRAME_PIXELS = 4096 * 4096  # a tactile frame: the config's largest sensor; 200 MB as float32 in preprocessing
 
 
 class InputRefused(ValueError):

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS
+from vs2t_edge.runtime.files import MAX_FRAME_PIXELS
 
 
 class FrameError(ValueError):
@@ -75,9 +75,9 @@ def check_frame(frame: object, expected_hw: tuple[int, int] | None = None, name:
         raise FrameError(f"{name}: dtype {frame.dtype}, expected uint8", "dtype")
     if frame.ndim != 3 or frame.shape[2] != 3:
         raise FrameError(f"{name}: shape {frame.shape}, expected HxWx3", "shape")
-    if frame.shape[0] * frame.shape[1] > MAX_IMAGE_PIXELS:
+    if frame.shape[0] * frame.shape[1] > MAX_FRAME_PIXELS:
         # before anything allocates per pixel: the float32 crop of a 30000 x 30000 frame is 10 GiB
-        raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, over the {MAX_IMAGE_PIXELS} pixels "
+        raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, over the {MAX_FRAME_PIXELS} pixels "
                          "a tactile frame may have", "size")
     if expected_hw is not None and tuple(frame.shape[:2]) != tuple(expected_hw):
         raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, expected "
