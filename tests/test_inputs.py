@@ -256,3 +256,22 @@ def test_a_device_or_folder_is_not_a_regular_file(tmp_path):
     with pytest.raises(InputRefused, match="not a PNG"):
         (tmp_path / "x.gif").write_bytes(b"GIF89a" + b"\x00" * 20)
         read_image_file(tmp_path / "x.gif")
+
+
+# --- the live camera (config kind uvc) --------------------------------------------------------------
+
+def test_uvc_camera_from_config_refuses_frames_of_another_size_or_format():
+    """The guard every live grab goes through, with the configured sensor's size: OpenCV's V4L2
+    capture converts to BGR, but a driver that ignored the size asked for (or a misconfigured
+    width_px) gives frames the bundle was not made for - refused, never scored."""
+    from vs2t_edge.runtime.camera import camera_from_config
+
+    cam = camera_from_config({"kind": "uvc", "device": "/dev/null-camera", "width_px": W, "height_px": H,
+                              "fps": 30.0, "exposure": None, "timeout_s": 1.0, "flush_frames": 0,
+                              "frozen_after": 2})
+    assert cam._guard.expected_hw == (H, W)
+    for kind, (make, reason) in NOT_SENSOR_FRAMES.items():
+        with pytest.raises(CameraError) as exc:
+            cam._guard.admit(make())
+        assert exc.value.kind == "corrupt" and exc.value.reason == reason, kind
+    assert cam._guard.admit(_frame()).image.shape == (H, W, 3)
