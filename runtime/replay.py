@@ -65,6 +65,16 @@ class ReplayDivergence(BaseException):
     decision mismatch instead of saying where the paths parted."""
 
 
+class _FileUnreadable(BaseException):
+    """A recorded frame the replay may not read (refused, missing, outside the folder). It ends
+    the run like a divergence, not as a cell fault - run_replay raises the ReplayError it carries,
+    so the operator reads which file and why (exit 2), not a divergence it caused."""
+
+    def __init__(self, error: ReplayError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
 def _error_to_json(exc: dv.DeviceError) -> dict:
     return {"type": type(exc).__name__, "message": str(exc), "kind": exc.kind, "device": exc.device,
             "retryable": bool(exc.retryable)}
@@ -333,7 +343,11 @@ class ReplayCameraDevice(_ReplayBase):
             raise _error_from_json(ev["error"])
         if ev.get("frame") is None:
             raise dv.CameraError("recorded grab returned no image", device="camera", kind="corrupt")
-        return Frame(self.q.rf.load_frame(ev["frame"]), float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
+        try:
+            image = self.q.rf.load_frame(ev["frame"])
+        except ReplayError as exc:
+            raise _FileUnreadable(exc) from None
+        return Frame(image, float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
 
 
 class ReplayArm(_ReplayBase):
@@ -545,6 +559,8 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
                 diverged = f"the daemon exited with {code} (bundle or config refused){': ' + why if why else ''}"
         except ReplayDivergence as exc:
             diverged = str(exc)
+        except _FileUnreadable as exc:
+            raise exc.error from None
         new = decisions_of(read_records(cfg.journal)) if cfg.journal.exists() else []
     safety = [] if diverged else queues.safety_mismatches()
     if update_refs and safety:

@@ -275,3 +275,14 @@ def test_uvc_camera_from_config_refuses_frames_of_another_size_or_format():
             cam._guard.admit(make())
         assert exc.value.kind == "corrupt" and exc.value.reason == reason, kind
     assert cam._guard.admit(_frame()).image.shape == (H, W, 3)
+
+
+def test_the_replay_verb_refuses_an_oversized_frame_in_words_exit_2(replay_copy, capsys):
+    """`vs2t-edge replay` on a session whose frame is a 30000 x 30000 PNG peaked at 5.2 GB; now the
+    frame is refused from its header and the verb says which file (exit 2: unreadable file)."""
+    from vs2t_edge.cli import main
+
+    (replay_copy / "frames" / "000001.png").write_bytes(huge_png_header())
+    assert main(["replay", str(replay_copy), "--bundle", str(HERE / "replays" / "bundle")]) == 2
+    err = capsys.readouterr().err
+    assert "000001.png" in err and "30000x30000" in err
