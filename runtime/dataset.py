@@ -15,6 +15,7 @@ wrong, so a person fixes a malformed dataset in one pass.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ import numpy as np
 import yaml
 
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS, N_ATTRIBUTES
-from vs2t_edge.runtime.files import InputRefused, read_image_file
+from vs2t_edge.runtime.files import MAX_CONFIG_BYTES, MAX_JSON_BYTES, InputRefused, read_image_file, read_regular_file
 
 FORMAT_NAME = "vs2t-dataset"
 FORMAT_VERSION = 1
@@ -155,6 +156,12 @@ def read_image(path: Path | str, expected_hw: tuple[int, int] | None = None) -> 
     return image
 
 
+def _bounded_text(path: Path, max_bytes: int) -> str:
+    """A dataset's text file (dataset.yaml, fabrics.csv, fabric.yaml): a regular file under a byte
+    cap (a FIFO would block the read, a huge YAML takes minutes to parse), as UTF-8 text."""
+    return read_regular_file(path, max_bytes, "dataset text file").decode("utf-8")
+
+
 def crop_at(image: np.ndarray, x_mm: float, y_mm: float, geometry: SensorGeometry) -> np.ndarray:
     """Crop the camera image around (x_mm, y_mm) with the gel's field size; edge-padded."""
     scale = image.shape[1] / geometry.piece_mm
@@ -276,7 +283,10 @@ def _read_meta(root: Path, problems: list[str]) -> tuple[dict, SensorGeometry]:
         problems.append(f"{path.name}: missing (the dataset's format, sensor and camera geometry)")
         return {}, SensorGeometry()
     try:
-        meta = yaml.safe_load(path.read_text()) or {}
+        meta = yaml.safe_load(_bounded_text(path, MAX_CONFIG_BYTES)) or {}
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"{path.name}: {str(exc).split(': ', 1)[-1]}")
+        return {}, SensorGeometry()
     except yaml.YAMLError as exc:
         problems.append(f"{path.name}: not valid YAML: {exc}")
         return {}, SensorGeometry()
@@ -308,8 +318,11 @@ def _read_index(root: Path, problems: list[str]) -> list[tuple[str, str, np.ndar
     if not path.is_file():
         problems.append("fabrics.csv: missing (the list of fabrics with their 24 attributes)")
         return []
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        rows = list(csv.reader(io.StringIO(_bounded_text(path, MAX_JSON_BYTES), newline="")))
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"fabrics.csv: {str(exc).split(': ', 1)[-1]}")
+        return []
     if not rows:
         problems.append("fabrics.csv: empty")
         return []
@@ -367,7 +380,10 @@ def _read_fabric(root: Path, fid: str, name: str, index_attrs: np.ndarray, geome
         problems.append(f"{where}: {fid}/fabric.yaml missing")
         return None
     try:
-        doc = yaml.safe_load(doc_path.read_text()) or {}
+        doc = yaml.safe_load(_bounded_text(doc_path, MAX_CONFIG_BYTES)) or {}
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"{where}: {fid}/fabric.yaml: {str(exc).split(': ', 1)[-1]}")
+        return None
     except yaml.YAMLError as exc:
         problems.append(f"{where}: {fid}/fabric.yaml is not valid YAML: {exc}")
         return None

@@ -286,3 +286,19 @@ def test_the_replay_verb_refuses_an_oversized_frame_in_words_exit_2(replay_copy,
     assert main(["replay", str(replay_copy), "--bundle", str(HERE / "replays" / "bundle")]) == 2
     err = capsys.readouterr().err
     assert "000001.png" in err and "30000x30000" in err
+
+
+def test_dataset_text_files_are_bounded(tmp_path):
+    from test_dataset import _build
+
+    root = _build(tmp_path / "ds")
+    with open(root / "f01" / "fabric.yaml", "ab") as f:
+        f.truncate(50 * 1024 * 1024)  # sparse: a 50 MB fabric.yaml
+    with pytest.raises(DatasetError) as info:
+        validate_dataset(root, deep=False)
+    assert any("f01/fabric.yaml" in p and "bytes, more than" in p for p in info.value.problems), info.value.problems
+    (root / "dataset.yaml").unlink()
+    os.mkfifo(root / "dataset.yaml")
+    _finishes.fifos.append(root / "dataset.yaml")
+    finished, exc = _finishes(lambda: validate_dataset(root, deep=False))
+    assert finished and isinstance(exc, DatasetError), exc
