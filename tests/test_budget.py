@@ -192,3 +192,34 @@ def test_pings_come_often_enough_through_a_hung_grab_and_its_retry(tmp_path, mon
     gaps = [b - a for a, b in zip(pings, pings[1:])]
     assert pings and max(gaps) < watchdog_s * 0.5, f"largest gap between pings {max(gaps):.2f} s"
     assert [r["type"] for r in read_records(tmp_path / "j.jsonl")].count("fault") == 1
+
+
+@pytest.mark.parametrize("edge", ["low", "high"])
+def test_every_device_a_valid_config_describes_can_be_built(tmp_path, edge):
+    """The audit of issue 17 item 3 as a test: at both ends of every device bound validation
+    accepts, the live constructors (camera, arm, gate) accept the settings too."""
+    from vs2t_edge.runtime.arm import IsolatedURArm
+    from vs2t_edge.runtime.camera import camera_from_config
+    from vs2t_edge.runtime.gate import SerialGate
+
+    low = edge == "low"
+    text = f"""\
+bundle: bundle
+devices:
+  camera: {{kind: uvc, device: /dev/null-camera, width_px: {16 if low else 4096}, height_px: {16 if low else 4096},
+           fps: {1 if low else 240}, timeout_s: {0.05 if low else 10}, flush_frames: {0 if low else 30},
+           frozen_after: {2 if low else 100}}}
+  arm: {{kind: ur_rtde}}
+  gate: {{kind: serial, url: /dev/null, timeout_s: {0.05 if low else 0.74}, retries: {0 if low else 10}}}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {{name: denim, kind: touched, bin: 1}}
+journal: j.jsonl
+watchdog: {{wait_item_timeout_s: {0.01 if low else 26}}}
+"""
+    (tmp_path / "cell.yaml").write_text(text)
+    cfg = load_config(tmp_path / "cell.yaml")
+    camera_from_config(cfg.camera)  # constructors only: nothing is opened
+    IsolatedURArm(cfg.arm)
+    SerialGate(cfg.gate["url"], timeout_s=cfg.gate["timeout_s"], retries=cfg.gate["retries"])
