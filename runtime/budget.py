@@ -9,7 +9,8 @@ never a kill and a restart. So:
   scaled to a 3 s watchdog, a 1.5 s wait plus a 2 s step left a 3.45 s gap), at every step
   boundary: each try of a press step, each frame, the sort, the wait for a piece;
 * a device wait that may last longer than that - one press step's try (arm moves, press, grab,
-  retract) or the camera's reopen - is *leased* (``Notifier.bounded_wait``): the watchdog is fed
+  retract), the retry's preparation (lift, camera reopen), lifting the gel before a fault, the
+  operator's clear, the abort on SIGTERM - is *leased* (``Notifier.bounded_wait``): the watchdog is fed
   while the wait is within the bound the device enforces itself (the arm worker is ended past
   ``isolated_call_bound_s``, a grab past the camera's ``timeout_s``, a gate request past
   ``(retries + 1) x timeout_s``), and no longer: a call hung past its own bound is a hung loop,
@@ -30,6 +31,7 @@ from vs2t_edge.runtime.notify import PING_FRACTION
 SYSTEMD_WATCHDOG_S = 30.0  # systemd/vs2t-edge.service WatchdogSec (tests/test_systemd.py ties the two)
 MARGIN_S = 1.0  # scheduling, the journal's fsync, the model's few ms per press
 ARM_STOP_BOUND_S = 5.0  # IsolatedURArm.stop(): the worker answers or is ended
+ARM_WORKER_START_S = 30.0  # IsolatedURArm(start_timeout_s): a new worker process starting
 SIM_GATE = (0.5, 3)  # the simulated serial gate's timeout_s and retries (runtime/gate.py)
 
 
@@ -45,6 +47,12 @@ class StepBounds:
     def press_try_s(self) -> float:
         """One try of a press step: move above, press, grab, retract."""
         return 3 * self.arm_call_s + self.grab_s
+
+    @property
+    def clear_s(self) -> float:
+        """The operator's clear: gate clear, the arm's stop cleared and reconnected (an
+        IsolatedURArm connect may start a new worker first), the camera reopened."""
+        return self.gate_request_s + 2 * self.arm_call_s + ARM_WORKER_START_S + 2 * self.grab_s
 
     @property
     def retry_prep_s(self) -> float:

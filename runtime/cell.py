@@ -300,16 +300,17 @@ class Cell:
             # an item a failed journal write left open gets its final record first (the disk
             # must be writable again, else the fault latches again here)
             self._resolve_open_items()
-            self.gate.clear()
-            clear_arm = getattr(self.arm, "clear_protective_stop", None)
-            if clear_arm is not None:
-                clear_arm()
-                connect = getattr(self.arm, "connect", None)
-                if connect is not None:
-                    connect()
-            # a camera that left the bus (cable out, driver reset) only comes back through a new
-            # open; still gone -> the clear fails and the fault latches again, naming the camera
-            self._reopen_camera("the operator's clear", raise_on_failure=True)
+            with self.notifier.bounded_wait(self.scene.bounds.clear_s if self.scene.bounds else None):
+                self.gate.clear()
+                clear_arm = getattr(self.arm, "clear_protective_stop", None)
+                if clear_arm is not None:
+                    clear_arm()
+                    connect = getattr(self.arm, "connect", None)
+                    if connect is not None:
+                        connect()
+                # a camera that left the bus (cable out, driver reset) only comes back through a new
+                # open; still gone -> the clear fails and the fault latches again, naming the camera
+                self._reopen_camera("the operator's clear", raise_on_failure=True)
             self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
         except (DeviceError, JournalError) as exc:
             self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
@@ -410,7 +411,8 @@ class Cell:
         safety stop is never moved out of; a failing retract (``failures``: a device error, or
         any Exception after an internal fault) is logged and left for the operator."""
         try:
-            self.arm.retract()
+            with self.notifier.bounded_wait(self.scene.bounds.arm_call_s if self.scene.bounds else None):
+                self.arm.retract()
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
 
@@ -583,11 +585,13 @@ class Cell:
                                 "fault", skipped, latencies, self.clock() - t0)
         except StopRequested:
             # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
-            for fn in (self.arm.retract, self.gate.to_reject):
-                try:
-                    fn()
-                except Exception:  # noqa: BLE001 - stopping must reach the journal
-                    pass
+            bounds = self.scene.bounds
+            with self.notifier.bounded_wait(bounds.arm_call_s + bounds.gate_request_s if bounds else None):
+                for fn in (self.arm.retract, self.gate.to_reject):
+                    try:
+                        fn()
+                    except Exception:  # noqa: BLE001 - stopping must reach the journal
+                        pass
             self._final(number, item.id, label=UNKNOWN, bin_=self.scene.reject_bin, outcome="aborted",
                         reason="service stopping", presses=presses)
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", presses, 0.0, "stop",
