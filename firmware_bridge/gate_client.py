@@ -67,19 +67,38 @@ def _fault_name(code: int) -> str:
     return p.FAULT_NAMES.get(code, f"unknown({code})")
 
 
+def timing_problems(timeout_s: float, retries: int,
+                    heartbeat_period_s: float | None = p.HEARTBEAT_PERIOD_S) -> list[str]:
+    """Every constraint :class:`GateClient` puts on its timing, in words ([] = accepted).
+
+    The one source for the driver and for config validation (runtime/config.py), so that a
+    config ``validate-config`` passes never makes the driver refuse to start."""
+    problems = []
+    if not timeout_s > 0 or retries < 0:
+        problems.append(f"timeout_s must be > 0 and retries >= 0 (got {timeout_s}, {retries})")
+    elif heartbeat_period_s and timeout_s + heartbeat_period_s >= p.HEARTBEAT_TIMEOUT_MS / 1000:
+        # While a request waits for its reply no heartbeat goes out; the gate must not time
+        # out in that silence.
+        problems.append(f"timeout_s + heartbeat_period_s ({timeout_s} + {heartbeat_period_s} s) must stay "
+                        f"under the gate's heartbeat timeout of {p.HEARTBEAT_TIMEOUT_MS / 1000} s")
+    return problems
+
+
+def request_worst_case_s(timeout_s: float, retries: int) -> float:
+    """Longest one request can take before it fails: the first try and every retransmission
+    each wait ``timeout_s`` for the reply."""
+    return (retries + 1) * timeout_s
+
+
 class GateClient:
     """Thread-safe host side of the gate protocol. ``connect()`` before use; a context manager."""
 
     def __init__(self, port: str, *, timeout_s: float = 0.5, retries: int = 3,
                  heartbeat_period_s: float | None = p.HEARTBEAT_PERIOD_S, baudrate: int = p.BAUDRATE,
                  arm_latches: tuple[str, ...] = ("boot",)) -> None:
-        if timeout_s <= 0 or retries < 0:
-            raise ValueError(f"timeout_s must be > 0 and retries >= 0 (got {timeout_s}, {retries})")
-        if heartbeat_period_s and timeout_s + heartbeat_period_s >= p.HEARTBEAT_TIMEOUT_MS / 1000:
-            # While a request waits for its reply no heartbeat goes out; the gate must not time
-            # out in that silence.
-            raise ValueError(f"timeout_s + heartbeat_period_s ({timeout_s} + {heartbeat_period_s} s) must stay "
-                             f"under the gate's heartbeat timeout of {p.HEARTBEAT_TIMEOUT_MS / 1000} s")
+        problems = timing_problems(timeout_s, retries, heartbeat_period_s)
+        if problems:
+            raise ValueError("; ".join(problems))
         self.port = port
         self.timeout_s = timeout_s
         self.retries = retries

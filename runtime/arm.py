@@ -701,6 +701,14 @@ _ERRORS = {cls.__name__: cls for cls in (ArmError, ArmConnectionError, ArmSafety
                                          NotConnectedError, ArmConfigError, ValueError)}
 
 
+def isolated_call_bound_s(c: ArmConfig) -> float:
+    """The longest one IsolatedURArm call may take before the worker is ended and the call fails:
+    a move or press plus every reconnect it may do. runtime/budget.py's watchdog budget uses it."""
+    backoff = sum(c.reconnect_backoff_s * 2 ** i for i in range(c.reconnect_attempts))
+    return (c.move_timeout_s + c.press_timeout_s + 3 * c.command_timeout_s + backoff
+            + c.client_reconnect_grace_s + 15.0 * (c.reconnect_attempts + 1))
+
+
 class IsolatedURArm:
     """:class:`URArm` in a worker process, so that a crash of the ur_rtde client costs one
     step and not the cell.
@@ -723,12 +731,8 @@ class IsolatedURArm:
         self._log = None
         self._wanted = False  # connect() was called and disconnect() not yet
 
-    # the longest one call may take: a move or press plus every reconnect it may do
     def _call_bound_s(self) -> float:
-        c = self.config
-        backoff = sum(c.reconnect_backoff_s * 2 ** i for i in range(c.reconnect_attempts))
-        return (c.move_timeout_s + c.press_timeout_s + 3 * c.command_timeout_s + backoff
-                + c.client_reconnect_grace_s + 15.0 * (c.reconnect_attempts + 1))
+        return isolated_call_bound_s(self.config)
 
     def _spawn(self) -> None:
         import json

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from vs2t_edge.runtime.files import MAX_JSON_BYTES, InputRefused, read_regular_file
 from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 FORMAT = "vs2t-bundle"
@@ -285,7 +286,9 @@ def read_manifest(root: Path | str) -> dict:
     if not path.is_file():
         raise BundleError(root, f"no {MANIFEST}")
     try:
-        manifest = json.loads(path.read_bytes(), object_pairs_hook=_no_duplicate_keys)
+        manifest = json.loads(read_regular_file(path, MAX_JSON_BYTES, MANIFEST), object_pairs_hook=_no_duplicate_keys)
+    except InputRefused as exc:  # a FIFO (would block for ever), a device, or far too large
+        raise BundleError(root, f"{MANIFEST} refused: {str(exc).split(': ', 1)[-1]}") from None
     except OSError as exc:
         raise BundleError(root, f"{MANIFEST} cannot be read ({exc.strerror or exc})") from None
     except RecursionError:

@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vs2t_edge.runtime.files import MAX_JSON_BYTES, read_regular_file
+
 
 class CalibrationError(ValueError):
     pass
@@ -196,8 +198,10 @@ def read_beta_override(path: Path | None) -> float | None:
     if path is None or not Path(path).exists():
         return None
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(read_regular_file(path, MAX_JSON_BYTES, "beta override file"))
         beta = float(data["beta"])
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     except (ValueError, KeyError, TypeError) as exc:
         raise CalibrationError(f"{path}: not a beta override file ({exc})") from None
     if not math.isfinite(beta):

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
+from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, InputRefused, read_image_file
 from vs2t_edge.runtime.preprocess import FrameError, check_frame
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -50,7 +51,7 @@ class _FrameGuard:
         if frozen_after < 2:
             raise ValueError(f"{name}: frozen_after must be at least 2, got {frozen_after}")
         self.name = name
-        self.expected_hw = expected_hw
+        self.expected_hw = tuple(expected_hw) if expected_hw is not None else None
         self.frozen_after = frozen_after
         self._last: np.ndarray | None = None
         self._repeats = 1
@@ -59,13 +60,16 @@ class _FrameGuard:
     def reset(self) -> None:
         self._last, self._repeats = None, 1
 
+    def refuse(self, exc: FrameError | InputRefused) -> CameraError:
+        err = CameraError(str(exc), device=self.name, kind="corrupt")
+        err.reason = exc.reason  # the precise check that failed (black, size, shape, dtype, ...)
+        return err
+
     def admit(self, image: object, where: str = "") -> Frame:
         try:
             image = check_frame(image, self.expected_hw, name=f"{self.name} frame {self.index}{where}")
         except FrameError as exc:
-            err = CameraError(str(exc), device=self.name, kind="corrupt")
-            err.reason = exc.reason  # the precise check that failed (black, size, ...)
-            raise err from exc
+            raise self.refuse(exc) from exc
         if self._last is not None and image.shape == self._last.shape and np.array_equal(image, self._last):
             self._repeats += 1
             if self._repeats >= self.frozen_after:
@@ -242,6 +246,11 @@ class ReplayCamera(_CameraBase):
             if not video.isOpened():
                 raise CameraError(f"{self.name}: cannot open video {self.source}", device=self.name,
                                   kind="unplugged")
+            w, h = int(video.get(cv2.CAP_PROP_FRAME_WIDTH)), int(video.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            if max(w, h) > MAX_IMAGE_SIDE_PX or w * h > MAX_IMAGE_PIXELS:  # from the container, not decoded
+                video.release()
+                raise CameraError(f"{self.name}: video frames of {w}x{h} px, over the {MAX_IMAGE_SIDE_PX} px a side "
+                                  "this cell decodes", device=self.name, kind="corrupt")
             if self._pos:
                 video.set(cv2.CAP_PROP_POS_FRAMES, self._pos)
             self._video = video
@@ -278,10 +287,16 @@ class ReplayCamera(_CameraBase):
             elif self._pos < len(self._files):
                 path = self._files[self._pos]
                 self._pos += 1
-                image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-                if image is None:
-                    problem = "cannot decode" if path.exists() else "frame file missing:"
-                    raise CameraError(f"{self.name}: {problem} {path}", device=self.name, kind="corrupt")
+                try:
+                    # as stored (grey, RGBA, 16-bit stay what they are, for the frame check to
+                    # refuse); a FIFO or an oversized image is refused before it is read or decoded
+                    image = read_image_file(path, self._guard.expected_hw)
+                except InputRefused as exc:
+                    raise self._guard.refuse(exc) from exc
+                except OSError as exc:
+                    problem = "cannot read" if path.exists() else "frame file missing:"
+                    raise CameraError(f"{self.name}: {problem} {path} ({exc.strerror or exc})", device=self.name,
+                                      kind="corrupt") from exc
                 return self._guard.admit(image, f" ({path.name})")
             if not self.loop or attempt:
                 break
@@ -420,9 +435,11 @@ def camera_from_config(cam: dict):
     """
     if cam["kind"] == "uvc":
         dev = cam["device"]
+        # frames of another size than the one configured are refused (the bundle was made for it)
         return UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
                          fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"],
-                         flush_frames=cam["flush_frames"], frozen_after=cam["frozen_after"])
+                         flush_frames=cam["flush_frames"], frozen_after=cam["frozen_after"],
+                         expected_hw=(cam["height_px"], cam["width_px"]))
     if cam["kind"] == "replay":
         return ReplayCamera(cam["path"], frozen_after=cam["frozen_after"])
     raise ValueError(f"devices.camera.kind = {cam['kind']!r}: built by the simulated cell, not from a config")

@@ -65,12 +65,14 @@ from vs2t_edge.runtime.devices import (
     DeviceError,
     GateError,
 )
+from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 
 UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
+MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
 
 
 @dataclass(frozen=True)
@@ -84,17 +86,21 @@ class ItemSource(Protocol):
 
 
 class ContinuousFeed:
-    """Live cell: the feeder presents the next piece as soon as the last one is sorted."""
+    """Live cell: the feeder presents the next piece as soon as the last one is sorted.
 
-    def __init__(self, limit: int | None = None) -> None:
-        self.limit, self.count = limit, 0
+    Pieces are numbered from ``first_number``: the daemon passes the journal's next item number,
+    so a restarted service goes on where the last one stopped instead of naming the next piece
+    ``piece-000001`` again (two pieces with one id would make the journal ambiguous)."""
+
+    def __init__(self, limit: int | None = None, first_number: int = 1) -> None:
+        self.limit, self.count, self.first_number = limit, 0, first_number
 
     def next_item(self, timeout_s: float) -> Item | None:
         if self.limit is not None and self.count >= self.limit:
             time.sleep(min(timeout_s, 0.05))
             return None
         self.count += 1
-        return Item(id=f"piece-{self.count:06d}")
+        return Item(id=f"piece-{self.first_number + self.count - 1:06d}")
 
     def exhausted(self) -> bool:
         return self.limit is not None and self.count >= self.limit
@@ -112,13 +118,17 @@ class SceneSpec:
     item_timeout_s: float = 60.0
     wait_item_timeout_s: float = 1.0
     fault_file: Path | None = None
+    bounds: Any = None  # runtime/budget.py StepBounds: device waits the watchdog is fed through
 
     @classmethod
     def from_config(cls, cfg) -> "SceneSpec":
+        from vs2t_edge.runtime.budget import bounds_of
+
         return cls(bins={f.name: f.bin for f in cfg.fabrics}, reject_bin=cfg.reject_bin,
                    points_mm=cfg.press_points_mm(), max_presses=cfg.max_presses,
                    confidence=cfg.confidence, item_timeout_s=cfg.item_timeout_s,
-                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file)
+                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file,
+                   bounds=bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate))
 
     @property
     def classes(self) -> list[str]:
@@ -214,7 +224,11 @@ class Cell:
         resolved = self._resolve_open_items()
         ff = self.scene.fault_file
         if ff is not None and ff.exists():
-            reason = ff.read_text(encoding="utf-8", errors="replace").strip() or "fault latched before restart"
+            try:  # bounded, and never a FIFO's endless wait: the fault stays latched either way
+                text = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
+            except (OSError, ValueError) as exc:
+                text = f"fault file {ff} unreadable ({exc})"
+            reason = text.strip() or "fault latched before restart"
             self.fault = reason
             self.notifier.status(f"FAULT (latched before restart): {reason}")
         return resolved
@@ -252,6 +266,10 @@ class Cell:
         """Arm stopped, gate to reject, reason journalled and reported; every step guarded."""
         self.fault = reason
         steps: list[str] = []
+        try:
+            self.notifier.ping_if_due()  # the stop and to-reject below are un-leased waits
+        except Exception:  # noqa: BLE001 - a failing notifier must not skip the latch
+            pass
         for what, fn in (("arm.stop", self.arm.stop), ("gate.to_reject", self.gate.to_reject)):
             try:
                 fn()
@@ -283,16 +301,17 @@ class Cell:
             # an item a failed journal write left open gets its final record first (the disk
             # must be writable again, else the fault latches again here)
             self._resolve_open_items()
-            self.gate.clear()
-            clear_arm = getattr(self.arm, "clear_protective_stop", None)
-            if clear_arm is not None:
-                clear_arm()
-                connect = getattr(self.arm, "connect", None)
-                if connect is not None:
-                    connect()
-            # a camera that left the bus (cable out, driver reset) only comes back through a new
-            # open; still gone -> the clear fails and the fault latches again, naming the camera
-            self._reopen_camera("the operator's clear", raise_on_failure=True)
+            with self.notifier.bounded_wait(self.scene.bounds.clear_s if self.scene.bounds else None):
+                self.gate.clear()
+                clear_arm = getattr(self.arm, "clear_protective_stop", None)
+                if clear_arm is not None:
+                    clear_arm()
+                    connect = getattr(self.arm, "connect", None)
+                    if connect is not None:
+                        connect()
+                # a camera that left the bus (cable out, driver reset) only comes back through a new
+                # open; still gone -> the clear fails and the fault latches again, naming the camera
+                self._reopen_camera("the operator's clear", raise_on_failure=True)
             self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
         except (DeviceError, JournalError) as exc:
             self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
@@ -393,7 +412,8 @@ class Cell:
         safety stop is never moved out of; a failing retract (``failures``: a device error, or
         any Exception after an internal fault) is logged and left for the operator."""
         try:
-            self.arm.retract()
+            with self.notifier.bounded_wait(self.scene.bounds.arm_call_s if self.scene.bounds else None):
+                self.arm.retract()
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
 
@@ -401,10 +421,12 @@ class Cell:
         """One press step with the retry policy: a retryable error is retried once. Before the
         retry of a camera fault the camera is reopened (a UVC device that vanished and came back
         delivers nothing to the old handle); if it does not reopen, the retry has failed."""
+        bounds = self.scene.bounds
         for attempt in (1, 2):
             self._check_time(t0)
             try:
-                return fn()
+                with self.notifier.bounded_wait(bounds.press_try_s if bounds else None):
+                    return fn()
             except ArmSafetyStop as exc:
                 raise CellFault(f"arm safety stop during {what}: {exc}", exc.kind) from exc
             except DeviceError as exc:
@@ -419,15 +441,17 @@ class Cell:
                 self.log(f"{what} failed ({exc}); retrying once")
                 self.journal.append({"type": "retry", "item": self._number, "step": what, "error": str(exc),
                                      "kind": exc.kind})
-                try:
-                    self.arm.retract()
-                except DeviceError:
-                    pass  # the retried step starts from move_above again
-                if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
-                    not_open = self._reopen_camera(f"the retry of {what}")
-                    if not_open is not None:
-                        raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
-                                        f"failed: {not_open}", "repeated_failure") from exc
+                with self.notifier.bounded_wait(bounds.retry_prep_s if bounds else None):
+                    try:
+                        self.arm.retract()
+                    except DeviceError:
+                        pass  # the retried step starts from move_above again
+                    not_open = None
+                    if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
+                        not_open = self._reopen_camera(f"the retry of {what}")
+                if not_open is not None:
+                    raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
+                                    f"failed: {not_open}", "repeated_failure") from exc
         raise AssertionError("unreachable")
 
     def _press_once(self, x_mm: float, y_mm: float):
@@ -504,6 +528,7 @@ class Cell:
                     self.journal.append({"type": "frame_skipped", "item": number, "point": k,
                                          "reason": exc.reason, "message": str(exc)})
                     self.log(f"item {number}: frame of press {k} skipped ({exc.reason})")
+                    self.notifier.ping_if_due()
                     continue
                 presses += 1
                 latencies.append(float(getattr(score, "latency_ms", 0.0)))
@@ -528,6 +553,7 @@ class Cell:
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
             self._check_time(t0)
             gate_told = True
+            self.notifier.ping_if_due()  # the sort and its retry are un-leased: budget.unleased_waits
             try:
                 self.gate.sort(bin_)
             except GateError as exc:
@@ -565,11 +591,13 @@ class Cell:
                                 "fault", skipped, latencies, self.clock() - t0)
         except StopRequested:
             # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
-            for fn in (self.arm.retract, self.gate.to_reject):
-                try:
-                    fn()
-                except Exception:  # noqa: BLE001 - stopping must reach the journal
-                    pass
+            bounds = self.scene.bounds
+            with self.notifier.bounded_wait(bounds.arm_call_s + bounds.gate_request_s if bounds else None):
+                for fn in (self.arm.retract, self.gate.to_reject):
+                    try:
+                        fn()
+                    except Exception:  # noqa: BLE001 - stopping must reach the journal
+                        pass
             self._final(number, item.id, label=UNKNOWN, bin_=self.scene.reject_bin, outcome="aborted",
                         reason="service stopping", presses=presses)
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", presses, 0.0, "stop",

@@ -21,7 +21,10 @@ from typing import Any
 
 import yaml
 
+from vs2t_edge.firmware_bridge.gate_client import timing_problems as gate_timing_problems
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
+from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_problems
+from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
 ARM_KINDS = ("ur_rtde", "fake", "sim")
@@ -52,9 +55,8 @@ def _leaf(kind: str, default: Any, bounds: Any = None, help_text: str = "", why:
     return {"__leaf__": True, "kind": kind, "default": default, "bounds": bounds, "help": help_text, "why": why}
 
 
-# systemd/vs2t-edge.service's WatchdogSec. A press grabs once and, after a camera fault, once more;
-# the loop pings between presses, so 2 x the frame timeout plus the arm's moves must stay well under it.
-SYSTEMD_WATCHDOG_S = 30.0
+# A hung grab must become a latched camera fault, not a kill by systemd's watchdog: the waits of
+# the loop against WatchdogSec are runtime/budget.py's, checked below (watchdog_problems).
 CAMERA_TIMEOUT_MAX_S = 10.0
 
 
@@ -434,6 +436,16 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     cam, gate = v["devices"]["camera"], v["devices"]["gate"]
     if cam["kind"] in ("replay", "sim") and cam["path"] is None:
         chk.err("devices.camera.path", f"devices.camera.path: required for camera kind {cam['kind']}")
+    # every constraint the device drivers enforce, from the drivers' own functions: a config this
+    # passes must not make a constructor refuse at `run` (a traceback, exit 1, restarted by systemd)
+    if gate["kind"] == "serial" and gate["timeout_s"] is not None and gate["retries"] is not None:
+        for problem in gate_timing_problems(gate["timeout_s"], gate["retries"]):
+            chk.err("devices.gate.timeout_s", f"devices.gate.timeout_s = {gate['timeout_s']!r}, retries = "
+                                              f"{gate['retries']!r}: the gate driver refuses them: {problem}")
+    if not chk.problems:  # the watchdog budget needs every number valid
+        bounds = bounds_of(cam, arm_sec["kind"], arm_cfg, gate)
+        for key, problem in watchdog_problems(bounds, v["watchdog"]["wait_item_timeout_s"]):
+            chk.err(key, f"{key}: {problem}")
     if chk.problems:
         raise ConfigError(path, chk.problems)
     journal = v["journal"]
@@ -470,14 +482,25 @@ def _read_private(path: Path) -> str:
     is checked on the open file descriptor (fstat), so the file cannot be swapped between the
     check and the read. Group-writable is allowed (an operators' group owning /etc/vs2t-edge).
     """
-    fd = os.open(path, os.O_RDONLY)
+    # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer, for ever
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     with os.fdopen(fd, "rb") as f:
-        mode = os.fstat(f.fileno()).st_mode
+        st = os.fstat(f.fileno())
+        mode = st.st_mode
+        if not stat.S_ISREG(mode):
+            raise ConfigError(path, [f"{path}: not a regular file (a FIFO, device or folder); a cell config is "
+                                     "a YAML file"])
+        if st.st_size > MAX_CONFIG_BYTES:  # a 5 MB YAML took 73 s and 1.6 GB to reach its error
+            raise ConfigError(path, [f"{path}: {st.st_size} bytes; a cell config is a few KB (at most "
+                                     f"{MAX_CONFIG_BYTES})"])
         if mode & stat.S_IWOTH:
             raise ConfigError(path, [f"{path}: world-writable (mode {stat.S_IMODE(mode):o}): any local user "
                                      f"could change which bundle and journal the cell uses; fix with "
                                      f"`chmod o-w {path}`"])
-        return f.read().decode("utf-8")
+        data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:  # grew after the fstat
+            raise ConfigError(path, [f"{path}: more than {MAX_CONFIG_BYTES} bytes; a cell config is a few KB"])
+        return data.decode("utf-8")
 
 
 def schema_reference() -> list[tuple[str, str, str, str]]:

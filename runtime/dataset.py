@@ -15,6 +15,7 @@ wrong, so a person fixes a malformed dataset in one pass.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ import numpy as np
 import yaml
 
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS, N_ATTRIBUTES
+from vs2t_edge.runtime.files import MAX_CONFIG_BYTES, MAX_JSON_BYTES, InputRefused, read_image_file, read_regular_file
 
 FORMAT_NAME = "vs2t-dataset"
 FORMAT_VERSION = 1
@@ -130,16 +132,34 @@ class Dataset:
         return np.stack([f.attributes for f in self.fabrics]).astype(np.uint8)
 
 
-def read_image(path: Path | str) -> np.ndarray:
-    """Decode an image file as HxWx3 uint8 BGR; raise ValueError naming the file otherwise."""
+def read_image(path: Path | str, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode an image file as HxWx3 uint8 BGR; raise ValueError naming the file otherwise.
+
+    The file must be a regular file (a FIFO would block the read forever); its size is read from
+    the header and refused before decoding when it is over runtime/files.py's caps or not
+    ``expected_hw`` (height, width). It is decoded as stored: a grey, RGBA or 16-bit image is
+    refused, not converted - a GelSight sends 8-bit BGR, and a converted grey frame was scored
+    with full confidence into a wrong bin.
+    """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file missing")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if image is None:
-        raise ValueError(f"{path}: not a readable image")
+    try:
+        image = read_image_file(path, expected_hw)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    # InputRefused is a ValueError naming the file and the problem: it passes through
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        raise InputRefused(f"{path}: {channels} channel(s) of {image.dtype}, expected 3 channels of uint8 "
+                           "(8-bit colour, as the sensor sends)", "format")
     return image
+
+
+def _bounded_text(path: Path, max_bytes: int) -> str:
+    """A dataset's text file (dataset.yaml, fabrics.csv, fabric.yaml): a regular file under a byte
+    cap (a FIFO would block the read, a huge YAML takes minutes to parse), as UTF-8 text."""
+    return read_regular_file(path, max_bytes, "dataset text file").decode("utf-8")
 
 
 def crop_at(image: np.ndarray, x_mm: float, y_mm: float, geometry: SensorGeometry) -> np.ndarray:
@@ -278,7 +298,10 @@ def _read_meta(root: Path, problems: list[str]) -> tuple[dict, SensorGeometry]:
         problems.append(f"{path.name}: missing (the dataset's format, sensor and camera geometry)")
         return {}, SensorGeometry()
     try:
-        meta = yaml.safe_load(path.read_text()) or {}
+        meta = yaml.safe_load(_bounded_text(path, MAX_CONFIG_BYTES)) or {}
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"{path.name}: {str(exc).split(': ', 1)[-1]}")
+        return {}, SensorGeometry()
     except yaml.YAMLError as exc:
         problems.append(f"{path.name}: not valid YAML: {exc}")
         return {}, SensorGeometry()
@@ -310,8 +333,11 @@ def _read_index(root: Path, problems: list[str]) -> list[tuple[str, str, np.ndar
     if not path.is_file():
         problems.append("fabrics.csv: missing (the list of fabrics with their 24 attributes)")
         return []
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        rows = list(csv.reader(io.StringIO(_bounded_text(path, MAX_JSON_BYTES), newline="")))
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"fabrics.csv: {str(exc).split(': ', 1)[-1]}")
+        return []
     if not rows:
         problems.append("fabrics.csv: empty")
         return []
@@ -369,7 +395,10 @@ def _read_fabric(root: Path, fid: str, name: str, index_attrs: np.ndarray, geome
         problems.append(f"{where}: {fid}/fabric.yaml missing")
         return None
     try:
-        doc = yaml.safe_load(doc_path.read_text()) or {}
+        doc = yaml.safe_load(_bounded_text(doc_path, MAX_CONFIG_BYTES)) or {}
+    except (InputRefused, UnicodeDecodeError) as exc:
+        problems.append(f"{where}: {fid}/fabric.yaml: {str(exc).split(': ', 1)[-1]}")
+        return None
     except yaml.YAMLError as exc:
         problems.append(f"{where}: {fid}/fabric.yaml is not valid YAML: {exc}")
         return None
@@ -452,12 +481,18 @@ def _read_checked(fabric: Fabric, label: str, path: Path, want_hw: tuple[int, in
     except ValueError:
         rel = str(path)
     try:
-        image = read_image(path)
+        image = read_image(path, want_hw)
+    except InputRefused as exc:
+        if exc.reason == "size":  # from the header, before decoding
+            head = exc.header
+            got = f"{head.width}x{head.height}" if head else "another size"
+            return None, f"{where}: {rel} is {got}, dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}"
+        detail = str(exc).split(": ", 1)[-1]
+        if exc.reason in ("format", "corrupt"):
+            return None, f"{where}: {rel} is not a readable image ({detail})"
+        return None, f"{where}: {rel} refused: {detail}"
     except ValueError:  # read_image says which; the file is looked for again only then
         return None, f"{where}: {rel} {'is not a readable image' if path.is_file() else 'missing'}"
-    if image.shape[:2] != tuple(want_hw):
-        return None, (f"{where}: {rel} is {image.shape[1]}x{image.shape[0]}, "
-                      f"dataset.yaml says {want_hw[1]}x{want_hw[0]}{key}")
     return image, None
 
 

@@ -23,6 +23,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from vs2t_edge.runtime.files import MAX_FRAME_PIXELS
+
 
 class FrameError(ValueError):
     """A frame the cell must not classify. ``reason`` is a short machine-readable word."""
@@ -61,7 +63,10 @@ _SATURATED_FRACTION = 0.5  # more than half the pixels clipped in some channel
 
 
 def check_frame(frame: object, expected_hw: tuple[int, int] | None = None, name: str = "frame") -> np.ndarray:
-    """Return the frame as HxWx3 uint8 or raise FrameError saying what is wrong with it."""
+    """Return the frame as HxWx3 uint8 or raise FrameError saying what is wrong with it.
+
+    Nothing is converted: a grey (HxW), RGBA (HxWx4) or 16-bit frame is not what the sensor sends
+    and is refused (reasons ``shape``, ``dtype``), never made three-channel and scored."""
     if not isinstance(frame, np.ndarray):
         raise FrameError(f"{name}: not an image array ({type(frame).__name__})", "type")
     if frame.dtype != np.uint8:
@@ -70,6 +75,10 @@ def check_frame(frame: object, expected_hw: tuple[int, int] | None = None, name:
         raise FrameError(f"{name}: dtype {frame.dtype}, expected uint8", "dtype")
     if frame.ndim != 3 or frame.shape[2] != 3:
         raise FrameError(f"{name}: shape {frame.shape}, expected HxWx3", "shape")
+    if frame.shape[0] * frame.shape[1] > MAX_FRAME_PIXELS:
+        # before anything allocates per pixel: the float32 crop of a 30000 x 30000 frame is 10 GiB
+        raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, over the {MAX_FRAME_PIXELS} pixels "
+                         "a tactile frame may have", "size")
     if expected_hw is not None and tuple(frame.shape[:2]) != tuple(expected_hw):
         raise FrameError(f"{name}: size {frame.shape[1]}x{frame.shape[0]}, expected "
                          f"{expected_hw[1]}x{expected_hw[0]}", "size")

@@ -8,6 +8,8 @@ A replay file is a folder ``NAME.replay/`` (format in docs/cell.md):
 * ``frames/NNNNNN.png`` - every grabbed frame, PNG (lossless, so a replay scores the same
   pixels).
 
+Reading the file - the bounds on what is read and the index's shape - is runtime/replay_file.py.
+
 Recording wraps the session's camera, arm, gate and item source in proxies that log each call
 with its result or its typed error (``RecordingCamera`` ...), tagged with the item in hand.
 Replaying gives the cell loop devices that answer from those logs (``ReplayArm`` raises the
@@ -23,7 +25,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import shutil
 import tempfile
 import threading
@@ -40,24 +41,20 @@ import yaml
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.cell import Item
 from vs2t_edge.runtime.devices import Frame, PressResult
+# the file format and its reader (re-exported: callers import them from here)
+from vs2t_edge.runtime.replay_file import (  # noqa: F401
+    FORMAT,
+    SAFETY_CALLS,
+    VERSION,
+    ReplayError,
+    ReplayFile,
+)
 
-FORMAT = "vs2t-edge-replay"
-VERSION = 1
-# The safety steps of a fault, a stop and a start. Kept in their own list ``safety_steps``, not in
-# ``events``: they are called inside guards that must not fail, so the replay devices do not answer
-# them from the event queues (a divergence raised there would cut the latch short); the replay
-# logs each call and compares the sequence after the run. A file recorded before they were
-# (no ``safety_steps`` key) replays as before, its safety steps not compared.
-SAFETY_CALLS = frozenset({("arm", "stop"), ("gate", "to_reject")})
 DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped", "retry")
 SCORE_RTOL, SCORE_ATOL = 1e-3, 1e-3  # onnxruntime thread counts and CPUs differ in the last bits
 
 _ERRORS = {cls.__name__: cls for cls in (dv.CameraError, dv.ArmConnectionError, dv.ArmSafetyStop, dv.PressFailed,
                                          dv.ArmError, dv.GateError, dv.DeviceError, dv.NotConnectedError)}
-
-
-class ReplayError(ValueError):
-    """A replay file that cannot be read, named with what is wrong."""
 
 
 class ReplayDivergence(BaseException):
@@ -66,6 +63,16 @@ class ReplayDivergence(BaseException):
     A BaseException, like KeyboardInterrupt: it ends the replay run, it is not a cell fault. As an
     Exception the cell loop would latch it as an internal fault and the replay would report a
     decision mismatch instead of saying where the paths parted."""
+
+
+class _FileUnreadable(BaseException):
+    """A recorded frame the replay may not read (refused, missing, outside the folder). It ends
+    the run like a divergence, not as a cell fault - run_replay raises the ReplayError it carries,
+    so the operator reads which file and why (exit 2), not a divergence it caused."""
+
+    def __init__(self, error: ReplayError) -> None:
+        super().__init__(str(error))
+        self.error = error
 
 
 def _error_to_json(exc: dv.DeviceError) -> dict:
@@ -264,124 +271,6 @@ def decisions_of(records: list[dict]) -> list[dict]:
     return out
 
 
-# --- the replay file -----------------------------------------------------------------------
-
-@dataclass
-class ReplayFile:
-    folder: Path
-    index: dict
-
-    @classmethod
-    def open(cls, folder: Path | str) -> "ReplayFile":
-        folder = Path(folder)
-        path = folder / "index.json"
-        if not path.is_file():
-            raise ReplayError(f"{folder}: not a replay file (no index.json)")
-        try:
-            index = json.loads(path.read_bytes())
-        except OSError as exc:
-            raise ReplayError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-        except RecursionError:
-            raise ReplayError(f"{path}: nested too deeply to be a replay index") from None
-        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, integers past 4300 digits
-            raise ReplayError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
-        if not isinstance(index, dict):
-            raise ReplayError(f"{path}: must be a JSON object")
-        if index.get("format") != FORMAT:
-            raise ReplayError(f"{path}: format {index.get('format')!r}, expected {FORMAT!r}")
-        if index.get("version") != VERSION or isinstance(index.get("version"), bool):
-            raise ReplayError(f"{path}: version {str(index.get('version'))[:40]}, this build reads {VERSION}")
-        _check_index(index, path)
-        return cls(folder, index)
-
-    def load_frame(self, name: str) -> np.ndarray:
-        path = self.folder / name
-        data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-        if image is None:
-            raise ReplayError(f"{path}: frame missing or unreadable")
-        return image
-
-    def frames_by_item(self):
-        """(reference frame, pressed frames) per item: the first grab of an item is its reference."""
-        grabs: dict[int, list[str]] = defaultdict(list)
-        for ev in self.index["events"]:
-            if ev["dev"] == "camera" and ev.get("frame"):
-                grabs[ev["item"]].append(ev["frame"])
-        for item in sorted(grabs):
-            names = grabs[item]
-            yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
-
-    def save_decisions(self, decisions: list[dict]) -> None:
-        self.index["decisions"] = decisions
-        tmp = self.folder / "index.json.tmp"
-        tmp.write_text(json.dumps(self.index, indent=1, sort_keys=True) + "\n")
-        tmp.replace(self.folder / "index.json")
-
-
-_FRAME_NAME = re.compile(r"^frames/[0-9]{6}\.png$")  # nothing outside the replay folder is ever read
-
-
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _check_index(index: Any, path: Path) -> None:
-    """Shape of every part the replay reads; a ReplayError naming the first bad entry."""
-    if not isinstance(index, dict):
-        raise ReplayError(f"{path}: must be a JSON object")
-    for key, typ in (("config", dict), ("items", list), ("events", list), ("decisions", list)):
-        if not isinstance(index.get(key), typ):
-            raise ReplayError(f"{path}: {key!r} missing or not a {typ.__name__}")
-    if not isinstance(index.get("meta", {}), dict):
-        raise ReplayError(f"{path}: 'meta' must be an object")
-    beta = index.get("meta", {}).get("beta")
-    if beta is not None and not (_number(beta) and not math.isnan(beta)):  # replayed as beta_override
-        raise ReplayError(f"{path}: meta.beta {str(beta)[:40]!r} is not a number")
-    if not isinstance(index["config"].get("bundle", ""), str):
-        raise ReplayError(f"{path}: config.bundle must be a folder name (text)")
-    for i, it in enumerate(index["items"]):
-        if not isinstance(it, dict) or not isinstance(it.get("id"), str):
-            raise ReplayError(f"{path}: items[{i}] needs an 'id' text")
-    for i, ev in enumerate(index["events"]):
-        if not (isinstance(ev, dict) and isinstance(ev.get("dev"), str) and isinstance(ev.get("call"), str)
-                and isinstance(ev.get("item"), int) and not isinstance(ev.get("item"), bool)):
-            raise ReplayError(f"{path}: events[{i}] needs dev, call (text) and item (number)")
-        frame = ev.get("frame")
-        if frame is not None and (not isinstance(frame, str) or not _FRAME_NAME.match(frame)):
-            raise ReplayError(f"{path}: events[{i}].frame {str(frame)[:60]!r} is not frames/NNNNNN.png")
-        if "error" in ev and not (isinstance(ev["error"], dict) and isinstance(ev["error"].get("message"), str)
-                                  and isinstance(ev["error"].get("type"), str)
-                                  and all(isinstance(ev["error"].get(k, ""), str) for k in ("kind", "device"))):
-            raise ReplayError(f"{path}: events[{i}].error needs type and message (and text kind, device)")
-        # a replayed grab's Frame is built from these: float(timestamp_s), int(index)
-        if "timestamp_s" in ev and not _number(ev["timestamp_s"]):
-            raise ReplayError(f"{path}: events[{i}].timestamp_s {str(ev['timestamp_s'])[:40]!r} is not a number")
-        if "index" in ev and not (isinstance(ev["index"], int) and not isinstance(ev["index"], bool)):
-            raise ReplayError(f"{path}: events[{i}].index {str(ev['index'])[:40]!r} is not a whole number")
-        if "args" in ev and not (isinstance(ev["args"], list)
-                                 and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in ev["args"])):
-            raise ReplayError(f"{path}: events[{i}].args must be a list of numbers")
-        if ev["call"] == "press" and "error" not in ev:
-            r = ev.get("result")
-            if not (isinstance(r, dict) and all(_number(r.get(k)) for k in ("x_mm", "y_mm", "force_n", "depth_mm"))):
-                raise ReplayError(f"{path}: events[{i}] press result needs x_mm, y_mm, force_n, depth_mm")
-            if not (isinstance(r.get("tcp_pose", []), list) and all(_number(v) for v in r.get("tcp_pose", []))
-                    and isinstance(r.get("telemetry", {}), dict)):
-                raise ReplayError(f"{path}: events[{i}] press result: tcp_pose must be numbers, telemetry an object")
-    steps = index.get("safety_steps", [])
-    if not isinstance(steps, list):
-        raise ReplayError(f"{path}: 'safety_steps' must be a list")
-    for i, st in enumerate(steps):
-        if not (isinstance(st, dict) and isinstance(st.get("item"), int) and not isinstance(st.get("item"), bool)
-                and isinstance(st.get("dev"), str) and isinstance(st.get("call"), str)
-                and (st["dev"], st["call"]) in SAFETY_CALLS):
-            raise ReplayError(f"{path}: safety_steps[{i}] needs item (number) and dev/call arm/stop or gate/to_reject")
-    for i, d in enumerate(index["decisions"]):
-        if not isinstance(d, dict) or not isinstance(d.get("type"), str):
-            raise ReplayError(f"{path}: decisions[{i}] needs a 'type'")
-
-
 # --- replay devices ------------------------------------------------------------------------
 
 class _Queues:
@@ -454,7 +343,11 @@ class ReplayCameraDevice(_ReplayBase):
             raise _error_from_json(ev["error"])
         if ev.get("frame") is None:
             raise dv.CameraError("recorded grab returned no image", device="camera", kind="corrupt")
-        return Frame(self.q.rf.load_frame(ev["frame"]), float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
+        try:
+            image = self.q.rf.load_frame(ev["frame"])
+        except ReplayError as exc:
+            raise _FileUnreadable(exc) from None
+        return Frame(image, float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
 
 
 class ReplayArm(_ReplayBase):
@@ -666,6 +559,8 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
                 diverged = f"the daemon exited with {code} (bundle or config refused){': ' + why if why else ''}"
         except ReplayDivergence as exc:
             diverged = str(exc)
+        except _FileUnreadable as exc:
+            raise exc.error from None
         new = decisions_of(read_records(cfg.journal)) if cfg.journal.exists() else []
     safety = [] if diverged else queues.safety_mismatches()
     if update_refs and safety:

@@ -1644,6 +1644,15 @@ HOSTILE_CONFIGS = {
     "reject bin also a fabric bin": DAEMON_CONFIG.replace("bin: 1}", "bin: 0}"),
     "binary junk": "\x00\xff\xfe bundle: [",
     "huge number": DAEMON_CONFIG.replace("max_presses: 3", "max_presses: 1" + "0" * 400),
+    # issue 17: a 5 MB file took 73 s and 1.6 GB to reach its error (now refused by size, unread)
+    "five megabytes": DAEMON_CONFIG + "".join(f"k{i}: [1, 2, 3]\n" for i in range(400_000)),
+    # issue 17: inside the documented 0.05 .. 10 but refused by the gate driver at `run`
+    # (traceback, exit 1, restarted by systemd); validation now asks the driver's own rule
+    "gate timeout the driver refuses": DAEMON_CONFIG.replace("gate: {kind: fake}",
+                                                             "gate: {kind: serial, timeout_s: 0.9}"),
+    # issue 17: no ping for 60 s against WatchdogSec=30 (runtime/budget.py)
+    "wait for a piece past the watchdog": DAEMON_CONFIG.replace("wait_item_timeout_s: 0.05",
+                                                                "wait_item_timeout_s: 60"),
 }
 
 
@@ -1991,6 +2000,12 @@ class Scenario:
     known_bug: str = ""  # non-empty: the row fails today because of this bug (owner named)
 
 
+def _inputs_row(name: str, w: Path):
+    from vs2t_edge.sim import faults_inputs  # issue 17's input rows, kept in their own module
+
+    return getattr(faults_inputs, name)(w)
+
+
 SCENARIOS = [
     Scenario("camera_unplugged_and_back", "loop", "camera unplugged mid-press, back for the retry",
              "press retried once, all pieces sorted", camera_unplugged_and_back),
@@ -2003,6 +2018,13 @@ SCENARIOS = [
     Scenario("replay_camera_bad_frames", "loop", "ReplayCamera: a corrupt and a missing frame file",
              "each refused naming the file, press retried on the next recorded frame, none scored twice; all sorted",
              replay_camera_bad_frames),
+    Scenario("replay_camera_not_sensor_frames", "loop", "ReplayCamera: grey, RGBA, 16-bit, wrong-size, "
+             "30000x30000 and FIFO frame files",
+             "each refused naming the file and why, before decoding (size) or reading (FIFO); none scored; "
+             "all sorted", lambda w: _inputs_row("replay_camera_not_sensor_frames", w)),
+    Scenario("watchdog_hung_grab", "loop", "grab hangs to its timeout on a press and its retry (watchdog 1 s)",
+             "camera fault latched before the watchdog: pings every < 0.5 s through the waits",
+             lambda w: _inputs_row("watchdog_through_hung_grab", w)),
     Scenario("camera_covered", "loop", "black frames on a press and its retry",
              "camera fault latched naming 'all black', piece rejected; rest sorted", all_frames_black),
     Scenario("protective_stop", "loop", "protective stop mid-press (FakeArm)",
@@ -2067,7 +2089,11 @@ SCENARIOS = [
              disk_full_at_start),
     Scenario("fsync_eio", "journal", "EIO from fsync of a final record after the gate moved",
              "cut back, fault latched; the clear resolves the piece as unknown_outcome", fsync_eio),
-    Scenario("hostile_config", "config", "alias bomb, python tag, NaN, junk, ...",
+    Scenario("restart_piece_ids", "daemon", "daemon restarted on its journal (run_daemon's own feed)",
+             "piece ids go on (piece-000003 after piece-000002), none twice",
+             lambda w: _inputs_row("restart_piece_ids", w)),
+    Scenario("hostile_config", "config", "alias bomb, python tag, NaN, junk, 5 MB, a gate timeout the driver "
+             "refuses, a piece wait past the watchdog, ...",
              "refused with exit 2 naming the file, no traceback", hostile_configs),
     Scenario("bundle_tampered", "bundle", "graph byte flipped / truncated, file missing, manifest truncated, "
              "format 2, opset 11, probe mismatch",

@@ -440,3 +440,24 @@ def test_keyboard_interrupt_still_ends_the_loop(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         cell.run(max_items=1)
     assert not (tmp_path / "FAULT").exists()
+
+
+def test_piece_ids_go_on_across_daemon_restarts_on_one_journal(tmp_path):
+    """Each run of the daemon used to start its pieces at piece-000001 again: after a restart the
+    journal held two pieces of each id. The feed now goes on from the journal's next item."""
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x}\n  arm: {kind: fake}\n  gate: {kind: fake}\n"
+        "scene:\n  reject_bin: 0\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n"
+        "    - {name: silk, kind: touched, bin: 2}\n    - {name: wool, kind: untouched, bin: 3}\n"
+        "evidence: {confidence: 0.95, max_presses: 4}\njournal: j.jsonl\n")
+    cfg = load_config(tmp_path / "cell.yaml")
+    for _ in range(2):  # two runs of the service on one journal
+        arm = FakeArm(config=cfg.arm)
+        assert run_daemon(cfg, model=FakeModel(VOTES, CLASSES), camera=ScriptedCamera(arm, [50] * 40), arm=arm,
+                          gate=FakeGate(), evidence_factory=lambda: FakeEvidence(CLASSES, 0.95, 4), max_items=2,
+                          install_signals=False, log=lambda m: None) == 0
+    ids = [r["item_id"] for r in read_records(tmp_path / "j.jsonl") if r.get("type") == "final"]
+    assert ids == ["piece-000001", "piece-000002", "piece-000003", "piece-000004"]

@@ -444,3 +444,87 @@ def test_non_utf8_config_is_refused_in_words(tmp_path):
     cfg.write_bytes(b"bundle: \xff\xfe\n")
     with pytest.raises(ConfigError, match="not UTF-8"):
         load_config(cfg)
+
+
+# --- bounded inputs: size caps and regular files only (issue 17, item 2) ---------------------------
+
+def _in_thread(fn, timeout_s: float = 10.0, fifo: Path | None = None):
+    """fn()'s exception, or "hung" if it does not return (a reader blocked on a FIFO is released
+    by opening and closing a writer, so the test process can still end)."""
+    import threading
+
+    box: dict = {}
+
+    def run():
+        try:
+            fn()
+            box["exc"] = None
+        except BaseException as exc:  # noqa: BLE001
+            box["exc"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        if fifo is not None:
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        return "hung"
+    return box["exc"]
+
+
+def test_a_fifo_config_is_refused_instead_of_hanging(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    cfg = tmp_path / "cell.yaml"
+    os.mkfifo(cfg, 0o640)
+    exc = _in_thread(lambda: load_config(cfg), fifo=cfg)
+    assert isinstance(exc, ConfigError) and "not a regular file" in str(exc), exc
+
+
+def test_a_huge_config_is_refused_before_it_is_parsed(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    cfg = tmp_path / "cell.yaml"
+    # 5 MB of keys: took 73 s and 1.6 GB to reach its error; 50 MB ended in a MemoryError traceback
+    cfg.write_text(faults.DAEMON_CONFIG + "".join(f"k{i}: [1, 2, 3]\n" for i in range(400_000)))
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match="a cell config is a few KB"):
+        load_config(cfg)
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_a_fifo_or_huge_manifest_is_refused(tmp_path):
+    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+
+    manifest = tmp_path / "manifest.json"
+    os.mkfifo(manifest)
+    exc = _in_thread(lambda: read_manifest(tmp_path), fifo=manifest)
+    assert isinstance(exc, BundleError), exc
+    manifest.unlink()
+    with open(manifest, "wb") as f:
+        f.truncate(200 * 1024 * 1024)  # sparse
+    with pytest.raises(BundleError, match="bytes, more than"):
+        read_manifest(tmp_path)
+
+
+def test_a_fifo_beta_override_or_fault_file_does_not_hang_the_start(tmp_path):
+    from vs2t_edge.runtime.calibrate import CalibrationError, read_beta_override
+    from vs2t_edge.runtime.cell import Cell
+
+    override = tmp_path / "b.beta_override.json"
+    os.mkfifo(override)
+    exc = _in_thread(lambda: read_beta_override(override), fifo=override)
+    assert isinstance(exc, CalibrationError) and "FIFO" in str(exc), exc
+
+    fault = tmp_path / "FAULT"
+    os.mkfifo(fault)
+
+    class Scene:
+        fault_file = fault
+
+    cell = Cell.__new__(Cell)  # recover() needs only these
+    cell.scene, cell.fault = Scene(), None
+    cell._resolve_open_items = lambda: []
+    cell.notifier = type("N", (), {"status": lambda self, s: None})()
+    assert _in_thread(cell.recover, fifo=fault) is None
+    assert cell.fault and "unreadable" in cell.fault  # still latched: an operator looks

@@ -1,0 +1,165 @@
+"""The replay file on disk: its format, and the reader that refuses anything it should not read.
+
+A replay file is a folder, ``NAME.replay/index.json`` and ``NAME.replay/frames/NNNNNN.png``
+(docs/cell.md, "Record and replay"). :class:`ReplayFile` opens it: the index is read only as a
+regular file under a size cap and its shape is checked entry by entry (``_check_index``); a
+frame is read only when its path, every link resolved, stays inside the folder, is a regular
+file, and its header gives a size under the caps - then decoded as stored, for the cell's frame
+check to judge. Recording and replaying a session is runtime/replay.py.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
+
+FORMAT = "vs2t-edge-replay"
+VERSION = 1
+# The safety steps of a fault, a stop and a start. Kept in their own list ``safety_steps``, not in
+# ``events``: they are called inside guards that must not fail, so the replay devices do not answer
+# them from the event queues (a divergence raised there would cut the latch short); the replay
+# logs each call and compares the sequence after the run. A file recorded before they were
+# (no ``safety_steps`` key) replays as before, its safety steps not compared.
+SAFETY_CALLS = frozenset({("arm", "stop"), ("gate", "to_reject")})
+
+
+class ReplayError(ValueError):
+    """A replay file that cannot be read, named with what is wrong."""
+
+
+# --- the replay file -----------------------------------------------------------------------
+
+@dataclass
+class ReplayFile:
+    folder: Path
+    index: dict
+
+    @classmethod
+    def open(cls, folder: Path | str) -> "ReplayFile":
+        folder = Path(folder)
+        path = folder / "index.json"
+        if not path.is_file():
+            raise ReplayError(f"{folder}: not a replay file (no index.json)")
+        if not inside(folder, path):
+            raise ReplayError(f"{path}: a link to outside the replay folder; nothing outside it is read")
+        try:
+            index = json.loads(read_regular_file(path, MAX_REPLAY_INDEX_BYTES, "replay index"))
+        except InputRefused as exc:
+            raise ReplayError(str(exc)) from None
+        except OSError as exc:
+            raise ReplayError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+        except RecursionError:
+            raise ReplayError(f"{path}: nested too deeply to be a replay index") from None
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, integers past 4300 digits
+            raise ReplayError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
+        if not isinstance(index, dict):
+            raise ReplayError(f"{path}: must be a JSON object")
+        if index.get("format") != FORMAT:
+            raise ReplayError(f"{path}: format {index.get('format')!r}, expected {FORMAT!r}")
+        if index.get("version") != VERSION or isinstance(index.get("version"), bool):
+            raise ReplayError(f"{path}: version {str(index.get('version'))[:40]}, this build reads {VERSION}")
+        _check_index(index, path)
+        return cls(folder, index)
+
+    def load_frame(self, name: str) -> np.ndarray:
+        """The frame as stored (the frame check refuses a grey, RGBA or 16-bit one). Refused
+        before reading: a frame whose path, links resolved, leaves the replay folder (the index
+        names only ``frames/NNNNNN.png``, and a link must not widen that), a FIFO (it would block
+        the read forever) and an image over the size caps (before it is decoded)."""
+        path = self.folder / name
+        if not inside(self.folder, path):
+            raise ReplayError(f"{path}: a link to outside the replay folder; nothing outside it is read")
+        try:
+            return read_image_file(path)
+        except InputRefused as exc:
+            raise ReplayError(f"{path}: frame refused: {str(exc).split(': ', 1)[-1]}") from None
+        except OSError as exc:
+            raise ReplayError(f"{path}: frame missing or unreadable ({exc.strerror or exc})") from None
+
+    def frames_by_item(self):
+        """(reference frame, pressed frames) per item: the first grab of an item is its reference."""
+        grabs: dict[int, list[str]] = defaultdict(list)
+        for ev in self.index["events"]:
+            if ev["dev"] == "camera" and ev.get("frame"):
+                grabs[ev["item"]].append(ev["frame"])
+        for item in sorted(grabs):
+            names = grabs[item]
+            yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
+
+    def save_decisions(self, decisions: list[dict]) -> None:
+        self.index["decisions"] = decisions
+        tmp = self.folder / "index.json.tmp"
+        tmp.write_text(json.dumps(self.index, indent=1, sort_keys=True) + "\n")
+        tmp.replace(self.folder / "index.json")
+
+
+_FRAME_NAME = re.compile(r"^frames/[0-9]{6}\.png$")  # nothing outside the replay folder is ever read
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _check_index(index: Any, path: Path) -> None:
+    """Shape of every part the replay reads; a ReplayError naming the first bad entry."""
+    if not isinstance(index, dict):
+        raise ReplayError(f"{path}: must be a JSON object")
+    for key, typ in (("config", dict), ("items", list), ("events", list), ("decisions", list)):
+        if not isinstance(index.get(key), typ):
+            raise ReplayError(f"{path}: {key!r} missing or not a {typ.__name__}")
+    if not isinstance(index.get("meta", {}), dict):
+        raise ReplayError(f"{path}: 'meta' must be an object")
+    beta = index.get("meta", {}).get("beta")
+    if beta is not None and not (_number(beta) and not math.isnan(beta)):  # replayed as beta_override
+        raise ReplayError(f"{path}: meta.beta {str(beta)[:40]!r} is not a number")
+    if not isinstance(index["config"].get("bundle", ""), str):
+        raise ReplayError(f"{path}: config.bundle must be a folder name (text)")
+    for i, it in enumerate(index["items"]):
+        if not isinstance(it, dict) or not isinstance(it.get("id"), str):
+            raise ReplayError(f"{path}: items[{i}] needs an 'id' text")
+    for i, ev in enumerate(index["events"]):
+        if not (isinstance(ev, dict) and isinstance(ev.get("dev"), str) and isinstance(ev.get("call"), str)
+                and isinstance(ev.get("item"), int) and not isinstance(ev.get("item"), bool)):
+            raise ReplayError(f"{path}: events[{i}] needs dev, call (text) and item (number)")
+        frame = ev.get("frame")
+        if frame is not None and (not isinstance(frame, str) or not _FRAME_NAME.match(frame)):
+            raise ReplayError(f"{path}: events[{i}].frame {str(frame)[:60]!r} is not frames/NNNNNN.png")
+        if "error" in ev and not (isinstance(ev["error"], dict) and isinstance(ev["error"].get("message"), str)
+                                  and isinstance(ev["error"].get("type"), str)
+                                  and all(isinstance(ev["error"].get(k, ""), str) for k in ("kind", "device"))):
+            raise ReplayError(f"{path}: events[{i}].error needs type and message (and text kind, device)")
+        # a replayed grab's Frame is built from these: float(timestamp_s), int(index)
+        if "timestamp_s" in ev and not _number(ev["timestamp_s"]):
+            raise ReplayError(f"{path}: events[{i}].timestamp_s {str(ev['timestamp_s'])[:40]!r} is not a number")
+        if "index" in ev and not (isinstance(ev["index"], int) and not isinstance(ev["index"], bool)):
+            raise ReplayError(f"{path}: events[{i}].index {str(ev['index'])[:40]!r} is not a whole number")
+        if "args" in ev and not (isinstance(ev["args"], list)
+                                 and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in ev["args"])):
+            raise ReplayError(f"{path}: events[{i}].args must be a list of numbers")
+        if ev["call"] == "press" and "error" not in ev:
+            r = ev.get("result")
+            if not (isinstance(r, dict) and all(_number(r.get(k)) for k in ("x_mm", "y_mm", "force_n", "depth_mm"))):
+                raise ReplayError(f"{path}: events[{i}] press result needs x_mm, y_mm, force_n, depth_mm")
+            if not (isinstance(r.get("tcp_pose", []), list) and all(_number(v) for v in r.get("tcp_pose", []))
+                    and isinstance(r.get("telemetry", {}), dict)):
+                raise ReplayError(f"{path}: events[{i}] press result: tcp_pose must be numbers, telemetry an object")
+    steps = index.get("safety_steps", [])
+    if not isinstance(steps, list):
+        raise ReplayError(f"{path}: 'safety_steps' must be a list")
+    for i, st in enumerate(steps):
+        if not (isinstance(st, dict) and isinstance(st.get("item"), int) and not isinstance(st.get("item"), bool)
+                and isinstance(st.get("dev"), str) and isinstance(st.get("call"), str)
+                and (st["dev"], st["call"]) in SAFETY_CALLS):
+            raise ReplayError(f"{path}: safety_steps[{i}] needs item (number) and dev/call arm/stop or gate/to_reject")
+    for i, d in enumerate(index["decisions"]):
+        if not isinstance(d, dict) or not isinstance(d.get("type"), str):
+            raise ReplayError(f"{path}: decisions[{i}] needs a 'type'")

@@ -1,0 +1,292 @@
+"""Issue 17, items 3 and 4: a config validate-config passes never makes a driver refuse at `run`,
+and the loop's waits fit systemd's watchdog (runtime/budget.py)."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cell_fakes import FakeEvidence, FakeModel
+from vs2t_edge.firmware_bridge.gate_client import GateClient, timing_problems
+from vs2t_edge.runtime.arm import FakeArm
+from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, StepBounds, allowed_wait_s, bounds_of, unleased_waits
+from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.runtime.config import ConfigError, load_config
+from vs2t_edge.runtime.devices import CameraError, Frame
+from vs2t_edge.runtime.gate import FakeGate
+from vs2t_edge.runtime.journal import Journal, read_records
+from vs2t_edge.runtime.notify import Notifier
+
+HERE = Path(__file__).parent
+REPO = HERE.parent
+
+CONFIG = """\
+bundle: bundle
+devices:
+  camera: {{kind: replay, path: frames}}
+  arm: {{kind: fake}}
+  gate: {{kind: serial, url: /dev/null, timeout_s: {timeout}, retries: {retries}}}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {{name: denim, kind: touched, bin: 1}}
+journal: j.jsonl
+watchdog: {{wait_item_timeout_s: {wait}}}
+"""
+
+
+def _cfg(tmp_path, timeout=0.5, retries=3, wait=1.0):
+    path = tmp_path / "cell.yaml"
+    path.write_text(CONFIG.format(timeout=timeout, retries=retries, wait=wait))
+    return path
+
+
+# --- item 3: one source for the driver's constraints and validation ------------------------------
+
+def test_a_gate_timeout_the_driver_refuses_is_refused_by_validation(tmp_path):
+    # 0.9 s is inside the documented 0.05 .. 10, but 0.9 + the 0.25 s heartbeat period is past the
+    # gate's 1 s heartbeat timeout: `run` died with a ValueError traceback, exit 1, restarted
+    with pytest.raises(ConfigError) as err:
+        load_config(_cfg(tmp_path, timeout=0.9))
+    assert "devices.gate.timeout_s = 0.9" in str(err.value) and "heartbeat timeout" in str(err.value)
+    assert f"{tmp_path / 'cell.yaml'}:5:" in str(err.value)  # file and line, as every config problem
+
+
+@pytest.mark.parametrize("timeout, retries", list(itertools.product([0.05, 0.3, 0.7, 0.74, 0.75, 0.9, 10.0], [0, 3, 10])))
+def test_validation_passes_exactly_what_the_gate_driver_accepts(tmp_path, timeout, retries):
+    try:
+        GateClient("/dev/null", timeout_s=timeout, retries=retries)
+        driver_ok = True
+    except ValueError:
+        driver_ok = False
+    try:
+        load_config(_cfg(tmp_path, timeout=timeout, retries=retries))
+        config_ok = True
+    except ConfigError:
+        config_ok = False
+    assert config_ok == driver_ok == (not timing_problems(timeout, retries))
+
+
+def test_run_refuses_a_gate_the_driver_rejects_in_words_not_a_traceback(tmp_path):
+    cfg = _cfg(tmp_path, timeout=0.9)
+    p = subprocess.run([sys.executable, "-m", "vs2t_edge.cli", "run", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "heartbeat timeout" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+# --- item 4: the watchdog budget -------------------------------------------------------------------
+
+def test_the_budget_uses_the_units_watchdog():
+    unit = (REPO / "systemd" / "vs2t-edge.service").read_text()
+    assert f"WatchdogSec={SYSTEMD_WATCHDOG_S:g}\n" in unit
+
+
+def test_a_wait_for_a_piece_longer_than_the_watchdog_allows_is_refused(tmp_path):
+    # 60 s was within the documented bounds: no ping for 60 s against WatchdogSec=30
+    with pytest.raises(ConfigError, match="watchdog.wait_item_timeout_s: the wait for the next piece may take 60"):
+        load_config(_cfg(tmp_path, wait=60))
+    assert load_config(_cfg(tmp_path, wait=allowed_wait_s())).wait_item_timeout_s == allowed_wait_s()
+
+
+def test_every_unleased_wait_of_the_shipped_and_the_worst_valid_gate_fits_the_watchdog(tmp_path):
+    cfg = load_config(REPO / "systemd" / "cell.yaml")
+    waits = unleased_waits(bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate), cfg.wait_item_timeout_s)
+    assert all(s <= allowed_wait_s() for _, s, _ in waits), waits
+    worst = load_config(_cfg(tmp_path, timeout=0.74, retries=10))  # the slowest gate validation passes
+    waits = unleased_waits(bounds_of(worst.camera, worst.arm_kind, worst.arm, worst.gate), 1.0)
+    assert max(s for _, s, _ in waits) <= allowed_wait_s()
+
+
+class _SlowArm(FakeArm):
+    """Every move takes ``move_s`` of real time, as a real arm's do."""
+
+    def __init__(self, move_s, **kw):
+        super().__init__(**kw)
+        self.move_s = move_s
+
+    def move_above(self, x_mm, y_mm):
+        time.sleep(self.move_s)
+        return super().move_above(x_mm, y_mm)
+
+    def retract(self):
+        time.sleep(self.move_s)
+        return super().retract()
+
+
+class _HungCamera:
+    """The reference grab works; every press grab waits out its timeout and fails."""
+
+    def __init__(self, timeout_s):
+        self.timeout_s, self.grabs = timeout_s, 0
+
+    def connect(self):
+        pass
+
+    def disconnect(self):
+        pass
+
+    def grab(self):
+        import numpy as np
+
+        self.grabs += 1
+        if self.grabs == 1:
+            return Frame(np.full((48, 64, 3), 100, np.uint8), time.monotonic(), 0)
+        time.sleep(self.timeout_s)
+        raise CameraError(f"no frame within {self.timeout_s} s", device="camera", kind="timeout")
+
+
+def test_pings_come_often_enough_through_a_hung_grab_and_its_retry(tmp_path, monkeypatch):
+    """Scaled to a 1 s watchdog: moves of 0.15 s and a grab that hangs 0.5 s, twice. One press try
+    takes ~0.95 s, a try plus the retry's preparation ~1.6 s: with pings only at press boundaries,
+    every half watchdog, the gap passed the watchdog (measured 1.10 s). The fault must latch
+    with no gap in the pings longer than the watchdog."""
+    watchdog_s = 1.0
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    monkeypatch.setenv("WATCHDOG_USEC", str(int(watchdog_s * 1e6)))
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    notifier = Notifier(address=sock_path)
+    arm = _SlowArm(0.15)
+    arm.connect()
+    camera = _HungCamera(0.5)
+    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)  # each wait's own bound
+    scene = SceneSpec(bins={"denim": 1}, reject_bin=0, points_mm=[(40.0, 40.0)] * 4, max_presses=2,
+                      confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
+    journal = Journal.open(tmp_path / "j.jsonl")
+    cell = Cell(camera=camera, arm=arm, gate=FakeGate(), model=FakeModel({100: "denim"}, ["denim"]),
+                journal=journal, notifier=notifier, scene=scene,
+                evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 2), items=ContinuousFeed(limit=1),
+                log=lambda m: None)
+    server.setblocking(False)
+    pings: list[float] = []
+    notifier.watchdog()
+    start = time.monotonic()
+    import threading
+
+    def listen():
+        while time.monotonic() - start < 10 and not done.is_set():
+            try:
+                if server.recv(4096) == b"WATCHDOG=1":
+                    pings.append(time.monotonic())
+            except BlockingIOError:
+                time.sleep(0.005)
+
+    done = threading.Event()
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    notifier.watchdog()
+    time.sleep(0.05)
+    done.set()
+    listener.join()
+    journal.close()
+    assert cell.fault and "failed twice" in cell.fault
+    gaps = [b - a for a, b in zip(pings, pings[1:])]
+    assert pings and max(gaps) < watchdog_s * 0.5, f"largest gap between pings {max(gaps):.2f} s"
+    assert [r["type"] for r in read_records(tmp_path / "j.jsonl")].count("fault") == 1
+
+
+@pytest.mark.parametrize("edge", ["low", "high"])
+def test_every_device_a_valid_config_describes_can_be_built(tmp_path, edge):
+    """The audit of issue 17 item 3 as a test: at both ends of every device bound validation
+    accepts, the live constructors (camera, arm, gate) accept the settings too."""
+    from vs2t_edge.runtime.arm import IsolatedURArm
+    from vs2t_edge.runtime.camera import camera_from_config
+    from vs2t_edge.runtime.gate import SerialGate
+
+    low = edge == "low"
+    text = f"""\
+bundle: bundle
+devices:
+  camera: {{kind: uvc, device: /dev/null-camera, width_px: {16 if low else 4096}, height_px: {16 if low else 4096},
+           fps: {1 if low else 240}, timeout_s: {0.05 if low else 10}, flush_frames: {0 if low else 30},
+           frozen_after: {2 if low else 100}}}
+  arm: {{kind: ur_rtde}}
+  gate: {{kind: serial, url: /dev/null, timeout_s: {0.05 if low else 0.74}, retries: {0 if low else 10}}}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {{name: denim, kind: touched, bin: 1}}
+journal: j.jsonl
+watchdog: {{wait_item_timeout_s: {0.01 if low else 26}}}
+"""
+    (tmp_path / "cell.yaml").write_text(text)
+    cfg = load_config(tmp_path / "cell.yaml")
+    camera_from_config(cfg.camera)  # constructors only: nothing is opened
+    IsolatedURArm(cfg.arm)
+    SerialGate(cfg.gate["url"], timeout_s=cfg.gate["timeout_s"], retries=cfg.gate["retries"])
+
+
+class _SlowClearGate(FakeGate):
+    """The gate's CLEAR answers after ``clear_s`` of real time (within its own request bound)."""
+
+    def __init__(self, clear_s):
+        super().__init__()
+        self.clear_s = clear_s
+
+    def clear(self):
+        time.sleep(self.clear_s)
+        return super().clear()
+
+
+def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watchdog(tmp_path, monkeypatch):
+    """Scaled to a 1 s watchdog: a gate whose CLEAR takes 1.3 s (a slow MCU, within the bound the
+    driver enforces). The clear was not leased: no ping went out while it lasted, so systemd would
+    kill the service the operator was bringing back. Now the pings go on through it."""
+    import threading
+
+    watchdog_s = 1.0
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.setblocking(False)
+    monkeypatch.setenv("WATCHDOG_USEC", str(int(watchdog_s * 1e6)))
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    notifier = Notifier(address=sock_path)
+    arm = FakeArm()
+    arm.connect()
+    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)
+    assert bounds.clear_s > 1.3
+    scene = SceneSpec(bins={"denim": 1}, reject_bin=0, points_mm=[(40.0, 40.0)], max_presses=1,
+                      confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
+    journal = Journal.open(tmp_path / "j.jsonl")
+    camera = _HungCamera(0.0)
+    cell = Cell(camera=camera, arm=arm, gate=_SlowClearGate(1.3), model=FakeModel({100: "denim"}, ["denim"]),
+                journal=journal, notifier=notifier, scene=scene,
+                evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 1), items=ContinuousFeed(limit=1),
+                log=lambda m: None)
+    cell.latch_fault("operator test", "fault")
+    (tmp_path / "FAULT").unlink(missing_ok=True)
+    pings: list[float] = []
+    done = threading.Event()
+
+    def listen():
+        while not done.is_set():
+            try:
+                if server.recv(4096) == b"WATCHDOG=1":
+                    pings.append(time.monotonic())
+            except BlockingIOError:
+                time.sleep(0.005)
+
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    notifier.watchdog()
+    start = time.monotonic()
+    assert cell.clear_fault()
+    took = time.monotonic() - start
+    notifier.watchdog()
+    time.sleep(0.05)
+    done.set()
+    listener.join()
+    journal.close()
+    assert took >= 1.3 and cell.fault is None
+    gaps = [b - a for a, b in zip(pings, pings[1:])]
+    assert len(pings) >= 3 and max(gaps) < watchdog_s * 0.8, f"largest gap between pings {max(gaps):.2f} s"
