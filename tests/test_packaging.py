@@ -110,3 +110,19 @@ def test_wheel_installs_and_runs_without_the_train_extra(tmp_path):
         assert refused.returncode == 4, (argv, refused.stderr[-2000:])
         assert "pip install 'vs2t-edge[train]'" in refused.stderr and "Traceback" not in refused.stderr, argv
     assert not (tmp_path / "vs2t-demo").exists()
+
+
+def test_the_demos_default_work_folder_is_ignored_by_git():
+    """`vs2t-edge demo` run in a clone writes ./vs2t-demo (163 MB): never a file to commit."""
+    import argparse
+    import shutil
+
+    from vs2t_edge.sim import demo
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser, "demo")
+    workdir = parser.parse_args([]).workdir
+    checked = subprocess.run(["git", "check-ignore", "-q", f"{workdir}/dataset/fabrics.csv"], cwd=ROOT)
+    assert checked.returncode == 0, f"{workdir}/ is not in .gitignore"
