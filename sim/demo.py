@@ -132,7 +132,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         lat = sum(r.latency_ms) / len(r.latency_ms) if r.latency_ms else float("nan")
         said = f"{r.label} {names_of.get(r.label, '')}".strip()
         line = (f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} ({tk:9s}) -> {said:>26s}  bin {r.bin}  "
-                f"{r.presses} presses  "
+                f"{r.presses} {'press' if r.presses == 1 else 'presses':7s}  "
                 f"conf {r.confidence:.2f}  {lat:6.1f} ms/press  {r.item_s:5.1f} s  "
                 f"{'ok' if ok and r.outcome == 'sorted' else 'WRONG' if r.outcome == 'sorted' else r.outcome}")
         rows_printed.append(line)
