@@ -307,6 +307,7 @@ def test_generator_and_classifier_progress_reach_stderr_and_change_nothing(monke
 
     views = _views()
     budget = vs2t.VS2TBudget(steps=40, cls_steps=30, n_synth_per_class=10, hidden=32, latent=4)
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)  # drawn as on a terminal
     out = {}
     for flag in ("1", "0"):
         monkeypatch.setenv("VS2T_PROGRESS", flag)
@@ -329,6 +330,7 @@ def test_every_compared_methods_fit_shows_progress(monkeypatch, capsys):
     from vs2t_edge.train.baselines import Budget
 
     monkeypatch.setenv("VS2T_PROGRESS", "1")
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)  # drawn as on a terminal
     views = _views()
     budget = Budget(steps=4, batch=16, hidden=16, latent=4, cls_steps=3, n_synth_per_class=5)
     for name, cls in cmp.all_methods().items():
@@ -336,6 +338,29 @@ def test_every_compared_methods_fit_shows_progress(monkeypatch, capsys):
         cls().fit(views.train, budget, seed=0)
         err = capsys.readouterr().err
         assert f"\r{name} " in err and ": step 1/" in err, (name, err)
+
+
+def test_progress_off_a_terminal_is_plain_lines_one_per_tenth(monkeypatch, capsys):
+    """Carriage returns in a log file or a pipe made one very long line of every redraw; off a
+    terminal progress is plain lines: a loop's first step and one per tenth after it."""
+    from vs2t_edge.train import progress
+
+    monkeypatch.setenv("VS2T_PROGRESS", "1")  # a log file asked for progress
+    assert list(progress.steps(iter(range(200)), 200, "fit")) == list(range(200))
+    lines = capsys.readouterr().err.splitlines(keepends=True)
+    assert [ln.split(" (")[0] for ln in lines] == [f"fit: step {1 + 20 * k}/200" for k in range(10)]
+    assert not any("\r" in ln for ln in lines)
+    line = progress.Line()  # features.py's lines are drawn whether or not a terminal is there
+    for i in range(1, 401):
+        line.draw(f"features: press {i}/400", i / 400)
+    line.keep()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 11 and lines[0] == "features: press 1/400" and lines[-1] == "features: press 400/400"
+    line.draw("fine-tune tactile tail: epoch 1/2", 0.5)
+    line.draw("fine-tune tactile tail: epoch 2/2", 1.0)
+    line.keep()
+    assert capsys.readouterr().err.splitlines() == ["fine-tune tactile tail: epoch 1/2",
+                                                    "fine-tune tactile tail: epoch 2/2"]
 
 
 def test_progress_is_off_when_stderr_is_not_a_terminal(monkeypatch, capsys):
