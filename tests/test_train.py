@@ -191,7 +191,7 @@ def test_trained_generator_beats_untrained_on_the_small_profile(tmp_path):
     assert t["seen_w1"] < u["seen_w1"] and t["seen_cos"] > u["seen_cos"] + 0.4, r
 
 
-def test_tiny_profile_end_to_end(tmp_path, tiny_world):
+def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     from vs2t_edge.train.artifacts import build_modules, load_router, load_run_artifacts
     from vs2t_edge.train.cli import add_arguments, run
     import argparse
@@ -203,6 +203,15 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world):
     t0 = time.time()
     assert run(p.parse_args([str(data), "--profile", "tiny", "--out", str(out)])) == 0
     assert time.time() - t0 < 60
+    # its words are explained, in the printout and in the report (a new user met "w/o E, VS-F",
+    # "AUSUC", "beta" with no word of what they are)
+    from vs2t_edge.train.report import LEGEND
+
+    said = capsys.readouterr().out
+    assert "How to read these numbers:" in said and "How to read these numbers:" in (out / "report.md").read_text()
+    for term, meaning in LEGEND:
+        assert f"  {term}: {meaning}" in said and f"- {term}: {meaning}" in (out / "report.md").read_text()
+    assert all(t in said for t in ("ZSL:", "AUSUC:", "w/o E, w/o VS-F, w/o E, VS-F:", "router, beta:"))
     for f in ("config.yaml", "metrics.json", "report.md", "artifacts/model.pt", "features/feature_table.npz",
               "figures/confusion.png", "figures/pca_real_vs_synth.png", "figures/class_cosine.png",
               "figures/threshold_curve.png"):
