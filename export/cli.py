@@ -93,6 +93,7 @@ def run(args) -> int:
         q = checks["int8_vs_fp32_on_calibration"]
         print(f"  int8 vs fp32 on {q['frames']} touched presses: min feature cosine {q['feature_cosine_min']:.4f}, "
               f"CLS_t top-1 agreement {q['cls_t_top1_agreement']:.1%}")
-    print(f"  router {m['router']['name']}, beta {m['beta']:.6g}: {m['operating_point']}")
+    print(f"  router {m['router']['name']} (tells touched from untouched presses), beta {m['beta']:.6g} "
+          f"(its threshold, on the router's own scale): {m['operating_point']}")
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")
     return 0

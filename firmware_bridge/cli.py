@@ -27,6 +27,7 @@ EXIT_OK, EXIT_USAGE, EXIT_DEVICE = 0, 2, 3  # the values of vs2t_edge.cli (this 
 PORT_ENV = "VS2T_GATE_PORT"
 
 
+ARMED_LATCHES = ("boot", "heartbeat_lost")  # latches `sort BIN` clears before routing (not --no-arm)
 SUBCOMMANDS = {"status": "gate-status", "clear": "gate-clear"}  # `sort WORD` -> the verb it stands for
 
 
@@ -99,16 +100,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"vs2t-edge {verb}: no gate port; pass --port /dev/ttyACM0 (or any pyserial URL), "
               f"set {PORT_ENV}, or use --simulate", file=sys.stderr)
         return EXIT_USAGE
-    arm: tuple[str, ...] = ()
-    if action == "sort" and not args.no_arm:
-        arm = ("boot", "heartbeat_lost")
-    # No heartbeat thread: a hand command is one short exchange.
+    # No heartbeat thread: a hand command is one short exchange. connect() only asks the gate's
+    # STATUS (no latch armed): how many bins it has is known only then, and a bin it does not have
+    # is bad input, refused before anything is cleared or moved.
     client = GateClient(port, timeout_s=args.timeout_s, retries=args.retries, heartbeat_period_s=None,
-                        arm_latches=arm)
+                        arm_latches=())
     try:
         report = client.connect()
-        if client.armed_from:
-            print(f"note: the gate was latched ({client.armed_from}); armed it", file=sys.stderr)
+        if action == "sort" and args.bin >= report.n_bins:
+            print(f"vs2t-edge sort: no such bin {args.bin}: this gate has bins 0..{report.n_bins - 1} "
+                  "(0 is reject); nothing was moved", file=sys.stderr)
+            return EXIT_USAGE
+        if action == "sort" and not args.no_arm and report.state in ("fault", "failsafe") \
+                and report.fault in ARMED_LATCHES:
+            client.clear()
+            print(f"note: the gate was latched ({report.fault}); armed it", file=sys.stderr)
         if action == "sort":
             client.sort(args.bin)
             print(f"sorted to bin {args.bin}" + (" (reject)" if args.bin == p.REJECT_BIN else ""))

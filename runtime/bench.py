@@ -38,6 +38,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from vs2t_edge.runtime.progress import Line
+
 ITEM_PRESSES = (1, 3, 5, 9)
 SEQ_CONFIDENCE, SEQ_MAX_PRESSES = 0.95, 9
 
@@ -299,6 +301,7 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
 
     cls_index = {c: i for i, c in enumerate(model.classes)}
     lp, nov, lsu, lab = [], [], [], []
+    line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
         ref = fab.load_reference()
@@ -309,8 +312,8 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
             nov.append(o.novelty)
             lsu.append(log_softmax(o.logits_u, axis=1))
         lab.append(np.full(len(idx), cls_index[fid]))
-        print(f"\rbench: scoring presses, fabric {j + 1}/{len(presses)}", end="", file=sys.stderr, flush=True)
-    print("", file=sys.stderr)
+        line.draw(f"bench: scoring presses, fabric {j + 1}/{len(presses)}", (j + 1) / len(presses))
+    line.keep()
     return {"lp": np.concatenate(lp), "novelty": np.concatenate(nov), "lsu": np.concatenate(lsu),
             "label": np.concatenate(lab)}
 

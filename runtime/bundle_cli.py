@@ -1,7 +1,8 @@
 """`vs2t-edge verify-bundle BUNDLE`: the cell's own verification, run by hand (or in CI).
 
-Exit 0 when the bundle loads, warms up and passes its probe; 1 when it is refused (the reason,
-naming the file or key, on stderr); 2 when the path is no folder.
+Exit 0 when the bundle loads, warms up and passes its probe; 1 when a bundle (a folder with a
+manifest.json) is refused (the reason, naming the file or key, on stderr); 2 when the path is no
+folder or a folder without a manifest: bad input, not a bundle that failed its check.
 """
 
 from __future__ import annotations
@@ -16,12 +17,15 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.bundle import BundleError
+    from vs2t_edge.runtime.bundle import MANIFEST, BundleError
     from vs2t_edge.runtime.inference import TactileModel
 
     path = Path(args.bundle)
     if not path.is_dir():
         print(f"verify-bundle: {path} is not a folder", file=sys.stderr)
+        return 2
+    if not (path / MANIFEST).is_file():
+        print(f"verify-bundle: {path} is not a bundle (no {MANIFEST})", file=sys.stderr)
         return 2
     try:
         model = TactileModel.load(path, threads=args.threads)

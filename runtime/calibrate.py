@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, read_regular_file
+from vs2t_edge.runtime.progress import Line
 
 
 class CalibrationError(ValueError):
@@ -406,11 +407,10 @@ def run(args) -> int:
         return 2
     try:
         if args.dataset:
-            def progress(i, n):
-                print(f"\rscoring fabric {i}/{n}", end="", file=sys.stderr, flush=True)
-
-            touched, val = novelty_from_dataset(model, Path(args.dataset), args.validation, progress)
-            print(file=sys.stderr)
+            line = Line()
+            touched, val = novelty_from_dataset(model, Path(args.dataset), args.validation,
+                                                lambda i, n: line.draw(f"scoring fabric {i}/{n}", i / n))
+            line.keep()
         else:
             touched = novelty_from_replays(model, [Path(p) for p in args.touched_replay])
             val = novelty_from_replays(model, [Path(p) for p in args.validation_replay])

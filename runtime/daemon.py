@@ -194,7 +194,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     load_s = time.monotonic() - t0
     probe = getattr(model, "probe_errors", None)
     if probe:  # TactileModel.load returned: hashes, shapes, warm-up and probe check all passed
-        said = (f"bundle {Path(cfg.bundle).name} verified (hashes, shapes), warmed up, probe check passed "
+        said = (f"bundle {cfg.bundle} verified (hashes, shapes), warmed up, probe check passed "
                 f"(max relative error {max(probe.values()):.2g}) in {load_s:.1f} s")
         log(said)
         notifier.status(said)
@@ -261,7 +261,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         if latched:
             cell.latch_fault(*latched)
     beta = getattr(model, "beta", None)
-    notifier.ready(f"ready: bundle {Path(cfg.bundle).name} verified and warm in {load_s:.1f} s"
+    notifier.ready(f"ready: bundle {cfg.bundle} verified and warm in {load_s:.1f} s"
                    + (f", beta {beta:.4g}" if isinstance(beta, (int, float)) else "")
                    + (f"; FAULT latched: {cell.fault}" if cell.fault else ""))
     notifier.watchdog()

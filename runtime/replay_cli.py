@@ -28,7 +28,8 @@ def run(args) -> int:
             report = run_replay(Path(f), bundle=Path(args.bundle) if args.bundle else None,
                                 update_refs=args.update_refs)
         except ReplayError as exc:
-            print(f"{f}: {exc}", file=sys.stderr)
+            said = str(exc)  # most reasons already begin with the file or a path inside it
+            print(said if said.startswith(str(Path(f))) else f"{f}: {said}", file=sys.stderr)
             worst = max(worst, 2)
             continue
         finals = [d for d in report.decisions if d["type"] == "final"]

@@ -31,6 +31,7 @@ import yaml
 
 from vs2t_edge.runtime.attributes import ATTRIBUTES
 from vs2t_edge.runtime.dataset import load_dataset
+from vs2t_edge.runtime.progress import Line
 
 N_BANDS = 16
 # The base rates the paper reports for FabricVST (out of 50 fabrics); the rest are not published.
@@ -127,6 +128,7 @@ def analyse(dataset: Path, presses: int = 40, seed: int = 0) -> dict:
     ds = load_dataset(dataset)
     rng = np.random.default_rng(seed)
     tac, vis, labels = [], [], []
+    line = Line()
     for k, fabric in enumerate(ds.fabrics):
         ref = fabric.load_reference()
         camera = fabric.load_camera()
@@ -135,8 +137,8 @@ def analyse(dataset: Path, presses: int = 40, seed: int = 0) -> dict:
             tac.append(tactile_features(fabric.load_press(int(i)), ref))
             vis.append(visual_features(fabric.visual_crop(int(i), camera)))
             labels.append(k)
-        print(f"\rdifficulty: features {k + 1}/{len(ds.fabrics)} fabrics", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+        line.draw(f"difficulty: features {k + 1}/{len(ds.fabrics)} fabrics", (k + 1) / len(ds.fabrics))
+    line.keep()
     tac, vis, labels = np.array(tac), np.array(vis), np.array(labels)
     n = len(ds.fabrics)
     # (1) supervised tactile classifier: per fabric, half the presses train, half test

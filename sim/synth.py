@@ -32,6 +32,7 @@ import numpy as np
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS
 from vs2t_edge.runtime.dataset import (SensorGeometry, press_grid_mm, write_dataset_meta, write_fabric,
                                         write_fabric_index)
+from vs2t_edge.runtime.progress import Line
 from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
 
 PIECE_MM = 80.0
@@ -499,6 +500,7 @@ def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: 
     names = [fabric_name(i, p) for i, p in enumerate(world)]
     jobs = [(i, p, a, profile, seed, markers) for i, (p, a) in enumerate(zip(world, attrs))]
     start = time.monotonic()
+    line = Line()
     n_workers = workers if workers is not None else min(2, len(jobs))
     done = 0
 
@@ -511,8 +513,8 @@ def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: 
         if progress:
             el = time.monotonic() - start
             eta = el / done * (len(jobs) - done)
-            print(f"\rsynth {profile}: {done}/{len(jobs)} fabrics, {el:5.1f}s elapsed, ~{eta:5.1f}s left",
-                  end="", file=sys.stderr, flush=True)
+            line.draw(f"synth {profile}: {done}/{len(jobs)} fabrics, {el:5.1f}s elapsed, ~{eta:5.1f}s left",
+                      done / len(jobs))
 
     if n_workers > 1:
         ctx = mp.get_context("fork" if sys.platform != "win32" else "spawn")
@@ -525,7 +527,7 @@ def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: 
     # The index is written last: a folder without fabrics.csv is visibly unfinished.
     write_fabric_index(root, [(ids[i], names[i], attrs[i]) for i in range(len(world))])
     if progress:
-        print(file=sys.stderr)
+        line.keep()
     return root
 
 

@@ -222,3 +222,16 @@ def test_verify_bundle_cli(bundle_copy, capsys):
         f.write(b"\0")
     assert main(["verify-bundle", str(bundle_copy)]) == 1
     assert "trunk.onnx: sha256" in capsys.readouterr().err
+
+
+def test_verify_bundle_on_what_is_not_a_bundle_is_bad_input(tmp_path, capsys):
+    """Exit 1 is a bundle that fails its check; a folder without a manifest is no bundle at all:
+    bad input, exit 2, as `replay` on a folder that is no replay file (README's exit codes)."""
+    from vs2t_edge.cli import main
+
+    assert main(["verify-bundle", str(tmp_path)]) == 2
+    assert "not a bundle (no manifest.json)" in capsys.readouterr().err
+    assert main(["verify-bundle", str(tmp_path / "nope")]) == 2
+    (tmp_path / "manifest.json").write_text("{")  # a bundle, damaged: its check fails
+    assert main(["verify-bundle", str(tmp_path)]) == 1
+    assert "REFUSED" in capsys.readouterr().err

@@ -337,6 +337,8 @@ def test_ready_comes_only_after_the_real_bundle_is_verified_warm_and_probed(tmp_
     assert any(m.startswith("STATUS=loading bundle") for m in msgs[:probe_at])
     assert probe_at < ready_at and sum(m.startswith("READY=1") for m in msgs) == 1
     assert "probe check passed" in err and err.index("probe check passed") < err.index("SIGTERM")
+    # the bundle is named by its path, not by its folder's name ("bundle bundle verified")
+    assert f"bundle {tmp_path / 'bundle'} verified" in err and "bundle bundle" not in err
 
 
 @pytest.mark.parametrize("damage", ["graph_byte_flipped", "probe_expected_off"])

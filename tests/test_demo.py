@@ -119,3 +119,11 @@ def test_printed_and_written_totals_match_the_journal(demo_run):
     assert len(per_item) == N_ITEMS
     assert all(line.rstrip().split()[-1] in ("right", "rejected", "MIS-SORTED") or "(" in line for line in per_item)
     assert all(1 <= f["presses"] <= 3 for f in finals if f["outcome"] == "sorted")  # --max-presses 3
+
+
+def test_a_piece_line_says_press_for_one_and_presses_for_more(demo_run):
+    """'1 presses' read wrong (this stream's first piece is decided after one press)."""
+    code, out, work = demo_run
+    said = re.findall(r" bin \d+\s+(\d+) (press(?:es)?)\b", out)
+    assert len(said) == N_ITEMS and any(n == "1" for n, _ in said), out
+    assert all((word == "press") == (n == "1") for n, word in said), said

@@ -209,7 +209,9 @@ def test_export_router_refits_and_tunes_beta(tiny_run, tmp_path, monkeypatch, ca
     out = tmp_path / name
     assert main(["export", str(run), "--out", str(out), "--router", name, "--calibration-frames", "8",
                  "--threads", "1"]) == 0
-    assert f"router {name}" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert f"router {name} (tells touched from untouched presses), beta " in said  # beta says what it is
+    assert "(its threshold, on the router's own scale)" in said
     assert read and not read & set(art.untouched), f"untouched fabrics read: {sorted(read & set(art.untouched))}"
     assert read <= set(art.touched) | set(art.validation)
 

@@ -355,7 +355,7 @@ def test_cli_sort_status_clear_against_the_simulator(sim, capsys):
     assert "sorted to bin 3" in capsys.readouterr().out
     assert cli_main(["gate-status", *port]) == 0
     assert "gate ready, flap at bin 3 of 8" in capsys.readouterr().out
-    assert cli_main(["sort", "9", *port]) == 3
+    assert cli_main(["sort", "9", *port]) == 2  # bad input, not a device fault
     assert "no such bin" in capsys.readouterr().err
     sim.jam()
     assert cli_main(["sort", "2", *port]) == 3
@@ -369,6 +369,21 @@ def test_cli_sort_status_clear_against_the_simulator(sim, capsys):
     assert "gate cleared: gate ready" in capsys.readouterr().out
     assert cli_main(["sort", "1", *port]) == 0
     assert sim.executed == [3, 1]
+
+
+def test_cli_sort_to_a_bin_the_gate_lacks_is_bad_input_and_touches_nothing(sim, capsys):
+    """`sort 99` was a device fault (exit 3) after arming the gate; it is bad input (exit 2),
+    refused once the gate's STATUS says how many bins it has, before any latch is cleared."""
+    port = ["--port", sim.device_path, "--timeout-s", "0.3"]
+    assert sim.state == p.STATE_FAILSAFE  # power-on latch (boot) until someone arms the gate
+    assert cli_main(["sort", "99", *port]) == 2
+    err = capsys.readouterr().err
+    assert "no such bin 99" in err and "bins 0..7" in err and "armed" not in err
+    assert sim.state == p.STATE_FAILSAFE and sim.executed == []
+    assert cli_main(["sort", "7", *port]) == 0  # the last bin it has: armed and sorted
+    assert "armed it" in capsys.readouterr().err
+    assert sim.executed == [7]
+    assert cli_main(["sort", "99", "--simulate"]) == 2
 
 
 def test_cli_sort_status_and_sort_clear_as_the_issue_names_them(sim, capsys):

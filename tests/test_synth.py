@@ -48,6 +48,15 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tiny, tmp_path):
     assert _digest(other) != _digest(tiny)
 
 
+def test_progress_into_a_log_is_plain_lines(tmp_path, capsys):
+    """stderr that is not a terminal (a log file, the demo's captured output) gets a plain line
+    per fabric done here, not carriage returns that pile up into one very long line."""
+    synth.generate(tmp_path / "w", "tiny", seed=3, n_fabrics=2, workers=1)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    assert [ln.split(",")[0] for ln in err.splitlines()] == ["synth tiny: 1/2 fabrics", "synth tiny: 2/2 fabrics"]
+
+
 def _dark_dots(image: np.ndarray) -> int:
     """Marker-sized dark blobs: pixels 20 % darker than their 11-px median neighbourhood."""
     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)

@@ -4,6 +4,7 @@ end to end on the tiny fabric world (run folder, artefacts round trip)."""
 
 import json
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -191,7 +192,7 @@ def test_trained_generator_beats_untrained_on_the_small_profile(tmp_path):
     assert t["seen_w1"] < u["seen_w1"] and t["seen_cos"] > u["seen_cos"] + 0.4, r
 
 
-def test_tiny_profile_end_to_end(tmp_path, tiny_world):
+def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     from vs2t_edge.train.artifacts import build_modules, load_router, load_run_artifacts
     from vs2t_edge.train.cli import add_arguments, run
     import argparse
@@ -203,6 +204,15 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world):
     t0 = time.time()
     assert run(p.parse_args([str(data), "--profile", "tiny", "--out", str(out)])) == 0
     assert time.time() - t0 < 60
+    # its words are explained, in the printout and in the report (a new user met "w/o E, VS-F",
+    # "AUSUC", "beta" with no word of what they are)
+    from vs2t_edge.train.report import LEGEND
+
+    said = capsys.readouterr().out
+    assert "How to read these numbers:" in said and "How to read these numbers:" in (out / "report.md").read_text()
+    for term, meaning in LEGEND:
+        assert f"  {term}: {meaning}" in said and f"- {term}: {meaning}" in (out / "report.md").read_text()
+    assert all(t in said for t in ("ZSL:", "AUSUC:", "w/o E, w/o VS-F, w/o E, VS-F:", "router, beta:"))
     for f in ("config.yaml", "metrics.json", "report.md", "artifacts/model.pt", "features/feature_table.npz",
               "figures/confusion.png", "figures/pca_real_vs_synth.png", "figures/class_cosine.png",
               "figures/threshold_curve.png"):
@@ -252,6 +262,55 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world):
     assert load_router(art).novelty(f.numpy().astype(np.float64), lt, logits_u=lu).shape == (3,)
     # the cached features are reused by a second run (no frame is read again)
     assert cmp.FeatureTable.load(out / "features" / "feature_table.npz").x_t.shape[1] == 64
+
+
+def _same(a, b, where: str = "") -> list[str]:
+    """Where two loaded runs differ: nested dicts/lists, tensors and arrays bit for bit, NaN equal
+    to NaN (a one-split run's standard errors)."""
+    if isinstance(a, dict):
+        keys = set(a) | set(b)
+        return [d for k in sorted(keys, key=str) for d in (_same(a.get(k), b.get(k), f"{where}/{k}")
+                                                            if k in a and k in b else [f"{where}/{k}: only one"])]
+    if isinstance(a, (list, tuple)):
+        if len(a) != len(b):
+            return [f"{where}: length {len(a)} vs {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _same(x, y, f"{where}[{i}]")]
+    if isinstance(a, torch.Tensor):
+        return [] if torch.equal(a, b) else [f"{where}: tensors differ"]
+    if isinstance(a, np.ndarray):
+        return [] if np.array_equal(a, b, equal_nan=a.dtype.kind == "f") else [f"{where}: arrays differ"]
+    if isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b):
+        return []
+    return [] if a == b else [f"{where}: {a!r} vs {b!r}"]
+
+
+def test_training_twice_with_one_seed_gives_the_same_run(tmp_path, tiny_world, monkeypatch):
+    """A new user's demo numbers must be the README's: `train` with a fixed seed, twice, gives the
+    same metrics.json (timings aside) and the same artifacts/model.pt tensors, bit for bit - the
+    features extracted, the tail fine-tuned, every method fitted and the router chosen again from
+    scratch. (Checked by hand on the tiny profile from the CLI, two processes, and on the small
+    profile; here a shortened tiny budget keeps it to seconds.)"""
+    from vs2t_edge.train import run as tr
+
+    monkeypatch.setitem(tr.PROFILES, "tiny", replace(tr.PROFILES["tiny"], steps=20, cls_steps=20,
+                                                     n_synth_per_class=20, ft_epochs=1))
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for out in runs:
+        tr.train(tiny_world, out, profile="tiny", seed=3, figures=False)
+
+    def loaded(out):
+        m = json.loads((out / "metrics.json").read_text())
+        m.pop("timing_s")
+        for split in m["splits"]:
+            for key in ("seconds", "finetune_s", "finetune_visual_s"):
+                split.pop(key, None)
+            for method in split["methods"].values():
+                method.pop("seconds", None)
+        return m, torch.load(out / "artifacts" / "model.pt", weights_only=False)
+
+    (m_a, art_a), (m_b, art_b) = map(loaded, runs)
+    assert _same(m_a, m_b) == []
+    assert _same(art_a, art_b) == []
 
 
 def test_visual_condition_is_clipped_for_unseen_fabrics():
@@ -319,6 +378,7 @@ def test_generator_and_classifier_progress_reach_stderr_and_change_nothing(monke
 
     views = _views()
     budget = vs2t.VS2TBudget(steps=40, cls_steps=30, n_synth_per_class=10, hidden=32, latent=4)
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)  # drawn as on a terminal
     out = {}
     for flag in ("1", "0"):
         monkeypatch.setenv("VS2T_PROGRESS", flag)
@@ -341,6 +401,7 @@ def test_every_compared_methods_fit_shows_progress(monkeypatch, capsys):
     from vs2t_edge.train.baselines import Budget
 
     monkeypatch.setenv("VS2T_PROGRESS", "1")
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)  # drawn as on a terminal
     views = _views()
     budget = Budget(steps=4, batch=16, hidden=16, latent=4, cls_steps=3, n_synth_per_class=5)
     for name, cls in cmp.all_methods().items():
@@ -348,6 +409,29 @@ def test_every_compared_methods_fit_shows_progress(monkeypatch, capsys):
         cls().fit(views.train, budget, seed=0)
         err = capsys.readouterr().err
         assert f"\r{name} " in err and ": step 1/" in err, (name, err)
+
+
+def test_progress_off_a_terminal_is_plain_lines_one_per_tenth(monkeypatch, capsys):
+    """Carriage returns in a log file or a pipe made one very long line of every redraw; off a
+    terminal progress is plain lines: a loop's first step and one per tenth after it."""
+    from vs2t_edge.train import progress
+
+    monkeypatch.setenv("VS2T_PROGRESS", "1")  # a log file asked for progress
+    assert list(progress.steps(iter(range(200)), 200, "fit")) == list(range(200))
+    lines = capsys.readouterr().err.splitlines(keepends=True)
+    assert [ln.split(" (")[0] for ln in lines] == [f"fit: step {1 + 20 * k}/200" for k in range(10)]
+    assert not any("\r" in ln for ln in lines)
+    line = progress.Line()  # features.py's lines are drawn whether or not a terminal is there
+    for i in range(1, 401):
+        line.draw(f"features: press {i}/400", i / 400)
+    line.keep()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 11 and lines[0] == "features: press 1/400" and lines[-1] == "features: press 400/400"
+    line.draw("fine-tune tactile tail: epoch 1/2", 0.5)
+    line.draw("fine-tune tactile tail: epoch 2/2", 1.0)
+    line.keep()
+    assert capsys.readouterr().err.splitlines() == ["fine-tune tactile tail: epoch 1/2",
+                                                    "fine-tune tactile tail: epoch 2/2"]
 
 
 def test_progress_is_off_when_stderr_is_not_a_terminal(monkeypatch, capsys):

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if args.weights is not None and not args.weights.is_file():
         print(f"vs2t-edge train: weights file {args.weights} does not exist", file=sys.stderr)
         return 2
+    from vs2t_edge.train.report import legend_lines
     from vs2t_edge.train.run import train
 
     t0 = time.time()
@@ -57,4 +58,6 @@ def run(args: argparse.Namespace) -> int:
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")
+    print("How to read these numbers:")
+    print("\n".join(legend_lines()))
     return 0

@@ -33,7 +33,6 @@ numbers are kept beside this comparison's (``compare_with_run``). The VS2T-ZSL r
 from __future__ import annotations
 
 import json
-import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -43,6 +42,7 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.progress import Line
 from vs2t_edge.train.baselines import (
     BASELINES,
     PAPER_GZSL_VS2T,
@@ -1015,6 +1015,7 @@ def extract_feature_table(dataset_root: Path, size_px: int = 224, log: Callable[
     mean, std = np.asarray(IMAGENET_MEAN, np.float32), np.asarray(IMAGENET_STD, np.float32)
     xt, xv, fab = [], [], []
     t0 = time.time()
+    line = Line()
     for k, fabric in enumerate(ds.fabrics):
         ref = fabric.load_reference()
         camera = fabric.load_camera()
@@ -1028,9 +1029,8 @@ def extract_feature_table(dataset_root: Path, size_px: int = 224, log: Callable[
             xt.append(torch.cat([trunk(torch.from_numpy(tac[i:i + 32])) for i in range(0, n, 32)]).numpy())
             xv.append(torch.cat([trunk(torch.from_numpy(np.stack(vis[i:i + 32]))) for i in range(0, n, 32)]).numpy())
         fab.append(np.full(n, k))
-        print(f"\rfeatures: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", end="", file=sys.stderr,
-              flush=True)
-    print(file=sys.stderr)
+        line.draw(f"features: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", (k + 1) / len(ds.fabrics))
+    line.keep()
     return FeatureTable(np.concatenate(xt), np.concatenate(xv), np.concatenate(fab), [f.id for f in ds.fabrics],
                         ds.attribute_matrix().astype(np.float64), source=f"{dataset_root} (frozen EfficientNet-Lite0)")
 

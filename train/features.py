@@ -115,7 +115,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
             if progress:
                 el = time.time() - t0
                 line.draw(f"features: fabric {k + 1}/{len(ds.fabrics)}, press {done}/{total} "
-                          f"({el:.0f} s, ~{el / done * (total - done):.0f} s left)")
+                          f"({el:.0f} s, ~{el / done * (total - done):.0f} s left)", done / total)
         fab.append(np.full(n, k))
     if progress:
         line.keep()
@@ -180,7 +180,7 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
             opt.step()
         if progress:
             line.draw(f"fine-tune {what} tail: epoch {ep + 1}/{epochs} loss {loss.item():.3f} "
-                      f"({time.time() - t0:.0f} s)")
+                      f"({time.time() - t0:.0f} s)", (ep + 1) / epochs)
     if progress:
         line.keep()
     out.eval()

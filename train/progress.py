@@ -1,19 +1,23 @@
-"""Progress on stderr as one line rewritten in place (``Line``, carriage return): feature
-extraction and tail fine-tuning (``features.py``) and the long training loops (``steps``:
-generator, classifiers, every compared method's fit), ``label: step i/n (elapsed s, ~left s)``,
-erased when the loop ends so the per-method log lines stay readable.
+"""Progress on stderr (``runtime.progress.Line``): feature extraction and tail fine-tuning (``features.py``) and
+the long training loops (``steps``: generator, classifiers, every compared method's fit),
+``label: step i/n (elapsed s, ~left s)``. On a terminal it is one line rewritten in place
+(carriage return), erased when a loop ends so the per-method log lines stay readable. Anywhere
+else (a log file, a pipe) carriage returns would pile up into one very long line, so it is plain
+lines instead: a loop's first step, then one line each time it passes another tenth.
 
-Shown only when stderr is a terminal; ``VS2T_PROGRESS=1`` forces it (a log file, a test),
-``VS2T_PROGRESS=0`` silences it. It only prints: it draws no random numbers and touches no
-tensor, so a seeded fit gives the same weights with and without it (tests/test_train.py).
+The loops (``steps``) show it only when stderr is a terminal; ``VS2T_PROGRESS=1`` forces it (a
+log file, a test), ``VS2T_PROGRESS=0`` silences it. It only prints: it draws no random numbers
+and touches no tensor, so a seeded fit gives the same weights with and without it
+(tests/test_train.py).
 """
 
 from __future__ import annotations
 
 import os
-import sys
 import time
 from typing import Iterable, Iterator, TypeVar
+
+from vs2t_edge.runtime.progress import Line, stderr_is_terminal
 
 T = TypeVar("T")
 ENV = "VS2T_PROGRESS"
@@ -25,31 +29,7 @@ def enabled() -> bool:
     flag = os.environ.get(ENV, "").strip()
     if flag in ("0", "1"):
         return flag == "1"
-    try:
-        return sys.stderr.isatty()
-    except (AttributeError, ValueError):  # replaced or closed stream
-        return False
-
-
-class Line:
-    """One stderr line rewritten in place; a shorter message is padded over a longer earlier one."""
-
-    def __init__(self) -> None:
-        self.width = 0
-
-    def draw(self, msg: str) -> None:
-        self.width = max(self.width, len(msg))
-        print(f"\r{msg:<{self.width}}", end="", file=sys.stderr, flush=True)
-
-    def erase(self) -> None:
-        if self.width:
-            print(f"\r{'':<{self.width}}\r", end="", file=sys.stderr, flush=True)
-            self.width = 0
-
-    def keep(self) -> None:
-        """Leave the last message standing and move on to a new line."""
-        print(file=sys.stderr)
-        self.width = 0
+    return stderr_is_terminal()
 
 
 def steps(it: Iterable[T], total: int, label: str) -> Iterator[T]:
@@ -65,10 +45,10 @@ def steps(it: Iterable[T], total: int, label: str) -> Iterator[T]:
             # erased before the last step is handed out: a consumer that stops calling next()
             # at exactly ``total`` items (generators_modern's critic loops) still leaves a clean line
             line.erase()
-        elif done == 0 or now - last >= MIN_INTERVAL_S:
+        elif done == 0 or now - last >= MIN_INTERVAL_S or not line.terminal:  # plain: Line keeps tenths
             el = now - t0
             left = f", ~{el / done * (total - done):.0f} s left" if done else ""
-            line.draw(f"{label}: step {done + 1}/{total} ({el:.0f} s{left})")
+            line.draw(f"{label}: step {done + 1}/{total} ({el:.0f} s{left})", done / total)
             last = now
         yield item
     line.erase()

