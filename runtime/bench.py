@@ -18,7 +18,10 @@ Per bundle (a variant: trunk, input size, fp32/int8):
   beta (hard route, the paper's protocol); per item (random presses of one fabric) for 1, 3, 5, 9
   presses with the soft-gated posterior summed in log space, and the sequential rule
   (runtime.evidence, confidence 0.95, at most 9 presses): presses used, accuracy, unknown rate.
-  The scene is every class of the bundle (the hardest scene the cell can be given).
+  The scene is every class of the bundle (the hardest scene the cell can be given). Per item, by
+  bins (runtime/sorting.py, as the demo and training's report count): right bin / mis-sort /
+  reject on scenes of 5 touched + 3 untouched bundle classes with off-scene pieces, for the
+  bundle's scene decision and for the router's posterior at confidence 0.95 (the baseline).
 
 No torch here (runtime/). ``onnx`` (train extra) is used only to build the GEMM graphs of the
 peak measurement; without it the fp32 peak comes from numpy and the int8 peak is not measured.
@@ -42,6 +45,7 @@ from vs2t_edge.runtime.progress import Line
 
 ITEM_PRESSES = (1, 3, 5, 9)
 SEQ_CONFIDENCE, SEQ_MAX_PRESSES = 0.95, 9
+BIN_SCENES, BIN_MAX_PRESSES = 12, 5  # by-bins scenes (runtime/sorting.py), as training's report draws them
 
 
 def _log(msg: str) -> None:
@@ -300,7 +304,7 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     from vs2t_edge.runtime.preprocess import preprocess_tactile
 
     cls_index = {c: i for i, c in enumerate(model.classes)}
-    lp, nov, lsu, lab = [], [], [], []
+    lp, nov, lsu, lab, feat = [], [], [], [], []
     line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
@@ -311,11 +315,12 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
             lp.append(model.log_posterior(o))
             nov.append(o.novelty)
             lsu.append(log_softmax(o.logits_u, axis=1))
+            feat.append(np.asarray(o.feature, np.float32))
         lab.append(np.full(len(idx), cls_index[fid]))
         line.draw(f"bench: scoring presses, fabric {j + 1}/{len(presses)}", (j + 1) / len(presses))
     line.keep()
     return {"lp": np.concatenate(lp), "novelty": np.concatenate(nov), "lsu": np.concatenate(lsu),
-            "label": np.concatenate(lab)}
+            "label": np.concatenate(lab), "feature": np.concatenate(feat)}
 
 
 def _per_class_mean(correct: np.ndarray, labels: np.ndarray) -> float:
@@ -392,6 +397,37 @@ def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
                          "presses_mean": float(used.mean()), "presses_touched": float(used[it_t].mean()),
                          "presses_untouched": float(used[~it_t].mean()), "acc_t": 100 * at, "acc_u": 100 * au,
                          "H": 100 * _h(at, au), "unknown": 100 * float(unknown.mean())}
+    res["bins"] = by_bins(model, out, seed=seed)
+    return res
+
+
+def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict:
+    """Per item, by bins (runtime/sorting.py), on scenes of 5 touched + 3 untouched bundle classes
+    with off-scene pieces of the classes a scene leaves out: the bundle's scene decision (when it
+    carries one) and the router's posterior with the fixed confidence (the baseline), on the same
+    scenes and presses. Percent; presses per item."""
+    from vs2t_edge.runtime import sorting as so
+
+    classes = list(model.classes)
+    lab = out["label"]
+    touched, untouched = list(model.touched), list(model.untouched)
+    if len(touched) < 2 or not untouched:
+        return {}
+    scenes = so.draw_scenes(touched, untouched, (), n_scenes, seed=seed)
+    tables = {"router": {classes[c]: [so.Press(dict(zip(classes, row.tolist()))) for row in out["lp"][lab == c]]
+                         for c in np.unique(lab)}}
+    rules = {"router": so.plain_evidence(SEQ_CONFIDENCE, BIN_MAX_PRESSES)}
+    if getattr(model, "scene_model", None) is not None:
+        lp_s, d2 = model.scene_model.log_posterior(out["feature"], dtype=np.float32)
+        tables["scene_model"] = {classes[c]: [so.Press(dict(zip(classes, a.tolist())), dict(zip(classes, b.tolist())))
+                                              for a, b in zip(lp_s[lab == c], d2[lab == c])] for c in np.unique(lab)}
+        rules["scene_model"] = so.scene_evidence(model.scene_model, BIN_MAX_PRESSES)
+    res = {"scenes": n_scenes, "max_presses": BIN_MAX_PRESSES}
+    for name, table in tables.items():
+        recs = so.simulate_scenes(scenes, table, rules[name], max_presses=BIN_MAX_PRESSES, seed=seed + 1)
+        summary = so.summarise(recs)
+        res[name] = {kind: {k: (100 * v if k in so.OUTCOMES else v) for k, v in r.items()}
+                     for kind, r in [("all", summary["all"]), *summary["by_kind"].items()]}
     return res
 
 
@@ -521,6 +557,10 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
                                          "press_acc_t": a8["press"]["acc_t"] - a32["press"]["acc_t"],
                                          "item5_H": a8["items"]["5"]["H"] - a32["items"]["5"]["H"],
                                          "sequential_H": a8["sequential"]["H"] - a32["sequential"]["H"]}
+                    for name in ("scene_model", "router"):  # per item, by bins: pieces in the right bin
+                        b8, b32 = a8.get("bins", {}).get(name), a32.get("bins", {}).get(name)
+                        if b8 and b32:
+                            c["delta_points"][f"bins_right_{name}"] = b8["all"]["right"] - b32["all"]["right"]
                     c["within_1_point"] = all(abs(v) <= 1.0 for v in c["delta_points"].values())
                 out.append(c)
     return out
@@ -596,6 +636,23 @@ def render_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def render_bins(result: dict) -> str:
+    """Per item, by bins (``by_bins``): one row per variant and decision; empty without accuracies."""
+    rows = [(r["name"], name, b[name]) for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
+            for name in ("scene_model", "router") if name in b]
+    if not rows:
+        return ""
+    lines = ["| variant | decision | right bin | mis-sort | reject | touched right | untouched right "
+             "| off-scene rejected | presses |", "|" + "---|" * 9]
+    for name, decision, b in rows:
+        kind = lambda k, o: _f(b.get(k, {}).get(o))  # noqa: E731
+        lines.append(f"| {name} | {'scene decision' if decision == 'scene_model' else 'router, confidence 0.95'} | "
+                     f"{kind('all', 'right')} | {kind('all', 'mis-sort')} | {kind('all', 'reject')} | "
+                     f"{kind('touched', 'right')} | {kind('untouched', 'right')} | {kind('off-scene', 'right')} | "
+                     f"{_f(b['all'].get('presses'), '{:.2f}')} |")
+    return "\n".join(lines)
+
+
 HAND_WRITTEN = "<!-- hand-written below: kept when `vs2t-edge bench --out` rewrites this file -->"
 
 
@@ -638,6 +695,13 @@ def render_markdown(result: dict) -> str:
                      f"| {pk[p]['2']['how']}, fastest of 15 |")
     lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
               "## Variants", "", render_table(result), "",
+              *(["## Per item, by bins", "",
+                 f"Scenes of 5 touched + 3 untouched bundle classes ({BIN_SCENES} per bundle), off-scene pieces of the "
+                 f"classes a scene leaves out; items of at most {BIN_MAX_PRESSES} presses drawn from presses never "
+                 "trained on, decided by the cell's own evidence (runtime/sorting.py, as the demo and training's report "
+                 "count). *scene decision*: the bundle's scene model at its operating point; *router*: the GZSL "
+                 "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), ""]
+                if render_bins(result) else []),
               "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
               "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
               f"press frame encoded once as JPEG q={JPEG_QUALITY}, cv2.imdecode timed) + preprocess + trunk + heads + "

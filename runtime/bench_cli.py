@@ -24,7 +24,7 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.bench import render_table, run_bench
+    from vs2t_edge.runtime.bench import render_bins, render_table, run_bench
     from vs2t_edge.runtime.bundle import BundleError, read_manifest
 
     bundles = [Path(b) for b in args.bundles]
@@ -49,6 +49,9 @@ def run(args) -> int:
         print(f"bench: {exc}", file=sys.stderr)
         return 1
     print(render_table(result))
+    bins = render_bins(result)
+    if bins:
+        print("\nper item, by bins (right / mis-sort / reject, %):\n" + bins)
     if args.out:
         print(f"bench: wrote {args.out}/bench.md, bench.json" + (", pareto.png" if (Path(args.out) / "pareto.png").exists() else ""))
     return 0

@@ -26,7 +26,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from vs2t_edge.runtime.evidence import UNKNOWN
+from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
 
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
 OUTCOMES = (RIGHT, MIS_SORT, REJECT)
@@ -220,6 +220,22 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
                     decision = ev.decide()
                 records.append(record(fabric, scene.kind(fabric), decision, scene.classes))
     return records
+
+
+def scene_evidence(model, max_presses: int = 5) -> Callable[[Scene], Evidence]:
+    """The evidence the cell builds for a scene from a scene model's operating point
+    (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules)."""
+    def make(scene: Scene) -> Evidence:
+        return Evidence(scene.classes, model.confidence, max_presses, weight=model.evidence_weight,
+                        open_threshold=model.open_threshold, known_margin=model.known_margin,
+                        class_confidence={c: model.untouched_confidence for c in model.untouched})
+    return make
+
+
+def plain_evidence(confidence: float, max_presses: int = 5) -> Callable[[Scene], Evidence]:
+    """The evidence of a bundle without a scene model: one confidence, log posteriors summed as if
+    presses were independent, no off-scene rule but the scene restriction (the baseline)."""
+    return lambda scene: Evidence(scene.classes, confidence, max_presses)
 
 
 def as_dict(records: Sequence[ItemRecord]) -> list[dict]:

@@ -223,3 +223,25 @@ def test_load_average_is_read_before_the_bench_loads_the_machine(tmp_path, monke
     assert result["machine"]["load_avg_at_end"] == [1.9, 1.0, 0.5]
     page = bench.render_markdown(result)
     assert "load average at start 0.10, 0.10, 0.10" in page and "busy" not in page.split("\n")[2]
+
+
+def test_bench_counts_items_by_bins_for_the_scene_decision_and_the_router(bench_result):
+    """Per item, by bins: both decisions on the same scenes, every piece of every kind in exactly
+    one of right / mis-sort / reject, off-scene pieces present, the table in bench.md shows the
+    numbers of bench.json, and int8 is priced in pieces in the right bin too."""
+    result, out = bench_result
+    md = (out / "bench.md").read_text()
+    for r in result["variants"]:
+        b = r["accuracy"]["bins"]
+        assert set(b) >= {"scene_model", "router"}, "the tiny run's bundles carry a scene model"
+        for name in ("scene_model", "router"):
+            kinds = b[name]
+            assert set(kinds) == {"all", "touched", "untouched", "off-scene"}
+            for kind, v in kinds.items():
+                assert v["n"] > 0 and v["right"] + v["mis-sort"] + v["reject"] == pytest.approx(100.0), (name, kind)
+                assert 1 <= v["presses"] <= 5
+            assert kinds["all"]["n"] == sum(kinds[k]["n"] for k in ("touched", "untouched", "off-scene"))
+            a = kinds["all"]
+            assert f"| {a['right']:.1f} | {a['mis-sort']:.1f} | {a['reject']:.1f} |" in md
+    (c,) = result["comparisons"]
+    assert {"bins_right_scene_model", "bins_right_router"} <= set(c["delta_points"])

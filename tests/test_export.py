@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ def tiny_run(tmp_path_factory):
     from vs2t_edge.runtime import novelty as nv
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.runtime.scene_model import SceneModel
     from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
     from vs2t_edge.train.models import Classifier
     from vs2t_edge.train.trunks import build_trunk
@@ -36,13 +38,22 @@ def tiny_run(tmp_path_factory):
         f = trunk(torch.from_numpy(x[: 6 * 9])).numpy()
     mean, std = f.mean(0), f.std(0) + 1e-3
     router = nv.fit_router("gaussian", (f - mean) / std, keep_covariance=False)
+    # a scene model as train/decision.py deploys one: touched means from the touched presses above,
+    # the untouched "synthesised" samples drawn near two of them (never an untouched press)
+    z = (f - mean) / std
+    y = np.repeat(np.arange(6), 9)
+    rng = np.random.default_rng(0)
+    synth = np.concatenate([z[y == c].mean(0) + rng.normal(0, 0.5, (20, 64)) for c in (0, 3)])
+    scene = SceneModel.fit(z, y, touched, synth, np.repeat([0, 1], 20), untouched, k=16)
+    scene = replace(scene, temperature=2.0, untouched_bias=0.5, evidence_weight=0.5, confidence=0.9,
+                    untouched_confidence=0.9)
     art = RunArtifacts(trunk_arch="tiny", trunk_state=trunk.state_dict(), feature_dim=64,
                        preprocess=TactilePreprocess(size=64).to_dict(), feature_mean=mean, feature_std=std,
                        cls_t_state=Classifier(64, 6).state_dict(), touched=touched,
                        cls_u_state=Classifier(64, 2).state_dict(), untouched=untouched, router_name="gaussian",
                        router_params=router.to_params(), beta=float(np.median(router.novelty((f - mean) / std))),
                        validation=validation, dataset=str(tiny_world()), touched_fabric_ids=touched,
-                       info={"split_seed": 0})
+                       info={"split_seed": 0}, scene_model=scene.to_params())
     run = tmp_path_factory.mktemp("run")
     save_run_artifacts(run, art)
     return run, art

@@ -23,14 +23,12 @@ view (log posterior and squared distances) that both use.
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import replace
 
 import numpy as np
 
 from vs2t_edge.runtime import sorting as so
-from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.scene_model import SceneModel
 
 K_CHOICES = (32, 64, 128)
@@ -74,11 +72,7 @@ def _fit_t_b(d2: np.ndarray, labels: np.ndarray, is_u: np.ndarray) -> tuple[floa
 
 def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES):
     """The evidence the cell builds for a scene from the model's operating point."""
-    def make(scene: so.Scene):
-        return Evidence(scene.classes, model.confidence, max_presses, weight=model.evidence_weight,
-                        open_threshold=model.open_threshold, known_margin=model.known_margin,
-                        class_confidence={c: model.untouched_confidence for c in model.untouched})
-    return make
+    return so.scene_evidence(model, max_presses)
 
 
 def _score(summary: dict, target: float) -> tuple:
