@@ -36,6 +36,10 @@ LEGEND = (
                       "features)"),
     ("W1 / cos real-synth", "how close synthesised features of untouched fabrics are to their real ones "
                             "(Wasserstein distance: lower is closer; cosine of class means: higher is closer)"),
+    ("right bin / mis-sort / reject", "per piece, as a sorting line counts: in its own bin; in another fabric's "
+                                      "bin (found late, the costly error); in the reject bin (a person looks)"),
+    ("scene, off-scene", "a job's list of fabrics, one bin each; an off-scene piece is of a fabric the job does "
+                         "not list, and its right bin is the reject bin"),
 )
 
 
