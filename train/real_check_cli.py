@@ -1,0 +1,46 @@
+"""`vs2t-edge real-check --train DIR [--test DIR] [--out JSON] [--pipelines ...]`: the tactile
+features on a real sensor's recordings (train/real_check.py), as a table and a JSON file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
+    parser.add_argument("--train", type=Path, required=True,
+                        help="folder of material_*/ folders of press images in press order (file names sort in time)")
+    parser.add_argument("--test", type=Path,
+                        help="the same layout, later presses of the same materials; without it the temporal split "
+                             "of --train (first half fits, second half tests, and the reverse)")
+    parser.add_argument("--out", type=Path, default=Path("real-check.json"), help="JSON result (default real-check.json)")
+    parser.add_argument("--pipelines", default="frozen,inpainted,markers",
+                        help="comma-separated: frozen (floor), inpainted (GelSight-aware), markers (no network)")
+    parser.add_argument("--seeds", type=int, default=10, help="material draws per fold for novelty AUROC")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vs2t_edge.train import real_check as rc
+
+    pipelines = tuple(p.strip() for p in args.pipelines.split(",") if p.strip())
+    unknown = [p for p in pipelines if p not in rc.PIPELINES]
+    if unknown or not pipelines:
+        print(f"vs2t-edge real-check: unknown pipeline(s) {unknown or '(none)'}; choose from {', '.join(rc.PIPELINES)}",
+              file=sys.stderr)
+        return 2
+    if args.seeds < 1:
+        print("vs2t-edge real-check: --seeds must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        result = rc.run_real_check(args.train, args.test, pipelines, n_seeds=args.seeds,
+                                   log=lambda m: print(m, file=sys.stderr, flush=True))
+    except rc.RealCheckError as exc:
+        print(f"vs2t-edge real-check: {exc}", file=sys.stderr)
+        return 2
+    print(rc.render_table(result))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"real-check: wrote {args.out}", file=sys.stderr)
+    return 0
