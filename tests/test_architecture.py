@@ -15,3 +15,17 @@ def test_every_cell_module_has_its_line_in_architecture_md():
     assert len(modules) > 20
     missing = [f"{p.parent.name}/{p.name}" for p in modules if f"| `{p.parent.name}/{p.name}` |" not in doc]
     assert not missing, f"docs/ARCHITECTURE.md has no line for {missing}"
+
+
+def test_the_hardware_skip_says_what_to_set():
+    """One rule for every hardware test (tests/conftest.py): skipped off the cell, with the
+    variables to set named; run when they are set."""
+    import pytest
+
+    from conftest import hardware_skip_reason
+
+    marker = pytest.mark.hardware(needs="the real gate", env=("VS2T_GATE_PORT",)).mark
+    assert hardware_skip_reason(marker, {}) == "needs the real gate: set VS2T_HARDWARE=1 and VS2T_GATE_PORT"
+    assert hardware_skip_reason(marker, {"VS2T_HARDWARE": "1"}) == "needs the real gate: set VS2T_GATE_PORT"
+    assert hardware_skip_reason(marker, {"VS2T_HARDWARE": "1", "VS2T_GATE_PORT": "/dev/ttyACM0"}) is None
+    assert hardware_skip_reason(pytest.mark.hardware.mark, {}) == "needs the real cell: set VS2T_HARDWARE=1"

@@ -508,8 +508,7 @@ def test_real_sequences_through_capture_and_preprocessing(folder):
     assert max(np.abs(t).mean() for t in tensors[1:]) > 0.01  # other presses differ from it
 
 
-@pytest.mark.hardware
-@pytest.mark.skipif(__import__("os").environ.get("VS2T_HARDWARE") != "1", reason="needs the real sensor")
+@pytest.mark.hardware(needs="the real sensor (VS2T_CAMERA, default 0)")
 def test_live_gelsight_on_uvc():
     import os
 

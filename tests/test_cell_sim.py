@@ -44,6 +44,7 @@ def scene_cfg(tmp_path, dataset, host):
     return write_scene_config(tmp_path / "cell.yaml", data)
 
 
+@pytest.mark.slow
 def test_daemon_sorts_a_stream_on_the_simulated_cell(tmp_path, dataset):
     pytest.importorskip("rtde_control")
     from vs2t_edge.runtime.dataset import load_dataset
@@ -70,6 +71,7 @@ def test_daemon_sorts_a_stream_on_the_simulated_cell(tmp_path, dataset):
         assert f["bin"] == {"denim": 1, "silk": 2, "wool": 3}.get(t, 0)
 
 
+@pytest.mark.slow
 def test_simulated_session_with_a_protective_stop_records_and_replays(tmp_path, dataset):
     pytest.importorskip("rtde_control")
     from vs2t_edge.runtime.dataset import load_dataset

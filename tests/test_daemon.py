@@ -174,11 +174,9 @@ def test_clear_fault_command(tmp_path, capsys):
     assert not (tmp_path / "state" / "FAULT").exists()
 
 
-@pytest.mark.hardware
+@pytest.mark.hardware(needs="the real cell (VS2T_CELL_CONFIG, default /etc/vs2t-edge/cell.yaml; service stopped)")
 def test_live_cell_sorts_one_piece():
     """On the real cell: VS2T_HARDWARE=1 VS2T_CELL_CONFIG=/etc/vs2t-edge/cell.yaml (service stopped)."""
-    if os.environ.get("VS2T_HARDWARE") != "1":
-        pytest.skip("needs the real cell: set VS2T_HARDWARE=1 and VS2T_CELL_CONFIG")
     cfg = os.environ.get("VS2T_CELL_CONFIG", "/etc/vs2t-edge/cell.yaml")
     proc = subprocess.run([sys.executable, "-m", "vs2t_edge", "run", "--config", cfg, "--max-items", "1"],
                           capture_output=True, text=True, timeout=300)

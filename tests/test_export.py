@@ -276,6 +276,7 @@ def test_zero_shot_guard_refuses_untouched_presses(tiny_run):
 # ------------------------------------------------ a bundle from a real training run (issue 5's "done when")
 
 
+@pytest.mark.slow
 def test_bundle_from_a_real_tiny_training_run_passes_runtime_verification(tmp_path, capsys):
     """`train` on the tiny profile (the real trainer: trunk, tactile tail, VS2T-ZSL, router chosen
     on validation), then `export` of that run folder, fp32 and int8: each bundle passes the cell's

@@ -11,9 +11,10 @@ ROWS = {s.name: s for s in faults.SCENARIOS}
 
 
 def _param(sc):
+    marks = [pytest.mark.slow] if sc.where == "ursim" else []  # ~10 s each against the UR simulator
     if sc.known_bug:  # fails today for a named reason; strict, so a fix shows up as XPASS
-        return pytest.param(sc.name, marks=pytest.mark.xfail(strict=True, reason="BUG " + sc.known_bug))
-    return sc.name
+        marks.append(pytest.mark.xfail(strict=True, reason="BUG " + sc.known_bug))
+    return pytest.param(sc.name, marks=marks)
 
 
 @pytest.mark.parametrize("name", [_param(s) for s in faults.SCENARIOS])

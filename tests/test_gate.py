@@ -476,9 +476,7 @@ def test_lost_link_is_reported_not_hung(sim, client):
     assert time.monotonic() - started < 0.5  # noticed at once, not after the retries
 
 
-@pytest.mark.hardware
-@pytest.mark.skipif(not (os.environ.get("VS2T_HARDWARE") == "1" and os.environ.get("VS2T_GATE_PORT")),
-                    reason="needs the real gate: set VS2T_HARDWARE=1 and VS2T_GATE_PORT")
+@pytest.mark.hardware(needs="the real gate", env=("VS2T_GATE_PORT",))
 def test_real_gate_routes_and_returns_to_reject():
     with GateClient(os.environ["VS2T_GATE_PORT"], arm_latches=("boot", "heartbeat_lost")) as gate:
         report = gate.status()

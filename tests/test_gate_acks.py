@@ -299,6 +299,7 @@ def test_the_lossy_parser_really_loses_noise_prefixed_frames():
     assert 0.02 < 1 - n_lossy / 2000 < 0.2  # a few percent lost: what the noise row must see
 
 
+@pytest.mark.slow
 def test_the_serial_noise_row_fails_with_a_parser_that_loses_frames(tmp_path, monkeypatch):
     from vs2t_edge.sim import faults
 
