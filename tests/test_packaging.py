@@ -47,7 +47,7 @@ def _hide_train_extra(monkeypatch) -> None:
         monkeypatch.setitem(sys.modules, name, None)  # `import torch` raises ModuleNotFoundError
 
 
-@pytest.mark.parametrize("verb", ["train", "export", "compare", "demo"])
+@pytest.mark.parametrize("verb", ["train", "export", "compare", "demo", "real-check"])
 def test_verbs_that_need_the_train_extra_exit_4_before_any_work(verb, tmp_path, monkeypatch, capsys):
     """README: exit 4 when a needed extra is missing. train and export ended in a
     ModuleNotFoundError traceback (exit 1), the demo after ~22 s of synth; each verb is now refused
@@ -63,7 +63,8 @@ def test_verbs_that_need_the_train_extra_exit_4_before_any_work(verb, tmp_path, 
     argv = {"train": ["train", str(tmp_path / "ds"), "--out", str(tmp_path / "run")],
             "export": ["export", str(tmp_path / "run"), "--out", str(tmp_path / "bundle")],
             "compare": ["compare", "--run", str(tmp_path / "run")],
-            "demo": ["demo", "--workdir", str(tmp_path / "demo")]}[verb]
+            "demo": ["demo", "--workdir", str(tmp_path / "demo")],
+            "real-check": ["real-check", "--train", str(tmp_path / "rec"), "--out", str(tmp_path / "rc.json")]}[verb]
     assert main(argv) == 4
     err = capsys.readouterr().err
     assert "pip install 'vs2t-edge[train]'" in err and "torch" in err
