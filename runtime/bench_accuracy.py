@@ -1,0 +1,199 @@
+"""The bench's accuracy half (`vs2t-edge bench`, runtime/bench.py): on presses a bundle never
+trained on (the manifest records which presses trained it), per press ZSL and GZSL acc_t / acc_u /
+H at the bundle's beta (the paper's protocol); per item (random presses of one fabric) for 1, 3,
+5, 9 presses and the sequential rule; and per item, by bins (runtime/sorting.py) on scenes of 5
+touched + 3 untouched bundle classes, for the bundle's scene decision and the router's posterior.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from vs2t_edge.runtime.progress import Line
+
+ITEM_PRESSES = (1, 3, 5, 9)
+SEQ_CONFIDENCE, SEQ_MAX_PRESSES = 0.95, 9
+BIN_SCENES, BIN_MAX_PRESSES = 12, 5  # by-bins scenes (runtime/sorting.py), as training's report draws them
+
+
+def _log(msg: str) -> None:
+    print(f"bench: {msg}", file=sys.stderr, flush=True)
+
+# ------------------------------------------------------------------ data
+
+
+def _dataset_of(manifest: dict, override: str | None) -> Path | None:
+    prov = manifest.get("provenance", {})
+    for cand in (override, prov.get("data", {}).get("dataset"), prov.get("dataset")):
+        if cand and Path(cand).is_dir():
+            return Path(cand)
+    return None
+
+
+def eval_presses(manifest: dict, ds, cap: int) -> dict[str, list[int]]:
+    """Presses the bundle never trained on, per fabric: touched = test + unused (not train, not
+    the val presses beta and the gate were tuned on); untouched = all; at most ``cap`` each,
+    evenly spread over the grid."""
+    part = manifest["provenance"]["data"]["touched_presses"]
+    out = {}
+    for fid in manifest["classes"]["touched"]:
+        idx = sorted(part[fid]["test"] + part[fid]["unused"])
+        out[fid] = _spread(idx, cap)
+    for fid in manifest["classes"]["untouched"]:
+        out[fid] = _spread(list(range(len(ds.by_id(fid).presses))), cap)
+    return out
+
+
+def _spread(idx: list[int], k: int) -> list[int]:
+    if len(idx) <= k:
+        return list(idx)
+    return [idx[int(j)] for j in np.linspace(0, len(idx) - 1, k).round().astype(int)]
+
+
+
+# ------------------------------------------------------------------ accuracy
+
+
+def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str], None] = _log) -> dict:
+    """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u."""
+    from vs2t_edge.runtime.novelty import log_softmax
+    from vs2t_edge.runtime.preprocess import preprocess_tactile
+
+    cls_index = {c: i for i, c in enumerate(model.classes)}
+    lp, nov, lsu, lab, feat = [], [], [], [], []
+    line = Line()
+    for j, (fid, idx) in enumerate(presses.items()):
+        fab = ds.by_id(fid)
+        ref = fab.load_reference()
+        x = np.stack([preprocess_tactile(fab.load_press(i), ref, model.preprocess_spec) for i in idx])
+        for a in range(0, len(x), 32):
+            o = model.forward(x[a:a + 32])
+            lp.append(model.log_posterior(o))
+            nov.append(o.novelty)
+            lsu.append(log_softmax(o.logits_u, axis=1))
+            feat.append(np.asarray(o.feature, np.float32))
+        lab.append(np.full(len(idx), cls_index[fid]))
+        line.draw(f"bench: scoring presses, fabric {j + 1}/{len(presses)}", (j + 1) / len(presses))
+    line.keep()
+    return {"lp": np.concatenate(lp), "novelty": np.concatenate(nov), "lsu": np.concatenate(lsu),
+            "label": np.concatenate(lab), "feature": np.concatenate(feat)}
+
+
+def _per_class_mean(correct: np.ndarray, labels: np.ndarray) -> float:
+    if correct.size == 0:
+        return math.nan
+    return float(np.mean([np.mean(correct[labels == c]) for c in np.unique(labels)]))
+
+
+def _h(a: float, b: float) -> float:
+    return 0.0 if a + b == 0 or math.isnan(a) or math.isnan(b) else 2 * a * b / (a + b)
+
+
+def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
+    """Per press and per item accuracies (module doc); all in percent."""
+    from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+    from vs2t_edge.runtime.novelty import gzsl_accuracies
+
+    ct = len(model.touched)
+    lab, lp, lsu, nov = out["label"], out["lp"], out["lsu"], out["novelty"]
+    is_t = lab < ct
+    res: dict[str, Any] = {"eval_presses": {"touched": int(is_t.sum()), "untouched": int((~is_t).sum())}}
+    # per press: the paper's protocol (hard route at beta)
+    routed_u = nov > model.beta
+    pred_t = np.argmax(lp[:, :ct], axis=1)  # = argmax logits_t (the gate is a constant per press)
+    pred_u = ct + np.argmax(lsu, axis=1)
+    g = gzsl_accuracies(routed_u[is_t], pred_t[is_t] == lab[is_t], routed_u[~is_t], pred_u[~is_t] == lab[~is_t],
+                        lab[is_t], lab[~is_t])
+    res["press"] = {"zsl": 100 * _per_class_mean(pred_u[~is_t] == lab[~is_t], lab[~is_t]),
+                    "acc_t": 100 * g["acc_t"], "acc_u": 100 * g["acc_u"], "H": 100 * g["H"],
+                    "touched_routed_untouched": 100 * float(np.mean(routed_u[is_t])),
+                    "untouched_routed_untouched": 100 * float(np.mean(routed_u[~is_t]))}
+    # per item
+    rng = np.random.default_rng(seed)
+    kmax = max(max(ITEM_PRESSES), SEQ_MAX_PRESSES)
+    items, item_lab, replaced = [], [], 0
+    for c in np.unique(lab):
+        rows = np.flatnonzero(lab == c)
+        for _ in range(n_items):
+            if len(rows) >= kmax:
+                items.append(rng.choice(rows, kmax, replace=False))
+            else:
+                items.append(rng.choice(rows, kmax, replace=True))
+                replaced += 1
+        item_lab += [c] * n_items
+    items, item_lab = np.stack(items), np.asarray(item_lab)
+    it_t = item_lab < ct
+    res["items"] = {"per_class": n_items, "drawn_with_replacement": replaced,
+                    "note": "presses of one fabric drawn at random; scene = all bundle classes"}
+    for k in ITEM_PRESSES:
+        acc_lp = lp[items[:, :k]].sum(axis=1)  # (items, C): log posteriors summed over k presses
+        pred = np.argmax(acc_lp, axis=1)
+        zs = ct + np.argmax(lsu[items[:, :k]].sum(axis=1), axis=1)
+        at = _per_class_mean(pred[it_t] == item_lab[it_t], item_lab[it_t])
+        au = _per_class_mean(pred[~it_t] == item_lab[~it_t], item_lab[~it_t])
+        res["items"][str(k)] = {"zsl": 100 * _per_class_mean(zs[~it_t] == item_lab[~it_t], item_lab[~it_t]),
+                                "acc_t": 100 * at, "acc_u": 100 * au, "H": 100 * _h(at, au)}
+    # the sequential rule
+    classes = list(model.classes)
+    used, correct, unknown = [], [], []
+    for row, c in zip(items, item_lab):
+        ev = Evidence(classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+        d = None
+        for r in row[:SEQ_MAX_PRESSES]:
+            d = ev.add(_Score(dict(zip(classes, lp[r]))))
+            if d is not None:
+                break
+        used.append(d.presses)
+        correct.append(d.label == classes[c])
+        unknown.append(d.label == UNKNOWN)
+    used, correct, unknown = np.asarray(used), np.asarray(correct), np.asarray(unknown)
+    at = _per_class_mean(correct[it_t], item_lab[it_t])
+    au = _per_class_mean(correct[~it_t], item_lab[~it_t])
+    res["sequential"] = {"confidence": SEQ_CONFIDENCE, "max_presses": SEQ_MAX_PRESSES,
+                         "presses_mean": float(used.mean()), "presses_touched": float(used[it_t].mean()),
+                         "presses_untouched": float(used[~it_t].mean()), "acc_t": 100 * at, "acc_u": 100 * au,
+                         "H": 100 * _h(at, au), "unknown": 100 * float(unknown.mean())}
+    res["bins"] = by_bins(model, out, seed=seed)
+    return res
+
+
+def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict:
+    """Per item, by bins (runtime/sorting.py), on scenes of 5 touched + 3 untouched bundle classes
+    with off-scene pieces of the classes a scene leaves out: the bundle's scene decision (when it
+    carries one) and the router's posterior with the fixed confidence (the baseline), on the same
+    scenes and presses. Percent; presses per item."""
+    from vs2t_edge.runtime import sorting as so
+
+    classes = list(model.classes)
+    lab = out["label"]
+    touched, untouched = list(model.touched), list(model.untouched)
+    if len(touched) < 2 or not untouched:
+        return {}
+    scenes = so.draw_scenes(touched, untouched, (), n_scenes, seed=seed)
+    tables = {"router": {classes[c]: [so.Press(dict(zip(classes, row.tolist()))) for row in out["lp"][lab == c]]
+                         for c in np.unique(lab)}}
+    rules = {"router": so.plain_evidence(SEQ_CONFIDENCE, BIN_MAX_PRESSES)}
+    if getattr(model, "scene_model", None) is not None:
+        lp_s, d2 = model.scene_model.log_posterior(out["feature"], dtype=np.float32)
+        tables["scene_model"] = {classes[c]: [so.Press(dict(zip(classes, a.tolist())), dict(zip(classes, b.tolist())))
+                                              for a, b in zip(lp_s[lab == c], d2[lab == c])] for c in np.unique(lab)}
+        rules["scene_model"] = so.scene_evidence(model.scene_model, BIN_MAX_PRESSES)
+    res = {"scenes": n_scenes, "max_presses": BIN_MAX_PRESSES}
+    for name, table in tables.items():
+        recs = so.simulate_scenes(scenes, table, rules[name], max_presses=BIN_MAX_PRESSES, seed=seed + 1)
+        summary = so.summarise(recs)
+        res[name] = {kind: {k: (100 * v if k in so.OUTCOMES else v) for k, v in r.items()}
+                     for kind, r in [("all", summary["all"]), *summary["by_kind"].items()]}
+    return res
+
+
+class _Score:
+    __slots__ = ("log_posterior",)
+
+    def __init__(self, lp: dict) -> None:
+        self.log_posterior = lp
