@@ -18,7 +18,7 @@ The new beta is written atomically (temp file, fsync, rename) to
 ``<bundle>.beta_override.json`` next to the bundle - the bundle itself stays as its hashes say
 - with the previous override kept as ``...json.prev`` and the history inside the file.
 
-Which beta the daemon uses is the service config's to say (runtime/daemon.resolve_beta_override):
+Which beta the daemon uses is the service config's to say (runtime/operating_point.py):
 its ``beta_override`` number first, then the file its ``beta_override_file`` names, then the
 default file above. So with ``--config CELL.yaml`` (the service's config; its bundle is the one
 calibrated unless ``--bundle`` is given too, and then they must agree) the override goes where
@@ -34,17 +34,16 @@ scores equal, or a best balanced accuracy no better than chance.
 from __future__ import annotations
 
 import csv
-import json
 import math
-import os
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from vs2t_edge.runtime.files import MAX_JSON_BYTES, read_regular_file
+from vs2t_edge.runtime.operating_point import (  # noqa: F401 - re-exported for callers of calibrate
+    OverrideFileError, override_file_for, override_path_for, read_beta_override, write_beta_override)
 from vs2t_edge.runtime.progress import Line
 
 
@@ -188,70 +187,7 @@ def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float, log_x: boo
     cv2.imwrite(str(out_png), img)
 
 
-# --- the override file -------------------------------------------------------------------
-
-def override_path_for(bundle: Path) -> Path:
-    bundle = Path(bundle)
-    return bundle.parent / f"{bundle.name}.beta_override.json"
-
-
-def read_beta_override(path: Path | None) -> float | None:
-    if path is None or not Path(path).exists():
-        return None
-    try:
-        data = json.loads(read_regular_file(path, MAX_JSON_BYTES, "beta override file"))
-        beta = float(data["beta"])
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, KeyError, TypeError) as exc:
-        raise CalibrationError(f"{path}: not a beta override file ({exc})") from None
-    if not math.isfinite(beta):
-        raise CalibrationError(f"{path}: beta {beta} is not finite")
-    return beta
-
-
-def write_beta_override(path: Path, cal: Calibration, *, bundle_beta: float | None, source: str) -> Path:
-    """Atomic: at every instant ``path`` holds either the old override or the new one, whole.
-
-    The old file is copied to ``.prev`` (itself via a temp file and rename), the new one written
-    to a temp file, fsynced and renamed over ``path``, and the folder fsynced. A crash anywhere
-    leaves the old override in force (and perhaps a stray ``.tmp``); never no override at all,
-    which would silently put the bundle's own beta back in charge.
-    """
-    path = Path(path)
-    history = []
-    old_text = path.read_text() if path.exists() else None
-    if old_text is not None:
-        try:
-            old = json.loads(old_text)
-            history = old.get("history", []) + [{k: old.get(k) for k in ("beta", "written", "objective")}]
-        except (ValueError, AttributeError):
-            history = []  # a damaged old file is still kept as .prev below, byte for byte
-    data = {"beta": cal.beta, "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "source": source, **{k: v for k, v in asdict(cal).items() if k != "beta"}, "history": history}
-    if old_text is not None:
-        _write_atomic(path.with_name(path.name + ".prev"), old_text)
-    _write_atomic(path, json.dumps(data, indent=2) + "\n")
-    return path
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
+# --- the override file: runtime/operating_point.py owns it (names kept importable here) --------
 
 # --- scoring presses ---------------------------------------------------------------------
 
@@ -343,12 +279,8 @@ def _override_target(args) -> tuple[Path | None, Path | None, str]:
     if args.bundle is not None and Path(args.bundle).resolve() != bundle.resolve():
         return None, None, (f"--bundle {args.bundle} is not the bundle {args.config} deploys ({bundle}); "
                             "calibrate the bundle the service runs")
-    if cfg.beta_override is not None:
-        return bundle, None, (f"{args.config}: beta_override = {cfg.beta_override:g} is set, and the daemon uses it "
-                              "before any override file - a new beta written now would be ignored. Remove "
-                              "beta_override from the config and run again (--dry-run prints the beta "
-                              "without writing)")
-    return bundle, Path(cfg.beta_override_file) if cfg.beta_override_file else override_path_for(bundle), ""
+    path, problem = override_file_for(cfg)
+    return bundle, path, problem
 
 
 def _record_live(args, bundle: Path) -> int:
@@ -423,7 +355,7 @@ def run(args) -> int:
     old = float(model.beta) if getattr(model, "beta", None) is not None else None
     try:
         in_force = read_beta_override(override)
-    except CalibrationError:
+    except OverrideFileError:
         in_force = None  # a damaged override is replaced (and kept as .prev)
     written = write_curve(png, touched, val, cal, old_beta=in_force if in_force is not None else old)
     print(f"beta {cal.beta:.6g} ({cal.objective}): touched kept {cal.kept_touched:.1%}, validation flagged "

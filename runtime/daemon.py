@@ -36,6 +36,7 @@ from typing import Any, Callable
 
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
 from vs2t_edge.runtime.devices import DeviceError
+from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
 
@@ -45,17 +46,9 @@ def _log(msg: str) -> None:
 
 
 def resolve_beta_override(cfg: CellConfig) -> float | None:
-    """The config's beta_override wins; else calibrate-threshold's override file if present."""
-    if cfg.beta_override is not None:
-        return cfg.beta_override
-    from vs2t_edge.runtime.calibrate import read_beta_override
-
-    path = cfg.beta_override_file or default_override_path(cfg.bundle)
-    return read_beta_override(path)
-
-
-def default_override_path(bundle: Path) -> Path:
-    return Path(bundle).parent / f"{Path(bundle).name}.beta_override.json"
+    """The beta that overrides the bundle's, by runtime/operating_point.py's precedence (None: the
+    bundle's own stands)."""
+    return resolve_beta(cfg)[0]
 
 
 def load_model(cfg: CellConfig):
@@ -90,11 +83,7 @@ def default_evidence_factory(cfg: CellConfig, model: Any = None) -> Callable[[],
     bundle's touched confidence."""
     from vs2t_edge.runtime.evidence import Evidence
 
-    opts = model.evidence_options() if model is not None and hasattr(model, "evidence_options") else {}
-    confidence = cfg.confidence
-    scene_model = getattr(model, "scene_model", None)
-    if scene_model is not None and "confidence" not in ((cfg.raw or {}).get("evidence") or {}):
-        confidence = scene_model.confidence
+    confidence, opts = evidence_settings(cfg, model)
     return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
 
 

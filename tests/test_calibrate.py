@@ -11,6 +11,7 @@ import pytest
 
 from vs2t_edge.runtime.calibrate import (
     CalibrationError,
+    OverrideFileError,
     choose_beta,
     override_path_for,
     read_beta_override,
@@ -65,7 +66,7 @@ def test_override_written_atomically_and_previous_kept(tmp_path):
     assert json.loads(path.read_text())["history"][0]["beta"] == pytest.approx(first.beta)
     assert not list(tmp_path.glob("*.tmp"))
     path.write_text("{not json")
-    with pytest.raises(CalibrationError, match="not a beta override"):
+    with pytest.raises(OverrideFileError, match="not a beta override"):
         read_beta_override(path)
 
 

@@ -508,13 +508,13 @@ def test_a_fifo_or_huge_manifest_is_refused(tmp_path):
 
 
 def test_a_fifo_beta_override_or_fault_file_does_not_hang_the_start(tmp_path):
-    from vs2t_edge.runtime.calibrate import CalibrationError, read_beta_override
+    from vs2t_edge.runtime.operating_point import OverrideFileError, read_beta_override
     from vs2t_edge.runtime.cell import Cell
 
     override = tmp_path / "b.beta_override.json"
     os.mkfifo(override)
     exc = _in_thread(lambda: read_beta_override(override), fifo=override)
-    assert isinstance(exc, CalibrationError) and "FIFO" in str(exc), exc
+    assert isinstance(exc, OverrideFileError) and "FIFO" in str(exc), exc
 
     fault = tmp_path / "FAULT"
     os.mkfifo(fault)

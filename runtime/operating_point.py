@@ -1,0 +1,138 @@
+"""The cell's operating point, owned in one place: which numbers decide, where each comes from,
+and which source wins.
+
+Two parts:
+
+* **beta**, the GZSL router's threshold. Sources, first wins: the config's ``beta_override``
+  number; the override file the config's ``beta_override_file`` names; the default override file
+  ``<bundle>.beta_override.json`` beside the bundle (``vs2t-edge calibrate-threshold`` writes it,
+  atomically); the bundle manifest's own beta. A replay pins the beta its session ran with by
+  writing it as the config's number (runtime/replay.py), so a later calibration does not change a
+  recorded session.
+* **the item rule** of a bundle that carries a scene model (``decision.npz``,
+  runtime/scene_model.py): press weight, off-scene threshold and margin, and the confidence that
+  sorts, per kind, all chosen in training for the mis-sort target. The config's
+  ``evidence.confidence``, when written, overrides the touched confidence; ``evidence.max_presses``
+  is the config's. A bundle without a scene model uses the config's confidence alone.
+
+``runtime/daemon.py`` (run, record, replay) and ``runtime/calibrate.py`` read and write through
+these functions only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+from vs2t_edge.runtime.files import MAX_JSON_BYTES, read_regular_file
+
+
+class OverrideFileError(ValueError):
+    """A beta override file that cannot be used; names the file."""
+
+
+def override_path_for(bundle: Path | str) -> Path:
+    """The default override file: ``<bundle>.beta_override.json`` beside the bundle folder."""
+    bundle = Path(bundle)
+    return bundle.parent / f"{bundle.name}.beta_override.json"
+
+
+def override_file_for(cfg) -> tuple[Path | None, str]:
+    """(the override file the daemon of ``cfg`` reads, problem). A config with a ``beta_override``
+    number reads no file: a beta written to one would be ignored, and the problem says so."""
+    if cfg.beta_override is not None:
+        return None, (f"{cfg.path}: beta_override = {cfg.beta_override:g} is set, and the daemon uses it before any "
+                      "override file - a new beta written now would be ignored. Remove beta_override from the config "
+                      "and run again (--dry-run prints the beta without writing)")
+    return (Path(cfg.beta_override_file) if cfg.beta_override_file else override_path_for(cfg.bundle)), ""
+
+
+def resolve_beta(cfg) -> tuple[float | None, str]:
+    """(beta, its source) for the daemon of ``cfg``; (None, "bundle manifest") when the bundle's own
+    beta stands."""
+    if cfg.beta_override is not None:
+        return float(cfg.beta_override), f"{cfg.path}: beta_override"
+    path, _ = override_file_for(cfg)
+    beta = read_beta_override(path)
+    return (beta, str(path)) if beta is not None else (None, "bundle manifest")
+
+
+def read_beta_override(path: Path | None) -> float | None:
+    if path is None or not Path(path).exists():
+        return None
+    try:
+        data = json.loads(read_regular_file(path, MAX_JSON_BYTES, "beta override file"))
+        beta = float(data["beta"])
+    except OSError as exc:
+        raise OverrideFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise OverrideFileError(f"{path}: not a beta override file ({exc})") from None
+    if not math.isfinite(beta):
+        raise OverrideFileError(f"{path}: beta {beta} is not finite")
+    return beta
+
+
+def write_beta_override(path: Path, cal: Any, *, bundle_beta: float | None, source: str) -> Path:
+    """Atomic: at every instant ``path`` holds either the old override or the new one, whole.
+
+    ``cal`` is a calibration (``runtime.calibrate.Calibration``: beta and how it was chosen). The old
+    file is copied to ``.prev`` (itself via a temp file and rename), the new one written to a temp
+    file, fsynced and renamed over ``path``, and the folder fsynced. A crash anywhere leaves the
+    old override in force (and perhaps a stray ``.tmp``); never no override at all, which would
+    silently put the bundle's own beta back in charge.
+    """
+    path = Path(path)
+    history = []
+    old_text = path.read_text() if path.exists() else None
+    if old_text is not None:
+        try:
+            old = json.loads(old_text)
+            history = old.get("history", []) + [{k: old.get(k) for k in ("beta", "written", "objective")}]
+        except (ValueError, AttributeError):
+            history = []  # a damaged old file is still kept as .prev below, byte for byte
+    fields = asdict(cal) if is_dataclass(cal) else dict(cal)
+    data = {"beta": fields["beta"], "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "source": source, **{k: v for k, v in fields.items() if k != "beta"}, "history": history}
+    if old_text is not None:
+        _write_atomic(path.with_name(path.name + ".prev"), old_text)
+    _write_atomic(path, json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
+    """(confidence, keyword arguments of ``runtime.evidence.Evidence``) for ``cfg``'s scene with
+    ``model``: the scene model's operating point when the bundle has one, the config's
+    ``evidence.confidence`` overriding its touched confidence when written there."""
+    scene_model = getattr(model, "scene_model", None)
+    opts = model.evidence_options() if scene_model is not None else {}
+    confidence = cfg.confidence
+    if scene_model is not None and "confidence" not in ((cfg.raw or {}).get("evidence") or {}):
+        confidence = scene_model.confidence
+    return confidence, opts
+
+
+__all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
+           "write_beta_override", "evidence_settings"]
