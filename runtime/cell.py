@@ -18,8 +18,11 @@ Retry policy (one table, so the behaviour is reviewable):
   reopened; if it does not reopen, the retry has failed.
 * with a ``contact_check``: a press frame that is still the no-contact reference is a
   CameraError of kind ``no_contact`` (retried, not reopened for).
-* a bad frame (FrameError from preprocessing): skipped, counted, journalled, never used; the
-  next grid point is pressed. An item whose frames are all bad is decided "unknown" -> reject.
+* a bad frame from the camera (black, white, saturated, wrong size): every camera's frame guard
+  (runtime/camera.py) makes it a CameraError, so it is retried as above, then latched.
+* a press the model cannot score (FrameError from inference: non-finite output): skipped,
+  counted, journalled, never used; the next grid point is pressed. An item whose frames are all
+  unusable is decided "unknown" -> reject.
 * ArmSafetyStop, any other device error, a gate error, an item over its time budget: a
   latched fault.
 * any other exception (an onnxruntime RuntimeError from the model, a device used while not

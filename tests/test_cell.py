@@ -82,13 +82,62 @@ def test_off_scene_label_goes_to_reject(tmp_path):
     assert gate.sorted == [0] and results[0].bin == 0
 
 
-def test_bad_frame_is_skipped_counted_and_never_routed(tmp_path):
+class _GuardedCamera(ScriptedCamera):
+    """The scripted camera behind the production frame guard (runtime/camera.py), as every live,
+    replay and simulated camera is: a black frame is the camera's fault, never the model's."""
+
+    def __init__(self, arm, script):
+        from vs2t_edge.runtime.camera import _FrameGuard
+
+        super().__init__(arm, script)
+        self.guard = _FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
+
+    def grab(self):
+        return self.guard.admit(super().grab().image)
+
+
+class _ModelThatFailsOn(FakeModel):
+    """A model whose output is not finite for frames of grey level ``bad`` (inference.py raises
+    FrameError "model_output" then): the one bad frame the cell skips."""
+
+    def __init__(self, bad):
+        super().__init__(VOTES, CLASSES)
+        self.bad = bad
+
+    def score_press(self, frame):
+        from vs2t_edge.runtime.preprocess import FrameError
+
+        if int(round(float(frame[..., 0].mean()))) == self.bad:
+            raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
+        return super().score_press(frame)
+
+
+def test_a_black_frame_is_a_camera_fault_retried_once_never_skipped(tmp_path):
+    """The frame rule (docs/cell.md): black, white, saturated or wrong-size frames come from a
+    camera in trouble - retried once (camera reopened), then a latched fault; a later good frame
+    is sorted. They are never skipped into a decision."""
     cell, arm, cam, gate, journal = make_cell(tmp_path, ["black", 70, 70])
+    cell.camera = _GuardedCamera(arm, ["black", 70, 70])
+    cell.camera.connect()
+    results = cell.run(max_items=1)
+    recs = read_records(journal.path)
+    assert results[0].label == "wool" and results[0].skipped_frames == 0
+    assert [r for r in recs if r["type"] == "retry"] and not [r for r in recs if r["type"] == "frame_skipped"]
+    cell2, arm2, _, _, journal2 = make_cell(tmp_path / "twice", ["black", "black"])
+    cell2.camera = _GuardedCamera(arm2, ["black", "black"])
+    cell2.camera.connect()
+    cell2.run(max_items=1)
+    assert cell2.fault and "black" in cell2.fault
+
+
+def test_a_frame_the_model_cannot_score_is_skipped_counted_and_never_routed(tmp_path):
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [13, 70, 70])
+    cell.model = _ModelThatFailsOn(13)
     results = cell.run(max_items=1)
     assert results[0].label == "wool" and results[0].skipped_frames == 1
     recs = read_records(journal.path)
-    assert [r["reason"] for r in recs if r["type"] == "frame_skipped"] == ["black"]
-    assert cell.model.scored == 2  # the black frame was refused by the check, never scored
+    assert [r["reason"] for r in recs if r["type"] == "frame_skipped"] == ["model_output"]
+    assert cell.model.scored == 2  # the unusable press never reached the evidence
 
 
 def test_camera_error_is_retried_once(tmp_path):
