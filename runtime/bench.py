@@ -23,6 +23,10 @@ Per bundle (a variant: trunk, input size, fp32/int8):
   reject on scenes of 5 touched + 3 untouched bundle classes with off-scene pieces, for the
   bundle's scene decision and for the router's posterior at confidence 0.95 (the baseline).
 
+The machine is recorded with its instruction sets (AVX2, AVX-512, VNNI, AMX: int8's gain
+depends on them) and the onnxruntime build, and for every fp32/int8 pair the bench says which
+precision it recommends on the machine it ran on (``recommend``).
+
 No torch here (runtime/). ``onnx`` (train extra) is used only to build the GEMM graphs of the
 peak measurement; without it the fp32 peak comes from numpy and the int8 peak is not measured.
 matplotlib (train extra) draws the Pareto plot when importable.
@@ -335,6 +339,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     result["comparisons"] = compare_pairs(rows)
     result["targets"] = targets(result)
+    result["recommendation"] = recommend(result)
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -361,8 +366,57 @@ def _machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "onnxruntime": onnxruntime.__version__,
+    build = onnxruntime.get_build_info() if hasattr(onnxruntime, "get_build_info") else ""
+    return {"cpu": cpu, "cores": os.cpu_count(), "instruction_sets": cpu_features(), "onnxruntime": onnxruntime.__version__,
+            "onnxruntime_build": build, "onnxruntime_providers": onnxruntime.get_available_providers(),
             "python": platform.python_version(), "load_avg_at_start": list(os.getloadavg())}
+
+
+# int8's gain depends on the CPU: ~1.8x without VNNI, ~3.3x with it (issue 14, measured on two machines)
+INSTRUCTION_SETS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
+
+
+def cpu_features(cpuinfo: str | None = None) -> dict[str, bool]:
+    """Which of ``INSTRUCTION_SETS`` this CPU has (Linux /proc/cpuinfo flags; all False elsewhere)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            flags = set(line.split(":", 1)[1].split())
+            break
+    return {name: name in flags for name in INSTRUCTION_SETS}
+
+
+MIN_INT8_SPEEDUP = 1.2  # below this, int8's accuracy cost buys too little time to recommend it
+
+
+def recommend(result: dict) -> list[dict]:
+    """Per fp32/int8 pair measured in this run: the precision to deploy on this machine. int8 when
+    it is at least ``MIN_INT8_SPEEDUP`` x faster (2 threads) and within ``TARGET_INT8_POINTS`` of
+    fp32 on every accuracy the bench measured; else fp32, saying why."""
+    out = []
+    isa = result.get("machine", {}).get("instruction_sets", {})
+    vnni = isa.get("avx512_vnni") or isa.get("avx_vnni")
+    for c in result.get("comparisons", []):
+        fast = c["speedup_2t"] >= MIN_INT8_SPEEDUP
+        accurate = c.get("within_1_point")
+        if fast and accurate:
+            pick, why = c["int8"], f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every accuracy"
+        elif not fast:
+            pick, why = c["fp32"], (f"int8 only {c['speedup_2t']:.2f}x faster here (< {MIN_INT8_SPEEDUP}x"
+                                    f"{'' if vnni else '; this CPU has no VNNI'})")
+        elif accurate is None:
+            pick, why = c["fp32"], "int8's accuracy was not measured (trained bundles with --dataset measure it)"
+        else:
+            worst = max(c["delta_points"].items(), key=lambda kv: abs(kv[1]))
+            pick, why = c["fp32"], (f"int8 {c['speedup_2t']:.2f}x faster but costs {worst[1]:+.1f} points ({worst[0]}), "
+                                    f"more than {TARGET_INT8_POINTS:g}")
+        out.append({"fp32": c["fp32"], "int8": c["int8"], "recommended": pick, "why": why})
+    return out
 
 
 def compare_pairs(rows: list[dict]) -> list[dict]:
@@ -505,6 +559,19 @@ def render_made_by(result: dict) -> list[str]:
     return lines
 
 
+def _isa_text(machine: dict) -> str:
+    isa = machine.get("instruction_sets")
+    if not isa:
+        return "not recorded"
+    return ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in isa.items())
+
+
+def _recommendation_lines(result: dict) -> list[str]:
+    recs = result.get("recommendation") or []
+    return ["", "**Recommended precision on this machine:** " + "; ".join(
+        f"{r['recommended']} ({r['why']})" for r in recs)] if recs else []
+
+
 def render_markdown(result: dict) -> str:
     m, pk = result["machine"], result["peak"]
     lines = ["# Speed for accuracy: the bench", "",
@@ -514,6 +581,9 @@ def render_markdown(result: dict) -> str:
              f"{'; at the end, with the bench itself, ' + ', '.join(f'{v:.2f}' for v in m['load_avg_at_end']) if 'load_avg_at_end' in m else ''}), onnxruntime "
              f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
              "at batch 1, and of the whole press (*press*: MJPEG decode to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
+             "", f"Instruction sets: {_isa_text(m)}; onnxruntime build: {m.get('onnxruntime_build') or '?'} "
+             f"({', '.join(m.get('onnxruntime_providers', [])) or '?'}).",
+             *_recommendation_lines(result),
              "", "## Compute peak of this machine", "",
              "| precision | 1 thread | 2 threads | how |", "|---|---|---|---|"]
     for p in ("fp32", "int8"):

@@ -49,6 +49,8 @@ def run(args) -> int:
         print(f"bench: {exc}", file=sys.stderr)
         return 1
     print(render_table(result))
+    for r in result.get("recommendation", []):
+        print(f"recommended on this machine: {r['recommended']} ({r['why']})")
     bins = render_bins(result)
     if bins:
         print("\nper item, by bins (right / mis-sort / reject, %):\n" + bins)

@@ -245,3 +245,32 @@ def test_bench_counts_items_by_bins_for_the_scene_decision_and_the_router(bench_
             assert f"| {a['right']:.1f} | {a['mis-sort']:.1f} | {a['reject']:.1f} |" in md
     (c,) = result["comparisons"]
     assert {"bins_right_scene_model", "bins_right_router"} <= set(c["delta_points"])
+
+
+def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):
+    """int8's gain depends on the CPU's instruction sets: the bench records them and the
+    onnxruntime build, and says which precision it recommends for the machine it ran on, from the
+    speed-up and the accuracy change it measured in this run."""
+    from vs2t_edge.runtime import bench
+
+    result, out = bench_result
+    m = result["machine"]
+    assert set(m["instruction_sets"]) == set(bench.INSTRUCTION_SETS) and "onnxruntime_build" in m
+    (rec,) = result["recommendation"]
+    (c,) = result["comparisons"]
+    expect_int8 = c["speedup_2t"] >= bench.MIN_INT8_SPEEDUP and c["within_1_point"]
+    assert rec["recommended"] == (c["int8"] if expect_int8 else c["fp32"]) and rec["why"]
+    assert "Recommended precision on this machine" in (out / "bench.md").read_text()
+    flags = "processor\t: 0\nflags\t\t: fpu sse avx2 avx512f avx512_vnni\n"
+    assert bench.cpu_features(flags) == {"avx2": True, "avx512f": True, "avx512_vnni": True, "avx_vnni": False,
+                                         "amx_int8": False}
+    # the rule itself on made-up pairs
+    fast_ok = {"machine": {}, "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 2.0, "within_1_point": True,
+                                               "delta_points": {"press_H": -0.5}}]}
+    assert bench.recommend(fast_ok)[0]["recommended"] == "b"
+    fast_costly = {"machine": {}, "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 2.0, "within_1_point": False,
+                                                   "delta_points": {"press_H": -3.3}}]}
+    assert bench.recommend(fast_costly)[0]["recommended"] == "a" and "-3.3" in bench.recommend(fast_costly)[0]["why"]
+    slow = {"machine": {"instruction_sets": {"avx512_vnni": False}},
+            "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 1.1, "within_1_point": True}]}
+    assert "no VNNI" in bench.recommend(slow)[0]["why"]
