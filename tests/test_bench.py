@@ -42,19 +42,19 @@ def test_bench_writes_table_json_and_plot(bench_result):
 
 
 def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_result, tmp_path):
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.runtime import bench_report
 
     result, out = bench_result
     made = result["variants"][0]["made_by"]
     assert made["git_commit"] and made["router"] and "command" in made  # from the bundle's manifest
     md = tmp_path / "bench.md"
-    md.write_text("old generated text\n" + bench.HAND_WRITTEN + "\n\n## Notes\n\nkept\n")
-    md.write_text(bench.render_markdown(result) + bench.hand_written_tail(md))
+    md.write_text("old generated text\n" + bench_report.HAND_WRITTEN + "\n\n## Notes\n\nkept\n")
+    md.write_text(bench_report.render_markdown(result) + bench_report.hand_written_tail(md))
     text = md.read_text()
     assert "old generated text" not in text and text.endswith("## Notes\n\nkept\n")
-    assert text.count(bench.HAND_WRITTEN) == 1 and "## How each bundle was made" in text
+    assert text.count(bench_report.HAND_WRITTEN) == 1 and "## How each bundle was made" in text
     md.write_text("no marker here\n")
-    assert bench.hand_written_tail(md) == ""  # nothing marked: nothing kept
+    assert bench_report.hand_written_tail(md) == ""  # nothing marked: nothing kept
 
 
 def test_bench_numbers_are_measured_and_sane(bench_result):
@@ -212,7 +212,7 @@ def test_load_average_is_read_before_the_bench_loads_the_machine(tmp_path, monke
     work (it once came at the end and called every quiet run busy)."""
     import os
 
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.runtime import bench, bench_report
 
     readings = iter([[0.1, 0.1, 0.1], [1.9, 1.0, 0.5]])
     monkeypatch.setattr(os, "getloadavg", lambda: next(readings))
@@ -221,7 +221,7 @@ def test_load_average_is_read_before_the_bench_loads_the_machine(tmp_path, monke
     result = bench.run_bench([], None, threads=(1, 2), log=lambda m: None)
     assert result["machine"]["load_avg_at_start"] == [0.1, 0.1, 0.1]
     assert result["machine"]["load_avg_at_end"] == [1.9, 1.0, 0.5]
-    page = bench.render_markdown(result)
+    page = bench_report.render_markdown(result)
     assert "load average at start 0.10, 0.10, 0.10" in page and "busy" not in page.split("\n")[2]
 
 

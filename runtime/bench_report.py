@@ -1,0 +1,219 @@
+"""The bench's pages (`vs2t-edge bench --out`): the printed table, bench.md with its hand-written
+tail kept, the per-item-by-bins table and the Pareto plot, from a result of runtime/bench.py."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from vs2t_edge.runtime.bench import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
+
+
+def _f(v, fmt="{:.1f}") -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
+
+
+def render_table(result: dict) -> str:
+    hdr = ("| variant | trunk | px | prec | MMAC | p50 1t | p99 1t | p50 2t | p99 2t | limit 2t | of peak 2t "
+           "| press p50 1t | press p99 1t | press p50 2t | press p99 2t "
+           "| outside trunk | RSS MB | bundle MB | ZSL/press | H/press | H 1 | H 3 | H 5 | H 9 | seq presses | seq H | seq unknown |")
+    lines = [hdr, "|" + "---|" * (hdr.count("|") - 1)]
+    for r in result["variants"]:
+        a = r.get("accuracy")
+        lat = r["latency"]
+        acc = ["–"] * 9
+        if a:
+            acc = [_f(a["press"]["zsl"]), _f(a["press"]["H"])] + [_f(a["items"][str(k)]["H"]) for k in ITEM_PRESSES] + [
+                _f(a["sequential"]["presses_mean"], "{:.2f}"), _f(a["sequential"]["H"]), _f(a["sequential"]["unknown"])]
+        elif not r["trained"]:
+            acc = ["untrained"] + ["–"] * 8
+        lines.append("| " + " | ".join([
+            r["name"], r["arch"], str(r["size_px"]), r["precision"], _f((r["macs"] or math.nan) / 1e6, "{:.0f}"),
+            _f(lat.get("1", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("1", {}).get("p99_ms"), "{:.2f}"),
+            _f(lat.get("2", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("2", {}).get("p99_ms"), "{:.2f}"),
+            _f(r.get("limit_ms", {}).get("2"), "{:.2f}"), _f(r.get("fraction_of_peak", {}).get("2"), "{:.0%}"),
+            *(_f(r.get("press", {}).get(t, {}).get(q), "{:.2f}") for t in ("1", "2") for q in ("p50_ms", "p99_ms")),
+            _f(r["overhead_ms"].get("cell", r["overhead_ms"].get("total")), "{:.2f}"), _f(r["peak_rss_mb"], "{:.0f}"),
+            _f(r["bundle_mb"], "{:.1f}"),
+            *acc]) + " |")
+    return "\n".join(lines)
+
+
+def render_bins(result: dict) -> str:
+    """Per item, by bins (``by_bins``): one row per variant and decision; empty without accuracies."""
+    rows = [(r["name"], name, b[name]) for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
+            for name in ("scene_model", "router") if name in b]
+    if not rows:
+        return ""
+    lines = ["| variant | decision | right bin | mis-sort | reject | touched right | untouched right "
+             "| off-scene rejected | presses |", "|" + "---|" * 9]
+    for name, decision, b in rows:
+        kind = lambda k, o: _f(b.get(k, {}).get(o))  # noqa: E731
+        lines.append(f"| {name} | {'scene decision' if decision == 'scene_model' else 'router, confidence 0.95'} | "
+                     f"{kind('all', 'right')} | {kind('all', 'mis-sort')} | {kind('all', 'reject')} | "
+                     f"{kind('touched', 'right')} | {kind('untouched', 'right')} | {kind('off-scene', 'right')} | "
+                     f"{_f(b['all'].get('presses'), '{:.2f}')} |")
+    return "\n".join(lines)
+
+
+HAND_WRITTEN = "<!-- hand-written below: kept when `vs2t-edge bench --out` rewrites this file -->"
+
+
+def hand_written_tail(md: Path) -> str:
+    """The part of an existing bench.md below the marker (notes people added), to keep on rewrite."""
+    try:
+        text = md.read_text(encoding="utf-8")
+    except OSError:
+        return ""
+    _, marker, tail = text.partition(HAND_WRITTEN)
+    return f"\n{HAND_WRITTEN}{tail}" if marker else ""
+
+
+def render_made_by(result: dict) -> list[str]:
+    rows = [r for r in result["variants"] if r.get("made_by")]
+    if not rows:
+        return []
+    lines = ["", "## How each bundle was made (from its manifest)", "",
+             "| variant | command | commit | dataset | router |", "|---|---|---|---|---|"]
+    for r in rows:
+        mb = r["made_by"]
+        lines.append(f"| {r['name']} | `{mb.get('command', '?')}` | {str(mb.get('git_commit', '?'))[:12]} | "
+                     f"{mb.get('dataset', '–')} | {mb.get('router', '?')} |")
+    return lines
+
+
+def _isa_text(machine: dict) -> str:
+    isa = machine.get("instruction_sets")
+    if not isa:
+        return "not recorded"
+    return ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in isa.items())
+
+
+def _recommendation_lines(result: dict) -> list[str]:
+    recs = result.get("recommendation") or []
+    return ["", "**Recommended precision on this machine:** " + "; ".join(
+        f"{r['recommended']} ({r['why']})" for r in recs)] if recs else []
+
+
+def render_markdown(result: dict) -> str:
+    m, pk = result["machine"], result["peak"]
+    lines = ["# Speed for accuracy: the bench", "",
+             f"Measured {result['time_utc']} on {m['cpu']} ({m['cores']} cores; load average at start "
+             f"{', '.join(f'{v:.2f}' for v in m['load_avg_at_start'])}"
+             f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}"
+             f"{'; at the end, with the bench itself, ' + ', '.join(f'{v:.2f}' for v in m['load_avg_at_end']) if 'load_avg_at_end' in m else ''}), onnxruntime "
+             f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
+             "at batch 1, and of the whole press (*press*: MJPEG decode to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
+             "", f"Instruction sets: {_isa_text(m)}; onnxruntime build: {m.get('onnxruntime_build') or '?'} "
+             f"({', '.join(m.get('onnxruntime_providers', [])) or '?'}).",
+             *_recommendation_lines(result),
+             "", "## Compute peak of this machine", "",
+             "| precision | 1 thread | 2 threads | how |", "|---|---|---|---|"]
+    for p in ("fp32", "int8"):
+        lines.append(f"| {p} | {_f(pk[p]['1']['macs_per_s'] / 1e9)} GMAC/s | {_f(pk[p]['2']['macs_per_s'] / 1e9)} GMAC/s "
+                     f"| {pk[p]['2']['how']}, fastest of 15 |")
+    lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
+              "## Variants", "", render_table(result), "",
+              *(["## Per item, by bins", "",
+                 f"Scenes of 5 touched + 3 untouched bundle classes ({BIN_SCENES} per bundle), off-scene pieces of the "
+                 f"classes a scene leaves out; items of at most {BIN_MAX_PRESSES} presses drawn from presses never "
+                 "trained on, decided by the cell's own evidence (runtime/sorting.py, as the demo and training's report "
+                 "count). *scene decision*: the bundle's scene model at its operating point; *router*: the GZSL "
+                 "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), ""]
+                if render_bins(result) else []),
+              "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
+              "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
+              f"press frame encoded once as JPEG q={JPEG_QUALITY}, cv2.imdecode timed) + preprocess + trunk + heads + "
+              "router + decision + evidence update, timed end to end per press; *outside trunk* = median over presses of "
+              "(press - its own trunk run) at 2 threads, decode included: what the target (< 2 ms) is judged on (medians do "
+              "not add: *press* p50 can exceed trunk p50 + outside p50, since a trunk run between other work wakes "
+              "onnxruntime's thread pool instead of finding it spinning, as the trunk-alone loop does); RSS = "
+              "peak resident memory of a process that "
+              f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
+              f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training; H = harmonic mean of "
+              "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
+              f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
+              "counted wrong).", "", "## Outside the trunk, per press (ms)", "",
+              "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
+              "trunk run), decode included, at 1 and 2 threads (stage medians do not add up to it exactly). "
+              "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",
+              "",
+              "| variant | frame px | MJPEG decode | preprocess | heads | router | decision | evidence "
+              "| outside p50 1t | outside p99 1t | outside p50 2t | outside p99 2t | PNG decode (replays) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in result["variants"]:
+        o, pr = r["overhead_ms"], r.get("press", {})
+        hw = r.get("frame_hw")
+        lines.append(f"| {r['name']} | {f'{hw[1]}x{hw[0]}' if hw else '–'} | " + " | ".join(
+            [_f(o.get(k), "{:.3f}") for k in ("decode_mjpeg", "preprocess", "heads", "router", "decision", "evidence")]
+            + [_f(pr.get(t, {}).get(q), "{:.3f}") for t in ("1", "2") for q in ("outside_p50_ms", "outside_p99_ms")]
+            + [_f(o.get("decode_png", o.get("decode")), "{:.3f}")]) + " |")
+    tg = targets(result)
+    if tg:
+        lines += ["", "## Against the targets", "", "| variant | target | measured | met |", "|---|---|---|---|"]
+        lines += [f"| {t['variant']} | {t['target']} | {t['measured']} | {'yes' if t['met'] else '**no**'} |" for t in tg]
+    if result["comparisons"]:
+        lines += ["", "## int8 against fp32", "", "| int8 | fp32 | speed-up (2 threads) | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H | within 1 point |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for c in result["comparisons"]:
+            d = c.get("delta_points")
+            lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
+                _f(d[k], "{:+.1f}") for k in ("press_H", "press_zsl", "item5_H", "sequential_H")) + f" | {'yes' if c['within_1_point'] else 'no'} |"
+                if d else "– | – | – | – | – |"))
+    lines += render_made_by(result)
+    return "\n".join(lines) + "\n"
+
+
+def plot_pareto(result: dict, path: Path) -> None:
+    """Accuracy against trunk latency, one colour per training run: accuracies of bundles trained
+    on different worlds (class counts) are not comparable, so each run gets its own Pareto front;
+    an arrow joins each fp32 bundle to its int8 twin (the price of quantisation)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    trained = [r for r in result["variants"] if "accuracy" in r]
+    runs = sorted({r.get("run") or "?" for r in trained})
+    colour = {run: f"C{i}" for i, run in enumerate(runs)}
+    by_name = {r["name"]: r for r in trained}
+    for ax, key, label in ((axes[0], lambda a: a["press"]["H"], "GZSL H per press (%)"),
+                           (axes[1], lambda a: a["sequential"]["H"], "GZSL H per item, sequential rule (%)")):
+        for run in runs:
+            pts = sorted(((r["latency"]["2"]["p50_ms"], key(r["accuracy"]), r) for r in trained
+                          if (r.get("run") or "?") == run), key=lambda p: p[0])
+            r0 = pts[0][2]
+            ax.scatter([], [], color=colour[run], label=f"{Path(run).name} ({r0['classes'][0]} touched + "
+                                                        f"{r0['classes'][1]} untouched)")
+            for k, (x, y, r) in enumerate(pts):
+                ax.scatter(x, y, marker="o" if r["precision"] == "fp32" else "s", color=colour[run], zorder=3)
+                ax.annotate(f"{r['arch'].replace('efficientnet_lite0', 'effnet')} {r['size_px']} {r['precision']}",
+                            (x, y), fontsize=6, xytext=(4, -9 if k % 2 else 3), textcoords="offset points")
+            front, best = [], -1.0
+            for x, y, _ in pts:  # Pareto front: faster and at least as accurate
+                if y > best:
+                    front.append((x, y))
+                    best = y
+            ax.step([p[0] for p in front], [p[1] for p in front], where="post", color=colour[run], lw=0.8, alpha=0.5)
+        for c in result.get("comparisons", []):
+            a, b = by_name.get(c["fp32"]), by_name.get(c["int8"])
+            if a and b:
+                ax.annotate("", xy=(b["latency"]["2"]["p50_ms"], key(b["accuracy"])),
+                            xytext=(a["latency"]["2"]["p50_ms"], key(a["accuracy"])),
+                            arrowprops={"arrowstyle": "->", "color": "0.5", "lw": 0.6})
+        for r in result["variants"]:
+            if "accuracy" not in r:
+                ax.axvline(r["latency"]["2"]["p50_ms"], color="C3" if r["arch"] == "resnet50" else "C7", ls=":", lw=0.8)
+                ax.annotate(f"{r['arch']} {r['size_px']} {r['precision']} (untrained)", (r["latency"]["2"]["p50_ms"], 0),
+                            rotation=90, fontsize=6, va="bottom")
+        ax.set_xscale("log")
+        ax.set_xlabel("trunk latency p50, batch 1, 2 threads (ms)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="center right", title="training run (colour)", title_fontsize=7)
+    axes[0].set_title("circles fp32, squares int8, arrow fp32 -> int8; line = Pareto front of a run", fontsize=8)
+    axes[1].set_title("dotted: latency of untrained trunks (no accuracy)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
