@@ -259,7 +259,9 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
                       confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
     journal = Journal.open(tmp_path / "j.jsonl")
     camera = _HungCamera(0.0)
-    cell = Cell(camera=camera, arm=arm, gate=_SlowClearGate(1.3), model=FakeModel({100: "denim"}, ["denim"]),
+    gate = _SlowClearGate(1.3)
+    gate.connect()
+    cell = Cell(camera=camera, arm=arm, gate=gate, model=FakeModel({100: "denim"}, ["denim"]),
                 journal=journal, notifier=notifier, scene=scene,
                 evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 1), items=ContinuousFeed(limit=1),
                 log=lambda m: None)
