@@ -292,3 +292,37 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
     assert took >= 1.3 and cell.fault is None
     gaps = [b - a for a, b in zip(pings, pings[1:])]
     assert len(pings) >= 3 and max(gaps) < watchdog_s * 0.8, f"largest gap between pings {max(gaps):.2f} s"
+
+
+class _LiveWorker:
+    def poll(self):
+        return None
+
+
+def _isolated_arm_waits(monkeypatch, *calls):
+    """The timeouts an IsolatedURArm whose worker died waits for, call by call: the first call
+    starts a new worker and connects it (no process is started here)."""
+    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
+
+    arm = IsolatedURArm(ArmConfig())
+    arm._wanted = True  # connected before; the worker has died since
+    waits: list[tuple[str, float]] = []
+    monkeypatch.setattr(arm, "_spawn", lambda: setattr(arm, "_proc", _LiveWorker()))
+    monkeypatch.setattr(arm, "_send", lambda method, args, timeout_s: waits.append((method, timeout_s)))
+    for call in calls:
+        getattr(arm, call)()
+    return arm, waits
+
+
+@pytest.mark.parametrize("lease, calls", [("lift_s", ["retract"]),
+                                          ("clear", ["clear_protective_stop", "connect"])])
+def test_a_lease_of_the_live_arm_covers_a_new_workers_start(monkeypatch, lease, calls):
+    """After the arm worker died (what IsolatedURArm exists for), the next call starts a new
+    worker and connects it first - up to start_timeout_s + two call bounds for a lift. The lift
+    was leased for one call bound and the clear for one call bound less than it may take."""
+    arm, waits = _isolated_arm_waits(monkeypatch, *calls)
+    assert [m for m, _ in waits] == ["connect", *calls]
+    bounds = bounds_of({"timeout_s": 1.0}, "ur_rtde", arm.config, {"kind": "sim"})
+    arm_part = bounds.lift_s if lease == "lift_s" else bounds.clear_s - bounds.gate_request_s - 2 * bounds.grab_s
+    assert sum(t for _, t in waits) <= arm_part
+    assert bounds_of({"timeout_s": 1.0}, "fake", arm.config, {"kind": "sim"}).arm_start_s == 0  # no worker
