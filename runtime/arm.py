@@ -701,6 +701,9 @@ _ERRORS = {cls.__name__: cls for cls in (ArmError, ArmConnectionError, ArmSafety
                                          NotConnectedError, ArmConfigError, ValueError)}
 
 
+WORKER_START_TIMEOUT_S = 30.0  # IsolatedURArm: a new worker process starting (runtime/budget.py counts it)
+
+
 def isolated_call_bound_s(c: ArmConfig) -> float:
     """The longest one IsolatedURArm call may take before the worker is ended and the call fails:
     a move or press plus every reconnect it may do. runtime/budget.py's watchdog budget uses it."""
@@ -720,7 +723,7 @@ class IsolatedURArm:
     over two private pipes; the client's own stdout chatter goes to a log file.
     """
 
-    def __init__(self, config: ArmConfig | None = None, *, start_timeout_s: float = 30.0) -> None:
+    def __init__(self, config: ArmConfig | None = None, *, start_timeout_s: float = WORKER_START_TIMEOUT_S) -> None:
         self.config = (config or ArmConfig()).validate()
         self.start_timeout_s = start_timeout_s
         self.worker_restarts = 0

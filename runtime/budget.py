@@ -14,7 +14,9 @@ never a kill and a restart. So:
   while the wait is within the bound the device enforces itself (the arm worker is ended past
   ``isolated_call_bound_s``, a grab past the camera's ``timeout_s``, a gate request past
   ``(retries + 1) x timeout_s``), and no longer: a call hung past its own bound is a hung loop,
-  and systemd is right to kill it;
+  and systemd is right to kill it. An IsolatedURArm whose worker died (the very fault it exists
+  for) starts a new one and connects it inside the next call, whatever that call is: each lease
+  that calls the arm counts one such start (``arm_start_s``);
 * every wait that is not leased (a sort and its one retry, the wait for the next piece, the
   fault latch's arm stop and gate-to-reject) must fit in the watchdog with the ping interval and
   a margin: ``watchdog_problems`` says which does not, and config validation refuses it.
@@ -25,13 +27,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vs2t_edge.firmware_bridge.gate_client import request_worst_case_s
-from vs2t_edge.runtime.arm import ArmConfig, isolated_call_bound_s
+from vs2t_edge.runtime.arm import WORKER_START_TIMEOUT_S, ArmConfig, isolated_call_bound_s
 from vs2t_edge.runtime.notify import PING_FRACTION
 
 SYSTEMD_WATCHDOG_S = 30.0  # systemd/vs2t-edge.service WatchdogSec (tests/test_systemd.py ties the two)
 MARGIN_S = 1.0  # scheduling, the journal's fsync, the model's few ms per press
 ARM_STOP_BOUND_S = 5.0  # IsolatedURArm.stop(): the worker answers or is ended
-ARM_WORKER_START_S = 30.0  # IsolatedURArm(start_timeout_s): a new worker process starting
+ARM_WORKER_START_S = WORKER_START_TIMEOUT_S  # IsolatedURArm(start_timeout_s): a new worker starting
 SIM_GATE = (0.5, 3)  # the simulated serial gate's timeout_s and retries (runtime/gate.py)
 
 
@@ -42,23 +44,37 @@ class StepBounds:
     arm_call_s: float  # one move_above / press / retract
     grab_s: float  # one frame (the grab's own timeout)
     gate_request_s: float  # one gate request with its retransmissions
+    # a dead arm worker replaced inside the next arm call: the start and its connect
+    # (IsolatedURArm only; an in-process arm has no worker, 0)
+    arm_start_s: float = 0.0
 
     @property
     def press_try_s(self) -> float:
         """One try of a press step: move above, press, grab, retract."""
-        return 3 * self.arm_call_s + self.grab_s
+        return self.arm_start_s + 3 * self.arm_call_s + self.grab_s
+
+    @property
+    def lift_s(self) -> float:
+        """Lifting the gel off the piece (one retract) before a fault is latched."""
+        return self.arm_start_s + self.arm_call_s
+
+    @property
+    def abort_s(self) -> float:
+        """SIGTERM mid-item: lift the gel, then the gate to reject."""
+        return self.lift_s + self.gate_request_s
 
     @property
     def clear_s(self) -> float:
-        """The operator's clear: gate clear, the arm's stop cleared and reconnected (an
-        IsolatedURArm connect may start a new worker first), the camera reopened."""
-        return self.gate_request_s + 2 * self.arm_call_s + ARM_WORKER_START_S + 2 * self.grab_s
+        """The operator's clear: gate clear, the arm's stop cleared and reconnected (after a worker
+        fault the clear call is the one that starts the new worker), the camera reopened."""
+        return self.gate_request_s + self.arm_start_s + 2 * self.arm_call_s + 2 * self.grab_s
 
     @property
     def retry_prep_s(self) -> float:
-        """Between two tries: lift the gel, reopen the camera (a reader stuck in the driver is
-        waited for up to the grab timeout before the old handle is left)."""
-        return self.arm_call_s + 2 * self.grab_s
+        """Between two tries: lift the gel (after a worker that died, the retract starts the new
+        one), reopen the camera (a reader stuck in the driver is waited for up to the grab timeout
+        before the old handle is left)."""
+        return self.arm_start_s + self.arm_call_s + 2 * self.grab_s
 
 
 def arm_call_bound_s(kind: str, arm: ArmConfig) -> float:
@@ -75,9 +91,14 @@ def gate_request_bound_s(gate: dict) -> float:
     return 0.0
 
 
+def arm_start_bound_s(kind: str, arm: ArmConfig) -> float:
+    """A new IsolatedURArm worker: its start, then its connect (one call's bound)."""
+    return ARM_WORKER_START_S + isolated_call_bound_s(arm) if kind == "ur_rtde" else 0.0
+
+
 def bounds_of(camera: dict, arm_kind: str, arm: ArmConfig, gate: dict) -> StepBounds:
     return StepBounds(arm_call_s=arm_call_bound_s(arm_kind, arm), grab_s=camera["timeout_s"],
-                      gate_request_s=gate_request_bound_s(gate))
+                      gate_request_s=gate_request_bound_s(gate), arm_start_s=arm_start_bound_s(arm_kind, arm))
 
 
 def unleased_waits(bounds: StepBounds, wait_item_timeout_s: float) -> list[tuple[str, float, str]]:

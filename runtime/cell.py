@@ -415,7 +415,7 @@ class Cell:
         safety stop is never moved out of; a failing retract (``failures``: a device error, or
         any Exception after an internal fault) is logged and left for the operator."""
         try:
-            with self.notifier.bounded_wait(self.scene.bounds.arm_call_s if self.scene.bounds else None):
+            with self.notifier.bounded_wait(self.scene.bounds.lift_s if self.scene.bounds else None):
                 self.arm.retract()
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
@@ -595,7 +595,7 @@ class Cell:
         except StopRequested:
             # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
             bounds = self.scene.bounds
-            with self.notifier.bounded_wait(bounds.arm_call_s + bounds.gate_request_s if bounds else None):
+            with self.notifier.bounded_wait(bounds.abort_s if bounds else None):
                 for fn in (self.arm.retract, self.gate.to_reject):
                     try:
                         fn()

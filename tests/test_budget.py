@@ -3,11 +3,13 @@ and the loop's waits fit systemd's watchdog (runtime/budget.py)."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -292,3 +294,163 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
     assert took >= 1.3 and cell.fault is None
     gaps = [b - a for a, b in zip(pings, pings[1:])]
     assert len(pings) >= 3 and max(gaps) < watchdog_s * 0.8, f"largest gap between pings {max(gaps):.2f} s"
+
+
+@contextlib.contextmanager
+def _watched(tmp_path, monkeypatch, watchdog_s=1.0):
+    """A notify socket under a ``watchdog_s`` watchdog: yields the Notifier and the times of the
+    pings it sends. The block starts with a ping and ends with one, as the loop's step boundaries
+    before and after a device wait would."""
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.setblocking(False)
+    monkeypatch.setenv("WATCHDOG_USEC", str(int(watchdog_s * 1e6)))
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    notifier = Notifier(address=sock_path)
+    pings: list[float] = []
+    done = threading.Event()
+
+    def listen():
+        while not done.is_set():
+            try:
+                if server.recv(4096) == b"WATCHDOG=1":
+                    pings.append(time.monotonic())
+            except BlockingIOError:
+                time.sleep(0.005)
+
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    notifier.watchdog()
+    try:
+        yield notifier, pings
+    finally:
+        notifier.watchdog()
+        time.sleep(0.05)
+        done.set()
+        listener.join()
+        server.close()
+
+
+def _gaps(pings):
+    return [b - a for a, b in zip(pings, pings[1:])]
+
+
+def _cell(tmp_path, notifier, bounds, *, arm, gate=None, camera=None, stop_event=None):
+    arm.connect()
+    gate = gate or FakeGate()
+    gate.connect()
+    scene = SceneSpec(bins={"denim": 1}, reject_bin=0, points_mm=[(40.0, 40.0)] * 2, max_presses=2,
+                      confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
+    return Cell(camera=camera or _HungCamera(0.0), arm=arm, gate=gate, model=FakeModel({100: "denim"}, ["denim"]),
+                journal=Journal.open(tmp_path / "j.jsonl"), notifier=notifier, scene=scene,
+                evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 2), items=ContinuousFeed(limit=1),
+                stop_event=stop_event, log=lambda m: None)
+
+
+def test_a_clear_hung_past_its_bound_is_left_to_the_watchdog(tmp_path, monkeypatch):
+    """The lease of the operator's clear feeds the watchdog for clear_s (1.9 s here) and no
+    longer: a CLEAR hung for 3.2 s, past every bound its devices enforce, leaves a gap longer
+    than the 1 s watchdog - systemd kills a hung loop, as it should."""
+    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)
+    assert bounds.clear_s == pytest.approx(1.9)
+    with _watched(tmp_path, monkeypatch) as (notifier, pings):
+        cell = _cell(tmp_path, notifier, bounds, arm=FakeArm(), gate=_SlowClearGate(3.2))
+        cell.latch_fault("operator test", "fault")
+        (tmp_path / "FAULT").unlink()
+        start = time.monotonic()
+        assert cell.clear_fault()
+    cell.journal.close()
+    last_leased = max(t for t in pings if t - start < 3.1)  # the later ones: after the CLEAR answered
+    assert last_leased - start >= bounds.clear_s - 0.3, "the lease stopped before its bound"
+    assert last_leased - start < bounds.clear_s + 0.05, "the lease went on past its bound"
+    assert max(_gaps(pings)) > 1.0, f"largest gap between pings {max(_gaps(pings)):.2f} s"
+
+
+class _SlowRetractArm(FakeArm):
+    """Lifting the gel takes ``retract_s`` of real time (within the arm call's bound)."""
+
+    def __init__(self, retract_s, **kw):
+        super().__init__(**kw)
+        self.retract_s = retract_s
+
+    def retract(self):
+        time.sleep(self.retract_s)
+        return super().retract()
+
+
+def test_lifting_the_gel_before_a_fault_is_leased(tmp_path, monkeypatch):
+    """Scaled to a 1 s watchdog: the press fails twice ('force never reached') and the gel is
+    lifted before the fault latches, a retract of 1.3 s (the arm's call bound is 1.5 s). The lift
+    was not leased: no ping for 1.3 s."""
+    bounds = StepBounds(arm_call_s=1.5, grab_s=0.6, gate_request_s=0.1)
+    arm = _SlowRetractArm(1.3, fail_next=["force_not_reached", "force_not_reached"])
+    with _watched(tmp_path, monkeypatch) as (notifier, pings):
+        cell = _cell(tmp_path, notifier, bounds, arm=arm)
+        cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    cell.journal.close()
+    assert cell.fault and "failed twice" in cell.fault
+    assert arm.calls.count("retract") == 2  # the retry's preparation, then the lift before the fault
+    assert max(_gaps(pings)) < 0.8, f"largest gap between pings {max(_gaps(pings)):.2f} s"
+
+
+class _StopAtReference(_HungCamera):
+    """SIGTERM arrives while the reference frame is taken."""
+
+    def __init__(self, stop_event):
+        super().__init__(0.0)
+        self.stop_event = stop_event
+
+    def grab(self):
+        self.stop_event.set()
+        return super().grab()
+
+
+def test_the_abort_on_sigterm_is_leased(tmp_path, monkeypatch):
+    """Scaled to a 1 s watchdog: SIGTERM mid-item lifts the gel (1.3 s, within the arm's 1.5 s
+    bound) and sends the gate to reject before the item's final record. The abort was not leased."""
+    bounds = StepBounds(arm_call_s=1.5, grab_s=0.6, gate_request_s=0.1)
+    stop = threading.Event()
+    arm = _SlowRetractArm(1.3)
+    gate = FakeGate()
+    with _watched(tmp_path, monkeypatch) as (notifier, pings):
+        cell = _cell(tmp_path, notifier, bounds, arm=arm, gate=gate, camera=_StopAtReference(stop), stop_event=stop)
+        cell.run(max_items=1)
+    cell.journal.close()
+    final = [r for r in read_records(tmp_path / "j.jsonl") if r["type"] == "final"]
+    assert [r["outcome"] for r in final] == ["aborted"] and arm.calls[-1] == "retract" and gate.to_reject_calls
+    assert max(_gaps(pings)) < 0.8, f"largest gap between pings {max(_gaps(pings)):.2f} s"
+
+
+class _LiveWorker:
+    def poll(self):
+        return None
+
+
+def _isolated_arm_waits(monkeypatch, *calls):
+    """The timeouts an IsolatedURArm whose worker died waits for, call by call: the first call
+    starts a new worker and connects it (no process is started here)."""
+    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
+
+    arm = IsolatedURArm(ArmConfig())
+    arm._wanted = True  # connected before; the worker has died since
+    waits: list[tuple[str, float]] = []
+    monkeypatch.setattr(arm, "_spawn", lambda: setattr(arm, "_proc", _LiveWorker()))
+    monkeypatch.setattr(arm, "_send", lambda method, args, timeout_s: waits.append((method, timeout_s)))
+    for call in calls:
+        getattr(arm, call)()
+    return arm, waits
+
+
+@pytest.mark.parametrize("lease, calls", [("lift_s", ["retract"]),
+                                          ("clear", ["clear_protective_stop", "connect"])])
+def test_a_lease_of_the_live_arm_covers_a_new_workers_start(monkeypatch, lease, calls):
+    """After the arm worker died (what IsolatedURArm exists for), the next call starts a new
+    worker and connects it first - up to start_timeout_s + two call bounds for a lift. The lift
+    was leased for one call bound and the clear for one call bound less than it may take."""
+    arm, waits = _isolated_arm_waits(monkeypatch, *calls)
+    assert [m for m, _ in waits] == ["connect", *calls]
+    bounds = bounds_of({"timeout_s": 1.0}, "ur_rtde", arm.config, {"kind": "sim"})
+    arm_part = bounds.lift_s if lease == "lift_s" else bounds.clear_s - bounds.gate_request_s - 2 * bounds.grab_s
+    assert sum(t for _, t in waits) <= arm_part
+    assert bounds_of({"timeout_s": 1.0}, "fake", arm.config, {"kind": "sim"}).arm_start_s == 0  # no worker
