@@ -366,6 +366,19 @@ def test_condition_options_see_only_touched_visual_features():
     assert np.allclose(z.std(0, ddof=1), 1.0, atol=1e-3)
 
 
+def test_the_papers_encoder_conditioning_is_an_option_that_reads_the_condition():
+    """encoder_condition: E is q(z | x, v, s) as the paper's (its input is the press feature and
+    the condition) instead of q(z | x); the generator is the same."""
+    views = _views()
+    budget = vs2t.VS2TBudget(steps=3, cls_steps=3, n_synth_per_class=5, hidden=16, latent=4, cond_pca=6,
+                             visual_condition="fabric")
+    plain = vs2t.VS2TZSL().fit(views.train, budget, seed=0)
+    paper = vs2t.VS2TZSL().fit(views.train, replace(budget, encoder_condition=True), seed=0)
+    d_t = views.train.x_t.shape[1]
+    assert plain.E.body[0].in_features == d_t and paper.E.body[0].in_features == d_t + 6 + 24
+    assert paper.G.net[0].in_features == plain.G.net[0].in_features
+
+
 def _weights(*modules) -> list[torch.Tensor]:
     return [p.detach().clone() for m in modules if m is not None for p in m.state_dict().values()]
 

@@ -46,6 +46,7 @@ class Profile:
     # ZSL 67.1 vs 64.0 over 3 splits of 3 validation fabrics); paper profile fine-tuned (61.8 vs
     # 61.4, and every ablation that sees vision +1.5..+4.3, 5 splits of 5 validation fabrics).
     visual_tail: str = "frozen"
+    encoder_condition: bool = False  # E = q(z | x, v, s) as the paper's (True) or q(z | x) (docs/training.md)
     steps: int = 800  # generator optimiser steps
     batch: int = 64
     cls_steps: int = 300
@@ -290,7 +291,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
 
     budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
                              n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
-                             hidden=prof.hidden)
+                             hidden=prof.hidden, encoder_condition=prof.encoder_condition)
     plain = json.loads(json.dumps({"profile": asdict(prof), "budget": asdict(budget)}))  # tuples -> lists for YAML
     (out_dir / "config.yaml").write_text(yaml.safe_dump({"dataset": str(Path(dataset).resolve()), **plain,
                                                          "routers": list(prof.routers),

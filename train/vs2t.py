@@ -68,6 +68,8 @@ class VS2TBudget(Budget):
     # variation must come from z (validation ZSL 54.9 -> 58.3 %; with gate_bias 3: see docs/training.md)
     visual_condition: str = "fabric"
     cond_pca: int = 0  # > 0: visual condition = its top-k principal components (fitted on touched presses), whitened
+    # True: E is q(z | x, v, s) as in the paper (the press's feature and its condition); False: q(z | x)
+    encoder_condition: bool = False
 
 
 class VS2TZSL(_GenerativeZSL):
@@ -123,7 +125,8 @@ class VS2TZSL(_GenerativeZSL):
         h = getattr(budget, "hidden", None) or d_t
         h = h if isinstance(h, int) and h > 0 else d_t
         self.latent = int(budget.latent)
-        self.E = Encoder(d_t, self.latent, h) if self.variant.use_e else None
+        self.encoder_condition = bool(getattr(budget, "encoder_condition", False))
+        self.E = Encoder(d_t + (d_c if self.encoder_condition else 0), self.latent, h) if self.variant.use_e else None
         self.vsf = VSFusion(d_c, gate_bias=float(getattr(budget, "gate_bias", 0.0))) if self.variant.use_vsf else None
         self.G = Generator(self.latent + d_c, d_t, h)
         self.D = Discriminator(d_t)
@@ -170,7 +173,7 @@ class VS2TZSL(_GenerativeZSL):
             noise = torch.randn(len(idx), self.latent, generator=gen)
             x_r = self.G(torch.cat([noise, m], 1))
             if self.E is not None:
-                mu, logvar = self.E(x)
+                mu, logvar = self.E(torch.cat([x, c], 1) if self.encoder_condition else x)
                 z = mu + torch.randn(mu.shape, generator=gen) * torch.exp(0.5 * logvar)
                 x_e = self.G(torch.cat([z, m], 1))
             else:
