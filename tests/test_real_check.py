@@ -64,6 +64,7 @@ def test_real_check_on_a_folder_of_any_frame_size(tmp_path, capsys, hw):
         assert len(r["folds"]) == 2
         assert r["accuracy_lda"]["mean"] >= 0.9, (name, r["accuracy_lda"])
         assert 0.0 <= r["auroc_knn"]["mean"] <= 1.0
+        assert 0.0 <= r["accuracy_probe"]["mean"] <= 1.0 and 0.0 <= r["auroc_max_softmax"]["mean"] <= 1.0
 
 
 def test_temporal_folds_fit_earlier_or_later_presses_never_both():
@@ -123,3 +124,18 @@ def test_real_gelsight_frames_by_press_order(tmp_path):
     assert res["presses"] == [20] * 10 and res["frame_px"] == [300, 400]
     assert 0.25 <= r["accuracy_lda"]["mean"] < 0.9
     assert 0.5 < r["auroc_knn"]["mean"] <= 1.0
+
+
+def test_probe_and_max_softmax_on_separable_features():
+    """The linear probe's L2 weight comes from the fit presses alone; on features that separate
+    the materials it classifies every test press and max-softmax flags the untouched ones."""
+    from vs2t_edge.train import real_check as rc
+
+    rng = np.random.default_rng(0)
+    n, presses, dim = 5, 8, 10
+    feats = [rng.normal(0, 1, (presses, dim)) + 8 * np.eye(dim)[c] for c in range(n)]
+    fit, test = rc.temporal_folds([presses] * n)[0]
+    out = rc.evaluate_fold(feats, fit, test, n_seeds=3)
+    assert out["probe_l2"] in rc.PROBE_L2
+    assert out["accuracy"]["probe"] == 1.0
+    assert min(out["auroc"]["max_softmax"]) > 0.8 and len(out["auroc"]["max_softmax"]) == 3

@@ -9,12 +9,15 @@ the reverse. With ``--test``, the train folder fits and the test folder tests (o
 
 Per feature pipeline (``PIPELINES``):
 
-- closed-set accuracy over all materials: nearest class mean on L2-normalised features, and
+- closed-set accuracy over all materials: nearest class mean on L2-normalised features,
   linear discriminant analysis (``runtime.scene_model.SceneModel``: shared-covariance Gaussians in
-  a whitened principal subspace of the fit presses);
+  a whitened principal subspace of the fit presses), and a linear probe (multinomial logistic
+  regression, its L2 weight chosen by a press-order cross-validation inside the fit presses only:
+  the probe issue 13 measured at 51 %);
 - novelty AUROC with 70 % of the materials touched and the rest untouched, over ``n_seeds``
   seeded material draws (mean and spread): k-nearest-neighbour cosine distance to the touched fit
-  presses, and the LDA model's smallest squared distance to a touched class.
+  presses, the LDA model's smallest squared distance to a touched class, and the probe's
+  max-softmax (1 - its largest probability; probe refitted on the touched fit presses).
 
 Pipelines: ``frozen`` (the floor: the frozen ImageNet EfficientNet-Lite0 on the whole frame
 resized, as the cell's trunk sees it before fine-tuning); ``inpainted`` (GelSight-aware: markers
@@ -204,6 +207,64 @@ def _lda(x: np.ndarray, y: np.ndarray, n_classes: int):
                           k=k, shrinkage=0.3)
 
 
+def _fit_logistic(x: np.ndarray, y: np.ndarray, n_classes: int, l2: float):
+    """Multinomial logistic regression (mean cross-entropy + l2/2 |W|^2) by L-BFGS; returns a
+    function from features to logits. Fitted in the span of the fit rows: the L2-penalised
+    optimum lies there (representer theorem), which is exact and ~10x faster in 1280-d."""
+    from scipy.optimize import minimize
+
+    _, sv, vt = np.linalg.svd(x, full_matrices=False)
+    basis = vt[sv > sv[0] * 1e-10].T
+    z, onehot = x @ basis, np.eye(n_classes)[y]
+    n, d = z.shape
+
+    def loss_grad(theta):
+        w, b = theta[:d * n_classes].reshape(d, n_classes), theta[d * n_classes:]
+        logits = z @ w + b
+        logits -= logits.max(1, keepdims=True)
+        p = np.exp(logits)
+        p /= p.sum(1, keepdims=True)
+        g = (p - onehot) / n
+        loss = -np.mean(np.log(np.maximum((p * onehot).sum(1), 1e-300))) + 0.5 * l2 * np.sum(w * w)
+        return loss, np.concatenate([(z.T @ g + l2 * w).ravel(), g.sum(0)])
+
+    theta = minimize(loss_grad, np.zeros(d * n_classes + n_classes), jac=True, method="L-BFGS-B",
+                     options={"maxiter": 300, "ftol": 1e-10}).x
+    w = basis @ theta[:d * n_classes].reshape(d, n_classes)
+    b = theta[d * n_classes:]
+    return lambda q: q @ w + b
+
+
+PROBE_L2 = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
+
+
+def _probe_l2_by_press_order(fx: np.ndarray, fy: np.ndarray, n_classes: int) -> float:
+    """The probe's L2 weight, chosen inside the fit presses only and again by press order: each
+    material's fit presses (in press order) split into halves, fit on one, scored on the other,
+    both ways. Ties go to the stronger weight."""
+    if min(np.sum(fy == c) for c in range(n_classes)) < 2:
+        return 1.0  # one fit press of some material: nothing to hold out
+    first = np.zeros(len(fy), bool)
+    for c in range(n_classes):
+        idx = np.flatnonzero(fy == c)  # fit presses are concatenated in press order
+        first[idx[:len(idx) // 2]] = True
+    score = {}
+    for l2 in PROBE_L2:
+        accs = []
+        for a in (first, ~first):
+            xa, xb = _standardise(fx[a], fx[~a])
+            probe = _fit_logistic(xa, fy[a], n_classes, l2)
+            accs.append(np.mean(probe(xb).argmax(1) == fy[~a]))
+        score[l2] = float(np.mean(accs))
+    best = max(score.values())
+    return max(l2 for l2, v in score.items() if v >= best - 1e-9)
+
+
+def _max_softmax_novelty(logits: np.ndarray) -> np.ndarray:
+    z = np.exp(logits - logits.max(1, keepdims=True))
+    return 1.0 - (z / z.sum(1, keepdims=True)).max(1)
+
+
 def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.ndarray], *,
                   n_seeds: int = N_SEEDS, seed: int = 0) -> dict:
     """Closed-set accuracy over every material and novelty AUROC over seeded material draws."""
@@ -214,14 +275,16 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
     fy = np.concatenate([np.full(len(i), c) for c, i in enumerate(fit)])
     tx = np.concatenate([f[i] for f, i in zip(feats, test)])
     ty = np.concatenate([np.full(len(i), c) for c, i in enumerate(test)])
+    l2 = _probe_l2_by_press_order(fx, fy, n)
     fx, tx = _standardise(fx, tx)
+    acc_probe = float(np.mean(_fit_logistic(fx, fy, n, l2)(tx).argmax(1) == ty))
     fxn, txn = _l2(fx), _l2(tx)
     means = _l2(np.stack([fxn[fy == c].mean(0) for c in range(n)]))
     acc_ncm = float(np.mean(np.argmax(txn @ means.T, axis=1) == ty))
     lda = _lda(fx, fy, n)
     acc_lda = float(np.mean(lda.sq_distances(tx).argmin(1) == ty))
     n_t = max(1, min(n - 1, round(TOUCHED_SHARE * n)))
-    knn, gauss = [], []
+    knn, gauss, softmax = [], [], []
     for s in range(n_seeds):
         perm = np.random.default_rng(seed + s).permutation(n)
         touched = perm[:n_t]
@@ -237,8 +300,11 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
         remap = {c: j for j, c in enumerate(touched)}
         m = _lda(fx[keep_f], np.array([remap[c] for c in fy[keep_f]]), n_t)
         gauss.append(auroc(m.sq_distances(tx[t_in]).min(1), m.sq_distances(tx[t_out]).min(1)))
-    return {"accuracy": {"nearest_mean": acc_ncm, "lda": acc_lda},
-            "auroc": {"knn": knn, "lda": gauss}, "touched_materials": n_t}
+        probe = _fit_logistic(fx[keep_f], np.array([remap[c] for c in fy[keep_f]]), n_t, l2)
+        softmax.append(auroc(_max_softmax_novelty(probe(tx[t_in])), _max_softmax_novelty(probe(tx[t_out]))))
+    return {"accuracy": {"nearest_mean": acc_ncm, "lda": acc_lda, "probe": acc_probe},
+            "auroc": {"knn": knn, "lda": gauss, "max_softmax": softmax}, "touched_materials": n_t,
+            "probe_l2": l2}
 
 
 def run_real_check(train_dir: Path, test_dir: Path | None = None, pipelines: tuple[str, ...] = PIPELINES,
@@ -278,10 +344,10 @@ def run_real_check(train_dir: Path, test_dir: Path | None = None, pipelines: tup
 
 def summarise(folds: list[dict]) -> dict:
     out = {"folds": folds}
-    for clf in ("nearest_mean", "lda"):
+    for clf in ("nearest_mean", "lda", "probe"):
         v = [f["accuracy"][clf] for f in folds]
         out[f"accuracy_{clf}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))}
-    for score in ("knn", "lda"):
+    for score in ("knn", "lda", "max_softmax"):
         v = [a for f in folds for a in f["auroc"][score]]
         out[f"auroc_{score}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))}
     return out
@@ -294,14 +360,16 @@ def render_table(result: dict) -> str:
     lines = [f"{result['protocol']}; {len(result['materials'])} materials, frames {result['frame_px'][0]}x"
              f"{result['frame_px'][1]} px; novelty: {result['touched_share']:.0%} of materials touched, "
              f"{result['n_seeds']} seeded draws per fold; mean ± std, %",
-             "| pipeline | accuracy, nearest mean | accuracy, LDA | AUROC, kNN | AUROC, LDA |",
-             "| --- | --- | --- | --- | --- |"]
+             "| pipeline | accuracy, nearest mean | accuracy, LDA | accuracy, probe | AUROC, kNN | AUROC, LDA "
+             "| AUROC, max-softmax |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for name, r in result["pipelines"].items():
         cell = lambda k: f"{100 * r[k]['mean']:.1f} ± {100 * r[k]['std']:.1f}"  # noqa: E731
-        lines.append(f"| {name} | {cell('accuracy_nearest_mean')} | {cell('accuracy_lda')} | {cell('auroc_knn')} | "
-                     f"{cell('auroc_lda')} |")
-    best_acc = max(max(r["accuracy_nearest_mean"]["mean"], r["accuracy_lda"]["mean"]) for r in result["pipelines"].values())
-    best_auc = max(max(r["auroc_knn"]["mean"], r["auroc_lda"]["mean"]) for r in result["pipelines"].values())
+        lines.append(f"| {name} | {cell('accuracy_nearest_mean')} | {cell('accuracy_lda')} | {cell('accuracy_probe')} | "
+                     f"{cell('auroc_knn')} | {cell('auroc_lda')} | {cell('auroc_max_softmax')} |")
+    best_acc = max(r[f"accuracy_{c}"]["mean"] for r in result["pipelines"].values()
+                   for c in ("nearest_mean", "lda", "probe"))
+    best_auc = max(r[f"auroc_{c}"]["mean"] for r in result["pipelines"].values() for c in ("knn", "lda", "max_softmax"))
     lines.append(f"targets: accuracy >= {TARGET_ACCURACY:.0%} (best {best_acc:.1%}: "
                  f"{'met' if best_acc >= TARGET_ACCURACY else 'missed'}), AUROC >= {TARGET_AUROC:.2f} (best "
                  f"{best_auc:.2f}: {'met' if best_auc >= TARGET_AUROC else 'missed'})")
