@@ -243,16 +243,7 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
     """Scaled to a 1 s watchdog: a gate whose CLEAR takes 1.3 s (a slow MCU, within the bound the
     driver enforces). The clear was not leased: no ping went out while it lasted, so systemd would
     kill the service the operator was bringing back. Now the pings go on through it."""
-    import threading
-
     watchdog_s = 1.0
-    sock_path = str(tmp_path / "notify.sock")
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    server.bind(sock_path)
-    server.setblocking(False)
-    monkeypatch.setenv("WATCHDOG_USEC", str(int(watchdog_s * 1e6)))
-    monkeypatch.delenv("WATCHDOG_PID", raising=False)
-    notifier = Notifier(address=sock_path)
     arm = FakeArm()
     arm.connect()
     bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)
@@ -260,36 +251,18 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
     scene = SceneSpec(bins={"denim": 1}, reject_bin=0, points_mm=[(40.0, 40.0)], max_presses=1,
                       confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
     journal = Journal.open(tmp_path / "j.jsonl")
-    camera = _HungCamera(0.0)
     gate = _SlowClearGate(1.3)
     gate.connect()
-    cell = Cell(camera=camera, arm=arm, gate=gate, model=FakeModel({100: "denim"}, ["denim"]),
-                journal=journal, notifier=notifier, scene=scene,
-                evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 1), items=ContinuousFeed(limit=1),
-                log=lambda m: None)
-    cell.latch_fault("operator test", "fault")
-    (tmp_path / "FAULT").unlink(missing_ok=True)
-    pings: list[float] = []
-    done = threading.Event()
-
-    def listen():
-        while not done.is_set():
-            try:
-                if server.recv(4096) == b"WATCHDOG=1":
-                    pings.append(time.monotonic())
-            except BlockingIOError:
-                time.sleep(0.005)
-
-    listener = threading.Thread(target=listen, daemon=True)
-    listener.start()
-    notifier.watchdog()
-    start = time.monotonic()
-    assert cell.clear_fault()
-    took = time.monotonic() - start
-    notifier.watchdog()
-    time.sleep(0.05)
-    done.set()
-    listener.join()
+    with _watched(tmp_path, monkeypatch, watchdog_s) as (notifier, pings):
+        cell = Cell(camera=_HungCamera(0.0), arm=arm, gate=gate, model=FakeModel({100: "denim"}, ["denim"]),
+                    journal=journal, notifier=notifier, scene=scene,
+                    evidence_factory=lambda: FakeEvidence(["denim"], 0.9, 1), items=ContinuousFeed(limit=1),
+                    log=lambda m: None)
+        cell.latch_fault("operator test", "fault")
+        (tmp_path / "FAULT").unlink(missing_ok=True)
+        start = time.monotonic()
+        assert cell.clear_fault()
+        took = time.monotonic() - start
     journal.close()
     assert took >= 1.3 and cell.fault is None
     gaps = [b - a for a, b in zip(pings, pings[1:])]
