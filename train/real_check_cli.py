@@ -16,8 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                         help="the same layout, later presses of the same materials; without it the temporal split "
                              "of --train (first half fits, second half tests, and the reverse)")
     parser.add_argument("--out", type=Path, default=Path("real-check.json"), help="JSON result (default real-check.json)")
-    parser.add_argument("--pipelines", default="frozen,inpainted,markers",
-                        help="comma-separated: frozen (floor), inpainted (GelSight-aware), markers (no network)")
+    parser.add_argument("--pipelines", default="frozen,inpainted,markers,shading,shading_markers",
+                        help="comma-separated: frozen (floor), inpainted (GelSight-aware trunk input), markers "
+                             "(no network), shading (the gel's coarse colour field, no network), shading_markers (both)")
     parser.add_argument("--seeds", type=int, default=10, help="material draws per fold for novelty AUROC")
 
 
