@@ -44,6 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+# the real-sensor preprocessing lives with the cell's one preprocessing (numpy and OpenCV only)
+from vs2t_edge.runtime.preprocess import inpaint_markers, marker_mask, shading_grid
+from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 PIPELINES = ("frozen", "inpainted", "markers", "shading", "shading_markers")
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406])
@@ -114,58 +118,16 @@ def temporal_folds(n_presses: list[int]) -> list[tuple[list[np.ndarray], list[np
 
 # ------------------------------------------------------------------ features
 
-def marker_mask(image: np.ndarray, depth: float = 18.0) -> np.ndarray:
-    """Dark dots: pixels darker than their 21 px median neighbourhood by ``depth`` grey levels."""
-    import cv2
-
-    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    local = cv2.medianBlur(grey, 21).astype(np.float32)
-    return ((local - grey.astype(np.float32)) > depth).astype(np.uint8)
-
-
 def inpainted_difference(image: np.ndarray, background: np.ndarray) -> np.ndarray:
     """Markers inpainted, the background subtracted, the LED gradient (a 25 px low-pass) removed,
     contrast normalised: HxWx3 float RGB in [0, 1]."""
     import cv2
 
-    mask = cv2.dilate(marker_mask(image), np.ones((5, 5), np.uint8))
-    clean = cv2.inpaint(image, mask, 3, cv2.INPAINT_TELEA).astype(np.float32)
+    clean = inpaint_markers(image).astype(np.float32)
     d = clean - background
     d = d - cv2.GaussianBlur(d, (0, 0), 25)
     d = d / (float(d.std()) + 1e-6)
     return np.clip(0.5 + 0.15 * d, 0.0, 1.0)[..., ::-1]
-
-
-def inpaint_markers(image: np.ndarray) -> np.ndarray:
-    """The frame with its marker dots (``marker_mask``, grown by 2 px) filled from their rims."""
-    import cv2
-
-    mask = cv2.dilate(marker_mask(image), np.ones((5, 5), np.uint8))
-    return cv2.inpaint(image, mask, 3, cv2.INPAINT_TELEA)
-
-
-def shading_grid(hw: tuple[int, int]) -> tuple[int, int]:
-    """(rows, columns) of the shading grid: 8 x 6 cells on a portrait frame, 6 x 8 on a landscape one
-    (about 50 px cells on the GelSight Mini's 400 x 300)."""
-    return (8, 6) if hw[0] >= hw[1] else (6, 8)
-
-
-def shading_features(image: np.ndarray, grid: tuple[int, int] | None = None) -> np.ndarray:
-    """The gel's shading under the press, (rows * columns * 3,): markers inpainted, each colour
-    channel divided by its own frame mean, then the log of the mean colour of each grid cell.
-
-    A GelSight's colour at a pixel encodes the gel's slope there (each LED lights it from one
-    side), so the coarse colour field is the shape the material pressed into the gel - its
-    thickness and give - which is what separates these materials on later presses; their fine
-    texture barely shows (docs/realism.md). Dividing by the channel mean cancels the exposure or
-    LED drift between presses (presses 1-5 of every material in ../shared are 3-4 % brighter than
-    the rest); the log makes a gain a shift, which standardising removes."""
-    import cv2
-
-    rows, cols = grid or shading_grid(image.shape[:2])
-    x = inpaint_markers(image).astype(np.float32) + 1.0
-    x /= x.reshape(-1, 3).mean(axis=0)
-    return np.log(cv2.resize(x, (cols, rows), interpolation=cv2.INTER_AREA)).astype(np.float64).ravel()
 
 
 def _grid_order(c: np.ndarray) -> np.ndarray:
