@@ -112,6 +112,9 @@ def test_bad_layouts_are_named(tmp_path, capsys):
     cv2.imwrite(str(grey / "material_1" / "press_003.png"), np.zeros((60, 80), np.uint8))
     assert "press_003.png" in _err(capsys, "--train", str(grey))
     assert cli.main(["real-check", "--train", str(grey), "--pipelines", "nothing"]) == 2
+    dark = _folder(tmp_path / "dark")
+    cv2.imwrite(str(dark / "material_2" / "press_005.png"), np.zeros((60, 80, 3), np.uint8))
+    assert "material_2/press_005.png: all black" in _err(capsys, "--train", str(dark))
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/real/gelsight_mini_materials (not on a fresh machine)")

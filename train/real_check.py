@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 # the real-sensor preprocessing lives with the cell's one preprocessing (numpy and OpenCV only)
-from vs2t_edge.runtime.preprocess import inpaint_markers, marker_mask, shading_grid
+from vs2t_edge.runtime.preprocess import check_frame, inpaint_markers, marker_mask, shading_grid
 from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -94,7 +94,8 @@ def load_materials(root: Path | str) -> Materials:
         imgs = []
         for p in paths:
             try:
-                img = read_image(p)
+                # the cell's own frame check too: a black, white or saturated frame is no press
+                img = check_frame(read_image(p), name=str(p))
             except ValueError as exc:
                 raise RealCheckError(str(exc)) from None
             if hw is None:
