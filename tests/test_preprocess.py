@@ -92,7 +92,10 @@ def test_exposure_normalisation_cancels_a_gain_and_inpainting_removes_the_dots()
     frame, brighter = _gel_frame(), _gel_frame(gain=1.06)
     plain = TactilePreprocess(size=24, use_reference=False)
     fixed = TactilePreprocess(size=24, use_reference=False, normalise_exposure=True)
-    gap = lambda spec: np.abs(preprocess_tactile(brighter, None, spec) - preprocess_tactile(frame, None, spec)).mean()  # noqa: E731
+
+    def gap(spec):
+        return np.abs(preprocess_tactile(brighter, None, spec) - preprocess_tactile(frame, None, spec)).mean()
+
     assert gap(fixed) < 0.15 * gap(plain)
     inpainted = TactilePreprocess(size=72, crop_fraction=1.0, use_reference=False, inpaint_markers=True, std=(1, 1, 1))
     x = preprocess_tactile(frame, None, inpainted)

@@ -407,7 +407,8 @@ def render_table(result: dict) -> str:
              "| pipeline | " + " | ".join(COLUMN_NAMES[c] for c in cols) + " |",
              "| --- |" + " --- |" * len(cols)]
     for name, r in result["pipelines"].items():
-        lines.append(f"| {name} | " + " | ".join(f"{100 * r[c]['mean']:.1f} ± {100 * r[c]['std']:.1f}" for c in cols) + " |")
+        cells = (f"{100 * r[c]['mean']:.1f} ± {100 * r[c]['std']:.1f}" for c in cols)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
 
     def best(prefix: str) -> tuple[float, str]:
         return max((r[c]["mean"], f"{name}, {COLUMN_NAMES[c]}") for name, r in result["pipelines"].items()
