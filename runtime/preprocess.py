@@ -2,6 +2,8 @@
 
 frame (HxWx3 uint8 BGR) and the session's no-contact reference frame ->
   checked (dtype, size, finite, not black/white/saturated) ->
+  [real GelSight options, off by default: marker dots inpainted; each colour channel scaled to
+  a mean of 128, which cancels exposure and LED drift between presses] ->
   centre crop to the square of the shorter side (times ``crop_fraction``) ->
   resize to ``size`` x ``size`` (INTER_AREA on float32: an anti-aliased decimation) ->
   difference to the reference, cropped and resized the same way (what the press changed,
@@ -41,6 +43,10 @@ class TactilePreprocess:
     mean: tuple[float, float, float] = (0.0, 0.0, 0.0)  # of diff/255, RGB
     std: tuple[float, float, float] = (0.08, 0.08, 0.08)  # typical spread of a pressed diff
     use_reference: bool = True  # subtract the no-contact frame
+    # Real GelSight frames (issue 13, docs/realism.md). Both off: the synthetic world's frames and
+    # every bundle so far were made without them, and the frozen trunk does not gain from them alone.
+    inpaint_markers: bool = False  # fill the gel's dark marker dots from their rims (cv2.inpaint)
+    normalise_exposure: bool = False  # scale each colour channel to a frame mean of 128
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -97,13 +103,67 @@ def check_frame(frame: object, expected_hw: tuple[int, int] | None = None, name:
     return frame
 
 
+def marker_mask(image: np.ndarray, depth: float = 18.0) -> np.ndarray:
+    """The gel's marker dots, HxW uint8 0/1: pixels darker than their 21 px median neighbourhood by
+    ``depth`` grey levels (the dots are dark and small next to any contact shading)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    local = cv2.medianBlur(grey, 21).astype(np.float32)
+    return ((local - grey.astype(np.float32)) > depth).astype(np.uint8)
+
+
+def inpaint_markers(image: np.ndarray) -> np.ndarray:
+    """The frame (HxWx3 uint8) with its marker dots, grown by 2 px, filled from their rims."""
+    mask = cv2.dilate(marker_mask(image), np.ones((5, 5), np.uint8))
+    return cv2.inpaint(image, mask, 3, cv2.INPAINT_TELEA)
+
+
+def _exposure_normalised(image: np.ndarray) -> np.ndarray:
+    """float32, each channel scaled to a mean of 128 (a gain per channel cancels exactly)."""
+    x = image.astype(np.float32)
+    x *= np.float32(128.0) / np.maximum(np.asarray(cv2.mean(x)[:3], np.float32), np.float32(1.0))
+    return x
+
+
+def _sensor_corrected(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
+    if spec.inpaint_markers:
+        image = inpaint_markers(image)
+    if spec.normalise_exposure:
+        image = _exposure_normalised(image)
+    return image
+
+
 def _crop_resize(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
     """Centre square crop (uint8 view, no copy) -> float32 -> INTER_AREA to size x size."""
+    image = _sensor_corrected(image, spec)
     h, w = image.shape[:2]
     side = max(1, int(round(min(h, w) * spec.crop_fraction)))
     y0, x0 = (h - side) // 2, (w - side) // 2
     crop = image[y0:y0 + side, x0:x0 + side].astype(np.float32)
     return cv2.resize(crop, (spec.size, spec.size), interpolation=cv2.INTER_AREA)
+
+
+def shading_grid(hw: tuple[int, int]) -> tuple[int, int]:
+    """(rows, columns) of the shading grid: 8 x 6 cells on a portrait frame, 6 x 8 on a landscape one
+    (about 50 px cells on the GelSight Mini's 400 x 300)."""
+    return (8, 6) if hw[0] >= hw[1] else (6, 8)
+
+
+def shading_descriptor(frame: np.ndarray, grid: tuple[int, int] | None = None) -> np.ndarray:
+    """The gel's shading under a press, (rows * columns * 3,) float64: markers inpainted, each colour
+    channel divided by its frame mean, then the log of the mean colour of each grid cell.
+
+    A GelSight's colour at a pixel encodes the gel's slope there (each LED lights it from one
+    side), so the coarse colour field is the shape the material pressed into the gel - its
+    thickness and give. On real GelSight Mini frames it is what separates materials on later
+    presses; their fine texture barely shows and the frozen ImageNet trunk mostly sees the marker
+    grid (docs/realism.md). Dividing by the channel mean cancels exposure or LED drift between
+    presses; the log makes a gain a shift. No reference frame is needed. Numpy and OpenCV only, so
+    the cell can compute it; no bundle uses it yet."""
+    frame = check_frame(frame)
+    rows, cols = grid or shading_grid(frame.shape[:2])
+    x = inpaint_markers(frame).astype(np.float32) + 1.0
+    x /= x.reshape(-1, 3).mean(axis=0)
+    return np.log(cv2.resize(x, (cols, rows), interpolation=cv2.INTER_AREA)).astype(np.float64).ravel()
 
 
 @dataclass(frozen=True)

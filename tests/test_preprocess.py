@@ -59,3 +59,51 @@ def test_saturation_counts_pixels_per_channel():
         preprocess_tactile(frame, None, TactilePreprocess(size=8, use_reference=False))
     frame[:, 19:21, 2] = 120  # 47.5%: a bright but usable frame
     assert np.isfinite(preprocess_tactile(frame, None, TactilePreprocess(size=8, use_reference=False))).all()
+
+
+# --- real GelSight options (issue 13): off by default, the same path for frame and reference ----------
+
+
+def _gel_frame(seed: int = 0, gain: float = 1.0) -> np.ndarray:
+    """An LED-lit gel with a 4 x 3 grid of dark marker dots."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:96, 0:72]
+    img = np.stack([110 + 30 * xx / 72, 90 + 40 * yy / 96, 130 - 20 * xx / 72], -1) + rng.normal(0, 2, (96, 72, 3))
+    img *= gain
+    for cy in range(12, 96, 24):
+        for cx in range(12, 72, 24):
+            cv2.circle(img, (cx, cy), 4, (25, 25, 25), -1)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_real_sensor_options_are_off_by_default_and_round_trip_a_manifest():
+    spec = TactilePreprocess()
+    assert not spec.inpaint_markers and not spec.normalise_exposure
+    on = TactilePreprocess(size=16, inpaint_markers=True, normalise_exposure=True)
+    assert TactilePreprocess.from_dict(on.to_dict()) == on
+    old = {k: v for k, v in on.to_dict().items() if k not in ("inpaint_markers", "normalise_exposure")}
+    assert TactilePreprocess.from_dict(old) == TactilePreprocess(size=16)  # a bundle from before: both off
+
+
+def test_exposure_normalisation_cancels_a_gain_and_inpainting_removes_the_dots():
+    """Without a reference: a 6 % brighter exposure changes the plain input and not the normalised
+    one; with markers inpainted, the dots are gone from the input. With a reference, the prepared
+    reference takes the same path as the raw one."""
+    frame, brighter = _gel_frame(), _gel_frame(gain=1.06)
+    plain = TactilePreprocess(size=24, use_reference=False)
+    fixed = TactilePreprocess(size=24, use_reference=False, normalise_exposure=True)
+
+    def gap(spec):
+        return np.abs(preprocess_tactile(brighter, None, spec) - preprocess_tactile(frame, None, spec)).mean()
+
+    assert gap(fixed) < 0.15 * gap(plain)
+    inpainted = TactilePreprocess(size=72, crop_fraction=1.0, use_reference=False, inpaint_markers=True, std=(1, 1, 1))
+    x = preprocess_tactile(frame, None, inpainted)
+    assert x.min() * 255 > 60  # the 25-grey dots are filled from the gel around them
+    both = TactilePreprocess(size=24, inpaint_markers=True, normalise_exposure=True)
+    ref = _gel_frame(seed=1)
+    np.testing.assert_array_equal(preprocess_tactile(brighter, ref, both),
+                                  preprocess_tactile(brighter, prepare_reference(ref, both), both))
+    # the press differs from its reference by the exposure only: nearly nothing is left
+    assert np.abs(preprocess_tactile(brighter, ref, both)).mean() < 0.2 * np.abs(
+        preprocess_tactile(brighter, ref, TactilePreprocess(size=24))).mean()

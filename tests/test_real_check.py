@@ -64,7 +64,6 @@ def test_real_check_on_a_folder_of_any_frame_size(tmp_path, capsys, hw):
         assert len(r["folds"]) == 2
         assert r["accuracy_lda"]["mean"] >= 0.9, (name, r["accuracy_lda"])
         assert 0.0 <= r["auroc_knn"]["mean"] <= 1.0
-        assert 0.0 <= r["accuracy_probe"]["mean"] <= 1.0 and 0.0 <= r["auroc_max_softmax"]["mean"] <= 1.0
 
 
 def test_temporal_folds_fit_earlier_or_later_presses_never_both():
@@ -113,6 +112,9 @@ def test_bad_layouts_are_named(tmp_path, capsys):
     cv2.imwrite(str(grey / "material_1" / "press_003.png"), np.zeros((60, 80), np.uint8))
     assert "press_003.png" in _err(capsys, "--train", str(grey))
     assert cli.main(["real-check", "--train", str(grey), "--pipelines", "nothing"]) == 2
+    dark = _folder(tmp_path / "dark")
+    cv2.imwrite(str(dark / "material_2" / "press_005.png"), np.zeros((60, 80, 3), np.uint8))
+    assert "material_2/press_005.png: all black" in _err(capsys, "--train", str(dark))
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/real/gelsight_mini_materials (not on a fresh machine)")
@@ -126,16 +128,113 @@ def test_real_gelsight_frames_by_press_order(tmp_path):
     assert 0.5 < r["auroc_knn"]["mean"] <= 1.0
 
 
-def test_probe_and_max_softmax_on_separable_features():
-    """The linear probe's L2 weight comes from the fit presses alone; on features that separate
-    the materials it classifies every test press and max-softmax flags the untouched ones."""
-    from vs2t_edge.train import real_check as rc
+# ------------------------------------------------------------------ the shading pipelines (issue 13)
+
+def test_shading_pipelines_on_a_folder_of_any_frame_size(tmp_path, capsys):
+    """No network: the coarse colour field and the dots' centres tell the generated materials apart,
+    on a landscape frame too (the grid turns with the frame)."""
+    data = _folder(tmp_path / "rec", hw=(72, 96))
+    out = tmp_path / "rc.json"
+    assert cli.main(["real-check", "--train", str(data), "--out", str(out), "--pipelines", "shading,shading_markers",
+                     "--seeds", "2"]) == 0
+    assert "| shading_markers |" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    for name in ("shading", "shading_markers"):
+        r = res["pipelines"][name]
+        assert r["accuracy_shrunk_lda"]["mean"] >= 0.9, (name, r)
+        assert 0.0 <= r["auroc_discriminant"]["mean"] <= 1.0
+    assert rc.shading_grid((72, 96)) == (6, 8) and rc.shading_grid((400, 300)) == (8, 6)
+
+
+def test_shading_cancels_exposure_and_ignores_the_markers():
+    """A brighter exposure (every channel x 1.08) leaves the shading as it was; so do the marker
+    dots, which are inpainted before the colour is averaged."""
+    import cv2
 
     rng = np.random.default_rng(0)
-    n, presses, dim = 5, 8, 10
-    feats = [rng.normal(0, 1, (presses, dim)) + 8 * np.eye(dim)[c] for c in range(n)]
-    fit, test = rc.temporal_folds([presses] * n)[0]
-    out = rc.evaluate_fold(feats, fit, test, n_seeds=3)
-    assert out["probe_l2"] in rc.PROBE_L2
-    assert out["accuracy"]["probe"] == 1.0
-    assert min(out["auroc"]["max_softmax"]) > 0.8 and len(out["auroc"]["max_softmax"]) == 3
+    yy, xx = np.mgrid[0:120, 0:90]
+    field = np.stack([120 + 30 * xx / 90, 100 + 40 * yy / 120, 140 - 20 * xx / 90], -1) + rng.normal(0, 1, (120, 90, 3))
+    clean = np.clip(field, 0, 255).astype(np.uint8)
+    dotted = clean.copy()
+    for cy in range(15, 120, 30):
+        for cx in range(15, 90, 30):
+            cv2.circle(dotted, (cx, cy), 4, (20, 20, 20), -1)
+    brighter = np.clip(clean.astype(np.float64) * 1.08, 0, 255).astype(np.uint8)
+    base = rc.shading_features(clean)
+    assert base.shape == (8 * 6 * 3,)
+    assert np.abs(rc.shading_features(brighter) - base).max() < 0.01  # log units: 1 %
+    uninpainted = dotted.astype(np.float32) + 1
+    uninpainted /= uninpainted.reshape(-1, 3).mean(0)
+    plain = np.log(cv2.resize(uninpainted, (6, 8), interpolation=cv2.INTER_AREA)).ravel()
+    # the dots move the coarse colour without the inpainting, next to nothing with it
+    assert np.abs(rc.shading_features(dotted) - base).max() < 0.2 * np.abs(plain - base).max()
+
+
+def test_marker_centroids_resolve_a_sub_pixel_shift():
+    """The gel's shear moves dots by under a pixel: darkness-weighted centres see a 0.4 px shift
+    (blob centres of a thresholded mask move in whole pixels)."""
+    import cv2
+
+    img = np.full((160, 120, 3), 180, np.float32)
+    for cy in range(20, 160, 40):
+        for cx in range(20, 120, 40):
+            cv2.circle(img, (cx * 16, cy * 16), 5 * 16, (40, 40, 40), -1, shift=4)
+    img = cv2.GaussianBlur(img, (0, 0), 1.0)
+    moved = cv2.warpAffine(img, np.float32([[1, 0, 0.4], [0, 1, 0]]), (120, 160), borderMode=cv2.BORDER_REPLICATE)
+    a = rc.marker_centroids(img.astype(np.uint8)).reshape(-1, 2)
+    b = rc.marker_centroids(moved.astype(np.uint8)).reshape(-1, 2)
+    assert a.shape == (12, 2) and b.shape == (12, 2)
+    assert np.allclose(a[:3, 1], 20, atol=0.2) and np.allclose(a[:3, 0], [20, 60, 100], atol=0.2)  # grid order
+    assert np.allclose(b[:, 0] - a[:, 0], 0.4, atol=0.1) and np.allclose(b[:, 1], a[:, 1], atol=0.1)
+
+
+def test_discriminant_distances_flag_an_unseen_class():
+    """Few samples in a wide feature: class Gaussians in Fisher's subspace put an unseen class far
+    from every fitted one, and the shrunk LDA classifies the fitted ones."""
+    rng = np.random.default_rng(1)
+    d, n = 60, 6
+    centres = rng.normal(0, 1, (4, d)) * 3
+    x = np.concatenate([c + rng.normal(0, 1, (n, d)) for c in centres[:3]])
+    y = np.repeat(np.arange(3), n)
+    seen = np.concatenate([c + rng.normal(0, 1, (n, d)) for c in centres[:3]])
+    unseen = centres[3] + rng.normal(0, 1, (n, d))
+    assert (rc.shrunk_lda_sq_distances(x, y, 3, seen).argmin(1) == y).all()
+    ds = rc.discriminant_sq_distances(x, y, 3, np.concatenate([seen, unseen])).min(1)
+    assert ds.shape == (4 * n,) and ds[:3 * n].max() < ds[3 * n:].min()
+
+
+def test_within_fit_never_reads_the_test_presses(tmp_path, monkeypatch):
+    """--within-fit evaluates inside the fit presses: with --test, the test folder's content does
+    not change a number; without, every evaluated fold sees one half of the presses only."""
+    train = _folder(tmp_path / "early", n_presses=6)
+    a = rc.run_real_check(train, _folder(tmp_path / "late_a", n_presses=3), ("shading",), n_seeds=2, within_fit=True)
+    late_b = _folder(tmp_path / "late_b", n_presses=3)
+    for f in late_b.glob("*/*.png"):  # other frames, same layout
+        import cv2
+
+        cv2.imwrite(str(f), 255 - cv2.imread(str(f)))
+    b = rc.run_real_check(train, late_b, ("shading",), n_seeds=2, within_fit=True)
+    assert a["pipelines"] == b["pipelines"] and "test presses never read" in a["protocol"]
+    seen = []
+    real_features = rc.pipeline_features
+
+    def spy(name, frames, fit, trunk):
+        seen.append(([len(fs) for fs in frames], [list(i) for i in fit]))
+        return real_features(name, frames, fit, trunk)
+
+    monkeypatch.setattr(rc, "pipeline_features", spy)
+    rc.run_real_check(_folder(tmp_path / "twenty", n_presses=8), pipelines=("shading",), n_seeds=1, within_fit=True)
+    assert len(seen) == 4  # two temporal folds, each split in two inside its fit half
+    assert all(lens == [4, 4, 4] for lens, _ in seen)  # only the fold's 4 fit presses per material
+    assert [fit[0] for _, fit in seen] == [[0, 1], [2, 3], [0, 1], [2, 3]]
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/real/gelsight_mini_materials (not on a fresh machine)")
+def test_real_gelsight_frames_shading_meets_the_targets_by_press_order():
+    """The real recordings, temporal split: shading + marker centres reach the issue's targets
+    (measured 90.5 % accuracy, AUROC 0.88; the frozen trunk 46.5 % / 0.56). Bounds leave a few
+    presses of slack: each fold tests 100 presses."""
+    res = rc.run_real_check(REAL, pipelines=("shading_markers",), n_seeds=10)
+    r = res["pipelines"]["shading_markers"]
+    assert r["accuracy_shrunk_lda"]["mean"] >= 0.87, r["accuracy_shrunk_lda"]
+    assert r["auroc_discriminant"]["mean"] >= 0.84, r["auroc_discriminant"]

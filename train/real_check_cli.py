@@ -16,9 +16,14 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                         help="the same layout, later presses of the same materials; without it the temporal split "
                              "of --train (first half fits, second half tests, and the reverse)")
     parser.add_argument("--out", type=Path, default=Path("real-check.json"), help="JSON result (default real-check.json)")
-    parser.add_argument("--pipelines", default="frozen,inpainted,markers",
-                        help="comma-separated: frozen (floor), inpainted (GelSight-aware), markers (no network)")
+    parser.add_argument("--pipelines", default="frozen,inpainted,markers,shading,shading_markers",
+                        help="comma-separated: frozen (floor), inpainted (GelSight-aware trunk input), markers "
+                             "(no network), shading (the gel's coarse colour field, no network), shading_markers "
+                             "(shading and the marker dots' sub-pixel centres)")
     parser.add_argument("--seeds", type=int, default=10, help="material draws per fold for novelty AUROC")
+    parser.add_argument("--within-fit", action="store_true",
+                        help="evaluate inside each fold's fit presses only (their first half fits, second half "
+                             "tests, and the reverse): the numbers to choose a pipeline by; test presses never read")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
         print("vs2t-edge real-check: --seeds must be at least 1", file=sys.stderr)
         return 2
     try:
-        result = rc.run_real_check(args.train, args.test, pipelines, n_seeds=args.seeds,
+        result = rc.run_real_check(args.train, args.test, pipelines, n_seeds=args.seeds, within_fit=args.within_fit,
                                    log=lambda m: print(m, file=sys.stderr, flush=True))
     except rc.RealCheckError as exc:
         print(f"vs2t-edge real-check: {exc}", file=sys.stderr)
