@@ -4,6 +4,7 @@ tail kept, the per-item-by-bins table and the Pareto plot, from a result of runt
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from vs2t_edge.runtime.bench import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
@@ -69,6 +70,12 @@ def hand_written_tail(md: Path) -> str:
     return f"\n{HAND_WRITTEN}{tail}" if marker else ""
 
 
+def _portable(text: object) -> str:
+    """A manifest's command or path without this machine's folders: absolute paths keep their last
+    component (the name anyone gives their own dataset, run or bundle folder)."""
+    return re.sub(r"(?<![\w.])/(?:[\w.+-]+/)+([\w.+-]+)", r"\1", str(text))
+
+
 def render_made_by(result: dict) -> list[str]:
     rows = [r for r in result["variants"] if r.get("made_by")]
     if not rows:
@@ -77,8 +84,8 @@ def render_made_by(result: dict) -> list[str]:
              "| variant | command | commit | dataset | router |", "|---|---|---|---|---|"]
     for r in rows:
         mb = r["made_by"]
-        lines.append(f"| {r['name']} | `{mb.get('command', '?')}` | {str(mb.get('git_commit', '?'))[:12]} | "
-                     f"{mb.get('dataset', '–')} | {mb.get('router', '?')} |")
+        lines.append(f"| {r['name']} | `{_portable(mb.get('command', '?'))}` | {str(mb.get('git_commit', '?'))[:12]} | "
+                     f"{_portable(mb.get('dataset', '–'))} | {mb.get('router', '?')} |")
     return lines
 
 

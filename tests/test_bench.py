@@ -53,6 +53,8 @@ def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_
     text = md.read_text()
     assert "old generated text" not in text and text.endswith("## Notes\n\nkept\n")
     assert text.count(bench_report.HAND_WRITTEN) == 1 and "## How each bundle was made" in text
+    made_by = text.split("## How each bundle was made", 1)[1]
+    assert str(tmp_path.parent.parent) not in made_by  # the bundles' folders on this machine are not on the page
     md.write_text("no marker here\n")
     assert bench_report.hand_written_tail(md) == ""  # nothing marked: nothing kept
 
