@@ -84,10 +84,37 @@ def timing_problems(timeout_s: float, retries: int,
     return problems
 
 
-def request_worst_case_s(timeout_s: float, retries: int) -> float:
-    """Longest one request can take before it fails: the first try and every retransmission
-    each wait ``timeout_s`` for the reply."""
-    return (retries + 1) * timeout_s
+WRITE_TIMEOUT_S = 0.25  # a frame is ~10 bytes: a write the line has not taken by then has failed
+HEARTBEAT_STOP_SLACK_S = 0.5  # stop_heartbeat(): the thread's last look at its stop flag
+
+
+def try_worst_case_s(timeout_s: float) -> float:
+    """One try of a request: the write (bounded by ``WRITE_TIMEOUT_S``), then ``timeout_s`` for the reply."""
+    return WRITE_TIMEOUT_S + timeout_s
+
+
+def request_worst_case_s(timeout_s: float, retries: int,
+                         heartbeat_period_s: float | None = p.HEARTBEAT_PERIOD_S) -> float:
+    """Longest a caller of one request (``sort``, ``status``, ``clear``) waits before it returns
+    or fails, as the caller sees it: requests are stop-and-wait (``_lock``), so it may first wait
+    behind a heartbeat already on the wire (one try: the background heartbeat never
+    retransmits), then its own first try and every retransmission. The one source for the
+    watchdog budget (runtime/budget.py) and the driver (tests/test_gate_budget.py measures it)."""
+    behind = try_worst_case_s(timeout_s) if heartbeat_period_s else 0.0
+    return behind + (retries + 1) * try_worst_case_s(timeout_s)
+
+
+def heartbeat_stop_s(timeout_s: float) -> float:
+    """``stop_heartbeat()``'s longest wait: a heartbeat on the wire finishes its one try."""
+    return try_worst_case_s(timeout_s) + HEARTBEAT_STOP_SLACK_S
+
+
+def to_reject_worst_case_s(timeout_s: float, retries: int,
+                           heartbeat_period_s: float | None = p.HEARTBEAT_PERIOD_S) -> float:
+    """``to_reject()``'s longest wait: the SORT to reject and, when it fails, stopping the
+    heartbeats so the gate fails safe on its own."""
+    stop = heartbeat_stop_s(timeout_s) if heartbeat_period_s else 0.0
+    return request_worst_case_s(timeout_s, retries, heartbeat_period_s) + stop
 
 
 class GateClient:
@@ -138,7 +165,7 @@ class GateClient:
                 return self.status()
             try:
                 self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.01,
-                                                     write_timeout=1.0)
+                                                     write_timeout=WRITE_TIMEOUT_S)
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise GateClientError(f"cannot open the gate's serial port {self.port}: {exc}",
                                       kind="link") from exc
@@ -194,7 +221,7 @@ class GateClient:
         self._hb_stop.set()
         thread, self._hb_thread = self._hb_thread, None
         if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=2 * self.timeout_s + 1)
+            thread.join(timeout=heartbeat_stop_s(self.timeout_s))
 
     def _heartbeat_loop(self) -> None:
         logged_failure, failing_since = False, 0.0

@@ -97,15 +97,20 @@ class _CameraBase:
 
 # --- live UVC camera ----------------------------------------------------------------------
 
+# A UVC open takes well under a second; one that hangs in the driver is ended past this.
+UVC_OPEN_TIMEOUT_S = 5.0
+
+
 class UVCCamera(_CameraBase):
     """A GelSight (Mini, R1.5, ...) enumerating as a UVC camera."""
 
     def __init__(self, device: int | str = 0, *, width: int | None = None, height: int | None = None,
                  fps: float | None = None, exposure: float | None = None, read_timeout_s: float = 1.0,
                  frozen_after: int = FROZEN_AFTER, flush_frames: int = 2, buffer_size: int | None = 1,
-                 expected_hw: tuple[int, int] | None = None, api_preference: int = cv2.CAP_ANY) -> None:
-        if read_timeout_s <= 0:
-            raise ValueError("read_timeout_s must be positive")
+                 expected_hw: tuple[int, int] | None = None, api_preference: int = cv2.CAP_ANY,
+                 open_timeout_s: float = UVC_OPEN_TIMEOUT_S) -> None:
+        if read_timeout_s <= 0 or open_timeout_s <= 0:
+            raise ValueError("read_timeout_s and open_timeout_s must be positive")
         if flush_frames < 0:
             raise ValueError("flush_frames must be >= 0")
         if buffer_size is not None and buffer_size < 1:
@@ -114,6 +119,7 @@ class UVCCamera(_CameraBase):
         self.name = f"camera {device}"
         self.requested = {"width": width, "height": height, "fps": fps, "exposure": exposure}
         self.read_timeout_s = read_timeout_s
+        self.open_timeout_s = open_timeout_s
         self.flush_frames = flush_frames  # V4L2 queues a few buffers: drop those taken before the press
         # V4L2 queues 4 buffers by default: at 30 fps a grab could return a frame 130 ms old, taken
         # before the gel settled. One buffer (CAP_PROP_BUFFERSIZE, honoured by the V4L2 backend)
@@ -127,6 +133,41 @@ class UVCCamera(_CameraBase):
         self._stuck: list = []  # captures abandoned with a read inside the driver
 
     def connect(self) -> None:
+        """Open the device and apply the settings, in a thread bounded by ``open_timeout_s``: a
+        driver that hangs in open or in a setting becomes a camera fault the cell can latch,
+        not a loop that starves systemd's watchdog (runtime/budget.py leases the reopen for this
+        bound). A late open is released by its thread, never used."""
+        box: dict = {}
+        late = threading.Lock()
+        abandoned = False
+
+        def open_() -> None:
+            try:
+                result = self._open()
+            except Exception as exc:  # noqa: BLE001 - handed to the caller below
+                box["error"] = exc
+                return
+            with late:
+                if abandoned:
+                    result[0].release()
+                else:
+                    box["result"] = result
+
+        opener = threading.Thread(target=open_, daemon=True, name="uvc-open")
+        opener.start()
+        opener.join(self.open_timeout_s)
+        with late:
+            if "result" not in box and "error" not in box:
+                abandoned = True
+                raise CameraError(f"{self.name}: did not open within {self.open_timeout_s} s (the driver hangs)",
+                                  device=self.name, kind="timeout")
+        if "error" in box:
+            raise box["error"]
+        self._cap, self.settings_applied = box["result"]
+        # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
+        # to the last one before it is the same hung buffer, not a fresh start
+
+    def _open(self) -> tuple[object, dict[str, float | None]]:
         cap = cv2.VideoCapture(self.device, self.api_preference)
         if not cap.isOpened():
             cap.release()
@@ -147,10 +188,7 @@ class UVCCamera(_CameraBase):
         if self.buffer_size is not None:
             cap.set(cv2.CAP_PROP_BUFFERSIZE, float(self.buffer_size))
             applied["buffersize"] = cap.get(cv2.CAP_PROP_BUFFERSIZE) or None  # 0: backend ignores it
-        self.settings_applied = applied
-        self._cap = cap
-        # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
-        # to the last one before it is the same hung buffer, not a fresh start
+        return cap, applied
 
     def disconnect(self) -> None:
         if self._cap is not None:

@@ -2025,6 +2025,9 @@ SCENARIOS = [
     Scenario("watchdog_hung_grab", "loop", "grab hangs to its timeout on a press and its retry (watchdog 1 s)",
              "camera fault latched before the watchdog: pings every < 0.5 s through the waits",
              lambda w: _inputs_row("watchdog_through_hung_grab", w)),
+    Scenario("watchdog_gate_behind_heartbeat", "loop", "silent gate: a sort queued behind a heartbeat on the wire, "
+             "then a failing gate-to-reject", "each wait within the bound the watchdog budget leases for it",
+             lambda w: _inputs_row("watchdog_gate_behind_heartbeat", w)),
     Scenario("camera_covered", "loop", "black frames on a press and its retry",
              "camera fault latched naming 'all black', piece rejected; rest sorted", all_frames_black),
     Scenario("protective_stop", "loop", "protective stop mid-press (FakeArm)",

@@ -222,3 +222,49 @@ def watchdog_through_hung_grab(w: Path):
     _check(problems, largest < watchdog_s / 2, f"largest gap between watchdog pings {largest:.2f} s "
                                                f"(watchdog {watchdog_s} s)")
     return f"camera fault latched, piece rejected; {len(pings)} pings, largest gap {largest:.2f} s", problems
+
+
+def watchdog_gate_behind_heartbeat(w: Path):
+    """A silent gate (every frame the host sends is lost) with a heartbeat on the wire when the
+    sort goes out. The budget counted a request as (retries + 1) x timeout_s, but stop-and-wait
+    puts the sort behind the heartbeat's try first, and a failed to-reject then waits for the
+    heartbeat thread: both must stay within the bounds the watchdog budget leases
+    (gate_client.request_worst_case_s / to_reject_worst_case_s)."""
+    import time
+
+    from vs2t_edge.firmware_bridge.gate_client import (GateClient, GateClientError, request_worst_case_s,
+                                                      to_reject_worst_case_s)
+    from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
+    from vs2t_edge.sim.faults import _check
+
+    timeout_s, retries, heartbeat_s = 0.3, 1, 0.1
+    problems: list[str] = []
+    _, sim = start_simulated_gate(move_time_ms=20)
+    client = GateClient(sim.device_path, timeout_s=timeout_s, retries=retries, heartbeat_period_s=heartbeat_s)
+    try:
+        client.connect()
+        sim.faults.drop_rx = 10**9
+        waits = {}
+        for what, call in (("sort", lambda: client.sort(3)), ("to_reject", client.to_reject)):
+            deadline = time.monotonic() + 2
+            while client._lock.acquire(blocking=False) and time.monotonic() < deadline:
+                client._lock.release()  # not yet: wait until the heartbeat holds the line
+                time.sleep(0.001)
+            start = time.monotonic()
+            try:
+                call()
+            except GateClientError:
+                pass
+            waits[what] = time.monotonic() - start
+    finally:
+        client.disconnect()
+        sim.stop()
+    bound = {"sort": request_worst_case_s(timeout_s, retries, heartbeat_s),
+             "to_reject": to_reject_worst_case_s(timeout_s, retries, heartbeat_s)}
+    for what, took in waits.items():
+        _check(problems, took <= bound[what], f"{what} waited {took:.2f} s, past its bound {bound[what]:.2f} s")
+    _check(problems, waits["sort"] > (retries + 1) * timeout_s,
+           f"the sort did not wait behind the heartbeat ({waits['sort']:.2f} s): the row proves nothing")
+    return (f"sort behind a heartbeat {waits['sort']:.2f} s (bound {bound['sort']:.2f} s, the old count "
+            f"{(retries + 1) * timeout_s:.2f} s); failed to-reject {waits['to_reject']:.2f} s "
+            f"(bound {bound['to_reject']:.2f} s)"), problems

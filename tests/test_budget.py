@@ -246,7 +246,7 @@ def test_the_operators_clear_is_leased_so_a_slow_clear_does_not_starve_the_watch
     watchdog_s = 1.0
     arm = FakeArm()
     arm.connect()
-    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)
+    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1, camera_open_s=0.6)
     assert bounds.clear_s > 1.3
     scene = SceneSpec(bins={"denim": 1}, reject_bin=0, points_mm=[(40.0, 40.0)], max_presses=1,
                       confidence=0.9, wait_item_timeout_s=0.05, fault_file=tmp_path / "FAULT", bounds=bounds)
@@ -325,7 +325,7 @@ def test_a_clear_hung_past_its_bound_is_left_to_the_watchdog(tmp_path, monkeypat
     """The lease of the operator's clear feeds the watchdog for clear_s (1.9 s here) and no
     longer: a CLEAR hung for 3.2 s, past every bound its devices enforce, leaves a gap longer
     than the 1 s watchdog - systemd kills a hung loop, as it should."""
-    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1)
+    bounds = StepBounds(arm_call_s=0.3, grab_s=0.6, gate_request_s=0.1, camera_open_s=0.6)
     assert bounds.clear_s == pytest.approx(1.9)
     with _watched(tmp_path, monkeypatch) as (notifier, pings):
         cell = _cell(tmp_path, notifier, bounds, arm=FakeArm(), gate=_SlowClearGate(3.2))
@@ -424,6 +424,6 @@ def test_a_lease_of_the_live_arm_covers_a_new_workers_start(monkeypatch, lease, 
     arm, waits = _isolated_arm_waits(monkeypatch, *calls)
     assert [m for m, _ in waits] == ["connect", *calls]
     bounds = bounds_of({"timeout_s": 1.0}, "ur_rtde", arm.config, {"kind": "sim"})
-    arm_part = bounds.lift_s if lease == "lift_s" else bounds.clear_s - bounds.gate_request_s - 2 * bounds.grab_s
+    arm_part = bounds.lift_s if lease == "lift_s" else bounds.clear_s - bounds.gate_request_s - bounds.camera_reopen_s
     assert sum(t for _, t in waits) <= arm_part
     assert bounds_of({"timeout_s": 1.0}, "fake", arm.config, {"kind": "sim"}).arm_start_s == 0  # no worker
