@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from vs2t_edge.runtime import novelty as nv
-from vs2t_edge.train import compare as cmp
+from vs2t_edge.train import compare as cmp, compare_report as report, compare_sources as sources
 from vs2t_edge.train.baselines import DAP, Budget
 from vs2t_edge.train.generators_modern import CADAVAE
 
@@ -38,7 +38,7 @@ def asdict_(s):
 
 
 def test_split_views_keep_untouched_tactile_out_of_training():
-    table = cmp.toy_feature_table(n_fabrics=12, presses=20, d_t=16, d_v=8)
+    table = sources.toy_feature_table(n_fabrics=12, presses=20, d_t=16, d_v=8)
     split = cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=2)[0]
     v = cmp.split_views(table, split)
     assert v.train.n_t == 8 and v.train.n_u == 2 and v.val.n_u == 2
@@ -93,7 +93,7 @@ def test_cell_inputs_say_what_each_method_reads_per_press():
     """CELL_INPUTS is data the rule trusts: a method listed as tactile-only must score untouched
     classes without the camera (its logits ignore x_v), and one listed with visual must use it."""
     torch.set_num_threads(1)
-    table = cmp.toy_feature_table(n_fabrics=10, presses=10, d_t=16, d_v=8, noise=0.5)
+    table = sources.toy_feature_table(n_fabrics=10, presses=10, d_t=16, d_v=8, noise=0.5)
     views = cmp.split_views(table, cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=2)[0])
     budget = Budget(steps=5, batch=16, hidden=16, latent=4, cls_steps=5, n_synth_per_class=5)
     x_t, x_v, _ = views.test_presses
@@ -121,29 +121,29 @@ def _fake_comparison(val_a=0.9, val_b=0.5):
 
 def test_regeneration_keeps_hand_written_text_below_the_marker(tmp_path):
     out = tmp_path / "out"
-    paths = cmp.write_results(_fake_comparison(), out, name="page")
+    paths = report.write_results(_fake_comparison(), out, name="page")
     first = paths["md"].read_text()
-    assert first.rstrip("\n").endswith(cmp.HAND_MARKER) and first.count(cmp.HAND_MARKER) == 1
+    assert first.rstrip("\n").endswith(report.HAND_MARKER) and first.count(report.HAND_MARKER) == 1
     hand = "\n## Reading (hand-written)\n\nA wins on validation; the router choice is weak.\n"
     paths["md"].write_text(first + hand)
     # new numbers: the generated part changes, the hand text stays, once, at the end
-    cmp.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
+    report.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
     second = paths["md"].read_text()
-    assert second.endswith(cmp.HAND_MARKER + "\n" + hand) and second.count("A wins on validation") == 1
-    assert second.count(cmp.HAND_MARKER) == 1 and second.split(cmp.HAND_MARKER)[0] != first.split(cmp.HAND_MARKER)[0]
-    cmp.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
+    assert second.endswith(report.HAND_MARKER + "\n" + hand) and second.count("A wins on validation") == 1
+    assert second.count(report.HAND_MARKER) == 1 and second.split(report.HAND_MARKER)[0] != first.split(report.HAND_MARKER)[0]
+    report.write_results(_fake_comparison(val_a=0.2, val_b=0.8), out, name="page")
     assert paths["md"].read_text() == second  # regenerating is idempotent
 
     # a page without the marker: refused by default, nothing written; replaced whole on request
     paths["md"].write_text("# my page\n\nhand text with no marker\n")
     json_before = paths["json"].read_text()
-    with pytest.raises(cmp.UnmarkedReportError, match=r"page\.md has no line"):
-        cmp.write_results(_fake_comparison(), out, name="page")
+    with pytest.raises(report.UnmarkedReportError, match=r"page\.md has no line"):
+        report.write_results(_fake_comparison(), out, name="page")
     assert paths["md"].read_text() == "# my page\n\nhand text with no marker\n"
     assert paths["json"].read_text() == json_before
-    cmp.write_results(_fake_comparison(), out, name="page", unmarked="replace")
+    report.write_results(_fake_comparison(), out, name="page", unmarked="replace")
     replaced = paths["md"].read_text()
-    assert "hand text with no marker" not in replaced and replaced.rstrip("\n").endswith(cmp.HAND_MARKER)
+    assert "hand text with no marker" not in replaced and replaced.rstrip("\n").endswith(report.HAND_MARKER)
 
 
 def test_compare_verb_refuses_an_unmarked_page_before_running(tmp_path, capsys):
@@ -157,7 +157,7 @@ def test_compare_verb_refuses_an_unmarked_page_before_running(tmp_path, capsys):
 
 def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
     torch.set_num_threads(1)
-    table = cmp.toy_feature_table(n_fabrics=32, presses=15, d_t=32, d_v=16, noise=0.5)
+    table = sources.toy_feature_table(n_fabrics=32, presses=15, d_t=32, d_v=16, noise=0.5)
     cache = tmp_path / "features.npz"
     table.save(cache)
     table = cmp.FeatureTable.load(cache)
@@ -174,7 +174,7 @@ def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
             assert 0.0 <= m["routers"][r][key]["mean"] <= 1.0
     # 24 touched fabrics teach DAP the attributes well enough to beat chance (1/3) clearly
     assert m["zsl_acc"]["mean"] > 0.5
-    paths = cmp.write_results(result, tmp_path / "out")
+    paths = report.write_results(result, tmp_path / "out")
     md = paths["md"].read_text()
     assert "| DAP | 43.56 |" in md and "Recommendation" in md
     assert json.loads(paths["json"].read_text())["summary"]["recommendation"]["model"] in ("DAP", "CADA-VAE")
@@ -235,13 +235,13 @@ def _fake_run(tmp_path, with_stems=False, seeds=(7, 11)):
 
     run = tmp_path / "run"
     (run / "features").mkdir(parents=True)
-    table = cmp.toy_feature_table(n_fabrics=14, presses=12, d_t=24, d_v=12, noise=0.5, seed=3)
+    table = sources.toy_feature_table(n_fabrics=14, presses=12, d_t=24, d_v=12, noise=0.5, seed=3)
     table.save(run / "features" / "feature_table.npz")
     splits = [cmp.make_splits(table.fabric_ids, 1, n_val=2, n_untouched=3, seed=s)[0] for s in seeds]
     profile = {"name": "tiny", "trunk": "tiny", "size_px": 32, "splits": len(splits), "ft_epochs": 1,
                "ft_max_rows": None, "steps": 20, "batch": 32, "cls_steps": 30, "n_synth_per_class": 20,
                "lr_scale": 5.0, "latent": 8, "hidden": 32, "seed": 0}
-    budget = cmp.run_budget(profile)
+    budget = sources.run_budget(profile)
     (run / "config.yaml").write_text(yaml.safe_dump({"dataset": "toy", "profile": profile,
                                                      "budget": {"steps": 20, "not_a_field": 1}}, sort_keys=False))
     records = []
@@ -269,25 +269,25 @@ def _fake_run(tmp_path, with_stems=False, seeds=(7, 11)):
 def test_load_run_reads_exactly_the_runs_splits_and_budget(tmp_path):
     torch.set_num_threads(1)
     run, table, splits = _fake_run(tmp_path)
-    src = cmp.load_run(run)
+    src = sources.load_run(run)
     assert [asdict_(s) for s in src.splits] == [asdict_(s) for s in splits]  # order and seeds kept
     assert [asdict_(s) for s in src.splits] != [asdict_(s) for s in cmp.make_splits(table.fabric_ids, 2, 2, 3)]
     assert np.array_equal(src.table.x_t, table.x_t) and src.table.fabric_ids == table.fabric_ids
-    b = cmp.run_budget(src.profile, src.budget, steps=5)
+    b = sources.run_budget(src.profile, src.budget, steps=5)
     assert (b.steps, b.hidden, b.latent, b.cls_steps, b.lr_scale) == (5, 32, 8, 30, 5.0)
-    assert src.budget["steps"] == 20 and cmp.run_budget(src.profile, {"steps": 25, "not_a_field": 1}).steps == 25
-    own = cmp.run_vs2t_numbers(src)
+    assert src.budget["steps"] == 20 and sources.run_budget(src.profile, {"steps": 25, "not_a_field": 1}).steps == 25
+    own = sources.run_vs2t_numbers(src)
     assert own["per_split_zsl"] == [r["zsl_acc"] for r in src.vs2t_splits] and len(src.vs2t_splits) == 2
     # a split naming a fabric the table lacks is refused by name
     m = json.loads((run / "metrics.json").read_text())
     m["splits"][1]["split"]["untouched"][0] = "nope"
     (run / "metrics.json").write_text(json.dumps(m))
     with pytest.raises(ValueError, match=r"split 1 .*\['nope'\]"):
-        cmp.load_run(run)
+        sources.load_run(run)
     del m["splits"][0]["split"]["seed"]
     (run / "metrics.json").write_text(json.dumps(m))
     with pytest.raises(ValueError, match=r"splits\[0\]\.split lacks \['seed'\]"):
-        cmp.read_run_splits(run / "metrics.json")
+        sources.read_run_splits(run / "metrics.json")
 
 
 def test_compare_verb_on_a_run_uses_its_splits_and_reproduces_its_vs2t(tmp_path, capsys):
@@ -338,7 +338,7 @@ def _trained_run(tmp_path, visual_tail, seeds=(7, 11)):
 
     run = tmp_path / f"run_{visual_tail}"
     (run / "features").mkdir(parents=True)
-    toy = cmp.toy_feature_table(n_fabrics=14, presses=12, d_t=8, d_v=8, seed=3)
+    toy = sources.toy_feature_table(n_fabrics=14, presses=12, d_t=8, d_v=8, seed=3)
     prof = tr.Profile("tiny", trunk="tiny", size_px=32, splits=len(seeds), ft_epochs=1, ft_max_rows=None, steps=20,
                       batch=32, cls_steps=30, n_synth_per_class=20, latent=8, hidden=32, seed=0,
                       routers=("gaussian",), visual_tail=visual_tail)
@@ -379,9 +379,9 @@ def test_compare_run_reproduces_a_run_trained_with_its_visual_tail(tmp_path, cap
 
     torch.set_num_threads(1)
     run, cache, splits = _trained_run(tmp_path, visual_tail)
-    src = cmp.load_run(run)
-    assert cmp.run_visual_tail(src) == visual_tail
-    table = cmp.finetuned_tables(src, log=lambda m: None)(splits[0])
+    src = sources.load_run(run)
+    assert sources.run_visual_tail(src) == visual_tail
+    table = sources.finetuned_tables(src, log=lambda m: None)(splits[0])
     assert np.array_equal(table.x_v, cache.x_v) == (visual_tail == "frozen")
     out = tmp_path / "out"
     code = main(["compare", "--run", str(run), "--methods", "DAP,VT-FC-ZSL,VS2T-ZSL", "--skip-real",
@@ -401,7 +401,7 @@ def test_compare_run_reproduces_a_run_trained_with_its_visual_tail(tmp_path, cap
 
         old = cmp.FeatureTable(table.x_t, cache.x_v, table.fabric, table.fabric_ids, table.attributes)
         r = cmp.run_split(old, splits[0], {"VS2T-ZSL": vs2t.variant_class("VS2T-ZSL")},
-                          cmp.run_budget(src.profile, src.budget), routers=("gaussian",), log=lambda m: None)
+                          sources.run_budget(src.profile, src.budget), routers=("gaussian",), log=lambda m: None)
         assert r["methods"]["VS2T-ZSL"]["zsl_acc"] != src.vs2t_splits[0]["zsl_acc"]
 
 
@@ -444,7 +444,7 @@ def test_one_command_runs_the_whole_comparison_and_the_pages_rebuild_from_its_js
     assert f"recommended default: model {rec['model']}, router {rec['router']}" in io.out
     for page in ("comparison_tiny", "comparison_tiny_newsplits"):
         assert (out / f"{page}.png").stat().st_size > 5000 and not (out / f"{page}.partial.json").exists()
-        assert (out / f"{page}.md").read_text().rstrip("\n").endswith(cmp.HAND_MARKER)
+        assert (out / f"{page}.md").read_text().rstrip("\n").endswith(report.HAND_MARKER)
 
     hand = "\n## Reading (hand-written)\n\nThe tiny world says nothing about fabrics.\n"
     (out / "comparison_tiny.md").write_text(md + hand)
@@ -466,8 +466,8 @@ def test_one_command_runs_the_whole_comparison_and_the_pages_rebuild_from_its_js
 def test_finetuned_run_features_follow_the_run_recipe(tmp_path):
     torch.set_num_threads(1)
     run, table, splits = _fake_run(tmp_path, with_stems=True)
-    src = cmp.load_run(run)
-    for_split = cmp.finetuned_tables(src, log=lambda m: None)
+    src = sources.load_run(run)
+    for_split = sources.finetuned_tables(src, log=lambda m: None)
     a, b = for_split(splits[0]), for_split(splits[0])
     assert np.array_equal(a.x_t, b.x_t)  # seeded by the split, like the run
     assert np.array_equal(a.x_v, table.x_v) and a.fabric_ids == table.fabric_ids
@@ -479,7 +479,7 @@ def test_finetuned_run_features_follow_the_run_recipe(tmp_path):
     assert not np.array_equal(for_split(splits[1]).x_t, a.x_t)  # per split: other touched fabrics, other seed
     (run / "features" / "stem_cache.npz").unlink()
     with pytest.raises(FileNotFoundError, match="stem_cache"):
-        cmp.finetuned_tables(src)
+        sources.finetuned_tables(src)
 
 
 def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
@@ -521,7 +521,7 @@ def test_methods_section_says_what_vs2t_conditions_on():
     def methods_text(budget):
         r = copy.deepcopy(base)
         r["budget"] = budget
-        md = cmp.render_markdown(r)
+        md = report.render_markdown(r)
         return md[md.index("## Methods and adaptations"):]
 
     fabric = methods_text(base["budget"])
@@ -538,4 +538,4 @@ def test_methods_section_says_what_vs2t_conditions_on():
     no_vs2t = copy.deepcopy(base)
     for sp in no_vs2t["splits"]:
         sp["methods"].pop("VS2T-ZSL")
-    assert "VS2T-ZSL also conditions" not in cmp.render_markdown(no_vs2t)
+    assert "VS2T-ZSL also conditions" not in report.render_markdown(no_vs2t)

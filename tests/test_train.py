@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from vs2t_edge.train import compare as cmp
+from vs2t_edge.train import compare as cmp, compare_sources as sources
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.run import wasserstein_mean_1d
 from vs2t_edge.train.trunks import ResNet50, build_trunk, resnet50_state_for_torchvision
 
 
 def _views(seed=0):
-    table = cmp.toy_feature_table(n_fabrics=16, presses=30, d_t=48, d_v=24, seed=seed)
+    table = sources.toy_feature_table(n_fabrics=16, presses=30, d_t=48, d_v=24, seed=seed)
     split = cmp.make_splits(table.fabric_ids, 1, 3, 3, seed=seed)[0]
     return cmp.split_views(table, split)
 

@@ -158,16 +158,18 @@ def _log(msg: str) -> None:
 
 def _load_features(args, cmp):
     """(table, run source or None, per-split table function or None, source text)."""
+    from vs2t_edge.train import compare_sources as sources  # torch: imported once the verb runs
+
     run_src, table_for_split = None, None
     try:
         if args.run:
-            run_src = cmp.load_run(args.run)
+            run_src = sources.load_run(args.run)
             table = run_src.table
-            source = f"run {args.run}: {cmp.RUN_FEATURE_TABLE} ({table.source})"
-            visual_tuned = cmp.run_visual_tail(run_src) == "finetuned"
+            source = f"run {args.run}: {sources.RUN_FEATURE_TABLE} ({table.source})"
+            visual_tuned = sources.run_visual_tail(run_src) == "finetuned"
             if args.tactile == "finetuned" or visual_tuned:
                 # the visual tail follows the run's profile (config.yaml profile.visual_tail), whatever --tactile
-                table_for_split = cmp.finetuned_tables(run_src, log=_log, tactile=args.tactile == "finetuned")
+                table_for_split = sources.finetuned_tables(run_src, log=_log, tactile=args.tactile == "finetuned")
                 tac = ("tactile features of the run's stem cache through the trunk tail fine-tuned per split on "
                        "touched-train presses" if args.tactile == "finetuned"
                        else f"frozen tactile features ({table.source})")
@@ -186,7 +188,7 @@ def _load_features(args, cmp):
                 table = cmp.FeatureTable.load(args.cache)
                 source = f"cache {args.cache} ({table.source})"
             else:
-                table = cmp.extract_feature_table(args.data, log=_log, max_presses=args.max_presses)
+                table = sources.extract_feature_table(args.data, log=_log, max_presses=args.max_presses)
                 if args.cache:
                     args.cache.parent.mkdir(parents=True, exist_ok=True)
                     table.save(args.cache)
@@ -194,7 +196,7 @@ def _load_features(args, cmp):
         elif args.toy:
             # sized like the paper (50 fabrics) but with 60 presses each, 256-d features, and a
             # touch-only part per fabric so that zero-shot is not trivially solvable
-            table = cmp.toy_feature_table(n_fabrics=50, presses=60, d_t=256, d_v=256, seed=args.seed, noise=3.0,
+            table = sources.toy_feature_table(n_fabrics=50, presses=60, d_t=256, d_v=256, seed=args.seed, noise=3.0,
                                           private=1.5)
             source = table.source
         else:
@@ -244,15 +246,17 @@ def _real_check(args) -> dict | None:
 
 def _check_pages(cmp, out: Path, names: list[str], unmarked: str) -> None:
     """Refuse now, not after the long run, a page whose hand-written text could not be kept."""
+    from vs2t_edge.train import compare_report as report  # torch: imported once the verb runs
+
     for name in names:
         try:
-            cmp.hand_written_tail(out / f"{name}.md", unmarked)
-        except cmp.UnmarkedReportError as exc:
+            report.hand_written_tail(out / f"{name}.md", unmarked)
+        except report.UnmarkedReportError as exc:
             raise _Usage(str(exc)) from exc
 
 
 def _run(args: argparse.Namespace, torch) -> int:
-    from vs2t_edge.train import compare as cmp
+    from vs2t_edge.train import compare as cmp, compare_report as report, compare_sources as sources
     from vs2t_edge.train.baselines import Budget
 
     t0 = time.time()
@@ -265,7 +269,7 @@ def _run(args: argparse.Namespace, torch) -> int:
         if run_src is not None and not args.new_splits:
             splits, splits_source = run_src.splits, f"; exactly the splits of {args.run / 'metrics.json'}"
         elif args.splits_from is not None:
-            splits, _ = cmp.read_run_splits(args.splits_from)
+            splits, _ = sources.read_run_splits(args.splits_from)
             splits_source = f"; exactly the splits of {args.splits_from}"
         else:
             splits = cmp.make_splits(table.fabric_ids, args.splits, args.n_val, args.n_untouched, args.seed)
@@ -283,7 +287,7 @@ def _run(args: argparse.Namespace, torch) -> int:
     except (ValueError, FileNotFoundError, OSError) as exc:
         raise _Usage(str(exc)) from exc
     if run_src is not None:
-        budget = cmp.run_budget(run_src.profile, run_src.budget, steps=args.steps, hidden=args.hidden,
+        budget = sources.run_budget(run_src.profile, run_src.budget, steps=args.steps, hidden=args.hidden,
                                 cls_steps=args.cls_steps)
         notes.append(f"Budget: the VS2T run's profile ({args.run / 'config.yaml'}) for every row"
                      + (" with command-line overrides" if any(v is not None for v in (args.steps, args.hidden,
@@ -339,7 +343,7 @@ def _run(args: argparse.Namespace, torch) -> int:
                                           f"(seed {args.seed})")
     elif run_src is not None:
         result["meta"]["title_suffix"] = f" — {profile} profile (the VS2T run's splits)"
-        if cmp.compare_with_run(result, run_src) is None:
+        if sources.compare_with_run(result, run_src) is None:
             _log(f"note: {args.run / 'metrics.json'} has no VS2T-ZSL record to show beside ours")
         if run_src.router:
             result["run_router"] = run_src.router
@@ -355,15 +359,15 @@ def _run(args: argparse.Namespace, torch) -> int:
     if args.full:
         _log(f"[stage 4/4: the recommendation over {len(splits) + len(extra_splits)} splits pooled, and the pages] "
              f"({time.time() - t0:.0f} s elapsed)")
-        meta = {"full_command": cmp.full_command(args.run, args.out, name, len(extra_splits), args.extra_seed),
-                "rebuild_command": cmp.rebuild_command(args.out / f"{name}.json", [args.out / f"{extra_name}.json"])}
-        written = cmp.write_report_set((name, result), [(extra_name, extra)], args.out, real, unmarked, meta)
+        meta = {"full_command": report.full_command(args.run, args.out, name, len(extra_splits), args.extra_seed),
+                "rebuild_command": report.rebuild_command(args.out / f"{name}.json", [args.out / f"{extra_name}.json"])}
+        written = report.write_report_set((name, result), [(extra_name, extra)], args.out, real, unmarked, meta)
         for page in (name, extra_name):
             (args.out / f"{page}.partial.json").unlink(missing_ok=True)
         rec = result["pooled"]["summary"]["recommendation"]
         paths = [p for page in written.values() for p in page.values()]
     else:
-        written = cmp.write_results(result, args.out, real, name=name, unmarked=unmarked)
+        written = report.write_results(result, args.out, real, name=name, unmarked=unmarked)
         (args.out / f"{name}.partial.json").unlink(missing_ok=True)
         rec = result["summary"]["recommendation"]
         paths = list(written.values())
@@ -376,7 +380,7 @@ def _run(args: argparse.Namespace, torch) -> int:
 
 def _rebuild(args: argparse.Namespace) -> int:
     """The pages of MAIN.json (+ --pool JSONs) rebuilt from the JSONs alone, today's rule applied."""
-    from vs2t_edge.train import compare as cmp
+    from vs2t_edge.train import compare_report as report, compare_sources as sources
 
     main_path, extra_paths = args.rebuild, list(args.pool)
     out = main_path.parent
@@ -391,11 +395,11 @@ def _rebuild(args: argparse.Namespace) -> int:
             raise _Usage(f"cannot read comparison JSON {p}: {exc}") from exc
     main = loaded[main_path]
     if args.run_metrics is not None:
-        router = cmp.read_run_router(args.run_metrics)
+        router = sources.read_run_router(args.run_metrics)
         if not router:
             raise _Usage(f"{args.run_metrics} records no 'router' choice")
         try:
-            run_splits, _ = cmp.read_run_splits(args.run_metrics)
+            run_splits, _ = sources.read_run_splits(args.run_metrics)
         except (ValueError, FileNotFoundError) as exc:
             raise _Usage(str(exc)) from exc
         if [asdict(s) for s in run_splits] != [r["split"] for r in main["splits"]]:
@@ -406,13 +410,13 @@ def _rebuild(args: argparse.Namespace) -> int:
     n_extra = sum(len(loaded[p]["splits"]) for p in extra_paths)
     extra_seed = loaded[extra_paths[0]]["splits"][0]["split"].get("seed", 1000) // 1000 if extra_paths else 1
     extra_name = extra_paths[0].stem if extra_paths else f"{main_path.stem}_newsplits"
-    full = cmp.full_command(run, out, main_path.stem, n_extra, extra_seed)
+    full = report.full_command(run, out, main_path.stem, n_extra, extra_seed)
     if extra_name != f"{main_path.stem}_newsplits" or len(extra_paths) > 1:
         full += f" (its new splits go to {main_path.stem}_newsplits.*)"
-    commands = {"full_command": full, "rebuild_command": cmp.rebuild_command(main_path, extra_paths)}
+    commands = {"full_command": full, "rebuild_command": report.rebuild_command(main_path, extra_paths)}
     unmarked = "replace" if args.replace_unmarked else "refuse"
     try:
-        written = cmp.write_report_set((main_path.stem, main), [(p.stem, loaded[p]) for p in extra_paths], out,
+        written = report.write_report_set((main_path.stem, main), [(p.stem, loaded[p]) for p in extra_paths], out,
                                        None, unmarked, commands)
     except ValueError as exc:  # different methods, the same split twice, an unmarked page
         raise _Usage(str(exc)) from exc
