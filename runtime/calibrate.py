@@ -40,11 +40,19 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from vs2t_edge.runtime.config import ConfigError, load_config
+from vs2t_edge.runtime.dataset import load_dataset
+from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.novelty import threshold_rates, tune_threshold
 from vs2t_edge.runtime.operating_point import (  # noqa: F401 - re-exported for callers of calibrate
     OverrideFileError, override_file_for, override_path_for, read_beta_override, write_beta_override)
+from vs2t_edge.runtime.preprocess import FrameError
 from vs2t_edge.runtime.progress import Line
+from vs2t_edge.runtime.record_cli import record
+from vs2t_edge.runtime.replay import ReplayFile
 
 
 class CalibrationError(ValueError):
@@ -65,8 +73,6 @@ class Calibration:
 
 def choose_beta(novelty_touched, novelty_validation, *, target_false_untouched: float | None = None,
                 min_presses: int = 20) -> Calibration:
-    from vs2t_edge.runtime.novelty import threshold_rates, tune_threshold
-
     t = np.asarray(novelty_touched, dtype=np.float64).ravel()
     v = np.asarray(novelty_validation, dtype=np.float64).ravel()
     for name, a in (("touched", t), ("validation", v)):
@@ -105,8 +111,6 @@ def curve(novelty_touched, novelty_validation) -> tuple[np.ndarray, np.ndarray, 
     Exact, not sampled: novelty scores are heavy-tailed (1e3 .. 1e7 on one bundle), and an even
     grid over that range stepped over the one gap where the paper's rule peaks.
     """
-    from vs2t_edge.runtime.novelty import threshold_rates
-
     t, v = np.ravel(novelty_touched).astype(np.float64), np.ravel(novelty_validation).astype(np.float64)
     u = np.unique(np.concatenate([t, v]))
     mids = u[:-1] + 0.5 * (u[1:] - u[:-1])
@@ -163,8 +167,6 @@ def write_curve(out_png: Path, novelty_touched, novelty_validation, cal: Calibra
 
 
 def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float, log_x: bool = False) -> None:
-    import cv2
-
     w, h, m = 640, 360, 40
     img = np.full((h, w, 3), 255, np.uint8)
     cv2.rectangle(img, (m, m // 2), (w - m // 2, h - m), (0, 0, 0), 1)
@@ -194,9 +196,6 @@ def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float, log_x: boo
 def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None = None,
                          progress=None) -> tuple[list[float], list[float]]:
     """Novelty of every press of the dataset, split into touched (bundle classes) and validation."""
-    from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.preprocess import FrameError
-
     ds = load_dataset(dataset_root)
     touched_names = set(model.touched)
     touched, val = [], []
@@ -220,9 +219,6 @@ def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None
 
 
 def novelty_from_replays(model, files: list[Path]) -> list[float]:
-    from vs2t_edge.runtime.replay import ReplayFile
-    from vs2t_edge.runtime.preprocess import FrameError
-
     out = []
     for f in files:
         rf = ReplayFile.open(f)
@@ -269,8 +265,6 @@ def _override_target(args) -> tuple[Path | None, Path | None, str]:
             return None, None, "give --bundle (the deployed bundle) or --config (the service's config)"
         bundle = Path(args.bundle)
         return bundle, override_path_for(bundle), ""
-    from vs2t_edge.runtime.config import ConfigError, load_config
-
     try:
         cfg = load_config(args.config)
     except ConfigError as exc:
@@ -287,10 +281,6 @@ def _record_live(args, bundle: Path) -> int:
     """Live presses: one `vs2t-edge record` session per group on the config's devices, kept as
     replay files (the evidence behind the new beta) and then read like --touched-replay /
     --validation-replay. Returns an exit code, 0 when both sessions were recorded."""
-    import argparse
-
-    from vs2t_edge.runtime import record_cli
-
     if args.config is None or args.live_touched < 1 or args.live_validation < 1:
         print("calibrate-threshold: live presses need --config (the cell's devices) and both "
               "--live-touched N and --live-validation M (pieces, at least 1 each)", file=sys.stderr)
@@ -302,7 +292,7 @@ def _record_live(args, bundle: Path) -> int:
         out = folder / f"{group}-{stamp}.replay"
         print(f"calibrate-threshold: feed {pieces} piece(s) of {group} fabrics; recording into {out}",
               file=sys.stderr, flush=True)
-        code = record_cli.run(argparse.Namespace(config=args.config, out=str(out), max_items=pieces))
+        code = record(args.config, out, pieces)
         if code:
             print(f"calibrate-threshold: the {group} session ended with exit {code}; nothing calibrated "
                   f"(what was recorded is in {folder})", file=sys.stderr)
@@ -331,8 +321,6 @@ def run(args) -> int:
         print("calibrate-threshold: --target-false-untouched must be between 0 and 1", file=sys.stderr)
         return 2
     try:
-        from vs2t_edge.runtime.inference import TactileModel
-
         model = TactileModel.load(bundle, threads=args.threads, beta_override=None)
     except Exception as exc:  # noqa: BLE001
         print(f"calibrate-threshold: bundle {bundle} refused: {exc}", file=sys.stderr)

@@ -21,8 +21,11 @@ journal closed, STOPPING=1, exit 0.
 the reason and removes the fault file; the running service sees it, clears the gate and arm
 and resumes (a stopped service starts clean).
 
-Devices of kind ``sim`` are built by the simulated cell (vs2t_edge.sim.scene, the demo), which
-calls :func:`run_daemon` with them: the cell runtime never imports the simulators.
+This module is the service around the cell: start-up order, signals, watchdog and the fault
+clear. The parts - model, devices, item rule, the Cell itself - are built by runtime/wiring.py,
+which `record`, `replay`, `calibrate-threshold` and the demo share. Devices of kind ``sim`` are
+built by the simulated cell (vs2t_edge.sim.scene, the demo), which calls :func:`run_daemon` with
+them: the cell runtime never imports the simulators.
 """
 
 from __future__ import annotations
@@ -31,12 +34,15 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any, Callable
 
+from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
 from vs2t_edge.runtime.devices import DeviceError
-from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
+from vs2t_edge.runtime.files import read_regular_file
+from vs2t_edge.runtime.journal import Journal, JournalError
+from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.runtime.wiring import build_cell, build_live_devices, load_model
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
 
@@ -45,104 +51,11 @@ def _log(msg: str) -> None:
     print(f"vs2t-edge: {msg}", file=sys.stderr, flush=True)
 
 
-def resolve_beta_override(cfg: CellConfig) -> float | None:
-    """The beta that overrides the bundle's, by runtime/operating_point.py's precedence (None: the
-    bundle's own stands)."""
-    return resolve_beta(cfg)[0]
-
-
-def load_model(cfg: CellConfig):
-    """Verified, warmed model of the bundle (raises on any mismatch, naming it)."""
-    from vs2t_edge.runtime.inference import TactileModel
-
-    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta_override(cfg))
-    check_scene_against_bundle(cfg, model)
-    return model
-
-
-def check_scene_against_bundle(cfg: CellConfig, model) -> None:
-    """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
-    scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
-    config or a wrong bundle, and the cell would sort it with the wrong expectation."""
-    touched, untouched = list(model.touched), list(model.untouched)
-    missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
-    if missing:
-        raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
-                         f"(touched: {touched}, untouched: {untouched})")
-    wrong = [f"{f.name} (scene: {f.kind}, bundle: {'touched' if f.name in touched else 'untouched'})"
-             for f in cfg.fabrics if (f.name in touched) != (f.kind == "touched")]
-    if wrong:
-        raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
-                         "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
-
-
-def default_evidence_factory(cfg: CellConfig, model: Any = None) -> Callable[[], Any]:
-    """The item evidence for the config's scene. With a bundle that carries a scene model (``model``
-    given), its operating point - evidence weight, off-scene checks, the confidence per kind fitted
-    for the mis-sort target - is used; ``evidence.confidence`` written in the config overrides the
-    bundle's touched confidence."""
-    from vs2t_edge.runtime.evidence import Evidence
-
-    confidence, opts = evidence_settings(cfg, model)
-    return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
-
-
-def contact_check_for(cfg: CellConfig):
-    """The press-frame contact check the config asks for, or None (docs/cell.md, "Contact check")."""
-    cam = cfg.camera
-    on = cam["contact_check"] == "on" or (cam["contact_check"] == "auto" and cam["kind"] == "uvc")
-    if not on:
-        return None
-    from vs2t_edge.runtime.camera import ContactCheck
-
-    return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
-
-
-def build_live_devices(cfg: CellConfig):
-    """Camera, arm and gate from the config (vendor modules imported only when chosen)."""
-    cam, gate_cfg = cfg.camera, cfg.gate
-    if cam["kind"] == "sim":
-        raise ConfigError(cfg.path, [f"{cfg.path}: devices.camera.kind = sim is built by the simulated cell "
-                                     "(`vs2t-edge demo`), not by `run`"])
-    from vs2t_edge.runtime.camera import camera_from_config
-
-    camera = camera_from_config(cam)
-    if cfg.arm_kind == "ur_rtde":
-        # ur_rtde in a worker process: a client crash (it can segfault on a flapping link)
-        # costs one press, not the service (docs/arm.md).
-        from vs2t_edge.runtime.arm import IsolatedURArm
-
-        arm = IsolatedURArm(cfg.arm)
-    elif cfg.arm_kind == "fake":
-        from vs2t_edge.runtime.arm import FakeArm
-
-        arm = FakeArm(config=cfg.arm)
-    else:
-        raise ConfigError(cfg.path, [f"{cfg.path}: devices.arm.kind = sim is built by the simulated cell "
-                                     "(`vs2t-edge demo`), not by `run`"])
-    if gate_cfg["kind"] == "serial":
-        from vs2t_edge.runtime.gate import SerialGate
-
-        gate = SerialGate(gate_cfg["url"], timeout_s=gate_cfg["timeout_s"], retries=gate_cfg["retries"])
-    elif gate_cfg["kind"] == "sim":
-        from vs2t_edge.runtime.gate import simulated_serial_gate
-
-        gate = simulated_serial_gate()
-    else:
-        from vs2t_edge.runtime.gate import FakeGate
-
-        gate = FakeGate()
-    return camera, arm, gate
-
-
 def clear_fault(cfg: CellConfig) -> int:
     ff = cfg.fault_file
     if not ff.exists():
         print(f"no latched fault ({ff} absent)")
         return EXIT_OK
-    from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
-    from vs2t_edge.runtime.files import read_regular_file
-
     try:
         reason = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace").strip()
     except (OSError, ValueError) as exc:  # a FIFO or a huge file there is no reason to print; remove it
@@ -156,10 +69,6 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                evidence_factory=None, notifier=None, stop_event: threading.Event | None = None,
                on_item=None, max_items: int | None = None, stop_when=None, install_signals: bool = True,
                log: Callable[[str], None] = _log) -> int:
-    from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
-    from vs2t_edge.runtime.journal import Journal, JournalError
-    from vs2t_edge.runtime.notify import Notifier
-
     notifier = notifier or Notifier()
     stop_event = stop_event or threading.Event()
     if install_signals:
@@ -228,12 +137,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         gate.to_reject()  # a fresh start routes nothing until a decision says so
     except Exception:  # noqa: BLE001
         pass
-    scene = SceneSpec.from_config(cfg)
-    cell = Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier, scene=scene,
-                evidence_factory=evidence_factory or default_evidence_factory(cfg, model),
-                items=items or ContinuousFeed(first_number=journal.next_item_number()), stop_event=stop_event,
-                on_item=on_item, log=log,
-                contact_check=contact_check_for(cfg))
+    cell = build_cell(cfg, model=model, camera=camera, arm=arm, gate=gate, journal=journal, notifier=notifier,
+                      items=items, evidence_factory=evidence_factory, stop_event=stop_event, on_item=on_item, log=log)
     try:
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})

@@ -224,15 +224,6 @@ class TactileModel:
         self.last_timing = timing
         return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq)
 
-    def evidence_options(self) -> dict:
-        """What the bundle's operating point says about accumulating evidence (``runtime.evidence.Evidence``
-        keyword arguments); empty for a bundle without a scene model."""
-        m = self.scene_model
-        if m is None:
-            return {}
-        return {"weight": m.evidence_weight, "open_threshold": m.open_threshold, "known_margin": m.known_margin,
-                "class_confidence": {c: m.untouched_confidence for c in m.untouched}}
-
 
 __all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",
            "BundleError", "FrameError"]

@@ -15,8 +15,9 @@ Two parts:
   ``evidence.confidence``, when written, overrides the touched confidence; ``evidence.max_presses``
   is the config's. A bundle without a scene model uses the config's confidence alone.
 
-``runtime/daemon.py`` (run, record, replay) and ``runtime/calibrate.py`` read and write through
-these functions only.
+``runtime/wiring.py`` (the model's beta and the item evidence of run, record, replay and the
+demo), ``runtime/calibrate.py`` (the override file) and ``runtime/sorting.py`` (the simulated
+jobs of training's report and the bench) read and write through these functions only.
 """
 
 from __future__ import annotations
@@ -122,17 +123,35 @@ def _write_atomic(path: Path, text: str) -> None:
         os.close(fd)
 
 
+def scene_model_rule(scene_model) -> tuple[float, dict]:
+    """(touched confidence, the other keyword arguments of ``runtime.evidence.Evidence``) of a
+    scene model's operating point, as training chose it for the mis-sort target: press weight,
+    off-scene threshold and margin, the confidence per kind (every untouched class at the
+    untouched one). Its temperature and untouched bias act inside the model's posterior
+    (runtime/scene_model.py) and have no override."""
+    m = scene_model
+    return m.confidence, {"weight": m.evidence_weight, "open_threshold": m.open_threshold,
+                          "known_margin": m.known_margin,
+                          "class_confidence": {c: m.untouched_confidence for c in m.untouched}}
+
+
+def config_sets_confidence(cfg) -> bool:
+    """Whether the config's file writes ``evidence.confidence`` (a default does not count: it
+    must not override the scene model's fitted confidence)."""
+    return "confidence" in ((cfg.raw or {}).get("evidence") or {})
+
+
 def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
     """(confidence, keyword arguments of ``runtime.evidence.Evidence``) for ``cfg``'s scene with
     ``model``: the scene model's operating point when the bundle has one, the config's
-    ``evidence.confidence`` overriding its touched confidence when written there."""
+    ``evidence.confidence`` overriding its touched confidence when written there; for a bundle
+    without a scene model, the config's confidence alone."""
     scene_model = getattr(model, "scene_model", None)
-    opts = model.evidence_options() if scene_model is not None else {}
-    confidence = cfg.confidence
-    if scene_model is not None and "confidence" not in ((cfg.raw or {}).get("evidence") or {}):
-        confidence = scene_model.confidence
-    return confidence, opts
+    if scene_model is None:
+        return cfg.confidence, {}
+    confidence, opts = scene_model_rule(scene_model)
+    return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
-           "write_beta_override", "evidence_settings"]
+           "write_beta_override", "scene_model_rule", "config_sets_confidence", "evidence_settings"]

@@ -20,6 +20,11 @@ import sys
 import threading
 from pathlib import Path
 
+from vs2t_edge.runtime import wiring
+from vs2t_edge.runtime.cell import ContinuousFeed
+from vs2t_edge.runtime.config import ConfigError, load_config
+from vs2t_edge.runtime.replay import ReplayFile, record_session
+
 
 def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--config", required=True, help="cell config (YAML)")
@@ -28,6 +33,13 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
+    return record(args.config, args.out, args.max_items)
+
+
+def record(config: Path | str, out: Path | str, max_items: int) -> int:
+    """Record ``max_items`` pieces on the devices and bundle of the cell config ``config`` into
+    the replay folder ``out``; the exit code of `vs2t-edge record`. `calibrate-threshold`'s live
+    presses call this too."""
     # Handlers first: a signal during the bundle check stops the session before it starts; from
     # then on the daemon's loop sees stop_event at its next press boundary.
     stop_event = threading.Event()
@@ -42,41 +54,36 @@ def run(args) -> int:
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _record(args, stop_event)
+        return _record(Path(config), Path(out), max_items, stop_event)
     finally:  # a caller in the same process (tests, a shell) gets its own handlers back
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
-def _record(args, stop_event: threading.Event) -> int:
-    from vs2t_edge.runtime.cell import ContinuousFeed
-    from vs2t_edge.runtime.config import ConfigError, load_config
-    from vs2t_edge.runtime.daemon import build_live_devices, default_evidence_factory, load_model
-    from vs2t_edge.runtime.replay import record_session
-
+def _record(config: Path, out: Path, max_items: int, stop_event: threading.Event) -> int:
+    # wiring's builders looked up when called: a test replaces one (fake devices, a fake model) in one place
     try:
-        cfg = load_config(args.config)
-        camera, arm, gate = build_live_devices(cfg)
+        cfg = load_config(config)
+        camera, arm, gate = wiring.build_live_devices(cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
         return 2
     try:
-        model = load_model(cfg)
+        model = wiring.load_model(cfg)
     except Exception as exc:  # noqa: BLE001
         print(f"record: bundle {cfg.bundle} refused: {exc}", file=sys.stderr)
         return 2
-    from vs2t_edge.runtime.replay import ReplayFile
-
-    out = record_session(cfg, Path(args.out), model=model, camera=camera, arm=arm, gate=gate,
-                         items=ContinuousFeed(limit=args.max_items), evidence_factory=default_evidence_factory(cfg, model),
-                         log=lambda m: print(m, file=sys.stderr), stop_event=stop_event)
+    # the item rule is the daemon's own (wiring.build_cell): what `run` would decide is recorded
+    out = record_session(cfg, out, model=model, camera=camera, arm=arm, gate=gate,
+                         items=ContinuousFeed(limit=max_items), log=lambda m: print(m, file=sys.stderr),
+                         stop_event=stop_event)
     index = ReplayFile.open(out).index
     finals = [d for d in index["decisions"] if d["type"] == "final"]
     faults = [d for d in index["decisions"] if d["type"] == "fault"]
     code = int(index["meta"].get("daemon_exit") or 0)
-    print(f"recorded {len(finals)} of {args.max_items} items into {out}"
+    print(f"recorded {len(finals)} of {max_items} items into {out}"
           + (f"; stopped by {index['meta']['stopped_by']}" if index["meta"].get("stopped_by") else "")
-          + (f"; ended latched: {faults[-1]['reason']}" if faults and len(finals) < args.max_items else ""))
+          + (f"; ended latched: {faults[-1]['reason']}" if faults and len(finals) < max_items else ""))
     if code != 0:
         print(f"record: the daemon stopped with exit {code} (see the messages above); the replay holds what "
               "happened until then", file=sys.stderr)

@@ -30,7 +30,7 @@ import tempfile
 import threading
 import time
 from collections import defaultdict, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,11 @@ import yaml
 
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
+from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
+from vs2t_edge.runtime.journal import read_records
+from vs2t_edge.runtime.notify import Notifier
 # the file format and its reader (re-exported: callers import them from here)
 from vs2t_edge.runtime.replay_file import (  # noqa: F401
     FORMAT,
@@ -485,8 +489,6 @@ class ReplayReport:
 
 def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     """The recorded config with the bundle swapped in and the journal in a scratch folder."""
-    from vs2t_edge.runtime.config import validate_config_dict
-
     raw = json.loads(json.dumps(rf.index["config"]))
     if bundle is not None:
         raw["bundle"] = str(Path(bundle).resolve())
@@ -499,8 +501,6 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     text = yaml.safe_dump(raw)
     path = workdir / "replay-config.yaml"
     path.write_text(text)
-    from vs2t_edge.runtime.config import parse_yaml_with_lines
-
     data, lines = parse_yaml_with_lines(text, path)
     return validate_config_dict(data, lines, path)
 
@@ -522,10 +522,6 @@ def recorded_bundle(rf: ReplayFile) -> Path:
 def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evidence_factory=None,
                update_refs: bool = False) -> ReplayReport:
     """Run the daemon from a replay file and compare its decisions with the recorded ones."""
-    from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.journal import read_records
-    from vs2t_edge.runtime.notify import Notifier
-
     rf = ReplayFile.open(file)
     with tempfile.TemporaryDirectory(prefix="vs2t-replay-") as tmp:
         work = Path(tmp)
@@ -591,19 +587,13 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     (``meta.crashed`` names it). A session cut short mid-item does not replay as is (its last item
     has no more device events); its frames and decisions are there for calibration and review.
     """
-    import dataclasses
-
-    from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.journal import read_records
-    from vs2t_edge.runtime.notify import Notifier
-
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     journal = out.with_name(out.name + ".journal.jsonl")
     for p in (journal, journal.with_name("FAULT." + out.name)):
         if p.exists():
             p.unlink()
-    cfg = dataclasses.replace(cfg, journal=journal, fault_file=journal.with_name("FAULT." + out.name))
+    cfg = replace(cfg, journal=journal, fault_file=journal.with_name("FAULT." + out.name))
     rec = Recorder()
     r_items = RecordingItems(items, rec)
 

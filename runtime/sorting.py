@@ -27,6 +27,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+from vs2t_edge.runtime.operating_point import scene_model_rule
 
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
 OUTCOMES = (RIGHT, MIS_SORT, REJECT)
@@ -225,10 +226,10 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
 def scene_evidence(model, max_presses: int = 5) -> Callable[[Scene], Evidence]:
     """The evidence the cell builds for a scene from a scene model's operating point
     (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules)."""
+    confidence, opts = scene_model_rule(model)
+
     def make(scene: Scene) -> Evidence:
-        return Evidence(scene.classes, model.confidence, max_presses, weight=model.evidence_weight,
-                        open_threshold=model.open_threshold, known_margin=model.known_margin,
-                        class_confidence={c: model.untouched_confidence for c in model.untouched})
+        return Evidence(scene.classes, confidence, max_presses, **opts)
     return make
 
 

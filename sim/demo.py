@@ -33,6 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.daemon import run_daemon
+from vs2t_edge.runtime.dataset import load_dataset, press_partition
+from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.replay import record_session
+from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 # world profile -> training profile (the demo's world trains with the small profile's budget)
 TRAIN_PROFILE = {"demo": "small"}
@@ -121,8 +127,6 @@ def choose_scene(touched: list[str], untouched: list[str], others: list[str], se
 def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
     """The touched fabrics' presses that no training step saw (the test part of
     ``runtime.dataset.press_partition``): a touched piece in the demo shows only these."""
-    from vs2t_edge.runtime.dataset import press_partition
-
     out = {}
     for fid in bundle_touched:
         n = len(ds.by_id(fid).presses)
@@ -133,12 +137,6 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log) -> dict:
-    from vs2t_edge.runtime import sorting as so
-    from vs2t_edge.runtime.daemon import default_evidence_factory, run_daemon
-    from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.inference import TactileModel
-    from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
-
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)
@@ -179,7 +177,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         data = scene_config_yaml(bundle=bundle, dataset=dataset, journal=journal, fabrics=fabrics,
                                  arm_host=cell.arm_host, confidence=confidence or 0.9, max_presses=max_presses,
                                  threads=threads)
-        if confidence is None:  # the bundle's operating point decides (runtime/daemon.py)
+        if confidence is None:  # the bundle's operating point decides (runtime/operating_point.py)
             del data["evidence"]["confidence"]
         cfg = write_scene_config(workdir / "cell.yaml", data)
         if fault_at is not None:
@@ -195,13 +193,10 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
             f"fabrics ({', '.join(f'{f} bin {bins[f]}' for f in touched + untouched)}); off-scene pieces of "
             f"{', '.join(off_scene)} must go to the reject bin 0; arm {arm_kind}, gate {gate_kind}; touched pieces "
             "show only presses no training step saw")
-        evidence = default_evidence_factory(cfg, model)
+        # the item rule is the daemon's own (runtime/wiring.py), as `run` would build it for this config
         if record is not None:
-            from vs2t_edge.runtime.replay import record_session
-
             record_session(cfg, record, model=model, camera=cell.camera, arm=cell.arm, gate=cell.gate,
-                           items=cell.source, evidence_factory=evidence,
-                           operator_clear=cell.operator_clear, on_item=capture,
+                           items=cell.source, operator_clear=cell.operator_clear, on_item=capture,
                            meta={"made_by": "vs2t-edge demo", "seed": seed})
         else:
             def stop_when() -> bool:
@@ -213,7 +208,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 return cell.source.exhausted()
 
             run_daemon(cfg, model=model, camera=cell.camera, arm=cell.arm, gate=cell.gate, items=cell.source,
-                       evidence_factory=evidence, on_item=capture, stop_when=stop_when,
+                       on_item=capture, stop_when=stop_when,
                        install_signals=False, log=lambda m: log(f"  daemon: {m}"))
         sort_s = time.monotonic() - t0
     lat = [x for r in results_holder for x in r.latency_ms]

@@ -32,6 +32,8 @@ import yaml
 from vs2t_edge.runtime.cell import Item
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
+from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.replay import SCORE_RTOL, record_session
 
 
 @dataclass(frozen=True)
@@ -366,12 +368,9 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
     pieces, and a protective stop mid-item cleared by the operator).
 
     The scene is the bundle's classes minus its last untouched class, which is kept off-scene:
-    pieces of it must go to the reject bin whatever the model calls them.
+    pieces of it must go to the reject bin whatever the model calls them. The item rule is the
+    daemon's own for the config and the model (runtime/wiring.py), the one a replay runs again.
     """
-    from vs2t_edge.runtime.daemon import default_evidence_factory
-    from vs2t_edge.runtime.inference import TactileModel
-    from vs2t_edge.runtime.replay import record_session
-
     model = TactileModel.load(bundle, threads=1, beta_override=None)
     touched, untouched = list(model.touched), list(model.untouched)
     off_scene = [untouched.pop()] if len(untouched) > 1 else []
@@ -394,8 +393,7 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
             if fault is not None:
                 cell.schedule_fault(*fault)
             path = record_session(cfg, out_dir / f"{name}.replay", model=model, camera=cell.camera, arm=cell.arm,
-                                  gate=cell.gate, items=cell.source, evidence_factory=default_evidence_factory(cfg),
-                                  operator_clear=cell.operator_clear,
+                                  gate=cell.gate, items=cell.source, operator_clear=cell.operator_clear,
                                   meta={"made_by": "python -m vs2t_edge.sim.scene record-references",
                                         "session": name, "seed": seed + k})
             (out_dir / f".{name}.yaml").unlink()
@@ -474,8 +472,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"reference world written to {a.out}")
         return 0
     written = record_reference_sessions(Path(a.dataset), Path(a.bundle), Path(a.out), arm_kind=a.arm, seed=a.seed)
-    from vs2t_edge.runtime.replay import SCORE_RTOL
-
     fragile = [p.stem for p in written
                if min(decision_margins(json.loads((p / "index.json").read_text())).values()) <= SCORE_RTOL]
     if fragile:

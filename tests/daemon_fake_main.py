@@ -68,14 +68,14 @@ def main() -> int:
 
 def record(a, cfg) -> int:
     from vs2t_edge import cli
-    from vs2t_edge.runtime import daemon
+    from vs2t_edge.runtime import wiring
 
     classes = cfg.scene_classes
     arm = FakeArm(config=cfg.arm)
-    daemon.load_model = lambda _cfg: SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes,
+    wiring.load_model = lambda _cfg: SlowModel({50 + 10 * i: c for i, c in enumerate(classes)}, classes,
                                                delay_s=a.score_delay_s)
-    daemon.build_live_devices = lambda _cfg: (ScriptedCamera(arm, [50, 60] * 100000), arm, FakeGate())
-    daemon.default_evidence_factory = lambda _cfg, _model=None: (lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
+    wiring.build_live_devices = lambda _cfg: (ScriptedCamera(arm, [50, 60] * 100000), arm, FakeGate())
+    wiring.evidence_factory_for = lambda _cfg, _model=None: (lambda: FakeEvidence(classes, cfg.confidence, cfg.max_presses))
     return cli.main(["record", "--config", a.config, "--out", a.record, "--max-items", "100000"])
 
 

@@ -98,11 +98,10 @@ def test_cli_needs_inputs(capsys):
 
 
 def _fake_inference(monkeypatch, touched, untouched):
-    """A stand-in runtime.inference until a bundle is at hand: novelty = the frame's grey level."""
-    import sys
-    import types
-
+    """A stand-in for the bundle's model until a bundle is at hand: novelty = the frame's grey level."""
     from cell_fakes import FakeModel
+
+    from vs2t_edge.runtime import calibrate
 
     class TactileModel(FakeModel):
         beta = 65.0
@@ -113,9 +112,7 @@ def _fake_inference(monkeypatch, touched, untouched):
             m.touched, m.untouched = touched, untouched
             return m
 
-    mod = types.ModuleType("vs2t_edge.runtime.inference")
-    mod.TactileModel = TactileModel
-    monkeypatch.setitem(sys.modules, "vs2t_edge.runtime.inference", mod)
+    monkeypatch.setattr(calibrate, "TactileModel", TactileModel)
 
 
 def _grey_dataset(root, greys: dict[str, int], n_presses=25):
@@ -137,7 +134,7 @@ def _grey_dataset(root, greys: dict[str, int], n_presses=25):
 def test_cli_from_a_dataset_writes_override_and_curve(tmp_path, monkeypatch, capsys):
     from vs2t_edge.cli import main
     from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import resolve_beta_override
+    from vs2t_edge.runtime.operating_point import resolve_beta
 
     _fake_inference(monkeypatch, ["denim", "silk"], ["wool"])
     _grey_dataset(tmp_path / "ds", {"denim": 50, "silk": 60, "velvet": 80, "tweed": 90})
@@ -152,9 +149,9 @@ def test_cli_from_a_dataset_writes_override_and_curve(tmp_path, monkeypatch, cap
     cfg_text = ("bundle: bundle\ndevices: {camera: {kind: replay, path: x}, arm: {kind: fake}, gate: {kind: fake}}\n"
                 "scene: {fabrics: [{name: denim, kind: touched, bin: 1}]}\njournal: j.jsonl\n")
     (tmp_path / "c.yaml").write_text(cfg_text)
-    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == pytest.approx(beta)
+    assert resolve_beta(load_config(tmp_path / "c.yaml"))[0] == pytest.approx(beta)
     (tmp_path / "c.yaml").write_text(cfg_text + "beta_override: 1.5\n")
-    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == 1.5
+    assert resolve_beta(load_config(tmp_path / "c.yaml"))[0] == 1.5
 
 
 def test_cli_refuses_thin_data_and_writes_nothing(tmp_path, monkeypatch, capsys):
@@ -313,7 +310,7 @@ def test_a_config_beta_override_that_would_shadow_the_new_beta_is_refused(tmp_pa
 
 def test_the_override_goes_where_the_config_points_and_the_daemon_uses_it(tmp_path, monkeypatch, capsys):
     from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import resolve_beta_override
+    from vs2t_edge.runtime.operating_point import resolve_beta
 
     assert _calibrate_with_config(tmp_path, monkeypatch, "beta_override_file: site/beta.json\n") == 0
     out = capsys.readouterr().out
@@ -322,7 +319,7 @@ def test_the_override_goes_where_the_config_points_and_the_daemon_uses_it(tmp_pa
     assert not override_path_for(tmp_path / "bundle").exists()  # not where the daemon would not look
     beta = read_beta_override(target)
     assert 64 <= beta <= 76
-    assert resolve_beta_override(load_config(tmp_path / "c.yaml")) == pytest.approx(beta)
+    assert resolve_beta(load_config(tmp_path / "c.yaml"))[0] == pytest.approx(beta)
 
 
 def test_without_config_the_message_says_when_the_file_is_used(tmp_path, monkeypatch, capsys):
@@ -347,7 +344,7 @@ def test_live_presses_are_recorded_per_group_and_calibrated(tmp_path, monkeypatc
     import shutil
 
     from vs2t_edge.cli import main
-    from vs2t_edge.runtime import daemon
+    from vs2t_edge.runtime import wiring
     from vs2t_edge.runtime.camera import ReplayCamera
     from vs2t_edge.runtime.replay import ReplayFile
 
@@ -366,13 +363,13 @@ def test_live_presses_are_recorded_per_group_and_calibrated(tmp_path, monkeypatc
         "scene: {reject_bin: 0, fabrics: [{name: f00, kind: touched, bin: 1}, {name: f04, kind: touched, bin: 2},"
         " {name: f08, kind: touched, bin: 3}, {name: f01, kind: untouched, bin: 4}]}\n")
     cameras = iter(["frames_touched", "frames_validation"])  # the operator feeds the next group
-    build = daemon.build_live_devices
+    build = wiring.build_live_devices
 
     def devices(cfg):
         _camera, arm, gate = build(cfg)
         return ReplayCamera(tmp_path / next(cameras)), arm, gate
 
-    monkeypatch.setattr(daemon, "build_live_devices", devices)
+    monkeypatch.setattr(wiring, "build_live_devices", devices)
     monkeypatch.chdir(tmp_path)
     code = main(["calibrate-threshold", "--config", "cell.yaml", "--live-touched", "2", "--live-validation", "2",
                  "--min-presses", "2", "--threads", "1"])

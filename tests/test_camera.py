@@ -420,7 +420,7 @@ def test_the_frame_timeout_stays_below_the_units_watchdog():
 
 
 def test_exposure_from_the_config_reaches_the_uvc_camera(tmp_path):
-    from vs2t_edge.runtime.daemon import build_live_devices
+    from vs2t_edge.runtime.wiring import build_live_devices
 
     _, load = _cell_config(tmp_path, "    exposure: 156\n")
     cfg = load()

@@ -190,7 +190,7 @@ def test_defaults_are_typed(tmp_path):
 
 def test_contact_check_is_on_for_a_live_sensor_and_off_for_replays_unless_asked(tmp_path):
     from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import contact_check_for
+    from vs2t_edge.runtime.wiring import contact_check_for
 
     def cfg(camera: str):
         p = tmp_path / "c.yaml"

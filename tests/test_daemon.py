@@ -267,7 +267,7 @@ def test_scene_kind_that_disagrees_with_the_bundle_is_refused(tmp_path, fabric, 
     import yaml
 
     from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.daemon import load_model
+    from vs2t_edge.runtime.wiring import load_model
 
     scene = {"reject_bin": 0, "fabrics": [{"name": "f00", "kind": "touched", "bin": 1},
                                           {"name": "f04", "kind": "touched", "bin": 2},

@@ -54,12 +54,33 @@ def test_the_override_keeps_its_history_and_a_bad_file_is_named(tmp_path):
 
 
 def test_the_scene_models_item_rule_unless_the_config_writes_a_confidence(tmp_path):
-    scene = SimpleNamespace(confidence=0.97)
-    model = SimpleNamespace(scene_model=scene, evidence_options=lambda: {"weight": 0.25, "known_margin": 0.0})
+    scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
+                            known_margin=0.0, untouched=frozenset({"wool"}))
+    model = SimpleNamespace(scene_model=scene)
     confidence, opts = op.evidence_settings(_cfg(tmp_path), model)
-    assert confidence == 0.97 and opts == {"weight": 0.25, "known_margin": 0.0}
+    assert confidence == 0.97 and opts == {"weight": 0.25, "open_threshold": 40.0, "known_margin": 0.0,
+                                           "class_confidence": {"wool": 0.9}}
     confidence, opts = op.evidence_settings(_cfg(tmp_path, "evidence: {confidence: 0.8}\n"), model)
-    assert confidence == 0.8 and opts["weight"] == 0.25
+    assert confidence == 0.8 and opts["weight"] == 0.25 and opts["class_confidence"] == {"wool": 0.9}
     plain = SimpleNamespace(scene_model=None)
     cfg = _cfg(tmp_path)
     assert op.evidence_settings(cfg, plain) == (cfg.confidence, {})
+
+
+def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(tmp_path):
+    """The cell's evidence (runtime/wiring.py) and the simulated jobs of training's report and the
+    bench (runtime/sorting.py) both take the scene model's rule from operating_point: one item rule."""
+    from vs2t_edge.runtime.sorting import Scene, scene_evidence
+    from vs2t_edge.runtime.wiring import evidence_factory_for
+
+    scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
+                            known_margin=1.5, untouched=frozenset({"wool"}))
+    (tmp_path / "c.yaml").write_text(CFG.replace("{name: denim, kind: touched, bin: 1}",
+                                                 "{name: denim, kind: touched, bin: 1}, {name: wool, kind: untouched, "
+                                                 "bin: 2}"))
+    cfg = load_config(tmp_path / "c.yaml")
+    cell = evidence_factory_for(cfg, SimpleNamespace(scene_model=scene))()
+    jobs = scene_evidence(scene, cfg.max_presses)(Scene(("denim",), ("wool",), ()))
+    for ev in (cell, jobs):
+        assert (ev.confidence, ev.weight, ev.open_threshold, ev.known_margin) == (0.97, 0.25, 40.0, 1.5)
+        assert dict(zip(ev.classes, ev._needed.tolist())) == {"denim": 0.97, "wool": 0.9}

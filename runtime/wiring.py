@@ -1,0 +1,116 @@
+"""How a cell is wired: from a cell config to the parts a session runs on, and to a ready
+:class:`~vs2t_edge.runtime.cell.Cell`.
+
+The parts: the verified, warmed model of the config's bundle, checked against the scene; the
+camera, arm and gate the config names; the item rule (``runtime.evidence.Evidence`` with the
+operating point's numbers); the press-frame contact check. Every verb that runs the cell goes
+through these functions: `run` (runtime/daemon.py), `record` (runtime/record_cli.py), `replay`
+and session recording (runtime/replay.py), `calibrate-threshold --live-*` (through `record`) and
+the demo and its reference sessions (sim/demo.py, sim/scene.py, which inject simulated devices
+and their own model). One wiring means a replay or a demo runs the cell exactly as `run` does.
+
+Which numbers decide (beta, the scene model's item rule and the config's overrides) is
+runtime/operating_point.py's to say; this module asks it and builds what it says.
+
+Devices of kind ``sim`` are built by the simulated cell (vs2t_edge.sim.scene), which passes them
+in: the cell runtime never imports the simulators.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, Callable
+
+from vs2t_edge.runtime.arm import FakeArm, IsolatedURArm
+from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
+from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.runtime.config import CellConfig, ConfigError
+from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.gate import FakeGate, SerialGate, simulated_serial_gate
+from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
+
+
+def load_model(cfg: CellConfig) -> TactileModel:
+    """Verified, warmed model of the bundle, with the beta the operating point says, checked
+    against the scene (raises on any mismatch, naming it)."""
+    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta(cfg)[0])
+    check_scene_against_bundle(cfg, model)
+    return model
+
+
+def check_scene_against_bundle(cfg: CellConfig, model) -> None:
+    """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
+    scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
+    config or a wrong bundle, and the cell would sort it with the wrong expectation."""
+    touched, untouched = list(model.touched), list(model.untouched)
+    missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
+    if missing:
+        raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
+                         f"(touched: {touched}, untouched: {untouched})")
+    wrong = [f"{f.name} (scene: {f.kind}, bundle: {'touched' if f.name in touched else 'untouched'})"
+             for f in cfg.fabrics if (f.name in touched) != (f.kind == "touched")]
+    if wrong:
+        raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
+                         "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
+
+
+def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:
+    """A fresh item evidence per piece for the config's scene, with the item rule
+    runtime/operating_point.py chooses for ``cfg`` and ``model`` (the scene model's, when the
+    bundle has one, with the config's written confidence over it)."""
+    confidence, opts = evidence_settings(cfg, model)
+    return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
+
+
+def contact_check_for(cfg: CellConfig) -> ContactCheck | None:
+    """The press-frame contact check the config asks for, or None (docs/cell.md, "Contact check")."""
+    cam = cfg.camera
+    on = cam["contact_check"] == "on" or (cam["contact_check"] == "auto" and cam["kind"] == "uvc")
+    if not on:
+        return None
+    return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
+
+
+def build_live_devices(cfg: CellConfig):
+    """(camera, arm, gate) from the config, not yet connected. Vendor SDKs (ur_rtde) are imported
+    by the drivers only when connected; devices of kind ``sim`` are the simulated cell's to build."""
+    cam, gate_cfg = cfg.camera, cfg.gate
+    if cam["kind"] == "sim":
+        raise ConfigError(cfg.path, [f"{cfg.path}: devices.camera.kind = sim is built by the simulated cell "
+                                     "(`vs2t-edge demo`), not by `run`"])
+    camera = camera_from_config(cam)
+    if cfg.arm_kind == "ur_rtde":
+        # ur_rtde in a worker process: a client crash (it can segfault on a flapping link)
+        # costs one press, not the service (docs/arm.md).
+        arm = IsolatedURArm(cfg.arm)
+    elif cfg.arm_kind == "fake":
+        arm = FakeArm(config=cfg.arm)
+    else:
+        raise ConfigError(cfg.path, [f"{cfg.path}: devices.arm.kind = sim is built by the simulated cell "
+                                     "(`vs2t-edge demo`), not by `run`"])
+    if gate_cfg["kind"] == "serial":
+        gate = SerialGate(gate_cfg["url"], timeout_s=gate_cfg["timeout_s"], retries=gate_cfg["retries"])
+    elif gate_cfg["kind"] == "sim":
+        gate = simulated_serial_gate()
+    else:
+        gate = FakeGate()
+    return camera, arm, gate
+
+
+def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, items=None,
+               evidence_factory: Callable[[], Any] | None = None, stop_event: threading.Event | None = None,
+               on_item=None, log: Callable[[str], None] | None = None) -> Cell:
+    """The cell loop of ``cfg`` on the given model, devices (connected by the caller, which owns
+    their lifetime), journal and notifier. What is not injected comes from the config: the item
+    rule (:func:`evidence_factory_for`), the items (a continuous feed numbered on from the
+    journal, so a restart never reuses a piece id), the contact check and the scene."""
+    return Cell(camera=camera, arm=arm, gate=gate, model=model, journal=journal, notifier=notifier,
+                scene=SceneSpec.from_config(cfg),
+                evidence_factory=evidence_factory or evidence_factory_for(cfg, model),
+                items=items or ContinuousFeed(first_number=journal.next_item_number()), stop_event=stop_event,
+                on_item=on_item, log=log, contact_check=contact_check_for(cfg))
+
+
+__all__ = ["load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
+           "build_live_devices", "build_cell"]
