@@ -36,6 +36,7 @@ from torch import nn
 
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 
 # The newest opset torch 2.13's TorchScript exporter writes (21+ warns 'not supported'); onnxruntime
@@ -505,8 +506,8 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
     x_held, *held = read(held_src, keep_frames=True)
     x_val, *val = read(val_src, keep_frames=True)
     nov_held, nov_val = _novelty(router, *held), _novelty(router, *val)
-    beta = nv.tune_threshold(nov_held, nov_val, "balanced")
-    kept, flagged = (float(r[0]) for r in nv.threshold_rates(nov_held, nov_val, [beta]))
+    beta = reval.tune_threshold(nov_held, nov_val, "balanced")
+    kept, flagged = (float(r[0]) for r in reval.threshold_rates(nov_held, nov_val, [beta]))
     log(f"beta {beta:.6g} balanced on {len(nov_held)} held-out touched vs {len(nov_val)} validation presses "
         f"(touched kept {kept:.0%}, validation flagged {flagged:.0%})")
     prov = {"name": name, "refitted_at_export": True,

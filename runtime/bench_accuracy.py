@@ -97,7 +97,7 @@ def _h(a: float, b: float) -> float:
 def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
     """Per press and per item accuracies (module doc); all in percent."""
     from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-    from vs2t_edge.runtime.novelty import gzsl_accuracies
+    from vs2t_edge.runtime.router_eval import gzsl_accuracies
 
     ct = len(model.touched)
     lab, lp, lsu, nov = out["label"], out["lp"], out["lsu"], out["novelty"]

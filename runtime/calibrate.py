@@ -46,7 +46,7 @@ import numpy as np
 from vs2t_edge.runtime.config import ConfigError, load_config
 from vs2t_edge.runtime.dataset import load_dataset
 from vs2t_edge.runtime.inference import TactileModel
-from vs2t_edge.runtime.novelty import threshold_rates, tune_threshold
+from vs2t_edge.runtime.router_eval import threshold_rates, tune_threshold
 from vs2t_edge.runtime.operating_point import (  # noqa: F401 - re-exported for callers of calibrate
     OverrideFileError, override_file_for, override_path_for, read_beta_override, write_beta_override)
 from vs2t_edge.runtime.preprocess import FrameError

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.train import compare as cmp, compare_report as report, compare_sources as sources
 from vs2t_edge.train.baselines import DAP, Budget
 from vs2t_edge.train.generators_modern import CADAVAE
@@ -206,7 +207,7 @@ def test_real_materials_frozen_trunk_separates_touched_from_untouched():
     held = np.concatenate([feats[m][14:] for m in touched])
     unseen = np.concatenate([feats[m] for m in untouched])
     router = nv.fit_router("mahalanobis_lw", train)
-    assert nv.auroc(router.novelty(held), router.novelty(unseen)) > 0.6
+    assert reval.auroc(router.novelty(held), router.novelty(unseen)) > 0.6
 
 
 def test_compare_verb_refuses_bad_input_with_exit_2(tmp_path, capsys):

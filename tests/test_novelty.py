@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 
 
 def _data(n=60, d=40, seed=0):
@@ -112,16 +113,16 @@ def test_covariance_only_params_rebuild_the_same_scores():
 def test_ausuc_on_a_constructed_case():
     # touched novelty 0, 2; untouched 1, 3; all correct. Curve corners:
     # (acc_u, acc_t) = (0,1) (.5,1) (.5,.5) (1,.5) (1,0) -> area 0.5 + 0.25 = 0.75
-    assert nv.ausuc([0, 2], [1, 1], [1, 3], [1, 1]) == pytest.approx(0.75)
+    assert reval.ausuc([0, 2], [1, 1], [1, 3], [1, 1]) == pytest.approx(0.75)
     # perfectly separated, perfect heads -> 1; heads that are always wrong -> 0
-    assert nv.ausuc([0, 1], [1, 1], [2, 3], [1, 1]) == pytest.approx(1.0)
-    assert nv.ausuc([0, 1], [0, 0], [2, 3], [1, 1]) == pytest.approx(0.0)
+    assert reval.ausuc([0, 1], [1, 1], [2, 3], [1, 1]) == pytest.approx(1.0)
+    assert reval.ausuc([0, 1], [0, 0], [2, 3], [1, 1]) == pytest.approx(0.0)
     # half-right touched head, perfect separation: rectangle 1 x 0.5
-    assert nv.ausuc([0, 1], [1, 0], [2, 3], [1, 1]) == pytest.approx(0.5)
+    assert reval.ausuc([0, 1], [1, 0], [2, 3], [1, 1]) == pytest.approx(0.5)
 
 
 def test_seen_unseen_curve_ends_and_per_class_weights():
-    acc_u, acc_t, betas = nv.seen_unseen_curve([0, 0, 0, 5], [1, 1, 1, 0], [9], [1],
+    acc_u, acc_t, betas = reval.seen_unseen_curve([0, 0, 0, 5], [1, 1, 1, 0], [9], [1],
                                                labels_touched=[0, 0, 0, 1])
     assert betas[0] == np.inf and betas[-1] == -np.inf
     assert acc_t[0] == pytest.approx(0.5)  # class 0 all right, class 1 wrong -> mean 0.5
@@ -130,14 +131,14 @@ def test_seen_unseen_curve_ends_and_per_class_weights():
 
 
 def test_auroc_known_values():
-    assert nv.auroc([0, 1, 2], [3, 4]) == 1.0
-    assert nv.auroc([3, 4], [0, 1, 2]) == 0.0
-    assert nv.auroc([1, 1], [1, 1]) == 0.5
-    assert nv.auroc([0, 2], [1, 3]) == pytest.approx(0.75)
+    assert reval.auroc([0, 1, 2], [3, 4]) == 1.0
+    assert reval.auroc([3, 4], [0, 1, 2]) == 0.0
+    assert reval.auroc([1, 1], [1, 1]) == 0.5
+    assert reval.auroc([0, 2], [1, 3]) == pytest.approx(0.75)
 
 
 def test_gzsl_accuracies_and_h():
-    out = nv.gzsl_accuracies([False, True], [True, True], [True, True], [True, False])
+    out = reval.gzsl_accuracies([False, True], [True, True], [True, True], [True, False])
     assert out["acc_t"] == 0.5 and out["acc_u"] == 0.5 and out["H"] == pytest.approx(0.5)
 
 

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 
 
 def test_balanced_threshold_known_optimum():
@@ -16,7 +17,7 @@ def test_balanced_threshold_known_optimum():
     # rule (e.g. kept 0.7 + flagged 1.0, or kept 0.8 + flagged 0.9); ties go to the lowest: 6.5.
     t = np.arange(10.0)
     u = np.arange(7.0, 17.0)
-    assert nv.tune_threshold(t, u) == pytest.approx(6.5)
+    assert reval.tune_threshold(t, u) == pytest.approx(6.5)
 
 
 def test_balanced_threshold_weights_each_side_equally():
@@ -24,32 +25,32 @@ def test_balanced_threshold_weights_each_side_equally():
     # at 1 (gain 0.25) without losing touched; accuracy objective gives the same gap.
     t = np.zeros(100)
     u = np.array([-1.0, 1.0])
-    beta = nv.tune_threshold(t, u)
+    beta = reval.tune_threshold(t, u)
     assert beta == pytest.approx(0.5)
-    kept, flagged = nv.threshold_rates(t, u, [beta])
+    kept, flagged = reval.threshold_rates(t, u, [beta])
     assert kept[0] == 1.0 and flagged[0] == 0.5
 
 
 def test_target_false_untouched():
     t = np.linspace(0, 1, 101)  # 101 touched presses
     u = np.linspace(0.5, 2, 50)
-    beta = nv.tune_threshold(t, u, target_false_untouched=0.05)
-    kept, flagged = nv.threshold_rates(t, u, [beta])
+    beta = reval.tune_threshold(t, u, target_false_untouched=0.05)
+    kept, flagged = reval.threshold_rates(t, u, [beta])
     assert 1 - kept[0] <= 0.05 and 1 - kept[0] > 0.03
     # the next lower gap would exceed the budget
     assert np.sum(t > beta) == 5
 
 
 def test_separated_scores_give_beta_between_the_groups():
-    assert nv.tune_threshold([1, 2, 3], [10, 11]) == pytest.approx(6.5)
+    assert reval.tune_threshold([1, 2, 3], [10, 11]) == pytest.approx(6.5)
     # reversed groups (touched scores above untouched): no finite gap does better than routing all
     # one way (balanced score 0.5); the tie goes to the lowest beta, -inf: everything flagged
     t, u = [10, 11], [1, 2, 3]
-    b = nv.tune_threshold(t, u)
+    b = reval.tune_threshold(t, u)
     assert b == -np.inf
-    kept, flagged = nv.threshold_rates(t, u, [b])
+    kept, flagged = reval.threshold_rates(t, u, [b])
     assert (kept[0], flagged[0]) == (0.0, 1.0)
-    k, f = nv.threshold_rates(t, u, [0.5, 1.5, 2.5, 6.5, 10.5, 11.5])
+    k, f = reval.threshold_rates(t, u, [0.5, 1.5, 2.5, 6.5, 10.5, 11.5])
     assert np.all(0.5 * (k + f) <= 0.5)
 
 
@@ -93,11 +94,11 @@ def test_each_router_tuned_on_validation_separates_test(name):
     def nov(x):
         return r.novelty(x, head(x, ct), logits_u=head(x, cu))
 
-    beta = nv.tune_threshold(nov(val_t), nov(val_u))
+    beta = reval.tune_threshold(nov(val_t), nov(val_u))
     assert np.isfinite(beta)
-    kept, flagged = nv.threshold_rates(nov(test_t), nov(test_u), [beta])
+    kept, flagged = reval.threshold_rates(nov(test_t), nov(test_u), [beta])
     assert 0.5 * (kept[0] + flagged[0]) > 0.9, (name, kept, flagged)
-    assert nv.auroc(nov(test_t), nov(test_u)) > 0.95
+    assert reval.auroc(nov(test_t), nov(test_u)) > 0.95
 
 
 @settings(max_examples=60, deadline=None)
@@ -107,11 +108,11 @@ def test_each_router_tuned_on_validation_separates_test(name):
 )
 def test_tuned_beta_is_optimal_among_all_gaps(t, u):
     """Property: no beta does better on the balanced objective than the one chosen."""
-    beta = nv.tune_threshold(t, u)
-    kept, flagged = nv.threshold_rates(t, u, [beta])
+    beta = reval.tune_threshold(t, u)
+    kept, flagged = reval.threshold_rates(t, u, [beta])
     best = 0.5 * (kept[0] + flagged[0])
     cand = np.concatenate([[-np.inf, np.inf], np.asarray(t), np.asarray(u)])
-    k, f = nv.threshold_rates(t, u, cand)
+    k, f = reval.threshold_rates(t, u, cand)
     assert best >= np.max(0.5 * (k + f)) - 1e-12
     assert best >= 0.5 - 1e-12  # never worse than "all touched"
 
@@ -123,9 +124,9 @@ def test_tuned_beta_is_optimal_among_all_gaps(t, u):
 )
 def test_ausuc_is_within_unit_square_and_dominated_by_perfect(t, u):
     ones_t, ones_u = np.ones(len(t), bool), np.ones(len(u), bool)
-    a = nv.ausuc(t, ones_t, u, ones_u)
+    a = reval.ausuc(t, ones_t, u, ones_u)
     assert -1e-12 <= a <= 1 + 1e-12
     # with every head wrong no operating point classifies anything: the curve is 0
-    assert nv.ausuc(t, ~ones_t, u, ~ones_u) == 0.0
+    assert reval.ausuc(t, ~ones_t, u, ~ones_u) == 0.0
     # with perfect heads AUSUC equals the AUROC of the router (ties count half)
-    assert a == pytest.approx(nv.auroc(t, u), abs=1e-9)
+    assert a == pytest.approx(reval.auroc(t, u), abs=1e-9)

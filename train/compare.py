@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.train.baselines import (
     BASELINES,
     Budget,
@@ -217,13 +218,13 @@ def _router_block(routers: dict[str, nv.Router], cls_t, views: SplitViews, logit
         nov_vp = router.novelty(x_vp, lt["vp"], logits_u=logits_u_val)
         nov_tt = router.novelty(x_tt, lt["tt"], logits_u=logits_u_touched_test)
         nov_up = router.novelty(x_up, lt["up"], logits_u=logits_u_test)
-        beta = nv.tune_threshold(nov_tv, nov_vp)
-        g = nv.gzsl_accuracies(nov_tt > beta, ok_t["tt"], nov_up > beta, ok_test_u, y_tt, y_up)
+        beta = reval.tune_threshold(nov_tv, nov_vp)
+        g = reval.gzsl_accuracies(nov_tt > beta, ok_t["tt"], nov_up > beta, ok_test_u, y_tt, y_up)
         out[name] = {
             "beta": beta, **g,
-            "ausuc": nv.ausuc(nov_tt, ok_t["tt"], nov_up, ok_test_u, y_tt, y_up),
-            "auroc": nv.auroc(nov_tt, nov_up),
-            "val_ausuc": nv.ausuc(nov_tv, ok_t["tv"], nov_vp, ok_val_u, y_tv, y_vp),
+            "ausuc": reval.ausuc(nov_tt, ok_t["tt"], nov_up, ok_test_u, y_tt, y_up),
+            "auroc": reval.auroc(nov_tt, nov_up),
+            "val_ausuc": reval.ausuc(nov_tv, ok_t["tv"], nov_vp, ok_val_u, y_tv, y_vp),
         }
     return out
 

@@ -294,7 +294,7 @@ def discriminant_sq_distances(x: np.ndarray, y: np.ndarray, n_classes: int, quer
 def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.ndarray], *,
                   n_seeds: int = N_SEEDS, seed: int = 0) -> dict:
     """Closed-set accuracy over every material and novelty AUROC over seeded material draws."""
-    from vs2t_edge.runtime.novelty import auroc
+    from vs2t_edge.runtime.router_eval import auroc
 
     n = len(feats)
     fx = np.concatenate([f[i] for f, i in zip(feats, fit)])

@@ -35,6 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.dataset import read_image
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 
@@ -194,10 +195,10 @@ def run_check(root: Path = DEFAULT_ROOT, cfg: RealCheckConfig | None = None, pro
                 # would be optimistic; touched test presses are held out, so we use half of them
                 # (even indices) for tuning and the other half for reporting.
                 tune_t, eval_t = s["test"][0::2], s["test"][1::2]
-                beta = nv.tune_threshold(tune_t, s["val"])
-                kept, flagged = nv.threshold_rates(eval_t, s["untouched"], [beta])
+                beta = reval.tune_threshold(tune_t, s["val"])
+                kept, flagged = reval.threshold_rates(eval_t, s["untouched"], [beta])
                 per_router[rname] = {
-                    "auroc": nv.auroc(s["test"], s["untouched"]),
+                    "auroc": reval.auroc(s["test"], s["untouched"]),
                     "balanced_routing_acc": float(0.5 * (kept[0] + flagged[0])),
                     "beta": beta,
                 }

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.train.baselines import predict_logits, train_classifier
 
 
@@ -137,10 +138,10 @@ def figures(first: dict, fig_dir: Path, router: str = "gaussian", budget=None) -
     cls_u_val = m.cls_u_by_classes.get(tuple(views.val.names_u), m.cls_u)  # CLS_u of the validation fabrics
     nov_tv = rt.novelty(x_tv, predict_logits(cls_t, x_tv), logits_u=predict_logits(cls_u_val, x_tv))
     nov_vp = rt.novelty(x_vp, predict_logits(cls_t, x_vp), logits_u=predict_logits(cls_u_val, x_vp))
-    beta = nv.tune_threshold(nov_tv, nov_vp)
+    beta = reval.tune_threshold(nov_tv, nov_vp)
     lo, hi = np.percentile(np.concatenate([nov_tv, nov_vp]), [1, 99])
     betas = np.linspace(lo, hi, 200)
-    kept, flagged = nv.threshold_rates(nov_tv, nov_vp, betas)
+    kept, flagged = reval.threshold_rates(nov_tv, nov_vp, betas)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(betas, kept, label="touched (val presses) kept as touched")
     ax.plot(betas, flagged, label="validation fabrics flagged untouched")
