@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -164,3 +166,41 @@ def test_only_the_wiring_builds_a_cell_in_the_runtime():
                       if any(isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == "Cell"
                              for n in ast.walk(tree)))
     assert builders == ["vs2t_edge.runtime.wiring"]
+
+
+# What each room never imports (docs/ARCHITECTURE.md, "Rooms and what each may import"), at any
+# level: a lazy import inside a function still runs on the cell.
+NEVER = {
+    "runtime": ("torch", "vs2t_edge.train", "vs2t_edge.export", "vs2t_edge.sim", "vs2t_edge.bench"),
+    "firmware_bridge": ("torch", "vs2t_edge.runtime", "vs2t_edge.train", "vs2t_edge.export", "vs2t_edge.sim",
+                        "vs2t_edge.bench"),
+    "bench": ("torch", "vs2t_edge.train", "vs2t_edge.export", "vs2t_edge.sim"),
+    "sim": ("torch", "vs2t_edge.train", "vs2t_edge.export", "vs2t_edge.bench"),
+}
+
+
+def _all_imports(tree: ast.Module) -> list[tuple[int, str]]:
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out += [(node.lineno, node.module)] + [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+    return out
+
+
+def _breaches(room: str, trees: dict[str, ast.Module]) -> list[str]:
+    return [f"{mod}:{line} imports {name}" for mod, tree in trees.items() for line, name in _all_imports(tree)
+            if any(name == bad or name.startswith(bad + ".") for bad in NEVER[room])]
+
+
+@pytest.mark.parametrize("room", sorted(NEVER))
+def test_no_room_imports_what_architecture_md_forbids(room):
+    assert _breaches(room, _modules(room)) == []
+
+
+def test_the_room_rule_catches_a_lazy_import():
+    tree = ast.parse("def f():\n    from vs2t_edge.train import run\n    import torch\n")
+    assert _breaches("bench", {"vs2t_edge.bench.x": tree}) == ["vs2t_edge.bench.x:2 imports vs2t_edge.train",
+                                                                 "vs2t_edge.bench.x:2 imports vs2t_edge.train.run",
+                                                                 "vs2t_edge.bench.x:3 imports torch"]

@@ -18,7 +18,7 @@ from test_export import tiny_run  # noqa: F401,E402  (the module-scoped run-fold
 @pytest.fixture(scope="module")
 def bench_result(tiny_run, tmp_path_factory):  # noqa: F811
     from vs2t_edge.export import export as ex
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
 
     run, _ = tiny_run
     root = tmp_path_factory.mktemp("bench")
@@ -42,7 +42,7 @@ def test_bench_writes_table_json_and_plot(bench_result):
 
 
 def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_result, tmp_path):
-    from vs2t_edge.runtime import bench_report
+    from vs2t_edge.bench import report as bench_report
 
     result, out = bench_result
     made = result["variants"][0]["made_by"]
@@ -60,7 +60,7 @@ def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_
 
 
 def test_bench_numbers_are_measured_and_sane(bench_result):
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
 
     result, _ = bench_result
     for r in result["variants"]:
@@ -99,7 +99,7 @@ def test_press_timing_is_end_to_end_and_includes_decode(bench_result, monkeypatc
     import cv2
     import numpy as np
 
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.inference import TactileModel
@@ -136,7 +136,7 @@ def test_press_accuracy_matches_an_independent_count(bench_result):
     never trained on (checked against the manifest's partition)."""
     import numpy as np
 
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -181,7 +181,7 @@ def test_press_accuracy_matches_an_independent_count(bench_result):
 
 
 def test_targets_follow_the_measurements(bench_result):
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
 
     result, _ = bench_result
     rows = bench.targets(result)
@@ -214,7 +214,7 @@ def test_load_average_is_read_before_the_bench_loads_the_machine(tmp_path, monke
     work (it once came at the end and called every quiet run busy)."""
     import os
 
-    from vs2t_edge.runtime import bench, bench_report
+    from vs2t_edge.bench import measure as bench, report as bench_report
 
     readings = iter([[0.1, 0.1, 0.1], [1.9, 1.0, 0.5]])
     monkeypatch.setattr(os, "getloadavg", lambda: next(readings))
@@ -253,7 +253,7 @@ def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):
     """int8's gain depends on the CPU's instruction sets: the bench records them and the
     onnxruntime build, and says which precision it recommends for the machine it ran on, from the
     speed-up and the accuracy change it measured in this run."""
-    from vs2t_edge.runtime import bench
+    from vs2t_edge.bench import measure as bench
 
     result, out = bench_result
     m = result["machine"]

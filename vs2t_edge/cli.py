@@ -34,7 +34,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "real-check": ("vs2t_edge.train.real_check_cli", "the tactile features on a real sensor's recordings, "
                    "evaluated by press order (needs [train])"),
     "export": ("vs2t_edge.export.cli", "export a training run to a verified ONNX bundle (needs [train])"),
-    "bench": ("vs2t_edge.runtime.bench_cli", "measure the speed-for-accuracy trade of bundles"),
+    "bench": ("vs2t_edge.bench.cli", "measure the speed-for-accuracy trade of bundles"),
     "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
     "validate-config": ("vs2t_edge.runtime.config_cli", "check a cell config file (use as ExecStartPre)"),
     "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),

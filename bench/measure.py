@@ -46,7 +46,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 # the accuracy half lives in runtime/bench_accuracy.py; its names stay importable from here
-from vs2t_edge.runtime.bench_accuracy import (  # noqa: F401
+from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
     by_bins, eval_presses, press_outputs)
 
@@ -259,7 +259,7 @@ def baseline_worker() -> dict:
 
 
 def _run_worker(args: list[str], timeout_s: float = 900) -> dict:
-    cmd = [sys.executable, "-m", "vs2t_edge.runtime.bench", *args]
+    cmd = [sys.executable, "-m", "vs2t_edge.bench.measure", *args]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=env)
     if res.returncode != 0:
@@ -341,7 +341,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     result["targets"] = targets(result)
     result["recommendation"] = recommend(result)
     if out_dir is not None:
-        from vs2t_edge.runtime.bench_report import hand_written_tail, plot_pareto, render_markdown
+        from vs2t_edge.bench.report import hand_written_tail, plot_pareto, render_markdown
 
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ import math
 import re
 from pathlib import Path
 
-from vs2t_edge.runtime.bench import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
+from vs2t_edge.bench.measure import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
 
 
 def _f(v, fmt="{:.1f}") -> str:

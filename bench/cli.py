@@ -24,8 +24,8 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.bench import run_bench
-    from vs2t_edge.runtime.bench_report import render_bins, render_table
+    from vs2t_edge.bench.measure import run_bench
+    from vs2t_edge.bench.report import render_bins, render_table
     from vs2t_edge.runtime.bundle import BundleError, read_manifest
 
     bundles = [Path(b) for b in args.bundles]
