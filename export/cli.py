@@ -42,7 +42,8 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.export.export import ExportError, export_random_trunk, export_run
+    from vs2t_edge.export.export import ExportError
+    from vs2t_edge.export.from_run import export_random_trunk, export_run
     from vs2t_edge.runtime.bundle import BundleError
     from vs2t_edge.runtime.novelty import ROUTERS
 

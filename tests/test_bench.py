@@ -17,7 +17,7 @@ from test_export import tiny_run  # noqa: F401,E402  (the module-scoped run-fold
 
 @pytest.fixture(scope="module")
 def bench_result(tiny_run, tmp_path_factory):  # noqa: F811
-    from vs2t_edge.export import export as ex
+    from vs2t_edge.export import from_run as ex
     from vs2t_edge.bench import measure as bench
 
     run, _ = tiny_run

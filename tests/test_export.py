@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from test_bundle_fixtures import tiny_world, world_frames
-from vs2t_edge.export import export as ex
+from vs2t_edge.export import export as ex, from_run as fr
 from vs2t_edge.runtime.inference import TactileModel
 
 
@@ -63,7 +63,7 @@ def test_export_run_fp32_and_int8_verify(tiny_run, tmp_path):
     run, art = tiny_run
     for prec in ("fp32", "int8"):
         out = tmp_path / f"b_{prec}"
-        m = ex.export_run(run, out, trunk_precision=prec, calibration_frames=24)
+        m = fr.export_run(run, out, trunk_precision=prec, calibration_frames=24)
         model = TactileModel.load(out, threads=1)
         assert list(model.touched) == art.touched and list(model.untouched) == art.untouched
         assert m["graphs"]["trunk"]["precision"] == prec and m["graphs"]["trunk"]["opset"] >= 17
@@ -99,11 +99,11 @@ def test_press_partition_is_the_trainers(tiny_run):
     rows, _ = touched_training_rows(fabric, ids, SimpleNamespace(touched=touched, untouched=ids[5:6],
                                                                  validation=ids[6:], seed=3))
     start = {f: int(np.flatnonzero(fabric == i)[0]) for i, f in enumerate(ids)}
-    part = ex.press_partition(counts, touched, seed=3, max_presses=None)
+    part = fr.press_partition(counts, touched, seed=3, max_presses=None)
     want = sorted(start[f] + p for f in touched for p in part[f]["train"])
     assert sorted(rows.tolist()) == want
     # with max_presses, presses off the evenly spaced subset are 'unused' and never train
-    part45 = ex.press_partition({"a": 225}, ["a"], seed=0, max_presses=45)["a"]
+    part45 = fr.press_partition({"a": 225}, ["a"], seed=0, max_presses=45)["a"]
     assert len(part45["unused"]) == 180 and not set(part45["unused"]) & set(part45["train"])
 
 
@@ -196,8 +196,8 @@ def test_export_cli_random_trunk_writes_latency_bundle(tmp_path, capsys):
 def _balanced_separation(model, ds, spec, touched_heldout, validation_presses):
     """Mean of (held-out touched presses kept touched, validation presses flagged untouched) at
     the bundle's beta, scored by the loaded bundle itself: 0.5 is chance (beta = +-inf)."""
-    x_t = np.concatenate([ex._frames(ds, fid, idx, spec) for fid, idx in touched_heldout.items() if idx])
-    x_v = np.concatenate([ex._frames(ds, fid, idx, spec) for fid, idx in validation_presses.items() if idx])
+    x_t = np.concatenate([fr._frames(ds, fid, idx, spec) for fid, idx in touched_heldout.items() if idx])
+    x_v = np.concatenate([fr._frames(ds, fid, idx, spec) for fid, idx in validation_presses.items() if idx])
     nt, nv_ = model.forward(x_t).novelty, model.forward(x_v).novelty
     return 0.5 * (float(np.mean(nt <= model.beta)) + float(np.mean(nv_ > model.beta)))
 
@@ -253,7 +253,7 @@ def test_export_router_unknown_name_is_refused(tiny_run, tmp_path, capsys):
     assert "unknown router 'softmax'" in err and all(r in err for r in ROUTERS)
     assert not (tmp_path / "b").exists()
     with pytest.raises(ex.ExportError, match="known: " + ", ".join(ROUTERS)):
-        ex.export_run(run, tmp_path / "b", router="softmax")
+        fr.export_run(run, tmp_path / "b", router="softmax")
 
 
 def test_zero_shot_guard_refuses_untouched_presses(tiny_run):
@@ -262,13 +262,13 @@ def test_zero_shot_guard_refuses_untouched_presses(tiny_run):
     from vs2t_edge.runtime.dataset import load_dataset
 
     _, art = tiny_run
-    ex.check_zero_shot({art.touched[0]: [1, 2], art.validation[0]: [0]}, art.untouched, "x")  # allowed
+    fr.check_zero_shot({art.touched[0]: [1, 2], art.validation[0]: [0]}, art.untouched, "x")  # allowed
     with pytest.raises(ex.ExportError, match="zero-shot violated: beta .* " + art.untouched[0]):
-        ex.check_zero_shot({art.untouched[0]: [3]}, art.untouched, "beta")
+        fr.check_zero_shot({art.untouched[0]: [3]}, art.untouched, "beta")
     ds = load_dataset(tiny_world())
-    part = ex.press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, 0, None)
+    part = fr.press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, 0, None)
     with pytest.raises(ex.ExportError, match="disjoint"):
-        ex.refit_router("gaussian", ds=ds, spec=art.tactile_preprocess, trunk=None, cls_t=None, cls_u=None,
+        fr.refit_router("gaussian", ds=ds, spec=art.tactile_preprocess, trunk=None, cls_t=None, cls_u=None,
                         touched=art.touched, untouched=art.untouched, validation=art.untouched, part=part,
                         max_presses=None)
 
@@ -297,7 +297,7 @@ def test_bundle_from_a_real_tiny_training_run_passes_runtime_verification(tmp_pa
     ds = load_dataset(world)
     for prec in ("fp32", "int8"):
         out = tmp_path / f"bundle_{prec}"
-        m = ex.export_run(run, out, trunk_precision=prec, calibration_frames=16)
+        m = fr.export_run(run, out, trunk_precision=prec, calibration_frames=16)
         assert main(["verify-bundle", str(out), "--threads", "1"]) == 0
         assert f"bundle {out}: ok" in capsys.readouterr().out
         model = TactileModel.load(out, threads=1)
