@@ -22,7 +22,8 @@ the reason and removes the fault file; the running service sees it, clears the g
 and resumes (a stopped service starts clean).
 
 Devices of kind ``sim`` are built by the simulated cell (vs2t_edge.sim.scene, the demo), which
-calls :func:`run_daemon` with them: the cell runtime never imports the simulators.
+calls :func:`run_daemon` with them: the cell runtime never imports the simulators, but for a
+gate of kind ``sim``, looked up by name when the config asks for it (runtime/devices.py).
 """
 
 from __future__ import annotations
@@ -125,9 +126,9 @@ def build_live_devices(cfg: CellConfig):
 
         gate = SerialGate(gate_cfg["url"], timeout_s=gate_cfg["timeout_s"], retries=gate_cfg["retries"])
     elif gate_cfg["kind"] == "sim":
-        from vs2t_edge.runtime.gate import simulated_serial_gate
+        from vs2t_edge.runtime.devices import simulator
 
-        gate = simulated_serial_gate()
+        gate = simulator("gate")()  # the MCU simulator on a pty, from vs2t_edge.sim, imported only now
     else:
         from vs2t_edge.runtime.gate import FakeGate
 

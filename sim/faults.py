@@ -226,7 +226,7 @@ def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_pres
     its evidence, its scene bins and its frames (the soak's real inference path).
     """
     from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
+    from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.runtime.gate import FakeGate
     from vs2t_edge.sim.scene import FAST_PRESS
 
@@ -900,7 +900,7 @@ def _gate_row(w: Path, set_fault: Callable[[Any], None], expect_outcomes: dict, 
     cannot pass because the line stayed clean. ``exercise(gate)`` runs right after the fault is
     set (more traffic on the faulty line); ``seed`` seeds the line's noise."""
     from vs2t_edge.firmware_bridge.mcu_sim import LineFaults
-    from vs2t_edge.runtime.gate import simulated_serial_gate
+    from vs2t_edge.sim.devices import simulated_serial_gate
 
     faults = LineFaults(seed=seed)
     gate = simulated_serial_gate(faults=faults, timeout_s=timeout_s)
@@ -1362,7 +1362,7 @@ def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float 
     With ``gate_url`` the gate is the real host driver on that port (an MCU simulator in another
     process, so it outlives this one, as the real gate outlives a killed service)."""
     from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
+    from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.gate import FakeGate

@@ -84,7 +84,7 @@ def restart_piece_ids(w: Path):
     restarted on the same journal and sorts two more: the piece ids must not start again at
     piece-000001 (every restart reused them, so the journal held two pieces of each id)."""
     from vs2t_edge.runtime.arm import ArmConfig, FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
+    from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.gate import FakeGate

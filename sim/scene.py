@@ -257,8 +257,8 @@ class SimulatedCell:
 
     def __enter__(self) -> "SimulatedCell":
         from vs2t_edge.runtime.arm import ArmConfig, FakeArm
-        from vs2t_edge.runtime.camera import SimulatedCamera
-        from vs2t_edge.runtime.gate import FakeGate, simulated_serial_gate
+        from vs2t_edge.runtime.gate import FakeGate
+        from vs2t_edge.sim.devices import SimulatedCamera, simulated_serial_gate
 
         self.dataset = load_dataset(self.dataset_root)
         self.source = SceneItems(self.items)

@@ -152,7 +152,7 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     workdir = Path(tempfile.mkdtemp(prefix="soak-")) if own else workdir
     gate = None
     if gate_kind == "pty":
-        from vs2t_edge.runtime.gate import simulated_serial_gate
+        from vs2t_edge.sim.devices import simulated_serial_gate
 
         gate = simulated_serial_gate(timeout_s=0.5)
     if model == "onnx":

@@ -29,3 +29,30 @@ def test_the_hardware_skip_says_what_to_set():
     assert hardware_skip_reason(marker, {"VS2T_HARDWARE": "1"}) == "needs the real gate: set VS2T_GATE_PORT"
     assert hardware_skip_reason(marker, {"VS2T_HARDWARE": "1", "VS2T_GATE_PORT": "/dev/ttyACM0"}) is None
     assert hardware_skip_reason(pytest.mark.hardware.mark, {}) == "needs the real cell: set VS2T_HARDWARE=1"
+
+
+def _imported_modules(path: Path) -> list[str]:
+    """Every module a file imports, at any depth (a lazy import inside a function counts too)."""
+    import ast
+
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names.append(node.module)
+    return names
+
+
+def test_the_cell_code_never_imports_the_simulators():
+    """runtime/ and firmware_bridge/ never import vs2t_edge.sim (the simulated camera and gate were
+    in runtime/camera.py and runtime/gate.py); a config's simulated gate is reached only by name,
+    through runtime/devices.py's SIMULATORS, which must name factories that exist."""
+    from vs2t_edge.runtime.devices import SIMULATORS, simulator
+
+    offenders = [f"{p.parent.name}/{p.name} imports {m}"
+                 for room in ("runtime", "firmware_bridge") for p in sorted((ROOT / room).glob("*.py"))
+                 for m in _imported_modules(p) if m == "vs2t_edge.sim" or m.startswith("vs2t_edge.sim.")]
+    assert not offenders, offenders
+    assert SIMULATORS and all(v.startswith("vs2t_edge.sim.") for v in SIMULATORS.values())
+    assert all(callable(simulator(device)) for device in SIMULATORS)

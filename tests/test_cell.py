@@ -87,10 +87,10 @@ class _GuardedCamera(ScriptedCamera):
     replay and simulated camera is: a black frame is the camera's fault, never the model's."""
 
     def __init__(self, arm, script):
-        from vs2t_edge.runtime.camera import _FrameGuard
+        from vs2t_edge.runtime.camera import FrameGuard
 
         super().__init__(arm, script)
-        self.guard = _FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
+        self.guard = FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
 
     def grab(self):
         return self.guard.admit(super().grab().image)

@@ -200,7 +200,7 @@ def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client,
 def _daemon_in_process(tmp_path, gate, truths, *, stop_when):
     """The real daemon (run_daemon) on the fault matrix's fake arm, camera and grey model."""
     from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
+    from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.notify import Notifier
