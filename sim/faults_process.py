@@ -32,28 +32,15 @@ from vs2t_edge.sim.fault_rig import (
     audit,
     grey_frames,
 )
+from vs2t_edge.sim.scene import fake_cell_yaml
 
 
 # --- daemon subprocess rows -------------------------------------------------------------------
 
-DAEMON_CONFIG = """\
-bundle: bundle
-threads: 1
-devices:
-  camera: {kind: replay, path: frames}
-  arm: {kind: fake}
-  gate: {kind: fake}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {name: denim, kind: touched, bin: 1}
-    - {name: silk, kind: touched, bin: 2}
-    - {name: wool, kind: untouched, bin: 3}
-evidence: {confidence: 0.95, max_presses: 3}
-journal: state/journal.jsonl
-fault_file: state/FAULT
-watchdog: {wait_item_timeout_s: 0.05}
-"""
+# The daemon rows' cell: fake devices, the grey world's three fabrics (sim/fakes.py BINS).
+DAEMON_SECTIONS = {"threads": 1, "evidence": {"confidence": 0.95, "max_presses": 3}, "fault_file": "state/FAULT",
+                   "watchdog": {"wait_item_timeout_s": 0.05}}
+DAEMON_CONFIG = fake_cell_yaml(**DAEMON_SECTIONS)
 
 
 def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float = 0.08,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import subprocess
 import sys
@@ -21,10 +22,16 @@ import numpy as np
 
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.sim.fault_rig import Pieces, _check
-from vs2t_edge.sim.faults_process import DAEMON_CONFIG
+from vs2t_edge.sim.faults_process import DAEMON_CONFIG, DAEMON_SECTIONS
+from vs2t_edge.sim.scene import THREE_FABRICS, fake_cell_yaml
 
 
 # --- config rows ----------------------------------------------------------------------------
+
+def _daemon_config_but(**changes) -> str:
+    """The daemon rows' config (sim/faults_process.py) with one section changed."""
+    return fake_cell_yaml(**{**DAEMON_SECTIONS, **changes})
+
 
 HOSTILE_CONFIGS = {
     "alias bomb": "a: &a [x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\n"
@@ -32,20 +39,18 @@ HOSTILE_CONFIGS = {
     # @MARK@ becomes a file in the row's folder: if any loader ran the tag, the file would exist
     "python object tag": "bundle: !!python/object/apply:os.system ['touch @MARK@; echo pwned']\n",
     "not a mapping": "- 1\n- 2\n",
-    "negative confidence": DAEMON_CONFIG.replace("confidence: 0.95", "confidence: -1"),
-    "NaN press limit": DAEMON_CONFIG.replace("max_presses: 3", "max_presses: .nan"),
-    "reject bin also a fabric bin": DAEMON_CONFIG.replace("bin: 1}", "bin: 0}"),
+    "negative confidence": _daemon_config_but(evidence={"confidence": -1, "max_presses": 3}),
+    "NaN press limit": _daemon_config_but(evidence={"confidence": 0.95, "max_presses": math.nan}),
+    "reject bin also a fabric bin": _daemon_config_but(fabrics=(("denim", "touched", 0),) + THREE_FABRICS[1:]),
     "binary junk": "\x00\xff\xfe bundle: [",
-    "huge number": DAEMON_CONFIG.replace("max_presses: 3", "max_presses: 1" + "0" * 400),
+    "huge number": _daemon_config_but(evidence={"confidence": 0.95, "max_presses": int("1" + "0" * 400)}),
     # issue 17: a 5 MB file took 73 s and 1.6 GB to reach its error (now refused by size, unread)
     "five megabytes": DAEMON_CONFIG + "".join(f"k{i}: [1, 2, 3]\n" for i in range(400_000)),
     # issue 17: inside the documented 0.05 .. 10 but refused by the gate driver at `run`
     # (traceback, exit 1, restarted by systemd); validation now asks the driver's own rule
-    "gate timeout the driver refuses": DAEMON_CONFIG.replace("gate: {kind: fake}",
-                                                             "gate: {kind: serial, timeout_s: 0.9}"),
+    "gate timeout the driver refuses": _daemon_config_but(gate={"kind": "serial", "timeout_s": 0.9}),
     # issue 17: no ping for 60 s against WatchdogSec=30 (runtime/budget.py)
-    "wait for a piece past the watchdog": DAEMON_CONFIG.replace("wait_item_timeout_s: 0.05",
-                                                                "wait_item_timeout_s: 60"),
+    "wait for a piece past the watchdog": _daemon_config_but(watchdog={"wait_item_timeout_s": 60}),
 }
 
 
@@ -73,23 +78,9 @@ def hostile_configs(w: Path):
     return f"{sum(c == 2 for c in codes.values())}/{len(codes)} refused with exit 2, file named", problems
 
 
-BUNDLE_CONFIG = """\
-bundle: bundle
-threads: 1
-devices:
-  camera: {kind: replay, path: frames}
-  arm: {kind: fake}
-  gate: {kind: fake}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {name: f00, kind: touched, bin: 1}
-    - {name: f02, kind: touched, bin: 2}
-    - {name: f01, kind: untouched, bin: 3}
-evidence: {confidence: 0.95, max_presses: 3}
-journal: state/journal.jsonl
-fault_file: state/FAULT
-"""
+# the committed bundle's classes (tests/replays/bundle)
+BUNDLE_CONFIG = fake_cell_yaml(fabrics=(("f00", "touched", 1), ("f02", "touched", 2), ("f01", "untouched", 3)),
+                               threads=1, evidence={"confidence": 0.95, "max_presses": 3}, fault_file="state/FAULT")
 
 
 def good_bundle() -> Path | None:

@@ -13,6 +13,11 @@ from vs2t_edge.runtime.devices import CameraError, Frame
 from vs2t_edge.runtime.preprocess import FrameError, check_frame
 from vs2t_edge.sim.fakes import GreyEvidence as FakeEvidence  # noqa: F401 - one copy, shared with sim/
 from vs2t_edge.sim.fakes import GreyScore as FakeScore
+from vs2t_edge.sim.scene import fake_cell_yaml
+
+# the loop tests' cell config: fake devices, denim / silk touched, wool untouched, bins 1-3
+LOOP_CONFIG = fake_cell_yaml(camera={"kind": "replay", "path": "x"},
+                             evidence={"confidence": 0.95, "max_presses": 4}, journal="j.jsonl")
 
 
 class FakeModel:
