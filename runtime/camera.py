@@ -1,19 +1,18 @@
 """GelSight capture: frames in, nothing else (preprocessing stays in runtime/preprocess.py).
 
-Three implementations of :class:`vs2t_edge.runtime.devices.TactileCamera`:
+Two implementations of :class:`vs2t_edge.runtime.devices.TactileCamera` (the simulated cell's
+camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of the cell's code):
 
 * :class:`UVCCamera` - the sensor as a UVC camera through ``cv2.VideoCapture`` (device index or
   path); resolution, fps and exposure set where the driver accepts them (what it accepted is
   read back into ``settings_applied``); a bounded read; stale buffered frames flushed.
 * :class:`ReplayCamera` - recorded frames (a video file, an image folder or a glob), same
   interface; loops or ends with ``CameraError(kind="ended")``.
-* :class:`SimulatedCamera` - the simulated cell's sensor: a callable gives the frame of the
-  current press; faults (unplugged - a real disconnect until connect() -, frozen, black,
-  truncated, timeout) are injectable.
 
-Every grab goes through one guard: ``check_frame`` from the runtime (dtype, size, NaN, black,
-white, saturated) and frozen-frame detection (the same frame ``frozen_after`` times in a row: a
-hung driver hands out its last buffer again; a live sensor's noise never repeats bit for bit).
+Every grab, of these and of the simulated camera, goes through one guard (:class:`FrameGuard`):
+``check_frame`` from the runtime (dtype, size, NaN, black, white, saturated) and frozen-frame
+detection (the same frame ``frozen_after`` times in a row: a hung driver hands out its last
+buffer again; a live sensor's noise never repeats bit for bit).
 The default, 2, raises ``CameraFrozen`` at the first frame identical to the one before it, so a
 frozen frame is never handed to the model (config ``devices.camera.frozen_after``). The count
 goes on across a reconnect of a live or simulated camera (the cell reopens the camera before
@@ -31,7 +30,6 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -44,8 +42,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 FROZEN_AFTER = 2  # identical consecutive frames that are a frozen camera: the first repeat
 
 
-class _FrameGuard:
-    """Checks shared by every camera: frame sanity, frozen frames, running index, timestamp."""
+class FrameGuard:
+    """Checks shared by every camera: frame sanity, frozen frames, running index, timestamp.
+    Public because the simulated camera (vs2t_edge.sim.devices) must admit frames by the same rule."""
 
     def __init__(self, name: str, expected_hw: tuple[int, int] | None, frozen_after: int) -> None:
         if frozen_after < 2:
@@ -84,7 +83,9 @@ class _FrameGuard:
         return frame
 
 
-class _CameraBase:
+class CameraBase:
+    """Context-manager plumbing shared by the cameras (and the simulated one in vs2t_edge.sim)."""
+
     name = "camera"
 
     def __enter__(self):
@@ -101,7 +102,7 @@ class _CameraBase:
 UVC_OPEN_TIMEOUT_S = 5.0
 
 
-class UVCCamera(_CameraBase):
+class UVCCamera(CameraBase):
     """A GelSight (Mini, R1.5, ...) enumerating as a UVC camera."""
 
     def __init__(self, device: int | str = 0, *, width: int | None = None, height: int | None = None,
@@ -127,7 +128,7 @@ class UVCCamera(_CameraBase):
         self.buffer_size = buffer_size
         self.api_preference = api_preference
         self.settings_applied: dict[str, float | None] = {}
-        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
+        self._guard = FrameGuard(self.name, expected_hw, frozen_after)
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
         self._stuck: list = []  # captures abandoned with a read inside the driver
@@ -245,7 +246,7 @@ def _list_images(source: str | Path) -> list[Path]:
     return sorted(files)
 
 
-class ReplayCamera(_CameraBase):
+class ReplayCamera(CameraBase):
     """Recorded frames through the camera interface: a video file, an image folder or a glob."""
 
     def __init__(self, source: str | Path, *, loop: bool = False, frozen_after: int = FROZEN_AFTER,
@@ -253,7 +254,7 @@ class ReplayCamera(_CameraBase):
         self.source = str(source)
         self.name = f"replay {Path(self.source).name}"
         self.loop = loop
-        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
+        self._guard = FrameGuard(self.name, expected_hw, frozen_after)
         self._files: list[Path] | None = None
         self._listed: list[Path] | None = None
         self._video = None
@@ -341,128 +342,6 @@ class ReplayCamera(_CameraBase):
             self._rewind()
         raise CameraError(f"{self.name}: end of the recording after {self._pos} frames", device=self.name,
                           kind="ended")
-
-
-# --- simulated ----------------------------------------------------------------------------
-
-class SimulatedCamera(_CameraBase):
-    """The simulated cell's sensor. ``frame_fn()`` returns the frame for the current press
-    (the demo wires it to the synthetic dataset: item fabric + grid index).
-
-    Sensor noise (``noise_levels``, 1-sigma in grey levels) is added to every grab, as a real
-    sensor's would be, so that only an injected freeze repeats a frame bit for bit.
-    ``inject(kind, count)`` queues faults: unplugged, frozen (the last frame again), black (a dark
-    frame), truncated (a frame of the wrong size), timeout; each but unplugged spoils ``count`` grabs.
-
-    Unplugged is a real disconnect, as a UVC device vanishing from the bus is: the grab it lands
-    on fails, the camera is disconnected, and every grab after it fails (``CameraError``, kind
-    unplugged - retryable, the cable may come back) until ``connect()`` succeeds. ``connect()``
-    fails while the cable is out. ``inject("unplugged", count)`` pulls the cable at the next grab
-    (or connect) and it is back after ``count - 1`` more failed connects; ``unplug()`` pulls it
-    until ``replug()`` (the operator plugs it back in).
-    """
-
-    FAULTS = ("unplugged", "frozen", "black", "truncated", "timeout")
-
-    def __init__(self, frame_fn: Callable[[], np.ndarray], *, noise_levels: float = 1.0, seed: int = 0,
-                 frozen_after: int = FROZEN_AFTER, expected_hw: tuple[int, int] | None = None) -> None:
-        self.frame_fn = frame_fn
-        self.name = "simulated camera"
-        self.noise_levels = noise_levels
-        self._rng = np.random.default_rng(seed)
-        self._guard = _FrameGuard(self.name, expected_hw, frozen_after)
-        self._faults: list[str] = []
-        self._last: np.ndarray | None = None
-        self._connected = False
-        self.cable_out = False
-        self._failed_connects_left: int | None = None  # while out: None = until replug()
-        self._lost = False  # unplugged since the last successful connect()
-        self.grabs = 0
-        self.connects = 0  # connect() calls, successful or not
-        self.connected_count = 0  # successful ones
-
-    def inject(self, kind: str, count: int = 1) -> None:
-        if kind not in self.FAULTS:
-            raise ValueError(f"unknown camera fault {kind!r}; known: {self.FAULTS}")
-        self._faults.extend([kind] * count)
-
-    def clear_faults(self) -> None:
-        """Drop the faults still queued (the operator power-cycles the sensor)."""
-        self._faults.clear()
-
-    def unplug(self, failed_connects: int | None = None) -> None:
-        """The cable comes out now: disconnected; back after ``failed_connects`` failed
-        ``connect()`` calls, or (None) when ``replug()`` is called."""
-        self.cable_out = True
-        self._lost = True
-        self._connected = False
-        self._failed_connects_left = failed_connects
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def replug(self) -> None:
-        """The cable is back in: the next ``connect()`` succeeds (grabs still need it)."""
-        self.cable_out = False
-        self._failed_connects_left = None
-
-    def _pull_cable_if_queued(self) -> bool:
-        if not self._faults or self._faults[0] != "unplugged":
-            return False
-        n = 0
-        while self._faults and self._faults[0] == "unplugged":
-            self._faults.pop(0)
-            n += 1
-        self.unplug(failed_connects=n - 1)
-        return True
-
-    def connect(self) -> None:
-        self.connects += 1
-        if self._pull_cable_if_queued():
-            raise CameraError(f"{self.name}: cannot open (unplugged)", device=self.name, kind="unplugged")
-        if self.cable_out:
-            if self._failed_connects_left is None or self._failed_connects_left > 0:
-                if self._failed_connects_left is not None:
-                    self._failed_connects_left -= 1
-                raise CameraError(f"{self.name}: cannot open (unplugged)", device=self.name, kind="unplugged")
-            self.replug()
-        self._connected = True
-        self._lost = False
-        self.connected_count += 1
-        # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
-        # to the last one before it is the same hung buffer, not a fresh start
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    def grab(self) -> Frame:
-        if not self._connected:
-            if self._lost:
-                raise CameraError(f"{self.name}: not connected (unplugged); connect() again once it is back",
-                                  device=self.name, kind="unplugged")
-            raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
-        self.grabs += 1
-        if self._pull_cable_if_queued():
-            raise CameraError(f"{self.name}: no frame (unplugged)", device=self.name, kind="unplugged")
-        fault = self._faults.pop(0) if self._faults else ""
-        if fault == "timeout":
-            raise CameraError(f"{self.name}: no frame in time", device=self.name, kind="timeout")
-        if fault == "frozen" and self._last is not None:
-            return self._guard.admit(self._last)
-        image = np.asarray(self.frame_fn())
-        if self.noise_levels > 0 and image.dtype == np.uint8:
-            noisy = image.astype(np.float32) + self._rng.normal(0.0, self.noise_levels, image.shape)
-            image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
-        if fault == "black":
-            image = np.zeros_like(image)
-        elif fault == "truncated":
-            image = image[: max(1, image.shape[0] // 2)]
-        self._last = image
-        return self._guard.admit(image)
-
-
-SceneCamera = SimulatedCamera  # the name the cell's simulated scene uses
 
 
 def camera_from_config(cam: dict):

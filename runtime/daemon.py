@@ -25,7 +25,8 @@ This module is the service around the cell: start-up order, signals, watchdog an
 clear. The parts - model, devices, item rule, the Cell itself - are built by runtime/wiring.py,
 which `record`, `replay`, `calibrate-threshold` and the demo share. Devices of kind ``sim`` are
 built by the simulated cell (vs2t_edge.sim.scene, the demo), which calls :func:`run_daemon` with
-them: the cell runtime never imports the simulators.
+them: the cell runtime never imports the simulators, but for a gate of kind ``sim``, looked up by
+name when the config asks for it (runtime/devices.py).
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
 """The three devices the cell touches, each as one small interface.
 
-Live, replay and simulated implementations live beside each other:
-camera.py (UVC + replay + simulated), arm.py (ur_rtde + fake), gate.py (serial host driver
-from firmware_bridge + in-process fake). The cell loop (cell.py) sees only these protocols,
-so the live daemon, replay and the demo run the same code.
+Live and replay implementations live beside each other: camera.py (UVC + replay), arm.py
+(ur_rtde + fake), gate.py (serial host driver from firmware_bridge + in-process fake). The
+simulators are in vs2t_edge.sim.devices, out of the cell's code; a config reaches one only
+through :func:`simulator` below. The cell loop (cell.py) sees only these protocols, so the live
+daemon, replay and the demo run the same code.
 
 Every device: ``connect()``, ``disconnect()``, usable as a context manager, and raises
 ``NotConnectedError`` when used before ``connect()``. Faults are typed so the loop can
@@ -12,6 +13,7 @@ decide (retry the press, reject the item, or latch a fault) without parsing stri
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -129,3 +131,18 @@ class Gate(Protocol):
     def to_reject(self) -> None: ...  # best effort, must not raise
     def __enter__(self) -> "Gate": ...
     def __exit__(self, *exc: object) -> None: ...
+
+
+# --- simulators, by name ------------------------------------------------------------------
+
+# The simulated devices a config may name (``devices.gate.kind: sim``: the gate's MCU simulator on
+# a pty), as "module:factory" inside vs2t_edge.sim. Only names: the runtime never imports sim/ at
+# load time (docs/ARCHITECTURE.md, checked by tests/test_architecture.py), so a cell that runs live
+# devices never loads a simulator; the module is imported when a config asks for one.
+SIMULATORS = {"gate": "vs2t_edge.sim.devices:simulated_serial_gate"}
+
+
+def simulator(device: str):
+    """The factory of the simulated ``device`` (a key of SIMULATORS), imported only now."""
+    module, _, factory = SIMULATORS[device].partition(":")
+    return getattr(importlib.import_module(module), factory)

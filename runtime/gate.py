@@ -4,8 +4,10 @@
   with its faults turned into ``GateError(kind=...)``.
 * ``FakeGate`` — in process, no serial line, the same latching rules as the firmware (a jam or a
   fail-safe refuses every sort until ``clear()``), with injectable faults; for fast cell tests.
-* ``simulated_serial_gate()`` — a ``SerialGate`` wired to the MCU simulator over a real pty,
-  for the daemon's simulated mode and the demo.
+
+The ``SerialGate`` wired to the MCU simulator over a real pty (config ``devices.gate.kind: sim``,
+the demo) is ``vs2t_edge.sim.devices.simulated_serial_gate``: simulators stay out of the cell's
+code, and the daemon imports it only when a config asks for it (runtime/devices.py SIMULATORS).
 """
 
 from __future__ import annotations
@@ -180,22 +182,3 @@ class FakeGate:
 
     def __exit__(self, *exc: object) -> None:
         self.disconnect()
-
-
-class SimulatedSerialGate(SerialGate):
-    """A ``SerialGate`` on its own MCU simulator (pty); ``disconnect()`` also stops the simulator."""
-
-    def __init__(self, *, timeout_s: float = 0.5, retries: int = 3, **sim_kwargs) -> None:
-        from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
-
-        path, self.simulator = start_simulated_gate(**sim_kwargs)
-        super().__init__(path, timeout_s=timeout_s, retries=retries)
-
-    def disconnect(self) -> None:
-        super().disconnect()
-        self.simulator.stop()
-
-
-def simulated_serial_gate(**sim_kwargs) -> SimulatedSerialGate:
-    """The live driver against the simulated MCU over a real pty (daemon --simulate, demo)."""
-    return SimulatedSerialGate(**sim_kwargs)

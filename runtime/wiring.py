@@ -25,8 +25,9 @@ from vs2t_edge.runtime.arm import FakeArm, IsolatedURArm
 from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
 from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
+from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.gate import FakeGate, SerialGate, simulated_serial_gate
+from vs2t_edge.runtime.gate import FakeGate, SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
@@ -92,7 +93,7 @@ def build_live_devices(cfg: CellConfig):
     if gate_cfg["kind"] == "serial":
         gate = SerialGate(gate_cfg["url"], timeout_s=gate_cfg["timeout_s"], retries=gate_cfg["retries"])
     elif gate_cfg["kind"] == "sim":
-        gate = simulated_serial_gate()
+        gate = simulator("gate")()  # the MCU simulator on a pty, from vs2t_edge.sim, imported only now
     else:
         gate = FakeGate()
     return camera, arm, gate

@@ -1,7 +1,7 @@
 """Fault-matrix rows of issue 17's inputs part (registered in sim/faults.py SCENARIOS).
 
-Kept apart from sim/faults.py (already past its size) and built from its helpers: the rig, the
-grey-level fake model, the audit.
+Built from the matrix's helpers: the rig and the audit (sim/fault_rig.py), the grey-level fake
+model (sim/fakes.py).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def replay_camera_not_sensor_frames(w: Path):
     import cv2
 
     from vs2t_edge.runtime.camera import ReplayCamera
-    from vs2t_edge.sim.faults import _check, _loop_row
+    from vs2t_edge.sim.fault_rig import _check, _loop_row
 
     frames_dir = w / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
@@ -84,11 +84,13 @@ def restart_piece_ids(w: Path):
     restarted on the same journal and sorts two more: the piece ids must not start again at
     piece-000001 (every restart reused them, so the journal held two pieces of each id)."""
     from vs2t_edge.runtime.arm import ArmConfig, FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.gate import FakeGate
-    from vs2t_edge.sim.faults import DAEMON_CONFIG, GREY, REFERENCE_GREY, GreyEvidence, GreyModel, _check, audit
+    from vs2t_edge.sim.devices import SimulatedCamera
+    from vs2t_edge.sim.fakes import GREY, REFERENCE_GREY, GreyEvidence, GreyModel
+    from vs2t_edge.sim.fault_rig import _check, audit
+    from vs2t_edge.sim.faults_process import DAEMON_CONFIG
     from vs2t_edge.sim.scene import FAST_PRESS
 
     w.mkdir(parents=True, exist_ok=True)
@@ -136,7 +138,8 @@ def watchdog_through_hung_grab(w: Path):
     from vs2t_edge.runtime.gate import FakeGate
     from vs2t_edge.runtime.journal import Journal
     from vs2t_edge.runtime.notify import Notifier
-    from vs2t_edge.sim.faults import GreyEvidence, GreyModel, Pieces, _check, audit
+    from vs2t_edge.sim.fakes import GreyEvidence, GreyModel
+    from vs2t_edge.sim.fault_rig import Pieces, _check, audit
     from vs2t_edge.sim.scene import FAST_PRESS
 
     w.mkdir(parents=True, exist_ok=True)
@@ -235,7 +238,7 @@ def watchdog_gate_behind_heartbeat(w: Path):
     from vs2t_edge.firmware_bridge.gate_client import (GateClient, GateClientError, request_worst_case_s,
                                                       to_reject_worst_case_s)
     from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
-    from vs2t_edge.sim.faults import _check
+    from vs2t_edge.sim.fault_rig import _check
 
     timeout_s, retries, heartbeat_s = 0.3, 1, 0.1
     problems: list[str] = []

@@ -231,6 +231,27 @@ def write_scene_config(path: Path, data: dict):
     return load_config(path)
 
 
+# The fault matrix's and the loop tests' scene: three fabrics in bins 1-3, wool never touched.
+THREE_FABRICS = (("denim", "touched", 1), ("silk", "touched", 2), ("wool", "untouched", 3))
+
+
+def fake_cell_yaml(*, fabrics=THREE_FABRICS, camera: dict | None = None, arm: dict | None = None,
+                   gate: dict | None = None, bundle: str = "bundle", reject_bin: int = 0,
+                   journal: str = "state/journal.jsonl", **sections) -> str:
+    """The YAML of a cell config on fake devices, which the fault matrix and the tests write
+    instead of pasting the same text (the pasted copies drifted apart). Devices default to a replay
+    camera on ``frames`` and the fake arm and gate; ``fabrics`` are (name, kind, bin);
+    ``sections`` adds top-level keys (threads, evidence, watchdog, fault_file, ...), each
+    as its mapping. A key left out takes the config's own default (runtime/config.py)."""
+    data = {"bundle": bundle, **({"threads": sections.pop("threads")} if "threads" in sections else {}),
+            "devices": {"camera": camera or {"kind": "replay", "path": "frames"},
+                        "arm": arm or {"kind": "fake"}, "gate": gate or {"kind": "fake"}},
+            "scene": {"reject_bin": reject_bin,
+                      "fabrics": [{"name": n, "kind": k, "bin": b} for n, k, b in fabrics]},
+            **sections, "journal": journal}
+    return yaml.safe_dump(data, sort_keys=False)
+
+
 def assign_bins(touched: list[str], untouched: list[str], n_bins: int = 8, reject_bin: int = 0):
     """Scene fabrics -> bins 1..n-1 in turn (several fabrics may share a bin on a small gate)."""
     out = []
@@ -259,8 +280,8 @@ class SimulatedCell:
 
     def __enter__(self) -> "SimulatedCell":
         from vs2t_edge.runtime.arm import ArmConfig, FakeArm
-        from vs2t_edge.runtime.camera import SimulatedCamera
-        from vs2t_edge.runtime.gate import FakeGate, simulated_serial_gate
+        from vs2t_edge.runtime.gate import FakeGate
+        from vs2t_edge.sim.devices import SimulatedCamera, simulated_serial_gate
 
         self.dataset = load_dataset(self.dataset_root)
         self.source = SceneItems(self.items)

@@ -2,7 +2,7 @@
 
     python -m vs2t_edge.sim.soak --presses 5000 [--gate pty|fake] [--model onnx|grey] [--json docs/results/soak.json]
 
-The cell is the fault matrix's rig (sim/faults.py): the real loop, journal (fsynced), the gate
+The cell is the fault matrix's rig (sim/fault_rig.py): the real loop, journal (fsynced), the gate
 host driver against the MCU simulator on a pty (default), FakeArm and the simulated camera with
 sensor noise. The model (``--model onnx``, the default) is the real inference path on the
 committed bundle tests/replays/bundle (or ``--bundle``): TactileModel's preprocessing,
@@ -146,13 +146,13 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     """``model``: "onnx" (default) runs the real inference path on ``bundle`` (default: the
     committed tests/replays/bundle) with the reference replays' frames; "grey" the fault
     matrix's grey-level fake model (the loop, journal and gate only)."""
-    from vs2t_edge.sim.faults import TRUTHS, build_rig
+    from vs2t_edge.sim.fault_rig import TRUTHS, build_rig
 
     own = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="soak-")) if own else workdir
     gate = None
     if gate_kind == "pty":
-        from vs2t_edge.runtime.gate import simulated_serial_gate
+        from vs2t_edge.sim.devices import simulated_serial_gate
 
         gate = simulated_serial_gate(timeout_s=0.5)
     if model == "onnx":
@@ -222,7 +222,7 @@ def soak(presses: int, *, gate_kind: str = "pty", sample: int = 100, workdir: Pa
     if progress:
         print(file=sys.stderr)
     seconds = time.monotonic() - t0
-    from vs2t_edge.sim.faults import audit
+    from vs2t_edge.sim.fault_rig import audit
 
     # the grey model is exact, so every sorted piece must be in its own bin; the real model may be
     # wrong (a tiny test model): its bins are counted below, the audit checks the loop's promises

@@ -1,67 +1,23 @@
 """In-test fakes for the cell loop: a scripted model, a simple evidence rule and a frame camera.
 
 They satisfy the same protocols the real runtime/inference.py and runtime/evidence.py do, so
-the loop's tests do not wait for (or depend on the numbers of) a trained bundle.
+the loop's tests do not wait for (or depend on the numbers of) a trained bundle. The score and the
+evidence rule are the fault matrix's own (sim/fakes.py), under the names the tests use.
 """
 
 from __future__ import annotations
-
-import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from vs2t_edge.runtime.devices import CameraError, Frame
 from vs2t_edge.runtime.preprocess import FrameError, check_frame
+from vs2t_edge.sim.fakes import GreyEvidence as FakeEvidence  # noqa: F401 - one copy, shared with sim/
+from vs2t_edge.sim.fakes import GreyScore as FakeScore
+from vs2t_edge.sim.scene import fake_cell_yaml
 
-
-@dataclass(frozen=True)
-class FakeScore:
-    log_posterior: dict
-    novelty: float
-    untouched: bool
-    latency_ms: float = 1.0
-
-
-@dataclass(frozen=True)
-class FakeDecision:
-    label: str
-    confidence: float
-    presses: int
-    log_posterior: dict
-    stopped_by: str
-
-
-class FakeEvidence:
-    """Sum of log posteriors; decides once the normalised posterior reaches ``confidence``."""
-
-    def __init__(self, classes, confidence=0.9, max_presses=5):
-        self.classes, self.confidence, self.max_presses = list(classes), confidence, max_presses
-        self.total = {c: 0.0 for c in self.classes}
-        self.n = 0
-
-    def _posterior(self):
-        m = max(self.total.values())
-        z = sum(math.exp(v - m) for v in self.total.values())
-        return {c: math.exp(v - m) / z for c, v in self.total.items()}
-
-    def add(self, score):
-        self.n += 1
-        for c in self.classes:
-            self.total[c] += score.log_posterior.get(c, -30.0)
-        post = self._posterior()
-        best = max(post, key=post.get)
-        if post[best] >= self.confidence:
-            return FakeDecision(best, post[best], self.n, dict(self.total), "confident")
-        if self.n >= self.max_presses:
-            return self.decide()
-        return None
-
-    def decide(self):
-        post = self._posterior()
-        best = max(post, key=post.get)
-        label = best if post[best] >= self.confidence else "unknown"
-        return FakeDecision(label, post[best], self.n, dict(self.total), "press_limit")
+# the loop tests' cell config: fake devices, denim / silk touched, wool untouched, bins 1-3
+LOOP_CONFIG = fake_cell_yaml(camera={"kind": "replay", "path": "x"},
+                             evidence={"confidence": 0.95, "max_presses": 4}, journal="j.jsonl")
 
 
 class FakeModel:

@@ -204,3 +204,13 @@ def test_the_room_rule_catches_a_lazy_import():
     assert _breaches("bench", {"vs2t_edge.bench.x": tree}) == ["vs2t_edge.bench.x:2 imports vs2t_edge.train",
                                                                  "vs2t_edge.bench.x:2 imports vs2t_edge.train.run",
                                                                  "vs2t_edge.bench.x:3 imports torch"]
+
+
+def test_a_config_reaches_the_simulators_only_by_name():
+    """The simulated camera and gate were in runtime/camera.py and runtime/gate.py; now a config's
+    simulated gate is reached only by name, through runtime/devices.py's SIMULATORS (the room rule
+    above keeps every import of vs2t_edge.sim out of runtime/), which must name factories that exist."""
+    from vs2t_edge.runtime.devices import SIMULATORS, simulator
+
+    assert SIMULATORS and all(v.startswith("vs2t_edge.sim.") for v in SIMULATORS.values())
+    assert all(callable(simulator(device)) for device in SIMULATORS)

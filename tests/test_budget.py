@@ -25,28 +25,19 @@ from vs2t_edge.runtime.devices import CameraError, Frame
 from vs2t_edge.runtime.gate import FakeGate
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.sim.scene import fake_cell_yaml
 
 HERE = Path(__file__).parent
 REPO = HERE.parent
 
-CONFIG = """\
-bundle: bundle
-devices:
-  camera: {{kind: replay, path: frames}}
-  arm: {{kind: fake}}
-  gate: {{kind: serial, url: /dev/null, timeout_s: {timeout}, retries: {retries}}}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {{name: denim, kind: touched, bin: 1}}
-journal: j.jsonl
-watchdog: {{wait_item_timeout_s: {wait}}}
-"""
+DENIM = (("denim", "touched", 1),)
 
 
 def _cfg(tmp_path, timeout=0.5, retries=3, wait=1.0):
     path = tmp_path / "cell.yaml"
-    path.write_text(CONFIG.format(timeout=timeout, retries=retries, wait=wait))
+    path.write_text(fake_cell_yaml(fabrics=DENIM, gate={"kind": "serial", "url": "/dev/null", "timeout_s": timeout,
+                                                        "retries": retries},
+                                   journal="j.jsonl", watchdog={"wait_item_timeout_s": wait}))
     return path
 
 
@@ -55,10 +46,12 @@ def _cfg(tmp_path, timeout=0.5, retries=3, wait=1.0):
 def test_a_gate_timeout_the_driver_refuses_is_refused_by_validation(tmp_path):
     # 0.9 s is inside the documented 0.05 .. 10, but 0.9 + the 0.25 s heartbeat period is past the
     # gate's 1 s heartbeat timeout: `run` died with a ValueError traceback, exit 1, restarted
+    path = _cfg(tmp_path, timeout=0.9)
     with pytest.raises(ConfigError) as err:
-        load_config(_cfg(tmp_path, timeout=0.9))
+        load_config(path)
     assert "devices.gate.timeout_s = 0.9" in str(err.value) and "heartbeat timeout" in str(err.value)
-    assert f"{tmp_path / 'cell.yaml'}:5:" in str(err.value)  # file and line, as every config problem
+    line = next(n for n, text in enumerate(path.read_text().splitlines(), 1) if "timeout_s: 0.9" in text)
+    assert f"{path}:{line}:" in str(err.value)  # file and line of the key, as every config problem
 
 
 @pytest.mark.parametrize("timeout, retries", list(itertools.product([0.05, 0.3, 0.7, 0.74, 0.75, 0.9, 10.0], [0, 3, 10])))
@@ -205,21 +198,13 @@ def test_every_device_a_valid_config_describes_can_be_built(tmp_path, edge):
     from vs2t_edge.runtime.gate import SerialGate
 
     low = edge == "low"
-    text = f"""\
-bundle: bundle
-devices:
-  camera: {{kind: uvc, device: /dev/null-camera, width_px: {16 if low else 4096}, height_px: {16 if low else 4096},
-           fps: {1 if low else 240}, timeout_s: {0.05 if low else 10}, flush_frames: {0 if low else 30},
-           frozen_after: {2 if low else 100}}}
-  arm: {{kind: ur_rtde}}
-  gate: {{kind: serial, url: /dev/null, timeout_s: {0.05 if low else 0.74}, retries: {0 if low else 10}}}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {{name: denim, kind: touched, bin: 1}}
-journal: j.jsonl
-watchdog: {{wait_item_timeout_s: {0.01 if low else 26}}}
-"""
+    text = fake_cell_yaml(
+        fabrics=DENIM, journal="j.jsonl", arm={"kind": "ur_rtde"},
+        camera={"kind": "uvc", "device": "/dev/null-camera", "width_px": 16 if low else 4096,
+                "height_px": 16 if low else 4096, "fps": 1 if low else 240, "timeout_s": 0.05 if low else 10,
+                "flush_frames": 0 if low else 30, "frozen_after": 2 if low else 100},
+        gate={"kind": "serial", "url": "/dev/null", "timeout_s": 0.05 if low else 0.74, "retries": 0 if low else 10},
+        watchdog={"wait_item_timeout_s": 0.01 if low else 26})
     (tmp_path / "cell.yaml").write_text(text)
     cfg = load_config(tmp_path / "cell.yaml")
     camera_from_config(cfg.camera)  # constructors only: nothing is opened

@@ -12,10 +12,10 @@ import pytest
 from vs2t_edge.runtime.camera import (
     ContactCheck,
     ReplayCamera,
-    SimulatedCamera,
     UVCCamera,
     capture_reference,
 )
+from vs2t_edge.sim.devices import SimulatedCamera
 from vs2t_edge.runtime.devices import CameraError, NotConnectedError, TactileCamera
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 

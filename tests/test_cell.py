@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera
 from vs2t_edge.runtime.arm import FakeArm
 from vs2t_edge.runtime.cell import Cell, ContinuousFeed, Item, SceneSpec
 from vs2t_edge.runtime.gate import FakeGate
@@ -87,10 +87,10 @@ class _GuardedCamera(ScriptedCamera):
     replay and simulated camera is: a black frame is the camera's fault, never the model's."""
 
     def __init__(self, arm, script):
-        from vs2t_edge.runtime.camera import _FrameGuard
+        from vs2t_edge.runtime.camera import FrameGuard
 
         super().__init__(arm, script)
-        self.guard = _FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
+        self.guard = FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
 
     def grab(self):
         return self.guard.admit(super().grab().image)
@@ -497,11 +497,7 @@ def test_piece_ids_go_on_across_daemon_restarts_on_one_journal(tmp_path):
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
 
-    (tmp_path / "cell.yaml").write_text(
-        "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x}\n  arm: {kind: fake}\n  gate: {kind: fake}\n"
-        "scene:\n  reject_bin: 0\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n"
-        "    - {name: silk, kind: touched, bin: 2}\n    - {name: wool, kind: untouched, bin: 3}\n"
-        "evidence: {confidence: 0.95, max_presses: 4}\njournal: j.jsonl\n")
+    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
     cfg = load_config(tmp_path / "cell.yaml")
     for _ in range(2):  # two runs of the service on one journal
         arm = FakeArm(config=cfg.arm)

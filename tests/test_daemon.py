@@ -13,24 +13,11 @@ from pathlib import Path
 import pytest
 
 from vs2t_edge.runtime.journal import read_records
+from vs2t_edge.sim.scene import fake_cell_yaml
 
 HERE = Path(__file__).parent
-CONFIG = """\
-bundle: bundle
-threads: 1
-devices:
-  camera: {kind: replay, path: frames}
-  arm: {kind: fake}
-  gate: {kind: fake}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {name: denim, kind: touched, bin: 1}
-    - {name: silk, kind: untouched, bin: 2}
-evidence: {confidence: 0.95, max_presses: 4}
-journal: state/journal.jsonl
-watchdog: {wait_item_timeout_s: 0.05}
-"""
+CONFIG = fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
+                        evidence={"confidence": 0.95, "max_presses": 4}, watchdog={"wait_item_timeout_s": 0.05})
 
 
 def start(tmp_path, *extra, env_extra=None):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from vs2t_edge.sim import faults
+from vs2t_edge.sim import fault_rig, faults, faults_startup
 
 ROWS = {s.name: s for s in faults.SCENARIOS}
 
@@ -39,7 +39,7 @@ def test_audit_catches_a_lost_a_duplicated_and_a_guessed_item(tmp_path):
     j.append({"type": "final", "item": 3, "item_id": "c", "outcome": "sorted", "bin": 2})  # denim in silk's bin
     j.append({"type": "final", "item": 4, "item_id": "d", "outcome": "rejected_fault", "bin": 3})  # not rejected
     j.close()
-    problems = faults.audit(tmp_path / "j.jsonl", {"a": "denim", "b": "silk", "c": "denim", "d": "wool"})["problems"]
+    problems = fault_rig.audit(tmp_path / "j.jsonl", {"a": "denim", "b": "silk", "c": "denim", "d": "wool"})["problems"]
     text = "\n".join(problems)
     assert "item 1 has 2 final records" in text
     assert "items without a final record: [2]" in text
@@ -72,7 +72,7 @@ def test_reliability_cli_writes_the_table(tmp_path, capsys):
 
 def test_bundle_rows_have_a_bundle_to_tamper_with():
     # the bundle rows skip (pending) without one: in this repository they must really run
-    assert faults.good_bundle() is not None
+    assert faults_startup.good_bundle() is not None
 
 
 def test_known_bug_rows_are_listed_not_blocking(tmp_path, monkeypatch):
@@ -112,7 +112,7 @@ def test_the_hostile_python_tag_would_be_caught(tmp_path):
     import yaml
 
     mark = tmp_path / "pwned"
-    text = faults.HOSTILE_CONFIGS["python object tag"].replace("@MARK@", str(mark))
+    text = faults_startup.HOSTILE_CONFIGS["python object tag"].replace("@MARK@", str(mark))
     yaml.unsafe_load(text)
     assert mark.exists()
 

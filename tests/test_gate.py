@@ -18,7 +18,8 @@ from vs2t_edge.firmware_bridge import protocol as p
 from vs2t_edge.firmware_bridge.gate_client import GateClient, GateClientError
 from vs2t_edge.firmware_bridge.mcu_sim import LineFaults, start_simulated_gate
 from vs2t_edge.runtime.devices import Gate, GateError, GateStatus, NotConnectedError
-from vs2t_edge.runtime.gate import FakeGate, SerialGate, simulated_serial_gate
+from vs2t_edge.runtime.gate import FakeGate, SerialGate
+from vs2t_edge.sim.devices import simulated_serial_gate
 
 MOVE_MS = 60
 
@@ -486,3 +487,47 @@ def test_real_gate_routes_and_returns_to_reject():
         gate.sort(p.REJECT_BIN)
         after = gate.status()
         assert (after.bin, after.sorts_done) == (p.REJECT_BIN, before + 2)
+
+
+_GATE_CONFIG = """\
+bundle: bundle
+devices:
+  camera: {kind: replay, path: frames}
+  arm: {kind: fake}
+  gate: {kind: GATE_KIND}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {name: denim, kind: touched, bin: 1}
+journal: state/journal.jsonl
+"""
+
+
+def test_a_config_gate_of_kind_sim_is_the_mcu_simulator_and_only_then_is_sim_loaded(tmp_path):
+    """The simulated gate lives in vs2t_edge.sim; `run` on a config with ``gate: {kind: sim}`` still
+    gets it (runtime/devices.py SIMULATORS, imported by name), and a config with any other gate
+    never loads vs2t_edge.sim (checked in a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import build_live_devices
+    from vs2t_edge.sim.devices import SimulatedSerialGate
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(_GATE_CONFIG.replace("GATE_KIND", "sim"))
+    _camera, _arm, gate = build_live_devices(load_config(path))
+    try:
+        assert isinstance(gate, SimulatedSerialGate) and gate.simulator is not None
+        gate.connect()
+        gate.sort(1)
+        assert gate.status().bin == 1
+    finally:
+        gate.disconnect()
+    path.write_text(_GATE_CONFIG.replace("GATE_KIND", "fake"))
+    probe = ("import sys; from vs2t_edge.runtime.config import load_config; "
+             "from vs2t_edge.runtime.daemon import build_live_devices; "
+             f"build_live_devices(load_config({str(path)!r})); "
+             "print(sorted(m for m in sys.modules if m.startswith('vs2t_edge.sim')))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stderr + out.stdout

@@ -136,17 +136,18 @@ def test_the_daemon_journals_a_contradicted_sort_as_a_fault_never_sorted(tmp_pat
     """End to end: the real daemon (a subprocess) on the real host driver; the MCU simulator in
     this process lies once in the ACK of a SORT after the daemon has sorted a piece honestly."""
     from vs2t_edge.runtime.journal import read_records
-    from vs2t_edge.sim import faults
+    from vs2t_edge.sim import fault_rig, faults_process
 
     path, sim = start_simulated_gate(move_time_ms=MOVE_MS)
     try:
-        proc, journal = faults.start_daemon(tmp_path, gate_url=path)
+        proc, journal = faults_process.start_daemon(tmp_path, gate_url=path)
         try:
-            assert faults.wait_for(journal, lambda rs: any(r.get("outcome") == "sorted" for r in rs), limit_s=60)
+            assert faults_process.wait_for(journal, lambda rs: any(r.get("outcome") == "sorted" for r in rs),
+                                           limit_s=60)
             _lie(sim, lie_bin=7)
-            latched = faults.wait_for(journal, lambda rs: any(r["type"] == "fault" for r in rs), limit_s=30)
+            latched = faults_process.wait_for(journal, lambda rs: any(r["type"] == "fault" for r in rs), limit_s=30)
         finally:
-            code, err = faults._stop(proc)
+            code, err = faults_process._stop(proc)
         executed = sim.executed
     finally:
         sim.stop()
@@ -159,8 +160,8 @@ def test_the_daemon_journals_a_contradicted_sort_as_a_fault_never_sorted(tmp_pat
     assert [f["outcome"] for f in odd] == ["unknown_outcome"]
     assert odd[0]["bin"] == 0 and odd[0]["reported_bin"] == 7 and "contradicts" in odd[0]["reason"]
     # every sorted record matches a move the MCU made, and the lied-about move is accounted for
-    assert faults._moves_match_journal(executed, finals) == ""
-    assert faults.audit(journal, faults._daemon_truths(recs))["problems"] == []
+    assert fault_rig._moves_match_journal(executed, finals) == ""
+    assert fault_rig.audit(journal, faults_process._daemon_truths(recs))["problems"] == []
 
 
 # --- a flood of FAULT frames ------------------------------------------------------------------------
@@ -200,20 +201,20 @@ def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client,
 def _daemon_in_process(tmp_path, gate, truths, *, stop_when):
     """The real daemon (run_daemon) on the fault matrix's fake arm, camera and grey model."""
     from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.camera import SimulatedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.notify import Notifier
-    from vs2t_edge.sim import faults
+    from vs2t_edge.sim import fakes, fault_rig, faults_process
+    from vs2t_edge.sim.devices import SimulatedCamera
 
-    (tmp_path / "cell.yaml").write_text(faults.DAEMON_CONFIG)
+    (tmp_path / "cell.yaml").write_text(faults_process.DAEMON_CONFIG)
     (tmp_path / "cell.yaml").chmod(0o640)
     cfg = load_config(tmp_path / "cell.yaml")
-    pieces = faults.Pieces(truths)
-    arm = faults.FaultArm(FakeArm(config=cfg.arm), pieces)
-    camera = SimulatedCamera(faults.grey_frames(arm, pieces), noise_levels=1.0, seed=0)
-    code = run_daemon(cfg, model=faults.GreyModel(), camera=camera, arm=arm, gate=gate, items=pieces,
-                      evidence_factory=lambda: faults.GreyEvidence(faults.CLASSES, 0.95, 3),
+    pieces = fault_rig.Pieces(truths)
+    arm = fault_rig.FaultArm(FakeArm(config=cfg.arm), pieces)
+    camera = SimulatedCamera(fault_rig.grey_frames(arm, pieces), noise_levels=1.0, seed=0)
+    code = run_daemon(cfg, model=fakes.GreyModel(), camera=camera, arm=arm, gate=gate, items=pieces,
+                      evidence_factory=lambda: fakes.GreyEvidence(fakes.CLASSES, 0.95, 3),
                       notifier=Notifier(address=""), install_signals=False, stop_when=stop_when,
                       log=lambda m: None)
     return code, arm, cfg
@@ -301,11 +302,11 @@ def test_the_lossy_parser_really_loses_noise_prefixed_frames():
 
 @pytest.mark.slow
 def test_the_serial_noise_row_fails_with_a_parser_that_loses_frames(tmp_path, monkeypatch):
-    from vs2t_edge.sim import faults
+    from vs2t_edge.sim import faults, faults_gate
 
     monkeypatch.setattr(p, "check_frame", _lossy_check_frame)
     # one seed of the row's three is enough to see it (and each lost frame costs a timeout)
-    monkeypatch.setattr(faults, "NOISE_SEEDS", faults.NOISE_SEEDS[1:2])
+    monkeypatch.setattr(faults_gate, "NOISE_SEEDS", faults_gate.NOISE_SEEDS[1:2])
     row = faults.run_scenario(next(s for s in faults.SCENARIOS if s.name == "gate_serial_noise"), tmp_path)
     assert not row.passed
     assert any("lost" in problem for problem in row.problems), row.problems
@@ -314,7 +315,7 @@ def test_the_serial_noise_row_fails_with_a_parser_that_loses_frames(tmp_path, mo
 def test_the_moves_reconciliation_tries_every_split():
     """Seen in a daemon_sigkill run: item 4 was killed after its pre_sort before its SORT got out,
     item 6 was sorted to the same bin. A greedy match gave item 6's move to item 4 and failed."""
-    from vs2t_edge.sim.faults import _moves_match_journal
+    from vs2t_edge.sim.fault_rig import _moves_match_journal
 
     def final(item, outcome, bin_=0, **extra):
         return {"item": item, "outcome": outcome, "bin": bin_, **extra}

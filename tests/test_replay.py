@@ -12,28 +12,14 @@ import json
 
 import pytest
 
-from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera, latch_skipping
+from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera, latch_skipping
 from vs2t_edge.runtime.arm import FakeArm
 from vs2t_edge.runtime.cell import ContinuousFeed
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.gate import FakeGate
 from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, record_session, run_replay
 
-CONFIG = """\
-bundle: bundle
-devices:
-  camera: {kind: replay, path: x}
-  arm: {kind: fake}
-  gate: {kind: fake}
-scene:
-  reject_bin: 0
-  fabrics:
-    - {name: denim, kind: touched, bin: 1}
-    - {name: silk, kind: touched, bin: 2}
-    - {name: wool, kind: untouched, bin: 3}
-evidence: {confidence: 0.95, max_presses: 4}
-journal: j.jsonl
-"""
+
 CLASSES = ["denim", "silk", "wool"]
 VOTES = {50: "denim", 60: "silk", 70: "wool"}
 
@@ -47,7 +33,7 @@ def evidence():
 
 
 def record(tmp_path, script, n_items, fail_next=(), clear=True):
-    (tmp_path / "cell.yaml").write_text(CONFIG)
+    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
     cfg = load_config(tmp_path / "cell.yaml")
     arm = FakeArm(config=cfg.arm)
     cam = ScriptedCamera(arm, script)
@@ -193,7 +179,7 @@ def test_record_cli_saves_what_was_recorded_on_sigint(tmp_path):
 
     from vs2t_edge.runtime.journal import read_records
 
-    (tmp_path / "cell.yaml").write_text(CONFIG)
+    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
     out = tmp_path / "live.replay"
     journal = out.with_name(out.name + ".journal.jsonl")
     proc = subprocess.Popen([sys.executable, str(Path(__file__).parent / "daemon_fake_main.py"),
@@ -229,7 +215,7 @@ def test_an_exception_ending_a_recording_is_raised_after_the_save(tmp_path):
                 raise KeyboardInterrupt  # Ctrl-C where no handler catches it (a library call)
             return super().score_press(frame)
 
-    (tmp_path / "cell.yaml").write_text(CONFIG)
+    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
     cfg = load_config(tmp_path / "cell.yaml")
     arm = FakeArm(config=cfg.arm)
     with pytest.raises(KeyboardInterrupt):
@@ -300,6 +286,6 @@ def test_record_cli_gives_the_callers_signal_handlers_back(tmp_path):
     from vs2t_edge.cli import main
 
     before = signal.getsignal(signal.SIGINT)
-    (tmp_path / "cell.yaml").write_text(CONFIG.replace("bundle: bundle", f"bundle: {tmp_path / 'none'}"))
+    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG.replace("bundle: bundle", f"bundle: {tmp_path / 'none'}"))
     assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(tmp_path / "x.replay")]) == 2
     assert signal.getsignal(signal.SIGINT) is before

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from vs2t_edge.sim import faults
+from vs2t_edge.sim import faults_process
 
-PKG = Path(faults.__file__).resolve().parents[1]
+PKG = Path(faults_process.__file__).resolve().parents[1]
 HERE = Path(__file__).parent
 
 # --- no shell built from input ------------------------------------------------------------------
@@ -261,7 +261,7 @@ def test_daemon_opens_no_listening_socket(tmp_path):
     """The real daemon (tests/daemon_fake_main.py: production loop, sd_notify, journal) with a
     NOTIFY_SOCKET, so its notify socket exists while it sorts: that one is allowed, nothing else."""
     cfg = tmp_path / "cell.yaml"
-    cfg.write_text(faults.DAEMON_CONFIG)
+    cfg.write_text(faults_process.DAEMON_CONFIG)
     cfg.chmod(0o640)
     server, notify = _notify_server(tmp_path)
     env = dict(os.environ, NOTIFY_SOCKET=notify, PYTHONUNBUFFERED="1")
@@ -273,12 +273,12 @@ def test_daemon_opens_no_listening_socket(tmp_path):
         while not server.recv(4096).startswith(b"READY=1"):
             assert time.monotonic() < deadline, "no READY=1"
         journal = tmp_path / "state" / "journal.jsonl"
-        assert faults.wait_for(journal, lambda rs: sum(r["type"] == "final" for r in rs) >= 2)
+        assert faults_process.wait_for(journal, lambda rs: sum(r["type"] == "final" for r in rs) >= 2)
         assert _socket_inodes(proc.pid), "the daemon holds no socket: its sd_notify socket was not seen"
         listening = receiving_sockets(proc.pid)
         assert not listening, f"the daemon listens: {listening}"
     finally:
-        faults._stop(proc)
+        faults_process._stop(proc)
         server.close()
 
 
@@ -415,7 +415,7 @@ def test_world_writable_config_is_refused(tmp_path):
     from vs2t_edge.runtime.config import ConfigError, load_config
 
     cfg = tmp_path / "cell.yaml"
-    cfg.write_text(faults.DAEMON_CONFIG)
+    cfg.write_text(faults_process.DAEMON_CONFIG)
     cfg.chmod(0o666)
     # anyone on the machine could point the daemon at another bundle or journal: refused, in words
     with pytest.raises(ConfigError) as err:
@@ -430,7 +430,7 @@ def test_world_writable_config_refused_by_the_daemon_with_exit_2(tmp_path):
     import sys
 
     cfg = tmp_path / "cell.yaml"
-    cfg.write_text(faults.DAEMON_CONFIG)
+    cfg.write_text(faults_process.DAEMON_CONFIG)
     cfg.chmod(0o646)
     p = subprocess.run([sys.executable, "-m", "vs2t_edge.cli", "run", "--config", str(cfg)],
                        capture_output=True, text=True, timeout=60)
@@ -486,7 +486,7 @@ def test_a_huge_config_is_refused_before_it_is_parsed(tmp_path):
 
     cfg = tmp_path / "cell.yaml"
     # 5 MB of keys: took 73 s and 1.6 GB to reach its error; 50 MB ended in a MemoryError traceback
-    cfg.write_text(faults.DAEMON_CONFIG + "".join(f"k{i}: [1, 2, 3]\n" for i in range(400_000)))
+    cfg.write_text(faults_process.DAEMON_CONFIG + "".join(f"k{i}: [1, 2, 3]\n" for i in range(400_000)))
     t0 = time.monotonic()
     with pytest.raises(ConfigError, match="a cell config is a few KB"):
         load_config(cfg)
