@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
 
 FORMAT = "vs2t-edge-replay"
@@ -30,6 +31,51 @@ VERSION = 1
 # logs each call and compares the sequence after the run. A file recorded before they were
 # (no ``safety_steps`` key) replays as before, its safety steps not compared.
 SAFETY_CALLS = frozenset({("arm", "stop"), ("gate", "to_reject")})
+
+
+# A recorded device error: its type by name, so a replay raises the same class.
+_ERRORS = {cls.__name__: cls for cls in (dv.CameraError, dv.ArmConnectionError, dv.ArmSafetyStop, dv.PressFailed,
+                                         dv.ArmError, dv.GateError, dv.DeviceError, dv.NotConnectedError)}
+
+
+def error_to_json(exc: dv.DeviceError) -> dict:
+    """A device error as the index records it (a recorded call that raised)."""
+    return {"type": type(exc).__name__, "message": str(exc), "kind": exc.kind, "device": exc.device,
+            "retryable": bool(exc.retryable)}
+
+
+def error_from_json(d: dict) -> dv.DeviceError:
+    """The recorded error, raised again by the replay device at the same call."""
+    cls = _ERRORS.get(d["type"], dv.DeviceError)
+    exc = cls(d["message"], device=d.get("device", ""), kind=d.get("kind", ""))
+    if exc.retryable != d.get("retryable", exc.retryable):
+        exc.retryable = d["retryable"]
+    return exc
+
+
+# The journal records that are a session's decisions: what a replay must reproduce.
+DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped", "retry")
+# Measurements of the machine, not decisions: wall-clock stamps and the model's time per press
+# (1.9 ms when recorded beside a UR simulator, 0.6 ms replayed alone). Dropped from reference
+# decisions at any depth and never compared.
+TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s"})
+
+
+def without_timing(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: without_timing(v) for k, v in x.items() if k not in TIMING_KEYS}
+    if isinstance(x, list):
+        return [without_timing(v) for v in x]
+    return x
+
+
+def decisions_of(records: list[dict]) -> list[dict]:
+    """The journal records a replay compares, timestamps and timings dropped."""
+    out = []
+    for r in records:
+        if r.get("type") in DECISION_TYPES:
+            out.append(without_timing({k: v for k, v in r.items() if k != "steps_failed"}))
+    return out
 
 
 class ReplayError(ValueError):

@@ -5,7 +5,7 @@ The parts: the verified, warmed model of the config's bundle, checked against th
 camera, arm and gate the config names; the item rule (``runtime.evidence.Evidence`` with the
 operating point's numbers); the press-frame contact check. Every verb that runs the cell goes
 through these functions: `run` (runtime/daemon.py), `record` (runtime/record_cli.py), `replay`
-and session recording (runtime/replay.py), `calibrate-threshold --live-*` (through `record`) and
+and session recording (runtime/recording.py), `calibrate-threshold --live-*` (through `record`) and
 the demo and its reference sessions (sim/demo.py, sim/scene.py, which inject simulated devices
 and their own model). One wiring means a replay or a demo runs the cell exactly as `run` does.
 

@@ -37,7 +37,7 @@ from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
 from vs2t_edge.runtime.inference import TactileModel
-from vs2t_edge.runtime.replay import record_session
+from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 # world profile -> training profile (the demo's world trains with the small profile's budget)

@@ -33,7 +33,8 @@ from vs2t_edge.runtime.cell import Item
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
 from vs2t_edge.runtime.inference import TactileModel
-from vs2t_edge.runtime.replay import SCORE_RTOL, record_session
+from vs2t_edge.runtime.recording import record_session
+from vs2t_edge.runtime.replay import SCORE_RTOL
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ import pytest
 from cell_fakes import FakeEvidence, FakeModel
 from vs2t_edge.runtime.dataset import SensorGeometry, write_dataset_meta, write_fabric, write_fabric_index
 from vs2t_edge.runtime.daemon import run_daemon
-from vs2t_edge.runtime.replay import ReplayFile, record_session, run_replay
+from vs2t_edge.runtime.recording import record_session
+from vs2t_edge.runtime.replay import ReplayFile, run_replay
 from vs2t_edge.sim.scene import SimulatedCell, item_stream, score_run, scene_config_yaml, write_scene_config
 
 GREY = {"denim": 50, "silk": 60, "wool": 70, "tweed": 100}  # tweed: off-scene, votes for nothing

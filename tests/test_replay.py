@@ -17,7 +17,8 @@ from vs2t_edge.runtime.arm import FakeArm
 from vs2t_edge.runtime.cell import ContinuousFeed
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.gate import FakeGate
-from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, record_session, run_replay
+from vs2t_edge.runtime.recording import record_session
+from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, run_replay
 
 
 CLASSES = ["denim", "silk", "wool"]
