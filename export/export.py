@@ -32,6 +32,7 @@ from torch import nn
 
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.router_eval import fit_gating_temperature, gating_scale, robust_temperature
 from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 # The newest opset torch 2.13's TorchScript exporter writes (21+ warns 'not supported'); onnxruntime
@@ -142,57 +143,6 @@ def _novelty(router: nv.Router, feature, logits_t, logits_u) -> np.ndarray:
     if isinstance(router, nv.GaussianRouter):
         return router.novelty(feature, logits_t, logits_u=logits_u, dtype=np.float32)
     return router.novelty(feature, logits_t, logits_u=logits_u)
-
-
-def gating_scale(novelty: np.ndarray) -> float:
-    """s of the gate's g(n) = asinh(n / s): the typical magnitude of touched presses' scores."""
-    n = np.abs(np.asarray(novelty, np.float64))
-    s = float(np.median(n)) if n.size else 1.0
-    return s if s > 0 and math.isfinite(s) else 1.0
-
-
-def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, beta: float,
-                           scale: float | None = None) -> float:
-    """T of P(untouched|x) = sigmoid((g(novelty) - g(beta)) / T), g = asinh(. / scale) (identity
-    when scale is None), by maximum likelihood of the route labels (touched presses 0,
-    validation-fabric presses 1) with the offset fixed at g(beta): the hard decision stays the
-    tuned operating point and only its softness is learned. Log-grid search (the likelihood is
-    unimodal in log T), then golden-section refinement."""
-    from vs2t_edge.runtime.inference import gate_logit
-
-    t = np.asarray(nov_touched, np.float64)
-    u = np.asarray(nov_untouched, np.float64)
-    if t.size == 0 or u.size == 0 or not math.isfinite(beta):
-        return robust_temperature(np.concatenate([t, u]) if t.size + u.size else np.zeros(1), scale)
-    d = gate_logit(np.concatenate([t, u]), beta, 1.0, scale)
-    y = np.concatenate([np.zeros(t.size), np.ones(u.size)])
-    spread = max(float(np.median(np.abs(d))), 1e-12)
-
-    def nll(log_t: float) -> float:
-        z = d / math.exp(log_t)
-        # -log sigmoid(z) for y=1, -log sigmoid(-z) for y=0, stably
-        return float(np.mean(np.where(y > 0, np.logaddexp(0, -z), np.logaddexp(0, z))))
-
-    grid = np.log(spread) + np.linspace(-12, 6, 73)
-    vals = [nll(g) for g in grid]
-    k = int(np.argmin(vals))
-    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    for _ in range(40):
-        m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
-        if nll(m1) < nll(m2):
-            hi = m2
-        else:
-            lo = m1
-    return float(math.exp(0.5 * (lo + hi)))
-
-
-def robust_temperature(novelty: np.ndarray, scale: float | None = None) -> float:
-    """Fallback T without validation presses: the spread (1.4826 MAD) of the gate's input."""
-    n = np.asarray(novelty, np.float64)
-    if scale is not None:
-        n = np.arcsinh(n / scale)
-    mad = 1.4826 * float(np.median(np.abs(n - np.median(n))))
-    return mad if mad > 0 else max(float(np.max(np.abs(n))), 1.0) * 1e-3
 
 
 def _git_commit() -> str:
@@ -380,5 +330,4 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls
     return manifest
 
 
-__all__ = ["OPSET", "ExportError", "write_bundle", "fit_gating_temperature", "gating_scale", "count_macs",
-           "export_onnx", "graph_io"]
+__all__ = ["OPSET", "ExportError", "write_bundle", "count_macs", "export_onnx", "graph_io"]

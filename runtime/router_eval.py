@@ -4,11 +4,14 @@
 module chooses the threshold and measures it (``novelty.route_untouched`` applies it):
 ``tune_threshold`` (beta from touched and validation presses, never untouched ones),
 ``threshold_rates`` and ``seen_unseen_curve`` / ``ausuc`` / ``auroc`` (how well a router separates
-them) and ``gzsl_accuracies`` (acc_t, acc_u and H at one beta). Numpy only: the cell's calibration
-uses it.
+them) and ``gzsl_accuracies`` (acc_t, acc_u and H at one beta); and the gate's softness around beta
+(``fit_gating_temperature``, ``gating_scale``) that export ships and the comparison uses. Numpy
+only: the cell's calibration uses it.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -171,3 +174,56 @@ def gzsl_accuracies(
     acc_u = float(np.sum(wu * (np.asarray(correct_untouched, bool) & np.asarray(untouched_mask_untouched, bool))))
     h = 0.0 if acc_t + acc_u == 0 else 2 * acc_t * acc_u / (acc_t + acc_u)
     return {"acc_t": acc_t, "acc_u": acc_u, "H": h}
+
+
+# --- the gate's softness: how sure a press is of its route (runtime/inference.gzsl_log_posterior) ---
+
+def gating_scale(novelty: np.ndarray) -> float:
+    """s of the gate's g(n) = asinh(n / s): the typical magnitude of touched presses' scores."""
+    n = np.abs(np.asarray(novelty, np.float64))
+    s = float(np.median(n)) if n.size else 1.0
+    return s if s > 0 and math.isfinite(s) else 1.0
+
+
+def fit_gating_temperature(nov_touched: np.ndarray, nov_untouched: np.ndarray, beta: float,
+                           scale: float | None = None) -> float:
+    """T of P(untouched|x) = sigmoid((g(novelty) - g(beta)) / T), g = asinh(. / scale) (identity
+    when scale is None), by maximum likelihood of the route labels (touched presses 0,
+    validation-fabric presses 1) with the offset fixed at g(beta): the hard decision stays the
+    tuned operating point and only its softness is learned. Log-grid search (the likelihood is
+    unimodal in log T), then golden-section refinement."""
+    from vs2t_edge.runtime.inference import gate_logit
+
+    t = np.asarray(nov_touched, np.float64)
+    u = np.asarray(nov_untouched, np.float64)
+    if t.size == 0 or u.size == 0 or not math.isfinite(beta):
+        return robust_temperature(np.concatenate([t, u]) if t.size + u.size else np.zeros(1), scale)
+    d = gate_logit(np.concatenate([t, u]), beta, 1.0, scale)
+    y = np.concatenate([np.zeros(t.size), np.ones(u.size)])
+    spread = max(float(np.median(np.abs(d))), 1e-12)
+
+    def nll(log_t: float) -> float:
+        z = d / math.exp(log_t)
+        # -log sigmoid(z) for y=1, -log sigmoid(-z) for y=0, stably
+        return float(np.mean(np.where(y > 0, np.logaddexp(0, -z), np.logaddexp(0, z))))
+
+    grid = np.log(spread) + np.linspace(-12, 6, 73)
+    vals = [nll(g) for g in grid]
+    k = int(np.argmin(vals))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    for _ in range(40):
+        m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
+        if nll(m1) < nll(m2):
+            hi = m2
+        else:
+            lo = m1
+    return float(math.exp(0.5 * (lo + hi)))
+
+
+def robust_temperature(novelty: np.ndarray, scale: float | None = None) -> float:
+    """Fallback T without validation presses: the spread (1.4826 MAD) of the gate's input."""
+    n = np.asarray(novelty, np.float64)
+    if scale is not None:
+        n = np.arcsinh(n / scale)
+    mad = 1.4826 * float(np.median(np.abs(n - np.median(n))))
+    return mad if mad > 0 else max(float(np.max(np.abs(n))), 1.0) * 1e-3

@@ -175,9 +175,13 @@ def test_end_to_end_on_the_toy_world_writes_report(tmp_path):
             assert 0.0 <= m["routers"][r][key]["mean"] <= 1.0
     # 24 touched fabrics teach DAP the attributes well enough to beat chance (1/3) clearly
     assert m["zsl_acc"]["mean"] > 0.5
+    for r in nv.ROUTERS:  # per item, by bins: shares of every piece, at most 5 presses each
+        b = {k: m["routers"][r][k]["mean"] for k in cmp.ITEM_KEYS}
+        assert abs(b["item_right"] + b["item_mis_sort"] + b["item_reject"] - 1) < 1e-9 and 1 <= b["item_presses"] <= 5
     paths = report.write_results(result, tmp_path / "out")
     md = paths["md"].read_text()
     assert "| DAP | 43.56 |" in md and "Recommendation" in md
+    assert "## Per item, by bins (test fabrics)" in md and "| DAP |" in md.split("## Per item, by bins")[1]
     assert json.loads(paths["json"].read_text())["summary"]["recommendation"]["model"] in ("DAP", "CADA-VAE")
     assert paths["png"].stat().st_size > 5000
 
@@ -540,3 +544,24 @@ def test_methods_section_says_what_vs2t_conditions_on():
     for sp in no_vs2t["splits"]:
         sp["methods"].pop("VS2T-ZSL")
     assert "VS2T-ZSL also conditions" not in report.render_markdown(no_vs2t)
+
+
+def _posteriors(names, truth_of_row, confidence):
+    """Log posteriors over ``names``: ``confidence`` on the class each row names, the rest spread."""
+    lp = np.full((len(truth_of_row), len(names)), np.log((1 - confidence) / (len(names) - 1)))
+    lp[np.arange(len(truth_of_row)), truth_of_row] = np.log(confidence)
+    return lp
+
+
+def test_by_bins_counts_right_bins_and_mis_sorts_on_a_hand_made_case():
+    names_t, names_u = [f"t{i}" for i in range(6)], ["u0", "u1", "u2"]
+    y_t, y_u = np.repeat(np.arange(6), 5), np.repeat(np.arange(3), 5)
+    lp_t = _posteriors(names_t + names_u, y_t, 0.99)
+    right = cmp.by_bins(names_t, names_u, lp_t, y_t, _posteriors(names_t + names_u, 6 + y_u, 0.99), y_u)
+    assert right["item_right"] == 1.0 and right["item_mis_sort"] == 0.0
+    assert right["item_by_kind"]["touched"]["presses"] == right["item_by_kind"]["untouched"]["presses"] == 1.0
+    assert right["item_by_kind"]["off-scene"]["right"] == 1.0  # no scene class explains them: rejected
+    # every untouched press sure it is t0: an untouched piece in a scene listing t0 goes to t0's bin
+    wrong = cmp.by_bins(names_t, names_u, lp_t, y_t, _posteriors(names_t + names_u, 0 * y_u, 0.99), y_u)
+    assert wrong["item_by_kind"]["untouched"]["mis-sort"] > 0 and wrong["item_by_kind"]["touched"]["right"] == 1.0
+    assert wrong["item_right"] < 1.0

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from test_bundle_fixtures import tiny_world, world_frames
 from vs2t_edge.export import export as ex, from_run as fr
+from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.inference import TactileModel
 
 
@@ -162,7 +163,7 @@ def test_gating_temperature_recovers_a_known_logistic():
     rng = np.random.default_rng(0)
     nov = rng.uniform(-10, 10, 20000)
     y = rng.random(nov.size) < 1 / (1 + np.exp(-(nov - 1.0) / 2.5))
-    t = ex.fit_gating_temperature(nov[~y], nov[y], beta=1.0)
+    t = reval.fit_gating_temperature(nov[~y], nov[y], beta=1.0)
     assert t == pytest.approx(2.5, rel=0.1)
 
 

@@ -45,6 +45,8 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.inference import gzsl_log_posterior
 from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.train.baselines import (
     BASELINES,
@@ -197,9 +199,37 @@ def all_methods() -> dict[str, type[ZSLMethod]]:
     return {**BASELINES, **MODERN, "VS2T-ZSL": vs2t.variant_class("VS2T-ZSL")}
 
 
+# Per item, by bins (runtime/sorting.py: the evaluation the bench, the demo and training's report use):
+# the cell's evidence on each method's per-press posterior, at the confidence the cell used before
+# the scene decision, on scenes of 5 touched + 3 untouched test fabrics per split; off-scene pieces
+# are the test fabrics a scene leaves out.
+ITEM_CONFIDENCE, ITEM_MAX_PRESSES, ITEM_SCENES = 0.95, 5, 12
+ITEM_KEYS = ("item_right", "item_mis_sort", "item_reject", "item_presses")
+
+
+def by_bins(names_t: list[str], names_u: list[str], lp_t: np.ndarray, y_t: np.ndarray, lp_u: np.ndarray,
+            y_u: np.ndarray, seed: int = 0) -> dict:
+    """right / mis-sort / reject per item (fractions) and presses per item, over all pieces and per
+    kind, from per-press log posteriors over ``names_t + names_u`` of touched test presses (labels
+    ``y_t``) and untouched presses (``y_u``)."""
+    classes = list(names_t) + list(names_u)
+    tables: dict[str, list] = {f: [] for f in classes}
+    for rows, labels, names in ((lp_t, y_t, names_t), (lp_u, y_u, names_u)):
+        for row, k in zip(rows, labels):
+            tables[names[int(k)]].append(so.Press(dict(zip(classes, row.tolist()))))
+    scenes = so.draw_scenes(names_t, names_u, (), ITEM_SCENES, seed=seed)
+    records = so.simulate_scenes(scenes, tables, so.plain_evidence(ITEM_CONFIDENCE, ITEM_MAX_PRESSES),
+                                 max_presses=ITEM_MAX_PRESSES, seed=seed + 1)
+    summary = so.summarise(records)
+    a = summary["all"]
+    return {"item_right": a[so.RIGHT], "item_mis_sort": a[so.MIS_SORT], "item_reject": a[so.REJECT],
+            "item_presses": a["presses"], "item_by_kind": summary["by_kind"]}
+
+
 def _router_block(routers: dict[str, nv.Router], cls_t, views: SplitViews, logits_u_val, logits_u_test,
-                  logits_u_touched_val, logits_u_touched_test):
-    """Per router: beta from validation, test GZSL numbers, test and validation AUSUC.
+                  logits_u_touched_val, logits_u_touched_test, seed: int = 0):
+    """Per router: beta from validation, test GZSL numbers, test and validation AUSUC, and per item
+    by bins (``by_bins``) with the gate's temperature fitted on validation as export fits it.
 
     ``logits_u_*``: CLS_u on the validation / untouched presses, and on the touched val / test
     presses (calibrated stacking scores every press over touched + untouched classes; on
@@ -220,11 +250,16 @@ def _router_block(routers: dict[str, nv.Router], cls_t, views: SplitViews, logit
         nov_up = router.novelty(x_up, lt["up"], logits_u=logits_u_test)
         beta = reval.tune_threshold(nov_tv, nov_vp)
         g = reval.gzsl_accuracies(nov_tt > beta, ok_t["tt"], nov_up > beta, ok_test_u, y_tt, y_up)
+        scale = reval.gating_scale(nov_tv) if name in nv.FEATURE_ROUTERS else None
+        temperature = reval.fit_gating_temperature(nov_tv, nov_vp, beta, scale)
+        lp_tt = gzsl_log_posterior(lt["tt"], logits_u_touched_test, nov_tt, beta, temperature, scale)
+        lp_up = gzsl_log_posterior(lt["up"], logits_u_test, nov_up, beta, temperature, scale)
         out[name] = {
             "beta": beta, **g,
             "ausuc": reval.ausuc(nov_tt, ok_t["tt"], nov_up, ok_test_u, y_tt, y_up),
             "auroc": reval.auroc(nov_tt, nov_up),
             "val_ausuc": reval.ausuc(nov_tv, ok_t["tv"], nov_vp, ok_val_u, y_tv, y_vp),
+            **by_bins(views.train.names_t, views.train.names_u, lp_tt, y_tt, lp_up, y_up, seed),
         }
     return out
 
@@ -259,7 +294,7 @@ def run_split(table: FeatureTable, split: FabricSplit, methods: dict[str, type[Z
         logits_val = method.untouched_logits(x_vp, v_vp)
         lu_tv = method.untouched_logits(*views.touched_val[:2])
         zsl_val = _per_class_acc(logits_val.argmax(1), y_vp)
-        block = _router_block(fitted, cls_t, views, logits_val, logits_test, lu_tv, lu_tt)
+        block = _router_block(fitted, cls_t, views, logits_val, logits_test, lu_tv, lu_tt, seed)
         result["methods"][name] = {"zsl_acc": zsl_test, "val_zsl_acc": zsl_val, "routers": block,
                                    "seconds": round(time.time() - t1, 1)}
         g = block.get(GAUSSIAN_ROUTER, next(iter(block.values())))
@@ -328,8 +363,10 @@ def summarise(split_results: list[dict], cell_inputs: dict[str, tuple[str, ...]]
         ms = {"zsl_acc": _ms([r["zsl_acc"] for r in rows]), "val_zsl_acc": _ms([r["val_zsl_acc"] for r in rows]),
               "seconds_per_split": float(np.mean([r["seconds"] for r in rows])), "routers": {}}
         for rt in routers:
-            ms["routers"][rt] = {k: _ms([r["routers"][rt][k] for r in rows])
-                                 for k in ("acc_t", "acc_u", "H", "ausuc", "auroc", "val_ausuc")}
+            # per item by bins only where every split has it (JSONs from before it are still pooled)
+            keys = ("acc_t", "acc_u", "H", "ausuc", "auroc", "val_ausuc") + tuple(
+                k for k in ITEM_KEYS if all(k in r["routers"][rt] for r in rows))
+            ms["routers"][rt] = {k: _ms([r["routers"][rt][k] for r in rows]) for k in keys}
         summary["methods"][m] = ms
     summary["recommendation"] = recommend(summary["methods"], cell_inputs)
     summary["cls_t_acc"] = _ms([r["cls_t_acc"] for r in split_results])

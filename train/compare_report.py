@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from vs2t_edge.train.baselines import PAPER_GZSL_VS2T, PAPER_ZSL
-from vs2t_edge.train.compare import (GAUSSIAN_ROUTER, _evidence_strength, _lead, _pct,
-                                     pool_into, summarise)
+from vs2t_edge.train.compare import (GAUSSIAN_ROUTER, ITEM_CONFIDENCE, ITEM_MAX_PRESSES, ITEM_SCENES,
+                                     _evidence_strength, _lead, _pct, pool_into, summarise)
 
 
 def _table4_row(name: str, ms: dict, paper_zsl, paper_g: dict | None) -> str:
@@ -136,6 +136,31 @@ def _vs2t_condition_lines(result: dict) -> list[str]:
     return [f"- VS2T-ZSL also conditions on [x_v, s] (through VS-F), but its x_v is {x_v}{tail}."]
 
 
+def _bins_section(s: dict) -> list[str]:
+    """Per item, by bins, per method at the router validation picks for it; empty for JSONs made
+    before the comparison measured it."""
+    rows = []
+    for m, ms in s["methods"].items():
+        rs = ms["routers"]
+        br = max(rs, key=lambda r: rs[r]["val_ausuc"]["mean"])
+        if "item_right" not in rs[br]:
+            return []
+        b = rs[br]
+        rows.append(f"| {m} | {br} | {_pct(b['item_right'])} | {_pct(b['item_mis_sort'])} | {_pct(b['item_reject'])} "
+                    f"| {b['item_presses']['mean']:.2f} |")
+    return ["## Per item, by bins (test fabrics)", "",
+            f"What a sorting line pays for (runtime/sorting.py, the evaluation the bench, the demo and training's "
+            f"report use): each method's per-press posterior (its router at the validation beta, the gate's "
+            f"temperature fitted on validation as export fits it) fed to the cell's evidence at confidence "
+            f"{ITEM_CONFIDENCE} with at most {ITEM_MAX_PRESSES} presses, on {ITEM_SCENES} scenes per split of 5 "
+            f"touched + 3 untouched test fabrics; off-scene pieces are the test fabrics a scene leaves out. A "
+            f"mis-sort is a piece in a wrong bin; a reject goes to a person. The cell's own scene decision "
+            f"(runtime/scene_model.py) is in training's report, not here: it needs synthesised features, which "
+            f"only VS2T-ZSL's bundle carries.", "",
+            "| method | router (best val AUSUC) | right bin | mis-sort | reject | presses |",
+            "| --- | --- | --- | --- | --- | --- |", *rows, ""]
+
+
 def render_markdown(result: dict, real_md: str | None = None) -> str:
     s = result["summary"]
     meta = result["meta"]
@@ -192,6 +217,7 @@ def render_markdown(result: dict, real_md: str | None = None) -> str:
               "| method | " + " | ".join(routers) + " |", "| --- | " + " | ".join("---" for _ in routers) + " |"]
     for m, ms in s["methods"].items():
         lines.append(f"| {m} | " + " | ".join(f"{100 * ms['routers'][r]['H']['mean']:.1f}" for r in routers) + " |")
+    lines += _bins_section(s)
     lines += _recommendation_section(result)
     lines += [f"![comparison]({meta.get('png', 'comparison.png')})", ""]
     lines += ["## Methods and adaptations", "",
