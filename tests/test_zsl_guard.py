@@ -210,6 +210,12 @@ def _differing_leaves(a, b, path=()):
     return [] if same else [path]
 
 
+def _per_item(path: tuple) -> bool:
+    """compare's per item by bins: scenes of test fabrics, untouched pieces included, scored with
+    the untouched classes' CLS_u (touched pieces too): all test side."""
+    return any(isinstance(k, str) and k.startswith("item_") for k in path)
+
+
 def _only_test_side_changed(clean: dict, poisoned: dict) -> list:
     # the scene decision's test scenes are made of the untouched fabrics' presses: all test side,
     # structure included (the risk-coverage curve has one point per distinct confidence)
@@ -222,7 +228,7 @@ def _only_test_side_changed(clean: dict, poisoned: dict) -> list:
         clean["scene_decision"], poisoned["scene_decision"] = a, b
     diff = _differing_leaves(clean, poisoned)
     touched = [p for p in diff if p[-1] not in TEST_SIDE_KEYS | TIMING_KEYS
-               and not (p[-1] == "acc_t" and len(p) >= 2 and p[-2] in READS_CLS_U)]
+               and not (p[-1] == "acc_t" and len(p) >= 2 and p[-2] in READS_CLS_U) and not _per_item(p)]
     assert not touched, f"a touched- or validation-side number moved when only untouched inputs changed: {touched}"
     test_side = [p for p in diff if p[-1] in TEST_SIDE_KEYS] + scene_test
     assert test_side, "the poison did not reach the untouched test outputs (the check would be vacuous)"
