@@ -110,7 +110,7 @@ def build_live_devices(cfg: CellConfig):
     if cfg.arm_kind == "ur_rtde":
         # ur_rtde in a worker process: a client crash (it can segfault on a flapping link)
         # costs one press, not the service (docs/arm.md).
-        from vs2t_edge.runtime.arm import IsolatedURArm
+        from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 
         arm = IsolatedURArm(cfg.arm)
     elif cfg.arm_kind == "fake":

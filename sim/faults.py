@@ -753,7 +753,8 @@ def item_over_time_budget(w: Path):
 def _ursim_arm():
     """(the loopback UR simulator, an IsolatedURArm on it: the real ur_rtde client); the simulator
     is stopped on leaving."""
-    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_isolated import IsolatedURArm
     from vs2t_edge.sim.scene import FAST_PRESS
     from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
 

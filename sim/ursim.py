@@ -1067,7 +1067,8 @@ def bench_press(n_points: int = 9, json_path: str | None = None, **arm_overrides
     import statistics
     import sys
 
-    from vs2t_edge.runtime.arm import ArmConfig, URArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_ur import URArm
 
     host = free_loopback_host()
     config = ArmConfig(host=host, **arm_overrides)

@@ -10,7 +10,9 @@ import time
 
 import pytest
 
-from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm, IsolatedURArm, URArm
+from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm
+from vs2t_edge.runtime.arm_isolated import IsolatedURArm
+from vs2t_edge.runtime.arm_ur import URArm
 from vs2t_edge.runtime.devices import (
     Arm,
     ArmConnectionError,

@@ -191,7 +191,8 @@ def test_controller_force_limit_stops_a_move_into_the_table():
     receive interface reports it and the arm raises its typed safety stop."""
     pytest.importorskip("rtde_control")
     rtde_receive = pytest.importorskip("rtde_receive")
-    from vs2t_edge.runtime.arm import ArmConfig, URArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_ur import URArm
     from vs2t_edge.runtime.devices import ArmSafetyStop
 
     scene = PressScene(protective_stop_force_n=6.0, home_pose=(0.40, -0.10, 0.106, 0.0, math.pi, 0.0))
