@@ -11,13 +11,9 @@ import time
 
 import pytest
 
-from vs2t_edge.sim.ursim import (
-    CMD_MOVEL,
-    PressScene,
-    URSim,
-    URSimProcess,
-    free_loopback_host,
-)
+from vs2t_edge.sim.ursim import URSim, free_loopback_host
+from vs2t_edge.sim.ursim_model import CMD_MOVEL, PressScene
+from vs2t_edge.sim.ursim_process import URSimProcess
 
 
 def _rtde(sock: socket.socket, ptype: str, payload: bytes = b"") -> tuple[str, bytes]:
