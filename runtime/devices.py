@@ -1,8 +1,9 @@
 """The three devices the cell touches, each as one small interface.
 
 Live, replay and simulated implementations live beside each other:
-camera.py (UVC + replay + simulated), arm.py (ur_rtde + fake), gate.py (serial host driver
-from firmware_bridge + in-process fake). The cell loop (cell.py) sees only these protocols,
+camera.py (UVC + replay + simulated), arm.py (settings + fake) with arm_ur.py (ur_rtde) and
+arm_isolated.py (ur_rtde in a worker process), gate.py (serial host driver from firmware_bridge +
+in-process fake). The cell loop (cell.py) sees only these protocols,
 so the live daemon, replay and the demo run the same code.
 
 Every device: ``connect()``, ``disconnect()``, usable as a context manager, and raises
