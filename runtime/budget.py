@@ -28,7 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vs2t_edge.firmware_bridge.gate_client import request_worst_case_s, to_reject_worst_case_s
-from vs2t_edge.runtime.arm import WORKER_START_TIMEOUT_S, ArmConfig, isolated_call_bound_s
+from vs2t_edge.runtime.arm import ArmConfig
+from vs2t_edge.runtime.arm_isolated import WORKER_START_TIMEOUT_S, isolated_call_bound_s
 from vs2t_edge.runtime.camera import UVC_OPEN_TIMEOUT_S
 from vs2t_edge.runtime.notify import PING_FRACTION
 

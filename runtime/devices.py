@@ -1,10 +1,11 @@
 """The three devices the cell touches, each as one small interface.
 
 Live and replay implementations live beside each other: camera.py (UVC + replay), arm.py
-(ur_rtde + fake), gate.py (serial host driver from firmware_bridge + in-process fake). The
-simulators are in vs2t_edge.sim.devices, out of the cell's code; a config reaches one only
-through :func:`simulator` below. The cell loop (cell.py) sees only these protocols, so the live
-daemon, replay and the demo run the same code.
+(settings + fake) with arm_ur.py (ur_rtde) and arm_isolated.py (ur_rtde in a worker process),
+gate.py (serial host driver from firmware_bridge + in-process fake). The simulators are in
+vs2t_edge.sim.devices, out of the cell's code; a config reaches one only through
+:func:`simulator` below. The cell loop (cell.py) sees only these protocols, so the live daemon,
+replay and the demo run the same code.
 
 Every device: ``connect()``, ``disconnect()``, usable as a context manager, and raises
 ``NotConnectedError`` when used before ``connect()``. Faults are typed so the loop can

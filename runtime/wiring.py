@@ -21,7 +21,8 @@ from __future__ import annotations
 import threading
 from typing import Any, Callable
 
-from vs2t_edge.runtime.arm import FakeArm, IsolatedURArm
+from vs2t_edge.runtime.arm import FakeArm
+from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
 from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError

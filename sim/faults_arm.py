@@ -161,9 +161,12 @@ def item_over_time_budget(w: Path):
 def _ursim_arm():
     """(the loopback UR simulator, an IsolatedURArm on it: the real ur_rtde client); the simulator
     is stopped on leaving."""
-    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_isolated import IsolatedURArm
     from vs2t_edge.sim.scene import FAST_PRESS
-    from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
+    from vs2t_edge.sim.ursim import free_loopback_host
+    from vs2t_edge.sim.ursim_model import PressScene
+    from vs2t_edge.sim.ursim_process import URSimProcess
 
     sim = URSimProcess(PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0)),
                        host=free_loopback_host()).start()
@@ -223,7 +226,7 @@ def connection_drop_ursim(w: Path):
     pytest_skip = _need_rtde()
     if pytest_skip:
         return pytest_skip, ["ur_rtde not installed"]
-    from vs2t_edge.sim.ursim import CMD_ZERO_FT
+    from vs2t_edge.sim.ursim_model import CMD_ZERO_FT
 
     seen: dict = {}
     calls: list[dict] = []  # every press call on the arm: start, end, error, reconnects in its telemetry

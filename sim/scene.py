@@ -287,8 +287,10 @@ class SimulatedCell:
         self.dataset = load_dataset(self.dataset_root)
         self.source = SceneItems(self.items)
         if self.arm_kind == "ursim":
-            from vs2t_edge.runtime.arm import IsolatedURArm as URArm  # as the service runs it
-            from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
+            from vs2t_edge.runtime.arm_isolated import IsolatedURArm as URArm  # as the service runs it
+            from vs2t_edge.sim.ursim import free_loopback_host
+            from vs2t_edge.sim.ursim_model import PressScene
+            from vs2t_edge.sim.ursim_process import URSimProcess
 
             scene = PressScene(home_pose=(0.42, -0.08, 0.110, 0.0, math.pi, 0.0))
             self.sim = URSimProcess(scene, host=free_loopback_host()).start()

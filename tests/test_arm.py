@@ -10,7 +10,9 @@ import time
 
 import pytest
 
-from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm, IsolatedURArm, URArm
+from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm
+from vs2t_edge.runtime.arm_isolated import IsolatedURArm
+from vs2t_edge.runtime.arm_ur import URArm
 from vs2t_edge.runtime.devices import (
     Arm,
     ArmConnectionError,
@@ -18,7 +20,9 @@ from vs2t_edge.runtime.devices import (
     NotConnectedError,
     PressFailed,
 )
-from vs2t_edge.sim.ursim import PressScene, URSimProcess, free_loopback_host
+from vs2t_edge.sim.ursim import free_loopback_host
+from vs2t_edge.sim.ursim_model import PressScene
+from vs2t_edge.sim.ursim_process import URSimProcess
 
 SURFACE_Z = 0.102  # PressScene(): table 0.100 + 2 mm fabric
 

@@ -193,7 +193,7 @@ def test_pings_come_often_enough_through_a_hung_grab_and_its_retry(tmp_path, mon
 def test_every_device_a_valid_config_describes_can_be_built(tmp_path, edge):
     """The audit of issue 17 item 3 as a test: at both ends of every device bound validation
     accepts, the live constructors (camera, arm, gate) accept the settings too."""
-    from vs2t_edge.runtime.arm import IsolatedURArm
+    from vs2t_edge.runtime.arm_isolated import IsolatedURArm
     from vs2t_edge.runtime.camera import camera_from_config
     from vs2t_edge.runtime.gate import SerialGate
 
@@ -388,7 +388,8 @@ class _LiveWorker:
 def _isolated_arm_waits(monkeypatch, *calls):
     """The timeouts an IsolatedURArm whose worker died waits for, call by call: the first call
     starts a new worker and connects it (no process is started here)."""
-    from vs2t_edge.runtime.arm import ArmConfig, IsolatedURArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 
     arm = IsolatedURArm(ArmConfig())
     arm._wanted = True  # connected before; the worker has died since

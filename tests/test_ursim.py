@@ -11,13 +11,9 @@ import time
 
 import pytest
 
-from vs2t_edge.sim.ursim import (
-    CMD_MOVEL,
-    PressScene,
-    URSim,
-    URSimProcess,
-    free_loopback_host,
-)
+from vs2t_edge.sim.ursim import URSim, free_loopback_host
+from vs2t_edge.sim.ursim_model import CMD_MOVEL, PressScene
+from vs2t_edge.sim.ursim_process import URSimProcess
 
 
 def _rtde(sock: socket.socket, ptype: str, payload: bytes = b"") -> tuple[str, bytes]:
@@ -191,7 +187,8 @@ def test_controller_force_limit_stops_a_move_into_the_table():
     receive interface reports it and the arm raises its typed safety stop."""
     pytest.importorskip("rtde_control")
     rtde_receive = pytest.importorskip("rtde_receive")
-    from vs2t_edge.runtime.arm import ArmConfig, URArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.runtime.arm_ur import URArm
     from vs2t_edge.runtime.devices import ArmSafetyStop
 
     scene = PressScene(protective_stop_force_n=6.0, home_pose=(0.40, -0.10, 0.106, 0.0, math.pi, 0.0))
