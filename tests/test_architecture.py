@@ -64,13 +64,18 @@ def _function_imports(tree: ast.Module, known: set[str]) -> list[tuple[int, str]
     return out
 
 
+def _type_checking_only(node: ast.AST) -> bool:
+    """``if TYPE_CHECKING:`` - imports for annotations that never run."""
+    return isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+
+
 def _module_level_imports(tree: ast.Module, known: set[str]) -> set[str]:
     """Imports that run when the module is imported: everywhere but inside functions."""
     found: set[str] = set()
 
     def visit(node: ast.AST) -> None:
         for child in ast.iter_child_nodes(node):
-            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)) or _type_checking_only(child):
                 continue
             found.update(_imported(child, known))
             visit(child)
