@@ -1,4 +1,4 @@
-"""The UR5 press's settings and its in-process stand-in: what the rest of the cell imports.
+"""The UR5 press's settings: what the rest of the cell imports.
 
 Three implementations of :class:`vs2t_edge.runtime.devices.Arm` share :class:`ArmConfig`:
 
@@ -6,8 +6,8 @@ Three implementations of :class:`vs2t_edge.runtime.devices.Arm` share :class:`Ar
   why it uses force mode are told there).
 * :class:`vs2t_edge.runtime.arm_isolated.IsolatedURArm`, the same in a supervised worker
   process, as the service runs it.
-* :class:`FakeArm` (here), in-process with the same spring model and injectable faults, for fast
-  cell tests.
+* ``vs2t_edge.sim.fake_devices.FakeArm``, in-process with the same spring model and injectable
+  faults, for dry runs (``devices.arm.kind: fake``) and fast cell tests.
 
 ArmConfig lives apart from the drivers so that the config, the watchdog budget and the fakes
 never load the ur_rtde driver's code.
@@ -16,17 +16,9 @@ never load the ur_rtde driver's code.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 
 from vs2t_edge.runtime.dataset import PIECE_MM
-from vs2t_edge.runtime.devices import (
-    ArmConnectionError,
-    ArmError,
-    ArmSafetyStop,
-    NotConnectedError,
-    PressFailed,
-    PressResult,
-)
 
 
 class ArmConfigError(ValueError):
@@ -152,93 +144,3 @@ class ArmConfig:
         o = self.piece_origin_pose
         return [o[0] + c * px - s * py, o[1] + s * px + c * py, o[2] - self.tool_offset_mm[2] / 1000.0,
                 o[3], o[4], o[5]]
-
-
-# --- the fake arm ------------------------------------------------------------------------
-
-@dataclass
-class FakeArm:
-    """In-process arm with the same interface and typed faults, no robot, no sockets.
-
-    ``fail_next`` queues faults by kind, consumed one per call of the named step:
-    connection_lost (move_above/press), protective_stop, emergency_stop, force_not_reached,
-    overforce, timeout (press). The contact is the same spring model as the simulator's.
-    """
-
-    config: ArmConfig = field(default_factory=ArmConfig)
-    fabric_thickness_mm: float = 2.0
-    fabric_stiffness_n_per_mm: float = 6.0
-    table_stiffness_n_per_mm: float = 400.0
-    fail_next: list[str] = field(default_factory=list)
-    calls: list[str] = field(default_factory=list)
-    connected: bool = False
-    latched: str = ""
-    _target: tuple[float, float] | None = None
-
-    def connect(self) -> None:
-        self.config.validate()
-        self.connected = True
-        self.calls.append("connect")
-
-    def disconnect(self) -> None:
-        self.connected = False
-        self.calls.append("disconnect")
-
-    def __enter__(self) -> "FakeArm":
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-        self.disconnect()
-
-    def _check(self, step: str) -> None:
-        if not self.connected:
-            raise NotConnectedError("arm used before connect()", device="arm")
-        if self.latched:
-            raise ArmSafetyStop(f"{self.latched} still active", device="arm", kind=self.latched)
-        if self.fail_next and self.fail_next[0] in ("connection_lost", "protective_stop", "emergency_stop"):
-            kind = self.fail_next.pop(0)
-            if kind == "connection_lost":
-                raise ArmConnectionError(f"link lost during {step}", device="arm", kind=kind)
-            self.latched = kind
-            raise ArmSafetyStop(f"{kind} during {step}", device="arm", kind=kind)
-
-    def move_above(self, x_mm: float, y_mm: float) -> None:
-        self.calls.append(f"move_above({x_mm}, {y_mm})")
-        self.config.surface_pose(x_mm, y_mm)  # same bounds as the live arm
-        self._check("move_above")
-        self._target = (x_mm, y_mm)
-
-    def depth_for_force(self, force_n: float) -> float:
-        full = self.fabric_stiffness_n_per_mm * self.fabric_thickness_mm
-        if force_n <= full:
-            return force_n / self.fabric_stiffness_n_per_mm
-        return self.fabric_thickness_mm + (force_n - full) / self.table_stiffness_n_per_mm
-
-    def press(self) -> PressResult:
-        self.calls.append("press")
-        self._check("press")
-        if self._target is None:
-            raise ArmError("press() before move_above()", device="arm", kind="sequence")
-        if self.fail_next and self.fail_next[0] in ("force_not_reached", "overforce", "timeout"):
-            kind = self.fail_next.pop(0)
-            raise PressFailed(f"{kind} (injected)", device="arm", kind=kind)
-        cfg = self.config
-        x_mm, y_mm = self._target
-        pose = cfg.surface_pose(x_mm, y_mm)
-        depth = self.depth_for_force(cfg.force_n)
-        pose[2] -= depth / 1000.0
-        return PressResult(x_mm=x_mm, y_mm=y_mm, force_n=cfg.force_n, depth_mm=depth, tcp_pose=tuple(pose),
-                           telemetry={"fake": True})
-
-    def retract(self) -> None:
-        self.calls.append("retract")
-        self._check("retract")
-
-    def stop(self) -> None:
-        self.calls.append("stop")
-
-    def clear_protective_stop(self) -> None:
-        if self.latched == "protective_stop":
-            self.latched = ""

@@ -140,7 +140,9 @@ class Gate(Protocol):
 # a pty), as "module:factory" inside vs2t_edge.sim. Only names: the runtime never imports sim/ at
 # load time (docs/ARCHITECTURE.md, checked by tests/test_architecture.py), so a cell that runs live
 # devices never loads a simulator; the module is imported when a config asks for one.
-SIMULATORS = {"gate": "vs2t_edge.sim.devices:simulated_serial_gate"}
+SIMULATORS = {"gate": "vs2t_edge.sim.devices:simulated_serial_gate",  # devices.gate.kind: sim
+              "fake_gate": "vs2t_edge.sim.fake_devices:FakeGate",  # devices.gate.kind: fake
+              "fake_arm": "vs2t_edge.sim.fake_devices:FakeArm"}  # devices.arm.kind: fake
 
 
 def simulator(device: str):

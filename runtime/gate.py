@@ -2,10 +2,8 @@
 
 * ``SerialGate`` — the live gate: the serial host driver of firmware_bridge (pyserial, any URL),
   with its faults turned into ``GateError(kind=...)``.
-* ``FakeGate`` — in process, no serial line, the same latching rules as the firmware (a jam or a
-  fail-safe refuses every sort until ``clear()``), with injectable faults; for fast cell tests.
-
-The ``SerialGate`` wired to the MCU simulator over a real pty (config ``devices.gate.kind: sim``,
+The in-process ``FakeGate`` (the firmware's latching rules, injectable faults; config
+``devices.gate.kind: fake``) is ``vs2t_edge.sim.fake_devices.FakeGate``, and the ``SerialGate`` wired to the MCU simulator over a real pty (config ``devices.gate.kind: sim``,
 the demo) is ``vs2t_edge.sim.devices.simulated_serial_gate``: simulators stay out of the cell's
 code, and the daemon imports it only when a config asks for it (runtime/devices.py SIMULATORS).
 """
@@ -13,7 +11,6 @@ code, and the daemon imports it only when a config asks for it (runtime/devices.
 from __future__ import annotations
 
 import logging
-import threading
 
 from vs2t_edge.firmware_bridge import protocol as proto
 from vs2t_edge.firmware_bridge.gate_client import GateClient, GateClientError, GateReport
@@ -91,92 +88,6 @@ class SerialGate:
         return self._client
 
     def __enter__(self) -> "SerialGate":
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.disconnect()
-
-
-class FakeGate:
-    """In-process gate with the firmware's latching rules and injectable faults. Thread-safe."""
-
-    def __init__(self, n_bins: int = proto.DEFAULT_N_BINS) -> None:
-        self.n_bins = n_bins
-        self.sorted: list[int] = []  # bins routed, in order
-        self._lock = threading.Lock()
-        self._connected = False
-        self._state = "ready"
-        self._fault = ""
-        self._bin = REJECT_BIN
-        self._seq = 0
-        self._jam_next = False
-        self._timeouts_left = 0
-        self.to_reject_calls = 0
-
-    # injections
-    def jam_next_sort(self) -> None:
-        self._jam_next = True
-
-    def lose_heartbeat(self) -> None:
-        """What the firmware does when the host goes quiet: reject position, latched."""
-        with self._lock:
-            self._state, self._fault, self._bin = "failsafe", "heartbeat_lost", REJECT_BIN
-
-    def time_out_next(self, n: int = 1) -> None:
-        self._timeouts_left = n
-
-    # Gate protocol
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    def _need_connection(self) -> None:
-        if not self._connected:
-            raise NotConnectedError("fake gate used before connect()", device="gate", kind="not_connected")
-
-    def sort(self, bin_index: int) -> None:
-        self._need_connection()
-        with self._lock:
-            self._seq = (self._seq + 1) & 0xFF
-            if self._timeouts_left > 0:
-                self._timeouts_left -= 1
-                error = GateError("the gate did not answer SORT (fake timeout)", device="gate", kind="timeout")
-                error.retryable = True
-                raise error
-            if not 0 <= bin_index < self.n_bins:
-                raise GateError(f"sort to bin {bin_index} refused: the gate has no such bin", device="gate",
-                                kind="nak")
-            if self._state in ("fault", "failsafe"):
-                raise GateError(f"sort to bin {bin_index} refused: the gate is latched in {self._state} "
-                                f"({self._fault}) and refuses to route until cleared", device="gate",
-                                kind="fault_latched")
-            if self._jam_next:
-                self._jam_next = False
-                self._state, self._fault = "fault", "jam"
-                raise GateError(f"sort to bin {bin_index} refused: the flap jammed", device="gate", kind="jam")
-            self._bin = bin_index
-            self.sorted.append(bin_index)
-
-    def status(self) -> GateStatus:
-        self._need_connection()
-        with self._lock:
-            return GateStatus(state=self._state, bin=self._bin, fault=self._fault, seq=self._seq)
-
-    def clear(self) -> None:
-        self._need_connection()
-        with self._lock:
-            self._state, self._fault, self._bin = "ready", "", REJECT_BIN
-
-    def to_reject(self) -> None:
-        self.to_reject_calls += 1
-        with self._lock:
-            if self._connected and self._state == "ready":
-                self._bin = REJECT_BIN
-
-    def __enter__(self) -> "FakeGate":
         self.connect()
         return self
 

@@ -21,14 +21,13 @@ from __future__ import annotations
 import threading
 from typing import Any, Callable
 
-from vs2t_edge.runtime.arm import FakeArm
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
 from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.gate import FakeGate, SerialGate
+from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
@@ -87,7 +86,7 @@ def build_live_devices(cfg: CellConfig):
         # costs one press, not the service (docs/arm.md).
         arm = IsolatedURArm(cfg.arm)
     elif cfg.arm_kind == "fake":
-        arm = FakeArm(config=cfg.arm)
+        arm = simulator("fake_arm")(config=cfg.arm)  # a dry run: in-process, from vs2t_edge.sim
     else:
         raise ConfigError(cfg.path, [f"{cfg.path}: devices.arm.kind = sim is built by the simulated cell "
                                      "(`vs2t-edge demo`), not by `run`"])
@@ -96,7 +95,7 @@ def build_live_devices(cfg: CellConfig):
     elif gate_cfg["kind"] == "sim":
         gate = simulator("gate")()  # the MCU simulator on a pty, from vs2t_edge.sim, imported only now
     else:
-        gate = FakeGate()
+        gate = simulator("fake_gate")()  # a dry run: in-process, from vs2t_edge.sim
     return camera, arm, gate
 
 

@@ -130,8 +130,8 @@ def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_pres
     ``model``, ``evidence_factory``, ``bins`` and ``frames`` replace the grey-level fake model,
     its evidence, its scene bins and its frames (the soak's real inference path).
     """
-    from vs2t_edge.runtime.arm import FakeArm
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.sim.scene import FAST_PRESS
 

@@ -119,7 +119,8 @@ def arm_connection_lost_fake(w: Path):
     """The link drops mid-press (FakeArm really disconnected, see LinkDrop): the arm reconnects on
     the next call and the cell retries the whole press (move_above first: the old target is gone,
     a bare re-press would be refused). One retry record, no fault, all sorted, nothing lost."""
-    from vs2t_edge.runtime.arm import ArmConfig, FakeArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.sim.scene import FAST_PRESS
 
     link = LinkDrop(FakeArm(config=ArmConfig(**FAST_PRESS)))

@@ -83,10 +83,11 @@ def restart_piece_ids(w: Path):
     """The daemon (runtime/daemon.py run_daemon, its own ContinuousFeed) sorts two pieces, is
     restarted on the same journal and sorts two more: the piece ids must not start again at
     piece-000001 (every restart reused them, so the journal held two pieces of each id)."""
-    from vs2t_edge.runtime.arm import ArmConfig, FakeArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.sim.fakes import GREY, REFERENCE_GREY, GreyEvidence, GreyModel
     from vs2t_edge.sim.fault_rig import _check, audit
@@ -131,11 +132,12 @@ def watchdog_through_hung_grab(w: Path):
     reached 1.10 s, past the watchdog - systemd would kill the service instead of the cell
     latching a camera fault with the piece in the reject bin. The fault must latch with every gap
     between pings under half the watchdog (runtime/budget.py: leased device waits)."""
-    from vs2t_edge.runtime.arm import ArmConfig, FakeArm
+    from vs2t_edge.runtime.arm import ArmConfig
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.budget import StepBounds
     from vs2t_edge.runtime.cell import Cell, SceneSpec
     from vs2t_edge.runtime.devices import CameraError, Frame
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import Journal
     from vs2t_edge.runtime.notify import Notifier
     from vs2t_edge.sim.fakes import GreyEvidence, GreyModel

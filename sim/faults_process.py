@@ -49,10 +49,10 @@ def daemon_child(config: str, score_delay_s: float = 0.03, gate_travel_s: float 
     daemon-child CONFIG [GATE_URL]``): signals, journal, recovery are the production code path.
     With ``gate_url`` the gate is the real host driver on that port (an MCU simulator in another
     process, so it outlives this one, as the real gate outlives a killed service)."""
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.sim.devices import SimulatedCamera
 
     cfg = load_config(config)

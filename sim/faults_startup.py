@@ -221,9 +221,9 @@ def _run_bundle_daemon(cfg, gate=None) -> tuple[int, bool, str]:
     (exit code, whether it sent READY, what it logged)."""
     import shutil
 
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
 
     server, sock = _notify_socket()
     logged: list[str] = []
@@ -337,7 +337,7 @@ def disk_full_at_start(w: Path):
     The real daemon code (run_daemon, real bundle, real sd_notify socket) must exit 2 in words,
     never send READY, leave the gate at reject and sort nothing - and start once space is back."""
     import vs2t_edge.runtime.journal as jmod
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
 
     src = good_bundle()
     if src is None:

@@ -280,8 +280,9 @@ class SimulatedCell:
     source: SceneItems | None = None
 
     def __enter__(self) -> "SimulatedCell":
-        from vs2t_edge.runtime.arm import ArmConfig, FakeArm
-        from vs2t_edge.runtime.gate import FakeGate
+        from vs2t_edge.runtime.arm import ArmConfig
+        from vs2t_edge.sim.fake_devices import FakeArm
+        from vs2t_edge.sim.fake_devices import FakeGate
         from vs2t_edge.sim.devices import SimulatedCamera, simulated_serial_gate
 
         self.dataset = load_dataset(self.dataset_root)

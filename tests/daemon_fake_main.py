@@ -18,10 +18,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 
 from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera  # noqa: E402
-from vs2t_edge.runtime.arm import FakeArm  # noqa: E402
+from vs2t_edge.sim.fake_devices import FakeArm  # noqa: E402
 from vs2t_edge.runtime.config import load_config  # noqa: E402
 from vs2t_edge.runtime.daemon import run_daemon  # noqa: E402
-from vs2t_edge.runtime.gate import FakeGate  # noqa: E402
+from vs2t_edge.sim.fake_devices import FakeGate  # noqa: E402
 
 
 class SlowModel(FakeModel):

@@ -10,7 +10,8 @@ import time
 
 import pytest
 
-from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError, FakeArm
+from vs2t_edge.runtime.arm import ArmConfig, ArmConfigError
+from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.arm_ur import URArm
 from vs2t_edge.runtime.devices import (

@@ -175,10 +175,10 @@ def test_full_disk_at_start_exits_2_in_words(tmp_path, monkeypatch):
     words, the gate left at reject and every device let go - nothing moves without a journal."""
     from cell_fakes import FakeModel, ScriptedCamera
     from vs2t_edge.runtime import journal as jmod
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.notify import Notifier
 
     cfg_path = tmp_path / "cell.yaml"
@@ -209,10 +209,10 @@ def test_a_model_crash_latches_a_fault_and_a_restart_refuses_until_cleared(tmp_p
     restarted the service, which sorted on with no operator). Now the fault latches, the service
     keeps running in fault and stops cleanly (exit 0), and the next start stays latched."""
     from cell_fakes import FakeModel, ScriptedCamera
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.notify import Notifier
 
     class CrashingModel(FakeModel):

@@ -200,7 +200,7 @@ def test_a_flood_of_fault_frames_is_bounded_counted_and_logged_once(sim, client,
 
 def _daemon_in_process(tmp_path, gate, truths, *, stop_when):
     """The real daemon (run_daemon) on the fault matrix's fake arm, camera and grey model."""
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
     from vs2t_edge.runtime.notify import Notifier
@@ -222,7 +222,7 @@ def _daemon_in_process(tmp_path, gate, truths, *, stop_when):
 
 @pytest.mark.parametrize("latch", ["heartbeat_lost", "jam"])
 def test_a_gate_latched_at_start_latches_the_cell_before_any_piece_is_pressed(tmp_path, latch):
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import read_records
 
     gate = FakeGate()
@@ -246,7 +246,7 @@ def test_a_gate_latched_at_start_latches_the_cell_before_any_piece_is_pressed(tm
 
 
 def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_path):
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import read_records
 
     gate = FakeGate()

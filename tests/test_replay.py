@@ -13,10 +13,10 @@ import json
 import pytest
 
 from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera, latch_skipping
-from vs2t_edge.runtime.arm import FakeArm
+from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.cell import ContinuousFeed
 from vs2t_edge.runtime.config import load_config
-from vs2t_edge.runtime.gate import FakeGate
+from vs2t_edge.sim.fake_devices import FakeGate
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, run_replay
 

@@ -192,9 +192,9 @@ class _BadFrameCamera:
 
 
 def _cell_with(tmp_path, reference, pressed, max_presses):
-    from vs2t_edge.runtime.arm import FakeArm
+    from vs2t_edge.sim.fake_devices import FakeArm
     from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
-    from vs2t_edge.runtime.gate import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import Journal
     from vs2t_edge.runtime.notify import Notifier
 
