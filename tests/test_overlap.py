@@ -237,3 +237,30 @@ def test_overlap_scoring_is_a_config_key_default_on_and_replay_runs_it_off(tmp_p
     work = tmp_path / "replay"
     work.mkdir()
     assert config_for_replay(rf, work, None).overlap_scoring is False
+
+
+def test_a_session_recorded_overlapped_with_speculative_presses_replays(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.replay import ReplayFile, record_session, run_replay
+
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x}\n  arm: {kind: fake}\n  gate: {kind: fake}\n"
+        "scene:\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n    - {name: silk, kind: touched, bin: 2}\n"
+        "    - {name: wool, kind: untouched, bin: 3}\nevidence: {confidence: 0.95, max_presses: 4}\n"
+        "journal: j.jsonl\n")  # cell.overlap_scoring: the default, on
+    cfg = load_config(tmp_path / "cell.yaml")
+    assert cfg.overlap_scoring
+    arm = FakeArm(config=cfg.arm)
+    evidence = lambda: FakeEvidence(CLASSES, 0.95, 4)  # noqa: E731
+    # every press votes silk, so the pieces do not depend on which frame a speculative press took;
+    # the instant FakeArm is up before the 30 ms score: each decision comes in during the next press
+    out = record_session(cfg, tmp_path / "s.replay", model=SlowModel(0.03), camera=ScriptedCamera(arm, [60] * 40),
+                         arm=arm, gate=FakeGate(), items=ContinuousFeed(limit=3), evidence_factory=evidence,
+                         operator_clear=lambda: True)
+    decisions = ReplayFile.open(out).index["decisions"]
+    assert [d["label"] for d in decisions if d["type"] == "final"] == ["silk"] * 3
+    assert [d["presses"] for d in decisions if d["type"] == "pre_sort"] == [2] * 3
+    presses = [e for e in ReplayFile.open(out).index["events"] if e["dev"] == "arm" and e["call"] == "press"]
+    assert len(presses) == 3 * 3  # two scored and one speculative per piece
+    report = run_replay(out, model=SlowModel(0.0), evidence_factory=evidence)  # replayed sequentially
+    assert report.ok, report.mismatches + [report.diverged]

@@ -33,7 +33,11 @@ scene:
     - {name: wool, kind: untouched, bin: 3}
 evidence: {confidence: 0.95, max_presses: 4}
 journal: j.jsonl
+cell: {overlap_scoring: false}
 """
+# overlap_scoring off: the ScriptedCamera hands out one script across items, so a speculative
+# press (an instant FakeArm is always quicker than the model) would take the next item's frame
+# here. A recording made overlapped is replayed in tests/test_overlap.py.
 CLASSES = ["denim", "silk", "wool"]
 VOTES = {50: "denim", 60: "silk", 70: "wool"}
 
