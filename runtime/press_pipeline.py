@@ -23,7 +23,8 @@ Faults keep the sequential rules. A ``FrameError`` from the model skips that fra
 is folded in (``frame_skipped`` record, in press order); any other exception from the model is
 raised in the loop's thread when that score is folded in, and the cell latches it as before. An
 item ends with no score running (``PressScorer.drain``), so the next item's ``set_reference``
-never races a score of the last one.
+never races a score of the last one. An item that ends in a fault while a late score is still
+pending ends without it: its final record counts the presses the evidence saw.
 """
 
 from __future__ import annotations
