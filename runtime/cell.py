@@ -7,6 +7,8 @@ item source, the journal, the notifier and the clock. Per item::
     wait for item -> reference frame (gel in the air above the first point)
     -> for each grid point (config order): move_above, press, grab, retract, score
        -> evidence.add(score) until it decides (confident) or the press limit
+       (runtime/press_pipeline.py; with ``overlap_scoring`` a press is scored in a worker thread
+       while the arm lifts and moves on - the evidence sees the same scores in the same order)
     -> bin from the scene (a scene fabric -> its bin; "unknown" or off-scene -> reject bin)
     -> journal "pre_sort" record, fsynced  -> gate.sort(bin), ack awaited
     -> journal "final" record (exactly one per item)
@@ -71,6 +73,7 @@ from vs2t_edge.runtime.devices import (
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
+from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally
 
 UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
@@ -122,6 +125,10 @@ class SceneSpec:
     wait_item_timeout_s: float = 1.0
     fault_file: Path | None = None
     bounds: Any = None  # runtime/budget.py StepBounds: device waits the watchdog is fed through
+    # score a press while the arm moves on (runtime/press_pipeline.py). Off here, so a loop built
+    # by hand (tests, the fault matrix) makes the same device calls whatever the timing; the
+    # config's cell.overlap_scoring (default on) sets it for the service.
+    overlap_scoring: bool = False
 
     @classmethod
     def from_config(cls, cfg) -> "SceneSpec":
@@ -131,7 +138,8 @@ class SceneSpec:
                    points_mm=cfg.press_points_mm(), max_presses=cfg.max_presses,
                    confidence=cfg.confidence, item_timeout_s=cfg.item_timeout_s,
                    wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file,
-                   bounds=bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate))
+                   bounds=bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate),
+                   overlap_scoring=cfg.overlap_scoring)
 
     @property
     def classes(self) -> list[str]:
@@ -174,24 +182,6 @@ class ItemResult:
     item_s: float = 0.0
 
 
-def _score_dict(score: Any) -> dict:
-    """A PressScore as plain JSON numbers (for the journal and replay comparisons)."""
-    out: dict[str, Any] = {}
-    for key in ("novelty", "untouched", "latency_ms"):
-        v = getattr(score, key, None)
-        if isinstance(v, (bool, int, float)):
-            out[key] = v if isinstance(v, bool) else float(v)
-    lp = getattr(score, "log_posterior", None)
-    if isinstance(lp, dict):
-        out["log_posterior"] = {str(k): float(v) for k, v in lp.items()}
-    elif lp is not None:
-        try:
-            out["log_posterior"] = [float(v) for v in lp]
-        except TypeError:
-            pass
-    return out
-
-
 def _finite(x: float) -> float | None:
     return float(x) if x is not None and math.isfinite(float(x)) else None
 
@@ -203,6 +193,8 @@ class Cell:
                  on_item: Callable[[ItemResult], None] | None = None, log: Callable[[str], None] | None = None,
                  sleep: Callable[[float], None] = time.sleep, contact_check: Any = None) -> None:
         self.camera, self.arm, self.gate, self.model = camera, arm, gate, model
+        # the model is looked up per press: a caller may swap cell.model between items
+        self.scorer = PressScorer(lambda image: self.model.score_press(image), scene.overlap_scoring)
         # runtime/camera.py ContactCheck (or anything with its read()): each press frame against
         # the item's no-contact reference. None = not checked (see _require_contact).
         self.contact_check = contact_check
@@ -457,14 +449,18 @@ class Cell:
                                     f"failed: {not_open}", "repeated_failure") from exc
         raise AssertionError("unreachable")
 
-    def _press_once(self, x_mm: float, y_mm: float):
+    def _press_once(self, x_mm: float, y_mm: float, on_frame: Callable[[Any], None] | None = None):
+        """Move, press, grab, lift. A frame that passed the contact check goes to ``on_frame``
+        before the lift (the scorer: overlapped, the model works while the gel comes up)."""
         self.arm.move_above(x_mm, y_mm)
         press = self.arm.press()
         try:
             frame = self.camera.grab()
+            self._require_contact(frame)
+            if on_frame is not None:
+                on_frame(frame)
         finally:
-            self.arm.retract()  # always lift the gel, also when the grab failed
-        self._require_contact(frame)
+            self.arm.retract()  # always lift the gel, also when the grab or the check failed
         return press, frame
 
     def _require_contact(self, frame) -> None:
@@ -494,9 +490,7 @@ class Cell:
         self.notifier.status(f"item {number} ({item.id}): pressing")
         self.journal.append({"type": "item", "item": number, "item_id": item.id, "t": time.time()})
         evidence = self.evidence_factory()
-        presses, skipped = 0, 0
-        latencies: list[float] = []
-        scores: list[dict] = []
+        tally = Tally()  # presses, skipped frames, latencies and scores so far (fault paths read it)
         decision = None
         pre_written = False
         gate_told = False  # a SORT went out: from here a lost ack means the flap may have moved
@@ -516,41 +510,19 @@ class Cell:
             except FrameError as exc:
                 raise CellFault(f"no-contact reference frame unusable: {exc}", "reference") from exc
             self._reference_image = ref.image
-            for k, (x_mm, y_mm) in enumerate(self.scene.points_mm):
-                if presses >= self.scene.max_presses:
-                    break
-                if skipped >= 2 * self.scene.max_presses:
-                    break  # the camera keeps giving bad frames: decide on what we have
-                press, frame = self._step(f"press {k} at ({x_mm}, {y_mm}) mm",
-                                          lambda: self._press_once(x_mm, y_mm), t0)
-                try:
-                    score = self.model.score_press(frame.image)
-                except FrameError as exc:
-                    skipped += 1
-                    self.skipped_total += 1
-                    self.journal.append({"type": "frame_skipped", "item": number, "point": k,
-                                         "reason": exc.reason, "message": str(exc)})
-                    self.log(f"item {number}: frame of press {k} skipped ({exc.reason})")
-                    self.notifier.ping_if_due()
-                    continue
-                presses += 1
-                latencies.append(float(getattr(score, "latency_ms", 0.0)))
-                scores.append({"point": k, "x_mm": x_mm, "y_mm": y_mm, "force_n": float(press.force_n),
-                               **_score_dict(score)})
-                self.notifier.ping_if_due()
-                decision = evidence.add(score)
-                if decision is not None:
-                    break
+            decision = PressLoop(self, number, evidence, tally, t0).run()
             if decision is None:
-                decision = evidence.decide() if presses else None
+                decision = evidence.decide() if tally.presses else None
             label = decision.label if decision is not None else UNKNOWN
             confidence = float(decision.confidence) if decision is not None else 0.0
             stopped_by = decision.stopped_by if decision is not None else "no_usable_frames"
             bin_ = self.scene.bin_for(label)
             pre = {"type": "pre_sort", "item": number, "item_id": item.id, "label": label, "bin": bin_,
-                   "confidence": confidence, "presses": presses, "skipped_frames": skipped,
-                   "stopped_by": stopped_by, "scores": scores,
+                   "confidence": confidence, "presses": tally.presses,
+                   "skipped_frames": tally.skipped, "stopped_by": stopped_by, "scores": tally.scores,
                    "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
+            if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)
+                pre["speculative_presses"] = tally.speculative
             self.journal.append(pre)  # durable BEFORE the gate moves
             pre_written = True
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
@@ -569,10 +541,10 @@ class Cell:
                 else:
                     raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind) from exc
             self._final(number, item.id, label=label, bin_=bin_, outcome="sorted", confidence=confidence,
-                        presses=presses)
+                        presses=tally.presses)
             final_written = True
-            result = ItemResult(item, label, bin_, "sorted", presses, confidence, stopped_by, skipped,
-                                latencies, self.clock() - t0)
+            result = ItemResult(item, label, bin_, "sorted", tally.presses, confidence, stopped_by,
+                                tally.skipped, tally.latencies, self.clock() - t0)
         except CellFault as fault:
             # A SORT that timed out may have been executed with only its acks lost (docs/protocol.md):
             # the piece is in its bin or the reject bin, and the record says so instead of claiming
@@ -587,11 +559,11 @@ class Cell:
                                      f"{'them' if also else 'both'}" if uncertain else "")
             self.latch_fault(f"item {number} ({item.id}): {reason}", fault.kind)
             self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
-                        outcome=outcome, reason=reason, presses=presses,
+                        outcome=outcome, reason=reason, presses=tally.presses,
                         **({"maybe_bin": bin_} if uncertain else {}),
                         **({"reported_bin": reported} if also else {}))
-            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, presses, 0.0,
-                                "fault", skipped, latencies, self.clock() - t0)
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, tally.presses, 0.0,
+                                "fault", tally.skipped, tally.latencies, self.clock() - t0)
         except StopRequested:
             # SIGTERM mid-item: lift the gel, gate to reject, the item's final record says so.
             bounds = self.scene.bounds
@@ -602,9 +574,9 @@ class Cell:
                     except Exception:  # noqa: BLE001 - stopping must reach the journal
                         pass
             self._final(number, item.id, label=UNKNOWN, bin_=self.scene.reject_bin, outcome="aborted",
-                        reason="service stopping", presses=presses)
-            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", presses, 0.0, "stop",
-                                skipped, latencies, self.clock() - t0)
+                        reason="service stopping", presses=tally.presses)
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", tally.presses, 0.0,
+                                "stop", tally.skipped, tally.latencies, self.clock() - t0)
         except JournalError:
             raise  # Cell.run latches it; the item stays open in the journal (see the module doc)
         except Exception as exc:  # noqa: BLE001 - no rule for it: latch like any other fault
@@ -618,15 +590,19 @@ class Cell:
             if not final_written:
                 note = f"; the piece may be in bin {bin_} or the reject bin - check both" if uncertain else ""
                 self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
-                            outcome=outcome, reason=reason + note, presses=presses,
+                            outcome=outcome, reason=reason + note, presses=tally.presses,
                             **({"maybe_bin": bin_} if uncertain else {}))
-            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, presses, 0.0,
-                                "fault", skipped, latencies, self.clock() - t0)
+            result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, tally.presses, 0.0,
+                                "fault", tally.skipped, tally.latencies, self.clock() - t0)
+        finally:
+            # after the latch and the final record, never before them: no score of this item may
+            # run into the next one's set_reference
+            self.scorer.drain()
         return result
 
     def shutdown(self, reason: str = "stopped") -> None:
-        """Gate to reject, arm stopped, journal closed; every step guarded."""
-        for fn in (self.gate.to_reject, self.arm.stop):
+        """Gate to reject, arm stopped, scorer thread ended, journal closed; every step guarded."""
+        for fn in (self.gate.to_reject, self.arm.stop, self.scorer.close):
             try:
                 fn()
             except Exception:  # noqa: BLE001

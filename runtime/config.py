@@ -121,6 +121,12 @@ _SCHEMA: dict[str, Any] = {
         "grid_order": _leaf("str", "spread", GRID_ORDERS, "spread (far-apart points first), rows, or list"),
         "grid_points": _leaf("list", None, None, "grid_order list: press indices 0..224 (row-major 15x15)"),
     },
+    "cell": {
+        # runtime/press_pipeline.py: decisions are the same either way; off = the model's time
+        # adds to every press, as before issue 14
+        "overlap_scoring": _leaf("bool", True, None,
+                                 "score a press in a worker thread while the arm lifts and moves on"),
+    },
     "journal": _leaf("path", "/var/lib/vs2t-edge/journal.jsonl", None, "append-only decision journal"),
     "fault_file": _leaf("optpath", None, None, "latched-fault marker (default: next to the journal)"),
     "watchdog": {
@@ -160,6 +166,7 @@ class CellConfig:
     fault_file: Path
     item_timeout_s: float
     wait_item_timeout_s: float
+    overlap_scoring: bool = True
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -318,6 +325,10 @@ class _Checker:
                     self.err(key, f"{key} = {value!r}: cannot expand the ~ (no such user's home)")
                     return fallback
                 value = p if p.is_absolute() else (self.path.parent / p)
+        elif kind == "bool":
+            if not isinstance(value, bool):  # "false" in quotes is text, and text is truthy
+                self.err(key, f"{key} = {value!r}: must be true or false")
+                return fallback
         elif kind == "list":
             if not isinstance(value, list):
                 self.err(key, f"{key}: must be a list")
@@ -457,7 +468,8 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         grid_points=grid_points, journal=journal,
         fault_file=v["fault_file"] or journal.with_name("FAULT"),
         item_timeout_s=v["watchdog"]["item_timeout_s"],
-        wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"], raw=data if isinstance(data, dict) else {},
+        wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
+        overlap_scoring=v["cell"]["overlap_scoring"], raw=data if isinstance(data, dict) else {},
     )
 
 

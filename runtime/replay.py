@@ -290,6 +290,12 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     raw["journal"] = str(workdir / "journal.jsonl")
     raw.pop("fault_file", None)
     raw.pop("beta_override_file", None)
+    # The replayed devices answer at once, so an overlapped score is never ready when the gel is
+    # up and the arm would press on where the recording stopped. The decisions do not depend on
+    # it (runtime/press_pipeline.py); the device calls would.
+    raw.setdefault("cell", {})
+    if isinstance(raw["cell"], dict):
+        raw["cell"]["overlap_scoring"] = False
     beta = rf.index.get("meta", {}).get("beta")
     if beta is not None:
         raw["beta_override"] = float(beta)

@@ -57,8 +57,9 @@ def error_from_json(d: dict) -> dv.DeviceError:
 DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped", "retry")
 # Measurements of the machine, not decisions: wall-clock stamps and the model's time per press
 # (1.9 ms when recorded beside a UR simulator, 0.6 ms replayed alone). Dropped from reference
-# decisions at any depth and never compared.
-TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s"})
+# decisions at any depth and never compared. ``speculative_presses`` too: whether a score came in
+# before the gel was up is a race of the machine (runtime/press_pipeline.py), the decision is not.
+TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "speculative_presses"})
 
 
 def without_timing(x: Any) -> Any:

@@ -136,7 +136,7 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
-                fault_at: tuple[int, int] | None, log) -> dict:
+                fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)
@@ -179,6 +179,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                                  threads=threads)
         if confidence is None:  # the bundle's operating point decides (runtime/operating_point.py)
             del data["evidence"]["confidence"]
+        data["cell"] = {"overlap_scoring": overlap_scoring}
         cfg = write_scene_config(workdir / "cell.yaml", data)
         if fault_at is not None:
             cell.schedule_fault(fault_at[0], fault_at[1], "protective_stop")
@@ -214,8 +215,12 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     lat = [x for r in results_holder for x in r.latency_ms]
     item_s = [r.item_s for r in results_holder]
     summary = so.summarise(records)
+    from vs2t_edge.runtime.journal import read_records
+
+    speculative = sum(r.get("speculative_presses", 0) for r in read_records(journal) if r["type"] == "pre_sort")
     summary.update(scene={"touched": touched, "untouched": untouched, "off_scene": off_scene, "bins": bins},
-                   items=len(records), sort_s=sort_s, rows=rows,
+                   items=len(records), sort_s=sort_s, rows=rows, overlap_scoring=overlap_scoring,
+                   speculative_presses=speculative,
                    latency_ms_median=float(np.median(lat)) if lat else float("nan"),
                    latency_ms_p95=float(np.percentile(lat, 95)) if lat else float("nan"),
                    item_s_median=float(np.median(item_s)) if item_s else float("nan"),
@@ -234,6 +239,10 @@ def report_lines(summary: dict) -> str:
     lines.append(f"presses per piece {a['presses']:.2f}; {summary['items_per_min']:.1f} pieces per minute with the "
                  f"simulated arm in real time ({summary['item_s_median']:.1f} s per piece); model latency median "
                  f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press")
+    if "overlap_scoring" in summary:
+        spec = summary.get("speculative_presses", 0)
+        lines.append(f"scoring overlapped with the arm's moves: {'on' if summary['overlap_scoring'] else 'off'}"
+                     f" (cell.overlap_scoring; {spec} speculative press{'es' if spec != 1 else ''})")
     return "\n".join(lines)
 
 
@@ -257,6 +266,9 @@ def add_arguments(parser, verb: str) -> None:
                         help="inject a protective stop at that press of that item (0-based item)")
     parser.add_argument("--record", default=None, help="also record the session into this replay folder")
     parser.add_argument("--force", action="store_true", help="redo every stage")
+    parser.add_argument("--overlap-scoring", choices=("on", "off"), default="on",
+                        help="cell.overlap_scoring: score a press while the arm moves on (default on); off: "
+                             "each press scored before the arm moves again, to compare pieces per minute")
 
 
 def run(args) -> int:
@@ -284,7 +296,7 @@ def run(args) -> int:
     summary = sort_stream(workdir, dataset, bundle, n_items=args.items, seed=args.seed, arm_kind=args.arm,
                           gate_kind=args.gate, max_presses=args.max_presses, confidence=args.confidence,
                           threads=args.threads, record=Path(args.record) if args.record else None,
-                          fault_at=fault_at, log=log)
+                          fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on")
     summary["stage_s"] = {k: round(v, 1) for k, v in times.items()}
     summary["total_s"] = time.monotonic() - t0
     log("")

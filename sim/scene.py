@@ -413,6 +413,9 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
             data = scene_config_yaml(bundle=Path(bundle).resolve(), dataset=Path(dataset).resolve(),
                                      journal=out_dir / "unused.jsonl", fabrics=fabrics, arm_host=cell.arm_host,
                                      confidence=confidence, max_presses=max_presses, threads=1)
+            # Sequential scoring: a reference is a golden sequence of device calls, and overlapped
+            # scoring makes a speculative press depend on the machine's timing (press_pipeline.py).
+            data["cell"] = {"overlap_scoring": False}
             # The recorded config names the bundle relatively: replays find it via --bundle or beside them.
             cfg = write_scene_config(out_dir / f".{name}.yaml", data)
             if fault is not None:

@@ -21,6 +21,10 @@ from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.replay import ReplayError, ReplayFile, compare, run_replay
 
 
+# overlap_scoring off: the ScriptedCamera hands out one script across items, so a speculative
+# press (an instant FakeArm is always quicker than the model) would take the next item's frame
+# here. A recording made overlapped is replayed in tests/test_overlap.py.
+CONFIG = LOOP_CONFIG + "cell: {overlap_scoring: false}\n"
 CLASSES = ["denim", "silk", "wool"]
 VOTES = {50: "denim", 60: "silk", 70: "wool"}
 
@@ -34,7 +38,7 @@ def evidence():
 
 
 def record(tmp_path, script, n_items, fail_next=(), clear=True):
-    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
+    (tmp_path / "cell.yaml").write_text(CONFIG)
     cfg = load_config(tmp_path / "cell.yaml")
     arm = FakeArm(config=cfg.arm)
     cam = ScriptedCamera(arm, script)
@@ -180,7 +184,7 @@ def test_record_cli_saves_what_was_recorded_on_sigint(tmp_path):
 
     from vs2t_edge.runtime.journal import read_records
 
-    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
+    (tmp_path / "cell.yaml").write_text(CONFIG)
     out = tmp_path / "live.replay"
     journal = out.with_name(out.name + ".journal.jsonl")
     proc = subprocess.Popen([sys.executable, str(Path(__file__).parent / "daemon_fake_main.py"),
@@ -216,7 +220,7 @@ def test_an_exception_ending_a_recording_is_raised_after_the_save(tmp_path):
                 raise KeyboardInterrupt  # Ctrl-C where no handler catches it (a library call)
             return super().score_press(frame)
 
-    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG)
+    (tmp_path / "cell.yaml").write_text(CONFIG)
     cfg = load_config(tmp_path / "cell.yaml")
     arm = FakeArm(config=cfg.arm)
     with pytest.raises(KeyboardInterrupt):
@@ -287,6 +291,6 @@ def test_record_cli_gives_the_callers_signal_handlers_back(tmp_path):
     from vs2t_edge.cli import main
 
     before = signal.getsignal(signal.SIGINT)
-    (tmp_path / "cell.yaml").write_text(LOOP_CONFIG.replace("bundle: bundle", f"bundle: {tmp_path / 'none'}"))
+    (tmp_path / "cell.yaml").write_text(CONFIG.replace("bundle: bundle", f"bundle: {tmp_path / 'none'}"))
     assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(tmp_path / "x.replay")]) == 2
     assert signal.getsignal(signal.SIGINT) is before

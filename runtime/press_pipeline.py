@@ -1,0 +1,198 @@
+"""An item's presses: press grid points, score each press, fold the scores into the evidence in
+press order until it decides - with the scoring of one press overlapped with the arm's move on.
+
+Sequential (``overlap_scoring`` off) the loop is press k -> score k -> evidence -> press k+1, so
+the model's time adds to every press. Overlapped, press k's frame is handed to one worker thread
+as soon as it is grabbed and passed the contact check, and is scored while the arm lifts the gel
+(the lift happens whatever the score says):
+
+* the score is ready when the gel is up -> it is folded in there; if the evidence decides, the
+  arm stops exactly where it stops sequentially (the same device calls);
+* it is not ready (a model slower than the lift) -> the arm does not wait: it presses the next
+  point, and the late score is folded in once that press is done. If the late score decides, the
+  extra press was *speculative*: its frame is never scored into the decision (the pre_sort record
+  counts it as ``speculative_presses``), so the decision is the sequential one whatever the timing.
+
+Before a press that the press limit (or the skipped-frame limit) could forbid once the late score
+is in, the late score is waited for: the arm never presses beyond the limit.
+
+The decision never depends on timing: the evidence sees the same scores in the same order as it
+would sequentially. What may depend on timing is only whether a speculative press happens.
+
+Faults keep the sequential rules. A ``FrameError`` from the model skips that frame when its score
+is folded in (``frame_skipped`` record, in press order); any other exception from the model is
+raised in the loop's thread when that score is folded in, and the cell latches it as before. An
+item ends with no score running (``PressScorer.drain``), so the next item's ``set_reference``
+never races a score of the last one. An item that ends in a fault while a late score is still
+pending ends without it: its final record counts the presses the evidence saw.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from vs2t_edge.runtime.preprocess import FrameError
+
+
+class _Later:
+    """A score computed in the caller's thread when asked for: the sequential loop's 'future'."""
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._fn = fn
+
+    def done(self) -> bool:
+        return True  # computing it now costs the same as waiting: fold it in at once
+
+    def result(self) -> Any:
+        return self._fn()
+
+
+class PressScorer:
+    """The model's score of a press in one worker thread (overlap) or in the caller (sequential).
+
+    ``start(frame)`` is called by the press itself, before the gel lifts; ``claim()`` takes the
+    score of the press that returned. A press that is retried calls ``start`` again: the earlier
+    attempt's score is dropped unread, as sequentially that frame was never scored."""
+
+    def __init__(self, score_press: Callable[[Any], Any], overlap: bool) -> None:
+        self.score_press, self.overlap = score_press, overlap  # model.score_press(image) -> a score
+        self._pool: ThreadPoolExecutor | None = None
+        self._latest: Any = None  # the last started, not yet claimed score
+        self._running: list[Future] = []  # every future of this item, for drain()
+
+    def start(self, frame: Any) -> None:
+        image = frame.image
+        if isinstance(self._latest, Future):
+            self._latest.cancel()  # a retried press: the failed attempt's frame is not scored
+        if not self.overlap:
+            self._latest = _Later(lambda: self.score_press(image))
+            return
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="score-press")
+        future = self._pool.submit(self.score_press, image)
+        self._running.append(future)
+        self._latest = future
+
+    def claim(self) -> Any:
+        latest, self._latest = self._latest, None
+        if latest is None:
+            raise RuntimeError("a press returned without starting its score")  # a bug, latched as one
+        return latest
+
+    def drain(self) -> None:
+        """Wait for every score of this item to end (results and errors unread: the loop has
+        read the ones it uses), so none runs into the next item."""
+        running, self._running, self._latest = self._running, [], None
+        for future in running:
+            if not future.cancel():
+                future.exception()  # waits; an error of a score nobody uses was never its concern
+
+    def close(self) -> None:
+        self.drain()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+
+@dataclass
+class Tally:
+    """What an item's presses have produced so far; the cell's fault paths read it too."""
+
+    presses: int = 0  # scored presses the evidence saw
+    skipped: int = 0  # frames the model could not score (FrameError)
+    speculative: int = 0  # presses made while a late score was pending, that turned out not needed
+    latencies: list[float] = field(default_factory=list)  # model time per scored press
+    scores: list[dict] = field(default_factory=list)  # per scored press, for the pre_sort record
+
+
+@dataclass
+class _Press:
+    point: int
+    x_mm: float
+    y_mm: float
+    force_n: float
+    score: Any  # a Future (overlap) or _Later (sequential)
+
+
+class PressLoop:
+    """One item's presses through ``cell``'s own press step and journal (runtime/cell.py)."""
+
+    def __init__(self, cell: Any, number: int, evidence: Any, tally: Tally, t0: float) -> None:
+        self.cell, self.number, self.evidence, self.tally, self.t0 = cell, number, evidence, tally, t0
+
+    def run(self) -> Any:
+        """Press until the evidence decides or a limit is reached; the decision or None."""
+        cell, tally, scene = self.cell, self.tally, self.cell.scene
+        pending: _Press | None = None  # a press whose score came too late to fold in at its lift
+        for k, (x_mm, y_mm) in enumerate(scene.points_mm):
+            if pending is not None and self._limit_near():
+                decision, pending = self._fold(pending), None  # whether k may be pressed depends on it
+                if decision is not None:
+                    return decision
+            if tally.presses >= scene.max_presses:
+                break
+            if tally.skipped >= 2 * scene.max_presses:
+                break  # the camera keeps giving bad frames: decide on what we have
+            press, _frame = cell._step(f"press {k} at ({x_mm}, {y_mm}) mm",
+                                       lambda: cell._press_once(x_mm, y_mm, cell.scorer.start), self.t0)
+            current = _Press(k, x_mm, y_mm, float(press.force_n), cell.scorer.claim())
+            if pending is not None:
+                decision, pending = self._fold(pending), None
+                if decision is not None:
+                    tally.speculative += 1  # press k was made for nothing: never scored into the decision
+                    return decision
+            if current.score.done():
+                decision = self._fold(current)
+                if decision is not None:
+                    return decision
+            else:
+                pending = current
+        if pending is not None:
+            return self._fold(pending)
+        return None
+
+    def _limit_near(self) -> bool:
+        """Could the pending score make the next press one too many?"""
+        scene, tally = self.cell.scene, self.tally
+        return tally.presses + 1 >= scene.max_presses or tally.skipped + 1 >= 2 * scene.max_presses
+
+    def _fold(self, p: _Press) -> Any:
+        """Press ``p``'s score into the evidence (waiting for it if it is still running); the
+        evidence's decision or None. A frame the model cannot score is skipped, as sequentially."""
+        cell, tally = self.cell, self.tally
+        try:
+            score = p.score.result()
+        except FrameError as exc:
+            tally.skipped += 1
+            cell.skipped_total += 1
+            cell.journal.append({"type": "frame_skipped", "item": self.number, "point": p.point,
+                                 "reason": exc.reason, "message": str(exc)})
+            cell.log(f"item {self.number}: frame of press {p.point} skipped ({exc.reason})")
+            cell.notifier.ping_if_due()
+            return None
+        tally.presses += 1
+        tally.latencies.append(float(getattr(score, "latency_ms", 0.0)))
+        tally.scores.append({"point": p.point, "x_mm": p.x_mm, "y_mm": p.y_mm, "force_n": p.force_n,
+                             **score_dict(score)})
+        cell.notifier.ping_if_due()
+        return self.evidence.add(score)
+
+
+def score_dict(score: Any) -> dict:
+    """A PressScore as plain JSON numbers (for the journal and replay comparisons)."""
+    out: dict[str, Any] = {}
+    for key in ("novelty", "untouched", "latency_ms"):
+        v = getattr(score, key, None)
+        if isinstance(v, (bool, int, float)):
+            out[key] = v if isinstance(v, bool) else float(v)
+    lp = getattr(score, "log_posterior", None)
+    if isinstance(lp, dict):
+        out["log_posterior"] = {str(k): float(v) for k, v in lp.items()}
+    elif lp is not None:
+        try:
+            out["log_posterior"] = [float(v) for v in lp]
+        except TypeError:
+            pass
+    return out

@@ -1,0 +1,266 @@
+"""Overlapped scoring (runtime/press_pipeline.py): a press is scored while the arm moves on.
+
+The arm and the model here take real time (sleeps), since the overlap is two threads: a timed
+FakeArm (``press_s`` per press, ``lift_s`` per retract) and a FakeModel that sleeps ``score_s``
+per press. The same item is run with ``overlap_scoring`` on and off and compared: the decision and
+the journal are the sequential ones, only the time differs (and, when a late score decides, one
+speculative press that is journalled and never scored into the decision).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+from vs2t_edge.sim.fake_devices import FakeArm
+from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.sim.fake_devices import FakeGate
+from vs2t_edge.runtime.journal import Journal, read_records
+from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.runtime.preprocess import FrameError
+
+CLASSES = ["denim", "silk", "wool"]
+BINS = {"denim": 1, "silk": 2, "wool": 3}
+VOTES = {50: "denim", 60: "silk", 70: "wool"}
+AMBIGUOUS = [50, 60, 70, 50, 60, 70]  # never confident: the item goes to the press limit
+
+
+class TimedArm(FakeArm):
+    """A FakeArm whose press and lift take time; it notes when each press starts."""
+
+    press_s = 0.0
+    lift_s = 0.0
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.press_started: list[float] = []
+
+    def press(self):
+        self.press_started.append(time.monotonic())
+        time.sleep(self.press_s)
+        return super().press()
+
+    def retract(self):
+        time.sleep(self.lift_s)
+        super().retract()
+
+
+class SlowModel(FakeModel):
+    """FakeModel that takes ``score_s`` per press; ``fail_at`` (1-based call) raises ``error``."""
+
+    def __init__(self, score_s, fail_at=None, error=None, on_score=None):
+        super().__init__(VOTES, CLASSES)
+        self.score_s, self.fail_at, self.error, self.on_score = score_s, fail_at, error, on_score
+        self.calls = 0
+        self.threads: set[str] = set()
+
+    def score_press(self, frame):
+        self.calls += 1
+        self.threads.add(threading.current_thread().name)
+        if self.on_score is not None:
+            self.on_score(self.calls)
+        time.sleep(self.score_s)
+        if self.calls == self.fail_at:
+            raise self.error
+        return super().score_press(frame)
+
+
+def make(tmp_path, script, *, overlap, press_s=0.0, lift_s=0.0, score_s=0.0, max_presses=4, confidence=0.95,
+         model=None, name="cell"):
+    folder = tmp_path / f"{name}-{'on' if overlap else 'off'}"
+    folder.mkdir()
+    arm = TimedArm()
+    arm.press_s, arm.lift_s = press_s, lift_s
+    arm.connect()
+    camera = ScriptedCamera(arm, script)
+    journal = Journal.open(folder / "journal.jsonl")
+    gate = FakeGate()
+    gate.connect()
+    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=arm.config.grid_points_mm()[:20],
+                      max_presses=max_presses, confidence=confidence, fault_file=folder / "FAULT",
+                      wait_item_timeout_s=0.01, overlap_scoring=overlap)
+    cell = Cell(camera=camera, arm=arm, gate=gate, model=model or SlowModel(score_s), journal=journal,
+                notifier=Notifier(address=""), scene=scene,
+                evidence_factory=lambda: FakeEvidence(CLASSES, confidence, max_presses),
+                items=ContinuousFeed(), sleep=lambda s: None)
+    return cell
+
+
+def records(cell):
+    """The journal without its wall-clock times."""
+    return [{k: v for k, v in r.items() if k != "t"} for r in read_records(cell.journal.path)]
+
+
+def timed_run(cell, max_items=1):
+    t0 = time.monotonic()
+    results = cell.run(max_items=max_items, stop_when=lambda: cell.fault is not None)  # latched: no hang
+    return results, time.monotonic() - t0
+
+
+def test_a_slow_model_does_not_slow_the_arm(tmp_path):
+    # 4 presses of 0.25 s, 0.2 s to score each: sequential 4 x (0.25 + 0.2) = 1.8 s; overlapped
+    # the arm never waits: 4 x 0.25 + the last score 0.2 = 1.2 s
+    press_s, score_s, n = 0.25, 0.2, 4
+    on = make(tmp_path, AMBIGUOUS, overlap=True, press_s=press_s, score_s=score_s)
+    off = make(tmp_path, AMBIGUOUS, overlap=False, press_s=press_s, score_s=score_s)
+    r_on, t_on = timed_run(on)
+    r_off, t_off = timed_run(off)
+    assert r_on[0].presses == r_off[0].presses == n and r_on[0].label == r_off[0].label == "unknown"
+    assert t_off >= n * (press_s + score_s)
+    assert t_on < n * press_s + score_s + 0.3, (t_on, t_off)  # far from the sequential 1.8 s
+    # the arm's presses follow each other at the arm's own pace, not the model's
+    gaps_on = [b - a for a, b in zip(on.arm.press_started, on.arm.press_started[1:])]
+    gaps_off = [b - a for a, b in zip(off.arm.press_started, off.arm.press_started[1:])]
+    assert max(gaps_on) < press_s + score_s / 2, gaps_on
+    assert min(gaps_off) >= press_s + score_s
+    assert on.model.threads == {n for n in on.model.threads if n.startswith("score-press")}
+    assert records(on) == records(off)  # same scores, same order, same decision
+
+
+def test_a_late_deciding_score_makes_one_speculative_press_that_is_journalled_and_never_scored(tmp_path):
+    # two silk presses decide (p = 0.995); the model is slower than the lift, so the arm is
+    # already pressing point 2 when the second score comes in
+    on = make(tmp_path, [60] * 6, overlap=True, press_s=0.05, score_s=0.15)
+    off = make(tmp_path, [60] * 6, overlap=False, press_s=0.05, score_s=0.15)
+    r_on, _ = timed_run(on)
+    r_off, _ = timed_run(off)
+    assert (r_on[0].label, r_on[0].presses, r_on[0].bin) == (r_off[0].label, r_off[0].presses, r_off[0].bin) \
+        == ("silk", 2, 2)
+    assert on.arm.calls.count("press") == 3 and off.arm.calls.count("press") == 2
+    pre_on = [r for r in records(on) if r["type"] == "pre_sort"][0]
+    pre_off = [r for r in records(off) if r["type"] == "pre_sort"][0]
+    assert pre_on.pop("speculative_presses") == 1 and "speculative_presses" not in pre_off
+    assert pre_on == pre_off  # the speculative frame is in no score and no posterior
+    assert [s["point"] for s in pre_on["scores"]] == [0, 1]
+    assert on.gate.sorted == off.gate.sorted == [2]
+    assert on.scorer._running == []  # the speculative score ended with the item
+
+
+def test_a_score_ready_when_the_gel_is_up_changes_no_device_call(tmp_path):
+    # the model (10 ms) is quicker than the lift (80 ms): the decision is in before the arm moves
+    # on, so the arm's calls are exactly the sequential loop's, over several items
+    script = [60, 60, 70, 70, 50, 60, 70, 50]
+    on = make(tmp_path, script, overlap=True, lift_s=0.08, score_s=0.01)
+    off = make(tmp_path, script, overlap=False, lift_s=0.08, score_s=0.01)
+    r_on, t_on = timed_run(on, max_items=3)
+    r_off, t_off = timed_run(off, max_items=3)
+    assert on.arm.calls == off.arm.calls
+    assert records(on) == records(off)
+    assert [r.label for r in r_on] == [r.label for r in r_off]
+    assert t_on < t_off  # each press's 10 ms of scoring hidden behind its lift
+
+
+def test_a_model_error_while_overlapped_latches_cleanly_with_nothing_lost(tmp_path):
+    on = make(tmp_path, AMBIGUOUS, overlap=True, press_s=0.05,
+              model=SlowModel(0.1, fail_at=2, error=RuntimeError("onnxruntime: session failed")))
+    off = make(tmp_path, AMBIGUOUS, overlap=False, press_s=0.05,
+               model=SlowModel(0.1, fail_at=2, error=RuntimeError("onnxruntime: session failed")))
+    r_on, _ = timed_run(on)
+    r_off, _ = timed_run(off)
+    for cell, r in ((on, r_on), (off, r_off)):
+        assert r[0].outcome == "rejected_fault" and r[0].bin == 0
+        assert cell.fault and "RuntimeError: onnxruntime: session failed" in cell.fault
+        assert cell.gate.to_reject_calls >= 1 and "stop" in cell.arm.calls
+        recs = records(cell)
+        assert [x["type"] for x in recs] == ["item", "fault", "final"]  # no pre_sort: the gate was never told
+        assert recs[-1]["outcome"] == "rejected_fault" and recs[-1]["presses"] == 1
+        assert cell.arm.calls[-2:] == ["retract", "stop"]  # gel lifted, then the arm stopped
+    assert records(on) == records(off)
+    assert on.scorer._running == []  # no score left running after the item
+
+
+def test_a_frame_error_in_overlapped_scoring_is_skipped_as_before(tmp_path):
+    class FailsOn13(SlowModel):
+        def score_press(self, frame):
+            if int(frame[..., 0].mean()) == 13:
+                time.sleep(self.score_s)
+                raise FrameError("non-finite model output", "model_output")
+            return super().score_press(frame)
+
+    on = make(tmp_path, [13, 70, 70, 70], overlap=True, press_s=0.05, model=FailsOn13(0.1))
+    off = make(tmp_path, [13, 70, 70, 70], overlap=False, press_s=0.05, model=FailsOn13(0.1))
+    r_on, _ = timed_run(on)
+    r_off, _ = timed_run(off)
+    assert (r_on[0].label, r_on[0].skipped_frames, r_on[0].presses) == ("wool", 1, 2)
+    assert (r_off[0].label, r_off[0].skipped_frames, r_off[0].presses) == ("wool", 1, 2)
+    assert not on.fault
+    recs = records(on)
+    assert [x["type"] for x in recs] == ["item", "frame_skipped", "pre_sort", "final"]
+    assert recs[1]["point"] == 0 and recs[1]["reason"] == "model_output"
+    pre = recs[2]
+    assert pre.pop("speculative_presses") == 1  # the decision came in while point 3 was pressed
+    assert pre == records(off)[2]
+
+
+def test_a_stop_while_a_score_is_running_aborts_the_item_cleanly(tmp_path):
+    holder = {}
+
+    def stop_on_second(calls):
+        if calls == 2:
+            holder["cell"].stop_event.set()  # SIGTERM while press 1 is being scored
+
+    on = make(tmp_path, AMBIGUOUS, overlap=True, press_s=0.05, model=SlowModel(0.1, on_score=stop_on_second))
+    holder["cell"] = on
+    results = on.run(max_items=1)
+    assert results == [] or results[0].outcome == "aborted"
+    recs = records(on)
+    assert [x["type"] for x in recs] == ["item", "final"]
+    assert recs[-1]["outcome"] == "aborted" and recs[-1]["bin"] == 0
+    assert on.gate.to_reject_calls >= 1 and on.arm.calls[-1] == "retract"
+    assert not on.fault
+    assert on.scorer._running == []
+
+
+def test_overlap_scoring_is_a_config_key_default_on_and_replay_runs_it_off(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+    from vs2t_edge.runtime.replay import config_for_replay
+
+    base = ("bundle: bundle\ndevices:\n  camera: {kind: sim, path: data}\n  arm: {kind: fake}\n"
+            "  gate: {kind: fake}\nscene:\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n"
+            "journal: state/journal.jsonl\n")
+    (tmp_path / "a.yaml").write_text(base)
+    cfg = load_config(tmp_path / "a.yaml")
+    assert cfg.overlap_scoring is True and SceneSpec.from_config(cfg).overlap_scoring is True
+    (tmp_path / "b.yaml").write_text(base + "cell: {overlap_scoring: false}\n")
+    assert SceneSpec.from_config(load_config(tmp_path / "b.yaml")).overlap_scoring is False
+    (tmp_path / "c.yaml").write_text(base + "cell:\n  overlap_scoring: 'no'\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(tmp_path / "c.yaml")
+    assert "c.yaml:11: cell.overlap_scoring = 'no': must be true or false" in str(err.value)
+    import yaml
+
+    rf = SimpleNamespace(index={"config": yaml.safe_load(base), "meta": {}})
+    work = tmp_path / "replay"
+    work.mkdir()
+    assert config_for_replay(rf, work, None).overlap_scoring is False
+
+
+def test_a_session_recorded_overlapped_with_speculative_presses_replays(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.replay import ReplayFile, record_session, run_replay
+
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x}\n  arm: {kind: fake}\n  gate: {kind: fake}\n"
+        "scene:\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n    - {name: silk, kind: touched, bin: 2}\n"
+        "    - {name: wool, kind: untouched, bin: 3}\nevidence: {confidence: 0.95, max_presses: 4}\n"
+        "journal: j.jsonl\n")  # cell.overlap_scoring: the default, on
+    cfg = load_config(tmp_path / "cell.yaml")
+    assert cfg.overlap_scoring
+    arm = FakeArm(config=cfg.arm)
+    evidence = lambda: FakeEvidence(CLASSES, 0.95, 4)  # noqa: E731
+    # every press votes silk, so the pieces do not depend on which frame a speculative press took;
+    # the instant FakeArm is up before the 30 ms score: each decision comes in during the next press
+    out = record_session(cfg, tmp_path / "s.replay", model=SlowModel(0.03), camera=ScriptedCamera(arm, [60] * 40),
+                         arm=arm, gate=FakeGate(), items=ContinuousFeed(limit=3), evidence_factory=evidence,
+                         operator_clear=lambda: True)
+    decisions = ReplayFile.open(out).index["decisions"]
+    assert [d["label"] for d in decisions if d["type"] == "final"] == ["silk"] * 3
+    assert [d["presses"] for d in decisions if d["type"] == "pre_sort"] == [2] * 3
+    presses = [e for e in ReplayFile.open(out).index["events"] if e["dev"] == "arm" and e["call"] == "press"]
+    assert len(presses) == 3 * 3  # two scored and one speculative per piece
+    report = run_replay(out, model=SlowModel(0.0), evidence_factory=evidence)  # replayed sequentially
+    assert report.ok, report.mismatches + [report.diverged]
