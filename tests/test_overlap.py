@@ -16,12 +16,11 @@ from types import SimpleNamespace
 import pytest
 
 from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
-from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
-from vs2t_edge.sim.fake_devices import FakeGate
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.preprocess import FrameError
+from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 
 CLASSES = ["denim", "silk", "wool"]
 BINS = {"denim": 1, "silk": 2, "wool": 3}
@@ -241,7 +240,8 @@ def test_overlap_scoring_is_a_config_key_default_on_and_replay_runs_it_off(tmp_p
 
 def test_a_session_recorded_overlapped_with_speculative_presses_replays(tmp_path):
     from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.replay import ReplayFile, record_session, run_replay
+    from vs2t_edge.runtime.recording import record_session
+    from vs2t_edge.runtime.replay import ReplayFile, run_replay
 
     (tmp_path / "cell.yaml").write_text(
         "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x}\n  arm: {kind: fake}\n  gate: {kind: fake}\n"
