@@ -53,14 +53,13 @@ Memory is bounded: ``results`` keeps the last ``RECENT_RESULTS`` items, ``items_
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import traceback
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import threading
 
@@ -70,7 +69,8 @@ from vs2t_edge.runtime.devices import (
     DeviceError,
     GateError,
 )
-from vs2t_edge.runtime.files import read_regular_file
+from vs2t_edge.runtime.files import atomic_write, read_regular_file
+from vs2t_edge.runtime.items import Item, ItemResult, ItemSource
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally
@@ -79,37 +79,6 @@ UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
 MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
-
-
-@dataclass(frozen=True)
-class Item:
-    id: str  # the feeder's id for the piece (sim: "item-0007")
-    truth: str | None = None  # known label in simulation/replay, never used to decide
-
-
-class ItemSource(Protocol):
-    def next_item(self, timeout_s: float) -> Item | None: ...  # None: nothing yet, ask again
-
-
-class ContinuousFeed:
-    """Live cell: the feeder presents the next piece as soon as the last one is sorted.
-
-    Pieces are numbered from ``first_number``: the daemon passes the journal's next item number,
-    so a restarted service goes on where the last one stopped instead of naming the next piece
-    ``piece-000001`` again (two pieces with one id would make the journal ambiguous)."""
-
-    def __init__(self, limit: int | None = None, first_number: int = 1) -> None:
-        self.limit, self.count, self.first_number = limit, 0, first_number
-
-    def next_item(self, timeout_s: float) -> Item | None:
-        if self.limit is not None and self.count >= self.limit:
-            time.sleep(min(timeout_s, 0.05))
-            return None
-        self.count += 1
-        return Item(id=f"piece-{self.first_number + self.count - 1:06d}")
-
-    def exhausted(self) -> bool:
-        return self.limit is not None and self.count >= self.limit
 
 
 @dataclass
@@ -166,20 +135,6 @@ class _Done(Exception):
 
 
 INTERNAL = "internal"  # fault kind of an exception the loop has no rule for (Cell._latch_internal)
-
-
-@dataclass
-class ItemResult:
-    item: Item
-    label: str
-    bin: int
-    outcome: str  # sorted | rejected_fault | unknown_outcome (gate ack lost) | aborted
-    presses: int
-    confidence: float
-    stopped_by: str
-    skipped_frames: int
-    latency_ms: list[float] = field(default_factory=list)  # model time per press
-    item_s: float = 0.0
 
 
 def _finite(x: float) -> float | None:
@@ -277,7 +232,7 @@ class Cell:
             steps.append(f"journal failed: {exc}")
         try:
             if self.scene.fault_file is not None:
-                _atomic_write(self.scene.fault_file, reason + "\n")
+                atomic_write(self.scene.fault_file, reason + "\n")
         except Exception as exc:  # noqa: BLE001
             steps.append(f"fault file failed: {exc}")
         try:
@@ -625,25 +580,3 @@ def _jsonable(x: Any) -> Any:
         return [_finite(v) for v in x]
     except TypeError:
         return _finite(x) if isinstance(x, (int, float)) else str(x)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    import os
-
-    from vs2t_edge.runtime.journal import STATE_FILE_MODE, make_state_dir
-
-    make_state_dir(path.parent)  # STATE_DIR_MODE for folders made here
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, STATE_FILE_MODE)
-    # deleting FAULT clears a latched fault: never writable by others, whatever the umask or the
-    # mode a stale .tmp from a crash was left with
-    os.fchmod(fd, STATE_FILE_MODE)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def summary_json(results: list[ItemResult]) -> str:
-    return json.dumps([r.__dict__ | {"item": r.item.id} for r in results], default=str)

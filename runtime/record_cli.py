@@ -21,7 +21,7 @@ import threading
 from pathlib import Path
 
 from vs2t_edge.runtime import wiring
-from vs2t_edge.runtime.cell import ContinuousFeed
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.config import ConfigError, load_config
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.replay import ReplayFile

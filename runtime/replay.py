@@ -33,7 +33,7 @@ from typing import Any
 import yaml
 
 from vs2t_edge.runtime import devices as dv
-from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult

@@ -23,7 +23,8 @@ from typing import Any, Callable
 
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
-from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence

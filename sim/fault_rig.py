@@ -21,7 +21,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vs2t_edge.runtime.cell import Cell, Item, SceneSpec
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.sim.fakes import BINS, CLASSES, GREY, REFERENCE_GREY, REJECT, GreyEvidence, GreyModel

@@ -18,7 +18,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Callable
 
-from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.sim.fakes import CLASSES, REJECT, GreyEvidence, GreyModel

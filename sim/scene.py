@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from vs2t_edge.runtime.cell import Item
+from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
 from vs2t_edge.runtime.inference import TactileModel

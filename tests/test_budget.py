@@ -19,7 +19,8 @@ from cell_fakes import FakeEvidence, FakeModel
 from vs2t_edge.firmware_bridge.gate_client import GateClient, timing_problems
 from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, StepBounds, allowed_wait_s, bounds_of, unleased_waits
-from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.config import ConfigError, load_config
 from vs2t_edge.runtime.devices import CameraError, Frame
 from vs2t_edge.sim.fake_devices import FakeGate

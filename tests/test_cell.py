@@ -8,7 +8,8 @@ import pytest
 
 from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera
 from vs2t_edge.sim.fake_devices import FakeArm
-from vs2t_edge.runtime.cell import Cell, ContinuousFeed, Item, SceneSpec
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.items import ContinuousFeed, Item
 from vs2t_edge.sim.fake_devices import FakeGate
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier

@@ -16,7 +16,8 @@ from types import SimpleNamespace
 import pytest
 
 from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
-from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.preprocess import FrameError

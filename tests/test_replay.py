@@ -14,7 +14,7 @@ import pytest
 
 from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera, latch_skipping
 from vs2t_edge.sim.fake_devices import FakeArm
-from vs2t_edge.runtime.cell import ContinuousFeed
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.sim.fake_devices import FakeGate
 from vs2t_edge.runtime.recording import record_session

@@ -374,7 +374,7 @@ def _modes(*paths: Path) -> dict[str, str]:
 
 
 def test_state_files_and_folders_are_created_0640_and_0750_whatever_the_umask(tmp_path, umask):
-    from vs2t_edge.runtime.cell import _atomic_write
+    from vs2t_edge.runtime.files import atomic_write as _atomic_write
     from vs2t_edge.runtime.journal import Journal
 
     state = tmp_path / "var" / "state"
@@ -402,7 +402,7 @@ def test_state_files_and_folders_are_created_0640_and_0750_whatever_the_umask(tm
 def test_a_stale_fault_tmp_does_not_pass_its_mode_on(tmp_path, umask):
     """A crash between writing FAULT.tmp and renaming it leaves the .tmp behind; the next latch
     reuses the name and must not inherit a world-writable mode from it."""
-    from vs2t_edge.runtime.cell import _atomic_write
+    from vs2t_edge.runtime.files import atomic_write as _atomic_write
 
     stale = tmp_path / "FAULT.tmp"
     stale.write_text("old\n")

@@ -193,7 +193,8 @@ class _BadFrameCamera:
 
 def _cell_with(tmp_path, reference, pressed, max_presses):
     from vs2t_edge.sim.fake_devices import FakeArm
-    from vs2t_edge.runtime.cell import Cell, ContinuousFeed, SceneSpec
+    from vs2t_edge.runtime.cell import Cell, SceneSpec
+    from vs2t_edge.runtime.items import ContinuousFeed
     from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import Journal
     from vs2t_edge.runtime.notify import Notifier
