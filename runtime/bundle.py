@@ -182,6 +182,10 @@ class Bundle:
     probe_tolerance: dict[str, float]
     opsets: dict[str, dict[str, int]] = field(default_factory=dict)
     scene_model: Any = None  # runtime.scene_model.SceneModel, or None for a bundle without one (router path)
+    # the tactile feature: None = the ONNX trunk (graphs.trunk); else runtime.tactile_descriptor's
+    # DescriptorFeature (manifest "trunk": {"kind": "descriptor", ...}), numpy, no graph
+    descriptor: Any = None
+    probe_frames: np.ndarray | None = None  # descriptor bundles: (2, H, W, 3) uint8, [reference, press]
 
     def path(self, key: str) -> Path:
         return self.root / self.manifest["graphs"][key]["file"]
@@ -333,9 +337,21 @@ def verify_seal(root: Path, manifest: dict) -> None:
                                 "override, never by editing the manifest)")
 
 
+def is_descriptor(manifest: dict) -> bool:
+    """The bundle's tactile feature is a numpy descriptor, not an ONNX trunk (docs/bundle.md)."""
+    return "trunk" in manifest
+
+
+def graph_keys(manifest: dict) -> tuple[str, ...]:
+    """The ONNX graphs a bundle holds: trunk and heads, or the heads alone behind a descriptor."""
+    return ("heads",) if is_descriptor(manifest) else GRAPH_KEYS
+
+
 def _used_files(manifest: dict) -> dict[str, Any]:
     """{manifest key: file name} of every file the loader opens (names unchecked here)."""
-    used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in GRAPH_KEYS}
+    used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in graph_keys(manifest)}
+    if is_descriptor(manifest):
+        used.update({"trunk.file": _get(manifest, "trunk", "file"), "probe.frames": _get(manifest, "probe", "frames")})
     used.update({"router.file": _get(manifest, "router", "file"), "probe.input": _get(manifest, "probe", "input"),
                  "probe.expected": _get(manifest, "probe", "expected")})
     if "decision" in manifest:
@@ -412,7 +428,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
         raise BundleError(root, f"manifest.json 'gating.transform' = {_short(transform)}: expected 'asinh' or 'linear'")
 
     opsets: dict[str, dict[str, int]] = {}
-    for key in GRAPH_KEYS:
+    for key in graph_keys(manifest):
         g = _need(manifest, root, "graphs", key)
         path = _inside(root, _need(manifest, root, "graphs", key, "file"), f"graphs.{key}.file")
         try:
@@ -461,7 +477,12 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
             expected = {k: np.asarray(z[k]) for k in z.files}
     except _DATA_ERRORS as exc:
         raise BundleError(root, f"probe files unreadable ({exc})") from None
-    want = (1, 3, spec.size, spec.size)
+    descriptor, frames = None, None
+    if is_descriptor(manifest):
+        from vs2t_edge.runtime.tactile_descriptor import load_descriptor_feature
+
+        descriptor, frames = load_descriptor_feature(root, manifest, dim)
+    want = (1, dim) if descriptor is not None else (1, 3, spec.size, spec.size)
     if x.shape != want or x.dtype != np.float32:
         raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
     for k in ("feature", "logits_t", "logits_u", "novelty"):
@@ -472,7 +493,8 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
                  for k in ("feature", "logits", "novelty")}
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
-                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model)
+                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model,
+                  descriptor=descriptor, probe_frames=frames)
 
 
 def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int):
@@ -593,5 +615,5 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
 
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
-           "read_manifest", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
+           "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]
