@@ -172,4 +172,58 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
     return manifest
 
 
-__all__ = ["Descriptor", "write_descriptor_bundle", "PROBE_TOLERANCE"]
+def _descriptors(ds, name: str, fid: str, indices: Sequence[int]) -> np.ndarray:
+    fab = ds.by_id(fid)
+    ref = td.prepare_reference(fab.load_reference())
+    return np.stack([td.describe(name, fab.load_press(i), ref) for i in indices]).astype(np.float32)
+
+
+def export_descriptor_run(run_dir: Path, art, out_dir: Path | str, *, dataset: Path | str | None = None,
+                          calibration_frames: int = 64, log: Callable[[str], None] = lambda m: None,
+                          threads: int = 2) -> dict:
+    """``from_run.export_run`` of a run trained with a descriptor as its tactile feature: the run's
+    heads, stored router, beta and scene model; the standardisation it trained with; the gating fit
+    on held-out touched and validation-fabric presses, the probe on a touched training press.
+    Untouched fabrics are never read (``check_zero_shot``)."""
+    from vs2t_edge.export.from_run import _run_profile, _spread, check_zero_shot, press_partition
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.train.artifacts import build_modules, load_router
+
+    name = art.tactile_feature
+    ds_root = Path(dataset or art.dataset)
+    if not ds_root.is_dir():
+        raise ex.ExportError(f"the run's dataset {ds_root} is not there (the probe and the gating fit need its "
+                             "touched presses); pass --dataset")
+    ds = load_dataset(ds_root)
+    _, cls_t, cls_u = build_modules(art)
+    max_presses = _run_profile(Path(run_dir)).get("max_presses")
+    seed = int(art.info.get("split_seed", 0))
+    part = press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, seed, max_presses)
+    calib_ids = [fid for fid in (art.touched_fabric_ids or art.touched) if fid in part]
+    for what, fids in (("the probe and calibration", calib_ids), ("the gating fit (held-out touched presses)",
+                                                                  art.touched),
+                       ("the gating fit (validation presses)", art.validation)):
+        check_zero_shot({fid: [0] for fid in fids}, art.untouched, what)
+    per = max(1, math.ceil(calibration_frames / len(calib_ids)))
+    log(f"{name}: descriptors of {per} training presses of each of {len(calib_ids)} touched fabrics")
+    calib = np.concatenate([_descriptors(ds, name, fid, _spread(part[fid]["train"], per)) for fid in calib_ids])
+    heldout = np.concatenate([_descriptors(ds, name, fid, part[fid]["val"]) for fid in art.touched])
+    validation = np.concatenate([_descriptors(ds, name, fid, _spread(range(len(ds.by_id(fid).presses)), 12))
+                                 for fid in art.validation]) if art.validation else None
+    probe_fab = ds.by_id(calib_ids[0])
+    frames = np.stack([probe_fab.load_reference(), probe_fab.load_press(part[calib_ids[0]]["train"][0])])
+    prov = {"run": str(Path(run_dir).resolve()), "trained": True, "tactile_feature": name,
+            "data": {"dataset": str(ds_root.resolve()), "split_seed": seed, "max_presses": max_presses,
+                     "validation": list(art.validation), "touched_presses": part, "calibration_fabrics": calib_ids},
+            "router": {"name": art.router_name, "refitted_at_export": False,
+                       "source": "the run's stored router and beta (artifacts/model.pt)"}, "run_info": art.info}
+    return ex.write_bundle(out_dir, trunk=None, cls_t=cls_t, cls_u=cls_u, router=load_router(art), touched=art.touched,
+                           untouched=art.untouched, preprocess=art.tactile_preprocess, beta=art.beta,
+                           calibration=calib, validation=validation, touched_heldout=heldout, provenance=prov,
+                           operating_point=f"{art.router_name} router, beta balanced on validation fabrics "
+                                           f"{', '.join(art.validation)}",
+                           scene_model=art.scene_model, threads=threads, log=log,
+                           descriptor=Descriptor(name, art.feature_mean, art.feature_std, frames))
+
+
+__all__ = ["Descriptor", "write_descriptor_bundle", "export_descriptor_run", "PROBE_TOLERANCE"]

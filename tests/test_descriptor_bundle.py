@@ -151,3 +151,33 @@ def test_verify_bundle_cli_names_the_descriptor(capsys):
 
     assert main(["verify-bundle", str(shared_descriptor_bundle()), "--threads", "1"]) == 0
     assert "shading_markers descriptor (no trunk graph), 240-d" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_path):
+    """`train --tactile-feature shading_markers` on the tiny world, then `export` of the run: a
+    descriptor bundle (no trunk graph) that the cell verifies and that scores an untouched press."""
+    from vs2t_edge.export.from_run import export_run
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.train.artifacts import load_run_artifacts
+    from vs2t_edge.train.run import train
+
+    world = tiny_world()
+    m = train(world, tmp_path / "run", profile="tiny", figures=False, tactile_feature="shading_markers")
+    assert m["profile"]["tactile_feature"] == "shading_markers"
+    art = load_run_artifacts(tmp_path / "run")
+    assert art.tactile_feature == "shading_markers" and art.trunk_state == {} and art.feature_dim == 240
+    man = export_run(tmp_path / "run", tmp_path / "bundle", calibration_frames=16, threads=1)
+    assert man["trunk"]["name"] == "shading_markers" and "trunk.onnx" not in man["files"]
+    assert set(man["provenance"]["data"]["calibration_fabrics"]) <= set(art.touched)
+    model = TactileModel.load(tmp_path / "bundle", threads=1)
+    assert list(model.untouched) == list(art.untouched) and model.beta == pytest.approx(art.beta)
+    fab = load_dataset(world).by_id(art.untouched[0])
+    model.set_reference(fab.load_reference())
+    s = model.score_press(fab.load_press(0))
+    assert set(s.log_posterior) == set(model.classes) and np.isfinite(s.novelty)
+    assert all(np.isfinite(v) for v in s.log_posterior.values())
+    from vs2t_edge.export.export import ExportError
+
+    with pytest.raises(ExportError, match="apply to a trunk"):  # not silently a trunk export
+        export_run(tmp_path / "run", tmp_path / "b2", router="gaussian", threads=1)
