@@ -181,3 +181,7 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
 
     with pytest.raises(ExportError, match="apply to a trunk"):  # not silently a trunk export
         export_run(tmp_path / "run", tmp_path / "b2", router="gaussian", threads=1)
+    from vs2t_edge.cli import main
+
+    assert main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "b3"), "--calibration-frames", "8"]) == 0
+    assert main(["verify-bundle", str(tmp_path / "b3"), "--threads", "1"]) == 0
