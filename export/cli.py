@@ -85,11 +85,12 @@ def run(args) -> int:
         return 1
     checks = m["checks"]
     par = checks["parity_torch_vs_onnxruntime"]
-    print(f"bundle {args.out}: {m['graphs']['trunk']['arch']} {m['graphs']['trunk']['precision']} at "
-          f"{m['preprocess']['size']} px, {len(m['classes']['touched'])} touched + "
+    feature = (f"the {m['trunk']['name']} descriptor (no trunk graph)" if "trunk" in m else
+               f"{m['graphs']['trunk']['arch']} {m['graphs']['trunk']['precision']} at {m['preprocess']['size']} px")
+    print(f"bundle {args.out}: {feature}, {len(m['classes']['touched'])} touched + "
           f"{len(m['classes']['untouched'])} untouched classes, verified ({time.time() - t0:.1f} s)")
-    print(f"  torch vs onnxruntime: feature {par['feature']:.1e}, logits_t {par['logits_t']:.1e} "
-          f"(tolerance {par['tolerance']:.0e})")
+    trunk_parity = f"feature {par['feature']:.1e}, " if "feature" in par else ""  # a descriptor has no graph
+    print(f"  torch vs onnxruntime: {trunk_parity}logits_t {par['logits_t']:.1e} (tolerance {par['tolerance']:.0e})")
     if "int8_vs_fp32_on_calibration" in checks:
         q = checks["int8_vs_fp32_on_calibration"]
         print(f"  int8 vs fp32 on {q['frames']} touched presses: min feature cosine {q['feature_cosine_min']:.4f}, "

@@ -174,20 +174,32 @@ def _prepare_out(out: Path) -> None:
             raise ExportError(f"{out} is a non-empty folder that is not a bundle; refusing to overwrite it")
 
 
-def write_bundle(out_dir: Path | str, *, trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
+def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
                  touched: Sequence[str], untouched: Sequence[str], preprocess: TactilePreprocess, beta: float,
                  calibration: np.ndarray, trunk_precision: str = "fp32", trunk_arch: str = "custom",
                  validation: np.ndarray | None = None, touched_heldout: np.ndarray | None = None,
                  gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
                  opset: int = OPSET, scene_model: dict | None = None,
-                 threads: int = 2, log: Callable[[str], None] = lambda m: None) -> dict:
+                 threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
     touched presses for the gating temperature; ``scene_model``: ``runtime.scene_model.SceneModel``
-    parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md)."""
+    parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md).
+    ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
+    descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors)."""
     from vs2t_edge.runtime.inference import TactileModel
+
+    if descriptor is not None:
+        from vs2t_edge.export.descriptor import write_descriptor_bundle
+
+        return write_descriptor_bundle(out_dir, descriptor=descriptor, cls_t=cls_t, cls_u=cls_u, router=router,
+                                       touched=touched, untouched=untouched, beta=beta, calibration=calibration,
+                                       validation=validation, touched_heldout=touched_heldout,
+                                       gating_temperature=gating_temperature, operating_point=operating_point,
+                                       provenance=provenance, opset=opset, scene_model=scene_model, threads=threads,
+                                       log=log)
 
     if trunk_precision not in ("fp32", "int8"):
         raise ExportError(f"trunk precision {trunk_precision!r}: choose fp32 or int8")

@@ -177,6 +177,14 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
         raise ExportError(f"unknown router '{router}'; known: {', '.join(nv.ROUTERS)}")
     run_dir = Path(run_dir)
     art = load_run_artifacts(run_dir)
+    if art.tactile_feature != "cnn":
+        from vs2t_edge.export.descriptor import export_descriptor_run
+
+        if router is not None or trunk_precision != "fp32" or size is not None:
+            raise ExportError(f"run {run_dir} has the {art.tactile_feature} descriptor as its tactile feature: "
+                              "--router, --trunk-precision int8 and --size apply to a trunk (not yet to a descriptor)")
+        return export_descriptor_run(run_dir, art, out_dir, dataset=dataset, calibration_frames=calibration_frames,
+                                     log=log, threads=threads)
     trunk, cls_t, cls_u = build_modules(art)
     stored = load_router(art)
     spec = art.tactile_preprocess

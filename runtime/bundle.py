@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, InputRefused, read_regular_file
+from vs2t_edge.runtime.onnx_opsets import read_onnx_opsets  # noqa: F401 - re-exported (runtime.bundle API)
 from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 FORMAT = "vs2t-bundle"
@@ -100,68 +101,6 @@ def sha256_file(path: Path | str, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-# ------------------------------------------------------------------ ONNX opset without onnx
-
-
-def _varint(buf: bytes, i: int) -> tuple[int, int]:
-    shift = result = 0
-    while True:
-        if i >= len(buf):
-            raise ValueError("truncated varint")
-        b = buf[i]
-        i += 1
-        result |= (b & 0x7F) << shift
-        if not b & 0x80:
-            return result, i
-        shift += 7
-        if shift > 63:
-            raise ValueError("varint too long")
-
-
-def _fields(buf: bytes):
-    """(field number, wire type, value) of one protobuf message; length-delimited values as bytes."""
-    i = 0
-    while i < len(buf):
-        key, i = _varint(buf, i)
-        num, wire = key >> 3, key & 7
-        if wire == 0:
-            val, i = _varint(buf, i)
-        elif wire == 1:
-            val, i = buf[i:i + 8], i + 8
-        elif wire == 2:
-            n, i = _varint(buf, i)
-            val, i = buf[i:i + n], i + n
-            if i > len(buf):
-                raise ValueError("truncated field")
-        elif wire == 5:
-            val, i = buf[i:i + 4], i + 4
-        else:
-            raise ValueError(f"unsupported wire type {wire}")
-        yield num, wire, val
-
-
-def read_onnx_opsets(path: Path | str) -> dict[str, int]:
-    """{domain: version} of an ONNX file's opset_import (ModelProto field 8; "" = ai.onnx)."""
-    data = Path(path).read_bytes()
-    out: dict[str, int] = {}
-    try:
-        for num, wire, val in _fields(data):
-            if num == 8 and wire == 2:  # OperatorSetIdProto: domain = 1 (string), version = 2 (int64)
-                domain, version = "", None
-                for n2, w2, v2 in _fields(val):
-                    if n2 == 1 and w2 == 2:
-                        domain = v2.decode()
-                    elif n2 == 2 and w2 == 0:
-                        version = v2
-                if version is not None:
-                    out["" if domain == "ai.onnx" else domain] = int(version)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not a readable ONNX model ({exc})") from exc
-    if "" not in out:
-        raise ValueError(f"{path}: no ai.onnx opset_import (not an ONNX model?)")
-    return out
-
-
 # ------------------------------------------------------------------ the bundle
 
 
@@ -182,6 +121,10 @@ class Bundle:
     probe_tolerance: dict[str, float]
     opsets: dict[str, dict[str, int]] = field(default_factory=dict)
     scene_model: Any = None  # runtime.scene_model.SceneModel, or None for a bundle without one (router path)
+    # the tactile feature: None = the ONNX trunk (graphs.trunk); else runtime.tactile_descriptor's
+    # DescriptorFeature (manifest "trunk": {"kind": "descriptor", ...}), numpy, no graph
+    descriptor: Any = None
+    probe_frames: np.ndarray | None = None  # descriptor bundles: (2, H, W, 3) uint8, [reference, press]
 
     def path(self, key: str) -> Path:
         return self.root / self.manifest["graphs"][key]["file"]
@@ -333,9 +276,21 @@ def verify_seal(root: Path, manifest: dict) -> None:
                                 "override, never by editing the manifest)")
 
 
+def is_descriptor(manifest: dict) -> bool:
+    """The bundle's tactile feature is a numpy descriptor, not an ONNX trunk (docs/bundle.md)."""
+    return "trunk" in manifest
+
+
+def graph_keys(manifest: dict) -> tuple[str, ...]:
+    """The ONNX graphs a bundle holds: trunk and heads, or the heads alone behind a descriptor."""
+    return ("heads",) if is_descriptor(manifest) else GRAPH_KEYS
+
+
 def _used_files(manifest: dict) -> dict[str, Any]:
     """{manifest key: file name} of every file the loader opens (names unchecked here)."""
-    used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in GRAPH_KEYS}
+    used = {f"graphs.{k}.file": _get(manifest, "graphs", k, "file") for k in graph_keys(manifest)}
+    if is_descriptor(manifest):
+        used.update({"trunk.file": _get(manifest, "trunk", "file"), "probe.frames": _get(manifest, "probe", "frames")})
     used.update({"router.file": _get(manifest, "router", "file"), "probe.input": _get(manifest, "probe", "input"),
                  "probe.expected": _get(manifest, "probe", "expected")})
     if "decision" in manifest:
@@ -412,7 +367,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
         raise BundleError(root, f"manifest.json 'gating.transform' = {_short(transform)}: expected 'asinh' or 'linear'")
 
     opsets: dict[str, dict[str, int]] = {}
-    for key in GRAPH_KEYS:
+    for key in graph_keys(manifest):
         g = _need(manifest, root, "graphs", key)
         path = _inside(root, _need(manifest, root, "graphs", key, "file"), f"graphs.{key}.file")
         try:
@@ -461,7 +416,12 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
             expected = {k: np.asarray(z[k]) for k in z.files}
     except _DATA_ERRORS as exc:
         raise BundleError(root, f"probe files unreadable ({exc})") from None
-    want = (1, 3, spec.size, spec.size)
+    descriptor, frames = None, None
+    if is_descriptor(manifest):
+        from vs2t_edge.runtime.tactile_descriptor import load_descriptor_feature
+
+        descriptor, frames = load_descriptor_feature(root, manifest, dim)
+    want = (1, dim) if descriptor is not None else (1, 3, spec.size, spec.size)
     if x.shape != want or x.dtype != np.float32:
         raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
     for k in ("feature", "logits_t", "logits_u", "novelty"):
@@ -472,7 +432,8 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
                  for k in ("feature", "logits", "novelty")}
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
-                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model)
+                  probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model,
+                  descriptor=descriptor, probe_frames=frames)
 
 
 def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int):
@@ -593,5 +554,5 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
 
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
-           "read_manifest", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
+           "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]

@@ -33,11 +33,14 @@ def run(args) -> int:
         print(f"verify-bundle: REFUSED - {exc}", file=sys.stderr)
         return 1
     m = model.manifest
-    trunk = m["graphs"]["trunk"]
     worst = max(model.probe_errors.values())
     print(f"bundle {path}: ok")
-    print(f"  trunk {trunk.get('arch', '?')} {trunk.get('precision', '?')} at {model.preprocess_spec.size} px, "
-          f"opset {trunk['opset']}, feature {m['feature_dim']}-d")
+    if model.descriptor is not None:
+        print(f"  tactile feature: the {model.descriptor.name} descriptor (no trunk graph), {m['feature_dim']}-d")
+    else:
+        trunk = m["graphs"]["trunk"]
+        print(f"  trunk {trunk.get('arch', '?')} {trunk.get('precision', '?')} at {model.preprocess_spec.size} px, "
+              f"opset {trunk['opset']}, feature {m['feature_dim']}-d")
     print(f"  classes: {len(model.touched)} touched, {len(model.untouched)} untouched; router {m['router']['name']}, "
           f"beta {model.beta:.6g}, gating T {model.temperature:.6g}")
     print(f"  {len(m['files'])} files, sha256 verified; probe max relative error {worst:.2e} "

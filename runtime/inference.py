@@ -27,7 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vs2t_edge.runtime.bundle import Bundle, BundleError, check_session_shapes, load_bundle, open_session
+from vs2t_edge.runtime import tactile_descriptor as td
+from vs2t_edge.runtime.bundle import (Bundle, BundleError, check_session_shapes, graph_keys, load_bundle,
+                                      open_session)
 from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax
 from vs2t_edge.runtime.preprocess import FrameError, PreparedReference, prepare_reference, preprocess_tactile
 
@@ -121,10 +123,12 @@ class TactileModel:
         self.scene_model = bundle.scene_model
         self.preprocess_spec = bundle.preprocess
         self.threads = threads
+        # the tactile feature: the ONNX trunk, or a numpy descriptor (runtime/tactile_descriptor.py)
+        self.descriptor: td.DescriptorFeature | None = bundle.descriptor
         self._trunk, self._heads = trunk_session, heads_session
-        self._trunk_in = trunk_session.get_inputs()[0].name
+        self._trunk_in = trunk_session.get_inputs()[0].name if trunk_session is not None else None
         self._heads_in = heads_session.get_inputs()[0].name
-        self._reference: PreparedReference | None = None
+        self._reference: PreparedReference | td.DescriptorReference | None = None
         self.last_timing: dict[str, float] = {}
         self.probe_errors: dict[str, float] = {}
 
@@ -135,8 +139,8 @@ class TactileModel:
         """Verify (hashes, opsets, shapes, version), open, warm up and check the probe. Raises
         BundleError naming what mismatches."""
         bundle = load_bundle(bundle_dir, beta_override=beta_override)
-        sessions = {}
-        for key in ("trunk", "heads"):
+        sessions = {"trunk": None}
+        for key in graph_keys(bundle.manifest):
             try:
                 sessions[key] = open_session(bundle.path(key), threads)
             except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types; say which file
@@ -148,6 +152,15 @@ class TactileModel:
 
     def _warm_and_probe(self) -> None:
         x = self.bundle.probe_input
+        if self.descriptor is not None:  # the cell's own descriptor function on the exporter's frames
+            self.set_reference(self.bundle.probe_frames[0])
+            err = _rel_err(self.preprocess(self.bundle.probe_frames[1]), x)
+            self._reference = None
+            self.probe_errors["descriptor"] = err
+            if not err <= self.bundle.probe_tolerance["feature"]:
+                raise BundleError(self.bundle.root, f"probe check failed: the {self.descriptor.name} descriptor of "
+                                                    f"the probe frames differs from the exporter's by {err:.3g} "
+                                                    f"(relative), tolerance {self.bundle.probe_tolerance['feature']:.3g}")
         for _ in range(WARMUP_RUNS):  # first runs allocate the arena and pick kernels
             self.forward(x)
         out = self.forward(x)
@@ -169,9 +182,18 @@ class TactileModel:
     def set_reference(self, frame: np.ndarray) -> None:
         """The session's no-contact frame; refused (FrameError) if it is no usable image."""
         # checked, cropped and resized once per item: each press then only subtracts it
+        if self.descriptor is not None:  # its marker dots found once per item instead
+            self._reference = td.prepare_reference(frame)
+            return
         self._reference = prepare_reference(frame, self.preprocess_spec)
 
     def preprocess(self, frame: np.ndarray) -> np.ndarray:
+        """One frame -> the batch ``forward`` takes: (1, 3, S, S) for the trunk, or the raw
+        descriptor (1, D) float32 (standardised in ``forward``, as the trunk graph standardises)."""
+        if self.descriptor is not None:
+            if self._reference is None:
+                raise FrameError("no no-contact reference frame set (call set_reference first)", "reference")
+            return td.describe(self.descriptor.name, frame, self._reference)[None]
         spec = self.preprocess_spec
         ref = self._reference if spec.use_reference else None
         if spec.use_reference and ref is None:
@@ -179,9 +201,13 @@ class TactileModel:
         return preprocess_tactile(frame, ref, spec)[None]
 
     def forward(self, x: np.ndarray) -> Outputs:
-        """Preprocessed batch (N, 3, S, S) float32 -> all outputs (for the probe, bench and calibration)."""
+        """Preprocessed batch (N, 3, S, S) float32, or raw descriptors (N, D) -> all outputs (for the
+        probe, bench and calibration)."""
         t0 = time.perf_counter()
-        feature = self._trunk.run(None, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})[0]
+        if self.descriptor is not None:
+            feature = self.descriptor.standardise(x)
+        else:
+            feature = self._trunk.run(None, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})[0]
         t1 = time.perf_counter()
         logits_t, logits_u = self._heads.run(["logits_t", "logits_u"], {self._heads_in: feature})
         t2 = time.perf_counter()

@@ -348,3 +348,48 @@ def test_compare_run_split_is_blind_to_every_untouched_input():
         for k in a:
             if k != u:
                 assert _same_state(a[k], b[k]), f"{name}: {k} changed with untouched inputs only"
+
+
+def test_descriptor_feature_run_is_blind_to_untouched_descriptors():
+    """`train --tactile-feature shading_markers`: the tactile feature is a fixed descriptor of every
+    press (runtime/tactile_descriptor.py, nothing fitted), nothing is fine-tuned, and the only
+    statistic of it - the standardisation - comes from touched training rows. Clean vs the untouched
+    fabrics' descriptors, crops and attributes poisoned: every touched-side artefact is
+    bit-identical, the deployed feature standardisation included; only untouched test outputs move."""
+    from vs2t_edge.train import run
+
+    prof = run.PROFILES["tiny"]
+    prof = type(prof)(**{**prof.__dict__, "tactile_feature": "shading_markers", "ft_epochs": 1})
+    budget = vs2t.VS2TBudget(steps=15, cls_steps=10, n_synth_per_class=10, hidden=32, latent=8)
+    outs = {}
+    for poison in (False, True):
+        cache, split = _poisonable_world(poison)
+        desc = np.random.default_rng(5).normal(size=(len(cache.fabric), 240)).astype(np.float32)
+        desc += cache.fabric[:, None] * 0.3
+        if poison:
+            bad = np.isin(cache.fabric, [cache.fabric_ids.index(f) for f in split.untouched])
+            desc[bad] = 50 * np.random.default_rng(98).normal(size=desc[bad].shape) + 20
+        torch.manual_seed(0)
+        trunk = build_trunk("tiny")
+        trunk.stem = torch.nn.Identity()
+        o = run.run_split(cache, trunk, split, prof, budget, desc)
+        outs[poison] = (o, run._deploy_artifacts("world", prof, split, o, budget, "gaussian"), desc)
+    (clean, ac, desc), (pois, ap, _) = outs[False], outs[True]
+    assert clean["trunk"] is None and ac.trunk_state == {} and ac.tactile_feature == "shading_markers"
+    assert ac.feature_dim == 240 and np.array_equal(clean["table"].x_t, desc)  # the descriptor, not the trunk
+    changed = _only_test_side_changed(clean["result"], pois["result"])
+    assert any(p[:2] == ("methods", "VS2T-ZSL") for p in changed)
+    assert np.array_equal(ac.feature_mean, ap.feature_mean) and np.array_equal(ac.feature_std, ap.feature_std)
+    assert _same_state(ac.cls_t_state, ap.cls_t_state) and ac.beta == ap.beta
+    assert not _differing_leaves(_plain(ac.router_params), _plain(ap.router_params))
+    assert not _same_state(ac.cls_u_state, ap.cls_u_state)  # CLS_u does read the untouched attributes
+
+
+def test_descriptor_feature_needs_its_descriptors():
+    from vs2t_edge.train import run
+
+    cache, split = _poisonable_world(False)
+    prof = run.PROFILES["tiny"]
+    prof = type(prof)(**{**prof.__dict__, "tactile_feature": "shading_markers"})
+    with pytest.raises(ValueError, match="needs its descriptor"):
+        run.run_split(cache, build_trunk("tiny"), split, prof, vs2t.VS2TBudget(steps=1), None)

@@ -45,6 +45,9 @@ class RunArtifacts:
     # runtime.scene_model.SceneModel.to_params() of the deployment split (train/decision.py), or
     # None for runs made before the scene decision (their bundles decide with the router)
     scene_model: dict | None = None
+    # "cnn": the trunk above; or a runtime/tactile_descriptor.py name - then trunk_state is empty,
+    # feature_mean / feature_std standardise the descriptor, and export writes a descriptor bundle
+    tactile_feature: str = "cnn"
 
     @property
     def tactile_preprocess(self) -> TactilePreprocess:
@@ -108,10 +111,13 @@ def load_run_artifacts(run_dir: Path | str) -> RunArtifacts:
     return RunArtifacts(**kw)
 
 
-def build_modules(art: RunArtifacts) -> tuple[DeployTrunk, Classifier, Classifier]:
-    trunk = build_trunk(art.trunk_arch, pretrained=False)
-    trunk.load_state_dict(art.trunk_state)
-    deploy = DeployTrunk(trunk, art.feature_mean, art.feature_std).eval()
+def build_modules(art: RunArtifacts) -> tuple[DeployTrunk | None, Classifier, Classifier]:
+    """(trunk with standardisation, CLS_t, CLS_u); the trunk is None for a descriptor run."""
+    deploy = None
+    if art.tactile_feature == "cnn":
+        trunk = build_trunk(art.trunk_arch, pretrained=False)
+        trunk.load_state_dict(art.trunk_state)
+        deploy = DeployTrunk(trunk, art.feature_mean, art.feature_std).eval()
     cls_t = Classifier(art.feature_dim, len(art.touched), art.cls_hidden)
     cls_t.load_state_dict(art.cls_t_state)
     cls_u = Classifier(art.feature_dim, len(art.untouched), art.cls_hidden)

@@ -1,5 +1,5 @@
 """`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]
-[--visual-tail frozen|finetuned]`."""
+[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers]`."""
 
 from __future__ import annotations
 
@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--visual-tail", choices=("frozen", "finetuned"),
                         help="fine-tune the visual trunk's tail on touched fabrics' camera crops per split, or keep "
                              "it frozen (profile default: frozen; docs/training.md)")
+    parser.add_argument("--tactile-feature", choices=("cnn", "shading_markers"),
+                        help="tactile feature: the trunk (cnn, default) or the no-network shading_markers descriptor "
+                             "that wins on a real GelSight (docs/realism.md); exported as a descriptor bundle")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.time()
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
               seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
-              max_presses=args.max_presses)
+              max_presses=args.max_presses, tactile_feature=args.tactile_feature)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

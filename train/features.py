@@ -126,6 +126,29 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
                      np.concatenate(stems_v))
 
 
+def descriptor_table(dataset_root: Path, name: str, max_presses: int | None = None,
+                     progress: bool = True) -> np.ndarray:
+    """(P, D) float32: the no-network tactile descriptor ``name`` (runtime/tactile_descriptor.py,
+    the cell's own function) of every press ``extract_cache`` reads, in its row order, each
+    against its fabric's no-contact reference. Nothing in it is fitted: the per-dimension
+    standardisation comes later from touched training rows only (``compare.split_views``)."""
+    from vs2t_edge.runtime import tactile_descriptor as td
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    ds = load_dataset(dataset_root)
+    rows, line, t0 = [], Line(), time.time()
+    for k, fabric in enumerate(ds.fabrics):
+        ref = td.prepare_reference(fabric.load_reference())
+        n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
+        chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))  # as extract_cache
+        rows += [td.describe(name, fabric.load_press(i), ref) for i in chosen]
+        if progress:
+            line.draw(f"{name}: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", (k + 1) / len(ds.fabrics))
+    if progress:
+        line.keep()
+    return np.stack(rows).astype(np.float32)
+
+
 def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> tuple[np.ndarray, np.ndarray]:
     """(rows, class index) of the touched TRAINING presses of ``split`` — the same partition
     (``runtime.dataset.press_partition``: the first 70 % of each fabric's presses in press order;
@@ -237,5 +260,5 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
                            for i in range(0, len(stem), chunk)]).astype(np.float32)
 
 
-__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "touched_training_rows", "finetune_tail",
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "descriptor_table", "touched_training_rows", "finetune_tail",
            "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]

@@ -25,8 +25,10 @@ found as dark dots and inpainted, the session's median fit frame subtracted as t
 these recordings have no no-contact frame - the LED gradient removed by a low-pass, contrast
 normalised, then the same trunk); ``markers`` (no network: the marker grid's centres and areas,
 the gel's shear and compliance); ``shading`` (no network: the gel's coarse colour field, markers
-inpainted and exposure cancelled, ``shading_features``); ``shading_markers`` (shading and the dots'
-sub-pixel centres, ``marker_centroids``).
+inpainted and exposure cancelled, ``shading_features``); ``shading_markers`` (the cell's own
+descriptor, ``runtime.tactile_descriptor.shading_markers``: the shading and the marker dots'
+sub-pixel displacement against a no-contact frame - here the median fit press, as these recordings
+have none - averaged per grid cell).
 
 Nothing is tuned on test presses. ``--within-fit`` evaluates inside each fold's fit presses only
 (their first half fits, their second half tests, and the reverse); the shading grid, the exposure
@@ -47,6 +49,9 @@ import numpy as np
 # the real-sensor preprocessing lives with the cell's one preprocessing (numpy and OpenCV only)
 from vs2t_edge.runtime.preprocess import check_frame, inpaint_markers, marker_mask, shading_grid
 from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
+from vs2t_edge.runtime.tactile_descriptor import dot_centres, grid_order
+from vs2t_edge.runtime.tactile_descriptor import prepare_reference as prepare_descriptor_reference
+from vs2t_edge.runtime.tactile_descriptor import shading_markers as tactile_descriptor
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 PIPELINES = ("frozen", "inpainted", "markers", "shading", "shading_markers")
@@ -131,15 +136,6 @@ def inpainted_difference(image: np.ndarray, background: np.ndarray) -> np.ndarra
     return np.clip(0.5 + 0.15 * d, 0.0, 1.0)[..., ::-1]
 
 
-def _grid_order(c: np.ndarray) -> np.ndarray:
-    """Indices that put dot centres (n, 2) in grid order: rows top to bottom, each row by x; a row
-    is the dots within half a grid pitch (the median nearest-neighbour distance) in y."""
-    d = np.hypot(*(c[:, None, :] - c[None, :, :]).transpose(2, 0, 1))
-    np.fill_diagonal(d, np.inf)
-    pitch = float(np.median(d.min(axis=1)))
-    return np.lexsort((c[:, 0], np.round(c[:, 1] / pitch)))
-
-
 def marker_features(image: np.ndarray) -> np.ndarray:
     """Centres (x, y) and areas of the marker dots in grid order. Empty when no dot is found."""
     import cv2
@@ -149,33 +145,21 @@ def marker_features(image: np.ndarray) -> np.ndarray:
     c, a = centres[keep], stats[keep, cv2.CC_STAT_AREA].astype(np.float64)
     if len(c) < 2:
         return np.zeros(0)
-    order = _grid_order(c)
+    order = grid_order(c)
     return np.concatenate([c[order].ravel(), a[order]])
 
 
 def marker_centroids(image: np.ndarray) -> np.ndarray:
-    """Sub-pixel centres (x, y) of the marker dots in grid order, flattened; empty when none.
+    """Sub-pixel centres (x, y) of the marker dots in grid order, flattened; empty when none
+    (``runtime.tactile_descriptor.dot_centres``, the cell's own)."""
+    c = dot_centres(image)
+    return c[grid_order(c)].ravel() if len(c) >= 2 else np.zeros(0)
 
-    Each dot's centre is its centroid weighted by how much darker than the surrounding gel each
-    pixel is, not the centre of its thresholded blob: the gel's shear moves a dot by a pixel or
-    less between materials, below what a binary blob resolves, and a blob's area changes with
-    exposure. On ../shared these centres beside the shading raise temporal-split accuracy from
-    86.5 to about 91 % (docs/realism.md); blob centres and areas add about 1 point."""
-    import cv2
 
-    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    darkness = np.clip(cv2.medianBlur(grey, 21).astype(np.float64) - grey, 0.0, None)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(marker_mask(image))
-    keep = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] > 15)
-    keep = keep[keep > 0]
-    if len(keep) < 2:
-        return np.zeros(0)
-    yy, xx = np.indices(labels.shape)
-    lab, w = labels.ravel(), darkness.ravel()
-    mass = np.bincount(lab, w, n)[keep]
-    c = np.stack([np.bincount(lab, w * xx.ravel(), n)[keep], np.bincount(lab, w * yy.ravel(), n)[keep]], 1)
-    c /= np.maximum(mass, 1e-9)[:, None]
-    return c[_grid_order(c)].ravel()
+def session_reference(frames: list[list[np.ndarray]], fit: list[np.ndarray]) -> np.ndarray:
+    """The resting gel of a recording without no-contact frames: the median of the fit presses of
+    every material (uint8). Where the cell has the item's own no-contact frame, this stands in."""
+    return np.median(np.stack([fs[i] for fs, idx in zip(frames, fit) for i in idx]), axis=0).astype(np.uint8)
 
 
 class FrozenTrunk:
@@ -211,16 +195,16 @@ def pipeline_features(pipeline: str, frames: list[list[np.ndarray]], fit: list[n
         return [trunk([inpainted_difference(im, background) for im in fs]) for fs in frames]
     if pipeline == "shading":
         return [np.stack([shading_features(im) for im in fs]) for fs in frames]
-    if pipeline == "shading_markers":
-        return [np.concatenate([a, b], axis=1) for a, b in zip(pipeline_features("shading", frames, fit, trunk),
-                                                             _dot_grid(marker_centroids, frames, fit))]
+    if pipeline == "shading_markers":  # the cell's descriptor, against the session's resting gel
+        reference = prepare_descriptor_reference(session_reference(frames, fit))
+        return [np.stack([tactile_descriptor(im, reference) for im in fs]).astype(np.float64) for fs in frames]
     if pipeline == "markers":
         return _dot_grid(marker_features, frames, fit)
     raise RealCheckError(f"unknown pipeline {pipeline!r}: choose from {', '.join(PIPELINES)}")
 
 
 def _dot_grid(describe, frames: list[list[np.ndarray]], fit: list[np.ndarray]) -> list[np.ndarray]:
-    """Per material, (presses, D) of a marker-dot description (``marker_features``, ``marker_centroids``)."""
+    """Per material, (presses, D) of a marker-dot description (``marker_features``)."""
     raw = [[describe(im) for im in fs] for fs in frames]
     # a frame whose dot count differs from the fit frames' usual one (a dot lost at the edge,
     # merged dots) has no comparable grid: NaN, read as the fit mean when standardised

@@ -59,6 +59,11 @@ class Profile:
     # deployed one is chosen by mean VALIDATION AUSUC of VS2T-ZSL over splits (``choose_router``).
     # "gaussian" (the paper's) is always reported beside it.
     routers: tuple[str, ...] = nv.ROUTERS
+    # the tactile feature: "cnn" = the trunk above, its tail fine-tuned per split; or a no-network
+    # descriptor of runtime/tactile_descriptor.py ("shading_markers", what wins on a real GelSight:
+    # docs/realism.md), nothing fine-tuned, exported as a descriptor bundle (docs/bundle.md). The
+    # visual side keeps the trunk either way.
+    tactile_feature: str = "cnn"
 
 
 PROFILES = {
@@ -81,6 +86,23 @@ def _log(msg: str) -> None:
 
 
 VISUAL_TAILS = ("frozen", "finetuned")
+TACTILE_FEATURES = ("cnn", "shading_markers")
+
+
+def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray:
+    """The descriptor table of ``prof.tactile_feature`` (``features.descriptor_table``), cached
+    beside the stem cache (it takes ~50 ms a press)."""
+    path = cache_dir / f"descriptor_{prof.tactile_feature}.npz"
+    meta = f"{Path(dataset).resolve()}|{prof.max_presses}"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["meta"]) == meta:
+                _log(f"features: cached ({path})")
+                return z["x"]
+    x = ft.descriptor_table(dataset, prof.tactile_feature, prof.max_presses)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, x=x, meta=np.array(meta))
+    return x
 
 
 def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCache:
@@ -121,13 +143,20 @@ def synth_quality(method, views: cmp.SplitViews, budget, seed: int) -> dict:
     return {"wasserstein": float(w), "cosine": float(c)}
 
 
-def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile, budget) -> dict:
+def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile, budget,
+              descriptors: np.ndarray | None = None) -> dict:
+    """One split. ``descriptors``: (P, D) tactile descriptors in the cache's row order when
+    ``prof.tactile_feature`` is one; they replace the trunk's tactile features (no fine-tuning)."""
     t0 = time.time()
     if prof.visual_tail not in VISUAL_TAILS:
         raise ValueError(f"visual_tail {prof.visual_tail!r}: choose one of {', '.join(VISUAL_TAILS)}")
+    use_cnn = prof.tactile_feature == "cnn"
+    if not use_cnn and (descriptors is None or len(descriptors) != len(cache.fabric)):
+        raise ValueError(f"tactile_feature {prof.tactile_feature!r} needs its descriptor of every cached press")
     feats = ft.finetune_split(cache, trunk, split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
-                              visual=prof.visual_tail == "finetuned")
-    table = cmp.FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
+                              tactile=use_cnn, visual=prof.visual_tail == "finetuned")
+    x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
+    table = cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     classes = vs2t.all_variants()
     result = cmp.run_split(table, split, classes, budget, routers=tuple(prof.routers), log=_log)
     result["finetune_s"] = round(feats.seconds_t, 1)
@@ -194,8 +223,12 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
     g = out["result"]["methods"]["VS2T-ZSL"]["routers"][router_name]
     scaler = cmp.FeatureScaler.fit(out["table"].x_t[ft.touched_training_rows(out["table"].fabric,
                                                                                 out["table"].fabric_ids, split)[0]])
+    # a descriptor run ships no trunk: its feature is the descriptor, standardised by the scaler
+    descriptor = prof.tactile_feature != "cnn"
     return RunArtifacts(
-        trunk_arch=prof.trunk, trunk_state=tuned.state_dict(), feature_dim=tuned.feature_dim,
+        trunk_arch=prof.tactile_feature if descriptor else prof.trunk,
+        trunk_state={} if descriptor else tuned.state_dict(),
+        feature_dim=int(out["table"].x_t.shape[1]) if descriptor else tuned.feature_dim, tactile_feature=prof.tactile_feature,
         preprocess=TactilePreprocess(size=prof.size_px).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
         cls_t_state=cls_t.state_dict(), touched=list(split.touched),
         cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
@@ -261,21 +294,24 @@ def orderings(s: dict) -> dict:
 
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
-          visual_tail: str | None = None, max_presses: int | None = None) -> dict:
+          visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses)
+                      max_presses, tactile_feature)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
-           max_presses: int | None = None) -> dict:
+           max_presses: int | None = None, tactile_feature: str | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
-                                              ("visual_tail", visual_tail)) if v is not None})
+                                              ("visual_tail", visual_tail), ("tactile_feature", tactile_feature))
+                            if v is not None})
+    if prof.tactile_feature not in TACTILE_FEATURES:
+        raise ValueError(f"tactile_feature {prof.tactile_feature!r}: choose one of {', '.join(TACTILE_FEATURES)}")
     if max_presses is not None:
         prof = replace(prof, max_presses=max_presses or None)
     if prof.visual_tail not in VISUAL_TAILS:
@@ -300,6 +336,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
                                                          "torch_threads": torch.get_num_threads()}, sort_keys=False))
     t0 = time.time()
     cache = get_cache(dataset, prof, out_dir / "features", trunk)
+    descriptors = None if prof.tactile_feature == "cnn" else get_descriptors(dataset, prof, out_dir / "features")
     t_feat = time.time() - t0
     n = len(cache.fabric_ids)
     k = n_holdout(n)
@@ -308,7 +345,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     for i, sp in enumerate(split_list):
         _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
              f"{len(sp.untouched)} untouched")
-        o = run_split(cache, trunk, sp, prof, budget)
+        o = run_split(cache, trunk, sp, prof, budget, descriptors)
         results.append(o["result"])
         # partial summary after every split, so a stopped run still leaves numbers
         (out_dir / "metrics_partial.json").write_text(json.dumps(
@@ -353,5 +390,5 @@ def _json_default(o):
     return str(o)
 
 
-__all__ = ["PROFILES", "VISUAL_TAILS", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout", "choose_router",
+__all__ = ["PROFILES", "VISUAL_TAILS", "TACTILE_FEATURES", "get_descriptors", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout", "choose_router",
            "fit_router"]
