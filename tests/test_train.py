@@ -335,6 +335,26 @@ def test_router_is_chosen_on_validation_ausuc_only():
     assert choose_router([split(0.5, 0.5, 0.0, 0.0)]) == "a"  # tie: the first evaluated (the paper's Gaussian)
 
 
+def test_each_splits_router_is_chosen_on_its_own_validation_fabrics():
+    """Splits are drawn independently: split 1's validation fabric can be split 0's untouched one.
+    A choice averaged over splits read it; each split's (and the shipped split 0's) must not."""
+    from vs2t_edge.train.run import routers_by_split, summarise
+
+    def split(val_a, val_b, h_a, h_b):
+        r = lambda v, h: {"val_ausuc": v, "ausuc": 0.5, "acc_t": 0.5, "acc_u": 0.5, "H": h}  # noqa: E731
+        block = {"gaussian": r(0.1, 0.0), "a": r(val_a, h_a), "b": r(val_b, h_b)}
+        return {"methods": {"VS2T-ZSL": {"routers": block, "zsl_acc": 0.5, "val_zsl_acc": 0.5,
+                                          "synthesis": {"wasserstein": 0.0, "cosine": 1.0}}}}
+
+    # split 0's validation prefers a; split 1's validation (which may hold split 0's untouched
+    # fabrics) prefers b strongly enough to win the mean over both
+    results = [split(0.6, 0.5, 0.2, 0.9), split(0.1, 0.9, 0.4, 0.8)]
+    assert routers_by_split(results) == ["a", "b"]
+    g = summarise(results)["VS2T-ZSL"]["gzsl_router"]
+    assert g["per_split"] == ["a", "b"] and g["name"] == "per split"
+    assert abs(g["H"]["mean"] - 100 * (0.2 + 0.8) / 2) < 1e-9  # each split's own choice, not b everywhere
+
+
 def test_vsf_gate_starts_where_gate_bias_puts_it():
     from vs2t_edge.train.models import VSFusion
 

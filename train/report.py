@@ -179,7 +179,9 @@ def render(m: dict) -> str:
     rname = m.get("router", {}).get("chosen")
     head = "| model | ZSL ours | ZSL val | ZSL paper | Gaussian acc_t | acc_u | H |"
     if rname:
-        head += f" {rname} acc_t | acc_u | H |"
+        per = m["router"].get("per_split")
+        head += (f" {rname} acc_t | acc_u | H |" if not per or len(set(per)) == 1
+                 else " val-chosen router (per split) acc_t | acc_u | H |")
     head += " W1 real-synth | cos real-synth |"
     lines += [head, "|" + " --- |" * (head.count("|") - 1)]
     for name, r in s.items():
@@ -193,8 +195,9 @@ def render(m: dict) -> str:
         lines.append(row + f" {r['wasserstein']:.3f} | {r['cosine']:.3f} |")
     if rname and "routers" in s.get("VS2T-ZSL", {}):
         rs = s["VS2T-ZSL"]["routers"]
-        lines += ["", f"GZSL routers for VS2T-ZSL (beta of each tuned on validation; chosen: **{rname}**, "
-                      f"rule: {m['router']['rule']}):", "",
+        per = m["router"].get("per_split")
+        lines += ["", f"GZSL routers for VS2T-ZSL (beta of each tuned on validation; chosen: **{rname}**"
+                      + (f", per split {', '.join(per)}" if per else "") + f"; rule: {m['router']['rule']}):", "",
                   "| router | val AUSUC | test AUSUC | acc_t | acc_u | H |", "| --- | --- | --- | --- | --- | --- |"]
         for k, v in rs.items():
             lines.append(f"| {k} | {v['val_ausuc']['mean']:.1f} | {v['ausuc']['mean']:.1f} | {v['acc_t']['mean']:.1f} ± "
