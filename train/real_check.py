@@ -20,7 +20,9 @@ Per feature pipeline (``PIPELINES``):
   touched classes, ``discriminant_sq_distances``).
 
 Pipelines: ``frozen`` (the floor: the frozen ImageNet EfficientNet-Lite0 on the whole frame
-resized, as the cell's trunk sees it before fine-tuning); ``inpainted`` (GelSight-aware: markers
+resized, as the cell's trunk sees it before fine-tuning); ``finetuned`` (the same trunk and input,
+its tail tuned per fold on the fit presses only with shifts and brightness / contrast jitter,
+epochs chosen inside the fit presses: train/real_finetune.py); ``inpainted`` (GelSight-aware: markers
 found as dark dots and inpainted, the session's median fit frame subtracted as the background -
 these recordings have no no-contact frame - the LED gradient removed by a low-pass, contrast
 normalised, then the same trunk); ``markers`` (no network: the marker grid's centres and areas,
@@ -54,7 +56,7 @@ from vs2t_edge.runtime.tactile_descriptor import prepare_reference as prepare_de
 from vs2t_edge.runtime.tactile_descriptor import shading_markers as tactile_descriptor
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
-PIPELINES = ("frozen", "inpainted", "markers", "shading", "shading_markers")
+PIPELINES = ("frozen", "finetuned", "inpainted", "markers", "shading", "shading_markers")
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406])
 IMAGENET_STD = np.array([0.229, 0.224, 0.225])
 TRUNK_PX = 224
@@ -176,18 +178,28 @@ class FrozenTrunk:
         self.net.eval()
 
     def __call__(self, rgb01: list[np.ndarray]) -> np.ndarray:
-        import cv2
-
-        x = np.stack([cv2.resize(im, (TRUNK_PX, TRUNK_PX), interpolation=cv2.INTER_AREA) for im in rgb01])
-        x = ((x - IMAGENET_MEAN) / IMAGENET_STD).transpose(0, 3, 1, 2).astype(np.float32)
         with self.torch.no_grad():
-            return self.net(self.torch.from_numpy(x)).numpy().astype(np.float64)
+            return self.net(self.torch.from_numpy(trunk_input(rgb01))).numpy().astype(np.float64)
+
+
+def trunk_input(rgb01: list[np.ndarray]) -> np.ndarray:
+    """Frames (HxWx3 float RGB in [0, 1]) as the trunk's batch: resized to TRUNK_PX square,
+    ImageNet-normalised, (N, 3, TRUNK_PX, TRUNK_PX) float32."""
+    import cv2
+
+    x = np.stack([cv2.resize(im, (TRUNK_PX, TRUNK_PX), interpolation=cv2.INTER_AREA) for im in rgb01])
+    return ((x - IMAGENET_MEAN) / IMAGENET_STD).transpose(0, 3, 1, 2).astype(np.float32)
 
 
 def pipeline_features(pipeline: str, frames: list[list[np.ndarray]], fit: list[np.ndarray],
-                      trunk: FrozenTrunk | None) -> list[np.ndarray]:
+                      trunk: FrozenTrunk | None, log=lambda m: None) -> list[np.ndarray]:
     """Per material, (presses, D) features of every press. The background of ``inpainted`` is the
-    median of the fit presses only (of every material: the session's resting gel)."""
+    median of the fit presses only (of every material: the session's resting gel); ``finetuned``
+    tunes a fresh copy of the trunk on the fit presses only (train/real_finetune.py)."""
+    if pipeline == "finetuned":
+        from vs2t_edge.train.real_finetune import finetuned_features
+
+        return finetuned_features(frames, fit, log=log)
     if pipeline == "frozen":
         return [trunk([im[..., ::-1].astype(np.float64) / 255 for im in fs]) for fs in frames]
     if pipeline == "inpainted":
@@ -355,7 +367,7 @@ def run_real_check(train_dir: Path, test_dir: Path | None = None, pipelines: tup
         folds_out = []
         for k, (fr, fit, test_idx) in enumerate(runs):
             log(f"real-check: {name}, fold {k + 1}/{len(runs)}")
-            feats = pipeline_features(name, fr, fit, trunk)
+            feats = pipeline_features(name, fr, fit, trunk, log)
             folds_out.append(evaluate_fold(feats, fit, test_idx, n_seeds=n_seeds))
         results[name] = summarise(folds_out)
     return {"train": str(train_dir), "test": str(test_dir) if test_dir else None, "protocol": protocol,

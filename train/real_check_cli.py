@@ -17,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                              "of --train (first half fits, second half tests, and the reverse)")
     parser.add_argument("--out", type=Path, default=Path("real-check.json"), help="JSON result (default real-check.json)")
     parser.add_argument("--pipelines", default="frozen,inpainted,markers,shading,shading_markers",
-                        help="comma-separated: frozen (floor), inpainted (GelSight-aware trunk input), markers "
+                        help="comma-separated: frozen (floor), finetuned (the frozen trunk's tail tuned per fold on "
+                             "the fit presses with shifts and exposure jitter; minutes, not in the default), inpainted (GelSight-aware trunk input), markers "
                              "(no network), shading (the gel's coarse colour field, no network), shading_markers "
                              "(shading and the marker dots' sub-pixel centres)")
     parser.add_argument("--seeds", type=int, default=10, help="material draws per fold for novelty AUROC")
