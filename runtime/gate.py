@@ -1,11 +1,13 @@
 """The sorting gate as the cell sees it: the ``Gate`` protocol of runtime/devices.py.
 
-* ``SerialGate`` — the live gate: the serial host driver of firmware_bridge (pyserial, any URL),
-  with its faults turned into ``GateError(kind=...)``.
+``SerialGate`` is the live gate: the serial host driver of firmware_bridge (pyserial, any URL),
+with its faults turned into ``GateError(kind=...)``.
+
 The in-process ``FakeGate`` (the firmware's latching rules, injectable faults; config
-``devices.gate.kind: fake``) is ``vs2t_edge.sim.fake_devices.FakeGate``, and the ``SerialGate`` wired to the MCU simulator over a real pty (config ``devices.gate.kind: sim``,
-the demo) is ``vs2t_edge.sim.devices.simulated_serial_gate``: simulators stay out of the cell's
-code, and the daemon imports it only when a config asks for it (runtime/devices.py SIMULATORS).
+``devices.gate.kind: fake``) is ``vs2t_edge.sim.fake_devices.FakeGate``, and the ``SerialGate``
+wired to the MCU simulator over a real pty (``devices.gate.kind: sim``, the demo) is
+``vs2t_edge.sim.devices.simulated_serial_gate``: simulators and fakes stay out of the cell's code,
+and the wiring imports one only when a config asks for it (runtime/devices.py SIMULATORS).
 """
 
 from __future__ import annotations
