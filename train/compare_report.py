@@ -148,7 +148,7 @@ def _bins_section(s: dict) -> list[str]:
         b = rs[br]
         rows.append(f"| {m} | {br} | {_pct(b['item_right'])} | {_pct(b['item_mis_sort'])} | {_pct(b['item_reject'])} "
                     f"| {b['item_presses']['mean']:.2f} |")
-    return ["## Per item, by bins (test fabrics)", "",
+    return ["", "## Per item, by bins (test fabrics)", "",
             f"What a sorting line pays for (runtime/sorting.py, the evaluation the bench, the demo and training's "
             f"report use): each method's per-press posterior (its router at the validation beta, the gate's "
             f"temperature fitted on validation as export fits it) fed to the cell's evidence at confidence "
