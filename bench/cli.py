@@ -26,7 +26,7 @@ def add_arguments(parser, verb: str) -> None:
 def run(args) -> int:
     from vs2t_edge.bench.measure import run_bench
     from vs2t_edge.bench.report import render_bins, render_table
-    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+    from vs2t_edge.runtime.bundle import BundleError, is_descriptor, read_manifest
 
     bundles = [Path(b) for b in args.bundles]
     try:
@@ -38,9 +38,13 @@ def run(args) -> int:
         return 2
     for b in bundles:
         try:
-            read_manifest(b)
+            manifest = read_manifest(b)
         except BundleError as exc:
             print(f"bench: {exc}", file=sys.stderr)
+            return 2
+        if is_descriptor(manifest):
+            print(f"bench: {b}: a descriptor bundle (trunk.kind descriptor, docs/bundle.md) - the bench measures "
+                  "bundles with an ONNX trunk only; its per-press cost is in docs/realism.md", file=sys.stderr)
             return 2
     try:
         result = run_bench(bundles, Path(args.out) if args.out else None, dataset=args.dataset, threads=threads,

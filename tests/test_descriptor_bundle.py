@@ -153,6 +153,16 @@ def test_verify_bundle_cli_names_the_descriptor(capsys):
     assert "shading_markers descriptor (no trunk graph), 240-d" in capsys.readouterr().out
 
 
+def test_bench_refuses_a_descriptor_bundle_by_name(capsys):
+    """The bench measures ONNX trunks; a descriptor bundle is refused in words, not a traceback."""
+    from vs2t_edge.cli import main
+
+    b = shared_descriptor_bundle()
+    assert main(["bench", str(b), "--no-accuracy"]) == 2
+    err = capsys.readouterr().err
+    assert str(b) in err and "descriptor bundle" in err
+
+
 @pytest.mark.slow
 def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_path):
     """`train --tactile-feature shading_markers` on the tiny world, then `export` of the run: a
