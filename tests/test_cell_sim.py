@@ -12,7 +12,7 @@ from vs2t_edge.runtime.dataset import SensorGeometry, write_dataset_meta, write_
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.replay import ReplayFile, run_replay
-from vs2t_edge.sim.scene import SimulatedCell, item_stream, score_run, scene_config_yaml, write_scene_config
+from vs2t_edge.sim.scene import SimulatedCell, item_stream, scene_config_yaml, write_scene_config
 
 GREY = {"denim": 50, "silk": 60, "wool": 70, "tweed": 100}  # tweed: off-scene, votes for nothing
 CLASSES = ["denim", "silk", "wool"]
@@ -57,7 +57,6 @@ def test_daemon_sorts_a_stream_on_the_simulated_cell(tmp_path, dataset):
                           camera=cell.camera, arm=cell.arm, gate=cell.gate, items=cell.source,
                           evidence_factory=lambda: FakeEvidence(CLASSES, 0.95, 3), install_signals=False,
                           stop_when=cell.source.exhausted, log=lambda m: None)
-        results = []
     assert code == 0
     from vs2t_edge.runtime.journal import read_records
 
