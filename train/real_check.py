@@ -49,7 +49,8 @@ from pathlib import Path
 import numpy as np
 
 # the real-sensor preprocessing lives with the cell's one preprocessing (numpy and OpenCV only)
-from vs2t_edge.runtime.preprocess import check_frame, inpaint_markers, marker_mask, shading_grid  # noqa: F401 - real-check names it
+# shading_grid: real-check's callers (and tests) read it here  # noqa below
+from vs2t_edge.runtime.preprocess import check_frame, inpaint_markers, marker_mask, shading_grid  # noqa: F401
 from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
 from vs2t_edge.runtime.tactile_descriptor import dot_centres, grid_order
 from vs2t_edge.runtime.tactile_descriptor import prepare_reference as prepare_descriptor_reference
