@@ -13,7 +13,8 @@ Which numbers decide (beta, the scene model's item rule and the config's overrid
 runtime/operating_point.py's to say; this module asks it and builds what it says.
 
 Devices of kind ``sim`` are built by the simulated cell (vs2t_edge.sim.scene), which passes them
-in: the cell runtime never imports the simulators.
+in; a config's simulated gate or fake arm and gate (a dry run) are looked up by name
+(runtime/devices.py ``SIMULATORS``): the cell runtime never imports vs2t_edge.sim.
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ from typing import Any, Callable
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
 from vs2t_edge.runtime.cell import Cell, SceneSpec
-from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
 
