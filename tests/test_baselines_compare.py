@@ -565,3 +565,17 @@ def test_by_bins_counts_right_bins_and_mis_sorts_on_a_hand_made_case():
     wrong = cmp.by_bins(names_t, names_u, lp_t, y_t, _posteriors(names_t + names_u, 0 * y_u, 0.99), y_u)
     assert wrong["item_by_kind"]["untouched"]["mis-sort"] > 0 and wrong["item_by_kind"]["touched"]["right"] == 1.0
     assert wrong["item_right"] < 1.0
+
+
+def test_each_split_choosing_alone_reads_only_its_own_validation():
+    """The pooled rule can pick what no single split's validation picks; a split's own choice and
+    its test numbers come from that split alone."""
+    def split(val_a, val_b, zsl_a, zsl_b):
+        r = lambda v, h: {"val_ausuc": v, "H": h, "ausuc": h}  # noqa: E731
+        return {"methods": {"DAP": {"val_zsl_acc": val_a, "zsl_acc": zsl_a, "routers": {"gaussian": r(0.5, zsl_a)}},
+                            "CADA-VAE": {"val_zsl_acc": val_b, "zsl_acc": zsl_b,
+                                         "routers": {"gaussian": r(0.4, 0.1), "energy": r(0.6, zsl_b)}}}}
+
+    own = cmp.own_split_choices([split(0.9, 0.1, 0.3, 0.8), split(0.2, 0.8, 0.4, 0.6)])
+    assert own["choices"] == [("DAP", "gaussian"), ("CADA-VAE", "energy")]
+    assert abs(own["zsl_acc"]["mean"] - (0.3 + 0.6) / 2) < 1e-12 and abs(own["H"]["mean"] - 0.45) < 1e-12

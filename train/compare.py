@@ -437,6 +437,28 @@ def _split_key(record: dict) -> tuple:
                  for k in ("touched", "validation", "untouched", "seed"))
 
 
+def own_split_choices(splits: list[dict], cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
+    """The rule applied to each split alone, on that split's validation fabrics, and the test
+    numbers of each split's own choice. Splits are drawn independently, so a choice pooled over
+    splits reads fabrics that are another split's untouched ones: its test numbers flatter a
+    little; these do not. ``choices``: (model, router) per split."""
+    cell_inputs = CELL_INPUTS if cell_inputs is None else cell_inputs
+    choices, zsl, h, ausuc = [], [], [], []
+    for sp in splits:
+        ms = sp["methods"]
+        eligible = [m for m in ms if set(cell_inputs.get(m, ("?",))) <= set(CELL_SIDE_INPUTS)]
+        if not eligible:
+            return {}
+        model = max(eligible, key=lambda m: ms[m]["val_zsl_acc"])
+        rs = ms[model]["routers"]
+        router = max(rs, key=lambda r: rs[r]["val_ausuc"])
+        choices.append((model, router))
+        zsl.append(ms[model]["zsl_acc"])
+        h.append(rs[router]["H"])
+        ausuc.append(rs[router]["ausuc"])
+    return {"choices": choices, "zsl_acc": _ms(zsl), "H": _ms(h), "ausuc": _ms(ausuc)}
+
+
 def pool_results(results: list[dict], cell_inputs: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Several comparison results (same methods and routers, e.g. the run's splits and new
     random splits on the same features) as one: their splits concatenated and summarised again
@@ -480,6 +502,7 @@ def pool_into(result: dict, extra: list[tuple[str, dict]], label: str,
         own = summarise(result["splits"], cell_inputs)["methods"]["VS2T-ZSL"]["routers"]
         out["shipped_router"] = {"router": ship, "pooled_best_for_vs2t": best, "lead": d, "se": se,
                                  "run_splits_best_for_vs2t": max(own, key=lambda rt: own[rt]["val_ausuc"]["mean"])}
+    out["own_split"] = own_split_choices(pooled["splits"], cell_inputs)
     result["pooled"] = out
     # the page's answer, at the top of its JSON (summary.recommendation is the rule on its own splits alone)
     rec = pooled["summary"]["recommendation"]

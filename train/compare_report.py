@@ -83,6 +83,13 @@ def _recommendation_section(result: dict) -> list[str]:
         lines.append(f"| {ps['source']} | {ps['n_splits']} | {ps['model']} | {ps['router']} |")
     lines += ["", f"On test (reported, not used to choose), pooled: {_test_numbers(sm[rec['model']], rec['router'])}.",
               ""]
+    own = pooled.get("own_split") or {}
+    if own:
+        picks = ", ".join(f"{m} + {r}" for m, r in own["choices"])
+        lines += [f"Each split choosing on its own validation fabrics only - the honest test number for the rule: "
+                  f"the pooled choice reads fabrics that are another split's untouched ones; a split's own choice "
+                  f"rests on its few validation fabrics, so it is also noisier: ZSL {_pct(own['zsl_acc'])}, "
+                  f"GZSL H {_pct(own['H'])}, AUSUC {_pct(own['ausuc'])}; choices per split: {picks}.", ""]
     run_router = result.get("run_router") or {}
     ship = pooled.get("shipped_router")
     if run_router and ship:
