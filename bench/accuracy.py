@@ -175,8 +175,7 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     if len(touched) < 2 or not untouched:
         return {}
     scenes = so.draw_scenes(touched, untouched, (), n_scenes, seed=seed)
-    tables = {"router": {classes[c]: [so.Press(dict(zip(classes, row.tolist()))) for row in out["lp"][lab == c]]
-                         for c in np.unique(lab)}}
+    tables = {"router": {classes[c]: so.posterior_presses(classes, out["lp"][lab == c]) for c in np.unique(lab)}}
     rules = {"router": so.plain_evidence(SEQ_CONFIDENCE, BIN_MAX_PRESSES)}
     if getattr(model, "scene_model", None) is not None:
         lp_s, d2 = model.scene_model.log_posterior(out["feature"], dtype=np.float32)

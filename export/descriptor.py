@@ -13,9 +13,7 @@ seal, the runtime's own verification before anything is left in place - is ``wri
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
-import shutil
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -60,8 +58,6 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
     """Write and verify a descriptor bundle; returns the manifest. ``calibration``, ``validation``,
     ``touched_heldout``: RAW descriptors (N, D) (of touched presses, validation-fabric presses and
     held-out touched presses: the gating fit, as ``write_bundle``)."""
-    from vs2t_edge.runtime.inference import TactileModel
-
     name = descriptor.name
     if name not in td.NAMES:
         raise ex.ExportError(f"descriptor {name!r}: this runtime computes {list(td.NAMES)}")
@@ -159,15 +155,7 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
                            "git_commit": ex._git_commit(), "versions": ex._versions(), "command": " ".join(sys.argv),
                            **(provenance or {})},
         }
-        manifest = rb.seal_manifest(manifest)
-        (tmp / rb.MANIFEST).write_text(json.dumps(manifest, indent=1, allow_nan=True) + "\n")
-        model = TactileModel.load(tmp, threads=threads)  # the runtime's own verification first
-        manifest["checks"]["probe_errors_at_export"] = model.probe_errors
-        if out.exists():
-            shutil.rmtree(out)
-        out.mkdir(parents=True)
-        for p in tmp.iterdir():
-            shutil.move(str(p), out / p.name)
+        manifest = ex.seal_verify_and_place(manifest, tmp, out, threads)
     log(f"bundle written to {out} and verified")
     return manifest
 

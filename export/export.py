@@ -189,8 +189,6 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md).
     ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
     descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors)."""
-    from vs2t_edge.runtime.inference import TactileModel
-
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -328,18 +326,27 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                            "git_commit": _git_commit(), "versions": _versions(), "command": " ".join(sys.argv),
                            **(provenance or {})},
         }
-        manifest = rb.seal_manifest(manifest)
-        (tmp / rb.MANIFEST).write_text(json.dumps(manifest, indent=1, allow_nan=True) + "\n")
-        # the runtime's own verification before anything is left in place
-        model = TactileModel.load(tmp, threads=threads)
-        manifest["checks"]["probe_errors_at_export"] = model.probe_errors
-        if out.exists():
-            shutil.rmtree(out)
-        out.mkdir(parents=True)
-        for p in tmp.iterdir():
-            shutil.move(str(p), out / p.name)
+        manifest = seal_verify_and_place(manifest, tmp, out, threads)
     log(f"bundle written to {out} and verified")
     return manifest
 
 
-__all__ = ["OPSET", "ExportError", "write_bundle", "count_macs", "export_onnx", "graph_io"]
+def seal_verify_and_place(manifest: dict, tmp: Path, out: Path, threads: int) -> dict:
+    """Seal the manifest into the staged bundle ``tmp``, load it with the cell's own verification
+    (``TactileModel.load``: a bundle that fails it is never left behind), then move it to ``out``
+    (replacing what was there). Returns the manifest with the probe errors the cell measured."""
+    from vs2t_edge.runtime.inference import TactileModel
+
+    manifest = rb.seal_manifest(manifest)
+    (tmp / rb.MANIFEST).write_text(json.dumps(manifest, indent=1, allow_nan=True) + "\n")
+    model = TactileModel.load(tmp, threads=threads)
+    manifest["checks"]["probe_errors_at_export"] = model.probe_errors
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for p in tmp.iterdir():
+        shutil.move(str(p), out / p.name)
+    return manifest
+
+
+__all__ = ["OPSET", "ExportError", "write_bundle", "seal_verify_and_place", "count_macs", "export_onnx", "graph_io"]

@@ -181,6 +181,11 @@ class Scene:
         return "touched" if fabric in self.touched else "untouched" if fabric in self.untouched else "off-scene"
 
 
+def posterior_presses(classes: Sequence[str], log_posteriors: np.ndarray) -> list[Press]:
+    """Presses of one fabric from their per-press log posteriors over ``classes`` (rows)."""
+    return [Press(dict(zip(classes, row.tolist()))) for row in log_posteriors]
+
+
 def draw_scenes(touched: Sequence[str], untouched: Sequence[str], off_pool: Sequence[str], n_scenes: int, *,
                 n_touched: int = 5, n_untouched: int = 3, n_off: int = 3, seed: int = 0) -> list[Scene]:
     """Seeded scenes: ``n_touched`` of the touched fabrics, ``n_untouched`` of the untouched ones,
@@ -245,4 +250,4 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
            "risk_coverage", "expected_calibration_error", "fit_temperature", "log_softmax", "Press", "Scene",
-           "draw_scenes", "simulate_scenes", "as_dict"]
+           "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]

@@ -10,6 +10,7 @@ runtime/gate.py: harness stays out of the cell's rooms (docs/ARCHITECTURE.md).
 from __future__ import annotations
 
 import threading
+from typing import Any, Callable
 from dataclasses import dataclass, field
 
 from vs2t_edge.firmware_bridge import protocol as proto
@@ -202,3 +203,51 @@ class FakeGate:
 
     def __exit__(self, *exc: object) -> None:
         self.disconnect()
+
+
+# --- an arm proxy for the simulated cells --------------------------------------------------------
+
+class PressTrackingArm:
+    """An arm proxy that knows whether the gel is down (a simulated camera shows a press only
+    then) and which press of the current item comes next; ``before_press(item, number)`` (1-based
+    per item) is where a subclass injects a fault. Everything else passes through to ``inner``."""
+
+    def __init__(self, inner, current_item: Callable[[], int]) -> None:
+        self.inner, self._current_item = inner, current_item
+        self.pressed = False
+        self.presses_this_item = 0
+        self._item_seen = -1
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def connect(self) -> None:
+        self.inner.connect()
+
+    def disconnect(self) -> None:
+        self.inner.disconnect()
+
+    def move_above(self, x_mm: float, y_mm: float) -> None:
+        self.pressed = False
+        self.inner.move_above(x_mm, y_mm)
+
+    def press(self):
+        item = self._current_item()
+        if item != self._item_seen:
+            self._item_seen, self.presses_this_item = item, 0
+        self.presses_this_item += 1
+        self.before_press(item, self.presses_this_item)
+        result = self.inner.press()
+        self.pressed = True
+        return result
+
+    def before_press(self, item: int, number: int) -> None:
+        """Called just before press ``number`` of item ``item`` reaches the arm."""
+
+    def retract(self) -> None:
+        self.pressed = False
+        self.inner.retract()
+
+    def stop(self) -> None:
+        self.pressed = False
+        self.inner.stop()

@@ -25,6 +25,7 @@ from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.sim.fake_devices import PressTrackingArm
 from vs2t_edge.sim.fakes import BINS, CLASSES, GREY, REFERENCE_GREY, REJECT, GreyEvidence, GreyModel
 
 
@@ -51,7 +52,7 @@ class Pieces:
         return self.index + 1 >= len(self.items)
 
 
-class FaultArm:
+class FaultArm(PressTrackingArm):
     """Arm proxy: remembers whether the gel is pressed (for the camera) and fires scheduled faults.
 
     ``schedule[(item_index, press_number)] = fn``: ``fn()`` runs just before that press (1-based
@@ -59,44 +60,20 @@ class FaultArm:
     """
 
     def __init__(self, inner, pieces: Pieces) -> None:
-        self.inner, self.pieces = inner, pieces
-        self.pressed = False
+        super().__init__(inner, lambda: pieces.index)
+        self.pieces = pieces
         self.schedule: dict[tuple[int, int], Callable[[], None]] = {}
-        self._item, self._press = -1, 0
-        self.press_count = 0
+        self.press_count = 0  # presses the arm finished
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.inner, name)
-
-    def connect(self) -> None:
-        self.inner.connect()
-
-    def disconnect(self) -> None:
-        self.inner.disconnect()
-
-    def move_above(self, x_mm: float, y_mm: float) -> None:
-        self.pressed = False
-        self.inner.move_above(x_mm, y_mm)
-
-    def press(self):
-        if self.pieces.index != self._item:
-            self._item, self._press = self.pieces.index, 0
-        self._press += 1
-        fn = self.schedule.pop((self._item, self._press), None)
+    def before_press(self, item: int, number: int) -> None:
+        fn = self.schedule.pop((item, number), None)
         if fn is not None:
             fn()
-        result = self.inner.press()
-        self.pressed = True
+
+    def press(self):
+        result = super().press()
         self.press_count += 1
         return result
-
-    def retract(self) -> None:
-        self.pressed = False
-        self.inner.retract()
-
-    def stop(self) -> None:
-        self.pressed = False
-        self.inner.stop()
 
 
 def grey_frames(arm: FaultArm, pieces: Pieces, hw=(48, 64)) -> Callable[[], np.ndarray]:
@@ -131,8 +108,7 @@ def build_rig(workdir: Path, truths: list[str], *, arm=None, gate=None, max_pres
     ``model``, ``evidence_factory``, ``bins`` and ``frames`` replace the grey-level fake model,
     its evidence, its scene bins and its frames (the soak's real inference path).
     """
-    from vs2t_edge.sim.fake_devices import FakeArm
-    from vs2t_edge.sim.fake_devices import FakeGate
+    from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
     from vs2t_edge.sim.devices import SimulatedCamera
     from vs2t_edge.sim.scene import FAST_PRESS
 

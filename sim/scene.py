@@ -29,12 +29,13 @@ from typing import Any
 import numpy as np
 import yaml
 
-from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.dataset import Dataset, Fabric, load_dataset
 from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.replay import SCORE_RTOL
+from vs2t_edge.sim.fake_devices import PressTrackingArm
 
 
 @dataclass(frozen=True)
@@ -88,42 +89,24 @@ class _Scheduled:
     kind: str  # protective_stop | camera_timeout | black_frame
 
 
-class TrackingArm:
+class TrackingArm(PressTrackingArm):
     """An Arm proxy that remembers the target point and whether the gel is pressed; injects faults."""
 
     def __init__(self, inner, items: SceneItems, sim=None, camera=None) -> None:
-        self.inner, self.items, self.sim, self.camera = inner, items, sim, camera
+        super().__init__(inner, lambda: items.index)
+        self.items, self.sim, self.camera = items, sim, camera
         self.target: tuple[float, float] | None = None
-        self.pressed = False
-        self.presses_this_item = 0
-        self._item_seen = -1
         self.schedule: list[_Scheduled] = []
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.inner, name)
-
-    def connect(self) -> None:
-        self.inner.connect()
-
-    def disconnect(self) -> None:
-        self.inner.disconnect()
-
     def move_above(self, x_mm: float, y_mm: float) -> None:
-        self.pressed = False
         self.target = (x_mm, y_mm)
-        self.inner.move_above(x_mm, y_mm)
+        super().move_above(x_mm, y_mm)
 
-    def press(self):
-        if self.items.index != self._item_seen:
-            self._item_seen, self.presses_this_item = self.items.index, 0
-        self.presses_this_item += 1
+    def before_press(self, item: int, number: int) -> None:
         for s in list(self.schedule):
-            if s.item_index == self.items.index and s.press_number == self.presses_this_item:
+            if s.item_index == item and s.press_number == number:
                 self.schedule.remove(s)
                 self._inject(s.kind)
-        result = self.inner.press()
-        self.pressed = True
-        return result
 
     def _inject(self, kind: str) -> None:
         if kind == "protective_stop":
@@ -137,14 +120,6 @@ class TrackingArm:
             self.camera.inject("black", 1)
         else:
             raise ValueError(f"cannot inject {kind!r} here")
-
-    def retract(self) -> None:
-        self.pressed = False
-        self.inner.retract()
-
-    def stop(self) -> None:
-        self.pressed = False
-        self.inner.stop()
 
     def operator_clear(self) -> bool:
         """What the operator does at the pendant: release the protective stop."""
@@ -281,8 +256,7 @@ class SimulatedCell:
 
     def __enter__(self) -> "SimulatedCell":
         from vs2t_edge.runtime.arm import ArmConfig
-        from vs2t_edge.sim.fake_devices import FakeArm
-        from vs2t_edge.sim.fake_devices import FakeGate
+        from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
         from vs2t_edge.sim.devices import SimulatedCamera, simulated_serial_gate
 
         self.dataset = load_dataset(self.dataset_root)

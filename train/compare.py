@@ -213,10 +213,8 @@ def by_bins(names_t: list[str], names_u: list[str], lp_t: np.ndarray, y_t: np.nd
     kind, from per-press log posteriors over ``names_t + names_u`` of touched test presses (labels
     ``y_t``) and untouched presses (``y_u``)."""
     classes = list(names_t) + list(names_u)
-    tables: dict[str, list] = {f: [] for f in classes}
-    for rows, labels, names in ((lp_t, y_t, names_t), (lp_u, y_u, names_u)):
-        for row, k in zip(rows, labels):
-            tables[names[int(k)]].append(so.Press(dict(zip(classes, row.tolist()))))
+    tables = {names[k]: so.posterior_presses(classes, lp[y == k])
+              for lp, y, names in ((lp_t, y_t, names_t), (lp_u, y_u, names_u)) for k in range(len(names))}
     scenes = so.draw_scenes(names_t, names_u, (), ITEM_SCENES, seed=seed)
     records = so.simulate_scenes(scenes, tables, so.plain_evidence(ITEM_CONFIDENCE, ITEM_MAX_PRESSES),
                                  max_presses=ITEM_MAX_PRESSES, seed=seed + 1)
