@@ -191,6 +191,23 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     return res
 
 
+def pieces_per_minute(row: dict, arm) -> None:
+    """Adds ``pieces_per_min`` (per decision: scored sequentially / overlapped) to ``row``'s by-bins
+    table, from the decision's presses per piece, ``arm`` (runtime.sorting.ArmTimes) and this
+    variant's whole press as the cell pays it (p50 at the most threads timed)."""
+    from vs2t_edge.runtime import sorting as so
+
+    press = row.get("press", {})
+    if not press:
+        return
+    score_s = press[max(press, key=int)]["p50_ms"] / 1e3
+    bins = row.get("accuracy", {}).get("bins", {})
+    bins["pieces_per_min"] = {
+        name: {mode: so.items_per_minute(b["all"]["presses"], arm, score_s, overlap)
+               for mode, overlap in (("sequential", False), ("overlapped", True))}
+        for name, b in bins.items() if isinstance(b, dict) and "all" in b}
+
+
 class _Score:
     __slots__ = ("log_posterior",)
 

@@ -8,6 +8,7 @@ recorded (that section is written by hand: --out rewrites bench.md without it).
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -21,12 +22,16 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--items", type=int, default=100, help="simulated items per class (default 100)")
     parser.add_argument("--max-eval-presses", type=int, default=60, help="held-out presses per fabric (default 60)")
     parser.add_argument("--no-accuracy", action="store_true", help="speed only")
+    parser.add_argument("--arm-times", default=None, metavar="JSON",
+                        help="the arm's times per press, for pieces per minute: the JSON of "
+                             "`python -m vs2t_edge.sim.ursim --bench 9 --json FILE` (or the same on a robot)")
 
 
 def run(args) -> int:
     from vs2t_edge.bench.measure import run_bench
-    from vs2t_edge.bench.report import render_bins, render_table
+    from vs2t_edge.bench.report import arm_times_line, render_bins, render_table
     from vs2t_edge.runtime.bundle import BundleError, is_descriptor, read_manifest
+    from vs2t_edge.runtime.sorting import ArmTimes
 
     bundles = [Path(b) for b in args.bundles]
     try:
@@ -36,6 +41,13 @@ def run(args) -> int:
     except ValueError:
         print(f"bench: --threads {args.threads!r}: give thread counts like 1,2", file=sys.stderr)
         return 2
+    arm = None
+    if args.arm_times:
+        try:
+            arm = ArmTimes.from_bench(json.loads(Path(args.arm_times).read_text(encoding="utf-8")), args.arm_times)
+        except (OSError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
+            print(f"bench: --arm-times {args.arm_times}: {exc}", file=sys.stderr)
+            return 2
     for b in bundles:
         try:
             manifest = read_manifest(b)
@@ -49,7 +61,7 @@ def run(args) -> int:
     try:
         result = run_bench(bundles, Path(args.out) if args.out else None, dataset=args.dataset, threads=threads,
                            budget_s=args.budget_s, n_items=args.items, cap=args.max_eval_presses,
-                           accuracy_on=not args.no_accuracy)
+                           accuracy_on=not args.no_accuracy, arm=arm)
     except (BundleError, FileNotFoundError, RuntimeError) as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 1
@@ -58,7 +70,7 @@ def run(args) -> int:
         print(f"recommended on this machine: {r['recommended']} ({r['why']})")
     bins = render_bins(result)
     if bins:
-        print("\nper item, by bins (right / mis-sort / reject, %):\n" + bins)
+        print("\nper item, by bins (right / mis-sort / reject, %):\n" + bins + "\n" + arm_times_line(result))
     if args.out:
         print(f"bench: wrote {args.out}/bench.md, bench.json" + (", pareto.png" if (Path(args.out) / "pareto.png").exists() else ""))
     return 0

@@ -40,6 +40,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -48,7 +49,7 @@ import numpy as np
 # the accuracy half lives in runtime/bench_accuracy.py; its names stay importable from here
 from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
-    by_bins, eval_presses, press_outputs)
+    by_bins, eval_presses, pieces_per_minute, press_outputs)
 
 
 def _log(msg: str) -> None:
@@ -297,7 +298,8 @@ def _made_by(manifest: dict) -> dict:
 
 def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
               threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 60,
-              accuracy_on: bool = True, log: Callable[[str], None] = _log) -> dict:
+              accuracy_on: bool = True, arm=None, log: Callable[[str], None] = _log) -> dict:
+    """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -331,11 +333,13 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                 ds = load_dataset(ds_root)
                 outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap))
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
+                if arm is not None:
+                    pieces_per_minute(row, arm)
             del model
         rows.append(row)
     machine["load_avg_at_end"] = list(os.getloadavg())  # includes the bench itself
     result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
-              "seconds": round(time.time() - t_start, 1),
+              "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     result["comparisons"] = compare_pairs(rows)
     result["targets"] = targets(result)

@@ -42,19 +42,36 @@ def render_table(result: dict) -> str:
 
 def render_bins(result: dict) -> str:
     """Per item, by bins (``by_bins``): one row per variant and decision; empty without accuracies."""
-    rows = [(r["name"], name, b[name]) for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
+    rows = [(r["name"], name, {**b[name], "pieces_per_min": b.get("pieces_per_min", {}).get(name, {})})
+            for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
             for name in ("scene_model", "router") if name in b]
     if not rows:
         return ""
     lines = ["| variant | decision | right bin | mis-sort | reject | touched right | untouched right "
-             "| off-scene rejected | presses |", "|" + "---|" * 9]
+             "| off-scene rejected | presses | pieces/min, scored after each press | pieces/min, overlapped |",
+             "|" + "---|" * 11]
     for name, decision, b in rows:
         kind = lambda k, o: _f(b.get(k, {}).get(o))  # noqa: E731
+        ppm = b.get("pieces_per_min", {})
         lines.append(f"| {name} | {'scene decision' if decision == 'scene_model' else 'router, confidence 0.95'} | "
                      f"{kind('all', 'right')} | {kind('all', 'mis-sort')} | {kind('all', 'reject')} | "
                      f"{kind('touched', 'right')} | {kind('untouched', 'right')} | {kind('off-scene', 'right')} | "
-                     f"{_f(b['all'].get('presses'), '{:.2f}')} |")
+                     f"{_f(b['all'].get('presses'), '{:.2f}')} | {_f(ppm.get('sequential'), '{:.2f}')} | "
+                     f"{_f(ppm.get('overlapped'), '{:.2f}')} |")
     return "\n".join(lines)
+
+
+def arm_times_line(result: dict) -> str:
+    """What the pieces-per-minute columns assumed of the arm, or how to get them."""
+    arm = result.get("arm_times")
+    if not arm:
+        return ("Pieces per minute: not computed - give `--arm-times FILE`, the JSON of "
+                "`python -m vs2t_edge.sim.ursim --bench 9 --json FILE` (the simulated UR5) or the same on a robot.")
+    return (f"Pieces per minute with the arm's measured times per press (medians: to above the point "
+            f"{arm['move_above_s']:.2f} s, press {arm['press_s']:.2f} s, lift {arm['retract_s']:.2f} s) and each "
+            "variant's whole press (p50, most threads): scored after each press (the arm waits for the score), and "
+            "overlapped with the lift (runtime/press_pipeline.py: the arm never waits; a score slower than the lift "
+            "costs one speculative press per piece). A piece's own overheads (reference frame, gate) are left out.")
 
 
 HAND_WRITTEN = "<!-- hand-written below: kept when `vs2t-edge bench --out` rewrites this file -->"
@@ -126,7 +143,8 @@ def render_markdown(result: dict) -> str:
                  f"classes a scene leaves out; items of at most {BIN_MAX_PRESSES} presses drawn from presses never "
                  "trained on, decided by the cell's own evidence (runtime/sorting.py, as the demo and training's report "
                  "count). *scene decision*: the bundle's scene model at its operating point; *router*: the GZSL "
-                 "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), ""]
+                 "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), "",
+                 arm_times_line(result), ""]
                 if render_bins(result) else []),
               "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
               "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "

@@ -88,6 +88,49 @@ def summarise(records: Sequence[ItemRecord], seconds_per_press: float | None = N
     return out
 
 
+@dataclass(frozen=True)
+class ArmTimes:
+    """The arm's time per press, s (medians): to above the next grid point, the press, the lift.
+    ``from_bench`` reads the JSON of ``python -m vs2t_edge.sim.ursim --bench N --json FILE`` (the
+    simulated UR5 through the real ur_rtde client, docs/arm.md) or the same measured on a robot."""
+
+    move_above_s: float
+    press_s: float
+    retract_s: float
+
+    @property
+    def per_press_s(self) -> float:
+        return self.move_above_s + self.press_s + self.retract_s
+
+    @classmethod
+    def from_bench(cls, data: dict, name: str = "arm times") -> "ArmTimes":
+        try:
+            values = {k: float(data[k]["median"]) for k in ("move_above_s", "press_s", "retract_s")}
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{name}: needs move_above_s, press_s and retract_s, each with a median "
+                             "(the JSON of `python -m vs2t_edge.sim.ursim --bench 9 --json FILE`)") from None
+        if not all(math.isfinite(v) and v >= 0 for v in values.values()) or sum(values.values()) <= 0:
+            raise ValueError(f"{name}: arm times must be finite, >= 0 and not all 0: {values}")
+        return cls(**values)
+
+
+def items_per_minute(presses: float, arm: ArmTimes, score_s: float, overlap: bool) -> float:
+    """Pieces per minute from presses per piece, the arm's times and the model's time per press.
+
+    Sequential, every press waits for its score: arm + score. Overlapped
+    (runtime/press_pipeline.py), a press is scored while the gel lifts and the arm never waits; a
+    score slower than the lift makes one speculative press at the end of a piece the evidence
+    decides early, counted here as one more press per piece (an upper bound of its cost). The
+    piece's own overheads (reference frame, gate) are left out: they are the same either way."""
+    if presses <= 0:
+        return math.nan
+    if not overlap:
+        per_piece = presses * (arm.per_press_s + score_s)
+    else:
+        per_piece = (presses + (1.0 if score_s > arm.retract_s else 0.0)) * arm.per_press_s
+    return 60.0 / per_piece
+
+
 def risk_coverage(records: Sequence[ItemRecord]) -> dict:
     """Mis-sort rate (of all items) against coverage (fraction of items sorted) as the confidence
     needed to sort moves from 1 down to 0, at the presses each item took. An item the off-scene
@@ -249,5 +292,5 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 
 
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
-           "risk_coverage", "expected_calibration_error", "fit_temperature", "log_softmax", "Press", "Scene",
-           "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]
+           "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
+           "log_softmax", "Press", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]

@@ -27,8 +27,18 @@ def bench_result(tiny_run, tmp_path_factory):  # noqa: F811
         ex.export_run(run, root / f"tiny_{prec}", trunk_precision=prec, calibration_frames=16)
         bundles.append(root / f"tiny_{prec}")
     out = root / "results"
-    result = bench.run_bench(bundles, out, threads=(1, 2), budget_s=0.2, n_items=4, cap=3, log=lambda m: None)
+    result = bench.run_bench(bundles, out, threads=(1, 2), budget_s=0.2, n_items=4, cap=3, arm=ARM,
+                             log=lambda m: None)
     return result, out
+
+
+def _arm():
+    from vs2t_edge.runtime.sorting import ArmTimes
+
+    return ArmTimes(move_above_s=0.3, press_s=1.9, retract_s=0.33)
+
+
+ARM = _arm()
 
 
 def test_bench_writes_table_json_and_plot(bench_result):
@@ -247,6 +257,36 @@ def test_bench_counts_items_by_bins_for_the_scene_decision_and_the_router(bench_
             assert f"| {a['right']:.1f} | {a['mis-sort']:.1f} | {a['reject']:.1f} |" in md
     (c,) = result["comparisons"]
     assert {"bins_right_scene_model", "bins_right_router"} <= set(c["delta_points"])
+
+
+def test_bench_prices_pieces_per_minute_with_the_arm_before_and_after_overlap(bench_result):
+    """Pieces per minute per decision, from its presses per piece, the arm's times and the variant's
+    own whole press: scored after each press the arm waits for every score; overlapped it does not
+    (the tiny model is far faster than the lift). bench.md says what it assumed of the arm."""
+    result, out = bench_result
+    assert result["arm_times"] == {"move_above_s": 0.3, "press_s": 1.9, "retract_s": 0.33}
+    md = (out / "bench.md").read_text()
+    assert "lift 0.33 s" in md
+    for r in result["variants"]:
+        score_s = r["press"]["2"]["p50_ms"] / 1e3
+        bins = r["accuracy"]["bins"]
+        assert set(bins["pieces_per_min"]) == {"scene_model", "router"}
+        for name, ppm in bins["pieces_per_min"].items():
+            presses = bins[name]["all"]["presses"]
+            assert ppm["sequential"] == pytest.approx(60.0 / (presses * (ARM.per_press_s + score_s)))
+            assert ppm["overlapped"] == pytest.approx(60.0 / (presses * ARM.per_press_s))
+            assert ppm["overlapped"] > ppm["sequential"]
+            assert f"| {ppm['sequential']:.2f} | {ppm['overlapped']:.2f} |" in md
+
+
+def test_bench_refuses_arm_times_it_cannot_read_by_name(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    bad = tmp_path / "arm.json"
+    bad.write_text(json.dumps({"move_above_s": {"median": 0.3}}))
+    assert main(["bench", str(tmp_path), "--arm-times", str(bad), "--no-accuracy"]) == 2
+    err = capsys.readouterr().err
+    assert "arm.json" in err and "retract_s" in err
 
 
 def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):

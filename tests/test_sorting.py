@@ -170,3 +170,25 @@ def test_simulated_scenes_use_every_scene_and_off_scene_fabric():
     s = so.summarise(recs)
     assert s["by_kind"]["touched"]["right"] == 1.0 and s["by_kind"]["untouched"]["right"] == 1.0
     assert s["all"]["mis-sort"] == 0.0  # known off-scene fabrics refused by the margin, the stranger unsure
+
+
+def test_pieces_per_minute_overlapped_hides_a_fast_score_and_prices_a_slow_one():
+    """Sequential: every press waits for its score. Overlapped: a score faster than the lift costs
+    nothing; a slower one costs one speculative press per piece, never more than sequential would
+    for a score that slow."""
+    arm = so.ArmTimes(move_above_s=0.5, press_s=1.5, retract_s=0.5)
+    assert arm.per_press_s == pytest.approx(2.5)
+    assert so.items_per_minute(4, arm, 0.1, overlap=False) == pytest.approx(60 / (4 * 2.6))
+    assert so.items_per_minute(4, arm, 0.1, overlap=True) == pytest.approx(60 / (4 * 2.5))
+    assert so.items_per_minute(4, arm, 1.0, overlap=True) == pytest.approx(60 / (5 * 2.5))  # one speculative press
+    assert so.items_per_minute(4, arm, 1.0, overlap=False) == pytest.approx(60 / (4 * 3.5))
+    assert math.isnan(so.items_per_minute(0, arm, 0.1, overlap=True))
+
+
+def test_arm_times_read_the_arm_bench_json_and_refuse_what_is_not_one():
+    good = {k: {"median": v, "max": v} for k, v in (("move_above_s", 0.3), ("press_s", 1.9), ("retract_s", 0.33))}
+    assert so.ArmTimes.from_bench(good) == so.ArmTimes(0.3, 1.9, 0.33)
+    with pytest.raises(ValueError, match="arm.json: needs move_above_s"):
+        so.ArmTimes.from_bench({"press_s": {"median": 1.0}}, "arm.json")
+    with pytest.raises(ValueError, match="finite"):
+        so.ArmTimes.from_bench({**good, "press_s": {"median": float("nan")}})
