@@ -177,7 +177,6 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     PNG decode (what replays and the bench pay, not the camera) is timed apart."""
     import cv2
 
-    from vs2t_edge.runtime.bundle import open_session
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.inference import TactileModel
@@ -241,24 +240,23 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                                 "stages_p50_ms": {k: _pct(v, 50) for k, v in stages.items()}}
     out["peak_rss_mb"] = _vm_hwm_mb()  # before the trunk-only sessions below, which the cell never opens
     # A fused bundle's one call holds the trunk AND its tail (heads, projections): "trunk" is made to
-    # mean the trunk alone in both formats (cut out of the graph, timed alternating run by run with
-    # the whole graph) and the tail's share (median of the paired differences) is counted outside it.
+    # mean the trunk alone in both formats (cut out of the graph) and the tail (cut out too, timed
+    # right after each trunk run) is counted outside it.
     in_graph = {t: 0.0 for t in threads_list}
     if model.fused:
         for t in sorted(threads_list):
             xs, n = runs[t]
             lat = out["latency"][str(t)]
             lat.update(press_graph_p50_ms=lat["p50_ms"], press_graph_p99_ms=lat["p99_ms"])
-            cut = trunk_only_session(model, t)
+            cut = split_press_graph(model, t)
             if cut is None:  # no onnx to cut the trunk out: the tail stays inside "trunk", said so
                 lat.update(includes_tail=True)
                 continue
-            whole = open_session(model.bundle.path("trunk"), t)
-            alone, graph = _time_pairs(cut, whole, model._trunk_in, xs, n)
-            in_graph[t] = _pct(np.asarray(graph) - np.asarray(alone), 50)  # paired: robust to load drifting
+            alone, tail = _time_split(*cut, model._trunk_in, xs, n)
+            in_graph[t] = _pct(tail, 50)
             lat.update(p50_ms=_pct(alone, 50), p99_ms=_pct(alone, 99), in_graph_ms=in_graph[t],
-                       press_graph_p50_ms=_pct(graph, 50), press_graph_p99_ms=_pct(graph, 99))
-            del cut, whole
+                       in_graph_p99_ms=_pct(tail, 99))
+            del cut
     for t, (press, trunk) in per_press.items():
         outside = press - trunk + in_graph[t]  # fused: minus the one call, plus its tail's share
         out["press"][str(t)].update(outside_p50_ms=_pct(outside, 50), outside_p99_ms=_pct(outside, 99))
@@ -291,24 +289,27 @@ def _time_runs(sess, name: str, xs: list, n: int) -> list[float]:
     return times
 
 
-def _time_pairs(a, b, name: str, xs: list, n: int) -> tuple[list[float], list[float]]:
-    """Runs of session a and b alternated on the same frames: (times of a, times of b), paired."""
+def _time_split(trunk, tail, name: str, xs: list, n: int) -> tuple[list[float], list[float]]:
+    """The trunk part, then the tail part on its feature, press after press (the tail finds the
+    caches as the trunk left them, as inside the one call): (trunk times, tail times)."""
     for x in xs[:3]:
-        a.run(None, {name: x})
-        b.run(None, {name: x})
-    ta, tb = [], []
+        tail.run(None, {"feature": trunk.run(None, {name: x})[0]})
+    tt, tl = [], []
     for k in range(n):
-        x = xs[k % len(xs)]
-        for sess, times in ((a, ta), (b, tb)) if k % 2 == 0 else ((b, tb), (a, ta)):
-            t0 = time.perf_counter()
-            sess.run(None, {name: x})
-            times.append(1e3 * (time.perf_counter() - t0))
-    return ta, tb
+        t0 = time.perf_counter()
+        (f,) = trunk.run(None, {name: xs[k % len(xs)]})
+        t1 = time.perf_counter()
+        tail.run(None, {"feature": f})
+        t2 = time.perf_counter()
+        tt.append(1e3 * (t1 - t0))
+        tl.append(1e3 * (t2 - t1))
+    return tt, tl
 
 
-def trunk_only_session(model, threads: int):
-    """The trunk part of a fused press graph (image -> feature), cut out with ``onnx`` (train extra)
-    and opened like the bundle's graphs; None without onnx."""
+def split_press_graph(model, threads: int):
+    """(trunk part, tail part) of a fused press graph as two sessions opened like the bundle's:
+    image -> feature, and feature -> the other outputs; cut with ``onnx`` (train extra), None
+    without it. Timing the tail apart slightly overstates it (one more session call)."""
     try:
         import onnx
         from onnx.utils import Extractor
@@ -318,11 +319,14 @@ def trunk_only_session(model, threads: int):
 
     from vs2t_edge.runtime.bundle import open_session
 
-    sub = Extractor(onnx.load(str(model.bundle.path("trunk")))).extract_model([model._trunk_in], ["feature"])
+    ex = Extractor(onnx.load(str(model.bundle.path("trunk"))))
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "trunk_only.onnx"
-        onnx.save(sub, str(path))
-        return open_session(path, threads)
+        out = []
+        for part, ins, outs in (("trunk", [model._trunk_in], ["feature"]), ("tail", ["feature"], model._press_outputs[1:])):
+            path = Path(tmp) / f"{part}.onnx"
+            onnx.save(ex.extract_model(ins, outs), str(path))
+            out.append(open_session(path, threads))
+        return tuple(out)
 
 
 def baseline_worker() -> dict:

@@ -144,8 +144,9 @@ def render_markdown(result: dict) -> str:
               "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
               "trunk run), decode included, at 1 and 2 threads (stage medians do not add up to it exactly). "
               "*heads* = the second onnxruntime call of a two-graph bundle (format 1); *in graph* = what the heads and "
-              "projections cost inside a fused bundle's one call (format 2): its press graph's median minus the trunk "
-              "alone's, added to its *outside* values. "
+              "projections cost inside a fused bundle's one call (format 2): that tail cut out of the press graph and "
+              "timed right after each run of the trunk cut out of it (median; one session call more than the cell "
+              "pays), added to its *outside* values, whose trunk is that cut-out trunk. "
               "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",
               "",
               "| variant | frame px | MJPEG decode | preprocess | heads | in graph | router | decision | evidence "

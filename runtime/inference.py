@@ -292,10 +292,10 @@ class TactileModel:
         sq = None
         if self.scene_model is not None:
             lp_all, d2 = self.scene_log_posterior(out)
-            lp, sq = lp_all[0], dict(zip(self.classes, (float(v) for v in d2[0])))
+            lp, sq = lp_all[0], dict(zip(self.classes, d2[0].tolist()))  # tolist: python floats, one C call
         else:
             lp = self.log_posterior(out)[0]
-        log_posterior = dict(zip(self.classes, (float(v) for v in lp)))
+        log_posterior = dict(zip(self.classes, lp.tolist()))
         t3 = time.perf_counter()
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
