@@ -118,9 +118,13 @@ def fused_novelty(router, feature: np.ndarray, logits_t: np.ndarray, logits_u: n
     router_z's squared norm (float64) for Gaussian routers, else the router on the logits."""
     if router_z is None:
         return router.novelty(feature, logits_t, logits_u=logits_u)
-    if not (np.all(np.isfinite(feature)) and np.all(np.isfinite(router_z))):
+    z = np.asarray(router_z, dtype=np.float64)
+    # float32 z squares to < 1.2e77 and D of them sum far below float64's range: no rescaling needed
+    # (squared_norm's, for float64 z), one pass instead of its ten (~0.1 ms a press on the bench)
+    m2 = np.einsum("ij,ij->i", z, z) if router_z.dtype == np.float32 else squared_norm(z)
+    if not (np.all(np.isfinite(m2)) and np.all(np.isfinite(feature))):
         raise RouterError("features contain NaN or Inf; refuse to score them")  # as the numpy router says
-    return router.novelty_from_squared(squared_norm(router_z))
+    return router.novelty_from_squared(m2)
 
 
 class TactileModel:

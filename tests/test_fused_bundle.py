@@ -239,3 +239,31 @@ def test_int8_trunk_is_fused_with_float_heads(tmp_path):
     assert c["feature"] <= 1e-6 and c["logits_t"] <= 1e-4  # the same int8 kernels, then the same heads
     model = TactileModel.load(tmp_path / "b8", threads=1)
     assert model.probe_errors["novelty_vs_router_file"] <= m["probe"]["tolerance"]["novelty"]
+
+
+@pytest.mark.parametrize("kind,bad", [("gaussian", "feature"), ("gaussian", "router_z"), ("gaussian", "scene_z"),
+                                      ("energy", "logits_t"), ("energy", "scene_z")])
+def test_non_finite_press_graph_output_is_a_frame_error(pairs, kind, bad):
+    """A NaN in any output the cell reads is never routed to a bin: FrameError, as the two-graph
+    path raises for a non-finite feature or logits."""
+    from vs2t_edge.runtime.preprocess import FrameError
+
+    model = TactileModel.load(pairs[kind][0], threads=1)
+    real = model._trunk
+
+    class Poisoned:
+        def get_inputs(self):
+            return real.get_inputs()
+
+        def run(self, names, feeds):
+            out = real.run(names, feeds)
+            i = names.index(bad)
+            out[i] = out[i].copy()
+            out[i][0, 0] = np.nan
+            return out
+
+    model._trunk = Poisoned()
+    _, raws, ref = world_frames(SIZE)
+    model.set_reference(ref)
+    with pytest.raises(FrameError, match="model output not usable"):
+        model.score_press(raws[0])
