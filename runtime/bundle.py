@@ -576,27 +576,21 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"{n} class names in the manifest")
 
 
-def press_output_widths(bundle: Bundle) -> dict[str, int]:
-    """{output name: its last dimension} a fused press graph (format 2) must give, exactly."""
+def _check_press_outputs(bundle: Bundle, g: dict) -> None:
+    """A fused press graph (format 2) outputs exactly what this bundle's router and scene model read:
+    feature and logits, a Gaussian router's router_z (the manifest's width), a scene model's scene_z."""
     from vs2t_edge.runtime.novelty import GaussianRouter
 
-    want = {"feature": bundle.feature_dim, "logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
+    d = bundle.feature_dim
+    want = {"feature": d, "logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
     if isinstance(bundle.router, GaussianRouter):
-        fused = _get(bundle.manifest, "graphs", "trunk", "fused", ROUTER_OUT)
-        width = fused.get("width") if isinstance(fused, dict) else None
-        if isinstance(width, bool) or not isinstance(width, int) or not bundle.feature_dim <= width <= 2 * bundle.feature_dim:
+        width = _get(bundle.manifest, "graphs", "trunk", "fused", ROUTER_OUT, "width")
+        if isinstance(width, bool) or not isinstance(width, int) or not d <= width <= 2 * d:
             raise BundleError(bundle.root, f"manifest.json 'graphs.trunk.fused.{ROUTER_OUT}.width' = {_short(width)}: "
-                                           f"the Gaussian router's projection is {bundle.feature_dim}..{2 * bundle.feature_dim} wide")
+                                           f"the Gaussian router's projection is {d}..{2 * d} wide")
         want[ROUTER_OUT] = width
     if bundle.scene_model is not None:
         want[SCENE_OUT] = bundle.scene_model.k
-    return want
-
-
-def _check_press_outputs(bundle: Bundle, g: dict) -> None:
-    """A fused press graph outputs exactly what the router and scene model of this bundle read:
-    a Gaussian router's router_z, a scene model's scene_z, nothing the cell would ignore."""
-    want = press_output_widths(bundle)
     if set(g["outputs"]) != set(want):
         raise BundleError(bundle.root, f"{g['file']}: outputs {sorted(g['outputs'])}, this bundle's router "
                                        f"'{bundle.router.name}'{' and scene model' if bundle.scene_model else ''} "
@@ -606,6 +600,6 @@ def _check_press_outputs(bundle: Bundle, g: dict) -> None:
             raise BundleError(bundle.root, f"{g['file']}: output '{name}' is not (N, {width})")
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "READ_VERSIONS", "is_fused", "press_output_widths", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
+__all__ = ["FORMAT", "FORMAT_VERSION", "READ_VERSIONS", "is_fused", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
            "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]
