@@ -39,6 +39,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--random-trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), default=None,
                         help="latency-only bundle of an UNTRAINED trunk (needs --dataset and --size, no RUN)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads for the checks (default 2)")
+    parser.add_argument("--two-graphs", action="store_true",
+                        help="write the format-1 bundle of earlier releases (trunk.onnx + heads.onnx, router and scene "
+                             "projection in numpy) instead of the fused press graph (format 2); for comparisons")
 
 
 def run(args) -> int:
@@ -65,7 +68,8 @@ def run(args) -> int:
                 return 2
             m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
                                     trunk_precision=args.trunk_precision,
-                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads)
+                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads,
+                                    fuse=not args.two_graphs)
         else:
             if not args.run:
                 print("export: give a training run folder (or --random-trunk)", file=sys.stderr)
@@ -76,7 +80,7 @@ def run(args) -> int:
             m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
                            calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
                            calibration_method=args.int8_calibration, float_convs=args.float_convs,
-                           router=args.router, threads=args.threads)
+                           router=args.router, threads=args.threads, fuse=not args.two_graphs)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2
@@ -98,4 +102,9 @@ def run(args) -> int:
     print(f"  router {m['router']['name']} (tells touched from untouched presses), beta {m['beta']:.6g} "
           f"(its threshold, on the router's own scale): {m['operating_point']}")
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")
+    if "fused_vs_two_graphs" in checks:
+        fc = checks["fused_vs_two_graphs"]
+        worst = max((v for k, v in fc.items() if isinstance(v, float) and k != "tolerance"), default=0.0)
+        print(f"  one press graph (format 2): {', '.join(m['graphs']['trunk']['outputs'])}; against the two-graph path "
+              f"max rel. diff {worst:.1e}" + (f", router projection {fc['router_form']}" if "router_form" in fc else ""))
     return 0

@@ -30,8 +30,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from vs2t_edge.export import fuse as fz
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.inference import fused_novelty
 from vs2t_edge.runtime.router_eval import fit_gating_temperature, gating_scale, robust_temperature
 from vs2t_edge.runtime.preprocess import TactilePreprocess
 
@@ -181,14 +183,17 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
                  opset: int = OPSET, scene_model: dict | None = None,
-                 threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None) -> dict:
+                 threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
+                 fuse: bool = True) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
     touched presses for the gating temperature; ``scene_model``: ``runtime.scene_model.SceneModel``
     parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md).
     ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
-    descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors)."""
+    descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors).
+    ``fuse``: one press graph (format 2, export/fuse.py: heads and projections folded into
+    trunk.onnx); False writes the two-graph format 1 of earlier releases (comparisons, tests)."""
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -260,11 +265,24 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         fp32.unlink()
 
         sess_t, sess_h = rb.open_session(trunk_file, threads), rb.open_session(tmp / "heads.onnx", threads)
+        fused: dict | None = None
+        if fuse:
+            log("folding the heads and the router's / scene model's projections into the trunk graph")
+            fused = fuse_press_graph(trunk_file, tmp / "heads.onnx", cls_t, cls_u, router, scene_model, dim, opset,
+                                     calibration, threads)
+            checks["fused_vs_two_graphs"] = fused["check"]
+            (tmp / "heads.onnx").unlink()
+            sess_t = rb.open_session(trunk_file, threads)
 
         def score(x: np.ndarray):
+            if fused is not None:
+                got = dict(zip(fused["outputs"], _run_batches(sess_t, x)))
+                f, lt, lu = got["feature"], got["logits_t"], got["logits_u"]
+                nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT))
+                return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.SCENE_OUT) if k in got}
             (f,) = _run_batches(sess_t, x)
             lt, lu = sess_h.run(None, {"feature": f})
-            return f, lt, lu, _novelty(router, f, lt, lu)
+            return f, lt, lu, _novelty(router, f, lt, lu), {}
 
         # gate scale and temperature on the deployed graph's own scores
         how = "given"
@@ -284,24 +302,31 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             raise ExportError(f"gating temperature {gating_temperature} must be finite and > 0")
 
         probe = calibration[:1]
-        f, lt, lu, nov = score(probe)
+        f, lt, lu, nov, proj = score(probe)
         np.save(tmp / "probe_input.npy", probe)
-        np.savez(tmp / "probe_expected.npz", feature=f, logits_t=lt, logits_u=lu, novelty=np.asarray(nov, np.float64))
+        np.savez(tmp / "probe_expected.npz", feature=f, logits_t=lt, logits_u=lu, novelty=np.asarray(nov, np.float64),
+                 **proj)
         np.savez(tmp / "router.npz", **{k: np.asarray(v) for k, v in router.to_params().items()})
         if scene_model is not None:
             np.savez(tmp / "decision.npz", **{k: np.asarray(v) for k, v in scene_model.items()})
 
         graphs = {}
-        for key, path in (("trunk", trunk_file), ("heads", tmp / "heads.onnx")):
+        for key, path in (("trunk", trunk_file), *(() if fused else (("heads", tmp / "heads.onnx"),))):
             graphs[key] = {"file": path.name, "opset": rb.read_onnx_opsets(path)[""], **graph_io(path)}
         graphs["trunk"].update(arch=trunk_arch, precision=trunk_precision, input_size_px=s, macs_per_frame=macs)
         if quant:
             graphs["trunk"]["quantisation"] = quant
-        graphs["heads"]["precision"] = "fp32"
+        if fused:
+            graphs["trunk"]["fused"] = fused["manifest"]
+        else:
+            graphs["heads"]["precision"] = "fp32"
+        tolerance = dict(PROBE_TOLERANCE[trunk_precision])
+        if fused:  # the projections are linear in the feature, amplified like the novelty
+            tolerance["projection"] = tolerance["novelty"]
         files = sorted(p.name for p in tmp.iterdir())
         manifest = {
             "format": rb.FORMAT,
-            "format_version": rb.FORMAT_VERSION,
+            "format_version": 2 if fused else 1,
             "classes": {"touched": touched, "untouched": untouched},
             "preprocess": preprocess.to_dict(),
             "feature_dim": dim,
@@ -318,7 +343,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                        "rule": "P(untouched|x) = sigmoid((asinh(novelty/scale) - asinh(beta/scale)) / temperature)",
                        "scale_is": "median |novelty| of held-out touched presses"},
             "probe": {"input": "probe_input.npy", "expected": "probe_expected.npz",
-                      "tolerance": PROBE_TOLERANCE[trunk_precision],
+                      "tolerance": tolerance,
                       "note": "a touched calibration press; expected = onnxruntime at export, max|diff|/max|expected|"},
             "checks": checks,
             "files": {name: rb.sha256_file(tmp / name) for name in files},
@@ -329,6 +354,48 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         manifest = seal_verify_and_place(manifest, tmp, out, threads)
     log(f"bundle written to {out} and verified")
     return manifest
+
+
+def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
+                     scene_model: dict | None, dim: int, opset: int, frames: np.ndarray, threads: int) -> dict:
+    """Replace ``trunk_file`` by the fused press graph (export/fuse.py) after checking it on
+    ``frames`` against the two-graph path: feature and logits against trunk + heads sessions, the
+    novelty against the router's own float64 novelty and scene_z against the scene model's float64
+    projection of the same feature, each max|diff| / max|reference| <= PARITY_TOLERANCE. A low-rank
+    router projection that misses it is replaced by the full whitening; a full one that misses it
+    refuses the export. Returns {"outputs", "manifest", "check"}."""
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    scene = SceneModel.from_params(scene_model) if scene_model is not None else None
+    scene_params = {"center": scene.center, "basis": scene.basis} if scene is not None else None
+    (f_ref,) = _run_batches(rb.open_session(trunk_file, threads), frames)
+    lt_ref, lu_ref = _run_batches(rb.open_session(heads_file, threads), f_ref)
+    last: dict = {}
+    for force_full in (False, True):
+        proj = fz.router_projection(router, force_full=force_full)
+        with tempfile.TemporaryDirectory() as work_s:
+            work = Path(work_s)
+            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset)
+            names = fz.merge_into_trunk(trunk_file, work / "tail.onnx", work / "press.onnx")
+            got = dict(zip(names, _run_batches(rb.open_session(work / "press.onnx", threads), frames)))
+            f = got["feature"]
+            check = {"frames": int(len(frames)), "feature": _rel(f, f_ref), "logits_t": _rel(got["logits_t"], lt_ref),
+                     "logits_u": _rel(got["logits_u"], lu_ref), "tolerance": PARITY_TOLERANCE}
+            if proj is not None:
+                ref = router.novelty(f.astype(np.float64))
+                check["novelty_vs_router_float64"] = _rel(fused_novelty(router, f, got["logits_t"], got["logits_u"],
+                                                                        got[fz.ROUTER_OUT]), ref)
+                check["router_form"] = proj["form"]
+            if scene is not None:
+                check["scene_z_vs_float64"] = _rel(got[fz.SCENE_OUT], scene.project(f.astype(np.float64)))
+            bad = {k: v for k, v in check.items() if isinstance(v, float) and not v <= PARITY_TOLERANCE}
+            if not bad:
+                shutil.copyfile(work / "press.onnx", trunk_file)
+                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim), "check": check}
+            last = bad
+            if proj is None or proj["form"] == "whitened":
+                break
+    raise ExportError(f"the fused press graph disagrees with the two-graph path beyond {PARITY_TOLERANCE}: {last}")
 
 
 def seal_verify_and_place(manifest: dict, tmp: Path, out: Path, threads: int) -> dict:
@@ -349,4 +416,4 @@ def seal_verify_and_place(manifest: dict, tmp: Path, out: Path, threads: int) ->
     return manifest
 
 
-__all__ = ["OPSET", "ExportError", "write_bundle", "seal_verify_and_place", "count_macs", "export_onnx", "graph_io"]
+__all__ = ["OPSET", "ExportError", "write_bundle", "fuse_press_graph", "seal_verify_and_place", "count_macs", "export_onnx", "graph_io"]

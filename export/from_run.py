@@ -164,7 +164,7 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
 def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
-               threads: int = 2) -> dict:
+               threads: int = 2, fuse: bool = True) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
@@ -237,12 +237,12 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         touched_heldout=heldout, provenance=prov, log=log, threads=threads,
                         calibration_method=calibration_method, float_convs=float_convs,
                         operating_point=operating_point,
-                        scene_model=art.scene_model if router is None else None)
+                        scene_model=art.scene_model if router is None else None, fuse=fuse)
 
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
                         trunk_precision: str = "fp32", calibration_frames: int = 32, seed: int = 0,
-                        log: Callable[[str], None] = lambda m: None, threads: int = 2) -> dict:
+                        log: Callable[[str], None] = lambda m: None, threads: int = 2, fuse: bool = True) -> dict:
     """A latency-only bundle: an UNTRAINED trunk (random init, or the offline ImageNet weights for
     efficientnet_lite0) with random heads over the dataset's fabrics and a Gaussian router on its
     own features. Its accuracy means nothing (the manifest says trained: false); its latency,
@@ -283,7 +283,7 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
                         beta=float(np.quantile(nov, 0.95)), calibration=calib, trunk_precision=trunk_precision,
                         trunk_arch=arch, operating_point="none (untrained, latency only)",
                         provenance={"trained": False, "dataset": str(Path(dataset).resolve()), "seed": seed},
-                        log=log, threads=threads)
+                        log=log, threads=threads, fuse=fuse)
 
 
 __all__ = ["export_run", "export_random_trunk", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]

@@ -5,6 +5,9 @@ A bundle is a folder::
     manifest.json        format, classes, preprocessing, beta, gating, router, files + sha256, probe
     trunk.onnx           image (N, 3, S, S) float32 -> feature (N, D), standardised (fp32 or QDQ int8)
     heads.onnx           feature (N, D) -> logits_t (N, C_t), logits_u (N, C_u)  (always fp32)
+                         format 2 (the fused press graph): no heads.onnx; trunk.onnx also outputs
+                         logits_t, logits_u and the router's / scene model's projections
+                         (router_z, scene_z; export/fuse.py), one onnxruntime call per press
     router.npz           runtime.novelty Router.to_params()
     probe_input.npy      one preprocessed press (1, 3, S, S) float32
     probe_expected.npz   feature, logits_t, logits_u, novelty the exporter's onnxruntime gave for it
@@ -37,7 +40,8 @@ from vs2t_edge.runtime.onnx_opsets import read_onnx_opsets  # noqa: F401 - re-ex
 from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 FORMAT = "vs2t-bundle"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # what the exporter writes: a trunk bundle is one fused press graph (docs/bundle.md)
+READ_VERSIONS = (1, 2)  # 1: trunk.onnx + heads.onnx, router and scene projection in numpy; still loaded
 # Opsets this runtime accepts for the default ONNX domain (ai.onnx).
 # MIN_OPSET: the oldest any exporter of this project wrote (17, before the move to 20; those
 # bundles still load). MAX_OPSET: the newest opset the INSTALLED onnxruntime implements. ONNX
@@ -79,6 +83,8 @@ MANIFEST = "manifest.json"
 # signature - whoever can rewrite the folder can recompute it (docs/bundle.md, "What the hashes prove").
 SEAL_KEY = "manifest_sha256"
 GRAPH_KEYS = ("trunk", "heads")
+# the fused press graph's outputs beyond feature / logits_t / logits_u (export/fuse.py)
+ROUTER_OUT, SCENE_OUT = "router_z", "scene_z"
 
 
 class BundleError(ValueError):
@@ -242,9 +248,9 @@ def read_manifest(root: Path | str) -> dict:
         found = manifest.get("format") if isinstance(manifest, dict) else "?"
         raise BundleError(root, f"{MANIFEST} format is {_short(found)}, expected {FORMAT!r}")
     version = manifest.get("format_version")
-    if version != FORMAT_VERSION or isinstance(version, bool):
-        raise BundleError(root, f"format version {_short(version)}, this runtime reads version {FORMAT_VERSION} "
-                                "(re-export the bundle with this release)")
+    if version not in READ_VERSIONS or isinstance(version, bool):
+        raise BundleError(root, f"format version {_short(version)}, this runtime reads versions "
+                                f"{', '.join(map(str, READ_VERSIONS))} (re-export the bundle with this release)")
     return manifest
 
 
@@ -281,9 +287,17 @@ def is_descriptor(manifest: dict) -> bool:
     return "trunk" in manifest
 
 
+def is_fused(manifest: dict) -> bool:
+    """A format-2 trunk bundle: trunk.onnx is the whole press graph (heads and projections in it)."""
+    return manifest.get("format_version") == 2 and not is_descriptor(manifest)
+
+
 def graph_keys(manifest: dict) -> tuple[str, ...]:
-    """The ONNX graphs a bundle holds: trunk and heads, or the heads alone behind a descriptor."""
-    return ("heads",) if is_descriptor(manifest) else GRAPH_KEYS
+    """The ONNX graphs a bundle holds: trunk and heads, the fused trunk alone (format 2), or the
+    heads alone behind a descriptor."""
+    if is_descriptor(manifest):
+        return ("heads",)
+    return ("trunk",) if is_fused(manifest) else GRAPH_KEYS
 
 
 def _used_files(manifest: dict) -> dict[str, Any]:
@@ -424,12 +438,14 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     want = (1, dim) if descriptor is not None else (1, 3, spec.size, spec.size)
     if x.shape != want or x.dtype != np.float32:
         raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
-    for k in ("feature", "logits_t", "logits_u", "novelty"):
+    fused = is_fused(manifest)
+    extra = [k for k in (ROUTER_OUT, SCENE_OUT) if fused and k in (_get(manifest, "graphs", "trunk", "outputs") or {})]
+    for k in ("feature", "logits_t", "logits_u", "novelty", *extra):
         if k not in expected:
             raise BundleError(root, f"{probe_exp.name} lacks '{k}'")
     tol = _need(manifest, root, "probe", "tolerance")
     tolerance = {k: _float(tol.get(k) if isinstance(tol, dict) else None, root, f"probe.tolerance.{k}")
-                 for k in ("feature", "logits", "novelty")}
+                 for k in ("feature", "logits", "novelty", *(("projection",) if fused else ()))}
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
                   probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model,
@@ -538,9 +554,16 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"the manifest says {shape}")
     # and the manifest agrees with the rest of the bundle
     s = bundle.preprocess.size
+    if key == "trunk" and is_fused(bundle.manifest):
+        _check_press_outputs(bundle, g)
     if key == "trunk":
+        if len(g["inputs"]) != 1 or (len(g["outputs"]) != 1 and not is_fused(bundle.manifest)):
+            raise BundleError(bundle.root, f"{g['file']}: inputs {sorted(g['inputs'])}, outputs {sorted(g['outputs'])}: "
+                                           "a trunk graph takes one image and gives one feature")
         (shape_in,) = g["inputs"].values()
-        (shape_out,) = g["outputs"].values()
+        shape_out = g["outputs"].get("feature") if is_fused(bundle.manifest) else next(iter(g["outputs"].values()))
+        if shape_out is None:
+            raise BundleError(bundle.root, f"{g['file']}: no output 'feature'")
         if list(shape_in[1:]) != [3, s, s]:
             raise BundleError(bundle.root, f"{g['file']}: input {shape_in}, preprocessing makes (N, 3, {s}, {s})")
         if shape_out[-1] != bundle.feature_dim:
@@ -553,6 +576,30 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"{n} class names in the manifest")
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
+def _check_press_outputs(bundle: Bundle, g: dict) -> None:
+    """A fused press graph (format 2) outputs exactly what this bundle's router and scene model read:
+    feature and logits, a Gaussian router's router_z (the manifest's width), a scene model's scene_z."""
+    from vs2t_edge.runtime.novelty import GaussianRouter
+
+    d = bundle.feature_dim
+    want = {"feature": d, "logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
+    if isinstance(bundle.router, GaussianRouter):
+        width = _get(bundle.manifest, "graphs", "trunk", "fused", ROUTER_OUT, "width")
+        if isinstance(width, bool) or not isinstance(width, int) or not d <= width <= 2 * d:
+            raise BundleError(bundle.root, f"manifest.json 'graphs.trunk.fused.{ROUTER_OUT}.width' = {_short(width)}: "
+                                           f"the Gaussian router's projection is {d}..{2 * d} wide")
+        want[ROUTER_OUT] = width
+    if bundle.scene_model is not None:
+        want[SCENE_OUT] = bundle.scene_model.k
+    if set(g["outputs"]) != set(want):
+        raise BundleError(bundle.root, f"{g['file']}: outputs {sorted(g['outputs'])}, this bundle's router "
+                                       f"'{bundle.router.name}'{' and scene model' if bundle.scene_model else ''} "
+                                       f"need {sorted(want)}")
+    for name, width in want.items():
+        if g["outputs"][name][-1] != width:
+            raise BundleError(bundle.root, f"{g['file']}: output '{name}' is not (N, {width})")
+
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "READ_VERSIONS", "is_fused", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
            "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]

@@ -41,6 +41,8 @@ def run(args) -> int:
         trunk = m["graphs"]["trunk"]
         print(f"  trunk {trunk.get('arch', '?')} {trunk.get('precision', '?')} at {model.preprocess_spec.size} px, "
               f"opset {trunk['opset']}, feature {m['feature_dim']}-d")
+        print(f"  format {m['format_version']}: " + (f"one press graph per press ({', '.join(trunk['outputs'])})"
+                                                     if model.fused else "two graphs (trunk.onnx, heads.onnx)"))
     print(f"  classes: {len(model.touched)} touched, {len(model.untouched)} untouched; router {m['router']['name']}, "
           f"beta {model.beta:.6g}, gating T {model.temperature:.6g}")
     print(f"  {len(m['files'])} files, sha256 verified; probe max relative error {worst:.2e} "

@@ -2,7 +2,9 @@
 
 Per press: check + preprocess the frame (runtime/preprocess.py, the one preprocessing) ->
 trunk (onnxruntime) -> heads CLS_t / CLS_u (onnxruntime) -> router novelty (numpy) -> the GZSL
-posterior by soft gating of the paper's route (docs/bundle.md "Decision"):
+posterior by soft gating of the paper's route (docs/bundle.md "Decision"). A format-2 bundle runs
+trunk, heads and the router's and scene model's projections as ONE onnxruntime call (the fused
+press graph, export/fuse.py); numpy then only sums squares and handles C class scores.
 
     P(untouched | x) = sigmoid((g(novelty) - g(beta)) / T),   g(n) = asinh(n / s)
     log p(c | x) = log P(touched | x)   + log softmax(logits_t)[c]   for touched c
@@ -28,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from vs2t_edge.runtime import tactile_descriptor as td
-from vs2t_edge.runtime.bundle import (Bundle, BundleError, check_session_shapes, graph_keys, load_bundle,
-                                      open_session)
-from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax
+from vs2t_edge.runtime.bundle import (ROUTER_OUT, SCENE_OUT, Bundle, BundleError, check_session_shapes, graph_keys,
+                                      is_fused, load_bundle, open_session)
+from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax, squared_norm
 from vs2t_edge.runtime.preprocess import FrameError, PreparedReference, prepare_reference, preprocess_tactile
 
 LOG_ZERO = -1e30  # log of a probability that is exactly 0 (finite on purpose, see module doc)
@@ -86,6 +88,9 @@ class Outputs:
     logits_t: np.ndarray
     logits_u: np.ndarray
     novelty: np.ndarray  # (N,) float64
+    # fused press graph only (format 2): the router's whitened vector, the scene model's projection
+    router_z: np.ndarray | None = None
+    scene_z: np.ndarray | None = None
 
 
 def _rel_err(actual: np.ndarray, expected: np.ndarray) -> float:
@@ -105,6 +110,21 @@ def _float32_router(router):
         return dataclasses.replace(router, mean=router.mean.astype(np.float32),
                                    whitening=router.whitening.astype(np.float32))
     return router
+
+
+def fused_novelty(router, feature: np.ndarray, logits_t: np.ndarray, logits_u: np.ndarray,
+                  router_z: np.ndarray | None) -> np.ndarray:
+    """The novelty of a fused press graph's outputs (the cell's and the exporter's one way): from
+    router_z's squared norm (float64) for Gaussian routers, else the router on the logits."""
+    if router_z is None:
+        return router.novelty(feature, logits_t, logits_u=logits_u)
+    z = np.asarray(router_z, dtype=np.float64)
+    # float32 z squares to < 1.2e77 and D of them sum far below float64's range: no rescaling needed
+    # (squared_norm's, for float64 z), one pass instead of its ten (~0.1 ms a press on the bench)
+    m2 = np.einsum("ij,ij->i", z, z) if router_z.dtype == np.float32 else squared_norm(z)
+    if not (np.all(np.isfinite(m2)) and np.all(np.isfinite(feature))):
+        raise RouterError("features contain NaN or Inf; refuse to score them")  # as the numpy router says
+    return router.novelty_from_squared(m2)
 
 
 class TactileModel:
@@ -127,7 +147,12 @@ class TactileModel:
         self.descriptor: td.DescriptorFeature | None = bundle.descriptor
         self._trunk, self._heads = trunk_session, heads_session
         self._trunk_in = trunk_session.get_inputs()[0].name if trunk_session is not None else None
-        self._heads_in = heads_session.get_inputs()[0].name
+        self._heads_in = heads_session.get_inputs()[0].name if heads_session is not None else None
+        # format 2: trunk.onnx is the whole press graph, fetched by name in this order
+        self.fused = is_fused(bundle.manifest) if isinstance(bundle.manifest, dict) else False
+        self._press_outputs = ["feature", "logits_t", "logits_u",
+                               *[k for k in (ROUTER_OUT, SCENE_OUT) if k in bundle.manifest["graphs"]["trunk"]["outputs"]]] \
+            if self.fused else []
         self._reference: PreparedReference | td.DescriptorReference | None = None
         self.last_timing: dict[str, float] = {}
         self.probe_errors: dict[str, float] = {}
@@ -146,7 +171,7 @@ class TactileModel:
             except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types; say which file
                 raise BundleError(bundle.root, f"{bundle.path(key).name}: onnxruntime cannot open it ({exc})") from None
             check_session_shapes(bundle, key, sessions[key])
-        model = cls(bundle, sessions["trunk"], sessions["heads"], threads)
+        model = cls(bundle, sessions["trunk"], sessions.get("heads"), threads)
         model._warm_and_probe()
         return model
 
@@ -170,6 +195,14 @@ class TactileModel:
                   "logits_t": (out.logits_t, exp["logits_t"], tol["logits"]),
                   "logits_u": (out.logits_u, exp["logits_u"], tol["logits"]),
                   "novelty": (out.novelty, exp["novelty"], tol["novelty"])}
+        if out.router_z is not None:  # every output of the fused graph, and that it computes what
+            # router.npz / decision.npz say on the feature it gives (a graph and files that disagree are refused)
+            checks[ROUTER_OUT] = (out.router_z, exp[ROUTER_OUT], tol["novelty"])
+            checks["novelty_vs_router_file"] = (out.novelty, self.bundle.router.novelty(out.feature.astype(np.float64)),
+                                                tol["novelty"])
+        if out.scene_z is not None:
+            checks[SCENE_OUT] = (out.scene_z, exp[SCENE_OUT], tol["projection"])
+            checks["scene_z_vs_decision_file"] = (out.scene_z, self.scene_model.project(out.feature), tol["projection"])
         for name, (a, e, t) in checks.items():
             err = _rel_err(a, e)
             self.probe_errors[name] = err
@@ -204,6 +237,8 @@ class TactileModel:
         """Preprocessed batch (N, 3, S, S) float32, or raw descriptors (N, D) -> all outputs (for the
         probe, bench and calibration)."""
         t0 = time.perf_counter()
+        if self.fused:
+            return self._forward_fused(x, t0)
         if self.descriptor is not None:
             feature = self.descriptor.standardise(x)
         else:
@@ -218,6 +253,27 @@ class TactileModel:
         t3 = time.perf_counter()
         self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 1e3 * (t2 - t1), "router_ms": 1e3 * (t3 - t2)}
         return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64))
+
+    def _forward_fused(self, x: np.ndarray, t0: float) -> Outputs:
+        """One onnxruntime call gives feature, logits and the projections; numpy sums squares."""
+        got = self._trunk.run(self._press_outputs, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})
+        t1 = time.perf_counter()
+        feature, logits_t, logits_u = got[0], got[1], got[2]
+        extra = dict(zip(self._press_outputs[3:], got[3:]))
+        router_z, scene_z = extra.get(ROUTER_OUT), extra.get(SCENE_OUT)
+        novelty = fused_novelty(self.router, feature, logits_t, logits_u, router_z)
+        t2 = time.perf_counter()
+        self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 0.0, "router_ms": 1e3 * (t2 - t1)}
+        return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64), router_z, scene_z)
+
+    def scene_log_posterior(self, out: Outputs) -> tuple[np.ndarray, np.ndarray]:
+        """(N, C) scene-model log posterior and squared distances: from the graph's scene_z when
+        the bundle is fused, else the numpy projection of the feature (float32, as before)."""
+        if out.scene_z is not None:
+            if not np.all(np.isfinite(out.scene_z)):
+                raise FrameError("model output not usable for this frame (non-finite scene projection)", "model_output")
+            return self.scene_model.log_posterior_projected(out.scene_z)
+        return self.scene_model.log_posterior(out.feature, dtype=np.float32)
 
     def log_posterior(self, out: Outputs, beta: float | None = None) -> np.ndarray:
         return gzsl_log_posterior(out.logits_t, out.logits_u, out.novelty, self.beta if beta is None else beta,
@@ -239,11 +295,11 @@ class TactileModel:
         novelty = float(out.novelty[0])
         sq = None
         if self.scene_model is not None:
-            lp_all, d2 = self.scene_model.log_posterior(out.feature, dtype=np.float32)
-            lp, sq = lp_all[0], dict(zip(self.classes, (float(v) for v in d2[0])))
+            lp_all, d2 = self.scene_log_posterior(out)
+            lp, sq = lp_all[0], dict(zip(self.classes, d2[0].tolist()))  # tolist: python floats, one C call
         else:
             lp = self.log_posterior(out)[0]
-        log_posterior = dict(zip(self.classes, (float(v) for v in lp)))
+        log_posterior = dict(zip(self.classes, lp.tolist()))
         t3 = time.perf_counter()
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
@@ -251,5 +307,5 @@ class TactileModel:
         return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq)
 
 
-__all__ = ["PressScore", "TactileModel", "Outputs", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",
+__all__ = ["PressScore", "TactileModel", "Outputs", "fused_novelty", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",
            "BundleError", "FrameError"]

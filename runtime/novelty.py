@@ -98,6 +98,17 @@ def _as_logits(logits: np.ndarray | None, router: str, what: str = "logits_t") -
     return z
 
 
+def squared_norm(z: np.ndarray) -> np.ndarray:
+    """Per row sum of squares in float64, each row rescaled by its peak before squaring so the sum
+    never overflows (z may reach ~1e21 when a 1e6-norm feature meets a floored dead channel)."""
+    z = np.asarray(z).astype(np.float64)
+    if z.ndim == 1:
+        z = z[None, :]
+    peak = np.max(np.abs(z), axis=1)
+    safe = np.where(peak > 0, peak, 1.0)
+    return np.sum((z / safe[:, None]) ** 2, axis=1) * safe * safe
+
+
 def _frozen(a: np.ndarray, dtype=np.float64) -> np.ndarray:
     out = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
@@ -330,16 +341,14 @@ class GaussianRouter(Router):
         x = _as_features(features, self.dim)
         dtype = np.dtype(dtype)
         mean, whitening = self._cast(dtype)
-        z = (x.astype(dtype, copy=False) - mean) @ whitening
-        z = z.astype(np.float64)
-        # Rescale each row before squaring so the sum never overflows (z may reach ~1e21 when a
-        # 1e6-norm feature meets a floored dead channel); the square is then multiplied back.
-        peak = np.max(np.abs(z), axis=1)
-        safe = np.where(peak > 0, peak, 1.0)
-        return np.sum((z / safe[:, None]) ** 2, axis=1) * safe * safe
+        return squared_norm((x.astype(dtype, copy=False) - mean) @ whitening)
 
     def novelty(self, features, logits_t=None, *, logits_u=None, dtype=np.float64) -> np.ndarray:
-        m2 = self.squared_mahalanobis(features, dtype=dtype)
+        return self.novelty_from_squared(self.squared_mahalanobis(features, dtype=dtype))
+
+    def novelty_from_squared(self, m2: np.ndarray) -> np.ndarray:
+        """novelty from the squared Mahalanobis distance (``squared_norm`` of a whitened vector,
+        e.g. the ``router_z`` output of a fused bundle graph, docs/bundle.md)."""
         if self.uses_log_density:
             return 0.5 * (m2 + self.log_det + self.dim * _LOG_2PI)
         return m2

@@ -84,20 +84,39 @@ class SceneModel:
         center, basis = self._cast(dtype)
         return ((x.astype(dtype, copy=False) - center) @ basis).astype(np.float64)
 
+    def _consts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(means^T, squared norms of the means, untouched bias per class), computed once."""
+        cache = self.__dict__.setdefault("_cast_cache", {})
+        if "consts" not in cache:
+            is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
+            cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1),
+                               self.untouched_bias * is_u)
+        return cache["consts"]
+
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
-        z = self.project(features, dtype)
-        return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ self.means.T
-                + np.sum(self.means * self.means, axis=1)[None, :]).clip(min=0.0)
+        return self.sq_distances_projected(self.project(features, dtype))
+
+    def sq_distances_projected(self, z: np.ndarray) -> np.ndarray:
+        """The same from projected presses z = (x - center) @ basis, (N, k) (``project``, or the
+        ``scene_z`` output of a fused bundle graph, docs/bundle.md); float64."""
+        z = np.asarray(z, np.float64)
+        means_t, means_sq, _ = self._consts()
+        return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ means_t + means_sq[None, :]).clip(min=0.0)
 
     def scores(self, sq_distances: np.ndarray) -> np.ndarray:
         """(N, C) class scores s_c (module doc) from squared distances."""
-        is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
-        return -0.5 * np.asarray(sq_distances, np.float64) / self.temperature + self.untouched_bias * is_u
+        return -0.5 * np.asarray(sq_distances, np.float64) / self.temperature + self._consts()[2]
 
     def log_posterior(self, features: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
         """(log softmax of the scores over all bundle classes, squared distances), both (N, C)."""
-        d2 = self.sq_distances(features, dtype)
+        return self.log_posterior_from_sq(self.sq_distances(features, dtype))
+
+    def log_posterior_projected(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``log_posterior`` from projected presses (``sq_distances_projected``)."""
+        return self.log_posterior_from_sq(self.sq_distances_projected(z))
+
+    def log_posterior_from_sq(self, d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = self.scores(d2)
         m = s.max(axis=1, keepdims=True)
         return s - (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True))), d2

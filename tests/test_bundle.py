@@ -35,11 +35,12 @@ def test_good_bundle_loads_and_passes_probe():
     model = TactileModel.load(shared_bundle("fp32"), threads=1)
     assert model.touched == TOUCHED and model.untouched == UNTOUCHED
     assert model.manifest["format_version"] == rb.FORMAT_VERSION
-    assert set(model.probe_errors) == {"feature", "logits_t", "logits_u", "novelty"}
+    # format 2: one press graph; the probe covers its router_z and checks it against router.npz
+    assert set(model.probe_errors) == {"feature", "logits_t", "logits_u", "novelty", "router_z", "novelty_vs_router_file"}
     assert max(model.probe_errors.values()) <= 1e-4
     m = model.manifest
     assert m["graphs"]["trunk"]["opset"] >= 17 and m["graphs"]["trunk"]["inputs"]["image"] == [None, 3, SIZE, SIZE]
-    assert set(m["files"]) == {"trunk.onnx", "heads.onnx", "router.npz", "probe_input.npy", "probe_expected.npz"}
+    assert set(m["files"]) == {"trunk.onnx", "router.npz", "probe_input.npy", "probe_expected.npz"}
     for key in ("time_utc", "git_commit", "versions"):
         assert key in m["provenance"]
 
@@ -53,9 +54,9 @@ def test_opset_read_from_protobuf_matches_onnx():
 
 
 def test_changed_graph_is_refused_by_hash(bundle_copy):
-    with open(bundle_copy / "heads.onnx", "ab") as f:
+    with open(bundle_copy / "trunk.onnx", "ab") as f:
         f.write(b"\0")
-    with pytest.raises(rb.BundleError, match=r"heads\.onnx: sha256"):
+    with pytest.raises(rb.BundleError, match=r"trunk\.onnx: sha256"):
         TactileModel.load(bundle_copy)
 
 
@@ -101,8 +102,8 @@ def test_seal_ignores_layout_but_not_values():
 
 
 def test_format_version_mismatch_is_refused(bundle_copy):
-    _edit(bundle_copy, lambda m: m.__setitem__("format_version", 2))
-    with pytest.raises(rb.BundleError, match="format version 2"):
+    _edit(bundle_copy, lambda m: m.__setitem__("format_version", 3))
+    with pytest.raises(rb.BundleError, match="format version 3"):
         TactileModel.load(bundle_copy)
 
 

@@ -110,9 +110,10 @@ def make_bundle(out: Path, precision: str = "fp32", seed: int = 0, router: str =
     return write_bundle(out, **args)
 
 
-@functools.lru_cache(maxsize=2)
-def shared_bundle(precision: str = "fp32") -> Path:
-    """One bundle per precision per test session (export is the slow part)."""
+@functools.lru_cache(maxsize=3)
+def shared_bundle(precision: str = "fp32", fuse: bool = True) -> Path:
+    """One bundle per precision (and format: fused press graph, or ``fuse=False`` the two-graph
+    format 1) per test session (export is the slow part)."""
     out = Path(tempfile.mkdtemp(prefix=f"vs2t_bundle_{precision}_")) / "bundle"
-    make_bundle(out, precision)
+    make_bundle(out, precision, fuse=fuse)
     return out

@@ -65,6 +65,8 @@ def test_bundle_decides_with_the_router_it_names(bundles, name):
     assert model.router.name == name and json.loads((path / rb.MANIFEST).read_text())["router"]["name"] == name
     tol = manifest["probe"]["tolerance"]
     limit = {"feature": tol["feature"], "logits_t": tol["logits"], "logits_u": tol["logits"], "novelty": tol["novelty"]}
+    if name in nv.FEATURE_ROUTERS:  # the fused graph's whitened vector, and its novelty against router.npz's
+        limit.update(router_z=tol["novelty"], novelty_vs_router_file=tol["novelty"])
     assert set(model.probe_errors) == set(limit)
     assert all(model.probe_errors[k] <= limit[k] for k in limit), model.probe_errors
 

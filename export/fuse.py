@@ -1,0 +1,183 @@
+"""One onnxruntime call per press: the heads and the per-press projections folded into the trunk
+graph at export (docs/bundle.md "The fused press graph", format_version 2).
+
+A two-graph bundle (format 1) pays per press a second ``session.run`` for the heads, the Gaussian
+router's D x D whitening matvec in numpy (2048 x 2048 for ResNet50: 16 MB read per press) and the
+scene model's D x k projection in numpy. Here they become one graph, written by the exporter with
+``onnx`` (an export-time dependency; the cell never imports it):
+
+    image -> trunk -> feature --+-> CLS_t -> logits_t
+                                +-> CLS_u -> logits_u
+                                +-> router_z   (Gaussian routers only)
+                                +-> scene_z    (bundles with a scene model only)
+
+- ``router_z`` is a vector whose squared norm is the squared Mahalanobis distance the router's
+  novelty is made of (the cell sums its squares in float64 and adds the log-density constant,
+  ``GaussianRouter.novelty_from_squared``). ``form: whitened``: (x - mean) @ W, D numbers, as the
+  numpy router computes it. ``form: low_rank``: when the covariance's spectrum ends in a flat floor
+  - always when the router was fitted on fewer presses than dimensions: the floored (or shrunk)
+  eigenvalues are all equal - only the r eigen-directions above the floor need their own scale:
+  z = [ (x - mean) @ V_r / sqrt(lambda_r),  ((x - mean) - ((x - mean) @ V_r) V_r^T) / sqrt(floor) ],
+  2 r D multiply-adds instead of D^2 (ResNet50's untrained latency bundle: r = 31 instead of 2048).
+  Used when 2 r < D and the spectrum's floor is flat within ``FLAT_RTOL``; the exporter checks the
+  novelty it gives against the router's own float64 novelty on the calibration presses either way.
+- ``scene_z`` = (x - center) @ basis, the scene model's k-dimensional whitened projection; the cell
+  computes the class distances from it (k x C, float64).
+
+The heads and projections stay float32 behind an int8 trunk.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from vs2t_edge.runtime import novelty as nv
+
+ROUTER_OUT, SCENE_OUT = "router_z", "scene_z"
+HEAD_OUTS = ("logits_t", "logits_u")
+FLAT_RTOL = 1e-6  # eigenvalues within this of the smallest count as the flat floor
+TAIL_PREFIX = "press_tail/"
+
+
+class FuseError(RuntimeError):
+    pass
+
+
+def router_projection(router: nv.Router, force_full: bool = False) -> dict[str, Any] | None:
+    """What the graph computes for the router (module doc), float64; None for routers that need only
+    the logits (energy, max_softmax, calibrated_stacking: numpy on C numbers, nothing to fold)."""
+    if not isinstance(router, nv.GaussianRouter):
+        return None
+    w = np.asarray(router.whitening, np.float64)
+    mean = np.asarray(router.mean, np.float64)
+    d = w.shape[0]
+    full = {"form": "whitened", "mean": mean, "weight": w, "rank": d}
+    if force_full:
+        return full
+    inv_sqrt = np.linalg.norm(w, axis=0)  # W = V diag(lambda^-1/2) with V orthonormal: column norms
+    if not np.all(inv_sqrt > 0):
+        return full
+    v = w / inv_sqrt[None, :]
+    if not np.allclose(v.T @ v, np.eye(d), atol=1e-6):  # a whitening not of that form: keep it whole
+        return full
+    lam = 1.0 / inv_sqrt ** 2
+    flat = lam <= lam.min() * (1.0 + FLAT_RTOL)
+    r = int(d - flat.sum())
+    if 2 * r >= d:
+        return full
+    return {"form": "low_rank", "mean": mean, "basis": v[:, ~flat], "scale": inv_sqrt[~flat],
+            "floor_scale": float(1.0 / np.sqrt(np.mean(lam[flat]))), "rank": r}
+
+
+class _Tail(nn.Module):
+    """feature -> logits_t, logits_u [, router_z] [, scene_z] (module doc), float32."""
+
+    def __init__(self, cls_t: nn.Module, cls_u: nn.Module, router: dict | None, scene: dict | None) -> None:
+        super().__init__()
+        self.cls_t, self.cls_u = cls_t, cls_u
+        self.router_form = router["form"] if router else None
+        f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+        if router:
+            self.register_buffer("r_mean", f32(router["mean"]))
+            if router["form"] == "whitened":
+                self.register_buffer("r_weight", f32(router["weight"]))
+            else:
+                self.register_buffer("r_basis", f32(router["basis"]))
+                self.register_buffer("r_basis_t", f32(np.asarray(router["basis"]).T))
+                self.register_buffer("r_scale", f32(router["scale"]))
+                self.register_buffer("r_floor", f32(np.float64(router["floor_scale"])))
+        self.has_scene = scene is not None
+        if scene:
+            self.register_buffer("s_center", f32(scene["center"]))
+            self.register_buffer("s_basis", f32(scene["basis"]))
+
+    def forward(self, f):
+        outs = [self.cls_t(f), self.cls_u(f)]
+        if self.router_form is not None:
+            c = f - self.r_mean
+            if self.router_form == "whitened":
+                outs.append(c @ self.r_weight)
+            else:
+                a = c @ self.r_basis
+                outs.append(torch.cat([a * self.r_scale, (c - a @ self.r_basis_t) * self.r_floor], dim=1))
+        if self.has_scene:
+            outs.append((f - self.s_center) @ self.s_basis)
+        return tuple(outs)
+
+
+def tail_outputs(router: dict | None, scene: dict | None) -> list[str]:
+    return [*HEAD_OUTS, *([ROUTER_OUT] if router else []), *([SCENE_OUT] if scene else [])]
+
+
+def export_tail(path: Path, cls_t: nn.Module, cls_u: nn.Module, dim: int, router: dict | None,
+                scene: dict | None, opset: int) -> list[str]:
+    """Write the tail graph (input ``feature``); returns its output names."""
+    from vs2t_edge.export.export import export_onnx
+
+    names = tail_outputs(router, scene)
+    export_onnx(_Tail(cls_t.eval(), cls_u.eval(), router, scene).eval(), torch.zeros(1, dim), path, "feature", names,
+                opset)
+    return names
+
+
+def _prefix_internal(graph, prefix: str, keep: set[str]) -> None:
+    """Rename every tensor and node of ``graph`` except ``keep`` (its inputs/outputs), so that
+    nothing collides with the trunk's names when the two are merged."""
+    def ren(name: str) -> str:
+        return name if not name or name in keep else prefix + name
+
+    for node in graph.node:
+        node.name = prefix + node.name if node.name else node.name
+        node.input[:] = [ren(n) for n in node.input]
+        node.output[:] = [ren(n) for n in node.output]
+    for init in graph.initializer:
+        init.name = ren(init.name)
+    for vi in graph.value_info:
+        vi.name = ren(vi.name)
+
+
+def merge_into_trunk(trunk_path: Path, tail_path: Path, out_path: Path) -> list[str]:
+    """The trunk graph (fp32 or int8 QDQ) with the tail appended on its ``feature`` output, written
+    to ``out_path``; returns the fused graph's output names (``feature`` first)."""
+    import onnx
+    from onnx import compose
+
+    trunk, tail = onnx.load(str(trunk_path)), onnx.load(str(tail_path))
+    t_outs = [o.name for o in trunk.graph.output]
+    if t_outs != ["feature"]:
+        raise FuseError(f"{trunk_path.name}: outputs {t_outs}, expected ['feature']")
+    tail_outs = [o.name for o in tail.graph.output]
+    _prefix_internal(tail.graph, TAIL_PREFIX, {"feature", *tail_outs})
+    tail.ir_version = trunk.ir_version
+    ops_t = {o.domain or "": o.version for o in trunk.opset_import}
+    for o in tail.opset_import:
+        if ops_t.get(o.domain or "", o.version) != o.version:
+            raise FuseError(f"opset of domain {o.domain or 'ai.onnx'}: trunk {ops_t[o.domain or '']}, tail {o.version}")
+    merged = compose.merge_models(trunk, tail, io_map=[("feature", "feature")], outputs=["feature", *tail_outs],
+                                  producer_name="vs2t-edge export (fused press graph)")
+    onnx.checker.check_model(merged)
+    onnx.save(merged, str(out_path))
+    return ["feature", *tail_outs]
+
+
+def projection_manifest(router: dict | None, scene: dict | None, dim: int) -> dict:
+    """What ``graphs.trunk.fused`` (or a descriptor bundle's ``graphs.heads.fused``) says the extra
+    outputs are (docs/bundle.md)."""
+    out: dict[str, Any] = {"heads": "CLS_t -> logits_t, CLS_u -> logits_u, float32"}
+    if router:
+        out[ROUTER_OUT] = {"form": router["form"], "rank": int(router["rank"]), "width": int(
+            dim if router["form"] == "whitened" else router["rank"] + dim),
+            "macs": int(dim * dim if router["form"] == "whitened" else 2 * router["rank"] * dim),
+            "rule": "novelty from sum(router_z^2) in float64 (GaussianRouter.novelty_from_squared)"}
+    if scene:
+        out[SCENE_OUT] = {"k": int(np.asarray(scene["basis"]).shape[1]), "rule": "(feature - center) @ basis"}
+    return out
+
+
+__all__ = ["FuseError", "ROUTER_OUT", "SCENE_OUT", "router_projection", "export_tail", "merge_into_trunk",
+           "projection_manifest", "tail_outputs"]
