@@ -510,8 +510,9 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
         for r32 in rows:
             if (r32["precision"] == "fp32" and r32["arch"] == r8["arch"] and r32["size_px"] == r8["size_px"]
                     and r32.get("run") == r8.get("run")):
+                t = max(set(r32["latency"]) & set(r8["latency"]), key=int)  # 2 threads unless --threads says
                 c = {"int8": r8["name"], "fp32": r32["name"],
-                     "speedup_2t": r32["latency"]["2"]["p50_ms"] / r8["latency"]["2"]["p50_ms"]}
+                     "speedup_2t": r32["latency"][t]["p50_ms"] / r8["latency"][t]["p50_ms"]}
                 if "accuracy" in r8 and "accuracy" in r32:
                     a8, a32 = r8["accuracy"], r32["accuracy"]
                     c["delta_points"] = {"press_H": a8["press"]["H"] - a32["press"]["H"],

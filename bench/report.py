@@ -133,9 +133,10 @@ def render_markdown(result: dict) -> str:
              *_recommendation_lines(result),
              "", "## Compute peak of this machine", "",
              "| precision | 1 thread | 2 threads | how |", "|---|---|---|---|"]
-    for p in ("fp32", "int8"):
-        lines.append(f"| {p} | {_f(pk[p]['1']['macs_per_s'] / 1e9)} GMAC/s | {_f(pk[p]['2']['macs_per_s'] / 1e9)} GMAC/s "
-                     f"| {pk[p]['2']['how']}, fastest of 15 |")
+    for p in ("fp32", "int8"):  # the thread counts timed (--threads), '–' for the others
+        gmacs = [_f(pk[p][t]["macs_per_s"] / 1e9) + " GMAC/s" if t in pk[p] else "–" for t in ("1", "2")]
+        how = pk[p][max(pk[p], key=int)]["how"] if pk[p] else "–"
+        lines.append(f"| {p} | {gmacs[0]} | {gmacs[1]} | {how}, fastest of 15 |")
     lines += ["", "limit = MACs per frame (counted from the graph) / peak; *of peak* = limit / measured p50.", "",
               "## Variants", "", render_table(result), "",
               *(["## Per item, by bins", "",

@@ -321,3 +321,20 @@ def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):
     slow = {"machine": {"instruction_sets": {"avx512_vnni": False}},
             "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 1.1, "within_1_point": True}]}
     assert "no VNNI" in bench.recommend(slow)[0]["why"]
+
+
+def test_a_bench_of_one_thread_count_renders(bench_result):
+    """`vs2t-edge bench --threads 2` (one thread count): the page renders with '–' for the count not
+    timed instead of a KeyError."""
+    import copy
+
+    from vs2t_edge.bench import report as bench_report
+
+    result = copy.deepcopy(bench_result[0])
+    for p in result["peak"].values():
+        p.pop("1")
+    for r in result["variants"]:
+        for key in ("latency", "press", "limit_ms", "fraction_of_peak"):
+            r.get(key, {}).pop("1", None)
+    page = bench_report.render_markdown(result)
+    assert "| fp32 | – | " in page
