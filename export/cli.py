@@ -39,6 +39,21 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--random-trunk", choices=("efficientnet_lite0", "resnet50", "tiny"), default=None,
                         help="latency-only bundle of an UNTRAINED trunk (needs --dataset and --size, no RUN)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads for the checks (default 2)")
+    parser.add_argument("--preprocess-reduce", choices=("off", "auto", "1", "2", "4", "8"), default="off",
+                        help="with --random-trunk: the tactile pixel path (runtime/preprocess.py; a trained run's "
+                             "bundle keeps the run's own, as `train --preprocess-reduce` chose it)")
+
+
+def _reduce(choice: str, dataset, size: int) -> int:
+    if choice == "off":
+        return 0
+    if choice != "auto":
+        return int(choice)
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import auto_reduce
+
+    geo = load_dataset(dataset).fabrics[0].geometry
+    return auto_reduce((geo.frame_height_px, geo.frame_width_px), size)
 
 
 def run(args) -> int:
@@ -65,8 +80,13 @@ def run(args) -> int:
                 return 2
             m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
                                     trunk_precision=args.trunk_precision,
-                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads)
+                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads,
+                                    reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
         else:
+            if args.preprocess_reduce != "off":
+                print("export: --preprocess-reduce is for --random-trunk; a trained run's bundle takes the pixel "
+                      "path it was trained on (train --preprocess-reduce)", file=sys.stderr)
+                return 2
             if not args.run:
                 print("export: give a training run folder (or --random-trunk)", file=sys.stderr)
                 return 2
