@@ -31,9 +31,11 @@ bundle made before it keeps):
 Training reads the dataset's lossless frames and reduces them with ``reduce_frame``; the
 simulated camera and replays hand full frames and the cell reduces them with the same function
 (bit-identical to training). A UVC camera in MJPEG mode hands ``decode_jpeg``'s frame instead: the
-scaled inverse DCT is not a box average bit for bit (mean |difference| about 0.4 grey levels on
-a 640x480 q95 frame, tests/test_preprocess.py bounds it). ``auto_reduce`` picks the factor: the
-largest that leaves at least ``size`` pixels across the crop.
+scaled inverse DCT is not a box average bit for bit. Against training's lossless frames, the
+network input then differs by 1.08 grey levels on average on the synthetic 640x480 GelSight frames
+at q95, where the float path's full MJPEG decode already differs by 0.90 (the JPEG loss;
+tests/test_preprocess.py bounds the ratio). ``auto_reduce`` picks the factor: the largest that
+leaves at least ``size`` pixels across the crop.
 """
 
 from __future__ import annotations
@@ -197,7 +199,8 @@ def reduce_frame(frame: np.ndarray, factor: int) -> np.ndarray:
 def decode_jpeg(data: bytes | np.ndarray, factor: int = 1) -> np.ndarray | None:
     """A JPEG (an MJPEG camera's frame) decoded at 1/``factor`` scale, HxWx3 uint8 BGR, or None if
     it does not decode. libjpeg scales inside its inverse DCT, so a reduced decode skips most of the
-    work after entropy decoding (640x480 q95: 0.89 ms full, 0.61 ms at 1/2 on this machine)."""
+    work after entropy decoding (a 640x480 q95 frame on the 2-core bench CPU: about 0.8 ms full,
+    0.6 ms at 1/2, 0.55 ms at 1/4; entropy decoding is the floor)."""
     if factor not in _IMREAD:
         raise ValueError(f"JPEG decode scale 1/{factor}: OpenCV decodes at 1/1, 1/2, 1/4 or 1/8 only")
     buf = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data.reshape(-1)
