@@ -148,7 +148,7 @@ class ReplayCameraDevice(_ReplayBase):
         except ReplayError as exc:
             raise _FileUnreadable(exc) from None
         scale = ev.get("reduced_by", 1)
-        if scale not in REDUCE_FACTORS:
+        if type(scale) is not int or scale not in REDUCE_FACTORS:
             raise _FileUnreadable(ReplayError(f"camera grab of {ev['frame']}: reduced_by {scale!r}, not one of "
                                               f"{REDUCE_FACTORS}"))
         return Frame(image, float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)), reduced_by=scale)
