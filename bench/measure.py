@@ -140,28 +140,54 @@ def _import_runtime() -> None:
 
 
 JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC camera's MJPEG stream
-STAGES = ("decode_mjpeg", "preprocess", "trunk", "heads", "router", "decision", "evidence")
+STAGES = ("decode_mjpeg", "camera_checks", "preprocess", "trunk", "heads", "router", "decision", "evidence")
 OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
 
 
-def press_stages(model, jpeg: bytes, evidence) -> dict[str, float]:
-    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
-    GelSight streams MJPEG; cv2.VideoCapture decodes it with the same libjpeg as cv2.imdecode),
-    preprocess, trunk, heads, router, decision (TactileModel.score_press) and the evidence update.
-    For a fused bundle (format 2) "trunk" is the one onnxruntime call, heads and projections
-    included, and "heads" is 0 (``speed_worker`` measures what the graph's tail costs apart)."""
-    import cv2
+def decode_scale(model) -> int:
+    """The scale the cell's MJPEG camera decodes at for this bundle: 1/reduce on the reduced
+    path (runtime/preprocess.py), full size otherwise (runtime/camera.py UVCCamera)."""
+    return max(1, model.preprocess_spec.reduce) if model.descriptor is None else 1
 
+
+class CameraChecks:
+    """What the cell does to each grabbed frame before scoring it: the camera's frame guard
+    (check_frame, frozen frame) and the press-frame contact check against the item's no-contact
+    frame (on by default for a UVC camera, docs/cell.md)."""
+
+    def __init__(self, reference_image: np.ndarray) -> None:
+        from vs2t_edge.runtime.camera import ContactCheck, FrameGuard
+
+        self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
+
+    def __call__(self, image: np.ndarray) -> None:
+        self.guard.admit(image)
+        self.contact.read(image, self.reference)
+
+
+def press_stages(model, jpeg: bytes, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
+    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
+    GelSight streams MJPEG; the camera decodes it with libjpeg, at 1/reduce scale for a bundle on the
+    reduced path: ``decode_scale``), the camera's frame checks (``checks``), preprocess, trunk,
+    heads, router, decision (TactileModel.score_press) and the evidence update. For a fused bundle
+    (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
+    0 (``speed_worker`` measures what the graph's tail costs apart)."""
+    from vs2t_edge.runtime.preprocess import decode_jpeg
+
+    scale = decode_scale(model)
     t0 = time.perf_counter()
-    frame = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    frame = decode_jpeg(jpeg, scale)
     t1 = time.perf_counter()
-    s = model.score_press(frame)
+    if checks is not None:
+        checks(frame)
+    t1c = time.perf_counter()
+    s = model.score_press(frame, scale)
     tm = dict(model.last_timing)
     t2 = time.perf_counter()
     evidence.add(s)
     t3 = time.perf_counter()
-    return {"decode_mjpeg": 1e3 * (t1 - t0), "preprocess": tm["preprocess_ms"], "trunk": tm["trunk_ms"],
-            "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
+    return {"decode_mjpeg": 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
+            "trunk": tm["trunk_ms"], "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
             "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
 
 
@@ -170,10 +196,11 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
 
     Per thread count: the trunk alone (``latency``) and the whole press (``press``: MJPEG decode +
-    preprocess + trunk + heads + router + decision + evidence, timed end to end per press; its
-    ``outside`` = that press minus its own trunk run), each as p50/p99 over the timed presses. For a
-    fused bundle (one graph per press) ``latency`` is the trunk cut out of the graph, and the tail's
-    share of the press's one call (``in_graph_ms``) is counted in ``outside``.
+    the camera's frame checks + preprocess + trunk + heads + router + decision + evidence, timed
+    end to end per press; its ``outside`` = that press minus its own trunk run), each as p50/p99
+    over the timed presses. For a fused bundle (one graph per press) ``latency`` is the trunk cut
+    out of the graph, and the tail's share of the press's one call (``in_graph_ms``) is counted in
+    ``outside``.
     ``overhead_ms`` / ``overhead_p99_ms`` are the stage medians / p99 at the largest thread count;
     PNG decode (what replays and the bench pay, not the camera) is timed apart."""
     import cv2
@@ -181,6 +208,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.preprocess import decode_jpeg
 
     _import_runtime()
     out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": JPEG_QUALITY}
@@ -209,9 +237,16 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                 if not ok:
                     raise RuntimeError(f"{bundle}: could not JPEG-encode a press frame")
                 jpegs.append(enc.tobytes())
-            frames = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) for b in jpegs]
-        model.set_reference(ref)
-        xs = [model.preprocess(f) for f in frames]
+            ok, ref_jpeg = cv2.imencode(".jpg", ref, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            if not ok:
+                raise RuntimeError(f"{bundle}: could not JPEG-encode the no-contact frame")
+            # as the cell's camera hands them: decoded at the bundle's scale, the reference too
+            scale, sensor_hw = decode_scale(model), list(ref.shape[:2])
+            frames = [decode_jpeg(b, scale) for b in jpegs]
+            ref = decode_jpeg(ref_jpeg.tobytes(), scale)
+        model.set_reference(ref, scale)
+        checks = CameraChecks(ref)
+        xs = [model.preprocess(f, scale) for f in frames]
         sess, name = model._trunk, model._trunk_in  # a fused bundle's: the whole press graph (see below)
         t0 = time.perf_counter()
         sess.run(None, {name: xs[0]})
@@ -225,12 +260,12 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         png: list[float] = []
         ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
         for k in range(3):
-            press_stages(model, jpegs[k % len(jpegs)], ev)
+            press_stages(model, jpegs[k % len(jpegs)], ev, checks)
         n_press = int(min(400, max(60, 4 * len(jpegs), budget_s / max(est + 1e-3, 1e-4))))
         for k in range(n_press):
             if k % SEQ_MAX_PRESSES == 0:  # a new item every 9 presses, as the cell's evidence would
                 ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
-            for key, v in press_stages(model, jpegs[k % len(jpegs)], ev).items():
+            for key, v in press_stages(model, jpegs[k % len(jpegs)], ev, checks).items():
                 stages[key].append(v)
             t0 = time.perf_counter()  # beside each press (same process state), not in its total
             cv2.imdecode(np.frombuffer(raw_png[k % len(raw_png)], np.uint8), cv2.IMREAD_COLOR)
@@ -274,7 +309,8 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     out["overhead_p99_ms"] = {k: _pct(stages[k], 99) for k in OUTSIDE_STAGES}
     out["overhead_p99_ms"]["decode_png"] = _pct(png, 99)
     out["overhead_p99_ms"]["cell"] = out["press"][tmax]["outside_p99_ms"]
-    out["frame_hw"] = list(frames[0].shape[:2])
+    out["frame_hw"] = sensor_hw  # the camera's frames; decoded at 1/decode_scale
+    out["decode_scale"] = scale
     return out
 
 

@@ -162,21 +162,25 @@ def render_markdown(result: dict) -> str:
               "counted wrong).", "", "## Outside the trunk, per press (ms)", "",
               "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
               "trunk run), decode included, at 1 and 2 threads (stage medians do not add up to it exactly). "
+              "*MJPEG decode* at 1/reduce scale for a bundle on the reduced pixel path (runtime/preprocess.py); "
+              "*frame checks* = the camera's frame guard and the press-frame contact check a UVC cell runs. "
               "*heads* = the second onnxruntime call of a two-graph bundle (format 1); *in graph* = what the heads and "
               "projections cost inside a fused bundle's one call (format 2): that tail cut out of the press graph and "
               "timed right after each run of the trunk cut out of it (median; one session call more than the cell "
               "pays), added to its *outside* values, whose trunk is that cut-out trunk. "
               "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",
               "",
-              "| variant | frame px | MJPEG decode | preprocess | heads | in graph | router | decision | evidence "
+              "| variant | frame px | MJPEG decode | frame checks | preprocess | heads | in graph | router | decision "
+              "| evidence "
               "| outside p50 1t | outside p99 1t | outside p50 2t | outside p99 2t | PNG decode (replays) |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "|" + "---|" * 15]
     for r in result["variants"]:
         o, pr = r["overhead_ms"], r.get("press", {})
         hw = r.get("frame_hw")
-        lines.append(f"| {r['name']} | {f'{hw[1]}x{hw[0]}' if hw else '–'} | " + " | ".join(
-            [_f(o.get(k), "{:.3f}") for k in ("decode_mjpeg", "preprocess", "heads", "in_graph", "router", "decision",
-                                               "evidence")]
+        scale = f" (decoded at 1/{r['decode_scale']})" if r.get("decode_scale", 1) != 1 else ""
+        lines.append(f"| {r['name']} | {f'{hw[1]}x{hw[0]}{scale}' if hw else '–'} | " + " | ".join(
+            [_f(o.get(k), "{:.3f}") for k in ("decode_mjpeg", "camera_checks", "preprocess", "heads", "in_graph",
+                                              "router", "decision", "evidence")]
             + [_f(pr.get(t, {}).get(q), "{:.3f}") for t in ("1", "2") for q in ("outside_p50_ms", "outside_p99_ms")]
             + [_f(o.get("decode_png", o.get("decode")), "{:.3f}")]) + " |")
     tg = targets(result)

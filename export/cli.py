@@ -42,6 +42,21 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--two-graphs", action="store_true",
                         help="write the format-1 bundle of earlier releases (trunk.onnx + heads.onnx, router and scene "
                              "projection in numpy) instead of the fused press graph (format 2); for comparisons")
+    parser.add_argument("--preprocess-reduce", choices=("off", "auto", "1", "2", "4", "8"), default="off",
+                        help="with --random-trunk: the tactile pixel path (runtime/preprocess.py; a trained run's "
+                             "bundle keeps the run's own, as `train --preprocess-reduce` chose it)")
+
+
+def _reduce(choice: str, dataset, size: int) -> int:
+    if choice == "off":
+        return 0
+    if choice != "auto":
+        return int(choice)
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import auto_reduce
+
+    geo = load_dataset(dataset).fabrics[0].geometry
+    return auto_reduce((geo.frame_height_px, geo.frame_width_px), size)
 
 
 def run(args) -> int:
@@ -69,8 +84,13 @@ def run(args) -> int:
             m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
                                     trunk_precision=args.trunk_precision,
                                     calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads,
-                                    fuse=not args.two_graphs)
+                                    fuse=not args.two_graphs,
+                                    reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
         else:
+            if args.preprocess_reduce != "off":
+                print("export: --preprocess-reduce is for --random-trunk; a trained run's bundle takes the pixel "
+                      "path it was trained on (train --preprocess-reduce)", file=sys.stderr)
+                return 2
             if not args.run:
                 print("export: give a training run folder (or --random-trunk)", file=sys.stderr)
                 return 2

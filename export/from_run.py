@@ -242,18 +242,20 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
                         trunk_precision: str = "fp32", calibration_frames: int = 32, seed: int = 0,
-                        log: Callable[[str], None] = lambda m: None, threads: int = 2, fuse: bool = True) -> dict:
+                        log: Callable[[str], None] = lambda m: None, threads: int = 2, fuse: bool = True,
+                        reduce: int = 0) -> dict:
     """A latency-only bundle: an UNTRAINED trunk (random init, or the offline ImageNet weights for
     efficientnet_lite0) with random heads over the dataset's fabrics and a Gaussian router on its
     own features. Its accuracy means nothing (the manifest says trained: false); its latency,
-    memory and int8 behaviour on real-looking frames are those of the architecture."""
+    memory and int8 behaviour on real-looking frames are those of the architecture. ``reduce``:
+    the pixel path (runtime/preprocess.py; 0 the float path)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.models import Classifier
     from vs2t_edge.train.trunks import build_trunk
 
     torch.manual_seed(seed)
     trunk = build_trunk(arch, pretrained=False).eval()
-    spec = TactilePreprocess(size=int(size))
+    spec = TactilePreprocess(size=int(size), reduce=int(reduce))
     ds = load_dataset(dataset)
     ids = ds.ids
     touched, untouched = ids[: max(1, len(ids) - 3)], ids[max(1, len(ids) - 3):]

@@ -498,11 +498,12 @@ def _check_preprocess(spec: TactilePreprocess, root: Path) -> None:
           and len(spec.mean) == 3 and len(spec.std) == 3
           and all(math.isfinite(m) for m in spec.mean) and all(math.isfinite(s) and s > 0 for s in spec.std)
           and isinstance(spec.use_reference, bool) and isinstance(spec.inpaint_markers, bool)
-          and isinstance(spec.normalise_exposure, bool))
+          and isinstance(spec.normalise_exposure, bool)
+          and (spec.reduce == 0 or spec.size <= 4096 // spec.reduce))  # reduce itself: TactilePreprocess
     if not ok:
-        raise BundleError(root, f"manifest.json 'preprocess' = {_short(spec.to_dict())}: size 8..4096 px, "
-                                "crop_fraction in (0, 1], 3 finite means, 3 positive stds, use_reference, "
-                                "inpaint_markers and normalise_exposure true/false")
+        raise BundleError(root, f"manifest.json 'preprocess' = {_short(spec.to_dict())}: size 8..4096 px "
+                                "(8..4096 / reduce with reduce), crop_fraction in (0, 1], 3 finite means, "
+                                "3 positive stds, use_reference, inpaint_markers and normalise_exposure true/false")
 
 
 # ------------------------------------------------------------------ sessions

@@ -222,11 +222,13 @@ def novelty_from_replays(model, files: list[Path]) -> list[float]:
     out = []
     for f in files:
         rf = ReplayFile.open(f)
+        # a session recorded from a camera that decoded at 1/n: the model is told, as the cell was
+        reduced = {"reduced_by": rf.frame_scale()} if rf.frame_scale() != 1 else {}
         for ref, frames in rf.frames_by_item():
-            model.set_reference(ref)
+            model.set_reference(ref, **reduced)
             for frame in frames:
                 try:
-                    out.append(float(model.score_press(frame).novelty))
+                    out.append(float(model.score_press(frame, **reduced).novelty))
                 except FrameError:
                     continue
     return out

@@ -73,7 +73,7 @@ from vs2t_edge.runtime.files import atomic_write, read_regular_file
 from vs2t_edge.runtime.items import Item, ItemResult, ItemSource
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
-from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally
+from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally, reduced_kw
 
 UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
@@ -149,7 +149,8 @@ class Cell:
                  sleep: Callable[[float], None] = time.sleep, contact_check: Any = None) -> None:
         self.camera, self.arm, self.gate, self.model = camera, arm, gate, model
         # the model is looked up per press: a caller may swap cell.model between items
-        self.scorer = PressScorer(lambda image: self.model.score_press(image), scene.overlap_scoring)
+        self.scorer = PressScorer(lambda image, **reduced: self.model.score_press(image, **reduced),
+                                  scene.overlap_scoring)
         # runtime/camera.py ContactCheck (or anything with its read()): each press frame against
         # the item's no-contact reference. None = not checked (see _require_contact).
         self.contact_check = contact_check
@@ -461,7 +462,7 @@ class Cell:
             self._reference_image = None  # never check a press against the last item's reference
             ref = self._step("reference frame", reference, t0)
             try:
-                self.model.set_reference(ref.image)
+                self.model.set_reference(ref.image, **reduced_kw(ref))
             except FrameError as exc:
                 raise CellFault(f"no-contact reference frame unusable: {exc}", "reference") from exc
             self._reference_image = ref.image

@@ -43,7 +43,7 @@ from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError
 from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.wiring import build_cell, build_live_devices, load_model
+from vs2t_edge.runtime.wiring import build_cell, build_live_devices, load_model, match_camera
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
 
@@ -109,6 +109,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     if camera is None or arm is None or gate is None:
         try:
             camera, arm, gate = build_live_devices(cfg)
+            match_camera(camera, model)  # a UVC camera decodes MJPEG at the bundle's scale
         except (ConfigError, ValueError) as exc:  # ValueError: a driver refusing its settings
             # (validation checks the drivers' constraints, so this is a gap to report, in words)
             log(str(exc) if isinstance(exc, ConfigError) else f"{cfg.path}: a device refused its settings: {exc}")

@@ -54,6 +54,9 @@ class Frame:
     image: np.ndarray  # HxWx3 uint8, BGR as OpenCV delivers it
     timestamp_s: float  # monotonic seconds of the grab
     index: int = 0  # running frame number of this camera
+    # 1: the sensor's full frame; n > 1: decoded at 1/n scale by the camera (a UVC camera in MJPEG
+    # mode for a bundle on the reduced pixel path, runtime/preprocess.py): the model is told so
+    reduced_by: int = 1
 
 
 @runtime_checkable

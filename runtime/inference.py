@@ -127,6 +127,11 @@ def fused_novelty(router, feature: np.ndarray, logits_t: np.ndarray, logits_u: n
     return router.novelty_from_squared(m2)
 
 
+def _full_frames_only(reduced_by: int) -> None:
+    if reduced_by != 1:
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but a descriptor bundle takes full frames", "scale")
+
+
 class TactileModel:
     """A loaded, verified, warmed bundle. ``load`` is the only constructor the cell uses."""
 
@@ -212,18 +217,22 @@ class TactileModel:
 
     # -------------------------------------------------------------- per press
 
-    def set_reference(self, frame: np.ndarray) -> None:
-        """The session's no-contact frame; refused (FrameError) if it is no usable image."""
+    def set_reference(self, frame: np.ndarray, reduced_by: int = 1) -> None:
+        """The session's no-contact frame; refused (FrameError) if it is no usable image.
+        ``reduced_by``: 1 for a full frame, the bundle's ``preprocess.reduce`` for a frame the
+        camera decoded at that reduced scale (runtime/preprocess.py, the reduced path)."""
         # checked, cropped and resized once per item: each press then only subtracts it
         if self.descriptor is not None:  # its marker dots found once per item instead
+            _full_frames_only(reduced_by)
             self._reference = td.prepare_reference(frame)
             return
-        self._reference = prepare_reference(frame, self.preprocess_spec)
+        self._reference = prepare_reference(frame, self.preprocess_spec, reduced_by)
 
-    def preprocess(self, frame: np.ndarray) -> np.ndarray:
+    def preprocess(self, frame: np.ndarray, reduced_by: int = 1) -> np.ndarray:
         """One frame -> the batch ``forward`` takes: (1, 3, S, S) for the trunk, or the raw
         descriptor (1, D) float32 (standardised in ``forward``, as the trunk graph standardises)."""
         if self.descriptor is not None:
+            _full_frames_only(reduced_by)
             if self._reference is None:
                 raise FrameError("no no-contact reference frame set (call set_reference first)", "reference")
             return td.describe(self.descriptor.name, frame, self._reference)[None]
@@ -231,7 +240,7 @@ class TactileModel:
         ref = self._reference if spec.use_reference else None
         if spec.use_reference and ref is None:
             raise FrameError("no no-contact reference frame set (call set_reference first)", "reference")
-        return preprocess_tactile(frame, ref, spec)[None]
+        return preprocess_tactile(frame, ref, spec, reduced_by)[None]
 
     def forward(self, x: np.ndarray) -> Outputs:
         """Preprocessed batch (N, 3, S, S) float32, or raw descriptors (N, D) -> all outputs (for the
@@ -279,11 +288,12 @@ class TactileModel:
         return gzsl_log_posterior(out.logits_t, out.logits_u, out.novelty, self.beta if beta is None else beta,
                                   self.temperature, self.gate_scale)
 
-    def score_press(self, frame: np.ndarray) -> PressScore:
-        """One press frame (HxWx3 uint8 BGR) -> PressScore. Raises FrameError for frames the cell
-        must not classify (bad frame, or a model output that is not finite)."""
+    def score_press(self, frame: np.ndarray, reduced_by: int = 1) -> PressScore:
+        """One press frame (HxWx3 uint8 BGR; ``reduced_by`` as in ``set_reference``) -> PressScore.
+        Raises FrameError for frames the cell must not classify (bad frame, or a model output that
+        is not finite)."""
         t0 = time.perf_counter()
-        x = self.preprocess(frame)
+        x = self.preprocess(frame, reduced_by)
         t1 = time.perf_counter()
         try:
             out = self.forward(x)

@@ -16,6 +16,26 @@ float32 rounding; doing it in this order lets the cell resize the reference once
 (``prepare_reference``) instead of once per press: on a 640x480 frame at 128 px the whole step
 went from 6.0 to under 1 ms. Training calls the same function with the raw reference, which takes
 the very same path, so train and serve stay bit-identical.
+
+The reduced uint8 path (``reduce`` >= 1; 0, the default, is the float path above, which every
+bundle made before it keeps):
+
+  frame reduced by ``reduce`` (1, 2, 4 or 8: a box average, INTER_AREA on uint8; a camera that
+  streams MJPEG hands the frame already reduced by the JPEG decoder's own scaled decode,
+  ``decode_jpeg``, which skips most of the decoding work) ->
+  centre crop -> resize to ``size`` x ``size`` on uint8 (INTER_LINEAR: after the box reduction
+  the rest is a small factor, e.g. 240 -> 128 px for a 640x480 frame at 128 px) ->
+  float32 difference to the reference (reduced, cropped and resized the same way) ->
+  scale -> CHW RGB, one multiply-subtract per channel.
+
+Training reads the dataset's lossless frames and reduces them with ``reduce_frame``; the
+simulated camera and replays hand full frames and the cell reduces them with the same function
+(bit-identical to training). A UVC camera in MJPEG mode hands ``decode_jpeg``'s frame instead: the
+scaled inverse DCT is not a box average bit for bit. Against training's lossless frames, the
+network input then differs by 1.08 grey levels on average on the synthetic 640x480 GelSight frames
+at q95, where the float path's full MJPEG decode already differs by 0.90 (the JPEG loss;
+tests/test_preprocess.py bounds the ratio). ``auto_reduce`` picks the factor: the largest that
+leaves at least ``size`` pixels across the crop.
 """
 
 from __future__ import annotations
@@ -26,6 +46,9 @@ import cv2
 import numpy as np
 
 from vs2t_edge.runtime.files import MAX_FRAME_PIXELS
+
+
+REDUCE_FACTORS = (1, 2, 4, 8)  # the scaled decodes OpenCV's JPEG reader offers
 
 
 class FrameError(ValueError):
@@ -47,9 +70,23 @@ class TactilePreprocess:
     # every bundle so far were made without them, and the frozen trunk does not gain from them alone.
     inpaint_markers: bool = False  # fill the gel's dark marker dots from their rims (cv2.inpaint)
     normalise_exposure: bool = False  # scale each colour channel to a frame mean of 128
+    # The reduced uint8 path (module doc): 0 = the float path of every bundle before it; 1, 2, 4, 8 =
+    # the frame reduced by that factor (the camera's scaled MJPEG decode), then uint8 crop + resize.
+    reduce: int = 0
+
+    def __post_init__(self) -> None:
+        # the other fields are the bundle check's (runtime/bundle.py); this one picks a code path
+        if type(self.reduce) is not int or self.reduce not in (0, *REDUCE_FACTORS):
+            raise ValueError(f"reduce = {self.reduce!r}: 0 (the float path) or one of {REDUCE_FACTORS}")
+        if self.reduce and (self.inpaint_markers or self.normalise_exposure):
+            raise ValueError("reduce >= 1 (the reduced uint8 path) has no inpaint_markers / normalise_exposure; "
+                             "use reduce 0 for a real GelSight's corrections")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if d["reduce"] == 0:  # the float path's manifests stay byte for byte what they were
+            del d["reduce"]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "TactilePreprocess":
@@ -141,6 +178,62 @@ def _sensor_corrected(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
     return image
 
 
+_IMREAD = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+           8: cv2.IMREAD_REDUCED_COLOR_8}
+
+
+def reduced_hw(hw: tuple[int, int], factor: int) -> tuple[int, int]:
+    """Size of a frame reduced by ``factor``: rounded up, as the JPEG decoder's scaled output is."""
+    return (-(-int(hw[0]) // factor), -(-int(hw[1]) // factor))
+
+
+def reduce_frame(frame: np.ndarray, factor: int) -> np.ndarray:
+    """The frame (HxWx3 uint8) reduced by ``factor``: a box average (INTER_AREA on uint8), what
+    training and every camera that hands full frames use; ``decode_jpeg`` is the MJPEG camera's."""
+    if factor == 1:
+        return frame
+    h, w = reduced_hw(frame.shape[:2], factor)
+    return cv2.resize(frame, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def decode_jpeg(data: bytes | np.ndarray, factor: int = 1) -> np.ndarray | None:
+    """A JPEG (an MJPEG camera's frame) decoded at 1/``factor`` scale, HxWx3 uint8 BGR, or None if
+    it does not decode. libjpeg scales inside its inverse DCT, so a reduced decode skips most of the
+    work after entropy decoding (a 640x480 q95 frame on the 2-core bench CPU: about 0.8 ms full,
+    0.6 ms at 1/2, 0.55 ms at 1/4; entropy decoding is the floor)."""
+    if factor not in _IMREAD:
+        raise ValueError(f"JPEG decode scale 1/{factor}: OpenCV decodes at 1/1, 1/2, 1/4 or 1/8 only")
+    buf = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data.reshape(-1)
+    if buf.dtype != np.uint8 or buf.size == 0:
+        return None
+    return cv2.imdecode(buf, _IMREAD[factor])
+
+
+def auto_reduce(frame_hw: tuple[int, int], size: int, crop_fraction: float = 1.0) -> int:
+    """The largest factor of REDUCE_FACTORS that leaves at least ``size`` px across the crop
+    (640x480 at 128 or 224 px: 2; 320x240 at 128 px: 1)."""
+    side = min(frame_hw) * crop_fraction
+    return max(f for f in REDUCE_FACTORS if f == 1 or side / f >= size)
+
+
+def _reduced_input(image: np.ndarray, spec: TactilePreprocess, reduced_by: int) -> np.ndarray:
+    """The frame at 1/spec.reduce: reduced here (``reduced_by`` 1) or already by the camera."""
+    if reduced_by == 1:
+        return reduce_frame(image, spec.reduce)
+    if reduced_by != spec.reduce:
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but the bundle's preprocessing reduces by "
+                         f"{spec.reduce}", "scale")
+    return image
+
+
+def _crop_resize_u8(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
+    """The reduced path: centre square crop -> uint8 INTER_LINEAR to size x size."""
+    h, w = image.shape[:2]
+    side = max(1, int(round(min(h, w) * spec.crop_fraction)))
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    return cv2.resize(image[y0:y0 + side, x0:x0 + side], (spec.size, spec.size), interpolation=cv2.INTER_LINEAR)
+
+
 def _crop_resize(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
     """Centre square crop (uint8 view, no copy) -> float32 -> INTER_AREA to size x size."""
     image = _sensor_corrected(image, spec)
@@ -179,42 +272,79 @@ def shading_descriptor(frame: np.ndarray, grid: tuple[int, int] | None = None) -
 class PreparedReference:
     """A checked no-contact reference frame, cropped and resized for ``spec`` (once per item)."""
 
-    frame_hw: tuple[int, int]
+    frame_hw: tuple[int, int]  # of the frame as given (float path) or at 1/spec.reduce (reduced path)
     resized: np.ndarray  # (size, size, 3) float32, BGR, 0..255
     spec: TactilePreprocess
 
 
-def prepare_reference(reference: np.ndarray, spec: TactilePreprocess) -> PreparedReference:
+def _check_reduced_by(reduced_by: int, spec: TactilePreprocess) -> None:
+    if reduced_by != 1 and spec.reduce == 0:
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but the bundle's preprocessing takes full "
+                         "frames (no 'reduce')", "scale")
+
+
+def prepare_reference(reference: np.ndarray, spec: TactilePreprocess, reduced_by: int = 1) -> PreparedReference:
+    """``reduced_by``: 1 for a full frame, ``spec.reduce`` for one the camera decoded reduced."""
     reference = check_frame(reference, name="reference frame")
-    return PreparedReference(tuple(reference.shape[:2]), _crop_resize(reference, spec), spec)
+    _check_reduced_by(reduced_by, spec)
+    if spec.reduce == 0:
+        return PreparedReference(tuple(reference.shape[:2]), _crop_resize(reference, spec), spec)
+    small = _reduced_input(reference, spec, reduced_by)
+    return PreparedReference(tuple(small.shape[:2]), _crop_resize_u8(small, spec).astype(np.float32), spec)
 
 
 def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | PreparedReference | None,
-                       spec: TactilePreprocess) -> np.ndarray:
+                       spec: TactilePreprocess, reduced_by: int = 1) -> np.ndarray:
     """One frame -> (3, size, size) float32, as the tactile trunk expects it. ``reference`` is the
-    raw no-contact frame or, on the cell, its ``prepare_reference`` (same result, less work)."""
+    raw no-contact frame or, on the cell, its ``prepare_reference`` (same result, less work).
+    ``reduced_by``: 1 for a full frame; ``spec.reduce`` for a frame the camera decoded at that
+    reduced scale (``decode_jpeg``; the reduced path only)."""
     frame = check_frame(frame)
-    image = _crop_resize(frame, spec)
+    _check_reduced_by(reduced_by, spec)
+    if spec.reduce == 0:
+        image, hw = _crop_resize(frame, spec), tuple(frame.shape[:2])
+    else:
+        small = _reduced_input(frame, spec, reduced_by)
+        image, hw = _crop_resize_u8(small, spec).astype(np.float32), tuple(small.shape[:2])
     if spec.use_reference:
         if reference is None:
             raise FrameError("no-contact reference frame missing", "reference")
         if not isinstance(reference, PreparedReference):
             reference = prepare_reference(reference, spec)
-        if reference.frame_hw != tuple(frame.shape[:2]):
+        if reference.frame_hw != hw:
             # Neither is "the" right size: say both. On the cell the reference is the item's own
             # no-contact frame, so it is usually the press frame that is off.
             h, w = reference.frame_hw
-            raise FrameError(f"frame: size {frame.shape[1]}x{frame.shape[0]} does not match the no-contact "
+            raise FrameError(f"frame: size {hw[1]}x{hw[0]} does not match the no-contact "
                              f"reference frame's {w}x{h}", "size")
         if reference.spec != spec:
             raise ValueError("reference frame was prepared for another preprocessing")
-        image = image - reference.resized
-    image = image[..., ::-1] * np.float32(1.0 / 255.0)  # BGR -> RGB
-    image = (image - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
-    return np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
+        image -= reference.resized
+    return _scaled_chw(image, spec)
+
+
+def _scaled_chw(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
+    """(S, S, 3) float32 BGR diff -> (3, S, S) float32 RGB, scaled, one channel plane at a time.
+
+    Float path: ``(diff / 255 - mean) / std`` per element, the same float32 operations in the same
+    order as the whole-array form it replaced (bit-identical, tests/test_preprocess.py; 4x faster).
+    Reduced path: ``diff * (1 / (255 std)) - mean / std``, one multiply and one subtract."""
+    out = np.empty((3, *image.shape[:2]), np.float32)
+    mean, std = np.asarray(spec.mean, np.float32), np.asarray(spec.std, np.float32)
+    for c in range(3):  # RGB plane c is BGR channel 2 - c
+        plane = out[c]
+        if spec.reduce == 0:
+            np.multiply(image[:, :, 2 - c], np.float32(1.0 / 255.0), out=plane)
+            np.subtract(plane, mean[c], out=plane)
+            np.divide(plane, std[c], out=plane)
+        else:
+            np.multiply(image[:, :, 2 - c], np.float32(1.0) / (np.float32(255.0) * std[c]), out=plane)
+            np.subtract(plane, mean[c] / std[c], out=plane)
+    return out
 
 
 def preprocess_batch(frames: list[np.ndarray], reference: np.ndarray | None, spec: TactilePreprocess) -> np.ndarray:
+    """Full frames (a dataset's) against their raw reference; the path training takes."""
     if spec.use_reference and reference is not None and frames:
         reference = prepare_reference(check_frame(reference, frames[0].shape[:2], name="reference frame"), spec)
     return np.stack([preprocess_tactile(f, reference, spec) for f in frames])

@@ -49,6 +49,14 @@ class _Later:
         return self._fn()
 
 
+def reduced_kw(frame: Any) -> dict:
+    """``{"reduced_by": n}`` for a frame the camera decoded at 1/n scale (runtime/devices.py Frame),
+    else nothing: the model's ``set_reference`` / ``score_press`` take it; models that never see
+    such frames (the fakes, descriptor bundles) keep their one-argument form."""
+    n = getattr(frame, "reduced_by", 1)
+    return {"reduced_by": n} if n != 1 else {}
+
+
 class PressScorer:
     """The model's score of a press in one worker thread (overlap) or in the caller (sequential).
 
@@ -63,15 +71,15 @@ class PressScorer:
         self._running: list[Future] = []  # every future of this item, for drain()
 
     def start(self, frame: Any) -> None:
-        image = frame.image
+        image, reduced = frame.image, reduced_kw(frame)
         if isinstance(self._latest, Future):
             self._latest.cancel()  # a retried press: the failed attempt's frame is not scored
         if not self.overlap:
-            self._latest = _Later(lambda: self.score_press(image))
+            self._latest = _Later(lambda: self.score_press(image, **reduced))
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="score-press")
-        future = self._pool.submit(self.score_press, image)
+        future = self._pool.submit(self.score_press, image, **reduced)
         self._running.append(future)
         self._latest = future
 

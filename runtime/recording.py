@@ -101,7 +101,9 @@ class RecordingCamera:
             raise
         name = self.rec.add_frame(frame.image) if isinstance(frame.image, np.ndarray) and frame.image.ndim == 3 \
             and frame.image.dtype == np.uint8 else None
-        self.rec.event("camera", "grab", frame=name, timestamp_s=frame.timestamp_s, index=frame.index)
+        scale = getattr(frame, "reduced_by", 1)  # recorded as decoded; replay tells the model the same
+        self.rec.event("camera", "grab", frame=name, timestamp_s=frame.timestamp_s, index=frame.index,
+                       **({"reduced_by": scale} if scale != 1 else {}))
         return frame
 
 

@@ -37,6 +37,7 @@ from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
+from vs2t_edge.runtime.preprocess import REDUCE_FACTORS
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.replay_file import (  # noqa: F401 - ReplayFile, ReplayError: callers import them from here
@@ -146,7 +147,11 @@ class ReplayCameraDevice(_ReplayBase):
             image = self.q.rf.load_frame(ev["frame"])
         except ReplayError as exc:
             raise _FileUnreadable(exc) from None
-        return Frame(image, float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)))
+        scale = ev.get("reduced_by", 1)
+        if type(scale) is not int or scale not in REDUCE_FACTORS:
+            raise _FileUnreadable(ReplayError(f"camera grab of {ev['frame']}: reduced_by {scale!r}, not one of "
+                                              f"{REDUCE_FACTORS}"))
+        return Frame(image, float(ev.get("timestamp_s", 0.0)), int(ev.get("index", 0)), reduced_by=scale)
 
 
 class ReplayArm(_ReplayBase):

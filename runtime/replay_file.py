@@ -142,6 +142,15 @@ class ReplayFile:
             names = grabs[item]
             yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
 
+    def frame_scale(self) -> int:
+        """The scale the recorded frames were decoded at: 1 (full frames), or n for a UVC camera on
+        a bundle's reduced pixel path (its grabs carry ``reduced_by``; docs/cell.md)."""
+        scales = [ev.get("reduced_by", 1) for ev in self.index["events"] if ev["dev"] == "camera" and ev.get("frame")]
+        if any(type(s) is not int or s not in (1, 2, 4, 8) for s in scales) or len(set(scales)) > 1:
+            raise ReplayError(f"{self.folder}: camera grabs decoded at scales {sorted(set(map(str, scales)))}; one "
+                              "of 1, 2, 4, 8 expected for the whole session")
+        return scales[0] if scales else 1
+
     def save_decisions(self, decisions: list[dict]) -> None:
         self.index["decisions"] = decisions
         tmp = self.folder / "index.json.tmp"

@@ -23,7 +23,7 @@ import threading
 from typing import Any, Callable
 
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
-from vs2t_edge.runtime.camera import ContactCheck, camera_from_config
+from vs2t_edge.runtime.camera import ContactCheck, UVCCamera, camera_from_config
 from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
@@ -75,9 +75,26 @@ def contact_check_for(cfg: CellConfig) -> ContactCheck | None:
     return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
 
 
+def model_decode_scale(model: Any) -> int:
+    """The scale a UVC camera decodes its MJPEG frames at for ``model``'s bundle: 1/reduce on the
+    reduced pixel path (runtime/preprocess.py), full size otherwise (and for any other model)."""
+    spec = getattr(model, "preprocess_spec", None)
+    if getattr(model, "descriptor", None) is not None or spec is None:
+        return 1
+    return max(1, int(getattr(spec, "reduce", 0)))
+
+
+def match_camera(camera: Any, model: Any) -> None:
+    """Before connect: a UVC camera decodes its MJPEG frames at the scale ``model``'s bundle takes
+    (``model_decode_scale``); other cameras hand full frames, which the model reduces itself."""
+    if isinstance(camera, UVCCamera):
+        camera.decode_scale = model_decode_scale(model)
+
+
 def build_live_devices(cfg: CellConfig):
     """(camera, arm, gate) from the config, not yet connected. Vendor SDKs (ur_rtde) are imported
-    by the drivers only when connected; devices of kind ``sim`` are the simulated cell's to build."""
+    by the drivers only when connected; devices of kind ``sim`` are the simulated cell's to build.
+    A UVC camera decodes at full size until ``match_camera`` gives it the model's scale."""
     cam, gate_cfg = cfg.camera, cfg.gate
     if cam["kind"] == "sim":
         raise ConfigError(cfg.path, [f"{cfg.path}: devices.camera.kind = sim is built by the simulated cell "
@@ -116,4 +133,4 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
 
 
 __all__ = ["load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
-           "build_live_devices", "build_cell"]
+           "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]

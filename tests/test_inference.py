@@ -80,3 +80,37 @@ def test_soft_gating_limits():
         gzsl_log_posterior(lt, lu, np.array([np.nan]), beta=0.0, temperature=1.0)
     with pytest.raises(ValueError):
         gzsl_log_posterior(lt, lu, np.array([0.0]), beta=0.0, temperature=0.0)
+
+
+def test_a_bundle_on_the_reduced_path_scores_full_and_camera_reduced_frames_alike(tmp_path):
+    """Train and serve are one function: the model's preprocessing of a full frame is training's
+    (preprocess_batch on the dataset frame), and a frame the camera reduced by the same box
+    average (Frame.reduced_by) scores exactly as the full frame does."""
+    from test_bundle_fixtures import SIZE, make_bundle
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_batch, reduce_frame
+
+    spec = TactilePreprocess(size=SIZE, reduce=2)
+    make_bundle(tmp_path / "b", "fp32", preprocess=spec)
+    model = TactileModel.load(tmp_path / "b", threads=1)
+    assert model.preprocess_spec == spec and model.bundle.manifest["preprocess"]["reduce"] == 2
+    _, raws, ref = world_frames()
+    model.set_reference(ref)
+    np.testing.assert_array_equal(model.preprocess(raws[5])[0], preprocess_batch([raws[5]], ref, spec)[0])
+    full = model.score_press(raws[5])
+    model.set_reference(reduce_frame(ref, 2), reduced_by=2)
+    reduced = model.score_press(reduce_frame(raws[5], 2), reduced_by=2)
+    assert reduced.log_posterior == full.log_posterior and reduced.novelty == full.novelty
+    with pytest.raises(FrameError) as exc:
+        model.score_press(reduce_frame(raws[5], 4), reduced_by=4)
+    assert exc.value.reason == "scale"
+
+
+def test_a_float_path_bundle_keeps_its_manifest_and_refuses_reduced_frames(model):
+    from vs2t_edge.runtime.preprocess import reduce_frame
+
+    assert "reduce" not in model.bundle.manifest["preprocess"] and model.preprocess_spec.reduce == 0
+    _, raws, ref = world_frames()
+    model.set_reference(ref)
+    with pytest.raises(FrameError) as exc:
+        model.score_press(reduce_frame(raws[1], 2), reduced_by=2)
+    assert exc.value.reason == "scale"

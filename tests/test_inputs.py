@@ -302,3 +302,47 @@ def test_dataset_text_files_are_bounded(tmp_path):
     _finishes.fifos.append(root / "dataset.yaml")
     finished, exc = _finishes(lambda: validate_dataset(root, deep=False))
     assert finished and isinstance(exc, DatasetError), exc
+
+
+def test_a_frame_decoded_reduced_is_recorded_and_replayed_so(replay_copy):
+    """A UVC camera on the reduced path hands frames decoded at 1/n (Frame.reduced_by): the
+    recording notes it and the replay hands the model the same, or the model would reduce the
+    frame a second time; a hand-edited scale is refused naming the frame."""
+    import time as _time
+
+    from vs2t_edge.runtime.devices import Frame
+    from vs2t_edge.runtime.recording import Recorder, RecordingCamera
+    from vs2t_edge.runtime.replay import _FileUnreadable
+
+    class Reduced:  # a camera that decoded its MJPEG frame at 1/2
+        def grab(self):
+            return Frame(_frame(), _time.monotonic(), 7, reduced_by=2)
+
+    rec = Recorder()
+    RecordingCamera(Reduced(), rec).grab()
+    ev = rec.events[-1]
+    assert ev["reduced_by"] == 2 and ev["index"] == 7
+    rf = ReplayFile.open(replay_copy)
+
+    class Q:
+        def __init__(self, scale):
+            self.rf, self.scale = rf, scale
+
+        def pop(self, dev, call):
+            return {"frame": "frames/000002.png", "index": 7, **({"reduced_by": self.scale} if self.scale else {})}
+
+    assert ReplayCameraDevice(Q(2)).grab().reduced_by == 2
+    assert ReplayCameraDevice(Q(None)).grab().reduced_by == 1  # every replay recorded before it
+    for bad in (3, True, "2"):
+        with pytest.raises(_FileUnreadable) as exc:
+            ReplayCameraDevice(Q(bad)).grab()
+        assert "frames/000002.png" in str(exc.value.error) and "reduced_by" in str(exc.value.error)
+    # calibrate-threshold reads a replay's frames directly: the session's one scale, or refused
+    assert rf.frame_scale() == 1
+    grabs = [ev for ev in rf.index["events"] if ev["dev"] == "camera" and ev.get("frame")]
+    for ev in grabs:
+        ev["reduced_by"] = 2
+    assert rf.frame_scale() == 2
+    grabs[0]["reduced_by"] = 4
+    with pytest.raises(ReplayError, match="scales"):
+        rf.frame_scale()

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vs2t_edge.runtime.preprocess import FrameError, TactilePreprocess, prepare_reference, preprocess_tactile
+from vs2t_edge.runtime.preprocess import (FrameError, TactilePreprocess, auto_reduce, decode_jpeg, prepare_reference,
+                                          preprocess_batch, preprocess_tactile, reduce_frame)
 
 
 def _textbook(frame, reference, spec):
@@ -107,3 +108,132 @@ def test_exposure_normalisation_cancels_a_gain_and_inpainting_removes_the_dots()
     # the press differs from its reference by the exposure only: nearly nothing is left
     assert np.abs(preprocess_tactile(brighter, ref, both)).mean() < 0.2 * np.abs(
         preprocess_tactile(brighter, ref, TactilePreprocess(size=24))).mean()
+
+
+# --- the float path keeps every earlier bundle's numbers; the reduced uint8 path ---------------------
+
+
+def _float_path_before(frame, reference, spec):
+    """The float path exactly as it was written before the reduced path came (whole-array scaling)."""
+    def crop_resize(image):
+        h, w = image.shape[:2]
+        side = max(1, int(round(min(h, w) * spec.crop_fraction)))
+        y0, x0 = (h - side) // 2, (w - side) // 2
+        crop = image[y0:y0 + side, x0:x0 + side].astype(np.float32)
+        return cv2.resize(crop, (spec.size, spec.size), interpolation=cv2.INTER_AREA)
+
+    image = crop_resize(frame) - crop_resize(reference)
+    image = image[..., ::-1] * np.float32(1.0 / 255.0)
+    image = (image - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
+    return np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
+
+
+def _frames(h=120, w=160, seed=0):
+    rng = np.random.default_rng(seed)
+    ref = cv2.GaussianBlur(rng.integers(40, 220, (h, w, 3), dtype=np.uint8), (5, 5), 0)
+    frame = np.clip(ref.astype(int) + rng.integers(-25, 26, (h, w, 3)), 0, 255).astype(np.uint8)
+    return frame, ref
+
+
+@pytest.mark.parametrize("size,crop", [(32, 1.0), (128, 1.0), (24, 0.7)])
+def test_float_path_is_bit_identical_to_what_it_was(size, crop):
+    frame, ref = _frames(240, 320)
+    spec = TactilePreprocess(size=size, crop_fraction=crop, mean=(0.01, -0.02, 0.0), std=(0.08, 0.1, 0.05))
+    before = _float_path_before(frame, ref, spec)
+    np.testing.assert_array_equal(preprocess_tactile(frame, ref, spec), before)
+    np.testing.assert_array_equal(preprocess_tactile(frame, prepare_reference(ref, spec), spec), before)
+
+
+def test_reduce_is_off_by_default_and_absent_from_old_manifests():
+    d = TactilePreprocess(size=128).to_dict()
+    assert "reduce" not in d  # a float-path bundle's manifest is what it was
+    assert TactilePreprocess.from_dict(d).reduce == 0
+    new = TactilePreprocess(size=128, reduce=2)
+    assert new.to_dict()["reduce"] == 2 and TactilePreprocess.from_dict(new.to_dict()) == new
+    for bad in (3, -1, True, 16, 2.0):
+        with pytest.raises(ValueError, match="reduce"):
+            TactilePreprocess(size=128, reduce=bad)
+    with pytest.raises(ValueError, match="inpaint_markers"):
+        TactilePreprocess(size=128, reduce=2, inpaint_markers=True)
+
+
+def test_auto_reduce_keeps_at_least_the_input_size_across_the_crop():
+    assert auto_reduce((480, 640), 128) == 2 and auto_reduce((480, 640), 224) == 2
+    assert auto_reduce((240, 320), 128) == 1 and auto_reduce((480, 640), 96) == 4
+    assert auto_reduce((480, 640), 60) == 8 and auto_reduce((100, 100), 224) == 1
+
+
+@pytest.mark.parametrize("reduce,size", [(1, 32), (2, 32), (2, 56), (4, 24)])
+def test_reduced_path_train_and_serve_are_one_function(reduce, size):
+    frame, ref = _frames(120, 160, seed=reduce)
+    spec = TactilePreprocess(size=size, reduce=reduce, mean=(0.01, -0.02, 0.0), std=(0.08, 0.1, 0.05))
+    train = preprocess_batch([frame], ref, spec)[0]  # what training's feature extraction runs
+    cell = preprocess_tactile(frame, prepare_reference(ref, spec), spec)  # the cell: reference once per item
+    assert train.shape == (3, size, size) and train.dtype == np.float32
+    np.testing.assert_array_equal(train, cell)
+    np.testing.assert_array_equal(train, preprocess_tactile(frame, ref, spec))
+    # a frame the camera already reduced by the same function gives the same numbers
+    small, small_ref = reduce_frame(frame, reduce), reduce_frame(ref, reduce)
+    got = preprocess_tactile(small, prepare_reference(small_ref, spec, reduce), spec, reduced_by=reduce) \
+        if reduce > 1 else preprocess_tactile(small, small_ref, spec)
+    np.testing.assert_array_equal(train, got)
+    # the definition: reduce (box), crop, uint8 linear resize, difference, scale
+    def side(img):
+        img = cv2.resize(img, ((160 + reduce - 1) // reduce, (120 + reduce - 1) // reduce),
+                         interpolation=cv2.INTER_AREA) if reduce > 1 else img
+        h, w = img.shape[:2]
+        s0 = min(h, w)
+        y0, x0 = (h - s0) // 2, (w - s0) // 2
+        return cv2.resize(img[y0:y0 + s0, x0:x0 + s0], (size, size), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    want = ((side(frame) - side(ref))[..., ::-1] / 255.0 - np.asarray(spec.mean)) / np.asarray(spec.std)
+    np.testing.assert_allclose(train, want.transpose(2, 0, 1), atol=1e-4)
+
+
+def test_the_mjpeg_cameras_scaled_decode_adds_little_to_the_gap_mjpeg_already_makes():
+    """Training reads lossless frames; a UVC camera hands MJPEG. On the float path the camera's full
+    decode already differs from training's pixels (JPEG loss); on the reduced path the camera hands
+    libjpeg's 1/2 decode where training box-averages: the gap may grow by at most half (demo world
+    at 640x480, 18 presses: 0.90 -> 1.08 grey levels mean, p99 4.2 -> 4.3; this rendered press:
+    0.90 -> 1.08, p99 3.8 -> 4.0)."""
+    from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
+
+    rng = np.random.default_rng(3)
+    sensor = GelSight()  # 640 x 480, markers, read noise
+    bg = background(sensor, 3)
+    ref = reference_frame(bg, sensor, rng)
+    yy, xx = np.mgrid[0:sensor.height_px, 0:sensor.width_px].astype(np.float32) * np.float32(sensor.mm_per_px)
+    weave = 0.04 * np.sin(2 * np.pi * xx / 0.6) * np.sin(2 * np.pi * yy / 0.6)  # a fabric's texture, mm
+    dome = 0.3 * np.exp(-((xx - 7.5) ** 2 + (yy - 5.6) ** 2) / 12.0)  # the press
+    frame = render_press((dome + weave * (dome > 0.05)).astype(np.float32), bg, sensor, rng)
+    jpeg = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for f in (frame, ref)]
+
+    def gap(spec, scale):
+        small = [decode_jpeg(j, scale) for j in jpeg]
+        served = preprocess_tactile(small[0], prepare_reference(small[1], spec, scale), spec, reduced_by=scale)
+        trained = preprocess_tactile(frame, ref, spec)
+        return np.abs(served - trained) * np.asarray(spec.std)[:, None, None] * 255  # grey levels
+
+    before, after = gap(TactilePreprocess(size=128), 1), gap(TactilePreprocess(size=128, reduce=2), 2)
+    assert decode_jpeg(jpeg[0], 2).shape == (240, 320, 3)
+    assert before.mean() > 0.3  # the JPEG loss is there to compare with
+    assert after.mean() < 1.5 * before.mean() and np.percentile(after, 99) < 1.5 * np.percentile(before, 99)
+
+
+def test_reduced_frames_are_refused_by_name_where_they_do_not_belong():
+    frame, ref = _frames(120, 160)
+    small = reduce_frame(frame, 2)
+    reduced = TactilePreprocess(size=32, reduce=2)
+    with pytest.raises(FrameError) as exc:  # the camera decoded at 1/4, the bundle takes 1/2
+        preprocess_tactile(reduce_frame(frame, 4), prepare_reference(ref, reduced), reduced, reduced_by=4)
+    assert exc.value.reason == "scale"
+    with pytest.raises(FrameError) as exc:  # a float-path bundle takes only full frames
+        preprocess_tactile(small, ref, TactilePreprocess(size=32), reduced_by=2)
+    assert exc.value.reason == "scale"
+    with pytest.raises(FrameError, match="does not match the no-contact reference frame's 80x60") as exc:
+        preprocess_tactile(reduce_frame(small, 2), prepare_reference(ref, reduced), reduced, reduced_by=2)
+    for bad, reason in ((np.zeros_like(small), "black"), (np.full_like(small, 255), "white"),
+                        (small.astype(np.float32), "dtype"), (small[..., 0], "shape")):
+        with pytest.raises(FrameError) as exc:
+            preprocess_tactile(bad, prepare_reference(ref, reduced), reduced, reduced_by=2)
+        assert exc.value.reason == reason
+    assert decode_jpeg(b"\xff\xd8 not a jpeg", 2) is None and decode_jpeg(b"", 1) is None

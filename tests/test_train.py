@@ -476,3 +476,35 @@ def test_progress_is_off_when_stderr_is_not_a_terminal(monkeypatch, capsys):
     assert capsys.readouterr().err == ""
     monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)
     assert progress.enabled()
+
+
+def test_the_runs_pixel_path_is_chosen_once_and_keys_the_feature_cache(tiny_world, tmp_path):
+    """``--preprocess-reduce``: off keeps the float path (no ``reduce`` in the run's preprocessing,
+    the cache key as before); auto picks the largest factor that leaves the input size; the
+    extracted tactile stems are those of the cell's own function on the chosen path."""
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+    from vs2t_edge.train import features as ft
+    from vs2t_edge.train.run import PROFILES, get_cache, tactile_spec
+
+    tiny = PROFILES["tiny"]  # 64 px on 160x120 frames: the crop is 120 px, 60 at 1/2
+    assert tactile_spec(tiny, tiny_world) == TactilePreprocess(size=64)
+    assert tactile_spec(replace(tiny, preprocess_reduce="auto"), tiny_world).reduce == 1
+    assert tactile_spec(replace(tiny, preprocess_reduce="2"), tiny_world).reduce == 2
+    assert tactile_spec(replace(tiny, preprocess_reduce="2", tactile_feature="shading_markers"), tiny_world).reduce == 0
+    with pytest.raises(ValueError, match="preprocess_reduce"):
+        tactile_spec(replace(tiny, preprocess_reduce="3"), tiny_world)
+    prof = replace(tiny, preprocess_reduce="2", max_presses=5)
+    trunk = build_trunk("tiny", pretrained=False).eval()
+    cache = get_cache(tiny_world, prof, tmp_path, trunk)
+    assert cache.meta["reduce"] == 2
+    assert ft.StemCache.load(tmp_path / "stem_cache.npz", {k: v for k, v in cache.meta.items() if k != "reduce"}) is None
+    fab = load_dataset(tiny_world).fabrics[0]
+    with torch.no_grad():
+        stem = {r: trunk.stem(torch.from_numpy(preprocess_tactile(fab.load_press(0), fab.load_reference(),
+                                                                  TactilePreprocess(size=64, reduce=r))[None]))
+                .half().float().numpy()[0] for r in (0, 2)}
+    got = cache.stem_t[0].astype(np.float32)
+    # batch against single-frame convolution rounds differently in the last bits, then to float16
+    np.testing.assert_allclose(got, stem[2], rtol=3e-3, atol=2e-5)
+    assert np.abs(got - stem[0]).max() > 100 * np.abs(got - stem[2]).max()  # not the float path's

@@ -28,6 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--tactile-feature", choices=("cnn", "shading_markers"),
                         help="tactile feature: the trunk (cnn, default) or the no-network shading_markers descriptor "
                              "that wins on a real GelSight (docs/realism.md); exported as a descriptor bundle")
+    parser.add_argument("--preprocess-reduce", choices=("off", "auto", "1", "2", "4", "8"),
+                        help="tactile pixel path: off (default; the float path of every earlier bundle) or the "
+                             "reduced uint8 path - the frame reduced by a factor (auto: the largest leaving the "
+                             "input size across the crop; the cell's MJPEG camera then decodes at that scale), "
+                             "cropped and resized on uint8 (runtime/preprocess.py, docs/bundle.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -57,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.time()
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
               seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
-              max_presses=args.max_presses, tactile_feature=args.tactile_feature)
+              max_presses=args.max_presses, tactile_feature=args.tactile_feature,
+              preprocess_reduce=args.preprocess_reduce)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

@@ -81,13 +81,16 @@ def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
 
 @torch.no_grad()
 def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None = None,
-                  batch: int = 64, progress: bool = True) -> StemCache:
-    """Read every press once: tactile and visual stem activations, frozen visual and tactile features."""
+                  batch: int = 64, progress: bool = True, spec=None) -> StemCache:
+    """Read every press once: tactile and visual stem activations, frozen visual and tactile features.
+    ``spec``: the run's TactilePreprocess (default: the float path at ``size``), the cell's own."""
     from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, prepare_reference, preprocess_tactile
 
     ds = load_dataset(dataset_root)
-    spec = TactilePreprocess(size=size)
+    spec = spec or TactilePreprocess(size=size)
+    if spec.size != size:
+        raise ValueError(f"extract_cache: spec.size {spec.size} != size {size}")
     trunk.eval()
     stems, stems_v, xv, xt0, fab = [], [], [], [], []
     line = Line()
@@ -96,7 +99,8 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     total = max(total, 1)
     done = 0
     for k, fabric in enumerate(ds.fabrics):
-        ref, camera = fabric.load_reference(), fabric.load_camera()
+        # prepared once per fabric, as the cell prepares it once per item (the same result as the raw frame)
+        ref, camera = prepare_reference(fabric.load_reference(), spec), fabric.load_camera()
         n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
         # evenly spaced over the press order (the grid), not the first rows of the grid
         chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))
@@ -122,7 +126,8 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     return StemCache(np.concatenate(stems), np.concatenate(xv).astype(np.float32), np.concatenate(xt0).astype(np.float32),
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
-                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve())},
+                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
+                      **({"reduce": spec.reduce} if spec.reduce else {})},  # as train.run.get_cache expects
                      np.concatenate(stems_v))
 
 

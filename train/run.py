@@ -64,6 +64,29 @@ class Profile:
     # docs/realism.md), nothing fine-tuned, exported as a descriptor bundle (docs/bundle.md). The
     # visual side keeps the trunk either way.
     tactile_feature: str = "cnn"
+    # the tactile frames' pixel path (runtime/preprocess.py): "off" = the float path of every run
+    # before it; "auto" = the reduced uint8 path at the largest reduction that leaves ``size_px``
+    # pixels across the crop (2 on 640x480 frames at 128 or 224 px); or a factor "1", "2", "4", "8".
+    preprocess_reduce: str = "off"
+
+
+REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
+
+
+def tactile_spec(prof: Profile, dataset: Path) -> TactilePreprocess:
+    """The one preprocessing this run trains with and its bundle ships (the cell runs the same)."""
+    if prof.preprocess_reduce not in REDUCE_CHOICES:
+        raise ValueError(f"preprocess_reduce {prof.preprocess_reduce!r}: choose one of {', '.join(REDUCE_CHOICES)}")
+    if prof.preprocess_reduce == "off" or prof.tactile_feature != "cnn":  # a descriptor reads full frames
+        return TactilePreprocess(size=prof.size_px)
+    if prof.preprocess_reduce == "auto":
+        from vs2t_edge.runtime.dataset import load_dataset
+        from vs2t_edge.runtime.preprocess import auto_reduce
+
+        geo = load_dataset(dataset).fabrics[0].geometry
+        return TactilePreprocess(size=prof.size_px, reduce=auto_reduce((geo.frame_height_px, geo.frame_width_px),
+                                                                       prof.size_px))
+    return TactilePreprocess(size=prof.size_px, reduce=int(prof.preprocess_reduce))
 
 
 PROFILES = {
@@ -106,15 +129,18 @@ def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray
 
 
 def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCache:
+    spec = tactile_spec(prof, dataset)
     meta = {"size": prof.size_px, "arch": prof.trunk, "max_presses": -1 if prof.max_presses is None else prof.max_presses,
             "version": ft.CACHE_VERSION, "dataset": str(Path(dataset).resolve())}
+    if spec.reduce:  # a float-path cache keeps its old key
+        meta["reduce"] = spec.reduce
     path = cache_dir / "stem_cache.npz"
     cache = ft.StemCache.load(path, meta)
     if cache is not None and prof.visual_tail == "finetuned" and cache.stem_v is None:
         _log(f"features: {path} predates visual stem caching; extracting again for the visual tail")
         cache = None
     if cache is None:
-        cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses)
+        cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses, spec=spec)
         cache.save(path)
         cmp.FeatureTable(cache.x_t0, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
                          source=f"{dataset} (frozen {prof.trunk}, {prof.size_px} px)").save(cache_dir / "feature_table.npz")
@@ -232,7 +258,7 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
         trunk_arch=prof.tactile_feature if descriptor else prof.trunk,
         trunk_state={} if descriptor else tuned.state_dict(),
         feature_dim=int(out["table"].x_t.shape[1]) if descriptor else tuned.feature_dim, tactile_feature=prof.tactile_feature,
-        preprocess=TactilePreprocess(size=prof.size_px).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
+        preprocess=tactile_spec(prof, dataset).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
         cls_t_state=cls_t.state_dict(), touched=list(split.touched),
         cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
         router_name=router_name, router_params=router.to_params(), beta=float(g["beta"]),
@@ -307,22 +333,27 @@ def orderings(s: dict) -> dict:
 
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
-          visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None) -> dict:
+          visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
+          preprocess_reduce: str | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
+    ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses, tactile_feature)
+                      max_presses, tactile_feature, preprocess_reduce)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
-           max_presses: int | None = None, tactile_feature: str | None = None) -> dict:
+           max_presses: int | None = None, tactile_feature: str | None = None,
+           preprocess_reduce: str | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
-                                              ("visual_tail", visual_tail), ("tactile_feature", tactile_feature))
+                                              ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
+                                              ("preprocess_reduce", preprocess_reduce))
                             if v is not None})
+    tactile_spec(prof, dataset)  # a bad choice fails here, before any work
     if prof.tactile_feature not in TACTILE_FEATURES:
         raise ValueError(f"tactile_feature {prof.tactile_feature!r}: choose one of {', '.join(TACTILE_FEATURES)}")
     if max_presses is not None:
