@@ -47,6 +47,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 # the accuracy half lives in runtime/bench_accuracy.py; its names stay importable from here
+from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. stay importable from here
+    JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, decode_scale, press_stages,
+    split_press_graph)
 from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
     by_bins, eval_presses, pieces_per_minute, press_outputs)
@@ -137,58 +140,6 @@ def _import_runtime() -> None:
     import onnxruntime  # noqa: F401
 
     from vs2t_edge.runtime import evidence, inference  # noqa: F401
-
-
-JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC camera's MJPEG stream
-STAGES = ("decode_mjpeg", "camera_checks", "preprocess", "trunk", "heads", "router", "decision", "evidence")
-OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
-
-
-def decode_scale(model) -> int:
-    """The scale the cell's MJPEG camera decodes at for this bundle: 1/reduce on the reduced
-    path (runtime/preprocess.py), full size otherwise (runtime/camera.py UVCCamera)."""
-    return max(1, model.preprocess_spec.reduce) if model.descriptor is None else 1
-
-
-class CameraChecks:
-    """What the cell does to each grabbed frame before scoring it: the camera's frame guard
-    (check_frame, frozen frame) and the press-frame contact check against the item's no-contact
-    frame (on by default for a UVC camera, docs/cell.md)."""
-
-    def __init__(self, reference_image: np.ndarray) -> None:
-        from vs2t_edge.runtime.camera import ContactCheck, FrameGuard
-
-        self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
-
-    def __call__(self, image: np.ndarray) -> None:
-        self.guard.admit(image)
-        self.contact.read(image, self.reference)
-
-
-def press_stages(model, jpeg: bytes, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
-    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
-    GelSight streams MJPEG; the camera decodes it with libjpeg, at 1/reduce scale for a bundle on the
-    reduced path: ``decode_scale``), the camera's frame checks (``checks``), preprocess, trunk,
-    heads, router, decision (TactileModel.score_press) and the evidence update. For a fused bundle
-    (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
-    0 (``speed_worker`` measures what the graph's tail costs apart)."""
-    from vs2t_edge.runtime.preprocess import decode_jpeg
-
-    scale = decode_scale(model)
-    t0 = time.perf_counter()
-    frame = decode_jpeg(jpeg, scale)
-    t1 = time.perf_counter()
-    if checks is not None:
-        checks(frame)
-    t1c = time.perf_counter()
-    s = model.score_press(frame, scale)
-    tm = dict(model.last_timing)
-    t2 = time.perf_counter()
-    evidence.add(s)
-    t3 = time.perf_counter()
-    return {"decode_mjpeg": 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
-            "trunk": tm["trunk_ms"], "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
-            "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
 
 
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
@@ -312,58 +263,6 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     out["frame_hw"] = sensor_hw  # the camera's frames; decoded at 1/decode_scale
     out["decode_scale"] = scale
     return out
-
-
-def _time_runs(sess, name: str, xs: list, n: int) -> list[float]:
-    for x in xs[:3]:
-        sess.run(None, {name: x})
-    times = []
-    for k in range(n):
-        x = xs[k % len(xs)]
-        t0 = time.perf_counter()
-        sess.run(None, {name: x})
-        times.append(1e3 * (time.perf_counter() - t0))
-    return times
-
-
-def _time_split(trunk, tail, name: str, xs: list, n: int) -> tuple[list[float], list[float]]:
-    """The trunk part, then the tail part on its feature, press after press (the tail finds the
-    caches as the trunk left them, as inside the one call): (trunk times, tail times)."""
-    for x in xs[:3]:
-        tail.run(None, {"feature": trunk.run(None, {name: x})[0]})
-    tt, tl = [], []
-    for k in range(n):
-        t0 = time.perf_counter()
-        (f,) = trunk.run(None, {name: xs[k % len(xs)]})
-        t1 = time.perf_counter()
-        tail.run(None, {"feature": f})
-        t2 = time.perf_counter()
-        tt.append(1e3 * (t1 - t0))
-        tl.append(1e3 * (t2 - t1))
-    return tt, tl
-
-
-def split_press_graph(model, threads: int):
-    """(trunk part, tail part) of a fused press graph as two sessions opened like the bundle's:
-    image -> feature, and feature -> the other outputs; cut with ``onnx`` (train extra), None
-    without it. Timing the tail apart slightly overstates it (one more session call)."""
-    try:
-        import onnx
-        from onnx.utils import Extractor
-    except ImportError:
-        return None
-    import tempfile
-
-    from vs2t_edge.runtime.bundle import open_session
-
-    ex = Extractor(onnx.load(str(model.bundle.path("trunk"))))
-    with tempfile.TemporaryDirectory() as tmp:
-        out = []
-        for part, ins, outs in (("trunk", [model._trunk_in], ["feature"]), ("tail", ["feature"], model._press_outputs[1:])):
-            path = Path(tmp) / f"{part}.onnx"
-            onnx.save(ex.extract_model(ins, outs), str(path))
-            out.append(open_session(path, threads))
-        return tuple(out)
 
 
 def baseline_worker() -> dict:
@@ -567,7 +466,8 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
 
 # The issue's targets (benchmarked, not timed tests).
 TARGET_OF_LIMIT = 1.25  # the ResNet50 trunk within 1.25x of this CPU's compute limit, batch 1, 2 threads
-TARGET_CELL_MS = 2.0  # everything per press outside the trunk: decode (MJPEG), preprocess, heads, router, decision, evidence
+TARGET_CELL_MS = 1.0  # p50, everything per press outside the trunk: decode (MJPEG), frame checks, preprocess, heads,
+TARGET_CELL_P99_MS = 2.0  # router, decision, evidence (issue 14: <= 1 ms p50, < 2 ms p99 at 2 threads)
 TARGET_INT8_POINTS = 1.0  # int8 within 1 point of fp32 accuracy
 
 
@@ -584,19 +484,24 @@ def targets(result: dict) -> list[dict]:
         cell = o.get("cell")
         if cell is not None and "decode_mjpeg" in o:
             t = max(r.get("press", {"2": None}), key=int)
-            rest = cell - o["decode_mjpeg"]
-            miss = "" if cell < TARGET_CELL_MS else (
-                f"; misses by {cell - TARGET_CELL_MS:.2f} ms" + (" (decode alone takes the budget)" if o["decode_mjpeg"] >= TARGET_CELL_MS
-                                                                  else " even without decode" if rest >= TARGET_CELL_MS
-                                                                  else ", met without decode"))
+            rest, p99 = cell - o["decode_mjpeg"], r.get("overhead_p99_ms", {}).get("cell", math.nan)
+            met = cell <= TARGET_CELL_MS and p99 < TARGET_CELL_P99_MS
+            miss = "" if cell <= TARGET_CELL_MS else (
+                f"; p50 misses by {cell - TARGET_CELL_MS:.2f} ms" + (
+                    " (decode alone takes the budget)" if o["decode_mjpeg"] >= TARGET_CELL_MS
+                    else " even without decode" if rest >= TARGET_CELL_MS else ", met without decode"))
+            if not p99 < TARGET_CELL_P99_MS:
+                miss += f"; p99 over {TARGET_CELL_P99_MS:g} ms"
             rows.append({"variant": r["name"],
-                         "target": f"per press outside the trunk, decode included, < {TARGET_CELL_MS:g} ms (p50, {t} threads)",
+                         "target": f"per press outside the trunk, decode included, p50 <= {TARGET_CELL_MS:g} ms and "
+                                   f"p99 < {TARGET_CELL_P99_MS:g} ms ({t} threads)",
                          "measured": f"{cell:.2f} ms = MJPEG decode {o['decode_mjpeg']:.2f} + the rest {rest:.2f}"
-                                     f" (p99 {r['overhead_p99_ms']['cell']:.2f}){miss}",
-                         "met": cell < TARGET_CELL_MS})
+                                     f" (p99 {p99:.2f}){miss}",
+                         "met": met})
         elif cell is not None:  # a bench.json from before decode was timed: the rest only
-            rows.append({"variant": r["name"], "target": f"per press outside the trunk, decode NOT included, < {TARGET_CELL_MS:g} ms",
-                         "measured": f"{cell:.2f} ms", "met": cell < TARGET_CELL_MS})
+            rows.append({"variant": r["name"], "target": f"per press outside the trunk, decode NOT included, "
+                                                         f"<= {TARGET_CELL_MS:g} ms",
+                         "measured": f"{cell:.2f} ms", "met": cell <= TARGET_CELL_MS})
     for c in result.get("comparisons", []):
         if c.get("delta_points"):
             worst = max(c["delta_points"].items(), key=lambda kv: abs(kv[1]))

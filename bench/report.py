@@ -151,7 +151,7 @@ def render_markdown(result: dict) -> str:
               "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
               f"press frame encoded once as JPEG q={JPEG_QUALITY}, cv2.imdecode timed) + preprocess + trunk + heads + "
               "router + decision + evidence update, timed end to end per press; *outside trunk* = median over presses of "
-              "(press - its own trunk run) at 2 threads, decode included: what the target (< 2 ms) is judged on (medians do "
+              "(press - its own trunk run) at 2 threads, decode included: what the target (p50 <= 1 ms, p99 < 2 ms) is judged on (medians do "
               "not add: *press* p50 can exceed trunk p50 + outside p50, since a trunk run between other work wakes "
               "onnxruntime's thread pool instead of finding it spinning, as the trunk-alone loop does); RSS = "
               "peak resident memory of a process that "

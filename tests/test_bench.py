@@ -204,16 +204,24 @@ def test_targets_follow_the_measurements(bench_result):
     for r in result["variants"]:
         row = cell[r["name"]]
         assert "decode included" in row["target"] and "MJPEG decode" in row["measured"]
-        assert row["met"] == (r["press"]["2"]["outside_p50_ms"] < bench.TARGET_CELL_MS)
-    # a miss says by how much and whether decode is to blame
+        assert row["met"] == (r["press"]["2"]["outside_p50_ms"] <= bench.TARGET_CELL_MS
+                              and r["press"]["2"]["outside_p99_ms"] < bench.TARGET_CELL_P99_MS)
+    # a miss says by how much and whether decode is to blame; p50 and p99 are both judged
     fake = json.loads(json.dumps(result))
     v = fake["variants"][0]
-    v["overhead_ms"].update(cell=2.5, decode_mjpeg=0.9)
+    v["overhead_ms"].update(cell=1.5, decode_mjpeg=0.9)
+    v["overhead_p99_ms"].update(cell=1.9)
     (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
-    assert not row["met"] and "misses by 0.50 ms, met without decode" in row["measured"]
-    v["overhead_ms"].update(cell=2.5, decode_mjpeg=0.2)
+    assert not row["met"] and "p50 misses by 0.50 ms, met without decode" in row["measured"]
+    v["overhead_ms"].update(cell=1.5, decode_mjpeg=0.2)
     (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
     assert "even without decode" in row["measured"]
+    v["overhead_ms"].update(cell=0.9, decode_mjpeg=0.5)
+    (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
+    assert row["met"]
+    v["overhead_p99_ms"].update(cell=2.4)
+    (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
+    assert not row["met"] and "p99 over 2 ms" in row["measured"]
     # a ResNet50 row is judged against its compute limit
     fake = json.loads(json.dumps(result))
     v = fake["variants"][0]

@@ -1,0 +1,113 @@
+"""The press as the cell pays for it, for the bench (bench/measure.py): the camera's MJPEG frame
+decoded at the bundle's scale, the camera's frame checks, the cell's own scoring and evidence,
+stage by stage; and a fused press graph cut into its trunk and its tail so each can be timed."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC camera's MJPEG stream
+STAGES = ("decode_mjpeg", "camera_checks", "preprocess", "trunk", "heads", "router", "decision", "evidence")
+OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
+
+
+def decode_scale(model) -> int:
+    """The scale the cell's MJPEG camera decodes at for this bundle: 1/reduce on the reduced
+    path (runtime/preprocess.py), full size otherwise (runtime/camera.py UVCCamera)."""
+    return max(1, model.preprocess_spec.reduce) if model.descriptor is None else 1
+
+
+class CameraChecks:
+    """What the cell does to each grabbed frame before scoring it: the camera's frame guard
+    (check_frame, frozen frame) and the press-frame contact check against the item's no-contact
+    frame (on by default for a UVC camera, docs/cell.md)."""
+
+    def __init__(self, reference_image: np.ndarray) -> None:
+        from vs2t_edge.runtime.camera import ContactCheck, FrameGuard
+
+        self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
+
+    def __call__(self, image: np.ndarray) -> None:
+        self.guard.admit(image)
+        self.contact.read(image, self.reference)
+
+
+def press_stages(model, jpeg: bytes, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
+    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
+    GelSight streams MJPEG; the camera decodes it with libjpeg, at 1/reduce scale for a bundle on the
+    reduced path: ``decode_scale``), the camera's frame checks (``checks``), preprocess, trunk,
+    heads, router, decision (TactileModel.score_press) and the evidence update. For a fused bundle
+    (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
+    0 (``speed_worker`` measures what the graph's tail costs apart)."""
+    from vs2t_edge.runtime.preprocess import decode_jpeg
+
+    scale = decode_scale(model)
+    t0 = time.perf_counter()
+    frame = decode_jpeg(jpeg, scale)
+    t1 = time.perf_counter()
+    if checks is not None:
+        checks(frame)
+    t1c = time.perf_counter()
+    s = model.score_press(frame, scale)
+    tm = dict(model.last_timing)
+    t2 = time.perf_counter()
+    evidence.add(s)
+    t3 = time.perf_counter()
+    return {"decode_mjpeg": 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
+            "trunk": tm["trunk_ms"], "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
+            "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
+
+
+def _time_runs(sess, name: str, xs: list, n: int) -> list[float]:
+    for x in xs[:3]:
+        sess.run(None, {name: x})
+    times = []
+    for k in range(n):
+        x = xs[k % len(xs)]
+        t0 = time.perf_counter()
+        sess.run(None, {name: x})
+        times.append(1e3 * (time.perf_counter() - t0))
+    return times
+
+
+def _time_split(trunk, tail, name: str, xs: list, n: int) -> tuple[list[float], list[float]]:
+    """The trunk part, then the tail part on its feature, press after press (the tail finds the
+    caches as the trunk left them, as inside the one call): (trunk times, tail times)."""
+    for x in xs[:3]:
+        tail.run(None, {"feature": trunk.run(None, {name: x})[0]})
+    tt, tl = [], []
+    for k in range(n):
+        t0 = time.perf_counter()
+        (f,) = trunk.run(None, {name: xs[k % len(xs)]})
+        t1 = time.perf_counter()
+        tail.run(None, {"feature": f})
+        t2 = time.perf_counter()
+        tt.append(1e3 * (t1 - t0))
+        tl.append(1e3 * (t2 - t1))
+    return tt, tl
+
+
+def split_press_graph(model, threads: int):
+    """(trunk part, tail part) of a fused press graph as two sessions opened like the bundle's:
+    image -> feature, and feature -> the other outputs; cut with ``onnx`` (train extra), None
+    without it. Timing the tail apart slightly overstates it (one more session call)."""
+    try:
+        import onnx
+        from onnx.utils import Extractor
+    except ImportError:
+        return None
+    import tempfile
+
+    from vs2t_edge.runtime.bundle import open_session
+
+    ex = Extractor(onnx.load(str(model.bundle.path("trunk"))))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = []
+        for part, ins, outs in (("trunk", [model._trunk_in], ["feature"]), ("tail", ["feature"], model._press_outputs[1:])):
+            path = Path(tmp) / f"{part}.onnx"
+            onnx.save(ex.extract_model(ins, outs), str(path))
+            out.append(open_session(path, threads))
+        return tuple(out)
