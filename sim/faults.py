@@ -211,7 +211,7 @@ SCENARIOS = [
              "refuses, a piece wait past the watchdog, ...",
              "refused with exit 2 naming the file, no traceback", hostile_configs),
     Scenario("bundle_tampered", "bundle", "graph byte flipped / truncated, file missing, manifest truncated, "
-             "format 2, opset 11, probe mismatch",
+             "a newer format (3), opset 11, probe mismatch",
              "refused before READY, exit 2, file named, journal never opened", bundle_tampered),
     Scenario("bundle_manifest_edited", "bundle", "manifest.json beta edited by hand, hashes untouched",
              "refused before READY, exit 2, manifest.json named", bundle_manifest_edited),
