@@ -22,6 +22,7 @@ from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 
+from vs2t_edge.export.calibration import calibration_presses, sensitivity_presses
 from vs2t_edge.export.export import ExportError, _novelty, write_bundle
 
 
@@ -164,12 +165,18 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
 def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
-               threads: int = 2) -> dict:
+               threads: int = 2, float_nodes: Sequence[str] = (), float_auto: int = 0,
+               percentile: float | None = None) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
     refits that router and retunes beta on this run's touched and validation presses
-    (``refit_router``), e.g. the comparison's pooled recommendation instead of the run's own pick."""
+    (``refit_router``), e.g. the comparison's pooled recommendation instead of the run's own pick.
+
+    int8: ``calibration_frames`` training presses of touched fabrics set the ranges (0: all of
+    them, export/calibration.py); ``float_nodes`` keeps those trunk nodes in float; ``float_auto=K``
+    keeps the K that buy back the most on held-out touched and validation presses
+    (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
@@ -203,10 +210,10 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     calib_ids = [fid for fid in (art.touched_fabric_ids or art.touched) if fid in part]
     if set(calib_ids) - set(art.touched):
         raise ExportError("calibration fabrics must be touched fabrics")
-    per = max(1, math.ceil(calibration_frames / len(calib_ids)))
-    log(f"reading {per} training presses from each of {len(calib_ids)} touched fabrics (calibration)")
-    calib = np.concatenate([_frames(ds, fid, _spread(part[fid]["train"], per), spec) for fid in calib_ids])
-    calib = calib[_spread(range(len(calib)), calibration_frames)]
+    calib_src = calibration_presses(part, calib_ids, calibration_frames, untouched=art.untouched)
+    log(f"reading {sum(map(len, calib_src.values()))} training presses of {len(calib_src)} touched fabrics "
+        "(calibration)")
+    calib = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in calib_src.items()])
     for what, fids in (("int8 calibration, parity and the probe", calib_ids),
                        ("the gating fit (held-out touched presses)", art.touched),
                        ("the gating fit (validation presses)", art.validation)):
@@ -227,17 +234,40 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
         operating_point = (f"{router} router (refitted at export on touched training presses), beta balanced on "
                            f"validation fabrics {', '.join(art.validation)} against held-out touched presses")
         router_prov = {**refit["provenance"], "run_router": art.router_name, "run_beta": float(art.beta)}
+    quant_options: dict = {"float_nodes": list(float_nodes), "float_auto": int(float_auto)}
+    if percentile is not None:
+        quant_options["percentile"] = float(percentile)
+    if trunk_precision == "int8" and float_auto:
+        val_n = {fid: len(ds.by_id(fid).presses) for fid in art.validation}
+        sens_src = sensitivity_presses(part, art.touched, val_n, untouched=art.untouched)
+        quant_options["sensitivity_frames"] = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in sens_src.items()])
+        log(f"sensitivity scan on {len(quant_options['sensitivity_frames'])} held-out touched and validation presses")
+        quant_options.update(score=_logit_score(cls_t, cls_u), rank_by="logit_error")
     prov = {"run": str(run_dir.resolve()), "trained": True, "trained_size_px": trained_size,
             "data": {"dataset": str(ds_root.resolve()), "split_seed": seed, "max_presses": max_presses,
                      "validation": list(art.validation), "touched_presses": part,
-                     "calibration_fabrics": calib_ids}, "router": router_prov, "run_info": art.info}
+                     "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
+            "router": router_prov, "run_info": art.info}
     return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
                         untouched=art.untouched, preprocess=spec, beta=beta, calibration=calib,
                         trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
                         touched_heldout=heldout, provenance=prov, log=log, threads=threads,
                         calibration_method=calibration_method, float_convs=float_convs,
+                        quant_options=quant_options if trunk_precision == "int8" else None,
                         operating_point=operating_point,
                         scene_model=art.scene_model if router is None else None)
+
+
+def _logit_score(cls_t: nn.Module, cls_u: nn.Module):
+    """The sensitivity scan's measure at export: the heads' logit error (export/quantize.py)."""
+    from vs2t_edge.export.quantize import logit_error
+
+    def score(f8: np.ndarray, f32: np.ndarray) -> dict:
+        with torch.no_grad():
+            a = [m(torch.from_numpy(np.ascontiguousarray(f8))).numpy() for m in (cls_t, cls_u)]
+            b = [m(torch.from_numpy(np.ascontiguousarray(f32))).numpy() for m in (cls_t, cls_u)]
+        return {"logit_error": logit_error(a, b)}
+    return score
 
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
