@@ -89,14 +89,15 @@ def paired_press(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> di
             boots[k].append(b[k] - a[k])
     out: dict[str, Any] = {}
     for k in m32:
+        lo, hi = np.percentile(boots[k], [2.5, 97.5])
+        out[k] = {"fp32": m32[k], "int8": m8[k], "delta": m8[k] - m32[k], "ci95": [float(lo), float(hi)],
+                  "presses": int(len(lab)), "flips_worse": None, "flips_better": None, "mcnemar_p": None}
+        if k == "H":  # H is not one press's right or wrong: its interval only
+            continue
         mask = is_t if k == "acc_t" else ~is_t
         x32, x8 = i32[k][mask], i8[k][mask]
         worse, better = int(np.sum(x32 & ~x8)), int(np.sum(~x32 & x8))
-        lo, hi = np.percentile(boots[k], [2.5, 97.5])
-        out[k] = {"fp32": m32[k], "int8": m8[k], "delta": m8[k] - m32[k], "ci95": [float(lo), float(hi)],
-                  "presses": int(mask.sum()), "flips_worse": worse, "flips_better": better,
-                  "mcnemar_p": mcnemar_p(worse, better) if k != "H" else None}
-    out["H"]["flips_worse"] = out["H"]["flips_better"] = None  # H is not one press's right or wrong
+        out[k].update(presses=int(mask.sum()), flips_worse=worse, flips_better=better, mcnemar_p=mcnemar_p(worse, better))
     return out
 
 

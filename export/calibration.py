@@ -39,8 +39,9 @@ def _guard(fabrics: Sequence[str], untouched: Sequence[str], what: str) -> None:
 
 def calibration_presses(part: dict[str, dict[str, list[int]]], fabrics: Sequence[str], n: int,
                         untouched: Sequence[str] = ()) -> dict[str, list[int]]:
-    """``n`` training presses (0: all of them) over ``fabrics`` (touched), the same number from each
-    fabric, evenly spread in press order; {fabric: press indices}."""
+    """``n`` training presses (0: all of them; fewer when there are fewer) over ``fabrics``
+    (touched), about the same number from each fabric, evenly spread in press order; {fabric: press
+    indices}."""
     fabrics = list(fabrics)
     if not fabrics:
         raise PressLeak("calibration needs at least one touched fabric")
@@ -51,7 +52,11 @@ def calibration_presses(part: dict[str, dict[str, list[int]]], fabrics: Sequence
     if n <= 0:
         return {f: list(part[f]["train"]) for f in fabrics if part[f]["train"]}
     per = max(1, math.ceil(n / len(fabrics)))
+    longest = max(len(part[f]["train"]) for f in fabrics)
     pairs = [(f, i) for f in fabrics for i in spread(part[f]["train"], per)]
+    while len(pairs) < n and per < longest:  # fabrics with few training presses: take more of the others
+        per += 1
+        pairs = [(f, i) for f in fabrics for i in spread(part[f]["train"], per)]
     out: dict[str, list[int]] = {}
     for f, i in (pairs[j] for j in spread(range(len(pairs)), n)):
         out.setdefault(f, []).append(i)

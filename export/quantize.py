@@ -27,6 +27,9 @@ import numpy as np
 
 METHODS = ("minmax", "percentile", "entropy")
 # node types the QDQ quantiser turns to integer kernels here; the candidates of the sensitivity scan
+# nodes onnxruntime would turn back to integer kernels after the quantiser left them in float
+FLOAT_KERNEL_OPS = ("Conv", "ConvTranspose", "Gemm", "MatMul", "Add", "Mul", "Concat", "AveragePool",
+                    "GlobalAveragePool", "Sigmoid")
 CANDIDATE_OPS = ("Conv", "Add", "Mul", "MatMul", "Gemm", "Concat", "AveragePool", "GlobalAveragePool", "Sigmoid")
 
 
@@ -145,6 +148,73 @@ class Quantiser:
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         nodes_to_exclude=list(exclude), calibrate_method=methods[self.method],
                         extra_options=extra, **kwargs)
+        float_ops = [n for n in exclude if self.nodes.get(n) in FLOAT_KERNEL_OPS]
+        if float_ops:
+            keep_float(out_path, float_ops)
+
+
+def keep_float(path: Path | str, names: Sequence[str]) -> int:
+    """Make the nodes ``names`` of a QDQ graph really run in float; returns how many inputs it rewired.
+
+    Leaving a node out of quantisation is not enough: onnxruntime's WeightBiasQuantization
+    optimiser quantises the float weights of any Conv/Gemm whose input comes from a
+    DequantizeLinear with a per-tensor scale (symmetric per-TENSOR int8, worse than the exporter's
+    per-channel), and the QDQ fusions then run it as an integer kernel. Each activation input of
+    those nodes is therefore read through its own DequantizeLinear with the same scale and zero
+    point repeated per channel (axis 1): the same numbers, but no longer the per-tensor pattern
+    those optimisers match, so the node computes in float on float weights."""
+    import onnx
+    from onnx import helper, numpy_helper
+
+    model = onnx.load(str(path))
+    g = model.graph
+    init = {i.name: i for i in g.initializer}
+    producer = {o: n for n in g.node for o in n.output}
+    shapes = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim]
+              for v in list(g.value_info) + list(g.input) + list(g.output)}
+    by_name = {n.name: n for n in g.node}
+    new_nodes, rewired = [], 0
+    for name in names:
+        node = by_name.get(name)
+        if node is None:
+            raise ValueError(f"float node {name!r} is not in the quantised graph")
+        for k, x in enumerate(node.input):
+            dq = producer.get(x)
+            if dq is None or dq.op_type != "DequantizeLinear" or dq.input[0] in init:
+                continue  # not an activation read through a DequantizeLinear
+            scale, zp = (numpy_helper.to_array(init[t]) if t in init else None for t in (dq.input[1], dq.input[2]))
+            if scale is None or zp is None or scale.size != 1:
+                continue
+            channels = None
+            if node.op_type in ("Conv", "ConvTranspose") and k == 0 and node.input[1] in init:
+                w = init[node.input[1]].dims
+                group = next((a.i for a in node.attribute if a.name == "group"), 1)
+                channels = int(w[1] * group) if node.op_type == "Conv" else int(w[0])
+            elif len(shapes.get(x, [])) >= 2 and shapes[x][1] > 0:
+                channels = shapes[x][1]
+            if not channels:
+                raise ValueError(f"cannot keep {name!r} in float: the channel count of its input {x!r} is unknown")
+            tag = f"{x}_float_for_{name}"
+            g.initializer.extend([numpy_helper.from_array(np.full(channels, scale.reshape(-1)[0], scale.dtype), tag + "_scale"),
+                                  numpy_helper.from_array(np.full(channels, zp.reshape(-1)[0], zp.dtype), tag + "_zero_point")])
+            new_nodes.append(helper.make_node("DequantizeLinear", [dq.input[0], tag + "_scale", tag + "_zero_point"],
+                                              [tag], name=tag + "_DequantizeLinear", axis=1))
+            node.input[k] = tag
+            rewired += 1
+    if new_nodes:
+        # each new DequantizeLinear right before the first node that reads it (topological order);
+        # a shared DequantizeLinear nobody reads any more is dropped
+        reads = {n.output[0]: n for n in new_nodes}
+        read = {i for n in g.node for i in n.input} | {o.name for o in g.output}
+        order = []
+        for n in g.node:
+            if n.op_type == "DequantizeLinear" and n.output[0] not in read:
+                continue
+            order += [reads.pop(i) for i in n.input if i in reads] + [n]
+        del g.node[:]
+        g.node.extend(order)
+        onnx.save(model, str(path))
+    return rewired
 
 
 def _session(path: Path | str, threads: int):
@@ -257,4 +327,4 @@ def quantize_trunk_static(fp32_path: Path | str, out_path: Path | str, calibrati
     return rep
 
 
-__all__ = ["quantize_trunk_static", "layer_sensitivity", "logit_error", "Quantiser", "feature_error", "run_graph", "METHODS"]
+__all__ = ["quantize_trunk_static", "layer_sensitivity", "logit_error", "keep_float", "Quantiser", "feature_error", "run_graph", "METHODS"]
