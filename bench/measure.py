@@ -343,7 +343,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     result["comparisons"] = compare_pairs(rows)
     for c in result["comparisons"]:  # the same presses and items: the difference with its noise
         if c["fp32"] in views and c["int8"] in views:
-            c["paired"] = paired(views[c["fp32"]], views[c["int8"]])
+            c["paired"] = paired(views[c["fp32"]], views[c["int8"]], n_items=n_items)
     result["targets"] = targets(result)
     result["recommendation"] = recommend(result)
     if out_dir is not None:

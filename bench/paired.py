@@ -7,6 +7,8 @@ press orders come from a seed, never from a decision), so the difference of two 
 - per press: ZSL, acc_t, acc_u and H at each bundle's beta; the delta with a 95 % bootstrap
   interval (presses resampled within each fabric, the per-class means recomputed) and the count
   of presses that flip (fp32 right and int8 wrong, and the reverse) with McNemar's exact p;
+- per item (random presses of one fabric, the bench's own items): H with 5 presses and with the
+  sequential rule, bootstrap over items within each fabric, items that flip;
 - per item, by bins: pieces in the right bin, for the scene decision and the router's posterior,
   the delta with a bootstrap over scenes and the items that flip.
 
@@ -152,10 +154,50 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
     return out
 
 
-def paired(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dict:
-    return {"press": paired_press(v32, v8, n_boot, seed), "bins": paired_bins(v32, v8, n_boot, seed),
+def paired_items(v32: dict, v8: dict, n_items: int = 100, n_boot: int = N_BOOT, seed: int = 0) -> dict:
+    """Per item (accuracy.draw_items: the bench's own items, the same for both bundles): H with 5
+    presses summed and with the sequential rule; delta, bootstrap over items within each fabric,
+    items that flip (right for one bundle only)."""
+    from vs2t_edge.bench.accuracy import draw_items, sequential_items
+
+    lab = v32["out"]["label"]
+    if not np.array_equal(lab, v8["out"]["label"]):
+        raise ValueError("the two bundles were not scored on the same presses (labels differ); pair them on one dataset")
+    items, item_lab, _ = draw_items(lab, n_items, seed)
+    ct = v32["ct"]
+    right = {}
+    for name, v in (("fp32", v32), ("int8", v8)):
+        lp = v["out"]["lp"]
+        right[name] = {"item5": np.argmax(lp[items[:, :5]].sum(axis=1), axis=1) == item_lab,
+                       "sequential": sequential_items(v["classes"], lp, items, item_lab)[0]}
+    rows = {c: np.flatnonzero(item_lab == c) for c in np.unique(item_lab)}
+
+    def h(x: np.ndarray, idx: dict) -> float:
+        at = np.mean([np.mean(x[r]) for c, r in idx.items() if c < ct])
+        au = np.mean([np.mean(x[r]) for c, r in idx.items() if c >= ct])
+        return 100 * _h(float(at), float(au))
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    for key in ("item5", "sequential"):
+        a, b = right["fp32"][key], right["int8"][key]
+        boots = []
+        for _ in range(n_boot):
+            res = {c: r[rng.integers(0, len(r), len(r))] for c, r in rows.items()}
+            boots.append(h(b, res) - h(a, res))
+        lo, hi = np.percentile(boots, [2.5, 97.5])
+        worse, better = int(np.sum(a & ~b)), int(np.sum(~a & b))
+        out[f"{key}_H"] = {"fp32": h(a, rows), "int8": h(b, rows), "delta": h(b, rows) - h(a, rows),
+                           "ci95": [float(lo), float(hi)], "items": int(len(a)), "flips_worse": worse,
+                           "flips_better": better, "mcnemar_p": mcnemar_p(worse, better)}
+    return out
+
+
+def paired(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0, n_items: int = 100) -> dict:
+    return {"press": paired_press(v32, v8, n_boot, seed), "items": paired_items(v32, v8, n_items, n_boot, seed),
+            "bins": paired_bins(v32, v8, n_boot, seed),
             "bootstrap": n_boot, "note": "int8 minus fp32 on the same presses / items; ci95 by bootstrap "
             "(presses within fabric; scenes for bins); flips = discordant pairs, McNemar exact p"}
 
 
-__all__ = ["paired", "paired_press", "paired_bins", "mcnemar_p", "view"]
+__all__ = ["paired", "paired_press", "paired_items", "paired_bins", "mcnemar_p", "view"]

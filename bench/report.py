@@ -184,6 +184,7 @@ def render_paired(result: dict) -> str:
         if not p:
             continue
         items = [(f"press {k}", p["press"][k], "presses") for k in ("acc_t", "zsl", "acc_u", "H")]
+        items += [(f"item {k[:-2]} H", v, "items") for k, v in p.get("items", {}).items()]
         items += [(f"bins right ({k})", v, "items") for k, v in p.get("bins", {}).items()]
         for name, d, unit in items:
             flips = "–" if d.get("flips_worse") is None else f"{d['flips_worse']} / {d['flips_better']}"

@@ -150,10 +150,16 @@ class Quantiser:
                         extra_options=extra, **kwargs)
         float_ops = [n for n in exclude if self.nodes.get(n) in FLOAT_KERNEL_OPS]
         if float_ops:
-            keep_float(out_path, float_ops)
+            keep_float(out_path, float_ops, _shapes(self.model))
 
 
-def keep_float(path: Path | str, names: Sequence[str]) -> int:
+def _shapes(model) -> dict[str, list[int]]:
+    g = model.graph
+    return {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim]
+            for v in list(g.value_info) + list(g.input) + list(g.output)}
+
+
+def keep_float(path: Path | str, names: Sequence[str], shapes: dict[str, list[int]] | None = None) -> int:
     """Make the nodes ``names`` of a QDQ graph really run in float; returns how many inputs it rewired.
 
     Leaving a node out of quantisation is not enough: onnxruntime's WeightBiasQuantization
@@ -170,8 +176,7 @@ def keep_float(path: Path | str, names: Sequence[str]) -> int:
     g = model.graph
     init = {i.name: i for i in g.initializer}
     producer = {o: n for n in g.node for o in n.output}
-    shapes = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim]
-              for v in list(g.value_info) + list(g.input) + list(g.output)}
+    shapes = {**_shapes(model), **(shapes or {})}  # the float graph's shapes: the quantiser's tensors have none
     by_name = {n.name: n for n in g.node}
     new_nodes, rewired = [], 0
     for name in names:
@@ -190,8 +195,11 @@ def keep_float(path: Path | str, names: Sequence[str]) -> int:
                 w = init[node.input[1]].dims
                 group = next((a.i for a in node.attribute if a.name == "group"), 1)
                 channels = int(w[1] * group) if node.op_type == "Conv" else int(w[0])
-            elif len(shapes.get(x, [])) >= 2 and shapes[x][1] > 0:
-                channels = shapes[x][1]
+            else:  # the float tensor the Q -> DQ pair stands for
+                q = producer.get(dq.input[0])
+                src = q.input[0] if q is not None and q.op_type == "QuantizeLinear" else x
+                if len(shapes.get(src, [])) >= 2 and shapes[src][1] > 0:
+                    channels = shapes[src][1]
             if not channels:
                 raise ValueError(f"cannot keep {name!r} in float: the channel count of its input {x!r} is unknown")
             tag = f"{x}_float_for_{name}"

@@ -80,6 +80,43 @@ def test_float_nodes_stay_float_in_the_graph_onnxruntime_runs(tiny_fp32, tmp_pat
     assert _float_convs_after_ort(mixed, tmp_path) == (1, 2)
 
 
+def test_a_residual_add_kept_in_float_is_not_fused_back(tmp_path):
+    """A residual Add left out of quantisation runs as a float Add, not QLinearAdd (its inputs'
+    channel counts come from the float graph: the quantiser's tensors carry no shapes)."""
+    import onnx
+    import onnxruntime as ort
+
+    class Res(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.a = torch.nn.Conv2d(3, 8, 3, padding=1)
+            self.b = torch.nn.Conv2d(8, 8, 1)
+            self.c = torch.nn.Conv2d(8, 8, 1)
+
+        def forward(self, x):
+            y = torch.relu(self.a(x))
+            return self.c(y + self.b(y)).mean((2, 3))
+
+    torch.manual_seed(0)
+    x = np.random.default_rng(0).standard_normal((16, 3, 16, 16)).astype(np.float32)
+    ex.export_onnx(Res().eval(), torch.from_numpy(x[:1]), tmp_path / "r.onnx", "image", ["feature"])
+    with Quantiser(tmp_path / "r.onnx", x) as q:
+        (add,) = [n for n in q.order if q.nodes[n] == "Add"]
+
+    def ops(path):
+        so = ort.SessionOptions()
+        so.optimized_model_filepath = str(tmp_path / "opt.onnx")
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+        ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        return [n.op_type for n in onnx.load(str(tmp_path / "opt.onnx")).graph.node]
+
+    quantize_trunk_static(tmp_path / "r.onnx", tmp_path / "all8.onnx", x)
+    quantize_trunk_static(tmp_path / "r.onnx", tmp_path / "mixed.onnx", x, float_nodes=[add])
+    assert "QLinearAdd" in ops(tmp_path / "all8.onnx")
+    mixed = ops(tmp_path / "mixed.onnx")
+    assert "QLinearAdd" not in mixed and "Add" in mixed and mixed.count("QLinearConv") >= 2
+
+
 def test_unknown_float_node_is_refused_by_name(tiny_fp32, tmp_path):
     path, x = tiny_fp32
     with pytest.raises(ValueError, match="not in the trunk graph: /no/such/Conv"):
@@ -235,3 +272,28 @@ def test_paired_press_counts_flips_and_its_interval_holds_the_truth():
     other["out"] = dict(other["out"], label=np.roll(other["out"]["label"], 1))
     with pytest.raises(ValueError, match="same presses"):
         pr.paired_press(_view(), other)
+
+
+def test_paired_numbers_are_the_bench_accuracy_numbers():
+    """The paired comparison recomputes the bench's own per-press and per-item numbers (same
+    presses, same items): its fp32 and int8 columns must equal accuracy()'s for each bundle."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.bench.accuracy import accuracy
+
+    rng = np.random.default_rng(1)
+    views = []
+    for noise in (0.0, 3.0):
+        v = _view(rng.normal(0, 1 + noise, (50, 5)))
+        v["out"]["lsu"] = v["out"]["lsu"] + rng.normal(0, 4, (50, 2))
+        v["out"]["novelty"] = v["out"]["novelty"] + rng.normal(0, 0.8, 50)
+        views.append(v)
+    got = pr.paired(*views, n_boot=50, n_items=20)
+    for v, col in zip(views, ("fp32", "int8")):
+        model = SimpleNamespace(touched=v["touched"], untouched=v["untouched"], classes=v["classes"],
+                                beta=v["beta"], scene_model=None)
+        acc = accuracy(model, v["out"], n_items=20)
+        for k in ("zsl", "acc_t", "acc_u", "H"):
+            assert got["press"][k][col] == pytest.approx(acc["press"][k])
+        assert got["items"]["item5_H"][col] == pytest.approx(acc["items"]["5"]["H"])
+        assert got["items"]["sequential_H"][col] == pytest.approx(acc["sequential"]["H"])
