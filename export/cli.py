@@ -38,6 +38,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--int8-float-nodes", default=None, metavar="NAMES",
                         help="trunk graph nodes to keep in float, comma-separated, or @FILE: the JSON "
                              "`vs2t-edge int8-sensitivity --out FILE` writes (its 'recommended' list)")
+    parser.add_argument("--int8-keep-operating-point", action="store_true",
+                        help="move beta so the int8 graph keeps as many held-out touched presses touched as fp32 "
+                             "does at the run's beta (int8 noise otherwise routes more presses to untouched)")
     parser.add_argument("--int8-float-auto", type=int, default=0, metavar="K",
                         help="keep in float the K trunk nodes whose float copy buys back the most feature error "
                              "on held-out touched and validation presses (a sensitivity scan at export; default 0)")
@@ -88,8 +91,10 @@ def run(args) -> int:
     except (OSError, ValueError) as exc:
         print(f"export: --int8-float-nodes: {exc}", file=sys.stderr)
         return 2
-    if (float_nodes or args.int8_float_auto or args.int8_percentile is not None) and args.trunk_precision != "int8":
-        print("export: --int8-float-nodes, --int8-float-auto and --int8-percentile need --trunk-precision int8",
+    if ((float_nodes or args.int8_float_auto or args.int8_percentile is not None or args.int8_keep_operating_point)
+            and args.trunk_precision != "int8"):
+        print("export: --int8-float-nodes, --int8-float-auto, --int8-percentile and --int8-keep-operating-point "
+              "need --trunk-precision int8",
               file=sys.stderr)
         return 2
     try:
@@ -115,7 +120,8 @@ def run(args) -> int:
                            calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
                            calibration_method=args.int8_calibration, float_convs=args.float_convs,
                            router=args.router, threads=args.threads, float_nodes=float_nodes,
-                           float_auto=args.int8_float_auto, percentile=args.int8_percentile)
+                           float_auto=args.int8_float_auto, percentile=args.int8_percentile,
+                           int8_keep_operating_point=args.int8_keep_operating_point)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2

@@ -166,7 +166,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
                threads: int = 2, float_nodes: Sequence[str] = (), float_auto: int = 0,
-               percentile: float | None = None) -> dict:
+               percentile: float | None = None, int8_keep_operating_point: bool = False) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
@@ -176,7 +176,9 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     int8: ``calibration_frames`` training presses of touched fabrics set the ranges (0: all of
     them, export/calibration.py); ``float_nodes`` keeps those trunk nodes in float; ``float_auto=K``
     keeps the K that buy back the most on held-out touched and validation presses
-    (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration."""
+    (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration;
+    ``int8_keep_operating_point`` moves beta so the int8 graph keeps as many held-out touched
+    presses touched as fp32 does at the run's beta (``matched_beta``; the bundle is written twice)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
@@ -248,14 +250,48 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                      "validation": list(art.validation), "touched_presses": part,
                      "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
             "router": router_prov, "run_info": art.info}
-    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
-                        untouched=art.untouched, preprocess=spec, beta=beta, calibration=calib,
-                        trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
-                        touched_heldout=heldout, provenance=prov, log=log, threads=threads,
-                        calibration_method=calibration_method, float_convs=float_convs,
-                        quant_options=quant_options if trunk_precision == "int8" else None,
-                        operating_point=operating_point,
-                        scene_model=art.scene_model if router is None else None)
+    def write(beta_: float, operating_point_: str, prov_: dict, quant_: dict) -> dict:
+        return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
+                            untouched=art.untouched, preprocess=spec, beta=beta_, calibration=calib,
+                            trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
+                            touched_heldout=heldout, provenance=prov_, log=log, threads=threads,
+                            calibration_method=calibration_method, float_convs=float_convs,
+                            quant_options=quant_ if trunk_precision == "int8" else None,
+                            operating_point=operating_point_,
+                            scene_model=art.scene_model if router is None else None)
+
+    m = write(beta, operating_point, prov, quant_options)
+    if trunk_precision != "int8" or not int8_keep_operating_point:
+        return m
+    from vs2t_edge.runtime.inference import TactileModel
+
+    nov32 = _novelty(chosen, *_outputs(trunk, cls_t, cls_u, heldout))
+    nov8 = TactileModel.load(out_dir, threads=threads).forward(heldout).novelty
+    beta8, kept = matched_beta(nov32, nov8, beta)
+    log(f"int8 operating point: beta {beta:.6g} -> {beta8:.6g} keeps {kept:.1%} of {len(heldout)} held-out touched "
+        "presses touched, as fp32 does at the run's beta")
+    q = m["graphs"]["trunk"]["quantisation"]
+    quant2 = {**{k: v for k, v in quant_options.items() if k not in ("float_auto", "sensitivity_frames", "score",
+                                                                       "rank_by")},
+              "float_nodes": list(q.get("float_nodes_chosen", []))}  # the same graph again, nothing rescanned
+    prov2 = {**prov, "int8_operating_point": {
+        "rule": "beta moved so the int8 graph routes as many held-out touched presses (data.touched_presses[*].val) "
+                "touched as the fp32 graph does at the run's beta", "run_beta": float(beta), "beta": float(beta8),
+        "touched_kept": kept, "presses": int(len(heldout))}}
+    return write(beta8, f"{operating_point}; moved for int8 to keep fp32's touched kept rate ({kept:.1%})", prov2, quant2)
+
+
+def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:
+    """beta for the int8 graph that keeps the same share of touched presses touched (novelty <=
+    beta) as fp32 keeps at ``beta``, midway between two observed int8 scores. Returns (beta, share)."""
+    nov32, nov8 = np.asarray(nov32, np.float64), np.sort(np.asarray(nov8, np.float64))
+    kept = float(np.mean(nov32 <= beta))
+    k = int(round(kept * len(nov8)))  # presses to keep
+    if k <= 0:
+        return float(nov8[0] - 1.0 - abs(nov8[0])), kept
+    if k >= len(nov8):
+        return float(nov8[-1] + 1.0 + abs(nov8[-1])), kept
+    return float((nov8[k - 1] + nov8[k]) / 2), kept
 
 
 def _logit_score(cls_t: nn.Module, cls_u: nn.Module):
@@ -316,4 +352,4 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
                         log=log, threads=threads)
 
 
-__all__ = ["export_run", "export_random_trunk", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]
+__all__ = ["export_run", "export_random_trunk", "matched_beta", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]

@@ -297,3 +297,30 @@ def test_paired_numbers_are_the_bench_accuracy_numbers():
             assert got["press"][k][col] == pytest.approx(acc["press"][k])
         assert got["items"]["item5_H"][col] == pytest.approx(acc["items"]["5"]["H"])
         assert got["items"]["sequential_H"][col] == pytest.approx(acc["sequential"]["H"])
+
+
+def test_matched_beta_keeps_fp32s_touched_kept_rate():
+    """int8 noise shifts the router's scores; the moved beta keeps the same share of held-out
+    touched presses touched on the int8 graph as fp32 keeps at the run's beta."""
+    rng = np.random.default_rng(0)
+    nov32 = rng.normal(0, 1, 160)
+    beta = 0.7
+    nov8 = nov32 * 1.5 + 0.4 + rng.normal(0, 0.05, 160)  # wider and shifted, as int8 makes them
+    b8, kept = fr.matched_beta(nov32, nov8, beta)
+    assert kept == pytest.approx(np.mean(nov32 <= beta))
+    assert np.mean(nov8 <= b8) == pytest.approx(kept, abs=1 / 160)
+    assert not np.any(nov8 == b8)  # midway between two scores, never on one
+    assert np.mean(nov8 <= beta) < kept  # the run's beta would flag more touched presses
+    lo, _ = fr.matched_beta(np.ones(5), np.arange(5.0), 0.0)  # fp32 keeps none: int8 keeps none
+    assert np.all(np.arange(5.0) > lo)
+    hi, _ = fr.matched_beta(np.zeros(5), np.arange(5.0), 1.0)  # fp32 keeps all: int8 keeps all
+    assert np.all(np.arange(5.0) <= hi)
+
+
+def test_export_int8_keeps_the_operating_point(tiny_run, tmp_path):  # noqa: F811
+    run, art = tiny_run
+    m = fr.export_run(run, tmp_path / "b8", trunk_precision="int8", calibration_frames=12,
+                      int8_keep_operating_point=True)
+    op = m["provenance"]["int8_operating_point"]
+    assert op["run_beta"] == art.beta and m["beta"] == op["beta"] and 0 <= op["touched_kept"] <= 1
+    assert "moved for int8" in m["operating_point"]
