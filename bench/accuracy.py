@@ -96,7 +96,6 @@ def _h(a: float, b: float) -> float:
 
 def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
     """Per press and per item accuracies (module doc); all in percent."""
-    from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
     from vs2t_edge.runtime.router_eval import gzsl_accuracies
 
     ct = len(model.touched)
@@ -114,19 +113,7 @@ def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
                     "touched_routed_untouched": 100 * float(np.mean(routed_u[is_t])),
                     "untouched_routed_untouched": 100 * float(np.mean(routed_u[~is_t]))}
     # per item
-    rng = np.random.default_rng(seed)
-    kmax = max(max(ITEM_PRESSES), SEQ_MAX_PRESSES)
-    items, item_lab, replaced = [], [], 0
-    for c in np.unique(lab):
-        rows = np.flatnonzero(lab == c)
-        for _ in range(n_items):
-            if len(rows) >= kmax:
-                items.append(rng.choice(rows, kmax, replace=False))
-            else:
-                items.append(rng.choice(rows, kmax, replace=True))
-                replaced += 1
-        item_lab += [c] * n_items
-    items, item_lab = np.stack(items), np.asarray(item_lab)
+    items, item_lab, replaced = draw_items(lab, n_items, seed)
     it_t = item_lab < ct
     res["items"] = {"per_class": n_items, "drawn_with_replacement": replaced,
                     "note": "presses of one fabric drawn at random; scene = all bundle classes"}
@@ -139,7 +126,42 @@ def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
         res["items"][str(k)] = {"zsl": 100 * _per_class_mean(zs[~it_t] == item_lab[~it_t], item_lab[~it_t]),
                                 "acc_t": 100 * at, "acc_u": 100 * au, "H": 100 * _h(at, au)}
     # the sequential rule
-    classes = list(model.classes)
+    correct, used, unknown = sequential_items(list(model.classes), lp, items, item_lab)
+    at = _per_class_mean(correct[it_t], item_lab[it_t])
+    au = _per_class_mean(correct[~it_t], item_lab[~it_t])
+    res["sequential"] = {"confidence": SEQ_CONFIDENCE, "max_presses": SEQ_MAX_PRESSES,
+                         "presses_mean": float(used.mean()), "presses_touched": float(used[it_t].mean()),
+                         "presses_untouched": float(used[~it_t].mean()), "acc_t": 100 * at, "acc_u": 100 * au,
+                         "H": 100 * _h(at, au), "unknown": 100 * float(unknown.mean())}
+    res["bins"] = by_bins(model, out, seed=seed)
+    return res
+
+
+def draw_items(lab: np.ndarray, n_items: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
+    """``n_items`` items per class, each ``max(ITEM_PRESSES, SEQ_MAX_PRESSES)`` random presses of
+    that class (with replacement when it has fewer): (items, item labels, items drawn with
+    replacement). The draw depends only on the labels and the seed: two bundles scored on the
+    same presses get the same items."""
+    rng = np.random.default_rng(seed)
+    kmax = max(max(ITEM_PRESSES), SEQ_MAX_PRESSES)
+    items, item_lab, replaced = [], [], 0
+    for c in np.unique(lab):
+        rows = np.flatnonzero(lab == c)
+        for _ in range(n_items):
+            if len(rows) >= kmax:
+                items.append(rng.choice(rows, kmax, replace=False))
+            else:
+                items.append(rng.choice(rows, kmax, replace=True))
+                replaced += 1
+        item_lab += [c] * n_items
+    return np.stack(items), np.asarray(item_lab), replaced
+
+
+def sequential_items(classes: list, lp: np.ndarray, items: np.ndarray, item_lab: np.ndarray):
+    """The sequential rule (runtime.evidence, SEQ_CONFIDENCE, at most SEQ_MAX_PRESSES) on each
+    item: (right, presses used, decided unknown), one entry per item."""
+    from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+
     used, correct, unknown = [], [], []
     for row, c in zip(items, item_lab):
         ev = Evidence(classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
@@ -151,15 +173,7 @@ def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
         used.append(d.presses)
         correct.append(d.label == classes[c])
         unknown.append(d.label == UNKNOWN)
-    used, correct, unknown = np.asarray(used), np.asarray(correct), np.asarray(unknown)
-    at = _per_class_mean(correct[it_t], item_lab[it_t])
-    au = _per_class_mean(correct[~it_t], item_lab[~it_t])
-    res["sequential"] = {"confidence": SEQ_CONFIDENCE, "max_presses": SEQ_MAX_PRESSES,
-                         "presses_mean": float(used.mean()), "presses_touched": float(used[it_t].mean()),
-                         "presses_untouched": float(used[~it_t].mean()), "acc_t": 100 * at, "acc_u": 100 * au,
-                         "H": 100 * _h(at, au), "unknown": 100 * float(unknown.mean())}
-    res["bins"] = by_bins(model, out, seed=seed)
-    return res
+    return np.asarray(correct), np.asarray(used), np.asarray(unknown)
 
 
 def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict:

@@ -319,7 +319,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     log("measuring this machine's GEMM peak (1 and 2 threads, fp32 and int8)")
     peak = {p: {str(t): measure_peak(t, p) for t in threads} for p in ("fp32", "int8")}
     base = _run_worker(["--baseline"])
-    rows = []
+    from vs2t_edge.bench.paired import paired, view as paired_view
+
+    rows, views = [], {}
     for i, b in enumerate(bundles):
         b = Path(b)
         row = describe(b)
@@ -344,6 +346,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                 ds = load_dataset(ds_root)
                 outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap))
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
+                views[row["name"]] = paired_view(model, outs)  # for the paired int8-fp32 comparison
                 if arm is not None:
                     pieces_per_minute(row, arm)
             del model
@@ -353,6 +356,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
               "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     result["comparisons"] = compare_pairs(rows)
+    for c in result["comparisons"]:  # the same presses and items: the difference with its noise
+        if c["fp32"] in views and c["int8"] in views:
+            c["paired"] = paired(views[c["fp32"]], views[c["int8"]], n_items=n_items)
     result["targets"] = targets(result)
     result["recommendation"] = recommend(result)
     if out_dir is not None:

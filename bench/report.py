@@ -195,8 +195,31 @@ def render_markdown(result: dict) -> str:
             lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
                 _f(d[k], "{:+.1f}") for k in ("press_H", "press_zsl", "item5_H", "sequential_H")) + f" | {'yes' if c['within_1_point'] else 'no'} |"
                 if d else "– | – | – | – | – |"))
+        paired_lines = render_paired(result)
+        if paired_lines:
+            lines += ["", "### Paired: int8 minus fp32 on the same presses and items, with its noise", "", paired_lines]
     lines += render_made_by(result)
     return "\n".join(lines) + "\n"
+
+
+def render_paired(result: dict) -> str:
+    """int8 minus fp32 per comparison (bench/paired.py): delta [95 % bootstrap], presses or items
+    that flip worse / better, McNemar p. Empty when nothing was paired."""
+    rows = ["| int8 | fp32 | accuracy | fp32 | int8 | Δ [95 % CI] | flips worse / better | McNemar p | n |",
+            "|---|---|---|---:|---:|---|---|---:|---:|"]
+    for c in result.get("comparisons", []):
+        p = c.get("paired")
+        if not p:
+            continue
+        items = [(f"press {k}", p["press"][k], "presses") for k in ("acc_t", "zsl", "acc_u", "H")]
+        items += [(f"item {k[:-2]} H", v, "items") for k, v in p.get("items", {}).items()]
+        items += [(f"bins right ({k})", v, "items") for k, v in p.get("bins", {}).items()]
+        for name, d, unit in items:
+            flips = "–" if d.get("flips_worse") is None else f"{d['flips_worse']} / {d['flips_better']}"
+            pv = "–" if d.get("mcnemar_p") is None else f"{d['mcnemar_p']:.3g}"
+            rows.append(f"| {c['int8']} | {c['fp32']} | {name} | {d['fp32']:.1f} | {d['int8']:.1f} | {d['delta']:+.1f} "
+                        f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] | {flips} | {pv} | {d.get('presses', d.get('items'))} |")
+    return "\n".join(rows) if len(rows) > 2 else ""
 
 
 def plot_pareto(result: dict, path: Path) -> None:

@@ -26,11 +26,24 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--size", type=int, default=None,
                         help="input side in px (default: the run's); other sizes trade accuracy for speed")
     parser.add_argument("--calibration-frames", type=int, default=64,
-                        help="touched training presses for int8 ranges, parity and the probe (default 64)")
+                        help="touched training presses for int8 ranges, parity and the probe, the same number "
+                             "from each touched fabric (default 64; 0: every training press)")
     parser.add_argument("--int8-calibration", choices=("minmax", "percentile", "entropy"), default="minmax",
                         help="how int8 activation ranges are set from the calibration presses (default minmax)")
+    parser.add_argument("--int8-percentile", type=float, default=None, metavar="P",
+                        help="percentile of each activation kept by --int8-calibration percentile (default 99.999; "
+                             "ranges asymmetric)")
     parser.add_argument("--float-convs", type=int, default=0,
                         help="keep the last N convolutions of the trunk in float when quantising (default 0)")
+    parser.add_argument("--int8-float-nodes", default=None, metavar="NAMES",
+                        help="trunk graph nodes to keep in float, comma-separated, or @FILE: the JSON "
+                             "`vs2t-edge int8-sensitivity --out FILE` writes (its 'recommended' list)")
+    parser.add_argument("--int8-keep-operating-point", action="store_true",
+                        help="move beta so the int8 graph keeps as many held-out touched presses touched as fp32 "
+                             "does at the run's beta (int8 noise otherwise routes more presses to untouched)")
+    parser.add_argument("--int8-float-auto", type=int, default=0, metavar="K",
+                        help="keep in float the K trunk nodes whose float copy buys back the most feature error "
+                             "on held-out touched and validation presses (a sensitivity scan at export; default 0)")
     parser.add_argument("--router", default=None, metavar="NAME",
                         help="GZSL router to ship, refitted on the run's touched training presses with beta tuned "
                              "balanced on its validation fabrics (default: the run's stored router and beta); one of "
@@ -59,6 +72,25 @@ def _reduce(choice: str, dataset, size: int) -> int:
     return auto_reduce((geo.frame_height_px, geo.frame_width_px), size)
 
 
+def parse_float_nodes(value: str | None) -> list[str]:
+    """``a,b,c`` or ``@FILE`` (int8-sensitivity's JSON: its ``recommended`` list) -> node names."""
+    if not value:
+        return []
+    if value.startswith("@"):
+        import json
+
+        path = Path(value[1:])
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path} is not JSON: {exc}") from None
+        names = data.get("recommended") if isinstance(data, dict) else None
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError(f"{path}: no 'recommended' list of node names (write it with `vs2t-edge int8-sensitivity`)")
+        return names
+    return [n.strip() for n in value.split(",") if n.strip()]
+
+
 def run(args) -> int:
     from vs2t_edge.export.export import ExportError
     from vs2t_edge.export.from_run import export_random_trunk, export_run
@@ -72,6 +104,17 @@ def run(args) -> int:
         print(f"export: unknown router '{args.router}'; known: {', '.join(ROUTERS)}", file=sys.stderr)
         return 2
     t0 = time.time()
+    try:
+        float_nodes = parse_float_nodes(args.int8_float_nodes)
+    except (OSError, ValueError) as exc:
+        print(f"export: --int8-float-nodes: {exc}", file=sys.stderr)
+        return 2
+    if ((float_nodes or args.int8_float_auto or args.int8_percentile is not None or args.int8_keep_operating_point)
+            and args.trunk_precision != "int8"):
+        print("export: --int8-float-nodes, --int8-float-auto, --int8-percentile and --int8-keep-operating-point "
+              "need --trunk-precision int8",
+              file=sys.stderr)
+        return 2
     try:
         if args.random_trunk:
             if args.run or not args.dataset or not args.size:
@@ -100,7 +143,9 @@ def run(args) -> int:
             m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
                            calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
                            calibration_method=args.int8_calibration, float_convs=args.float_convs,
-                           router=args.router, threads=args.threads, fuse=not args.two_graphs)
+                           router=args.router, threads=args.threads, fuse=not args.two_graphs,
+                           float_nodes=float_nodes, float_auto=args.int8_float_auto, percentile=args.int8_percentile,
+                           int8_keep_operating_point=args.int8_keep_operating_point)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2
@@ -119,6 +164,9 @@ def run(args) -> int:
         q = checks["int8_vs_fp32_on_calibration"]
         print(f"  int8 vs fp32 on {q['frames']} touched presses: min feature cosine {q['feature_cosine_min']:.4f}, "
               f"CLS_t top-1 agreement {q['cls_t_top1_agreement']:.1%}")
+        kept = m["graphs"]["trunk"].get("quantisation", {}).get("float_nodes_chosen") or []
+        if kept:
+            print(f"  kept in float: {', '.join(kept)}")
     print(f"  router {m['router']['name']} (tells touched from untouched presses), beta {m['beta']:.6g} "
           f"(its threshold, on the router's own scale): {m['operating_point']}")
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")

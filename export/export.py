@@ -182,7 +182,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  validation: np.ndarray | None = None, touched_heldout: np.ndarray | None = None,
                  gating_temperature: float | None = None, operating_point: str = "balanced on validation fabrics",
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
-                 opset: int = OPSET, scene_model: dict | None = None,
+                 quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
                  fuse: bool = True) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
@@ -190,6 +190,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
     touched presses for the gating temperature; ``scene_model``: ``runtime.scene_model.SceneModel``
     parameters (train/decision.py) - the bundle then decides per scene with it (docs/bundle.md).
+    ``quant_options``: more keywords of ``export.quantize.quantize_trunk_static`` (float nodes,
+    the sensitivity scan and its frames, the percentile).
     ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
     descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors).
     ``fuse``: one press graph (format 2, export/fuse.py: heads and projections folded into
@@ -250,7 +252,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             from vs2t_edge.export.quantize import quantize_trunk_static
 
             quant = quantize_trunk_static(fp32, trunk_file, calibration, method=calibration_method,
-                                          float_convs=float_convs)
+                                          float_convs=float_convs, log=log, **(quant_options or {}))
             (f32,) = _run_batches(rb.open_session(fp32, threads), calibration)
             (f8,) = _run_batches(rb.open_session(trunk_file, threads), calibration)
             sess_h = rb.open_session(tmp / "heads.onnx", threads)

@@ -22,6 +22,7 @@ from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
 
+from vs2t_edge.export.calibration import calibration_presses, sensitivity_presses
 from vs2t_edge.export.export import ExportError, _novelty, write_bundle
 
 
@@ -164,12 +165,20 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
 def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str = "fp32", size: int | None = None,
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
-               threads: int = 2, fuse: bool = True) -> dict:
+               threads: int = 2, fuse: bool = True, float_nodes: Sequence[str] = (), float_auto: int = 0,
+               percentile: float | None = None, int8_keep_operating_point: bool = False) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
     refits that router and retunes beta on this run's touched and validation presses
-    (``refit_router``), e.g. the comparison's pooled recommendation instead of the run's own pick."""
+    (``refit_router``), e.g. the comparison's pooled recommendation instead of the run's own pick.
+
+    int8: ``calibration_frames`` training presses of touched fabrics set the ranges (0: all of
+    them, export/calibration.py); ``float_nodes`` keeps those trunk nodes in float; ``float_auto=K``
+    keeps the K that buy back the most on held-out touched and validation presses
+    (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration;
+    ``int8_keep_operating_point`` moves beta so the int8 graph keeps as many held-out touched
+    presses touched as fp32 does at the run's beta (``matched_beta``; the bundle is written twice)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
@@ -203,10 +212,10 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     calib_ids = [fid for fid in (art.touched_fabric_ids or art.touched) if fid in part]
     if set(calib_ids) - set(art.touched):
         raise ExportError("calibration fabrics must be touched fabrics")
-    per = max(1, math.ceil(calibration_frames / len(calib_ids)))
-    log(f"reading {per} training presses from each of {len(calib_ids)} touched fabrics (calibration)")
-    calib = np.concatenate([_frames(ds, fid, _spread(part[fid]["train"], per), spec) for fid in calib_ids])
-    calib = calib[_spread(range(len(calib)), calibration_frames)]
+    calib_src = calibration_presses(part, calib_ids, calibration_frames, untouched=art.untouched)
+    log(f"reading {sum(map(len, calib_src.values()))} training presses of {len(calib_src)} touched fabrics "
+        "(calibration)")
+    calib = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in calib_src.items()])
     for what, fids in (("int8 calibration, parity and the probe", calib_ids),
                        ("the gating fit (held-out touched presses)", art.touched),
                        ("the gating fit (validation presses)", art.validation)):
@@ -227,17 +236,74 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
         operating_point = (f"{router} router (refitted at export on touched training presses), beta balanced on "
                            f"validation fabrics {', '.join(art.validation)} against held-out touched presses")
         router_prov = {**refit["provenance"], "run_router": art.router_name, "run_beta": float(art.beta)}
+    quant_options: dict = {"float_nodes": list(float_nodes), "float_auto": int(float_auto)}
+    if percentile is not None:
+        quant_options["percentile"] = float(percentile)
+    if trunk_precision == "int8" and float_auto:
+        val_n = {fid: len(ds.by_id(fid).presses) for fid in art.validation}
+        sens_src = sensitivity_presses(part, art.touched, val_n, untouched=art.untouched)
+        quant_options["sensitivity_frames"] = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in sens_src.items()])
+        log(f"sensitivity scan on {len(quant_options['sensitivity_frames'])} held-out touched and validation presses")
+        quant_options.update(score=_logit_score(cls_t, cls_u), rank_by="logit_error")
     prov = {"run": str(run_dir.resolve()), "trained": True, "trained_size_px": trained_size,
             "data": {"dataset": str(ds_root.resolve()), "split_seed": seed, "max_presses": max_presses,
                      "validation": list(art.validation), "touched_presses": part,
-                     "calibration_fabrics": calib_ids}, "router": router_prov, "run_info": art.info}
-    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
-                        untouched=art.untouched, preprocess=spec, beta=beta, calibration=calib,
-                        trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
-                        touched_heldout=heldout, provenance=prov, log=log, threads=threads,
-                        calibration_method=calibration_method, float_convs=float_convs,
-                        operating_point=operating_point,
-                        scene_model=art.scene_model if router is None else None, fuse=fuse)
+                     "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
+            "router": router_prov, "run_info": art.info}
+    def write(beta_: float, operating_point_: str, prov_: dict, quant_: dict) -> dict:
+        return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
+                            untouched=art.untouched, preprocess=spec, beta=beta_, calibration=calib,
+                            trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
+                            touched_heldout=heldout, provenance=prov_, log=log, threads=threads,
+                            calibration_method=calibration_method, float_convs=float_convs,
+                            quant_options=quant_ if trunk_precision == "int8" else None,
+                            operating_point=operating_point_,
+                            scene_model=art.scene_model if router is None else None, fuse=fuse)
+
+    m = write(beta, operating_point, prov, quant_options)
+    if trunk_precision != "int8" or not int8_keep_operating_point:
+        return m
+    from vs2t_edge.runtime.inference import TactileModel
+
+    nov32 = _novelty(chosen, *_outputs(trunk, cls_t, cls_u, heldout))
+    nov8 = TactileModel.load(out_dir, threads=threads).forward(heldout).novelty
+    beta8, kept = matched_beta(nov32, nov8, beta)
+    log(f"int8 operating point: beta {beta:.6g} -> {beta8:.6g} keeps {kept:.1%} of {len(heldout)} held-out touched "
+        "presses touched, as fp32 does at the run's beta")
+    q = m["graphs"]["trunk"]["quantisation"]
+    quant2 = {**{k: v for k, v in quant_options.items() if k not in ("float_auto", "sensitivity_frames", "score",
+                                                                       "rank_by")},
+              "float_nodes": list(q.get("float_nodes_chosen", []))}  # the same graph again, nothing rescanned
+    prov2 = {**prov, "int8_operating_point": {
+        "rule": "beta moved so the int8 graph routes as many held-out touched presses (data.touched_presses[*].val) "
+                "touched as the fp32 graph does at the run's beta", "run_beta": float(beta), "beta": float(beta8),
+        "touched_kept": kept, "presses": int(len(heldout))}}
+    return write(beta8, f"{operating_point}; moved for int8 to keep fp32's touched kept rate ({kept:.1%})", prov2, quant2)
+
+
+def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:
+    """beta for the int8 graph that keeps the same share of touched presses touched (novelty <=
+    beta) as fp32 keeps at ``beta``, midway between two observed int8 scores. Returns (beta, share)."""
+    nov32, nov8 = np.asarray(nov32, np.float64), np.sort(np.asarray(nov8, np.float64))
+    kept = float(np.mean(nov32 <= beta))
+    k = int(round(kept * len(nov8)))  # presses to keep
+    if k <= 0:
+        return float(nov8[0] - 1.0 - abs(nov8[0])), kept
+    if k >= len(nov8):
+        return float(nov8[-1] + 1.0 + abs(nov8[-1])), kept
+    return float((nov8[k - 1] + nov8[k]) / 2), kept
+
+
+def _logit_score(cls_t: nn.Module, cls_u: nn.Module):
+    """The sensitivity scan's measure at export: the heads' logit error (export/quantize.py)."""
+    from vs2t_edge.export.quantize import logit_error
+
+    def score(f8: np.ndarray, f32: np.ndarray) -> dict:
+        with torch.no_grad():
+            a = [m(torch.from_numpy(np.ascontiguousarray(f8))).numpy() for m in (cls_t, cls_u)]
+            b = [m(torch.from_numpy(np.ascontiguousarray(f32))).numpy() for m in (cls_t, cls_u)]
+        return {"logit_error": logit_error(a, b)}
+    return score
 
 
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
@@ -288,4 +354,4 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
                         log=log, threads=threads, fuse=fuse)
 
 
-__all__ = ["export_run", "export_random_trunk", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]
+__all__ = ["export_run", "export_random_trunk", "matched_beta", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]

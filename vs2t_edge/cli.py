@@ -35,6 +35,8 @@ VERBS: dict[str, tuple[str, str]] = {
                    "evaluated by press order (needs [train])"),
     "export": ("vs2t_edge.export.cli", "export a training run to a verified ONNX bundle (needs [train])"),
     "bench": ("vs2t_edge.bench.cli", "measure the speed-for-accuracy trade of bundles"),
+    "int8-sensitivity": ("vs2t_edge.export.sensitivity_cli", "what each trunk layer kept in float buys back under "
+                         "int8, on held-out presses (needs onnx)"),
     "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
     "validate-config": ("vs2t_edge.runtime.config_cli", "check a cell config file (use as ExecStartPre)"),
     "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),

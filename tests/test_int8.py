@@ -1,0 +1,326 @@
+"""int8 (issue 14): trunk nodes kept in float really stay float in the graph onnxruntime runs;
+the sensitivity scan measures what each buys back; calibration reads only training presses of
+touched fabrics and the scan only held-out ones (never test, never untouched); the bench pairs
+int8 with fp32 on the same presses and states the noise."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from test_bundle_fixtures import world_frames
+from test_export import tiny_run  # noqa: F401  (the module fixture: a run folder on the tiny world)
+from vs2t_edge.bench import paired as pr
+from vs2t_edge.export import export as ex, from_run as fr
+from vs2t_edge.export.calibration import PressLeak, calibration_presses, sensitivity_presses
+from vs2t_edge.export.quantize import Quantiser, _float_tail_nodes, layer_sensitivity, quantize_trunk_static, run_graph
+
+
+@pytest.fixture(scope="module")
+def tiny_fp32(tmp_path_factory):
+    """The tiny trunk (3 convs) as an fp32 ONNX graph, and world frames."""
+    from vs2t_edge.train.trunks import build_trunk
+
+    torch.manual_seed(0)
+    trunk = build_trunk("tiny").eval()
+    x, _, _ = world_frames(64)
+    path = tmp_path_factory.mktemp("q") / "trunk_fp32.onnx"
+    ex.export_onnx(trunk, torch.from_numpy(x[:1]), path, "image", ["feature"])
+    return path, x
+
+
+def _float_convs_after_ort(path: Path, tmp: Path) -> tuple[int, int]:
+    """(Conv on float weights, integer QLinearConv) nodes in the graph onnxruntime actually runs
+    (its optimisers applied, as the cell's session applies them); no Conv on dequantised weights."""
+    import onnx
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    so.optimized_model_filepath = str(tmp / "optimised.onnx")
+    ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+    g = onnx.load(str(tmp / "optimised.onnx")).graph
+    floats = {i.name for i in g.initializer if i.data_type == onnx.TensorProto.FLOAT}
+    convs = [n for n in g.node if n.op_type in ("Conv", "FusedConv")]
+    assert all(n.input[1] in floats for n in convs), "a Conv runs on weights onnxruntime quantised"
+    assert not [n for n in g.node if n.op_type == "DequantizeLinear" and not any(
+        n.output[0] in m.input for m in g.node) and n.output[0] not in {o.name for o in g.output}], "a dangling DQ"
+    return len(convs), sum(n.op_type == "QLinearConv" for n in g.node)
+
+
+def _weight_is_dequantised(model, node_name: str) -> bool:
+    producers = {o: n for n in model.graph.node for o in n.output}
+    node = next(n for n in model.graph.node if n.name == node_name)
+    src = producers.get(node.input[1])
+    return src is not None and src.op_type == "DequantizeLinear"
+
+
+def test_float_nodes_stay_float_in_the_graph_onnxruntime_runs(tiny_fp32, tmp_path):
+    import onnx
+
+    path, x = tiny_fp32
+    cal = x[:24]
+    all8, mixed = tmp_path / "all8.onnx", tmp_path / "mixed.onnx"
+    rep0 = quantize_trunk_static(path, all8, cal)
+    with Quantiser(path, cal) as q:
+        convs = [n for n in q.order if q.nodes[n] == "Conv"]
+    assert len(convs) == 3
+    keep = [convs[1]]
+    rep = quantize_trunk_static(path, mixed, cal, float_nodes=keep)
+    assert rep["float_nodes_chosen"] == keep and rep["float_nodes"] == rep0["float_nodes"] + 1
+    m8, mm = onnx.load(str(all8)), onnx.load(str(mixed))
+    assert all(_weight_is_dequantised(m8, c) for c in convs)
+    assert not _weight_is_dequantised(mm, convs[1])  # float weights, float kernel
+    assert _weight_is_dequantised(mm, convs[0]) and _weight_is_dequantised(mm, convs[2])
+    # what onnxruntime runs: all three convs integer, or two integer and the kept one float
+    assert _float_convs_after_ort(all8, tmp_path) == (0, 3)
+    assert _float_convs_after_ort(mixed, tmp_path) == (1, 2)
+
+
+def test_a_residual_add_kept_in_float_is_not_fused_back(tmp_path):
+    """A residual Add left out of quantisation runs as a float Add, not QLinearAdd (its inputs'
+    channel counts come from the float graph: the quantiser's tensors carry no shapes)."""
+    import onnx
+    import onnxruntime as ort
+
+    class Res(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.a = torch.nn.Conv2d(3, 8, 3, padding=1)
+            self.b = torch.nn.Conv2d(8, 8, 1)
+            self.c = torch.nn.Conv2d(8, 8, 1)
+
+        def forward(self, x):
+            y = torch.relu(self.a(x))
+            return self.c(y + self.b(y)).mean((2, 3))
+
+    torch.manual_seed(0)
+    x = np.random.default_rng(0).standard_normal((16, 3, 16, 16)).astype(np.float32)
+    ex.export_onnx(Res().eval(), torch.from_numpy(x[:1]), tmp_path / "r.onnx", "image", ["feature"])
+    with Quantiser(tmp_path / "r.onnx", x) as q:
+        (add,) = [n for n in q.order if q.nodes[n] == "Add"]
+
+    def ops(path):
+        so = ort.SessionOptions()
+        so.optimized_model_filepath = str(tmp_path / "opt.onnx")
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+        ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        return [n.op_type for n in onnx.load(str(tmp_path / "opt.onnx")).graph.node]
+
+    quantize_trunk_static(tmp_path / "r.onnx", tmp_path / "all8.onnx", x)
+    quantize_trunk_static(tmp_path / "r.onnx", tmp_path / "mixed.onnx", x, float_nodes=[add])
+    assert "QLinearAdd" in ops(tmp_path / "all8.onnx")
+    mixed = ops(tmp_path / "mixed.onnx")
+    assert "QLinearAdd" not in mixed and "Add" in mixed and mixed.count("QLinearConv") >= 2
+
+
+def test_unknown_float_node_is_refused_by_name(tiny_fp32, tmp_path):
+    path, x = tiny_fp32
+    with pytest.raises(ValueError, match="not in the trunk graph: /no/such/Conv"):
+        quantize_trunk_static(path, tmp_path / "q.onnx", x[:8], float_nodes=["/no/such/Conv"])
+    with pytest.raises(ValueError, match="sensitivity frames"):
+        quantize_trunk_static(path, tmp_path / "q.onnx", x[:8], float_auto=1)
+
+
+def test_sensitivity_scan_measures_what_each_node_buys_back(tiny_fp32):
+    """Every candidate is measured against the all-int8 trunk; everything float is fp32 again;
+    the scan ranks by what it was asked to reduce."""
+    path, x = tiny_fp32
+    cal, held = x[:24], x[24:]
+    with Quantiser(path, cal) as q:
+        tail = _float_tail_nodes(q.model)
+        res = layer_sensitivity(q, held, tail=tail)
+        cands = q.candidates(tail)
+        assert {r["node"] for r in res["rows"]} == set(cands) and res["frames"] == len(held)
+        assert res["all_int8"]["mse"] > 0
+        gains = [r["buys_back"] for r in res["rows"]]
+        assert gains == sorted(gains, reverse=True)
+        for r in res["rows"]:
+            assert r["buys_back"] == pytest.approx(res["all_int8"]["mse"] - r["mse"])
+        q.write(q.tmp / "none.onnx", tail + cands)  # nothing left to quantise: the fp32 features
+        f32, f = run_graph(q.pre, held), run_graph(q.tmp / "none.onnx", held)
+        assert np.max(np.abs(f - f32)) <= 1e-4 * np.max(np.abs(f32))
+        ranked = layer_sensitivity(q, held, tail=tail, score=lambda a, b: {"neg": -float(np.mean((a - b) ** 2))},
+                                   rank_by="neg")
+        negs = [r["neg"] for r in ranked["rows"]]  # lower is better: ranked by what it reduces
+        assert ranked["metric"] == "neg" and negs == sorted(negs)
+        with pytest.raises(ValueError, match="rank_by"):
+            layer_sensitivity(q, held, tail=tail, candidates=cands[:1], rank_by="nope")
+
+
+PART = {"a": {"train": [0, 1, 2, 3, 4, 5], "val": [6, 7], "test": [8, 9], "unused": [10]},
+        "b": {"train": [0, 2, 4], "val": [5], "test": [6], "unused": []}}
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 4, 5, 9, 100])
+def test_calibration_presses_are_training_presses_of_touched_fabrics(n):
+    got = calibration_presses(PART, ["a", "b"], n, untouched=["u"])
+    for f, idx in got.items():
+        assert set(idx) <= set(PART[f]["train"]) and len(set(idx)) == len(idx)
+    total = sum(map(len, got.values()))
+    assert total == (9 if n <= 0 or n >= 9 else n)
+    with pytest.raises(PressLeak, match="untouched fabric"):
+        calibration_presses(PART, ["a", "u"], n, untouched=["u"])
+    with pytest.raises(PressLeak, match="no training presses"):
+        calibration_presses(PART, ["a", "v"], n)
+
+
+def test_sensitivity_presses_are_held_out_never_train_or_test():
+    got = sensitivity_presses(PART, ["a", "b"], {"v": 30}, untouched=["u"], per_fabric=5)
+    assert got["a"] == [6, 7] and got["b"] == [5] and len(got["v"]) == 5
+    with pytest.raises(PressLeak, match="untouched"):
+        sensitivity_presses(PART, ["a"], {"u": 10}, untouched=["u"])
+    with pytest.raises(PressLeak, match="also a touched"):
+        sensitivity_presses(PART, ["a"], {"b": 10})
+
+
+def test_export_reads_no_untouched_or_test_press_and_ships_the_chosen_float_nodes(tiny_run, tmp_path, monkeypatch):  # noqa: F811
+    """int8 export with the sensitivity scan: every press it reads is a touched fabric's training
+    or held-out press or a validation fabric's press; the calibration set recorded in the
+    manifest is training presses only; the nodes it picked are float in the shipped graph."""
+    import onnx
+
+    from vs2t_edge.runtime import dataset as dsm
+
+    run, art = tiny_run
+    reads: list[tuple[str, int]] = []
+    orig = dsm.Fabric.load_press
+
+    def spy(self, i, *a, **k):
+        reads.append((self.id, int(i)))
+        return orig(self, i, *a, **k)
+
+    monkeypatch.setattr(dsm.Fabric, "load_press", spy)
+    out = tmp_path / "b8"
+    m = fr.export_run(run, out, trunk_precision="int8", calibration_frames=12, float_auto=1)
+    part = m["provenance"]["data"]["touched_presses"]
+    assert reads and not {f for f, _ in reads} & set(art.untouched)
+    for f, i in reads:
+        if f in part:
+            assert i not in part[f]["test"] and i not in part[f]["unused"], (f, i)
+        else:
+            assert f in art.validation
+    cal = m["provenance"]["data"]["calibration_presses"]
+    assert sum(map(len, cal.values())) == 12
+    assert all(set(idx) <= set(part[f]["train"]) for f, idx in cal.items())
+    q = m["graphs"]["trunk"]["quantisation"]
+    (kept,) = q["float_nodes_chosen"]
+    assert q["sensitivity"]["metric"] == "logit_error" and q["sensitivity"]["top"][0]["node"] == kept
+    assert not _weight_is_dequantised(onnx.load(str(out / "trunk.onnx")), kept)
+
+
+def test_export_cli_float_node_options(tiny_run, tmp_path, capsys):  # noqa: F811
+    from vs2t_edge.cli import main
+    from vs2t_edge.export.cli import parse_float_nodes
+
+    run, _ = tiny_run
+    assert main(["export", str(run), "--out", str(tmp_path / "b"), "--int8-float-auto", "2"]) == 2
+    assert "need --trunk-precision int8" in capsys.readouterr().err
+    assert main(["export", str(run), "--out", str(tmp_path / "b"), "--trunk-precision", "int8",
+                 "--int8-float-nodes", "/no/such/Conv", "--calibration-frames", "8"]) == 2
+    assert "not in the trunk graph" in capsys.readouterr().err
+    (tmp_path / "s.json").write_text(json.dumps({"recommended": ["x", "y"]}))
+    assert parse_float_nodes(f"@{tmp_path / 's.json'}") == ["x", "y"]
+    assert parse_float_nodes(" a, b ,") == ["a", "b"]
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(ValueError, match="recommended"):
+        parse_float_nodes(f"@{tmp_path / 'bad.json'}")
+
+
+# ------------------------------------------------ the bench: int8 and fp32 paired
+
+
+def test_mcnemar_exact():
+    assert pr.mcnemar_p(0, 0) == 1.0
+    assert pr.mcnemar_p(0, 10) == pytest.approx(2 / 1024)
+    assert pr.mcnemar_p(5, 5) == 1.0
+    assert pr.mcnemar_p(3, 9) == pytest.approx(pr.mcnemar_p(9, 3))
+
+
+def _view(lp_shift: np.ndarray | None = None, beta: float = 0.0) -> dict:
+    """3 touched + 2 untouched classes, 10 presses each; every press right and routed right."""
+    rng = np.random.default_rng(0)
+    lab = np.repeat(np.arange(5), 10)
+    lp = np.full((50, 5), -10.0)
+    lp[np.arange(50), lab] = 0.0
+    lsu = np.full((50, 2), -5.0)
+    lsu[lab >= 3, lab[lab >= 3] - 3] = 0.0
+    nov = np.where(lab < 3, -1.0, 1.0) + 0.01 * rng.standard_normal(50)
+    if lp_shift is not None:
+        lp = lp + lp_shift
+    out = {"label": lab, "lp": lp, "lsu": lsu, "novelty": nov, "feature": np.zeros((50, 4), np.float32)}
+    return {"beta": beta, "ct": 3, "classes": list("abcde"), "touched": list("abc"), "untouched": list("de"),
+            "scene_model": None, "out": out}
+
+
+def test_paired_press_counts_flips_and_its_interval_holds_the_truth():
+    same = pr.paired_press(_view(), _view(), n_boot=200)
+    for k in ("acc_t", "zsl", "acc_u", "H"):
+        assert same[k]["delta"] == 0 and same[k]["ci95"] == [0.0, 0.0]
+    assert same["acc_t"]["flips_worse"] == same["acc_t"]["flips_better"] == 0
+    shift = np.zeros((50, 5))
+    shift[[0, 1, 2], 1] = 20.0  # int8 moves 3 presses of class a to class b
+    d = pr.paired_press(_view(), _view(shift), n_boot=200)["acc_t"]
+    assert d["flips_worse"] == 3 and d["flips_better"] == 0 and d["presses"] == 30
+    assert d["delta"] == pytest.approx(-100 * (3 / 10) / 3)  # per-class mean over 3 touched classes
+    assert d["ci95"][0] < d["delta"] <= d["ci95"][1] <= 0
+    assert d["mcnemar_p"] == pytest.approx(0.25)
+    other = _view()
+    other["out"] = dict(other["out"], label=np.roll(other["out"]["label"], 1))
+    with pytest.raises(ValueError, match="same presses"):
+        pr.paired_press(_view(), other)
+
+
+def test_paired_numbers_are_the_bench_accuracy_numbers():
+    """The paired comparison recomputes the bench's own per-press and per-item numbers (same
+    presses, same items): its fp32 and int8 columns must equal accuracy()'s for each bundle."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.bench.accuracy import accuracy
+
+    rng = np.random.default_rng(1)
+    views = []
+    for noise in (0.0, 3.0):
+        v = _view(rng.normal(0, 1 + noise, (50, 5)))
+        v["out"]["lsu"] = v["out"]["lsu"] + rng.normal(0, 4, (50, 2))
+        v["out"]["novelty"] = v["out"]["novelty"] + rng.normal(0, 0.8, 50)
+        views.append(v)
+    got = pr.paired(*views, n_boot=50, n_items=20)
+    for v, col in zip(views, ("fp32", "int8")):
+        model = SimpleNamespace(touched=v["touched"], untouched=v["untouched"], classes=v["classes"],
+                                beta=v["beta"], scene_model=None)
+        acc = accuracy(model, v["out"], n_items=20)
+        for k in ("zsl", "acc_t", "acc_u", "H"):
+            assert got["press"][k][col] == pytest.approx(acc["press"][k])
+        assert got["items"]["item5_H"][col] == pytest.approx(acc["items"]["5"]["H"])
+        assert got["items"]["sequential_H"][col] == pytest.approx(acc["sequential"]["H"])
+
+
+def test_matched_beta_keeps_fp32s_touched_kept_rate():
+    """int8 noise shifts the router's scores; the moved beta keeps the same share of held-out
+    touched presses touched on the int8 graph as fp32 keeps at the run's beta."""
+    rng = np.random.default_rng(0)
+    nov32 = rng.normal(0, 1, 160)
+    beta = 0.7
+    nov8 = nov32 * 1.5 + 0.4 + rng.normal(0, 0.05, 160)  # wider and shifted, as int8 makes them
+    b8, kept = fr.matched_beta(nov32, nov8, beta)
+    assert kept == pytest.approx(np.mean(nov32 <= beta))
+    assert np.mean(nov8 <= b8) == pytest.approx(kept, abs=1 / 160)
+    assert not np.any(nov8 == b8)  # midway between two scores, never on one
+    assert np.mean(nov8 <= beta) < kept  # the run's beta would flag more touched presses
+    lo, _ = fr.matched_beta(np.ones(5), np.arange(5.0), 0.0)  # fp32 keeps none: int8 keeps none
+    assert np.all(np.arange(5.0) > lo)
+    hi, _ = fr.matched_beta(np.zeros(5), np.arange(5.0), 1.0)  # fp32 keeps all: int8 keeps all
+    assert np.all(np.arange(5.0) <= hi)
+
+
+def test_export_int8_keeps_the_operating_point(tiny_run, tmp_path):  # noqa: F811
+    run, art = tiny_run
+    m = fr.export_run(run, tmp_path / "b8", trunk_precision="int8", calibration_frames=12,
+                      int8_keep_operating_point=True)
+    op = m["provenance"]["int8_operating_point"]
+    assert op["run_beta"] == art.beta and m["beta"] == op["beta"] and 0 <= op["touched_kept"] <= 1
+    assert "moved for int8" in m["operating_point"]
