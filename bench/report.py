@@ -188,13 +188,19 @@ def render_markdown(result: dict) -> str:
         lines += ["", "## Against the targets", "", "| variant | target | measured | met |", "|---|---|---|---|"]
         lines += [f"| {t['variant']} | {t['target']} | {t['measured']} | {'yes' if t['met'] else '**no**'} |" for t in tg]
     if result["comparisons"]:
-        lines += ["", "## int8 against fp32", "", "| int8 | fp32 | speed-up (2 threads) | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H | within 1 point |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "## int8 against fp32", "",
+                  "Δ = int8 - fp32, points. *largest loss*: the measure int8 loses most on (less accuracy, or more "
+                  "mis-sorts by bins; a gain is no loss); *within 1 point*: it loses at most 1 point on every measure.", "",
+                  "| int8 | fp32 | speed-up (2 threads) | Δ press acc_t | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H "
+                  "| Δ right bin (scene) | Δ mis-sort (scene) | largest loss | within 1 point |", "|" + "---|" * 12]
+        keys = ("press_acc_t", "press_H", "press_zsl", "item5_H", "sequential_H", "bins_right_scene_model",
+                "bins_mis_sort_scene_model")
         for c in result["comparisons"]:
-            d = c.get("delta_points")
+            d, cost = c.get("delta_points"), c.get("cost_points") or {}
+            worst = max(cost.items(), key=lambda kv: kv[1]) if cost else None
             lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
-                _f(d[k], "{:+.1f}") for k in ("press_H", "press_zsl", "item5_H", "sequential_H")) + f" | {'yes' if c['within_1_point'] else 'no'} |"
-                if d else "– | – | – | – | – |"))
+                _f(d.get(k), "{:+.1f}") for k in keys) + f" | {f'{worst[1]:.1f} ({worst[0]})' if worst else '–'} | "
+                f"{'yes' if c['within_1_point'] else 'no'} |" if d else " | ".join(["–"] * 9) + " |"))
         paired_lines = render_paired(result)
         if paired_lines:
             lines += ["", "### Paired: int8 minus fp32 on the same presses and items, with its noise", "", paired_lines]

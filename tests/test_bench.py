@@ -101,7 +101,10 @@ def test_bench_numbers_are_measured_and_sane(bench_result):
         assert 1.0 <= a["sequential"]["presses_mean"] <= 9.0
     (pair,) = result["comparisons"]
     assert pair["int8"] == "tiny_int8" and pair["fp32"] == "tiny_fp32" and pair["speedup_2t"] > 0
-    assert pair["within_1_point"] == all(abs(v) <= 1.0 for v in pair["delta_points"].values())
+    # a loss is less accuracy or more mis-sorts; a gain costs nothing
+    d = pair["delta_points"]
+    assert pair["cost_points"] == {k: (v if "mis_sort" in k else -v) for k, v in d.items()}
+    assert pair["within_1_point"] == all(v <= 1.0 for v in pair["cost_points"].values())
 
 
 def test_press_timing_is_end_to_end_and_includes_decode(bench_result, monkeypatch):
@@ -323,9 +326,13 @@ def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):
     fast_ok = {"machine": {}, "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 2.0, "within_1_point": True,
                                                "delta_points": {"press_H": -0.5}}]}
     assert bench.recommend(fast_ok)[0]["recommended"] == "b"
+    delta = {"press_H": -3.3, "item5_H": 4.3, "bins_mis_sort_scene_model": 0.4}
     fast_costly = {"machine": {}, "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 2.0, "within_1_point": False,
-                                                   "delta_points": {"press_H": -3.3}}]}
-    assert bench.recommend(fast_costly)[0]["recommended"] == "a" and "-3.3" in bench.recommend(fast_costly)[0]["why"]
+                                                   "delta_points": delta, "cost_points": bench.cost_points(delta)}]}
+    why = bench.recommend(fast_costly)[0]["why"]
+    assert bench.recommend(fast_costly)[0]["recommended"] == "a" and "3.3 points (press_H: -3.3)" in why
+    # a gain is no cost; more mis-sorts are
+    assert bench.cost_points({"item5_H": 4.3, "bins_mis_sort_router": 1.5}) == {"item5_H": -4.3, "bins_mis_sort_router": 1.5}
     slow = {"machine": {"instruction_sets": {"avx512_vnni": False}},
             "comparisons": [{"fp32": "a", "int8": "b", "speedup_2t": 1.1, "within_1_point": True}]}
     assert "no VNNI" in bench.recommend(slow)[0]["why"]
