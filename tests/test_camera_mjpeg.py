@@ -1,0 +1,117 @@
+"""The UVC camera's MJPEG path (frames handed undecoded and decoded at the bundle's scale, or
+full frames when the backend decodes itself) and the per-press contact check on exact window sums."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from test_camera import _RecordingCapture
+from vs2t_edge.runtime.camera import ContactCheck, UVCCamera
+from vs2t_edge.runtime.devices import CameraError
+
+
+class _MjpegCapture(_RecordingCapture):
+    """A V4L2 capture that honours CAP_PROP_CONVERT_RGB = 0 (``undecoded``): read() hands the MJPEG
+    frame's bytes as one row, as OpenCV's V4L2 backend does; a backend that ignores it hands the
+    decoded frame. ``payload`` replaces the next frame's bytes (a truncated or black frame)."""
+
+    undecoded = True
+    payload = None
+
+    def set(self, prop, value):
+        if prop == cv2.CAP_PROP_CONVERT_RGB and not self.undecoded:
+            return False
+        return super().set(prop, value)
+
+    def get(self, prop):
+        return self.props.get(prop, 1.0 if prop == cv2.CAP_PROP_CONVERT_RGB else 0.0)
+
+    def read(self):
+        ok, frame = super().read()
+        frame = cv2.GaussianBlur(frame, (5, 5), 0)  # a sensor image, not noise the JPEG would smear
+        if self.props.get(cv2.CAP_PROP_CONVERT_RGB, 1.0) != 0:
+            return ok, frame
+        jpeg = type(self).payload if type(self).payload is not None else cv2.imencode(".jpg", frame)[1].tobytes()
+        return ok, np.frombuffer(jpeg, np.uint8)[None].copy()
+
+
+@pytest.fixture
+def mjpeg_capture(monkeypatch):
+    _RecordingCapture.instances = []
+    _MjpegCapture.undecoded, _MjpegCapture.payload = True, None
+    monkeypatch.setattr(cv2, "VideoCapture", _MjpegCapture)
+    return _RecordingCapture.instances
+
+
+def test_uvc_takes_mjpeg_undecoded_and_decodes_it_at_the_bundles_scale(mjpeg_capture):
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2) as cam:
+        cap = mjpeg_capture[0]
+        assert (cv2.CAP_PROP_CONVERT_RGB, 0.0) in cap.sets
+        assert (cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG"))) in cap.sets
+        assert cam.settings_applied["mjpeg_undecoded"] is True
+        frame = cam.grab()
+        # checked at the reduced size the configured 640x480 becomes
+        assert frame.image.shape == (240, 320, 3) and frame.reduced_by == 2
+        _MjpegCapture.payload = cv2.imencode(".jpg", np.zeros((480, 640, 3), np.uint8))[1].tobytes()
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.kind == "corrupt" and exc.value.reason == "black"  # bad frames refused by name
+        _MjpegCapture.payload = cv2.imencode(".jpg", np.full((480, 640, 3), 120, np.uint8))[1].tobytes()[:300]
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.kind == "corrupt" and exc.value.reason in ("jpeg", "size")  # truncated
+        _MjpegCapture.payload = cv2.imencode(".jpg", np.full((240, 320, 3), 120, np.uint8))[1].tobytes()
+        with pytest.raises(CameraError) as exc:
+            cam.grab()  # a 320x240 stream where 640x480 was configured: 160x120 at 1/2
+        assert exc.value.reason == "size" and "expected 320x240" in str(exc.value)
+
+
+def test_uvc_falls_back_to_full_frames_when_the_backend_decodes_itself(mjpeg_capture):
+    _MjpegCapture.undecoded = False  # e.g. a backend other than V4L2
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2) as cam:
+        assert cam.settings_applied["mjpeg_undecoded"] is False
+        frame = cam.grab()
+    assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1  # the model reduces it
+
+
+def test_uvc_decodes_at_full_size_by_default(mjpeg_capture):
+    with UVCCamera(0, flush_frames=0) as cam:
+        assert "mjpeg_undecoded" not in cam.settings_applied
+        assert all(prop != cv2.CAP_PROP_CONVERT_RGB for prop, _ in mjpeg_capture[0].sets)
+        assert cam.grab().reduced_by == 1
+    with pytest.raises(ValueError, match="decode_scale"):
+        UVCCamera(0, decode_scale=3)
+
+
+def _contact_before(frame, reference, check):
+    """The contact check as it was (int16 difference, float box mean): the reference the fast form
+    must agree with."""
+    diff = cv2.blur(np.abs(frame.astype(np.int16) - reference.astype(np.int16)).max(axis=2).astype(np.float32),
+                    (check.window_px, check.window_px))
+    return float(np.mean(diff > check.threshold_levels)), float(diff.max())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_contact_check_reads_what_it_read_before(seed):
+    rng = np.random.default_rng(seed)
+    check = ContactCheck()
+    reference = cv2.GaussianBlur(rng.integers(60, 200, (120, 160, 3), dtype=np.uint8), (5, 5), 0)
+    frame = np.clip(reference.astype(int) + rng.integers(-3, 4, reference.shape), 0, 255).astype(np.uint8)
+    frame[40:70, 50:90] = np.clip(frame[40:70, 50:90].astype(int) + rng.integers(0, 40), 0, 255)  # an imprint
+    got = check.read(frame, reference)
+    area, peak = _contact_before(frame, reference, check)
+    assert got.area_fraction == pytest.approx(area, abs=2 / frame[..., 0].size)  # a tie may round either way
+    assert got.peak_levels == pytest.approx(peak, rel=1e-6)
+    assert got.pressed == (area >= check.min_area_fraction)
+
+
+def test_contact_check_decides_a_tie_on_exact_window_sums():
+    check = ContactCheck(threshold_levels=12.0, min_area_fraction=0.0, window_px=5)
+    reference = np.full((20, 20, 3), 100, np.uint8)
+    frame = reference.copy()
+    frame[..., 1] += 12  # every window's mean change is exactly the threshold: not over it
+    assert check.read(frame, reference).area_fraction == 0.0
+    frame[10, 10, 2] = 113  # one level more in one pixel: the 25 windows holding it are over
+    assert check.read(frame, reference).area_fraction == 25 / 400
