@@ -192,18 +192,29 @@ def read_image_file(path: Path | str, expected_hw: tuple[int, int] | None = None
 
 
 def atomic_write(path: Path, text: str) -> None:
-    """``text`` into the state file ``path`` (the fault file, the override), whole or not at all:
-    written to a private .tmp, fsynced, renamed over."""
+    """``text`` into the state file ``path`` (the fault file, the beta override), whole or not at
+    all: written to a private .tmp, fsynced, renamed over, the folder fsynced so the rename survives
+    a power cut; a failed write leaves no .tmp behind."""
     from vs2t_edge.runtime.journal import STATE_FILE_MODE, make_state_dir
 
+    path = Path(path)
     make_state_dir(path.parent)  # STATE_DIR_MODE for folders made here
     tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, STATE_FILE_MODE)
-    # deleting FAULT clears a latched fault: never writable by others, whatever the umask or the
-    # mode a stale .tmp from a crash was left with
-    os.fchmod(fd, STATE_FILE_MODE)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, STATE_FILE_MODE)
+        # deleting FAULT clears a latched fault: never writable by others, whatever the umask or the
+        # mode a stale .tmp from a crash was left with
+        os.fchmod(fd, STATE_FILE_MODE)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)

@@ -24,13 +24,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
-from vs2t_edge.runtime.files import MAX_JSON_BYTES, read_regular_file
+from vs2t_edge.runtime.files import MAX_JSON_BYTES, atomic_write, read_regular_file
 
 
 class OverrideFileError(ValueError):
@@ -100,27 +99,9 @@ def write_beta_override(path: Path, cal: Any, *, bundle_beta: float | None, sour
     data = {"beta": fields["beta"], "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "source": source, **{k: v for k, v in fields.items() if k != "beta"}, "history": history}
     if old_text is not None:
-        _write_atomic(path.with_name(path.name + ".prev"), old_text)
-    _write_atomic(path, json.dumps(data, indent=2) + "\n")
+        atomic_write(path.with_name(path.name + ".prev"), old_text)
+    atomic_write(path, json.dumps(data, indent=2) + "\n")
     return path
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def scene_model_rule(scene_model) -> tuple[float, dict]:
