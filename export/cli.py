@@ -7,13 +7,26 @@ The bundle is written to a temporary folder, loaded with the cell's own verifica
 ``--router NAME`` ships router NAME (runtime.novelty.ROUTERS) instead of the run's own pick, refitted
 on the run's touched training presses with beta retuned on its validation fabrics (e.g.
 ``--router max_softmax``, the recommendation of docs/results/comparison_paper.md).
+
+``--trunk-precision int8`` of a trained run uses ``INT8_RECIPE`` for every int8 option not given:
+the recipe the bench found within 1 point of fp32 on every accuracy (docs/bundle.md, "int8").
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
+
+# What `--trunk-precision int8` of a trained run does for each int8 option left out. Measured on the
+# paper world (bench, paired on the same presses, docs/bundle.md "int8"): minmax ranges on 64
+# presses with fp32's beta lost 2.9 points of touched accuracy per press; this recipe loses at most
+# 0.6 on every measure for a 2.1x faster trunk. The float nodes are chosen at export from held-out
+# touched and validation presses, never from untouched fabrics.
+INT8_RECIPE = {"calibration_frames": 256, "int8_calibration": "percentile", "int8_float_auto": 4,
+               "int8_keep_operating_point": True}
+FP32_CALIBRATION_FRAMES = 64
 
 
 def add_arguments(parser, verb: str) -> None:
@@ -25,11 +38,13 @@ def add_arguments(parser, verb: str) -> None:
                         help="int8 = static QDQ quantisation calibrated on touched presses (default fp32)")
     parser.add_argument("--size", type=int, default=None,
                         help="input side in px (default: the run's); other sizes trade accuracy for speed")
-    parser.add_argument("--calibration-frames", type=int, default=64,
+    parser.add_argument("--calibration-frames", type=int, default=None,
                         help="touched training presses for int8 ranges, parity and the probe, the same number "
-                             "from each touched fabric (default 64; 0: every training press)")
-    parser.add_argument("--int8-calibration", choices=("minmax", "percentile", "entropy"), default="minmax",
-                        help="how int8 activation ranges are set from the calibration presses (default minmax)")
+                             f"from each touched fabric (default {FP32_CALIBRATION_FRAMES}, int8 "
+                             f"{INT8_RECIPE['calibration_frames']}; 0: every training press)")
+    parser.add_argument("--int8-calibration", choices=("minmax", "percentile", "entropy"), default=None,
+                        help="how int8 activation ranges are set from the calibration presses (default "
+                             f"{INT8_RECIPE['int8_calibration']})")
     parser.add_argument("--int8-percentile", type=float, default=None, metavar="P",
                         help="percentile of each activation kept by --int8-calibration percentile (default 99.999; "
                              "ranges asymmetric)")
@@ -38,12 +53,14 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--int8-float-nodes", default=None, metavar="NAMES",
                         help="trunk graph nodes to keep in float, comma-separated, or @FILE: the JSON "
                              "`vs2t-edge int8-sensitivity --out FILE` writes (its 'recommended' list)")
-    parser.add_argument("--int8-keep-operating-point", action="store_true",
+    parser.add_argument("--int8-keep-operating-point", action=argparse.BooleanOptionalAction, default=None,
                         help="move beta so the int8 graph keeps as many held-out touched presses touched as fp32 "
-                             "does at the run's beta (int8 noise otherwise routes more presses to untouched)")
-    parser.add_argument("--int8-float-auto", type=int, default=0, metavar="K",
+                             "does at the run's beta (int8 noise otherwise routes more presses to untouched; "
+                             "default on)")
+    parser.add_argument("--int8-float-auto", type=int, default=None, metavar="K",
                         help="keep in float the K trunk nodes whose float copy buys back the most feature error "
-                             "on held-out touched and validation presses (a sensitivity scan at export; default 0)")
+                             "on held-out touched and validation presses (a sensitivity scan at export; default "
+                             f"{INT8_RECIPE['int8_float_auto']})")
     parser.add_argument("--router", default=None, metavar="NAME",
                         help="GZSL router to ship, refitted on the run's touched training presses with beta tuned "
                              "balanced on its validation fabrics (default: the run's stored router and beta); one of "
@@ -91,6 +108,15 @@ def parse_float_nodes(value: str | None) -> list[str]:
     return [n.strip() for n in value.split(",") if n.strip()]
 
 
+def run_options(args) -> dict:
+    """The calibration and int8 options of a trained run's export: each one given on the command line
+    as given, each one left out from ``INT8_RECIPE`` (int8) or the fp32 defaults (no int8 work)."""
+    int8 = args.trunk_precision == "int8"
+    fallback = INT8_RECIPE if int8 else {"calibration_frames": FP32_CALIBRATION_FRAMES, "int8_calibration": "minmax",
+                                         "int8_float_auto": 0, "int8_keep_operating_point": False}
+    return {key: fallback[key] if getattr(args, key) is None else getattr(args, key) for key in INT8_RECIPE}
+
+
 def run(args) -> int:
     from vs2t_edge.export.export import ExportError
     from vs2t_edge.export.from_run import export_random_trunk, export_run
@@ -109,10 +135,10 @@ def run(args) -> int:
     except (OSError, ValueError) as exc:
         print(f"export: --int8-float-nodes: {exc}", file=sys.stderr)
         return 2
-    if ((float_nodes or args.int8_float_auto or args.int8_percentile is not None or args.int8_keep_operating_point)
-            and args.trunk_precision != "int8"):
-        print("export: --int8-float-nodes, --int8-float-auto, --int8-percentile and --int8-keep-operating-point "
-              "need --trunk-precision int8",
+    if ((float_nodes or args.int8_float_auto or args.int8_percentile is not None or args.int8_keep_operating_point
+         or args.int8_calibration is not None) and args.trunk_precision != "int8"):
+        print("export: --int8-float-nodes, --int8-float-auto, --int8-calibration, --int8-percentile and "
+              "--int8-keep-operating-point need --trunk-precision int8",
               file=sys.stderr)
         return 2
     try:
@@ -126,7 +152,9 @@ def run(args) -> int:
                 return 2
             m = export_random_trunk(args.random_trunk, args.out, size=args.size, dataset=args.dataset,
                                     trunk_precision=args.trunk_precision,
-                                    calibration_frames=min(args.calibration_frames, 32), log=log, threads=args.threads,
+                                    calibration_frames=min(FP32_CALIBRATION_FRAMES if args.calibration_frames is None
+                                                           else args.calibration_frames, 32),
+                                    log=log, threads=args.threads,
                                     fuse=not args.two_graphs,
                                     reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
         else:
@@ -140,12 +168,13 @@ def run(args) -> int:
             if not (Path(args.run) / "artifacts" / "model.pt").is_file():
                 print(f"export: {args.run} has no artifacts/model.pt (run `vs2t-edge train` first)", file=sys.stderr)
                 return 2
+            opt = run_options(args)
             m = export_run(args.run, args.out, trunk_precision=args.trunk_precision, size=args.size,
-                           calibration_frames=args.calibration_frames, dataset=args.dataset, log=log,
-                           calibration_method=args.int8_calibration, float_convs=args.float_convs,
+                           calibration_frames=opt["calibration_frames"], dataset=args.dataset, log=log,
+                           calibration_method=opt["int8_calibration"], float_convs=args.float_convs,
                            router=args.router, threads=args.threads, fuse=not args.two_graphs,
-                           float_nodes=float_nodes, float_auto=args.int8_float_auto, percentile=args.int8_percentile,
-                           int8_keep_operating_point=args.int8_keep_operating_point)
+                           float_nodes=float_nodes, float_auto=opt["int8_float_auto"], percentile=args.int8_percentile,
+                           int8_keep_operating_point=opt["int8_keep_operating_point"])
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2

@@ -184,7 +184,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
                  quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
-                 fuse: bool = True) -> dict:
+                 fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
@@ -195,7 +195,10 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
     descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors).
     ``fuse``: one press graph (format 2, export/fuse.py: heads and projections folded into
-    trunk.onnx); False writes the two-graph format 1 of earlier releases (comparisons, tests)."""
+    trunk.onnx); False writes the two-graph format 1 of earlier releases (comparisons, tests).
+    ``int8_beta``: for an int8 trunk, maps the deployed graph's novelty of ``touched_heldout`` to
+    (beta, what to add to ``operating_point``, what to add to ``provenance``) - the operating point
+    set on the graph the cell will run, in the one write."""
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -286,6 +289,11 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             lt, lu = sess_h.run(None, {"feature": f})
             return f, lt, lu, _novelty(router, f, lt, lu), {}
 
+        if int8_beta is not None and trunk_precision == "int8":
+            if touched_heldout is None or not len(touched_heldout):
+                raise ExportError("moving beta for the int8 graph needs held-out touched presses")
+            beta, note, prov_more = int8_beta(score(touched_heldout)[3])
+            operating_point, provenance = operating_point + note, {**(provenance or {}), **prov_more}
         # gate scale and temperature on the deployed graph's own scores
         how = "given"
         have_val = validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout)

@@ -178,7 +178,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     keeps the K that buy back the most on held-out touched and validation presses
     (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration;
     ``int8_keep_operating_point`` moves beta so the int8 graph keeps as many held-out touched
-    presses touched as fp32 does at the run's beta (``matched_beta``; the bundle is written twice)."""
+    presses touched as fp32 does at the run's beta (``matched_beta``, on the graph being written)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
@@ -250,35 +250,26 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                      "validation": list(art.validation), "touched_presses": part,
                      "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
             "router": router_prov, "run_info": art.info}
-    def write(beta_: float, operating_point_: str, prov_: dict, quant_: dict) -> dict:
-        return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
-                            untouched=art.untouched, preprocess=spec, beta=beta_, calibration=calib,
-                            trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
-                            touched_heldout=heldout, provenance=prov_, log=log, threads=threads,
-                            calibration_method=calibration_method, float_convs=float_convs,
-                            quant_options=quant_ if trunk_precision == "int8" else None,
-                            operating_point=operating_point_,
-                            scene_model=art.scene_model if router is None else None, fuse=fuse)
+    keep_op = trunk_precision == "int8" and int8_keep_operating_point
+    nov32 = _novelty(chosen, *_outputs(trunk, cls_t, cls_u, heldout)) if keep_op else None
 
-    m = write(beta, operating_point, prov, quant_options)
-    if trunk_precision != "int8" or not int8_keep_operating_point:
-        return m
-    from vs2t_edge.runtime.inference import TactileModel
+    def int8_beta(nov8: np.ndarray) -> tuple[float, str, dict]:
+        beta8, kept = matched_beta(nov32, nov8, beta)
+        log(f"int8 operating point: beta {beta:.6g} -> {beta8:.6g} keeps {kept:.1%} of {len(heldout)} held-out "
+            "touched presses touched, as fp32 does at the run's beta")
+        return beta8, f"; moved for int8 to keep fp32's touched kept rate ({kept:.1%})", {"int8_operating_point": {
+            "rule": "beta moved so the int8 graph routes as many held-out touched presses "
+                    "(data.touched_presses[*].val) touched as the fp32 graph does at the run's beta",
+            "run_beta": float(beta), "beta": float(beta8), "touched_kept": kept, "presses": int(len(heldout))}}
 
-    nov32 = _novelty(chosen, *_outputs(trunk, cls_t, cls_u, heldout))
-    nov8 = TactileModel.load(out_dir, threads=threads).forward(heldout).novelty
-    beta8, kept = matched_beta(nov32, nov8, beta)
-    log(f"int8 operating point: beta {beta:.6g} -> {beta8:.6g} keeps {kept:.1%} of {len(heldout)} held-out touched "
-        "presses touched, as fp32 does at the run's beta")
-    q = m["graphs"]["trunk"]["quantisation"]
-    quant2 = {**{k: v for k, v in quant_options.items() if k not in ("float_auto", "sensitivity_frames", "score",
-                                                                       "rank_by")},
-              "float_nodes": list(q.get("float_nodes_chosen", []))}  # the same graph again, nothing rescanned
-    prov2 = {**prov, "int8_operating_point": {
-        "rule": "beta moved so the int8 graph routes as many held-out touched presses (data.touched_presses[*].val) "
-                "touched as the fp32 graph does at the run's beta", "run_beta": float(beta), "beta": float(beta8),
-        "touched_kept": kept, "presses": int(len(heldout))}}
-    return write(beta8, f"{operating_point}; moved for int8 to keep fp32's touched kept rate ({kept:.1%})", prov2, quant2)
+    return write_bundle(out_dir, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=chosen, touched=art.touched,
+                        untouched=art.untouched, preprocess=spec, beta=beta, calibration=calib,
+                        trunk_precision=trunk_precision, trunk_arch=art.trunk_arch, validation=validation,
+                        touched_heldout=heldout, provenance=prov, log=log, threads=threads,
+                        calibration_method=calibration_method, float_convs=float_convs,
+                        quant_options=quant_options if trunk_precision == "int8" else None,
+                        operating_point=operating_point, scene_model=art.scene_model if router is None else None,
+                        fuse=fuse, int8_beta=int8_beta if keep_op else None)
 
 
 def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:

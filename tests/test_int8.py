@@ -230,6 +230,38 @@ def test_export_cli_float_node_options(tiny_run, tmp_path, capsys):  # noqa: F81
         parse_float_nodes(f"@{tmp_path / 'bad.json'}")
 
 
+def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsys):  # noqa: F811
+    """`--trunk-precision int8` alone exports with INT8_RECIPE (percentile ranges, the float nodes the
+    sensitivity scan picks, fp32's operating point kept); each option given wins over the recipe."""
+    import argparse
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.export import cli as ec
+
+    p = argparse.ArgumentParser()
+    ec.add_arguments(p, "export")
+    assert ec.run_options(p.parse_args(["r", "--out", "o"])) == {
+        "calibration_frames": ec.FP32_CALIBRATION_FRAMES, "int8_calibration": "minmax", "int8_float_auto": 0,
+        "int8_keep_operating_point": False}
+    assert ec.run_options(p.parse_args(["r", "--out", "o", "--trunk-precision", "int8"])) == ec.INT8_RECIPE
+    given = ec.run_options(p.parse_args(["r", "--out", "o", "--trunk-precision", "int8", "--int8-calibration", "minmax",
+                                         "--no-int8-keep-operating-point", "--int8-float-auto", "0"]))
+    assert given["int8_calibration"] == "minmax" and given["int8_float_auto"] == 0
+    assert given["int8_keep_operating_point"] is False
+    assert given["calibration_frames"] == ec.INT8_RECIPE["calibration_frames"]
+    assert main(["export", "r", "--out", str(tmp_path / "x"), "--int8-calibration", "percentile"]) == 2
+    assert "need --trunk-precision int8" in capsys.readouterr().err
+
+    run, _ = tiny_run
+    out = tmp_path / "b8"
+    assert main(["export", str(run), "--out", str(out), "--trunk-precision", "int8", "--calibration-frames", "12"]) == 0
+    m = json.loads((out / "manifest.json").read_text())
+    q = m["graphs"]["trunk"]["quantisation"]
+    assert q["calibration"] == "percentile" and "sensitivity" in q
+    assert 0 < len(q["float_nodes_chosen"]) <= ec.INT8_RECIPE["int8_float_auto"]
+    assert "moved for int8" in m["operating_point"]
+
+
 # ------------------------------------------------ the bench: int8 and fp32 paired
 
 
