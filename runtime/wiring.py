@@ -23,6 +23,7 @@ import threading
 from typing import Any, Callable
 
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
+from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.camera import ContactCheck, UVCCamera, camera_from_config
 from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
@@ -35,9 +36,13 @@ from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
 
 def load_model(cfg: CellConfig) -> TactileModel:
-    """Verified, warmed model of the bundle, with the beta the operating point says, checked
-    against the scene (raises on any mismatch, naming it)."""
-    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta(cfg)[0])
+    """Verified, warmed model of the bundle, with the beta the operating point says (an override
+    file calibrated for another bundle is refused), checked against the scene (raises on any
+    mismatch, naming it)."""
+    manifest = read_manifest(cfg.bundle)
+    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta(cfg, manifest)[0])
+    if model.manifest.get(SEAL_KEY) != manifest.get(SEAL_KEY):  # the override was checked against this one
+        raise BundleError(cfg.bundle, "the bundle was replaced while it was being loaded; start again")
     check_scene_against_bundle(cfg, model)
     return model
 
