@@ -499,8 +499,9 @@ class Cell:
                         # retry (latched meanwhile, jam, NAK) says nothing about where the piece went
                         raise CellFault(f"gate fault sorting to bin {bin_}: {exc2} (after a first try that "
                                         f"timed out: {exc})", exc2.kind, maybe_routed=True) from exc2
-                else:
-                    raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind) from exc
+                else:  # a link lost after the SORT went out may have left the flap at the bin
+                    raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind,
+                                    maybe_routed=bool(getattr(exc, "maybe_executed", False))) from exc
             self._final(number, item.id, label=label, bin_=bin_, outcome="sorted", confidence=confidence,
                         presses=tally.presses)
             final_written = True

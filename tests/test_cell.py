@@ -231,6 +231,25 @@ def test_a_sort_that_timed_out_stays_uncertain_when_its_retry_is_refused(tmp_pat
     assert results[0].outcome == "unknown_outcome" and "check both" in f[0]["reason"]
 
 
+class LinkLostAfterTheSortGate(OrderedGate):
+    """The SORT went out and was executed; the link died before its ACK came back."""
+
+    def sort(self, bin_index):
+        super().sort(bin_index)
+        error = GateError("reading from the gate failed: device disconnected", device="gate", kind="link")
+        error.maybe_executed = True  # what runtime/gate.py passes on from the driver
+        raise error
+
+
+def test_a_link_lost_after_the_sort_went_out_is_an_unknown_outcome(tmp_path):
+    gate = LinkLostAfterTheSortGate(tmp_path / "journal.jsonl")
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60], gate=gate)
+    results = cell.run(max_items=1)
+    f = finals(journal.path)
+    assert len(f) == 1 and f[0]["outcome"] == "unknown_outcome" and f[0]["maybe_bin"] == BINS["silk"], f
+    assert results[0].outcome == "unknown_outcome" and gate.sorted == [BINS["silk"]]
+
+
 class FailingStopArm(FakeArm):
     def stop(self):
         raise RuntimeError("stop failed (injected)")
