@@ -50,7 +50,8 @@ def load_model(cfg: CellConfig) -> TactileModel:
 def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
     scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
-    config or a wrong bundle, and the cell would sort it with the wrong expectation."""
+    config or a wrong bundle, and the cell would sort it with the wrong expectation. A one-fabric
+    scene needs the bundle's scene model: without its off-scene rules no piece could be refused."""
     touched, untouched = list(model.touched), list(model.untouched)
     missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
     if missing:
@@ -61,6 +62,13 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     if wrong:
         raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
                          "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
+    if len(cfg.fabrics) == 1 and getattr(model, "scene_model", None) is None:
+        # restricted to one class the posterior is 1 on every press; only the scene model's
+        # off-scene rules (runtime/evidence.py) can send a piece to the reject bin
+        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} has "
+                         "no scene model (decision.npz), so nothing could refuse a piece: every piece on the line "
+                         "would be sorted into that fabric's bin. Export the bundle with its scene model, or list "
+                         "the other fabrics the line carries")
 
 
 def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:

@@ -111,7 +111,8 @@ def _deploy(tmp_path, *, beta=None, note=None):
 
 
 BUNDLE_CFG = ("bundle: bundle\nthreads: 1\ndevices: {camera: {kind: replay, path: x}, arm: {kind: fake}, "
-              "gate: {kind: fake}}\nscene: {fabrics: [{name: f00, kind: touched, bin: 1}]}\njournal: j.jsonl\n")
+              "gate: {kind: fake}}\nscene: {fabrics: [{name: f00, kind: touched, bin: 1}, {name: f02, kind: touched, "
+              "bin: 2}]}\njournal: j.jsonl\n")
 
 
 def test_an_override_calibrated_for_another_bundle_is_refused(tmp_path):
@@ -152,3 +153,21 @@ def test_an_override_names_its_bundle_and_only_that_bundle_takes_it(tmp_path):
     # the config's own number reads no file: it stands whatever the file says
     (tmp_path / "c.yaml").write_text(BUNDLE_CFG + "beta_override: 99.0\n")
     assert load_model(load_config(tmp_path / "c.yaml")).beta == 99.0
+
+
+def test_a_one_fabric_scene_needs_a_bundle_that_can_refuse_a_piece(tmp_path):
+    """Restricted to one fabric, a bundle's posterior is 1 for it on every press: without the scene
+    model's off-scene rules (decision.npz) nothing can send a piece to the reject bin, so every
+    other fabric on the line was sorted into that fabric's bin, confident, at the first press. The
+    daemon refuses the pair; two fabrics, or a bundle with a scene model, start."""
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.wiring import load_model
+
+    ev = Evidence(["f00"], 0.99, 5)  # what the cell's evidence made of a press that is surely not f00
+    assert ev.add(SimpleNamespace(log_posterior={"f00": -1e30, "f02": 0.0})).label == "f00"
+    _deploy(tmp_path)
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG.replace(", {name: f02, kind: touched, bin: 2}", ""))
+    with pytest.raises(ValueError, match=r"one fabric \(f00\).*no scene model.*every piece"):
+        load_model(load_config(tmp_path / "c.yaml"))
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
+    assert load_model(load_config(tmp_path / "c.yaml")).scene_model is None  # two fabrics: it starts
