@@ -35,14 +35,19 @@ ERROR_KINDS = ("timeout", "nak", "jam", "fault_latched", "link", "bad_ack")
 
 
 class GateClientError(RuntimeError):
-    """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name."""
+    """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name.
+    ``maybe_executed``: the request went out whole and the gate may have acted on it (a link lost
+    while waiting for its reply, or a reboot seen after an unanswered try) - for a SORT, the flap
+    may be at the bin. A timeout always may have been executed; a NAK never was."""
 
-    def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None) -> None:
+    def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None,
+                 maybe_executed: bool = False) -> None:
         super().__init__(message)
         assert kind in ERROR_KINDS, kind
         self.kind = kind
         self.reason = reason
         self.reported_bin = reported_bin  # bad_ack: the bin the gate's ACK says the flap is at
+        self.maybe_executed = maybe_executed
 
 
 @dataclass(frozen=True)
@@ -252,8 +257,14 @@ class GateClient:
             raise GateClientError(f"bin {bin_index} is not a gate bin (0..255)", kind="nak", reason="bad_bin")
         with self._lock:
             self._refuse_after_reboot()
+            tries_before = self.retransmissions
             reply = self._request(p.SORT, bytes((bin_index,)))
-            self._refuse_after_reboot()  # a reboot explains a NAK better than the NAK does
+            try:
+                self._refuse_after_reboot()  # a reboot explains a NAK better than the NAK does
+            except GateClientError as exc:
+                # an unanswered earlier try of this SORT may have been executed before the reboot
+                exc.maybe_executed = self.retransmissions > tries_before
+                raise
             if isinstance(reply, p.Nak):
                 raise self._nak_error(reply, f"sort to bin {bin_index}")
             self._require_ack_of(reply, bin_index, f"sort to bin {bin_index}")
@@ -352,11 +363,17 @@ class GateClient:
             seq = self._next_seq() if seq is None else seq
             frame = p.encode_frame(seq, msg_type, payload)
             attempts = 1 + (self.retries if retries is None else retries)
+            sent = False  # a whole try went out: from then on the gate may have acted on it
             for attempt in range(attempts):
                 if attempt:
                     self.retransmissions += 1
-                self._write(frame)
-                reply = self._wait_reply(seq, msg_type, time.monotonic() + self.timeout_s)
+                try:
+                    self._write(frame)
+                    sent = True
+                    reply = self._wait_reply(seq, msg_type, time.monotonic() + self.timeout_s)
+                except GateClientError as exc:  # the link, lost after (or before) a try went out
+                    exc.maybe_executed = sent
+                    raise
                 if reply is not None:
                     self._note_state(reply.state, reply.fault, reply.bin)
                     if check_reboot:
@@ -364,7 +381,7 @@ class GateClient:
                     return reply
             name = p.TYPE_NAMES[msg_type]
             raise GateClientError(f"the gate did not answer {name} (seq {seq}) within {self.timeout_s:.2f} s "
-                                  f"after {attempts} attempts on {self.port}", kind="timeout")
+                                  f"after {attempts} attempts on {self.port}", kind="timeout", maybe_executed=sent)
 
     def _write(self, frame: bytes) -> None:
         try:

@@ -43,6 +43,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.config import ConfigError, load_config
 from vs2t_edge.runtime.dataset import load_dataset
 from vs2t_edge.runtime.inference import TactileModel
@@ -358,7 +359,8 @@ def run(args) -> int:
     had_old = override.exists()
     override.parent.mkdir(parents=True, exist_ok=True)  # a beta_override_file in a folder not made yet
     sources = args.dataset or " ".join(["touched:", *args.touched_replay, "validation:", *args.validation_replay])
-    path = write_beta_override(override, cal, bundle_beta=old, source=sources)
+    seal = (getattr(model, "manifest", None) or {}).get(SEAL_KEY)  # the daemon refuses the file for another bundle
+    path = write_beta_override(override, cal, bundle_beta=old, source=sources, bundle_seal=seal)
     print(f"written {path}" + (f" (previous kept as {path.name}.prev)" if had_old else "")
           + ("; restart the service to use it" if args.config else
              "; the service uses it after a restart if its config sets neither beta_override nor "

@@ -119,11 +119,13 @@ class SceneSpec:
 
 
 class CellFault(Exception):
-    """Raised inside the loop to latch a fault; ``reason`` is what the operator reads."""
+    """Raised inside the loop to latch a fault; ``reason`` is what the operator reads.
+    ``maybe_routed``: a SORT sent for this item may have been executed whatever ``kind`` says
+    (an earlier try of it timed out)."""
 
-    def __init__(self, reason: str, kind: str = "fault") -> None:
+    def __init__(self, reason: str, kind: str = "fault", maybe_routed: bool = False) -> None:
         super().__init__(reason)
-        self.reason, self.kind = reason, kind
+        self.reason, self.kind, self.maybe_routed = reason, kind, maybe_routed
 
 
 class StopRequested(Exception):
@@ -493,9 +495,13 @@ class Cell:
                     try:
                         self.gate.sort(bin_)
                     except GateError as exc2:
-                        raise CellFault(f"gate fault sorting to bin {bin_}: {exc2}", exc2.kind) from exc2
-                else:
-                    raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind) from exc
+                        # the first SORT may have been executed with only its acks lost: a refused
+                        # retry (latched meanwhile, jam, NAK) says nothing about where the piece went
+                        raise CellFault(f"gate fault sorting to bin {bin_}: {exc2} (after a first try that "
+                                        f"timed out: {exc})", exc2.kind, maybe_routed=True) from exc2
+                else:  # a link lost after the SORT went out may have left the flap at the bin
+                    raise CellFault(f"gate fault sorting to bin {bin_}: {exc}", exc.kind,
+                                    maybe_routed=bool(getattr(exc, "maybe_executed", False))) from exc
             self._final(number, item.id, label=label, bin_=bin_, outcome="sorted", confidence=confidence,
                         presses=tally.presses)
             final_written = True
@@ -507,7 +513,7 @@ class Cell:
             # reject. A NAK, a latched gate, a jam or a reboot (the MCU boots to reject) did not route it.
             # An ACK that contradicts the sort (bad_ack: another bin, a latched or moving gate) is no
             # more certain than a lost one: the flap is where the gate says, or nobody knows.
-            uncertain = gate_told and fault.kind in ("timeout", "bad_ack")
+            uncertain = gate_told and (fault.kind in ("timeout", "bad_ack") or fault.maybe_routed)
             outcome = "unknown_outcome" if uncertain else "rejected_fault"
             reported = getattr(fault.__cause__, "reported_bin", None) if fault.kind == "bad_ack" else None
             also = f", bin {reported} (where the gate says the flap is)" if reported not in (None, bin_) else ""

@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from vs2t_edge.firmware_bridge.gate_client import timing_problems as gate_timing_problems
+from vs2t_edge.firmware_bridge.protocol import REJECT_BIN as GATE_REJECT_BIN
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_problems
 from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
@@ -112,7 +113,8 @@ _SCHEMA: dict[str, Any] = {
         },
     },
     "scene": {
-        "reject_bin": _leaf("int", 0, (0, 7), "bin for unknown items, faults and anything off-scene"),
+        "reject_bin": _leaf("int", 0, (0, 7), "bin for unknown items, faults and anything off-scene: the "
+                                              "gate's own reject bin, 0"),
         "fabrics": _leaf("list", REQUIRED, None, "list of {name, kind: touched|untouched, bin}"),
     },
     "evidence": {
@@ -393,6 +395,14 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     fabrics: list[SceneFabric] = []
     seen_names: set[str] = set()
     reject_bin = v["scene"]["reject_bin"]
+    if reject_bin is not None and reject_bin != GATE_REJECT_BIN:
+        # the gate moves its flap there by itself (the cell's to_reject on a fault or stop, its
+        # heartbeat fail-safe, boot, clear): another reject bin would put those pieces in bin 0,
+        # a fabric's bin perhaps, while the journal says reject_bin
+        chk.err("scene.reject_bin", f"scene.reject_bin = {reject_bin}: the gate's own reject bin is "
+                                    f"{GATE_REJECT_BIN} - it moves the flap there on every fault, fail-safe, "
+                                    "boot and clear, and the cell's to_reject sends it there - so the reject "
+                                    f"bin must be {GATE_REJECT_BIN}")
     for i, item in enumerate(v["scene"]["fabrics"] or []):
         key = f"scene.fabrics[{i}]"
         if not isinstance(item, dict):

@@ -116,10 +116,16 @@ class Evidence:
             return max(self._outside.values()) > best_in + self.known_margin
         return False
 
+    def _decisive(self, post: np.ndarray, i: int) -> bool:
+        """Whether the presses can pick a bin at all: at least ``min_presses`` of them, and a
+        leading class ahead of every other (a tie - a two-fabric scene at confidence 0.5 - would
+        otherwise sort to whichever fabric the scene lists first)."""
+        return self.presses >= self.min_presses and int(np.sum(post == post[i])) == 1
+
     def _check(self, final: bool) -> ItemDecision | None:
         post = self._posterior()
         i = int(np.argmax(post))
-        confident = self.presses >= self.min_presses and math.exp(float(post[i])) >= self._needed[i]
+        confident = self._decisive(post, i) and math.exp(float(post[i])) >= self._needed[i]
         if confident and not self.off_scene():
             return self._make(post, "confident")
         if final or self.presses >= self.max_presses:
@@ -130,6 +136,7 @@ class Evidence:
         i = int(np.argmax(post))
         conf = math.exp(float(post[i]))
         floor = self.unknown_floor if self._floor_given else float(self._needed[i])
-        sure = stopped_by == "confident" or (stopped_by == "press_limit" and conf >= floor)
+        sure = stopped_by == "confident" or (stopped_by == "press_limit" and conf >= floor
+                                             and self._decisive(post, i))
         label = self.classes[i] if sure else UNKNOWN
         return ItemDecision(label, conf, self.presses, {c: float(p) for c, p in zip(self.classes, post)}, stopped_by)

@@ -8,7 +8,10 @@ Two parts:
   ``<bundle>.beta_override.json`` beside the bundle (``vs2t-edge calibrate-threshold`` writes it,
   atomically); the bundle manifest's own beta. A replay pins the beta its session ran with by
   writing it as the config's number (runtime/replay.py), so a later calibration does not change a
-  recorded session.
+  recorded session. An override file names the bundle it was calibrated for (its manifest's seal,
+  ``manifest_sha256``); the daemon refuses one written for another bundle - beta is in the units
+  of the router it was calibrated on, and a file left beside the bundle folder outlives a new
+  bundle deployed to that folder.
 * **the item rule** of a bundle that carries a scene model (``decision.npz``,
   runtime/scene_model.py): press weight, off-scene threshold and margin, and the confidence that
   sorts, per kind, all chosen in training for the mis-sort target. The config's
@@ -29,6 +32,7 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, atomic_write, read_regular_file
 
 
@@ -52,17 +56,22 @@ def override_file_for(cfg) -> tuple[Path | None, str]:
     return (Path(cfg.beta_override_file) if cfg.beta_override_file else override_path_for(cfg.bundle)), ""
 
 
-def resolve_beta(cfg) -> tuple[float | None, str]:
+def resolve_beta(cfg, bundle_manifest: dict | None = None) -> tuple[float | None, str]:
     """(beta, its source) for the daemon of ``cfg``; (None, "bundle manifest") when the bundle's own
-    beta stands."""
+    beta stands. With ``bundle_manifest`` (the manifest of ``cfg``'s bundle) an override file
+    calibrated for another bundle is refused (``read_beta_override``)."""
     if cfg.beta_override is not None:
         return float(cfg.beta_override), f"{cfg.path}: beta_override"
     path, _ = override_file_for(cfg)
-    beta = read_beta_override(path)
+    beta = read_beta_override(path, bundle_manifest)
     return (beta, str(path)) if beta is not None else (None, "bundle manifest")
 
 
-def read_beta_override(path: Path | None) -> float | None:
+def read_beta_override(path: Path | None, bundle_manifest: dict | None = None) -> float | None:
+    """The override file's beta, None when there is no file. With ``bundle_manifest``, a file
+    calibrated for another bundle is an ``OverrideFileError``: the file names its bundle's seal
+    (``bundle_seal``); a file written before it did is judged by the bundle's own beta it kept
+    (``bundle_beta``), which a re-export almost always changes."""
     if path is None or not Path(path).exists():
         return None
     try:
@@ -74,13 +83,37 @@ def read_beta_override(path: Path | None) -> float | None:
         raise OverrideFileError(f"{path}: not a beta override file ({exc})") from None
     if not math.isfinite(beta):
         raise OverrideFileError(f"{path}: beta {beta} is not finite")
+    other = _for_another_bundle(data, bundle_manifest) if bundle_manifest is not None else ""
+    if other:
+        raise OverrideFileError(f"{path}: calibrated for another bundle ({other}); its beta is in that bundle's "
+                                "router's units. Run calibrate-threshold for this bundle, or remove the file to "
+                                "use the bundle's own beta")
     return beta
 
 
-def write_beta_override(path: Path, cal: Any, *, bundle_beta: float | None, source: str) -> Path:
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _for_another_bundle(data: dict, manifest: dict) -> str:
+    """Why an override file's ``data`` was not written for the bundle of ``manifest`` ("" = it was)."""
+    seal, written = manifest.get(SEAL_KEY), data.get("bundle_seal")
+    if written is not None:
+        return "" if written == seal else f"written for {SEAL_KEY} {str(written)[:12]}..., this bundle's is " \
+                                          f"{str(seal)[:12]}..."
+    was, own = data.get("bundle_beta"), manifest.get("beta")
+    if _is_number(was) and _is_number(own) and float(was) != float(own):
+        return f"written when the bundle's own beta was {float(was):.6g}, this bundle's is {float(own):.6g}"
+    return ""
+
+
+def write_beta_override(path: Path, cal: Any, *, bundle_beta: float | None, source: str,
+                        bundle_seal: str | None = None) -> Path:
     """Atomic: at every instant ``path`` holds either the old override or the new one, whole.
 
-    ``cal`` is a calibration (``runtime.calibrate.Calibration``: beta and how it was chosen). The old
+    ``cal`` is a calibration (``runtime.calibrate.Calibration``: beta and how it was chosen);
+    ``bundle_seal`` the calibrated bundle's ``manifest_sha256`` (the daemon refuses the file for any
+    other bundle, ``read_beta_override``). The old
     file is copied to ``.prev`` (itself via a temp file and rename), the new one written to a temp
     file, fsynced and renamed over ``path``, and the folder fsynced. A crash anywhere leaves the
     old override in force (and perhaps a stray ``.tmp``); never no override at all, which would
@@ -96,7 +129,9 @@ def write_beta_override(path: Path, cal: Any, *, bundle_beta: float | None, sour
         except (ValueError, AttributeError):
             history = []  # a damaged old file is still kept as .prev below, byte for byte
     fields = asdict(cal) if is_dataclass(cal) else dict(cal)
-    data = {"beta": fields["beta"], "bundle_beta": bundle_beta, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    data = {"beta": fields["beta"], "bundle_beta": bundle_beta,
+            **({"bundle_seal": bundle_seal} if bundle_seal is not None else {}),
+            "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "source": source, **{k: v for k, v in fields.items() if k != "beta"}, "history": history}
     if old_text is not None:
         atomic_write(path.with_name(path.name + ".prev"), old_text)

@@ -23,6 +23,7 @@ import threading
 from typing import Any, Callable
 
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
+from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.camera import ContactCheck, UVCCamera, camera_from_config
 from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
@@ -35,9 +36,13 @@ from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
 
 
 def load_model(cfg: CellConfig) -> TactileModel:
-    """Verified, warmed model of the bundle, with the beta the operating point says, checked
-    against the scene (raises on any mismatch, naming it)."""
-    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta(cfg)[0])
+    """Verified, warmed model of the bundle, with the beta the operating point says (an override
+    file calibrated for another bundle is refused), checked against the scene (raises on any
+    mismatch, naming it)."""
+    manifest = read_manifest(cfg.bundle)
+    model = TactileModel.load(cfg.bundle, threads=cfg.threads, beta_override=resolve_beta(cfg, manifest)[0])
+    if model.manifest.get(SEAL_KEY) != manifest.get(SEAL_KEY):  # the override was checked against this one
+        raise BundleError(cfg.bundle, "the bundle was replaced while it was being loaded; start again")
     check_scene_against_bundle(cfg, model)
     return model
 
@@ -45,7 +50,8 @@ def load_model(cfg: CellConfig) -> TactileModel:
 def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
     scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
-    config or a wrong bundle, and the cell would sort it with the wrong expectation."""
+    config or a wrong bundle, and the cell would sort it with the wrong expectation. A one-fabric
+    scene needs the bundle's scene model: without its off-scene rules no piece could be refused."""
     touched, untouched = list(model.touched), list(model.untouched)
     missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
     if missing:
@@ -56,6 +62,13 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     if wrong:
         raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
                          "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
+    if len(cfg.fabrics) == 1 and getattr(model, "scene_model", None) is None:
+        # restricted to one class the posterior is 1 on every press; only the scene model's
+        # off-scene rules (runtime/evidence.py) can send a piece to the reject bin
+        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} has "
+                         "no scene model (decision.npz), so nothing could refuse a piece: every piece on the line "
+                         "would be sorted into that fabric's bin. Export the bundle with its scene model, or list "
+                         "the other fabrics the line carries")
 
 
 def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:

@@ -386,3 +386,21 @@ def test_live_presses_are_recorded_per_group_and_calibrated(tmp_path, monkeypatc
     # without both groups or without --config: a usage error naming what is missing, nothing recorded
     assert main(["calibrate-threshold", "--bundle", "bundle", "--live-touched", "2"]) == 2
     assert "--live-validation" in capsys.readouterr().err
+
+
+def test_cli_names_the_calibrated_bundle_in_the_override(tmp_path, monkeypatch):
+    """The override carries the bundle's seal, so the daemon can refuse it for any other bundle
+    (tests/test_operating_point.py)."""
+    import json
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime import calibrate
+
+    _fake_inference(monkeypatch, ["denim", "silk"], ["wool"])
+    monkeypatch.setattr(calibrate.TactileModel, "manifest", {"manifest_sha256": "ab" * 32}, raising=False)
+    _grey_dataset(tmp_path / "ds", {"denim": 50, "silk": 60, "velvet": 80, "tweed": 90})
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds")]) == 0
+    data = json.loads(override_path_for(bundle).read_text())
+    assert data["bundle_seal"] == "ab" * 32 and data["bundle_beta"] == 65.0

@@ -9,6 +9,7 @@ import pytest
 from cell_fakes import LOOP_CONFIG, FakeEvidence, FakeModel, ScriptedCamera
 from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.devices import GateError
 from vs2t_edge.runtime.items import ContinuousFeed, Item
 from vs2t_edge.sim.fake_devices import FakeGate
 from vs2t_edge.runtime.journal import Journal, read_records
@@ -200,6 +201,53 @@ def test_gate_timeout_is_retried_once(tmp_path):
     gate.time_out_next(1)
     results = cell.run(max_items=1)
     assert results[0].outcome == "sorted" and gate.sorted == [2]
+
+
+class AcksLostThenLatchedGate(OrderedGate):
+    """The first SORT is executed but its acks are lost (a timeout); in that silence the gate's
+    heartbeat timed out, so the retry is refused by a latched gate."""
+
+    def sort(self, bin_index):
+        if not self.sorted:
+            super().sort(bin_index)  # the flap moved to the bin ...
+            self.lose_heartbeat()  # ... then the host's silence latched the gate (flap back at reject)
+            error = GateError("the gate did not answer SORT (acks lost)", device="gate", kind="timeout")
+            error.retryable = True
+            raise error
+        super().sort(bin_index)
+
+
+def test_a_sort_that_timed_out_stays_uncertain_when_its_retry_is_refused(tmp_path):
+    """A SORT that timed out may have been executed (docs/protocol.md): the piece may be in its
+    bin. Its retry then refused (a latched gate, a jam, a NAK) proves nothing about the first one,
+    yet the item was recorded rejected_fault in the reject bin - no maybe_bin for the operator to
+    check, the piece's true bin never looked at."""
+    gate = AcksLostThenLatchedGate(tmp_path / "journal.jsonl")
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60], gate=gate)
+    results = cell.run(max_items=1)
+    assert gate.sorted == [BINS["silk"]]  # the flap went to silk's bin once
+    f = finals(journal.path)
+    assert len(f) == 1 and f[0]["outcome"] == "unknown_outcome" and f[0]["maybe_bin"] == BINS["silk"], f
+    assert results[0].outcome == "unknown_outcome" and "check both" in f[0]["reason"]
+
+
+class LinkLostAfterTheSortGate(OrderedGate):
+    """The SORT went out and was executed; the link died before its ACK came back."""
+
+    def sort(self, bin_index):
+        super().sort(bin_index)
+        error = GateError("reading from the gate failed: device disconnected", device="gate", kind="link")
+        error.maybe_executed = True  # what runtime/gate.py passes on from the driver
+        raise error
+
+
+def test_a_link_lost_after_the_sort_went_out_is_an_unknown_outcome(tmp_path):
+    gate = LinkLostAfterTheSortGate(tmp_path / "journal.jsonl")
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60], gate=gate)
+    results = cell.run(max_items=1)
+    f = finals(journal.path)
+    assert len(f) == 1 and f[0]["outcome"] == "unknown_outcome" and f[0]["maybe_bin"] == BINS["silk"], f
+    assert results[0].outcome == "unknown_outcome" and gate.sorted == [BINS["silk"]]
 
 
 class FailingStopArm(FakeArm):

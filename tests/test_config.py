@@ -205,3 +205,18 @@ def test_contact_check_is_on_for_a_live_sensor_and_off_for_replays_unless_asked(
     forced = contact_check_for(cfg("{kind: replay, path: x.replay, contact_check: 'on', contact_threshold_levels: 4}"))
     assert forced is not None and forced.threshold_levels == 4.0
     assert contact_check_for(cfg("{kind: uvc, contact_check: 'off'}")) is None
+
+
+def test_the_reject_bin_is_the_bin_the_gate_fails_safe_to(tmp_path):
+    """The gate puts its flap at bin 0 on its own (firmware GATE_REJECT_BIN, protocol.REJECT_BIN):
+    the cell's to_reject on every latched fault and SIGTERM abort, the heartbeat fail-safe, a boot
+    and a clear. A config with another reject bin and a fabric on bin 0 passed validation: every
+    piece in hand at a fault then fell into that fabric's bin (a mis-sort) while its final record
+    said 'reject bin 7'. Any other reject bin is refused, naming the line."""
+    path = write(tmp_path, GOOD.replace("reject_bin: 0", "reject_bin: 7").replace("bin: 1}", "bin: 0}"))
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert f"{path}:10: scene.reject_bin = 7: the gate's own reject bin is 0" in str(info.value)
+    path = write(tmp_path, GOOD.replace("reject_bin: 0", "reject_bin: 3"))
+    with pytest.raises(ConfigError, match="scene.reject_bin = 3: the gate's own reject bin is 0"):
+        load_config(path)

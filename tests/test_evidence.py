@@ -31,3 +31,20 @@ def test_unknown_at_limit_and_225_presses_no_underflow():
     for _ in range(3):
         d = ev2.add(S({"a": math.log(0.5), "b": math.log(0.5)}))
     assert d.label == "unknown" and d.stopped_by == "press_limit" and d.presses == 3
+
+
+def test_no_presses_or_a_tie_is_never_a_sort():
+    """An item the evidence has no press of (a one-fabric scene's posterior is 1 before any press),
+    or whose leading classes are tied (a two-fabric scene at confidence 0.5, presses that tell the
+    two apart not at all), carries nothing that picks its bin: unknown, the reject bin - not the
+    scene's first-listed fabric."""
+    d = Evidence(["a"], 0.9, 3).decide()
+    assert (d.label, d.presses) == ("unknown", 0)
+    ev = Evidence(["a", "b"], 0.5, 3)
+    d = ev.add(S({"a": -1e30, "b": -1e30, "z": 0.0}))  # both scene fabrics impossible by this press
+    assert d is None and ev.decide().label == "unknown"
+    for _ in range(2):
+        d = ev.add(S({"a": math.log(0.4), "b": math.log(0.4), "z": math.log(0.2)}))
+    assert d.label == "unknown" and d.stopped_by == "press_limit" and d.presses == 3
+    d = Evidence(["a", "b"], 0.5, 3).add(S({"a": math.log(0.51), "b": math.log(0.49)}))
+    assert d.label == "a" and d.stopped_by == "confident"  # a lead, however small, is still a lead

@@ -329,3 +329,24 @@ def test_the_moves_reconciliation_tries_every_split():
     # a contradicted ACK: the flap may have gone where the gate reported
     contradicted = [final(1, "unknown_outcome", maybe_bin=2, reported_bin=7)]
     assert _moves_match_journal([7], contradicted) == "" and _moves_match_journal([2], contradicted) == ""
+
+
+def test_a_link_lost_after_the_sort_went_out_may_have_moved_the_flap(sim, client):
+    """The USB adapter goes while the gate's ACK is on its way: the SORT was executed (the flap is
+    at the bin) but the host only sees a link error. That error must say the SORT may have been
+    executed, as a timeout does - the cell then records the piece unknown_outcome with the bin
+    it may be in, not rejected_fault in the reject bin. A link lost before anything was sent
+    says the opposite."""
+    import threading
+
+    sim.faults.ack_delay_s = 0.2  # the ACK leaves late: the line dies in between
+    unplug = threading.Thread(target=lambda: wait_for(lambda: sim.executed == [3]) and sim.stop())
+    unplug.start()
+    with pytest.raises(GateClientError) as caught:
+        client.sort(3)
+    unplug.join()
+    assert sim.executed == [3] and caught.value.kind == "link"
+    assert caught.value.maybe_executed is True
+    with pytest.raises(GateClientError) as again:  # nothing can go out now: certain
+        client.sort(4)
+    assert again.value.kind == "link" and again.value.maybe_executed is False

@@ -84,3 +84,90 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     for ev in (cell, jobs):
         assert (ev.confidence, ev.weight, ev.open_threshold, ev.known_margin) == (0.97, 0.25, 40.0, 1.5)
         assert dict(zip(ev.classes, ev._needed.tolist())) == {"denim": 0.97, "wool": 0.9}
+
+
+# --- an override file and the bundle it was calibrated for -------------------------------------
+
+REPLAY_BUNDLE = __import__("pathlib").Path(__file__).parent / "replays" / "bundle"
+
+
+def _deploy(tmp_path, *, beta=None, note=None):
+    """The reference replays' bundle copied to tmp_path/bundle; with ``beta`` / ``note`` it is
+    re-sealed as another export (what deploying a new bundle to the same folder gives)."""
+    import shutil
+
+    from vs2t_edge.runtime.bundle import seal_manifest
+
+    dst = tmp_path / "bundle"
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(REPLAY_BUNDLE, dst)
+    manifest = json.loads((dst / "manifest.json").read_text())
+    if beta is not None or note is not None:
+        manifest["beta"] = manifest["beta"] if beta is None else beta
+        manifest["provenance"] = dict(manifest["provenance"], note=note or "another export")
+        (dst / "manifest.json").write_text(json.dumps(seal_manifest(manifest), indent=2))
+    return dst, manifest
+
+
+BUNDLE_CFG = ("bundle: bundle\nthreads: 1\ndevices: {camera: {kind: replay, path: x}, arm: {kind: fake}, "
+              "gate: {kind: fake}}\nscene: {fabrics: [{name: f00, kind: touched, bin: 1}, {name: f02, kind: touched, "
+              "bin: 2}]}\njournal: j.jsonl\n")
+
+
+def test_an_override_calibrated_for_another_bundle_is_refused(tmp_path):
+    """beta is in the units of the router it was calibrated on (a Gaussian's novelty spans 1e7 ..
+    1e12): the override beside the bundle folder, kept when a new bundle is deployed to that folder,
+    routed the new bundle's presses to CLS_t / CLS_u by the old router's threshold - untouched
+    pieces sorted as touched fabrics. The daemon refuses to start instead, naming the file."""
+    from vs2t_edge.runtime.wiring import load_model
+
+    old, manifest = _deploy(tmp_path)
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
+    cfg = load_config(tmp_path / "c.yaml")
+    # calibrate-threshold's file as written before it named its bundle: only the bundle's own beta
+    op.write_beta_override(op.override_path_for(old), {"beta": 1234.5, "objective": "test"},
+                           bundle_beta=manifest["beta"], source="test")
+    assert load_model(cfg).beta == 1234.5  # the bundle it was written for takes it
+    _deploy(tmp_path, beta=manifest["beta"] * 3)  # a new export deployed to the same folder
+    with pytest.raises(op.OverrideFileError, match=r"bundle.beta_override.json: calibrated for another bundle"):
+        load_model(cfg)
+
+
+def test_an_override_names_its_bundle_and_only_that_bundle_takes_it(tmp_path):
+    """calibrate-threshold's file names the bundle's seal: a re-export with the very same beta is
+    still another router, and is refused; the bundle it was written for takes it."""
+    from vs2t_edge.runtime.wiring import load_model
+
+    old, manifest = _deploy(tmp_path)
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
+    cfg = load_config(tmp_path / "c.yaml")
+    op.write_beta_override(op.override_path_for(old), {"beta": 1234.5, "objective": "test"},
+                           bundle_beta=manifest["beta"], source="test", bundle_seal=manifest["manifest_sha256"])
+    assert load_model(cfg).beta == 1234.5
+    assert op.resolve_beta(cfg) == (1234.5, str(op.override_path_for(old)))  # no bundle given: not judged
+    _deploy(tmp_path, note="re-exported, same beta")
+    with pytest.raises(op.OverrideFileError, match=r"calibrated for another bundle \(written for manifest_sha256 "
+                                                   + manifest["manifest_sha256"][:12]):
+        load_model(cfg)
+    # the config's own number reads no file: it stands whatever the file says
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG + "beta_override: 99.0\n")
+    assert load_model(load_config(tmp_path / "c.yaml")).beta == 99.0
+
+
+def test_a_one_fabric_scene_needs_a_bundle_that_can_refuse_a_piece(tmp_path):
+    """Restricted to one fabric, a bundle's posterior is 1 for it on every press: without the scene
+    model's off-scene rules (decision.npz) nothing can send a piece to the reject bin, so every
+    other fabric on the line was sorted into that fabric's bin, confident, at the first press. The
+    daemon refuses the pair; two fabrics, or a bundle with a scene model, start."""
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.wiring import load_model
+
+    ev = Evidence(["f00"], 0.99, 5)  # what the cell's evidence made of a press that is surely not f00
+    assert ev.add(SimpleNamespace(log_posterior={"f00": -1e30, "f02": 0.0})).label == "f00"
+    _deploy(tmp_path)
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG.replace(", {name: f02, kind: touched, bin: 2}", ""))
+    with pytest.raises(ValueError, match=r"one fabric \(f00\).*no scene model.*every piece"):
+        load_model(load_config(tmp_path / "c.yaml"))
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
+    assert load_model(load_config(tmp_path / "c.yaml")).scene_model is None  # two fabrics: it starts
