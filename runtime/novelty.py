@@ -363,6 +363,10 @@ class DiscriminantRouter(Router):
     def dim(self) -> int:
         return int(self.centre.shape[0])
 
+    @property
+    def n_classes(self) -> int:
+        return int(self.class_means.shape[0])
+
     @classmethod
     def fit(cls, touched_features: np.ndarray, touched_labels: np.ndarray | None, *,
             variance_floor: float = 1e-6) -> "DiscriminantRouter":
