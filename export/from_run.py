@@ -101,8 +101,8 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
                  log: Callable[[str], None] = lambda m: None) -> dict:
     """Router ``name`` fitted and its beta tuned the way `vs2t-edge train` does it, on this run.
 
-    - fit: ``train.run.fit_router`` (the trainer's own call) on the trunk features and CLS_t
-      logits of the touched fabrics' TRAINING presses (``part[fid]["train"]``);
+    - fit: ``train.run.fit_router`` (the trainer's own call) on the trunk features, CLS_t logits
+      and touched classes of the touched fabrics' TRAINING presses (``part[fid]["train"]``);
     - beta: ``novelty.tune_threshold(..., "balanced")`` between the held-out touched presses
       (``part[fid]["val"]``) and every cached press of the validation fabrics (``grid_presses``),
       as ``train.compare`` tunes it (its touched_val vs val_presses).
@@ -140,7 +140,9 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
     n_fit = sum(len(v) for v in fit_src.values())
     log(f"refitting router {name} on {n_fit} training presses of {len(touched)} touched fabrics")
     _, f, lt, _ = read(fit_src, keep_frames=False)
-    router = trainer_fit_router(name, f, lt)
+    # each fit press's touched class, in read's order (fit_src follows ``touched``; a fabric without presses adds none)
+    labels = np.concatenate([np.full(len(idx), k) for k, idx in enumerate(fit_src.values())])
+    router = trainer_fit_router(name, f, lt, labels)
     x_held, *held = read(held_src, keep_frames=True)
     x_val, *val = read(val_src, keep_frames=True)
     nov_held, nov_val = _novelty(router, *held), _novelty(router, *val)

@@ -50,7 +50,9 @@ class FuseError(RuntimeError):
 
 def router_projection(router: nv.Router, force_full: bool = False) -> dict[str, Any] | None:
     """What the graph computes for the router (module doc), float64; None for routers that need only
-    the logits (energy, max_softmax, calibrated_stacking: numpy on C numbers, nothing to fold)."""
+    the logits (energy, max_softmax, calibrated_stacking: numpy on C numbers, nothing to fold) and
+    for the discriminant router (its novelty is a minimum over classes, not a squared norm: the cell
+    computes it in numpy from the graph's feature, a D x (C - 1) matmul and C x (C - 1) numbers)."""
     if not isinstance(router, nv.GaussianRouter):
         return None
     w = np.asarray(router.whitening, np.float64)

@@ -321,6 +321,10 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     rdim = getattr(router, "dim", None)
     if rdim is not None and rdim != dim:
         raise BundleError(root, f"{router_file.name}: router fitted on {rdim}-d features, feature_dim is {dim}")
+    r_classes = getattr(router, "n_classes", None)  # a class-conditional router models every touched class
+    if r_classes is not None and r_classes != len(touched):
+        raise BundleError(root, f"{router_file.name}: router '{router.name}' models {r_classes} touched classes, "
+                                f"the manifest's classes.touched names {len(touched)}")
 
     scene_model = _load_scene_model(root, manifest, touched + untouched, dim)
 

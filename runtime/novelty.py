@@ -13,6 +13,13 @@ Routers (``ROUTERS``):
   at ``variance_floor`` x the mean variance before inversion.
 - ``mahalanobis_lw`` / ``mahalanobis_oas`` — the same density with a shrinkage covariance
   (Ledoit & Wolf 2004; Chen, Wiesel, Eldar & Hero 2010), novelty = squared Mahalanobis distance.
+- ``discriminant`` — class Gaussians in Fisher's discriminant subspace of the touched classes: the
+  pooled within-class covariance shrunk (Ledoit-Wolf) and whitened, the C - 1 directions that tell
+  the C touched classes apart, novelty = the smallest squared distance to a touched class mean
+  there. Needs the touched presses' class labels to fit (``fit_router(..., touched_labels=)``).
+  With a few presses per class in a wide feature, a density over all of it is dominated by
+  directions the presses never pinned down; this subspace keeps what separates the touched
+  classes, and an unseen fabric lands far from every one of them (docs/realism.md).
 - ``energy`` — novelty = -T * logsumexp(logits_t / T) (Liu et al. 2020).
 - ``max_softmax`` — novelty = -max softmax(logits_t) (Hendrycks & Gimpel 2017).
 - ``calibrated_stacking`` — (Chao et al. 2016) the all-class decision argmax[s_t - gamma, s_u];
@@ -33,16 +40,21 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
+from vs2t_edge.runtime.covariance import discriminant_subspace, shrunk_covariance
+
 ROUTERS: tuple[str, ...] = (
     "gaussian",
     "mahalanobis_lw",
     "mahalanobis_oas",
+    "discriminant",
     "energy",
     "max_softmax",
     "calibrated_stacking",
 )
+# Gaussian densities of all touched features (``GaussianRouter``; a fused press graph folds them).
+GAUSSIAN_ROUTERS: tuple[str, ...] = ("gaussian", "mahalanobis_lw", "mahalanobis_oas")
 # Routers that need only the tactile feature (others need the heads' logits).
-FEATURE_ROUTERS: tuple[str, ...] = ("gaussian", "mahalanobis_lw", "mahalanobis_oas")
+FEATURE_ROUTERS: tuple[str, ...] = (*GAUSSIAN_ROUTERS, "discriminant")
 
 PARAMS_VERSION = 1
 _LOG_2PI = float(np.log(2.0 * np.pi))
@@ -113,76 +125,6 @@ def _frozen(a: np.ndarray, dtype=np.float64) -> np.ndarray:
     out = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# covariance estimators (float64, written from their papers; no sklearn on the cell)
-# --------------------------------------------------------------------------------------------
-
-
-def empirical_covariance(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, maximum-likelihood covariance S = Xc^T Xc / n) in float64."""
-    x = np.asarray(x, dtype=np.float64)
-    mean = x.mean(axis=0)
-    xc = x - mean
-    return mean, (xc.T @ xc) / x.shape[0]
-
-
-def ledoit_wolf_shrinkage(xc: np.ndarray) -> float:
-    """Ledoit & Wolf (2004) optimal shrinkage of S towards mu*I for centred samples xc (n, p).
-
-    With S = Xc^T Xc / n, mu = tr(S)/p, d^2 = ||S - mu I||_F^2 / p,
-    b_bar^2 = 1/n^2 sum_k ||x_k x_k^T - S||_F^2 / p, b^2 = min(b_bar^2, d^2); shrinkage = b^2/d^2.
-    The sums are taken through the n x n Gram matrix and row norms, never a p x p x n tensor:
-    sum_k ||x_k x_k^T - S||_F^2 = sum_k ||x_k||^4 - n ||S||_F^2.
-    """
-    xc = np.asarray(xc, dtype=np.float64)
-    n, p = xc.shape
-    gram = xc @ xc.T  # ||S||_F^2 = ||Xc Xc^T||_F^2 / n^2, cheaper when n < p
-    s_fro2 = float(np.sum(gram * gram)) / n**2
-    mu = float(np.trace(gram)) / (n * p)
-    d2 = (s_fro2 - 2.0 * mu * mu * p + mu * mu * p) / p  # ||S - mu I||^2 = ||S||^2 - p mu^2
-    row_norm2 = np.diag(gram)
-    b_bar2 = (float(np.sum(row_norm2**2)) - n * s_fro2) / (n**2 * p)
-    b2 = min(max(b_bar2, 0.0), d2)
-    if d2 <= 0.0:
-        return 1.0  # S is already a multiple of the identity
-    return float(b2 / d2)
-
-
-def oas_shrinkage(xc: np.ndarray) -> float:
-    """Oracle Approximating Shrinkage, Chen et al. (2010) eq. 23, for centred samples xc (n, p).
-
-    rho = min( ((1 - 2/p) tr(S^2) + tr(S)^2) / ((n + 1 - 2/p) (tr(S^2) - tr(S)^2 / p)), 1 ).
-    """
-    xc = np.asarray(xc, dtype=np.float64)
-    n, p = xc.shape
-    gram = xc @ xc.T
-    tr_s = float(np.trace(gram)) / n
-    tr_s2 = float(np.sum(gram * gram)) / n**2
-    den = (n + 1.0 - 2.0 / p) * (tr_s2 - tr_s * tr_s / p)
-    if den <= 0.0:
-        return 1.0
-    num = (1.0 - 2.0 / p) * tr_s2 + tr_s * tr_s
-    return float(min(max(num / den, 0.0), 1.0))
-
-
-def shrunk_covariance(x: np.ndarray, estimator: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """(mean, covariance, shrinkage) for estimator in {"empirical", "ledoit_wolf", "oas"}."""
-    mean, s = empirical_covariance(x)
-    if estimator == "empirical":
-        return mean, s, 0.0
-    xc = np.asarray(x, dtype=np.float64) - mean
-    if estimator == "ledoit_wolf":
-        shrink = ledoit_wolf_shrinkage(xc)
-    elif estimator == "oas":
-        shrink = oas_shrinkage(xc)
-    else:
-        raise RouterError(f"unknown covariance estimator '{estimator}'")
-    mu = float(np.trace(s)) / s.shape[0]
-    cov = (1.0 - shrink) * s
-    cov[np.diag_indices_from(cov)] += shrink * mu
-    return mean, cov, shrink
 
 
 # --------------------------------------------------------------------------------------------
@@ -404,6 +346,83 @@ class GaussianRouter(Router):
         )
 
 
+@_register("discriminant")
+@dataclass(frozen=True)
+class DiscriminantRouter(Router):
+    """Class Gaussians in Fisher's discriminant subspace of the touched classes (module doc):
+    z = (x - centre) @ projection, K = C - 1 numbers; novelty = min over touched classes c of
+    ||z - class_means[c]||^2, each summed in float64 (``squared_norm``)."""
+
+    centre: np.ndarray = field(repr=False, default=None)  # (D,) float64, mean of the touched class means
+    projection: np.ndarray = field(repr=False, default=None)  # (D, K): whitening x discriminant basis
+    class_means: np.ndarray = field(repr=False, default=None)  # (C, K) touched class means in the subspace
+    shrinkage: float = 0.0
+    variance_floor: float = 0.0  # absolute eigenvalue floor actually used
+
+    @property
+    def dim(self) -> int:
+        return int(self.centre.shape[0])
+
+    @property
+    def n_classes(self) -> int:
+        return int(self.class_means.shape[0])
+
+    @classmethod
+    def fit(cls, touched_features: np.ndarray, touched_labels: np.ndarray | None, *,
+            variance_floor: float = 1e-6) -> "DiscriminantRouter":
+        """Fit on touched features (N, D) and their class labels (N,) in float64. ``variance_floor``
+        is relative to the largest eigenvalue of the shrunk within-class covariance."""
+        if touched_labels is None:
+            raise RouterError("router 'discriminant' needs touched_labels (the class of every touched "
+                              "feature vector) to fit: it models each touched class")
+        x = _as_features(touched_features, None, "touched_features").astype(np.float64)
+        labels = np.asarray(touched_labels).reshape(-1)
+        if labels.shape[0] != x.shape[0]:
+            raise RouterError(f"touched_labels has {labels.shape[0]} entries, touched_features {x.shape[0]} rows")
+        classes, y = np.unique(labels, return_inverse=True)
+        if len(classes) < 2:
+            raise RouterError(f"router 'discriminant' needs at least 2 touched classes, got {len(classes)}")
+        fit = discriminant_subspace(x, y, len(classes), variance_floor)
+        return cls(name="discriminant", centre=_frozen(fit["centre"]), projection=_frozen(fit["projection"]),
+                   class_means=_frozen(fit["class_means"]), shrinkage=fit["shrinkage"],
+                   variance_floor=fit["floor"])
+
+    def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(N, C) squared distances to every touched class in the subspace, float64; ``dtype``
+        float32 runs the centring and the D x K matmul in float32 (the cell's float32 feature)."""
+        x = _as_features(features, self.dim)
+        dtype = np.dtype(dtype)
+        z = (x.astype(dtype, copy=False) - self.centre.astype(dtype)) @ self.projection.astype(dtype)
+        diff = z.astype(np.float64)[:, None, :] - self.class_means[None]
+        return squared_norm(diff.reshape(-1, diff.shape[2])).reshape(diff.shape[:2])
+
+    def novelty(self, features, logits_t=None, *, logits_u=None, dtype=np.float64) -> np.ndarray:
+        return np.min(self.sq_distances(features, dtype=dtype), axis=1)
+
+    def to_params(self) -> dict[str, Any]:
+        return {"name": self.name, "params_version": PARAMS_VERSION, "centre": np.array(self.centre),
+                "projection": np.array(self.projection), "class_means": np.array(self.class_means),
+                "shrinkage": float(self.shrinkage), "variance_floor": float(self.variance_floor)}
+
+    @classmethod
+    def _from_params(cls, params):
+        for key in ("centre", "projection", "class_means"):
+            if key not in params:
+                raise RouterError(f"router 'discriminant' parameters lack '{key}'")
+        centre = np.asarray(params["centre"], dtype=np.float64).reshape(-1)
+        projection = np.asarray(params["projection"], dtype=np.float64)
+        means = np.asarray(params["class_means"], dtype=np.float64)
+        d = centre.shape[0]
+        if projection.ndim != 2 or projection.shape[0] != d or means.ndim != 2 or means.shape[1] != projection.shape[1]:
+            raise RouterError(f"router 'discriminant': projection is {projection.shape} and class_means "
+                              f"{means.shape}, for a centre of {d} dimensions they must be ({d}, K) and (C, K)")
+        if not all(np.all(np.isfinite(a)) for a in (centre, projection, means)):
+            raise RouterError("router 'discriminant': parameters contain NaN or Inf")
+        return cls(name="discriminant", centre=_frozen(centre), projection=_frozen(projection),
+                   class_means=_frozen(means), shrinkage=_scalar_float(params, "shrinkage", 0.0),
+                   variance_floor=_scalar_float(params, "variance_floor", 0.0))
+
+
 @_register("energy")
 @dataclass(frozen=True)
 class EnergyRouter(Router):
@@ -487,19 +506,26 @@ def fit_router(
     name: str,
     touched_features: np.ndarray | None,
     touched_logits: np.ndarray | None = None,
+    *,
+    touched_labels: np.ndarray | None = None,
     **options: Any,
 ) -> Router:
     """Fit router ``name`` on touched training data.
 
-    Options: ``variance_floor`` (Gaussian routers, relative, default 1e-6), ``keep_covariance``;
-    ``temperature`` (energy, max_softmax); ``scores`` (calibrated_stacking). The logit-based
-    routers have no fitted parameters beyond their options; their threshold (and gamma) is
-    chosen on validation fabrics with ``tune_threshold``.
+    ``touched_labels``: the class of every touched feature vector; ``discriminant`` needs them
+    (RouterError without), the other routers ignore them, so a trainer passes them to every router.
+    Options: ``variance_floor`` (Gaussian and discriminant routers, relative, default 1e-6),
+    ``keep_covariance`` (Gaussian); ``temperature`` (energy, max_softmax); ``scores``
+    (calibrated_stacking). The logit-based routers have no fitted parameters beyond their
+    options; their threshold (and gamma) is chosen on validation fabrics with ``tune_threshold``.
     """
-    if name in FEATURE_ROUTERS:
+    if name in GAUSSIAN_ROUTERS:
         allowed = {"variance_floor", "keep_covariance"}
         _check_options(name, options, allowed)
         return GaussianRouter.fit(name, touched_features, **options)
+    if name == "discriminant":
+        _check_options(name, options, {"variance_floor"})
+        return DiscriminantRouter.fit(touched_features, touched_labels, **options)
     if name in ("energy", "max_softmax"):
         _check_options(name, options, {"temperature"})
         t = float(options.get("temperature", 1.0))

@@ -72,8 +72,9 @@ def world_frames(size: int = SIZE) -> tuple[np.ndarray, list[np.ndarray], np.nda
 def fit_fixture_router(name: str = "gaussian", seed: int = 0):
     """(router ``name`` fitted as make_bundle fits it, its beta, the torch outputs it was fitted on).
 
-    Feature routers (gaussian, mahalanobis_*) are fitted on the tiny trunk's features of the first
-    40 presses; the logit routers (energy, max_softmax, calibrated_stacking) have nothing to fit.
+    Feature routers (gaussian, mahalanobis_*, discriminant) are fitted on the tiny trunk's features
+    of the first 40 presses (the discriminant router's classes: TOUCHED, a third of them each, in
+    press order); the logit routers (energy, max_softmax, calibrated_stacking) have nothing to fit.
     beta is the 0.9 quantile of the router's novelty on those presses."""
     import torch
 
@@ -85,8 +86,10 @@ def fit_fixture_router(name: str = "gaussian", seed: int = 0):
         f = trunk(torch.from_numpy(x[:40]))
         lt, lu = (t.numpy() for t in (cls_t(f), cls_u(f)))
         f = f.numpy()
-    if name in nv.FEATURE_ROUTERS:
+    if name in nv.GAUSSIAN_ROUTERS:
         router = nv.fit_router(name, f, keep_covariance=False)
+    elif name == "discriminant":
+        router = nv.fit_router(name, f, touched_labels=np.arange(len(f)) * len(TOUCHED) // len(f))
     else:
         router = nv.fit_router(name, None)
     beta = float(np.quantile(router.novelty(f, lt, logits_u=lu), 0.9))

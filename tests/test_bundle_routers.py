@@ -21,7 +21,7 @@ from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime.inference import TactileModel
 
-ROUTERS = nv.ROUTERS  # gaussian, mahalanobis_lw, mahalanobis_oas, energy, max_softmax, calibrated_stacking
+ROUTERS = nv.ROUTERS  # gaussian, mahalanobis_lw, mahalanobis_oas, discriminant, energy, max_softmax, calibrated_stacking
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +32,7 @@ def bundles(tmp_path_factory):
 
 def test_the_routers_of_issues_4_and_5_are_all_covered():
     # ROUTERS parametrises this file: a router dropped from it would silently lose its tests
-    assert set(ROUTERS) >= {"gaussian", "mahalanobis_lw", "mahalanobis_oas", "energy", "max_softmax",
+    assert set(ROUTERS) >= {"gaussian", "mahalanobis_lw", "mahalanobis_oas", "discriminant", "energy", "max_softmax",
                             "calibrated_stacking"}
 
 
@@ -65,7 +65,7 @@ def test_bundle_decides_with_the_router_it_names(bundles, name):
     assert model.router.name == name and json.loads((path / rb.MANIFEST).read_text())["router"]["name"] == name
     tol = manifest["probe"]["tolerance"]
     limit = {"feature": tol["feature"], "logits_t": tol["logits"], "logits_u": tol["logits"], "novelty": tol["novelty"]}
-    if name in nv.FEATURE_ROUTERS:  # the fused graph's whitened vector, and its novelty against router.npz's
+    if name in nv.GAUSSIAN_ROUTERS:  # the fused graph's whitened vector, and its novelty against router.npz's
         limit.update(router_z=tol["novelty"], novelty_vs_router_file=tol["novelty"])
     assert set(model.probe_errors) == set(limit)
     assert all(model.probe_errors[k] <= limit[k] for k in limit), model.probe_errors

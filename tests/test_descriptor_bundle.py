@@ -39,7 +39,7 @@ def world_descriptors():
     return np.stack(xs), np.array(ys), frames, refs
 
 
-def make_descriptor_bundle(out: Path) -> dict:
+def make_descriptor_bundle(out: Path, router: str = "gaussian") -> dict:
     import torch
     from torch import nn
 
@@ -54,7 +54,10 @@ def make_descriptor_bundle(out: Path) -> dict:
     torch.manual_seed(0)
     cls_t = nn.Sequential(nn.Linear(240, 16), nn.LeakyReLU(0.2), nn.Linear(16, len(TOUCHED))).eval()
     cls_u = nn.Sequential(nn.Linear(240, 16), nn.LeakyReLU(0.2), nn.Linear(16, len(UNTOUCHED))).eval()
-    router = nv.fit_router("gaussian", z[touched_rows], keep_covariance=False)
+    if router == "discriminant":  # the touched fabrics' own classes: fabric k is TOUCHED[k]
+        router = nv.fit_router(router, z[touched_rows], touched_labels=y[touched_rows])
+    else:
+        router = nv.fit_router(router, z[touched_rows], keep_covariance=False)
     beta = float(np.quantile(router.novelty(z[touched_rows]), 0.9))
     probe = touched_rows[0]
     return write_bundle(out, trunk=None, cls_t=cls_t, cls_u=cls_u, router=router, touched=TOUCHED,
@@ -107,6 +110,37 @@ def test_descriptor_bundle_scores_a_press_like_a_trunk_bundle():
         out = model.forward(x[i:i + 1])
         assert np.isclose(s.novelty, float(out.novelty[0]), rtol=1e-5)
         assert s.untouched == (s.novelty > model.beta)
+
+
+def test_a_descriptor_bundle_with_the_discriminant_router_writes_loads_and_scores(tmp_path):
+    """What wins on a real GelSight (docs/realism.md) as the cell runs it: the shading_markers
+    descriptor with the discriminant router. router.npz holds its projection, centre and class
+    means; the cell reads it back, checks the probe's novelty, and scores a press with the router's
+    own rule on the standardised descriptor. A router.npz fitted on other classes is refused."""
+    from vs2t_edge.runtime import novelty as nv
+
+    m = make_descriptor_bundle(tmp_path / "b", router="discriminant")
+    assert m["router"] == {"name": "discriminant", "file": "router.npz"}
+    with np.load(tmp_path / "b" / "router.npz") as z:
+        assert {"centre", "projection", "class_means"} <= set(z.files)
+        assert z["projection"].shape == (240, len(TOUCHED) - 1) and z["class_means"].shape == (3, 2)
+    model = TactileModel.load(tmp_path / "b", threads=1)
+    assert isinstance(model.router, nv.DiscriminantRouter)
+    assert model.probe_errors["novelty"] <= 1e-4
+    x, y, frames, refs = world_descriptors()
+    for i in (1, int(np.flatnonzero(y == 4)[0])):
+        model.set_reference(refs[i])
+        s = model.score_press(frames[i])
+        f = model.descriptor.standardise(x[i:i + 1]).astype(np.float64)
+        assert s.novelty == pytest.approx(float(model.router.novelty(f)[0]), rel=1e-5)
+        assert np.isclose(np.logaddexp.reduce(list(s.log_posterior.values())), 0.0, atol=1e-6)
+    # fitted on two classes while the manifest names three touched ones: refused, and said why
+    z = (x - x.mean(0)) / (x.std(0) + 1e-3)
+    two = nv.fit_router("discriminant", z[y < 2], touched_labels=y[y < 2])
+    np.savez(tmp_path / "b" / "router.npz", **{k: np.asarray(v) for k, v in two.to_params().items()})
+    _edit(tmp_path / "b", lambda man: man["files"].update({"router.npz": rb.sha256_file(tmp_path / "b" / "router.npz")}))
+    with pytest.raises(BundleError, match="models 2 touched classes, the manifest's classes.touched names 3"):
+        TactileModel.load(tmp_path / "b", threads=1)
 
 
 def test_missing_reference_is_a_frame_error():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vs2t_edge.runtime import covariance as cv
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
 
@@ -15,8 +16,9 @@ def _data(n=60, d=40, seed=0):
 
 
 def test_router_names_are_the_published_api():
-    assert nv.ROUTERS == ("gaussian", "mahalanobis_lw", "mahalanobis_oas", "energy", "max_softmax",
+    assert nv.ROUTERS == ("gaussian", "mahalanobis_lw", "mahalanobis_oas", "discriminant", "energy", "max_softmax",
                           "calibrated_stacking")
+    assert nv.FEATURE_ROUTERS == (*nv.GAUSSIAN_ROUTERS, "discriminant")
 
 
 def test_ledoit_wolf_shrinkage_matches_the_definition_by_loops():
@@ -29,7 +31,7 @@ def test_ledoit_wolf_shrinkage_matches_the_definition_by_loops():
     d2 = norm2(s - mu * np.eye(p))
     b_bar2 = sum(norm2(np.outer(v, v) - s) for v in xc) / n**2
     expected = min(b_bar2, d2) / d2
-    assert nv.ledoit_wolf_shrinkage(xc) == pytest.approx(expected, rel=1e-10)
+    assert cv.ledoit_wolf_shrinkage(xc) == pytest.approx(expected, rel=1e-10)
 
 
 def test_oas_shrinkage_matches_chen_2010_eq23():
@@ -39,16 +41,16 @@ def test_oas_shrinkage_matches_chen_2010_eq23():
     s = xc.T @ xc / n
     tr_s2, tr2_s = np.trace(s @ s), np.trace(s) ** 2
     expected = min(((1 - 2 / p) * tr_s2 + tr2_s) / ((n + 1 - 2 / p) * (tr_s2 - tr2_s / p)), 1.0)
-    assert nv.oas_shrinkage(xc) == pytest.approx(expected, rel=1e-10)
+    assert cv.oas_shrinkage(xc) == pytest.approx(expected, rel=1e-10)
 
 
 def test_shrinkage_is_one_for_isotropic_and_small_for_many_samples():
     rng = np.random.default_rng(3)
     big = rng.normal(size=(5000, 5)) * np.array([1, 2, 3, 4, 5.0])
-    assert nv.ledoit_wolf_shrinkage(big - big.mean(0)) < 0.01
-    assert nv.oas_shrinkage(big - big.mean(0)) < 0.01
+    assert cv.ledoit_wolf_shrinkage(big - big.mean(0)) < 0.01
+    assert cv.oas_shrinkage(big - big.mean(0)) < 0.01
     few = rng.normal(size=(5, 200))
-    assert nv.oas_shrinkage(few - few.mean(0)) > 0.5
+    assert cv.oas_shrinkage(few - few.mean(0)) > 0.5
 
 
 def test_gaussian_negative_log_density_matches_direct_formula():
@@ -68,7 +70,7 @@ def test_every_router_round_trips_through_params(name):
     x = _data(50, 16, seed=6)
     rng = np.random.default_rng(7)
     lt, lu = rng.normal(size=(9, 4)) * 5, rng.normal(size=(9, 3)) * 5
-    r = nv.fit_router(name, x, lt)
+    r = nv.fit_router(name, x, lt, touched_labels=np.arange(50) % 4)
     params = r.to_params()
     assert params["name"] == name
     r2 = nv.Router.from_params(params)
@@ -147,7 +149,7 @@ def test_params_survive_an_npz_file(name, tmp_path):
     """Bundles store router parameters as .npz: 0-d string arrays must rebuild the router."""
     x = _data(30, 8, seed=10)
     logits = x[:, :3]
-    r = nv.fit_router(name, x, logits)
+    r = nv.fit_router(name, x, logits, touched_labels=np.arange(30) % 3)
     np.savez(tmp_path / "router.npz", **r.to_params())
     with np.load(tmp_path / "router.npz") as z:
         r2 = nv.Router.from_params(dict(z))

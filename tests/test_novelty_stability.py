@@ -27,7 +27,7 @@ def _relu_features(n, d, seed, dead=20, collinear=10):
     return x
 
 
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_dead_collinear_and_n_below_d_give_finite_scores(name):
     x = _relu_features(n=30, d=300, seed=0)  # n < d, 20 dead, 10 collinear channels
     r = nv.fit_router(name, x)
@@ -42,7 +42,7 @@ def test_dead_collinear_and_n_below_d_give_finite_scores(name):
     assert s[:5].min() > np.median(s[5:])
 
 
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_constant_and_all_zero_features_do_not_break_the_fit(name):
     for x in (np.zeros((10, 16)), np.ones((10, 16)) * 3.0):
         r = nv.fit_router(name, x)
@@ -65,7 +65,7 @@ def test_float64_fit_at_2048_dimensions_with_few_samples():
 
 
 @pytest.mark.parametrize("scale", [1e-6, 1e-3, 1.0, 1e3, 1e6])
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_float32_scores_agree_with_float64_across_feature_norms(name, scale):
     x = _relu_features(n=120, d=256, seed=4) * scale
     r = nv.fit_router(name, x)
@@ -127,7 +127,7 @@ def _check_cell_against_float64(router, q32):
 
 
 @pytest.mark.parametrize("scale", [1e-6, 1e-3, 1.0, 1e3, 1e6])
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_cell_float32_novelty_agrees_with_float64_across_feature_norms(name, scale):
     """Trunk features at norms 1e-6..1e6 (fit and presses at the same scale): the novelty the cell
     computes in TactileModel.forward, not only squared_mahalanobis."""
@@ -137,7 +137,7 @@ def test_cell_float32_novelty_agrees_with_float64_across_feature_norms(name, sca
     _check_cell_against_float64(r, q)
 
 
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_cell_float32_novelty_of_presses_from_1e_minus6_to_1e6(name):
     """Fitted at norm ~1, presses whose features have norms 1e-6..1e6 (dead channels at 1e6):
     finite, and within F32_RTOL of float64, through the cell's forward."""
@@ -148,7 +148,7 @@ def test_cell_float32_novelty_of_presses_from_1e_minus6_to_1e6(name):
     _check_cell_against_float64(r, q)
 
 
-@pytest.mark.parametrize("name", nv.FEATURE_ROUTERS)
+@pytest.mark.parametrize("name", nv.GAUSSIAN_ROUTERS)
 def test_float32_far_outliers_do_not_overflow(name):
     """Fit at norm ~1, score presses with norms up to 1e6 in float32: no inf, same ranking."""
     x = _relu_features(n=80, d=128, seed=6)

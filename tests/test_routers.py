@@ -81,15 +81,15 @@ def _synthetic_world(seed=0, n=300, d=24, n_t=4, n_u=3):
     def head(x, centres):
         return -0.5 * ((x[:, None, :] - centres[None]) ** 2).sum(-1) / 4.0
 
-    return xt, xu, head, centres_t, centres_u
+    return xt, xu, head, centres_t, centres_u, yt
 
 
 @pytest.mark.parametrize("name", nv.ROUTERS)
 def test_each_router_tuned_on_validation_separates_test(name):
-    xt, xu, head, ct, cu = _synthetic_world()
+    xt, xu, head, ct, cu, yt = _synthetic_world()
     train, val_t, test_t = xt[:100], xt[100:200], xt[200:]
     val_u, test_u = xu[:150], xu[150:]  # validation fabrics stand in for untouched ones
-    r = nv.fit_router(name, train, head(train, ct))
+    r = nv.fit_router(name, train, head(train, ct), touched_labels=yt[:100])
 
     def nov(x):
         return r.novelty(x, head(x, ct), logits_u=head(x, cu))

@@ -273,9 +273,9 @@ def run_split(table: FeatureTable, split: FabricSplit, methods: dict[str, type[Z
                              steps=budget.cls_steps * 2, seed=seed, label="CLS_t")
     x_tr = views.train.x_t
     fitted = {}
-    for name in routers:
-        opts = {"keep_covariance": False} if name in nv.FEATURE_ROUTERS else {}
-        fitted[name] = nv.fit_router(name, x_tr, predict_logits(cls_t, x_tr), **opts)
+    for name in routers:  # on the touched training presses and their classes (the discriminant router models each)
+        opts = {"keep_covariance": False} if name in nv.GAUSSIAN_ROUTERS else {}
+        fitted[name] = nv.fit_router(name, x_tr, predict_logits(cls_t, x_tr), touched_labels=views.train.y, **opts)
     x_tt, _, y_tt = views.touched_test
     result = {"split": asdict(split), "cls_t_acc": _per_class_acc(predict_logits(cls_t, x_tt).argmax(1), y_tt),
               "methods": {}}

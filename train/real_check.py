@@ -15,9 +15,12 @@ Per feature pipeline (``PIPELINES``):
   the full feature space, shrunk towards a multiple of the identity by the Ledoit-Wolf amount);
 - novelty AUROC with 70 % of the materials touched and the rest untouched, over ``n_seeds``
   seeded material draws (mean and spread): k-nearest-neighbour cosine distance to the touched fit
-  presses, the LDA model's smallest squared distance to a touched class, and discriminant
-  Gaussians (the smallest distance to a touched class in Fisher's discriminant subspace of the
-  touched classes, ``discriminant_sq_distances``).
+  presses, the LDA model's smallest squared distance to a touched class, and each of the cell's
+  routers (``CHECK_ROUTERS``, runtime/novelty.py) fitted with ``fit_router`` on the touched fit
+  presses as training fits them - among them ``discriminant`` (discriminant Gaussians: the
+  smallest distance to a touched class in Fisher's discriminant subspace of the touched classes,
+  ``discriminant_sq_distances``); the logit routers read the shrunk LDA's logits of the touched
+  materials (``router_aurocs``).
 
 Pipelines: ``frozen`` (the floor: the frozen ImageNet EfficientNet-Lite0 on the whole frame
 resized, as the cell's trunk sees it before fine-tuning); ``finetuned`` (the same trunk and input,
@@ -50,6 +53,8 @@ import numpy as np
 
 # the real-sensor preprocessing lives with the cell's one preprocessing (numpy and OpenCV only)
 # shading_grid: real-check's callers (and tests) read it here  # noqa below
+from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.covariance import within_class_whitening
 from vs2t_edge.runtime.preprocess import check_frame, inpaint_markers, marker_mask, shading_grid  # noqa: F401
 from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
 from vs2t_edge.runtime.tactile_descriptor import dot_centres, grid_order
@@ -65,7 +70,11 @@ N_SEEDS = 10
 TOUCHED_SHARE = 0.7
 KNN = 3
 ACCURACY_KEYS = ("nearest_mean", "lda", "shrunk_lda")
-AUROC_KEYS = ("knn", "lda", "discriminant")
+# the cell's routers (runtime/novelty.py) the check can fit: every feature router, and the logit
+# routers on a touched classifier's logits; calibrated stacking needs an untouched head (CLS_u, from
+# the untouched classes' attributes and images), which a folder of press images has not
+CHECK_ROUTERS = (*nv.FEATURE_ROUTERS, "energy", "max_softmax")
+AUROC_KEYS = ("knn", "lda", *CHECK_ROUTERS)
 
 
 class RealCheckError(ValueError):
@@ -249,20 +258,10 @@ def _lda(x: np.ndarray, y: np.ndarray, n_classes: int):
 
 def _whitened(x: np.ndarray, y: np.ndarray, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
     """(class means, W): W whitens the pooled within-class covariance, shrunk towards a multiple of
-    the identity by the Ledoit-Wolf amount - estimated from the fit presses, so no knob is tuned."""
-    from vs2t_edge.runtime.novelty import ledoit_wolf_shrinkage
-
-    means = np.stack([x[y == c].mean(0) for c in range(n_classes)])
-    r = x - means[y]
-    cov = r.T @ r / len(x)
-    shrink = ledoit_wolf_shrinkage(r)
-    mean_variance = float(np.trace(cov)) / len(cov)
-    cov *= 1.0 - shrink
-    cov[np.diag_indices_from(cov)] += shrink * mean_variance
-    w, u = np.linalg.eigh(cov)
-    # features are standardised (unit variance per dimension), so an absolute floor is safe; it keeps
-    # directions in which the fit presses of every class agree exactly (tiny folders) finite
-    return means, u / np.sqrt(np.maximum(w, 1e-6 * max(float(w.max()), 1e-3)))
+    the identity by the Ledoit-Wolf amount - estimated from the fit presses, so no knob is tuned
+    (``runtime.covariance.within_class_whitening``, the discriminant router's own)."""
+    means, w, _, _ = within_class_whitening(x, y, n_classes)
+    return means, w
 
 
 def shrunk_lda_sq_distances(x: np.ndarray, y: np.ndarray, n_classes: int, query: np.ndarray) -> np.ndarray:
@@ -278,14 +277,33 @@ def discriminant_sq_distances(x: np.ndarray, y: np.ndarray, n_classes: int, quer
     covariance whitened and shrunk as ``_whitened``), where every class is a unit Gaussian. With a
     few presses per class in a wide feature, the full-space distance is dominated by directions
     the fit presses never pinned down; the subspace keeps only what tells the fit classes apart,
-    so a press of an unseen material lands far from every class instead of near some."""
-    means, w = _whitened(x, y, n_classes)
-    mw = means @ w
-    centre = mw.mean(0)
-    _, _, vt = np.linalg.svd(mw - centre, full_matrices=False)
-    basis = vt[:max(1, n_classes - 1)].T
-    qm, mm = (query @ w - centre) @ basis, (mw - centre) @ basis
-    return ((qm[:, None, :] - mm[None]) ** 2).sum(-1)
+    so a press of an unseen material lands far from every class instead of near some. It is the
+    cell's ``discriminant`` router (runtime/novelty.py); ``y`` holds every class 0..n_classes-1."""
+    if set(np.unique(y).tolist()) != set(range(n_classes)):
+        raise RealCheckError(f"discriminant: labels must be 0..{n_classes - 1}, each with presses")
+    return nv.DiscriminantRouter.fit(x, y).sq_distances(query)
+
+
+def router_aurocs(x: np.ndarray, y: np.ndarray, n_classes: int, q_in: np.ndarray, q_out: np.ndarray) -> dict:
+    """Novelty AUROC (touched test presses ``q_in`` against untouched ``q_out``) of each router the
+    cell can run here (``CHECK_ROUTERS``), fitted with ``runtime.novelty.fit_router`` on the touched
+    fit presses ``x`` (labels ``y`` in 0..n_classes-1) as training fits them. The logit routers
+    read a touched classifier fitted on the same presses: the shrunk LDA, logits = -1/2 its squared
+    distances (its class log-likelihoods). None where a router cannot be fitted (the discriminant
+    router on one touched class)."""
+    from vs2t_edge.runtime.router_eval import auroc
+
+    logits = [-0.5 * shrunk_lda_sq_distances(x, y, n_classes, q) for q in (q_in, q_out)]
+    out = {}
+    for name in CHECK_ROUTERS:
+        opts = {"keep_covariance": False} if name in nv.GAUSSIAN_ROUTERS else {}
+        try:
+            router = nv.fit_router(name, x, touched_labels=y, **opts)
+        except nv.RouterError:
+            out[name] = None
+            continue
+        out[name] = auroc(*(router.novelty(q, lt) for q, lt in zip((q_in, q_out), logits)))
+    return out
 
 
 def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.ndarray], *,
@@ -306,7 +324,8 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
     acc_lda = float(np.mean(lda.sq_distances(tx).argmin(1) == ty))
     acc_shrunk = float(np.mean(shrunk_lda_sq_distances(fx, fy, n, tx).argmin(1) == ty))
     n_t = max(1, min(n - 1, round(TOUCHED_SHARE * n)))
-    knn, gauss, disc = [], [], []
+    knn, gauss = [], []
+    routers: dict[str, list] = {name: [] for name in CHECK_ROUTERS}
     for s in range(n_seeds):
         perm = np.random.default_rng(seed + s).permutation(n)
         touched = perm[:n_t]
@@ -320,12 +339,13 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
 
         knn.append(auroc(knn_score(txn[t_in]), knn_score(txn[t_out])))
         remap = {c: j for j, c in enumerate(touched)}
-        m = _lda(fx[keep_f], np.array([remap[c] for c in fy[keep_f]]), n_t)
+        y_t = np.array([remap[c] for c in fy[keep_f]])
+        m = _lda(fx[keep_f], y_t, n_t)
         gauss.append(auroc(m.sq_distances(tx[t_in]).min(1), m.sq_distances(tx[t_out]).min(1)))
-        d = discriminant_sq_distances(fx[keep_f], np.array([remap[c] for c in fy[keep_f]]), n_t, tx).min(1)
-        disc.append(auroc(d[t_in], d[t_out]))
+        for name, a in router_aurocs(fx[keep_f], y_t, n_t, tx[t_in], tx[t_out]).items():
+            routers[name].append(a)
     return {"accuracy": {"nearest_mean": acc_ncm, "lda": acc_lda, "shrunk_lda": acc_shrunk},
-            "auroc": {"knn": knn, "lda": gauss, "discriminant": disc}, "touched_materials": n_t}
+            "auroc": {"knn": knn, "lda": gauss, **routers}, "touched_materials": n_t}
 
 
 def run_real_check(train_dir: Path, test_dir: Path | None = None, pipelines: tuple[str, ...] = PIPELINES,
@@ -383,8 +403,10 @@ def summarise(folds: list[dict]) -> dict:
         v = [f["accuracy"][clf] for f in folds]
         out[f"accuracy_{clf}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))}
     for score in AUROC_KEYS:
-        v = [a for f in folds for a in f["auroc"][score]]
-        out[f"auroc_{score}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))}
+        # over every seeded draw of every fold; None where the router could not be fitted
+        v = [a for f in folds for a in f["auroc"][score] if a is not None]
+        out[f"auroc_{score}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))} if v else \
+            {"mean": None, "std": None}
     return out
 
 
@@ -393,7 +415,8 @@ TARGET_ACCURACY, TARGET_AUROC = 0.90, 0.85
 
 COLUMN_NAMES = {"accuracy_nearest_mean": "accuracy, nearest mean", "accuracy_lda": "accuracy, LDA",
                 "accuracy_shrunk_lda": "accuracy, shrunk LDA", "auroc_knn": "AUROC, kNN", "auroc_lda": "AUROC, LDA",
-                "auroc_discriminant": "AUROC, discriminant Gaussians"}
+                **{f"auroc_{r}": f"AUROC, router {r}" for r in CHECK_ROUTERS},
+                "auroc_discriminant": "AUROC, router discriminant (discriminant Gaussians)"}
 
 
 def render_table(result: dict) -> str:
@@ -404,12 +427,13 @@ def render_table(result: dict) -> str:
              "| pipeline | " + " | ".join(COLUMN_NAMES[c] for c in cols) + " |",
              "| --- |" + " --- |" * len(cols)]
     for name, r in result["pipelines"].items():
-        cells = (f"{100 * r[c]['mean']:.1f} ± {100 * r[c]['std']:.1f}" for c in cols)
+        cells = ("n/a" if r[c]["mean"] is None else f"{100 * r[c]['mean']:.1f} ± {100 * r[c]['std']:.1f}"
+                 for c in cols)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
 
     def best(prefix: str) -> tuple[float, str]:
         return max((r[c]["mean"], f"{name}, {COLUMN_NAMES[c]}") for name, r in result["pipelines"].items()
-                   for c in cols if c.startswith(prefix))
+                   for c in cols if c.startswith(prefix) and r[c]["mean"] is not None)
 
     (acc, acc_at), (auc, auc_at) = best("accuracy"), best("auroc")
     lines.append(f"targets: accuracy >= {TARGET_ACCURACY:.0%} (best {acc:.1%}, {acc_at}: "

@@ -132,8 +132,9 @@ def figures(first: dict, fig_dir: Path, router: str = "gaussian", budget=None) -
     cls_steps = 2 * int(getattr(budget, "cls_steps", 25))
     cls_t = train_classifier(views.train.x_t, views.train.y, views.train.n_t, hidden=[512, 512], steps=cls_steps,
                              seed=seed)
-    opts = {"keep_covariance": False} if router in nv.FEATURE_ROUTERS else {}
-    rt = nv.fit_router(router, views.train.x_t, predict_logits(cls_t, views.train.x_t), **opts)
+    opts = {"keep_covariance": False} if router in nv.GAUSSIAN_ROUTERS else {}
+    rt = nv.fit_router(router, views.train.x_t, predict_logits(cls_t, views.train.x_t), touched_labels=views.train.y,
+                       **opts)
     m = fitted["VS2T-ZSL"]
     cls_u_val = m.cls_u_by_classes.get(tuple(views.val.names_u), m.cls_u)  # CLS_u of the validation fabrics
     nov_tv = rt.novelty(x_tv, predict_logits(cls_t, x_tv), logits_u=predict_logits(cls_u_val, x_tv))

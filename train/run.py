@@ -225,10 +225,11 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     return model, {"validation": chosen, "test": test}
 
 
-def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray) -> nv.Router:
-    """Router ``name`` fitted as ``compare.run_split`` fits it (feature routers without covariance copy)."""
-    opts = {"keep_covariance": False} if name in nv.FEATURE_ROUTERS else {}
-    return nv.fit_router(name, x_t, logits_t, **opts)
+def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray, labels: np.ndarray | None = None) -> nv.Router:
+    """Router ``name`` fitted as ``compare.run_split`` fits it (Gaussian routers without covariance
+    copy); ``labels``: the touched class of every row of ``x_t`` (the discriminant router needs them)."""
+    opts = {"keep_covariance": False} if name in nv.GAUSSIAN_ROUTERS else {}
+    return nv.fit_router(name, x_t, logits_t, touched_labels=labels, **opts)
 
 
 def choose_router(results: list[dict], method: str = "VS2T-ZSL") -> str:
@@ -248,7 +249,7 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
     # the same CLS_t and router compare.run_split evaluated (deterministic from the seed)
     cls_t = train_classifier(views.train.x_t, views.train.y, views.train.n_t, hidden=[512, 512],
                              steps=budget.cls_steps * 2, seed=seed)
-    router = fit_router(router_name, views.train.x_t, predict_logits(cls_t, views.train.x_t))
+    router = fit_router(router_name, views.train.x_t, predict_logits(cls_t, views.train.x_t), views.train.y)
     g = out["result"]["methods"]["VS2T-ZSL"]["routers"][router_name]
     scaler = cmp.FeatureScaler.fit(out["table"].x_t[ft.touched_training_rows(out["table"].fabric,
                                                                                 out["table"].fabric_ids, split)[0]])
