@@ -4,7 +4,9 @@ Start-up order (each step says what it is doing in STATUS=):
 
 1. load and validate the config (exit 2 on any problem; ExecStartPre has checked it already);
 2. load the bundle: hashes, shapes, versions verified, sessions warmed, probe input checked
-   against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says;
+   against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says,
+   and exit 2 for a bundle without a scene model unless the config opts in
+   (``evidence.without_scene_model: allow``: nothing would send an off-scene piece to reject);
    once all passed, a log and STATUS line "... probe check passed ..." (READY=1 comes after it);
 3. open the journal (a torn last record is cut and kept aside), resolve an item the last run
    left between its pre-sort and final records, restore a latched fault from the fault file;
@@ -43,7 +45,8 @@ from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError
 from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.wiring import build_cell, build_live_devices, load_model, match_camera
+from vs2t_edge.runtime import wiring
+from vs2t_edge.runtime.wiring import SceneModelMissing, build_cell, build_live_devices, load_model, match_camera
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
 
@@ -91,6 +94,13 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
             log(f"bundle {cfg.bundle} refused: {exc}")
             return EXIT_USAGE
     load_s = time.monotonic() - t0
+    if evidence_factory is None:  # the config's item rule for this bundle (a caller may bring its own)
+        try:
+            evidence_factory = wiring.evidence_factory_for(cfg, model)
+        except SceneModelMissing as exc:
+            notifier.status(f"bundle refused: {exc}")
+            log(str(exc))
+            return EXIT_USAGE
     probe = getattr(model, "probe_errors", None)
     if probe:  # TactileModel.load returned: hashes, shapes, warm-up and probe check all passed
         said = (f"bundle {cfg.bundle} verified (hashes, shapes), warmed up, probe check passed "

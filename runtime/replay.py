@@ -301,6 +301,12 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     raw.setdefault("cell", {})
     if isinstance(raw["cell"], dict):
         raw["cell"]["overlap_scoring"] = False
+    # A session that ran a bundle without a scene model either opted in (evidence.without_scene_model)
+    # or was recorded before the daemon refused such bundles; its replay sorts nothing and must reproduce
+    # it, so the replay allows it, as it pins beta below. Which bundle it replays with is checked by seal.
+    if not isinstance(raw.get("evidence"), dict):
+        raw["evidence"] = {}
+    raw["evidence"]["without_scene_model"] = "allow"
     beta = rf.index.get("meta", {}).get("beta")
     if beta is not None:
         raw["beta_override"] = float(beta)

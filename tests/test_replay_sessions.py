@@ -189,7 +189,9 @@ def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
     config = {"bundle": str(BUNDLE.resolve()), "threads": 1,
               "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
                           "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
-              "scene": ref["config"]["scene"], "evidence": ref["config"]["evidence"],
+              "scene": ref["config"]["scene"],
+              # the committed bundle has no scene model: recording it live needs the written opt-in
+              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
               "journal": str(tmp_path / "journal.jsonl")}
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "today.replay"
