@@ -370,10 +370,13 @@ class Cell:
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
 
-    def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
+    def _step(self, what: str, fn: Callable[[], Any], t0: float,
+              on_retryable: Callable[[DeviceError], None] | None = None) -> Any:
         """One press step with the retry policy: a retryable error is retried once. Before the
         retry of a camera fault the camera is reopened (a UVC device that vanished and came back
-        delivers nothing to the old handle); if it does not reopen, the retry has failed."""
+        delivers nothing to the old handle); if it does not reopen, the retry has failed.
+        ``on_retryable(exc)`` sees a retryable error first (the press pipeline folds a late score
+        in there, and may end the step by raising)."""
         bounds = self.scene.bounds
         for attempt in (1, 2):
             self._check_time(t0)
@@ -388,6 +391,8 @@ class Cell:
                 if not exc.retryable:
                     self._lift_gel(exc.kind)
                     raise CellFault(f"{exc.device or 'device'} fault during {what}: {exc}", exc.kind) from exc
+                if on_retryable is not None:
+                    on_retryable(exc)
                 if attempt == 2:
                     self._lift_gel(exc.kind)
                     raise CellFault(f"{what} failed twice: {exc}", "repeated_failure") from exc
@@ -481,6 +486,8 @@ class Cell:
                    "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
             if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)
                 pre["speculative_presses"] = tally.speculative
+            if tally.speculative_error:  # ... and that press failed, which changed nothing
+                pre["speculative_error"] = tally.speculative_error
             self.journal.append(pre)  # durable BEFORE the gate moves
             pre_written = True
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
