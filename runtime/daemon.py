@@ -39,6 +39,7 @@ import threading
 import time
 from typing import Any, Callable
 
+from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
 from vs2t_edge.runtime.devices import DeviceError
@@ -152,7 +153,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     cell = build_cell(cfg, model=model, camera=camera, arm=arm, gate=gate, journal=journal, notifier=notifier,
                       items=items, evidence_factory=evidence_factory, stop_event=stop_event, on_item=on_item, log=log)
     try:
+        seal = bundle_seal(model)  # which bundle, not only which folder: a swapped bundle is auditable
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
+                        **({SEAL_KEY: seal} if seal else {}),
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
@@ -201,6 +204,14 @@ def gate_latched_at_start(gate) -> tuple[str, str] | None:
         return (f"gate latched at start: {status.state} ({status.fault or 'no reason given'}), flap at bin "
                 f"{status.bin} - it routes nothing until cleared; check the gate, then clear", "fault_latched")
     return None
+
+
+def bundle_seal(model) -> str | None:
+    """The manifest seal (``manifest_sha256``) of the bundle ``model`` was loaded from; None for a
+    model that names none (an injected fake)."""
+    manifest = getattr(model, "manifest", None)
+    seal = manifest.get(SEAL_KEY) if isinstance(manifest, dict) else None
+    return seal if isinstance(seal, str) and seal else None
 
 
 def _float_or_none(x) -> float | None:

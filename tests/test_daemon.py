@@ -327,6 +327,13 @@ def test_ready_comes_only_after_the_real_bundle_is_verified_warm_and_probed(tmp_
     assert "probe check passed" in err and err.index("probe check passed") < err.index("SIGTERM")
     # the bundle is named by its path, not by its folder's name ("bundle bundle verified")
     assert f"bundle {tmp_path / 'bundle'} verified" in err and "bundle bundle" not in err
+    # the start record names the bundle's seal, so a bundle swapped in the same folder is auditable
+    import json
+
+    from vs2t_edge.runtime.bundle import SEAL_KEY
+
+    start = next(r for r in read_records(tmp_path / "state" / "journal.jsonl") if r["type"] == "start")
+    assert start[SEAL_KEY] == json.loads((tmp_path / "bundle" / "manifest.json").read_text())[SEAL_KEY]
 
 
 @pytest.mark.parametrize("damage", ["graph_byte_flipped", "probe_expected_off"])
