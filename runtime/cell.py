@@ -17,7 +17,8 @@ Retry policy (one table, so the behaviour is reviewable):
 
 * retryable device error (CameraError, PressFailed, ArmConnectionError): that press is tried
   once more; a second failure latches a fault. Before the retry of a CameraError the camera is
-  reopened; if it does not reopen, the retry has failed.
+  reopened; if it does not reopen, the retry has failed. Reopened after the item's reference
+  was taken, the retry's frame decides nothing: the piece goes to reject (``ReferenceStale``).
 * with a ``contact_check``: a press frame that is still the no-contact reference is a
   CameraError of kind ``no_contact`` (retried, not reopened for).
 * a bad frame from the camera (black, white, saturated, wrong size): every camera's frame guard
@@ -130,6 +131,11 @@ class CellFault(Exception):
 
 class StopRequested(Exception):
     pass
+
+
+class ReferenceStale(Exception):
+    """The camera was reopened after the item's no-contact reference was taken: the piece goes to
+    the reject bin (docs/cell.md, retry policy)."""
 
 
 class _Done(Exception):
@@ -370,16 +376,25 @@ class Cell:
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
 
-    def _step(self, what: str, fn: Callable[[], Any], t0: float) -> Any:
+    def _step(self, what: str, fn: Callable[[], Any], t0: float,
+              on_retryable: Callable[[DeviceError], None] | None = None) -> Any:
         """One press step with the retry policy: a retryable error is retried once. Before the
         retry of a camera fault the camera is reopened (a UVC device that vanished and came back
-        delivers nothing to the old handle); if it does not reopen, the retry has failed."""
+        delivers nothing to the old handle); if it does not reopen, the retry has failed.
+        ``on_retryable(exc)`` sees a retryable error first (the press pipeline folds a late score
+        in there, and may end the step by raising). A camera reopened after the item's reference
+        was taken: the retry still runs (it tests the camera: a second failure latches a fault),
+        but ``ReferenceStale`` then ends the item to the reject bin, its retried frame unscored."""
         bounds = self.scene.bounds
+        reopened = False
         for attempt in (1, 2):
             self._check_time(t0)
             try:
                 with self.notifier.bounded_wait(bounds.press_try_s if bounds else None):
-                    return fn()
+                    result = fn()
+                if reopened and self._reference_image is not None:
+                    raise ReferenceStale(f"camera reopened for the retry of {what}")
+                return result
             except ArmSafetyStop as exc:
                 raise CellFault(f"arm safety stop during {what}: {exc}", exc.kind) from exc
             except DeviceError as exc:
@@ -388,6 +403,8 @@ class Cell:
                 if not exc.retryable:
                     self._lift_gel(exc.kind)
                     raise CellFault(f"{exc.device or 'device'} fault during {what}: {exc}", exc.kind) from exc
+                if on_retryable is not None:
+                    on_retryable(exc)
                 if attempt == 2:
                     self._lift_gel(exc.kind)
                     raise CellFault(f"{what} failed twice: {exc}", "repeated_failure") from exc
@@ -402,6 +419,7 @@ class Cell:
                     not_open = None
                     if isinstance(exc, CameraError) and exc.kind != NO_CONTACT:  # no contact: the camera works
                         not_open = self._reopen_camera(f"the retry of {what}")
+                        reopened = not_open is None
                 if not_open is not None:
                     raise CellFault(f"{what} failed twice: {exc}; reopening the camera for the retry "
                                     f"failed: {not_open}", "repeated_failure") from exc
@@ -468,12 +486,18 @@ class Cell:
             except FrameError as exc:
                 raise CellFault(f"no-contact reference frame unusable: {exc}", "reference") from exc
             self._reference_image = ref.image
-            decision = PressLoop(self, number, evidence, tally, t0).run()
-            if decision is None:
+            stale = ""  # a reset sensor may expose otherwise than for the reference: no decision on it
+            try:
+                decision = PressLoop(self, number, evidence, tally, t0).run()
+            except ReferenceStale as exc:
+                decision, stale = None, str(exc)
+                self.log(f"item {number}: {exc} after its no-contact reference was taken: to the reject bin")
+            if decision is None and not stale:
                 decision = evidence.decide() if tally.presses else None
             label = decision.label if decision is not None else UNKNOWN
             confidence = float(decision.confidence) if decision is not None else 0.0
-            stopped_by = decision.stopped_by if decision is not None else "no_usable_frames"
+            stopped_by = decision.stopped_by if decision is not None else ("camera_reopened" if stale
+                                                                           else "no_usable_frames")
             bin_ = self.scene.bin_for(label)
             pre = {"type": "pre_sort", "item": number, "item_id": item.id, "label": label, "bin": bin_,
                    "confidence": confidence, "presses": tally.presses,
@@ -481,6 +505,8 @@ class Cell:
                    "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
             if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)
                 pre["speculative_presses"] = tally.speculative
+            if tally.speculative_error:  # ... and that press failed, which changed nothing
+                pre["speculative_error"] = tally.speculative_error
             self.journal.append(pre)  # durable BEFORE the gate moves
             pre_written = True
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")

@@ -4,7 +4,9 @@ Start-up order (each step says what it is doing in STATUS=):
 
 1. load and validate the config (exit 2 on any problem; ExecStartPre has checked it already);
 2. load the bundle: hashes, shapes, versions verified, sessions warmed, probe input checked
-   against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says;
+   against the manifest (runtime/inference.py) - exit 2 if the bundle is not the one it says,
+   and exit 2 for a bundle without a scene model unless the config opts in
+   (``evidence.without_scene_model: allow``: nothing would send an off-scene piece to reject);
    once all passed, a log and STATUS line "... probe check passed ..." (READY=1 comes after it);
 3. open the journal (a torn last record is cut and kept aside), resolve an item the last run
    left between its pre-sort and final records, restore a latched fault from the fault file;
@@ -37,13 +39,15 @@ import threading
 import time
 from typing import Any, Callable
 
+from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError
 from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.wiring import build_cell, build_live_devices, load_model, match_camera
+from vs2t_edge.runtime import wiring
+from vs2t_edge.runtime.wiring import SceneModelMissing, build_cell, build_live_devices, load_model, match_camera
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
 
@@ -91,6 +95,13 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
             log(f"bundle {cfg.bundle} refused: {exc}")
             return EXIT_USAGE
     load_s = time.monotonic() - t0
+    if evidence_factory is None:  # the config's item rule for this bundle (a caller may bring its own)
+        try:
+            evidence_factory = wiring.evidence_factory_for(cfg, model)
+        except SceneModelMissing as exc:
+            notifier.status(f"bundle refused: {exc}")
+            log(str(exc))
+            return EXIT_USAGE
     probe = getattr(model, "probe_errors", None)
     if probe:  # TactileModel.load returned: hashes, shapes, warm-up and probe check all passed
         said = (f"bundle {cfg.bundle} verified (hashes, shapes), warmed up, probe check passed "
@@ -142,7 +153,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     cell = build_cell(cfg, model=model, camera=camera, arm=arm, gate=gate, journal=journal, notifier=notifier,
                       items=items, evidence_factory=evidence_factory, stop_event=stop_event, on_item=on_item, log=log)
     try:
+        seal = bundle_seal(model)  # which bundle, not only which folder: a swapped bundle is auditable
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
+                        **({SEAL_KEY: seal} if seal else {}),
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
@@ -191,6 +204,14 @@ def gate_latched_at_start(gate) -> tuple[str, str] | None:
         return (f"gate latched at start: {status.state} ({status.fault or 'no reason given'}), flap at bin "
                 f"{status.bin} - it routes nothing until cleared; check the gate, then clear", "fault_latched")
     return None
+
+
+def bundle_seal(model) -> str | None:
+    """The manifest seal (``manifest_sha256``) of the bundle ``model`` was loaded from; None for a
+    model that names none (an injected fake)."""
+    manifest = getattr(model, "manifest", None)
+    seal = manifest.get(SEAL_KEY) if isinstance(manifest, dict) else None
+    return seal if isinstance(seal, str) and seal else None
 
 
 def _float_or_none(x) -> float | None:

@@ -25,6 +25,16 @@ raised in the loop's thread when that score is folded in, and the cell latches i
 item ends with no score running (``PressScorer.drain``), so the next item's ``set_reference``
 never races a score of the last one. An item that ends in a fault while a late score is still
 pending ends without it: its final record counts the presses the evidence saw.
+
+A retryable device error (camera, press, arm link) of the press made while a late score was out
+folds that score in before anything is journalled for the error (``PressLoop._before_retry``), so
+the journal keeps press order (the late score's ``frame_skipped`` before this press's ``retry``).
+If the score decides, the failed press was speculative - the sequential loop never made it - and
+the piece keeps its decision: the gel is lifted, the error logged and kept in the pre_sort record
+(``speculative_error``, not compared on replay, like ``speculative_presses``), no retry, no fault;
+the device's next use is the next item's, under its own retry rules. A safety stop or a
+non-retryable device error during that press still latches a fault on the piece (reject): the arm
+is stopped where it is, and nothing is routed from under it.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from vs2t_edge.runtime.devices import CameraError
 from vs2t_edge.runtime.preprocess import FrameError
 
 
@@ -111,6 +122,7 @@ class Tally:
     presses: int = 0  # scored presses the evidence saw
     skipped: int = 0  # frames the model could not score (FrameError)
     speculative: int = 0  # presses made while a late score was pending, that turned out not needed
+    speculative_error: str = ""  # a speculative press's device error, which changed nothing
     latencies: list[float] = field(default_factory=list)  # model time per scored press
     scores: list[dict] = field(default_factory=list)  # per scored press, for the pre_sort record
 
@@ -124,30 +136,42 @@ class _Press:
     score: Any  # a Future (overlap) or _Later (sequential)
 
 
+class _DecidedMeanwhile(Exception):
+    """Raised out of a speculative press's failure once the late score it waited on decided."""
+
+    def __init__(self, decision: Any) -> None:
+        super().__init__("decided by a late score")
+        self.decision = decision
+
+
 class PressLoop:
     """One item's presses through ``cell``'s own press step and journal (runtime/cell.py)."""
 
     def __init__(self, cell: Any, number: int, evidence: Any, tally: Tally, t0: float) -> None:
         self.cell, self.number, self.evidence, self.tally, self.t0 = cell, number, evidence, tally, t0
+        self._pending: _Press | None = None  # a press whose score came too late to fold in at its lift
 
     def run(self) -> Any:
         """Press until the evidence decides or a limit is reached; the decision or None."""
         cell, tally, scene = self.cell, self.tally, self.cell.scene
-        pending: _Press | None = None  # a press whose score came too late to fold in at its lift
         for k, (x_mm, y_mm) in enumerate(scene.points_mm):
-            if pending is not None and self._limit_near():
-                decision, pending = self._fold(pending), None  # whether k may be pressed depends on it
+            if self._pending is not None and self._limit_near():
+                decision = self._fold_pending()  # whether k may be pressed depends on it
                 if decision is not None:
                     return decision
             if tally.presses >= scene.max_presses:
                 break
             if tally.skipped >= 2 * scene.max_presses:
                 break  # the camera keeps giving bad frames: decide on what we have
-            press, _frame = cell._step(f"press {k} at ({x_mm}, {y_mm}) mm",
-                                       lambda: cell._press_once(x_mm, y_mm, cell.scorer.start), self.t0)
+            try:
+                press, _frame = cell._step(f"press {k} at ({x_mm}, {y_mm}) mm",
+                                           lambda: cell._press_once(x_mm, y_mm, cell.scorer.start), self.t0,
+                                           on_retryable=self._before_retry)
+            except _DecidedMeanwhile as decided:
+                return decided.decision  # press k failed, and sequentially it was never made
             current = _Press(k, x_mm, y_mm, float(press.force_n), cell.scorer.claim())
-            if pending is not None:
-                decision, pending = self._fold(pending), None
+            if self._pending is not None:
+                decision = self._fold_pending()
                 if decision is not None:
                     tally.speculative += 1  # press k was made for nothing: never scored into the decision
                     return decision
@@ -156,10 +180,36 @@ class PressLoop:
                 if decision is not None:
                     return decision
             else:
-                pending = current
-        if pending is not None:
-            return self._fold(pending)
+                self._pending = current
+        if self._pending is not None:
+            return self._fold_pending()
         return None
+
+    def _fold_pending(self) -> Any:
+        pending, self._pending = self._pending, None
+        return self._fold(pending)
+
+    def _before_retry(self, exc: Exception) -> None:
+        """A retryable failure of the press in hand, before the cell journals its retry (or
+        latches its second failure): a late score still out is folded in first, so the journal
+        keeps press order (that score's ``frame_skipped`` before this press's ``retry``). If it
+        decides, this press was speculative - sequentially never made - and its failure must not
+        change the decided piece: the gel is lifted, the error logged and kept in the pre_sort
+        record (``speculative_error``), and the piece is sorted. The device is next used by the next
+        item, whose own retry rules then apply to it (a camera still failing is reopened there)."""
+        if self._pending is None:
+            return
+        decision = self._fold_pending()
+        if decision is None:
+            return  # as sequentially: this press was needed, its retry follows
+        cell = self.cell
+        if not isinstance(exc, CameraError):  # a failed grab has already been lifted by the press itself
+            cell._lift_gel(getattr(exc, "kind", type(exc).__name__))
+        self.tally.speculative += 1
+        self.tally.speculative_error = f"{type(exc).__name__}: {exc}"
+        cell.log(f"item {self.number}: a speculative press failed ({exc}); a late score had decided the piece, "
+                 "which keeps its decision - the device is tried again by the next item")
+        raise _DecidedMeanwhile(decision)
 
     def _limit_near(self) -> bool:
         """Could the pending score make the next press one too many?"""

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from vs2t_edge.runtime import devices as dv
+from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
 from vs2t_edge.runtime.journal import read_records
@@ -241,7 +242,9 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     # The beta the session ran with: a replay uses it, so a later calibration does not change it.
     # and how the session ended (0 clean, 2 refused, 3 device fault at start), for `vs2t-edge record`.
     stop = next((r for r in reversed(records) if r.get("type") == "stop"), {})
-    meta = dict(meta or {}, beta=start.get("beta"), daemon_exit=code)
+    # and the bundle's seal: a replay refuses another bundle than the one the session ran.
+    meta = dict(meta or {}, beta=start.get("beta"), daemon_exit=code,
+                **({SEAL_KEY: start[SEAL_KEY]} if start.get(SEAL_KEY) else {}))
     if stop_event.is_set() and crashed is None:
         meta["stopped_by"] = getattr(stop_event, "signal_name", None) or stop.get("reason") or "stop requested"
     if crashed is not None:

@@ -35,7 +35,8 @@ import yaml
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.items import Item
 from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
-from vs2t_edge.runtime.daemon import run_daemon
+from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
+from vs2t_edge.runtime.daemon import bundle_seal, run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS
 from vs2t_edge.runtime.journal import read_records
@@ -301,6 +302,12 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     raw.setdefault("cell", {})
     if isinstance(raw["cell"], dict):
         raw["cell"]["overlap_scoring"] = False
+    # A session that ran a bundle without a scene model either opted in (evidence.without_scene_model)
+    # or was recorded before the daemon refused such bundles; its replay sorts nothing and must reproduce
+    # it, so the replay allows it, as it pins beta below. Which bundle it replays with is checked by seal.
+    if not isinstance(raw.get("evidence"), dict):
+        raw["evidence"] = {}
+    raw["evidence"]["without_scene_model"] = "allow"
     beta = rf.index.get("meta", {}).get("beta")
     if beta is not None:
         raw["beta_override"] = float(beta)
@@ -325,14 +332,41 @@ def recorded_bundle(rf: ReplayFile) -> Path:
                       "give --bundle")
 
 
+def check_same_bundle(rf: ReplayFile, bundle: Path | None, model=None) -> None:
+    """Refuse (ReplayError) to replay a session against another bundle than the one it ran: its
+    recorded seal (``meta.manifest_sha256``, from the session's start record) against the seal of
+    ``model`` or of the bundle folder. A session recorded before seals were, a model that names no
+    seal, or a bundle whose manifest cannot be read (the daemon refuses that one itself) is not judged."""
+    recorded = rf.index.get("meta", {}).get(SEAL_KEY)
+    if not isinstance(recorded, str) or not recorded:
+        return
+    if model is not None:
+        now = bundle_seal(model)
+    else:
+        try:
+            now = read_manifest(bundle).get(SEAL_KEY)
+        except (BundleError, OSError, ValueError):
+            return
+    if isinstance(now, str) and now and now != recorded:
+        ran = rf.index.get("config", {}).get("bundle")
+        raise ReplayError(f"{rf.folder}: replaying against another bundle than the session ran: it ran {ran} "
+                          f"sealed {SEAL_KEY} {recorded[:12]}..., the replay's bundle {bundle or 'given'} is sealed "
+                          f"{now[:12]}... - its decisions would say nothing about the session. Give the bundle it "
+                          "ran (--bundle), or --allow-other-bundle to compare against this one anyway")
+
+
 def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evidence_factory=None,
-               update_refs: bool = False) -> ReplayReport:
-    """Run the daemon from a replay file and compare its decisions with the recorded ones."""
+               update_refs: bool = False, allow_other_bundle: bool = False) -> ReplayReport:
+    """Run the daemon from a replay file and compare its decisions with the recorded ones. A
+    session that recorded its bundle's seal replays only against that bundle, unless
+    ``allow_other_bundle`` (:func:`check_same_bundle`)."""
     rf = ReplayFile.open(file)
     with tempfile.TemporaryDirectory(prefix="vs2t-replay-") as tmp:
         work = Path(tmp)
         if bundle is None and model is None:
             bundle = recorded_bundle(rf)
+        if not allow_other_bundle:
+            check_same_bundle(rf, bundle, model)
         cfg = config_for_replay(rf, work, bundle)
         queues = _Queues(rf)
         items = ReplayItems(queues)

@@ -2,7 +2,8 @@
 
 Exit 0 when every file reproduces its recorded decisions (exact on labels, bins, outcomes,
 presses and faults; scores within 1e-3), 1 on any mismatch or divergence (each printed), 2 on
-an unreadable file or a refused bundle. ``--update-refs`` rewrites the reference decisions of
+an unreadable file or a refused bundle (also another bundle than the session ran, by its seal,
+unless ``--allow-other-bundle``). ``--update-refs`` rewrites the reference decisions of
 each file from this run (the recorded frames and device events never change).
 """
 
@@ -15,6 +16,9 @@ from pathlib import Path
 def add_arguments(parser, verb: str) -> None:
     parser.add_argument("files", nargs="+", help="replay folders (NAME.replay)")
     parser.add_argument("--bundle", default=None, help="bundle to replay with (default: the recorded one)")
+    parser.add_argument("--allow-other-bundle", action="store_true",
+                        help="replay against a bundle other than the one the session ran (its recorded seal, "
+                             "manifest_sha256, differs): refused without this flag")
     parser.add_argument("--update-refs", action="store_true",
                         help="regenerate the reference decisions from this run (review the diff!)")
 
@@ -26,7 +30,7 @@ def run(args) -> int:
     for f in args.files:
         try:
             report = run_replay(Path(f), bundle=Path(args.bundle) if args.bundle else None,
-                                update_refs=args.update_refs)
+                                update_refs=args.update_refs, allow_other_bundle=args.allow_other_bundle)
         except ReplayError as exc:
             said = str(exc)  # most reasons already begin with the file or a path inside it
             print(said if said.startswith(str(Path(f))) else f"{f}: {said}", file=sys.stderr)

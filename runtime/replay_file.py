@@ -59,7 +59,9 @@ DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped"
 # (1.9 ms when recorded beside a UR simulator, 0.6 ms replayed alone). Dropped from reference
 # decisions at any depth and never compared. ``speculative_presses`` too: whether a score came in
 # before the gel was up is a race of the machine (runtime/press_pipeline.py), the decision is not.
-TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "speculative_presses"})
+# ``speculative_error``: that speculative press's device error (a sequential replay never makes it).
+TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "speculative_presses",
+                         "speculative_error"})
 
 
 def without_timing(x: Any) -> Any:

@@ -38,6 +38,7 @@ from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
+from vs2t_edge.runtime.wiring import SceneModelMissing
 from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 # world profile -> training profile (the demo's world trains with the small profile's budget)
@@ -136,8 +137,16 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
-                fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True) -> dict:
+                fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
+                without_scene_model: str | None = None) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
+    if model.scene_model is None and without_scene_model != "allow":
+        # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
+        raise SceneModelMissing(f"bundle {bundle} has no scene model (decision.npz): nothing would send an "
+                                "off-scene piece to the reject bin (27-41 % of pieces mis-sorted where measured). "
+                                "Re-export it with `vs2t-edge export RUN --out BUNDLE` (RUN: its training run; "
+                                "`--force` redoes the demo's stages), or give --without-scene-model allow to sort "
+                                "with its router's posterior anyway")
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)
     strangers = [f.id for f in ds.fabrics if f.id not in known]
@@ -180,6 +189,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         if confidence is None:  # the bundle's operating point decides (runtime/operating_point.py)
             del data["evidence"]["confidence"]
         data["cell"] = {"overlap_scoring": overlap_scoring}
+        if without_scene_model:
+            data["evidence"]["without_scene_model"] = without_scene_model
         cfg = write_scene_config(workdir / "cell.yaml", data)
         if fault_at is not None:
             cell.schedule_fault(fault_at[0], fault_at[1], "protective_stop")
@@ -266,6 +277,10 @@ def add_arguments(parser, verb: str) -> None:
                         help="inject a protective stop at that press of that item (0-based item)")
     parser.add_argument("--record", default=None, help="also record the session into this replay folder")
     parser.add_argument("--force", action="store_true", help="redo every stage")
+    parser.add_argument("--without-scene-model", choices=("refuse", "allow"), default=None,
+                        help="evidence.without_scene_model for a bundle without a scene model (decision.npz): "
+                             "refused by default; allow sorts with the router's posterior, which has no "
+                             "off-scene rule (off-scene pieces go to a scene fabric's bin)")
     parser.add_argument("--overlap-scoring", choices=("on", "off"), default="on",
                         help="cell.overlap_scoring: score a press while the arm moves on (default on); off: "
                              "each press scored before the arm moves again, to compare pieces per minute")
@@ -293,10 +308,15 @@ def run(args) -> int:
     except RuntimeError as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 1
-    summary = sort_stream(workdir, dataset, bundle, n_items=args.items, seed=args.seed, arm_kind=args.arm,
-                          gate_kind=args.gate, max_presses=args.max_presses, confidence=args.confidence,
-                          threads=args.threads, record=Path(args.record) if args.record else None,
-                          fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on")
+    try:
+        summary = sort_stream(workdir, dataset, bundle, n_items=args.items, seed=args.seed, arm_kind=args.arm,
+                              gate_kind=args.gate, max_presses=args.max_presses, confidence=args.confidence,
+                              threads=args.threads, record=Path(args.record) if args.record else None,
+                              fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on",
+                              without_scene_model=args.without_scene_model)
+    except SceneModelMissing as exc:
+        print(f"demo: {exc}", file=sys.stderr)
+        return 2
     summary["stage_s"] = {k: round(v, 1) for k, v in times.items()}
     summary["total_s"] = time.monotonic() - t0
     log("")

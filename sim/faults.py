@@ -120,20 +120,24 @@ def _inputs_row(name: str, w: Path):
 
 SCENARIOS = [
     Scenario("camera_unplugged_and_back", "loop", "camera unplugged mid-press, back for the retry",
-             "press retried once, all pieces sorted", camera_unplugged_and_back),
+             "camera reopened, press retried once; that piece to reject (its reference predates the reopen), "
+             "the rest sorted", camera_unplugged_and_back),
     Scenario("camera_unplugged_for_good", "loop", "camera unplugged mid-press and stays out",
              "retry fails -> fault latched, piece rejected; rest sorted after clear", camera_unplugged_for_good),
     Scenario("camera_frozen", "loop", "frozen camera (same frame repeated)",
              "camera fault latched, piece rejected; rest sorted after clear", camera_frozen),
     Scenario("corrupt_frames", "loop", "one black frame, one truncated frame",
-             "refused by the frame guard, press retried, never scored; all sorted", corrupt_frames),
+             "refused by the frame guard, press retried after a reopen, never scored; those pieces to reject, "
+             "the rest sorted", corrupt_frames),
     Scenario("replay_camera_bad_frames", "loop", "ReplayCamera: a corrupt and a missing frame file",
-             "each refused naming the file, press retried on the next recorded frame, none scored twice; all sorted",
+             "each refused naming the file, press retried on the next recorded frame, none served twice; "
+             "those pieces to reject (camera reopened), the other sorted",
              replay_camera_bad_frames),
     Scenario("replay_camera_not_sensor_frames", "loop", "ReplayCamera: grey, RGBA, 16-bit, wrong-size, "
              "30000x30000 and FIFO frame files",
              "each refused naming the file and why, before decoding (size) or reading (FIFO); none scored; "
-             "all sorted", lambda w: _inputs_row("replay_camera_not_sensor_frames", w)),
+             "those pieces to reject (camera reopened), the first sorted",
+             lambda w: _inputs_row("replay_camera_not_sensor_frames", w)),
     Scenario("watchdog_hung_grab", "loop", "grab hangs to its timeout on a press and its retry (watchdog 1 s)",
              "camera fault latched before the watchdog: pings every < 0.5 s through the waits",
              lambda w: _inputs_row("watchdog_through_hung_grab", w)),

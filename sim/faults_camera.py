@@ -37,12 +37,18 @@ def camera_unplugged_and_back(w: Path):
     def inject(r: Rig) -> None:
         held["rig"], held["seen"] = r, _unplug_camera(r, 1, 2, for_good=False)
 
-    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=1)
+    words, problems = _loop_row(w, inject=inject, expect_outcomes={"sorted": 4}, fault_words=None, retries=1,
+                                holder_out=held)
     cam, seen = held["rig"].camera, held["seen"]
     _check(problems, "connects" in seen, "the cable was never pulled")
     _check(problems, cam.connects == seen.get("connects", 0) + 1 and not cam.cable_out,
            f"expected one reopen after the unplug, the camera saw {cam.connects - seen.get('connects', 0)}")
-    return words + f"; camera reopened {cam.connected_count - 1}x", problems
+    pre = {r["item_id"]: r for r in held["audit"]["records"] if r.get("type") == "pre_sort"}
+    _check(problems, [(r["bin"], r["stopped_by"]) for r in pre.values() if r["stopped_by"] == "camera_reopened"]
+           == [(0, "camera_reopened")], "the piece whose camera was reopened mid-press did not go to the reject bin "
+                                        "(its no-contact reference predates the reopen)")
+    return words + f"; camera reopened {cam.connected_count - 1}x, that piece to reject", problems
+
 
 
 def camera_unplugged_for_good(w: Path):
@@ -170,12 +176,14 @@ def all_frames_black(w: Path):
 
 def replay_camera_bad_frames(w: Path):
     """The camera is a ReplayCamera (runtime/camera.py) on a folder of recorded frames, not the
-    simulated one: frame 000004.png is corrupt (not a PNG) and 000008.png vanished from the disk
+    simulated one: frame 000004.png is corrupt (not a PNG) and 000007.png vanished from the disk
     after the camera listed the folder. Each must be refused naming the file, the press retried
     on the next recorded frame, and every other frame served once, in order: no frame of an
-    earlier piece scored again, nothing lost, all three pieces sorted into their own bins.
+    earlier piece served again, nothing lost. The retry reopened the camera after the piece's
+    no-contact reference was taken, so that piece goes to the reject bin, its retried frame
+    unscored (docs/cell.md, retry policy); the piece without a bad file is sorted into its bin.
     Every frame has its own grey level, so the journal's scores (the grey model's novelty is the
-    frame's mean level) show which recorded frame each press was scored on."""
+    frame's mean level) and the frames served show which recorded frame each grab took."""
     import cv2
 
     from vs2t_edge.runtime.camera import ReplayCamera
@@ -183,9 +191,9 @@ def replay_camera_bad_frames(w: Path):
     frames_dir = w / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
     truths = ["denim", "silk", "wool"]
-    # per piece: its no-contact reference, then two presses (the grey evidence decides on two);
-    # a bad file sits where piece 1's and piece 2's first press would be
-    levels: list[int | str] = [118, 48, 52, 119, "corrupt", 58, 62, 120, "missing", 68, 72]
+    # per piece: its no-contact reference, then two presses (the grey evidence decides on two); a
+    # bad file sits where piece 1's and piece 2's first press would be, the retry takes the next
+    levels: list[int | str] = [118, 48, 52, 119, "corrupt", 58, 120, "missing", 68]
     for i, v in enumerate(levels):
         path = frames_dir / f"{i:06d}.png"
         if v == "corrupt":
@@ -193,19 +201,38 @@ def replay_camera_bad_frames(w: Path):
         else:
             cv2.imwrite(str(path), np.full((48, 64, 3), 100 if v == "missing" else v, np.uint8))
     cam = ReplayCamera(frames_dir, expected_hw=(48, 64))
+    served = _serving(cam)
     held: dict = {}
 
     def inject(r: Rig) -> None:
-        (frames_dir / "000008.png").unlink()  # gone after the camera listed the folder
+        (frames_dir / f"{levels.index('missing'):06d}.png").unlink()  # gone after the camera listed the folder
 
     words, problems = _loop_row(w, inject=inject, truths=truths, camera=cam, expect_outcomes={"sorted": 3},
                                 fault_words=None, retries=2, holder_out=held)
     retries = held["audit"]["retries"]
-    for name, rec in zip(("000004.png", "000008.png"), retries):
+    for name, rec in zip(("000004.png", "000007.png"), retries):
         _check(problems, name in rec.get("error", ""), f"the refusal does not name {name}: {rec.get('error')!r}")
-    scored = [round(sc["novelty"]) for r in held["audit"]["records"] if r.get("type") == "pre_sort"
-              for sc in r["scores"]]
-    want = [v for v in levels if isinstance(v, int) and v < 100]
-    _check(problems, scored == want, f"press frames scored {scored}, the recording's press frames in order are "
-                                     f"{want} (a frame scored twice or skipped: the camera lost its place)")
-    return words + f"; both bad files refused by name, press frames scored in recorded order: {scored}", problems
+    pre = [r for r in held["audit"]["records"] if r.get("type") == "pre_sort"]
+    scored = [round(sc["novelty"]) for r in pre for sc in r["scores"]]
+    _check(problems, scored == [48, 52], f"press frames scored {scored}, expected [48, 52]: the first piece's "
+                                         "presses only (the others' retried frames decide nothing)")
+    _check(problems, [(r["bin"], r["stopped_by"]) for r in pre[1:]] == [(0, "camera_reopened")] * 2,
+           f"the pieces whose camera was reopened: {[(r['bin'], r['stopped_by']) for r in pre[1:]]}, "
+           "expected the reject bin 0, camera_reopened")
+    want = [v for v in levels if isinstance(v, int)]
+    _check(problems, served == want, f"frames served {served}, the recording's good frames in order are {want} "
+                                     "(a frame served twice or skipped: the camera lost its place)")
+    return words + f"; both bad files refused by name, frames served in recorded order: {served}", problems
+
+
+def _serving(cam) -> list[int]:
+    """Wrap ``cam.grab``: the grey level of every frame it serves, in order, in the list returned."""
+    served: list[int] = []
+    grab = cam.grab
+
+    def noting():
+        frame = grab()
+        served.append(int(round(float(frame.image.mean()))))
+        return frame
+    cam.grab = noting
+    return served

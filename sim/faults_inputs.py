@@ -29,11 +29,14 @@ def replay_camera_not_sensor_frames(w: Path):
     RGBA, 16-bit, another size, a 30000 x 30000 PNG and a FIFO. IMREAD_COLOR made the first three
     a BGR frame that was scored (a grey press decided with confidence 1.0 into a wrong bin); the
     big one decoded to 5.2 GB; the FIFO blocked the grab for ever. Each must be refused naming the
-    file and why, the press retried on the next recorded frame, nothing of them scored."""
+    file and why, the press retried on the next recorded frame, nothing of them scored. The retry
+    reopened the camera after the piece's reference was taken, so those pieces go to the reject
+    bin with their retried frame unscored (docs/cell.md, retry policy); the first piece is sorted."""
     import cv2
 
     from vs2t_edge.runtime.camera import ReplayCamera
     from vs2t_edge.sim.fault_rig import _check, _loop_row
+    from vs2t_edge.sim.faults_camera import _serving
 
     frames_dir = w / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
@@ -41,11 +44,9 @@ def replay_camera_not_sensor_frames(w: Path):
     grey = {"denim": 50, "silk": 60, "wool": 70}
     bad = ["grey", "rgba", "16bit", "size", "huge", "fifo"]
     levels: list = []
-    for k, truth in enumerate(truths):  # per piece: its reference, [a bad frame,] two presses
+    for k, truth in enumerate(truths):  # per piece: its reference, then two presses or a bad frame and its retry
         levels.append(118 + k % 3)
-        if k:
-            levels.append(bad[k - 1])
-        levels += [grey[truth] - 2, grey[truth] + 2]
+        levels += [bad[k - 1], grey[truth]] if k else [grey[truth] - 2, grey[truth] + 2]
     for i, v in enumerate(levels):
         path = frames_dir / f"{i:06d}.png"
         if v == "grey":
@@ -63,6 +64,7 @@ def replay_camera_not_sensor_frames(w: Path):
         else:
             cv2.imwrite(str(path), np.full((48, 64, 3), v, np.uint8))
     cam = ReplayCamera(frames_dir, expected_hw=(48, 64))
+    served = _serving(cam)
     held: dict = {}
     words, problems = _loop_row(w, inject=lambda r: None, truths=truths, camera=cam,
                                 expect_outcomes={"sorted": len(truths)}, fault_words=None, retries=len(bad),
@@ -72,10 +74,13 @@ def replay_camera_not_sensor_frames(w: Path):
     for name, why, rec in zip(names, ("shape", "shape", "dtype", "size", "30000x30000", "FIFO"), retries):
         err = rec.get("error", "")
         _check(problems, name in err and why in err, f"the refusal of {name} does not say {name} / {why}: {err!r}")
-    scored = [round(sc["novelty"]) for r in held["audit"]["records"] if r.get("type") == "pre_sort"
-              for sc in r["scores"]]
-    want = [v for v in levels if isinstance(v, int) and v < 100]
-    _check(problems, scored == want, f"press frames scored {scored}, the good press frames are {want}")
+    pre = [r for r in held["audit"]["records"] if r.get("type") == "pre_sort"]
+    scored = [round(sc["novelty"]) for r in pre for sc in r["scores"]]
+    _check(problems, scored == levels[1:3], f"press frames scored {scored}, expected the first piece's {levels[1:3]}")
+    _check(problems, all((r["bin"], r["stopped_by"]) == (0, "camera_reopened") for r in pre[1:]),
+           f"pieces after a reopen: {[(r['bin'], r['stopped_by']) for r in pre[1:]]}, expected reject, camera_reopened")
+    want = [v for v in levels if isinstance(v, int)]
+    _check(problems, served == want, f"frames served {served}, the good frames in order are {want}")
     return words + f"; {len(retries)} frames refused by name ({', '.join(bad)}), none scored", problems
 
 

@@ -390,6 +390,9 @@ def record_reference_sessions(dataset: Path, bundle: Path, out_dir: Path, *, arm
             # Sequential scoring: a reference is a golden sequence of device calls, and overlapped
             # scoring makes a speculative press depend on the machine's timing (press_pipeline.py).
             data["cell"] = {"overlap_scoring": False}
+            if model.scene_model is None:  # the committed test bundle decides with its router: the
+                # references record that path on purpose (runtime/wiring.py evidence_factory_for)
+                data["evidence"]["without_scene_model"] = "allow"
             # The recorded config names the bundle relatively: replays find it via --bundle or beside them.
             cfg = write_scene_config(out_dir / f".{name}.yaml", data)
             if fault is not None:

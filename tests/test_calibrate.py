@@ -359,7 +359,7 @@ def test_live_presses_are_recorded_per_group_and_calibrated(tmp_path, monkeypatc
     (tmp_path / "cell.yaml").write_text(
         "bundle: bundle\njournal: journal.jsonl\nthreads: 1\n"
         "devices: {camera: {kind: replay, path: frames_touched}, arm: {kind: fake}, gate: {kind: fake}}\n"
-        "evidence: {confidence: 0.95, max_presses: 3}\n"
+        "evidence: {confidence: 0.95, max_presses: 3, without_scene_model: allow}\n"  # the router bundle
         "scene: {reject_bin: 0, fabrics: [{name: f00, kind: touched, bin: 1}, {name: f04, kind: touched, bin: 2},"
         " {name: f08, kind: touched, bin: 3}, {name: f01, kind: untouched, bin: 4}]}\n")
     cameras = iter(["frames_touched", "frames_validation"])  # the operator feeds the next group

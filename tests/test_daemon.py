@@ -16,8 +16,10 @@ from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.sim.scene import fake_cell_yaml
 
 HERE = Path(__file__).parent
+# the fake models and the committed test bundle have no scene model: the config opts in to them
 CONFIG = fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
-                        evidence={"confidence": 0.95, "max_presses": 4}, watchdog={"wait_item_timeout_s": 0.05})
+                        evidence={"confidence": 0.95, "max_presses": 4, "without_scene_model": "allow"},
+                        watchdog={"wait_item_timeout_s": 0.05})
 
 
 def start(tmp_path, *extra, env_extra=None):
@@ -286,7 +288,8 @@ def _run_real_bundle(tmp_path, bundle, *, until_ready: bool):
     config = {"bundle": str(bundle), "threads": 1,
               "devices": {"camera": {"kind": "replay", "path": str((HERE / "replays" / "touched.replay" / "frames"))},
                           "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
-              "scene": ref["config"]["scene"], "evidence": ref["config"]["evidence"],
+              "scene": ref["config"]["scene"],  # the committed bundle has no scene model: opted in
+              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
               "journal": str(tmp_path / "state" / "journal.jsonl"), "watchdog": {"wait_item_timeout_s": 0.05}}
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     sock_path = str(tmp_path / "n.sock")
@@ -324,6 +327,13 @@ def test_ready_comes_only_after_the_real_bundle_is_verified_warm_and_probed(tmp_
     assert "probe check passed" in err and err.index("probe check passed") < err.index("SIGTERM")
     # the bundle is named by its path, not by its folder's name ("bundle bundle verified")
     assert f"bundle {tmp_path / 'bundle'} verified" in err and "bundle bundle" not in err
+    # the start record names the bundle's seal, so a bundle swapped in the same folder is auditable
+    import json
+
+    from vs2t_edge.runtime.bundle import SEAL_KEY
+
+    start = next(r for r in read_records(tmp_path / "state" / "journal.jsonl") if r["type"] == "start")
+    assert start[SEAL_KEY] == json.loads((tmp_path / "bundle" / "manifest.json").read_text())[SEAL_KEY]
 
 
 @pytest.mark.parametrize("damage", ["graph_byte_flipped", "probe_expected_off"])

@@ -4,7 +4,8 @@ on the reference world that sim.scene.make_reference_world makes with seed 0), t
 sorting a stream on the simulated cell (in-process arm and gate for speed; ~5 s on 2 cores).
 
 What is asserted is structure and arithmetic, not a good accuracy: the bundle is a tiny test
-model (GZSL H 53.8 on its split, no scene model: it decides with its router) and its numbers on a
+model (GZSL H 53.8 on its split, no scene model: it decides with its router, so the demo is told
+`--without-scene-model allow`) and its numbers on a
 short stream are not robust. Every piece of the stream has exactly one final record in the journal,
 its bin is the scene's bin of its label (the reject bin for unknown, off-scene labels and faults),
 and the totals the demo prints and writes (right bin / mis-sort / reject per kind, presses per piece)
@@ -45,8 +46,20 @@ def demo_run(tmp_path_factory):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         code = main(["demo", "--workdir", str(work), "--items", str(N_ITEMS), "--arm", "fake", "--gate", "fake",
-                     "--threads", "1", "--max-presses", "3", "--fault-at", "2:1"])
+                     "--threads", "1", "--max-presses", "3", "--fault-at", "2:1",
+                     "--without-scene-model", "allow"])  # the test bundle decides with its router
     return code, out.getvalue(), work
+
+
+def test_the_demo_refuses_a_bundle_without_a_scene_model_unless_told(demo_run, capsys):
+    """Without decision.npz nothing sends an off-scene piece to the reject bin: the demo says so
+    and how to fix it, before the simulated cell comes up (the daemon would refuse it too)."""
+    from vs2t_edge.cli import main
+
+    _, _, work = demo_run
+    code = main(["demo", "--workdir", str(work), "--items", "2", "--arm", "fake", "--gate", "fake", "--threads", "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "has no scene model (decision.npz)" in err and "vs2t-edge export RUN" in err, err
 
 
 def test_the_demo_runs_from_cached_stages(demo_run):

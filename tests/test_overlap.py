@@ -267,3 +267,119 @@ def test_a_session_recorded_overlapped_with_speculative_presses_replays(tmp_path
     assert len(presses) == 3 * 3  # two scored and one speculative per piece
     report = run_replay(out, model=SlowModel(0.0), evidence_factory=evidence)  # replayed sequentially
     assert report.ok, report.mismatches + [report.diverged]
+
+
+class HeldModel(SlowModel):
+    """Overlapped, the score of call ``hold_call`` is held until ``release`` is set (the camera's
+    first error): the deciding score is certainly still out while the next press fails. A frame of
+    grey level 13 is one the model cannot score (FrameError)."""
+
+    def __init__(self, hold_call=None):
+        super().__init__(0.0)
+        self.hold_call, self.release = hold_call, threading.Event()
+
+    def score_press(self, frame):
+        if self.calls + 1 == self.hold_call:
+            assert self.release.wait(10), "the camera never failed"
+        if int(frame[..., 0].mean()) == 13:
+            self.calls += 1
+            raise FrameError("non-finite model output", "model_output")
+        return super().score_press(frame)
+
+
+class ReleasingCamera(ScriptedCamera):
+    """A ScriptedCamera that sets ``release`` when a grab fails."""
+
+    release: threading.Event | None = None
+
+    def grab(self):
+        try:
+            return super().grab()
+        except Exception:
+            if self.release is not None:
+                self.release.set()
+            raise
+
+
+def _held_pair(tmp_path, script, hold_call):
+    cells = []
+    for overlap in (False, True):
+        model = HeldModel(hold_call if overlap else None)
+        cell = make(tmp_path, script, overlap=overlap, model=model)
+        camera = ReleasingCamera(cell.arm, script)
+        camera.release = model.release
+        camera.connect()
+        cell.camera = camera
+        cells.append(cell)
+    return cells
+
+
+def _comparable(cell):
+    return [{k: v for k, v in r.items() if k not in ("speculative_presses", "speculative_error")}
+            for r in records(cell)]
+
+
+def test_a_speculative_press_that_fails_twice_does_not_fault_a_piece_already_decided(tmp_path):
+    # two silk presses decide; the second score is held until the camera fails on the next press,
+    # which the overlapped arm made while that score was out - and whose retry fails too. The
+    # sequential loop never made that press: the piece goes to silk's bin, so it must here too.
+    off, on = _held_pair(tmp_path, [60, 60, "error", "error", 60, 60], hold_call=2)
+    r_off, _ = timed_run(off)
+    r_on, _ = timed_run(on)
+    assert (r_off[0].label, r_off[0].outcome, r_off[0].bin) == ("silk", "sorted", 2)
+    assert (r_on[0].label, r_on[0].outcome, r_on[0].bin) == ("silk", "sorted", 2)
+    assert not on.fault and not on.scene.fault_file.exists()
+    assert _comparable(on) == _comparable(off)  # no retry, no fault: the press never mattered
+    pre = [r for r in records(on) if r["type"] == "pre_sort"][0]
+    assert pre["speculative_presses"] == 1 and "no frame (injected)" in pre["speculative_error"]
+    assert on.gate.sorted == [2] and on.arm.calls[-1] == "retract"  # the gel is up before the sort
+
+
+def test_a_retry_comes_after_the_late_scores_records_as_sequentially(tmp_path):
+    # press 1's frame cannot be scored (frame_skipped) and its score is held until press 2's camera
+    # fault: sequentially frame_skipped (point 1) comes before press 2's retry, and so it must here
+    off, on = _held_pair(tmp_path, [60, 13, "error", 60, 60, 60], hold_call=2)
+    r_off, _ = timed_run(off)
+    r_on, _ = timed_run(on)
+    types = [r["type"] for r in records(off)]
+    assert types == ["item", "frame_skipped", "retry", "pre_sort", "final"], types
+    assert _comparable(on) == _comparable(off)
+    assert (r_on[0].label, r_on[0].presses, r_on[0].skipped_frames) == (r_off[0].label, r_off[0].presses, 1)
+
+
+def test_overlapped_and_sequential_journals_agree_under_camera_errors_and_bad_frames(tmp_path):
+    """The seeded randomised comparison (runtime/press_pipeline.py's promise): for random scripts of
+    votes, unscorable frames and camera errors, random model and lift times, and random press limits
+    and confidences, the overlapped item's journal is the sequential one's record for record (the
+    speculative press's own keys aside) and it never presses more than one press beyond it."""
+    import random
+
+    class RandomTimes(SlowModel):
+        def __init__(self, rng):
+            super().__init__(0.0)
+            self.rng = rng
+
+        def score_press(self, frame):
+            time.sleep(self.rng.choice([0, 0, 0.002, 0.008]))
+            if int(frame[..., 0].mean()) == 13:
+                raise FrameError("non-finite model output", "model_output")
+            return super().score_press(frame)
+
+    for trial in range(40):
+        rng = random.Random(trial)
+        script = [rng.choice([50, 60, 70, 60, 13, "error"]) for _ in range(14)]
+        max_presses, confidence = rng.randint(1, 5), rng.choice([0.6, 0.9, 0.99])
+        runs = []
+        for overlap in (False, True):
+            cell = make(tmp_path, script, overlap=overlap, max_presses=max_presses, confidence=confidence,
+                        lift_s=rng.choice([0, 0.001, 0.004]), model=RandomTimes(random.Random(trial)),
+                        name=f"t{trial}")
+            results, _ = timed_run(cell)
+            runs.append((cell, results))
+        (off, r_off), (on, r_on) = runs
+        where = f"trial {trial}: script {script}, max_presses {max_presses}, confidence {confidence}"
+        assert _comparable(on) == _comparable(off), where
+        assert [(r.label, r.bin, r.outcome) for r in r_on] == [(r.label, r.bin, r.outcome) for r in r_off], where
+        assert bool(on.fault) == bool(off.fault), where
+        p_off, p_on = off.arm.calls.count("press"), on.arm.calls.count("press")
+        assert p_off <= p_on <= p_off + 1, where

@@ -189,7 +189,9 @@ def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
     config = {"bundle": str(BUNDLE.resolve()), "threads": 1,
               "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
                           "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
-              "scene": ref["config"]["scene"], "evidence": ref["config"]["evidence"],
+              "scene": ref["config"]["scene"],
+              # the committed bundle has no scene model: recording it live needs the written opt-in
+              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
               "journal": str(tmp_path / "journal.jsonl")}
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "today.replay"
@@ -218,3 +220,40 @@ def test_the_fault_session_catches_a_latch_that_no_longer_stops_the_arm(monkeypa
     latch_skipping(monkeypatch, "arm", "stop")
     report = run_replay(HERE / "fault.replay", bundle=BUNDLE)
     assert not report.ok and any("safety steps" in m for m in report.mismatches), report.mismatches
+
+
+def test_a_session_names_its_bundles_seal_and_replays_only_against_that_bundle(tmp_path, capsys):
+    """The start record (and so the replay's meta) carries the bundle's manifest seal: a bundle
+    swapped in the same folder is seen in the journal, and `vs2t-edge replay` refuses to compare a
+    session with another bundle than the one it ran - unless told --allow-other-bundle."""
+    import shutil
+
+    import yaml
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.bundle import SEAL_KEY, seal_manifest
+
+    shutil.copytree(BUNDLE, tmp_path / "bundle")
+    seal = json.loads((BUNDLE / "manifest.json").read_text())[SEAL_KEY]
+    ref = json.loads((HERE / "touched.replay" / "index.json").read_text())
+    config = {"bundle": str(tmp_path / "bundle"), "threads": 1,
+              "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
+                          "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
+              "scene": ref["config"]["scene"],
+              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
+              "journal": str(tmp_path / "journal.jsonl")}
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
+    out = tmp_path / "today.replay"
+    assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(out), "--max-items", "1"]) == 0
+    assert json.loads((out / "index.json").read_text())["meta"][SEAL_KEY] == seal
+    assert main(["replay", str(out)]) == 0
+    # another export deployed to the same folder: the same graphs, another manifest
+    manifest = json.loads((tmp_path / "bundle" / "manifest.json").read_text())
+    manifest["provenance"] = dict(manifest["provenance"], note="another export")
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps(seal_manifest(manifest), indent=2))
+    capsys.readouterr()
+    assert main(["replay", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "another bundle than the session ran" in err and seal[:12] in err and "--allow-other-bundle" in err, err
+    assert main(["replay", str(out), "--allow-other-bundle"]) == 0
+    assert "ok, 1 items identical" in capsys.readouterr().out
