@@ -58,8 +58,6 @@ import math
 import time
 import traceback
 from collections import Counter, deque
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable
 
 import threading
@@ -75,48 +73,12 @@ from vs2t_edge.runtime.items import Item, ItemResult, ItemSource
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally, reduced_kw
+from vs2t_edge.runtime.scene_spec import SceneSpec
 
 UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
 MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
-
-
-@dataclass
-class SceneSpec:
-    """What the loop needs from the config (a CellConfig satisfies it via from_config)."""
-
-    bins: dict[str, int]  # scene class -> bin
-    reject_bin: int
-    points_mm: list[tuple[float, float]]  # grid points in press order
-    max_presses: int
-    confidence: float
-    item_timeout_s: float = 60.0
-    wait_item_timeout_s: float = 1.0
-    fault_file: Path | None = None
-    bounds: Any = None  # runtime/budget.py StepBounds: device waits the watchdog is fed through
-    # score a press while the arm moves on (runtime/press_pipeline.py). Off here, so a loop built
-    # by hand (tests, the fault matrix) makes the same device calls whatever the timing; the
-    # config's cell.overlap_scoring (default on) sets it for the service.
-    overlap_scoring: bool = False
-
-    @classmethod
-    def from_config(cls, cfg) -> "SceneSpec":
-        from vs2t_edge.runtime.budget import bounds_of
-
-        return cls(bins={f.name: f.bin for f in cfg.fabrics}, reject_bin=cfg.reject_bin,
-                   points_mm=cfg.press_points_mm(), max_presses=cfg.max_presses,
-                   confidence=cfg.confidence, item_timeout_s=cfg.item_timeout_s,
-                   wait_item_timeout_s=cfg.wait_item_timeout_s, fault_file=cfg.fault_file,
-                   bounds=bounds_of(cfg.camera, cfg.arm_kind, cfg.arm, cfg.gate),
-                   overlap_scoring=cfg.overlap_scoring)
-
-    @property
-    def classes(self) -> list[str]:
-        return list(self.bins)
-
-    def bin_for(self, label: str) -> int:
-        return self.bins.get(label, self.reject_bin)
 
 
 class CellFault(Exception):
@@ -131,6 +93,12 @@ class CellFault(Exception):
 
 class StopRequested(Exception):
     pass
+
+
+# Pieces in a row sent to reject by a camera reopened mid-piece (ReferenceStale) before a fault
+# latches: one or two are glitches (the fault matrix's corrupt_frames row has two in a row); a camera
+# that drops out on every press would otherwise send every piece to the reject bin without an alarm.
+STALE_PIECES_TO_FAULT = 3
 
 
 class ReferenceStale(Exception):
@@ -163,6 +131,7 @@ class Cell:
         # the item's no-contact reference. None = not checked (see _require_contact).
         self.contact_check = contact_check
         self._reference_image = None
+        self._stale_run = 0  # pieces in a row ended by a camera reopened mid-piece
         self.journal, self.notifier, self.scene = journal, notifier, scene
         self.evidence_factory, self.items, self.clock = evidence_factory, items, clock
         self.stop_event = stop_event or threading.Event()
@@ -492,6 +461,14 @@ class Cell:
             except ReferenceStale as exc:
                 decision, stale = None, str(exc)
                 self.log(f"item {number}: {exc} after its no-contact reference was taken: to the reject bin")
+                self._stale_run += 1
+                if self._stale_run >= STALE_PIECES_TO_FAULT:  # a camera that drops out on every press
+                    self._stale_run = 0
+                    raise CellFault(f"the camera had to be reopened mid-piece on {STALE_PIECES_TO_FAULT} pieces in "
+                                    f"a row (last: {exc}); every such piece goes to reject - check the camera's "
+                                    "cable and mount", "repeated_failure") from exc
+            else:
+                self._stale_run = 0
             if decision is None and not stale:
                 decision = evidence.decide() if tally.presses else None
             label = decision.label if decision is not None else UNKNOWN

@@ -136,7 +136,7 @@ SCENARIOS = [
     Scenario("replay_camera_not_sensor_frames", "loop", "ReplayCamera: grey, RGBA, 16-bit, wrong-size, "
              "30000x30000 and FIFO frame files",
              "each refused naming the file and why, before decoding (size) or reading (FIFO); none scored; "
-             "those pieces to reject (camera reopened), the first sorted",
+             "those pieces to reject (camera reopened), the good pieces between them sorted",
              lambda w: _inputs_row("replay_camera_not_sensor_frames", w)),
     Scenario("watchdog_hung_grab", "loop", "grab hangs to its timeout on a press and its retry (watchdog 1 s)",
              "camera fault latched before the watchdog: pings every < 0.5 s through the waits",

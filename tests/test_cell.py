@@ -386,6 +386,23 @@ def test_a_camera_reopened_mid_item_sends_the_piece_to_reject(tmp_path):
     assert arm.calls.count("press") == 3 + 2 and cell.model.scored == 1 + 2
 
 
+def test_a_camera_reopened_mid_piece_on_pieces_in_a_row_latches_a_fault(tmp_path):
+    """A camera that drops out on every press but reopens each time would send every piece to the
+    reject bin without an alarm: the second piece in a row ended that way latches a fault (rejected,
+    nothing lost); a piece pressed normally in between starts the count again."""
+    from vs2t_edge.runtime.cell import STALE_PIECES_TO_FAULT
+
+    assert STALE_PIECES_TO_FAULT == 3
+    glitch = [50, "unplugged", 50]
+    cell, arm, cam, gate, journal = make_cell(tmp_path, glitch * 2 + [60, 60] + glitch * 3)
+    cell.run(max_items=6, stop_when=lambda: cell.fault is not None)
+    assert cell.fault and "reopened mid-piece on 3 pieces in a row" in cell.fault
+    f = [(r["item"], r["outcome"], r["bin"]) for r in read_records(journal.path) if r["type"] == "final"]
+    assert f == [(1, "sorted", 0), (2, "sorted", 0), (3, "sorted", 2), (4, "sorted", 0), (5, "sorted", 0),
+                 (6, "rejected_fault", 0)]
+    assert (tmp_path / "FAULT").exists()
+
+
 def test_a_camera_reopened_for_the_reference_frame_keeps_the_piece(tmp_path):
     """Reopened while the reference frame is being taken, the reference is the reopened camera's
     own: the piece is pressed and sorted as any other."""
