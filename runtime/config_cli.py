@@ -26,6 +26,21 @@ def run(args) -> int:
     if args.check_bundle and not cfg.bundle.is_dir():
         print(f"config {cfg.path}: bundle folder {cfg.bundle} does not exist", file=sys.stderr)
         return 2
+    if args.check_bundle and cfg.without_scene_model != "allow":
+        # what `run` refuses at start (runtime/wiring.py evidence_factory_for), said before it starts
+        from vs2t_edge.runtime.bundle import BundleError, read_manifest
+
+        try:
+            has_scene_model = "decision" in read_manifest(cfg.bundle)
+        except BundleError as exc:
+            print(f"config {cfg.path}: {exc}", file=sys.stderr)
+            return 2
+        if not has_scene_model:
+            print(f"config {cfg.path}: bundle {cfg.bundle} has no scene model (decision.npz), so the cell could not "
+                  "refuse a piece of a fabric outside the scene; re-export it with `vs2t-edge export RUN --out "
+                  "BUNDLE`, or set `evidence.without_scene_model: allow` knowing that risk (docs/cell.md)",
+                  file=sys.stderr)
+            return 2
     fabrics = ", ".join(f"{f.name}({f.kind[0]})->{f.bin}" for f in cfg.fabrics)
     print(f"{cfg.path}: ok - camera {cfg.camera['kind']}, arm {cfg.arm_kind}, gate {cfg.gate['kind']}, "
           f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "

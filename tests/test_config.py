@@ -130,6 +130,22 @@ def test_validate_config_cli_exit_codes(tmp_path, capsys):
     assert main(["validate-config", str(tmp_path / "missing.yaml")]) == 2
 
 
+def test_validate_config_check_bundle_refuses_a_bundle_without_scene_model(tmp_path, capsys):
+    """The unit's ExecStartPre says what `run` would refuse: a bundle with no scene model, unless the
+    config opts in (evidence.without_scene_model: allow)."""
+    import json
+
+    (tmp_path / "bundle").mkdir()
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2}))
+    path = write(tmp_path, GOOD)
+    assert main(["validate-config", str(path), "--check-bundle"]) == 2
+    assert "no scene model" in capsys.readouterr().err
+    assert main(["validate-config", str(path)]) == 0  # without --check-bundle the bundle is not read
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "decision": {"file": "decision.npz"}}))
+    assert main(["validate-config", str(path), "--check-bundle"]) == 0
+
+
 def test_docs_reference_lists_every_key():
     from pathlib import Path
 
