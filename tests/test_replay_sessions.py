@@ -175,6 +175,18 @@ def test_replay_cli_reports_ok_and_catches_a_changed_beta(tmp_path, capsys):
     assert main(["replay", str(copy), "--bundle", str(BUNDLE)]) == 1
 
 
+def _live_config(bundle, ref: dict, tmp_path) -> dict:
+    """A cell config that records the touched session's frames live with ``bundle``: the reference
+    session's scene and evidence, fake arm and gate. The committed bundle has no scene model, so
+    recording it live needs the written opt-in."""
+    return {"bundle": str(bundle), "threads": 1,
+            "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
+                        "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
+            "scene": ref["config"]["scene"],
+            "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
+            "journal": str(tmp_path / "journal.jsonl")}
+
+
 def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
     """`vs2t-edge record` on the live device path (the camera replaying touched.replay's frames,
     the in-process arm and gate) makes the same first two decisions as the reference, and
@@ -186,13 +198,7 @@ def test_record_cli_then_replay_cli_with_the_real_bundle(tmp_path, capsys):
     from vs2t_edge.cli import main
 
     ref = json.loads((HERE / "touched.replay" / "index.json").read_text())
-    config = {"bundle": str(BUNDLE.resolve()), "threads": 1,
-              "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
-                          "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
-              "scene": ref["config"]["scene"],
-              # the committed bundle has no scene model: recording it live needs the written opt-in
-              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
-              "journal": str(tmp_path / "journal.jsonl")}
+    config = _live_config(BUNDLE.resolve(), ref, tmp_path)
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "today.replay"
     assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(out), "--max-items", "2"]) == 0
@@ -236,12 +242,7 @@ def test_a_session_names_its_bundles_seal_and_replays_only_against_that_bundle(t
     shutil.copytree(BUNDLE, tmp_path / "bundle")
     seal = json.loads((BUNDLE / "manifest.json").read_text())[SEAL_KEY]
     ref = json.loads((HERE / "touched.replay" / "index.json").read_text())
-    config = {"bundle": str(tmp_path / "bundle"), "threads": 1,
-              "devices": {"camera": {"kind": "replay", "path": str((HERE / "touched.replay" / "frames").resolve())},
-                          "arm": {"kind": "fake"}, "gate": {"kind": "fake"}},
-              "scene": ref["config"]["scene"],
-              "evidence": {**ref["config"]["evidence"], "without_scene_model": "allow"},
-              "journal": str(tmp_path / "journal.jsonl")}
+    config = _live_config(tmp_path / "bundle", ref, tmp_path)
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "today.replay"
     assert main(["record", "--config", str(tmp_path / "cell.yaml"), "--out", str(out), "--max-items", "1"]) == 0
