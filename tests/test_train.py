@@ -41,6 +41,30 @@ def test_seeded_training_is_reproducible():
     assert not torch.equal(next(a.G.parameters()), next(c.G.parameters()))
 
 
+def test_ensemble_pools_its_members_samples_deterministically():
+    """``ensemble`` 3: n_synth_per_class samples per class from each of 3 generators, member 0 the
+    single generator of the same seed, the others different; the same seed gives the same pool
+    and the same CLS_u."""
+    views = _views()
+    one = replace(BUDGET, n_synth_per_class=20)
+    three = replace(one, ensemble=3)
+    single = vs2t.VS2TZSL().fit(views.train, one, seed=5, steps=30)
+    a = vs2t.VS2TZSL().fit(views.train, three, seed=5, steps=30)
+    b = vs2t.VS2TZSL().fit(views.train, three, seed=5, steps=30)
+    xa, ya = a.synthesise(views.train, three, 5)
+    xb, yb = b.synthesise(views.train, three, 5)
+    n_u, block = views.train.n_u, views.train.n_u * 20
+    assert xa.shape == (3 * block, views.train.d_t) and np.bincount(ya).tolist() == [60] * n_u
+    assert np.array_equal(xa, xb) and np.array_equal(ya, yb)
+    assert all(torch.equal(p, q) for p, q in zip(a.cls_u.parameters(), b.cls_u.parameters()))
+    x1, y1 = single.synthesise(views.train, one, 5)
+    assert np.array_equal(xa[:block], x1) and np.array_equal(ya[:block], y1)
+    assert not np.allclose(xa[:block], xa[block:2 * block]) and not np.allclose(xa[block:2 * block], xa[2 * block:])
+    assert len(a.members) == 3 and a.members[1] not in type(a).instances
+    with pytest.raises(ValueError, match="ensemble"):
+        vs2t.VS2TZSL().fit(views.train, replace(one, ensemble=0), seed=5, steps=1)
+
+
 def test_trained_generator_beats_untrained():
     views = _views()
     trained = vs2t.VS2TZSL().fit(views.train, BUDGET, seed=0)

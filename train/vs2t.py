@@ -70,6 +70,13 @@ class VS2TBudget(Budget):
     cond_pca: int = 0  # > 0: visual condition = its top-k principal components (fitted on touched presses), whitened
     # True: E is q(z | x, v, s) as in the paper (the press's feature and its condition); False: q(z | x)
     encoder_condition: bool = False
+    # > 1: that many generators (E, VS-F, G, D), each trained as above from its own seed (the first
+    # from the split's seed, so member 0 is the single generator), their synthesised samples pooled
+    # per class (n_synth_per_class from each) for CLS_u and the scene decision's class means
+    ensemble: int = 1
+
+
+ENSEMBLE_SEED_STEP = 100  # member j trains from seed + 100 j (split seeds are 1000 s + k)
 
 
 class VS2TZSL(_GenerativeZSL):
@@ -132,6 +139,29 @@ class VS2TZSL(_GenerativeZSL):
         self.D = Discriminator(d_t)
 
     def fit(self, data: ZSLData, budget: Budget, seed: int, steps: int | None = None) -> "VS2TZSL":
+        n = int(getattr(budget, "ensemble", 1))
+        if n < 1:
+            raise ValueError(f"VS2TBudget.ensemble {n}: need at least 1 generator")
+        self._fit_generator(data, budget, seed, steps)
+        self.members = [self]
+        for j in range(1, n):
+            member = object.__new__(type(self))  # not in ``instances``: only the ensemble is a fitted method
+            member.name, member.history = self.name, []
+            member._fit_generator(data, budget, seed + ENSEMBLE_SEED_STEP * j, steps)
+            self.members.append(member)
+        self._fit_cls_u(data, budget, seed)
+        return self
+
+    def synthesise(self, data: ZSLData, budget: Budget, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """``n_synth_per_class`` samples per untouched class from each member, pooled (grouped by
+        member; every member draws with the same seed)."""
+        members = getattr(self, "members", [self])
+        if len(members) == 1:
+            return super().synthesise(data, budget, seed)
+        parts = [_GenerativeZSL.synthesise(m, data, budget, seed) for m in members]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def _fit_generator(self, data: ZSLData, budget: Budget, seed: int, steps: int | None = None) -> None:
         torch.manual_seed(seed)
         gen = torch.Generator().manual_seed(seed)
         self.visual_condition = getattr(budget, "visual_condition", "press")
@@ -149,8 +179,6 @@ class VS2TZSL(_GenerativeZSL):
         cond = self._cond(self._visual(data.x_v, data.y), data.attr_t[data.y])
         self.build(data.d_t, cond.shape[1], budget)
         self.train_generator(data.x_t, cond, budget, gen, steps)
-        self._fit_cls_u(data, budget, seed)
-        return self
 
     def train_generator(self, x_np, c_np, budget: Budget, gen: torch.Generator, steps: int | None = None) -> None:
         scale = float(getattr(budget, "lr_scale", 5.0))
