@@ -83,15 +83,22 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
     A bundle without a scene model is refused (``SceneModelMissing``) unless the config opts in
     (``evidence.without_scene_model: allow``): its posterior has no off-scene rule, so a piece of a
     fabric outside the scene is sorted into the likeliest scene fabric's bin."""
-    if getattr(model, "scene_model", None) is None and cfg.without_scene_model != "allow":
+    require_scene_model(model, cfg.bundle, cfg.without_scene_model,
+                        f"set `evidence.without_scene_model: allow` in {cfg.path}")
+    confidence, opts = evidence_settings(cfg, model)
+    return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
+
+
+def require_scene_model(model: Any, bundle, without_scene_model: str | None, opt_in: str) -> None:
+    """Raise ``SceneModelMissing`` for a ``model`` without a scene model unless ``without_scene_model``
+    is "allow"; ``opt_in`` says how the caller's user opts in (the config key, the demo's flag)."""
+    if getattr(model, "scene_model", None) is None and without_scene_model != "allow":
         raise SceneModelMissing(
-            f"bundle {cfg.bundle} has no scene model (decision.npz): its posterior has no off-scene rule, so a "
+            f"bundle {bundle} has no scene model (decision.npz): its posterior has no off-scene rule, so a "
             "piece of a fabric outside the scene would be sorted into the likeliest scene fabric's bin, never "
             "the reject bin (27-41 % of pieces mis-sorted wherever the project measured that posterior). "
             "Re-export it with `vs2t-edge export RUN --out BUNDLE` (RUN: its training run), which writes the "
-            f"scene model, or - knowing that risk - set `evidence.without_scene_model: allow` in {cfg.path}")
-    confidence, opts = evidence_settings(cfg, model)
-    return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
+            f"scene model, or - knowing that risk - {opt_in}")
 
 
 def contact_check_for(cfg: CellConfig) -> ContactCheck | None:

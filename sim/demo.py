@@ -38,7 +38,7 @@ from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
-from vs2t_edge.runtime.wiring import SceneModelMissing
+from vs2t_edge.runtime.wiring import SceneModelMissing, require_scene_model
 from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 # world profile -> training profile (the demo's world trains with the small profile's budget)
@@ -140,13 +140,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
                 without_scene_model: str | None = None) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
-    if model.scene_model is None and without_scene_model != "allow":
-        # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
-        raise SceneModelMissing(f"bundle {bundle} has no scene model (decision.npz): nothing would send an "
-                                "off-scene piece to the reject bin (27-41 % of pieces mis-sorted where measured). "
-                                "Re-export it with `vs2t-edge export RUN --out BUNDLE` (RUN: its training run; "
-                                "`--force` redoes the demo's stages), or give --without-scene-model allow to sort "
-                                "with its router's posterior anyway")
+    # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
+    require_scene_model(model, bundle, without_scene_model,
+                        "give --without-scene-model allow (`--force` redoes the demo's stages)")
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)
     strangers = [f.id for f in ds.fabrics if f.id not in known]
