@@ -507,6 +507,11 @@ def test_pooling_concatenates_splits_and_keeps_the_validation_rule(capsys):
                            test_ausuc={"A": {"gaussian": 0.9}})
     with pytest.raises(ValueError, match="different methods"):
         cmp.pool_results([{"splits": [a]}, {"splits": [c]}], TACTILE_ONLY)
+    older = _fake_split_result(val_zsl={"A": 0.9, "B": 0.5}, test_zsl={"A": 0.1, "B": 0.9},
+                               val_ausuc={"A": {"gaussian": 0.2}, "B": {"gaussian": 0.3}},
+                               test_ausuc={"A": {"gaussian": 0.9}, "B": {"gaussian": 0.9}}, seed=2000)
+    with pytest.raises(ValueError, match="different routers .*energy"):  # a comparison from before a router
+        cmp.pool_results([{"splits": [a]}, {"splits": [older]}], TACTILE_ONLY)
     with pytest.raises(ValueError, match=r"same fabric split \(seed \[0\]\)"):
         cmp.pool_results([{"splits": [a, a2]}, {"splits": [a]}], TACTILE_ONLY)  # would count split 0 twice
 

@@ -466,6 +466,11 @@ def pool_results(results: list[dict], cell_inputs: dict[str, tuple[str, ...]] | 
     methods = [list(r["splits"][0]["methods"]) for r in results]
     if any(m != methods[0] for m in methods):
         raise ValueError(f"results compare different methods: {methods}")
+    routers = [sorted(sp["methods"][m]["routers"]) for sp in splits for m in sp["methods"]]
+    if any(r != routers[0] for r in routers):  # e.g. a result made before a router was added
+        odd = sorted(set().union(*map(set, routers)) - set.intersection(*map(set, routers)))
+        raise ValueError(f"results compare different routers (not in every split: {', '.join(odd)}): "
+                         "re-run the older comparison with today's code before pooling")
     keys = [_split_key(sp) for sp in splits]
     dup = sorted({k[3] for k in keys if keys.count(k) > 1}, key=str)
     if dup:
