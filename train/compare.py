@@ -36,6 +36,7 @@ features and splits (a run folder, a dataset, a toy world); ``compare_report`` w
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -566,7 +567,11 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("verb", choices=["pool"])
     ap.add_argument("results", nargs="+", type=Path)
     args = ap.parse_args(argv)
-    pooled = pool_results([json.loads(p.read_text()) for p in args.results])
+    try:
+        pooled = pool_results([json.loads(p.read_text()) for p in args.results])
+    except ValueError as exc:  # different methods or routers, a split twice, a file that is not JSON
+        print(f"pool: {exc}", file=sys.stderr)
+        return 2
     rec, sm = pooled["summary"]["recommendation"], pooled["summary"]["methods"]
     print(f"{len(pooled['splits'])} splits; default model {rec['model']}, router {rec['router']} ({rec['rule']})")
     if rec["excluded"]:
