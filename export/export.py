@@ -289,15 +289,15 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             lt, lu = sess_h.run(None, {"feature": f})
             return f, lt, lu, _novelty(router, f, lt, lu), {}
 
+        have_val = validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout)
+        nt = score(touched_heldout if have_val else calibration)[3]
         if int8_beta is not None and trunk_precision == "int8":
             if touched_heldout is None or not len(touched_heldout):
                 raise ExportError("moving beta for the int8 graph needs held-out touched presses")
-            beta, note, prov_more = int8_beta(score(touched_heldout)[3])
+            beta, note, prov_more = int8_beta(nt if have_val else score(touched_heldout)[3])
             operating_point, provenance = operating_point + note, {**(provenance or {}), **prov_more}
         # gate scale and temperature on the deployed graph's own scores
         how = "given"
-        have_val = validation is not None and len(validation) and touched_heldout is not None and len(touched_heldout)
-        nt = score(touched_heldout if have_val else calibration)[3]
         scale = gating_scale(nt)
         if gating_temperature is None:
             if have_val:
