@@ -268,6 +268,11 @@ def shrunk_lda_sq_distances(x: np.ndarray, y: np.ndarray, n_classes: int, query:
     """(queries, classes) squared Mahalanobis distances under the shared, shrunk within-class
     covariance in the full feature space (linear discriminant analysis without a PCA cut)."""
     means, w = _whitened(x, y, n_classes)
+    return _sq_to_means(query, means, w)
+
+
+def _sq_to_means(query: np.ndarray, means: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(queries, classes) squared distances to ``means`` after the whitening ``w``."""
     return (((query @ w)[:, None, :] - (means @ w)[None]) ** 2).sum(-1)
 
 
@@ -293,7 +298,8 @@ def router_aurocs(x: np.ndarray, y: np.ndarray, n_classes: int, q_in: np.ndarray
     router on one touched class)."""
     from vs2t_edge.runtime.router_eval import auroc
 
-    logits = [-0.5 * shrunk_lda_sq_distances(x, y, n_classes, q) for q in (q_in, q_out)]
+    means, w = _whitened(x, y, n_classes)  # the shrunk LDA's, once for both query sets
+    logits = [-0.5 * _sq_to_means(q, means, w) for q in (q_in, q_out)]
     out = {}
     for name in CHECK_ROUTERS:
         opts = {"keep_covariance": False} if name in nv.GAUSSIAN_ROUTERS else {}
