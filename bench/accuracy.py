@@ -192,9 +192,8 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     tables = {"router": {classes[c]: so.posterior_presses(classes, out["lp"][lab == c]) for c in np.unique(lab)}}
     rules = {"router": so.plain_evidence(SEQ_CONFIDENCE, BIN_MAX_PRESSES)}
     if getattr(model, "scene_model", None) is not None:
-        lp_s, d2 = model.scene_model.log_posterior(out["feature"], dtype=np.float32)
-        tables["scene_model"] = {classes[c]: [so.Press(dict(zip(classes, a.tolist())), dict(zip(classes, b.tolist())))
-                                              for a, b in zip(lp_s[lab == c], d2[lab == c])] for c in np.unique(lab)}
+        tables["scene_model"] = {classes[c]: so.scene_model_presses(model.scene_model, out["feature"][lab == c],
+                                                                    np.float32) for c in np.unique(lab)}
         rules["scene_model"] = so.scene_evidence(model.scene_model, BIN_MAX_PRESSES)
     res = {"scenes": n_scenes, "max_presses": BIN_MAX_PRESSES}
     for name, table in tables.items():

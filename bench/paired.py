@@ -113,9 +113,8 @@ def _bins_records(v: dict, name: str, scenes, seed: int):
         table = {classes[c]: so.posterior_presses(classes, o["lp"][lab == c]) for c in np.unique(lab)}
         rule = so.plain_evidence(SEQ_CONFIDENCE, BIN_MAX_PRESSES)
     else:
-        lp_s, d2 = v["scene_model"].log_posterior(o["feature"], dtype=np.float32)
-        table = {classes[c]: [so.Press(dict(zip(classes, a.tolist())), dict(zip(classes, b.tolist())))
-                              for a, b in zip(lp_s[lab == c], d2[lab == c])] for c in np.unique(lab)}
+        table = {classes[c]: so.scene_model_presses(v["scene_model"], o["feature"][lab == c], np.float32)
+                 for c in np.unique(lab)}
         rule = so.scene_evidence(v["scene_model"], BIN_MAX_PRESSES)
     return so.simulate_scenes(scenes, table, rule, max_presses=BIN_MAX_PRESSES, seed=seed + 1)
 

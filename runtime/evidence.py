@@ -18,6 +18,12 @@ Off-scene checks (off unless set; the scene model sets both):
   job does not list.
 Either makes the item "unknown" (``stopped_by`` "off_scene"), confident or not.
 ``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
+
+``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
+summed log posteriors by the model's item scores of the presses' mean projection
+(``PressScore.scene_z``; ``SceneModel.item_log_lik``): the scene posterior is their softmax over
+the scene's classes, and the known-class rule compares them for classes outside and inside the
+scene. ``weight`` is then unused; the confidences and the open-set rule are as above.
 """
 from __future__ import annotations
 
@@ -49,7 +55,7 @@ class Evidence:
     def __init__(self, scene_classes, confidence: float = 0.95, max_presses: int = 9,
                  min_presses: int = 1, unknown_floor: float | None = None, *, weight: float = 1.0,
                  open_threshold: float = math.inf, known_margin: float = math.inf,
-                 class_confidence: dict[str, float] | None = None):
+                 class_confidence: dict[str, float] | None = None, item_model=None):
         self.classes = list(dict.fromkeys(scene_classes))
         if not self.classes:
             raise ValueError("Evidence: the scene has no classes")
@@ -76,11 +82,21 @@ class Evidence:
         self._floor_given = unknown_floor is not None
         self._acc = np.zeros(len(self.classes), dtype=np.float64)
         self.presses = 0
+        self.item_model = item_model
+        if item_model is not None:
+            missing = [c for c in self.classes if c not in item_model.classes]
+            if missing:
+                raise ValueError(f"Evidence: the item model has no class {missing} of the scene")
+            self._rows = np.array([item_model.classes.index(c) for c in self.classes])
+            self._others = np.setdiff1d(np.arange(len(item_model.classes)), self._rows)
+            self._z_sum = np.zeros(item_model.k, dtype=np.float64)
 
     def _posterior(self) -> np.ndarray:
         return self._acc - _logsumexp(self._acc)
 
     def add(self, score) -> ItemDecision | None:
+        if self.item_model is not None:
+            return self._add_projected(score)
         lp = score.log_posterior
         missing = [c for c in self.classes if c not in lp]
         if missing:
@@ -95,13 +111,36 @@ class Evidence:
             for c, val in lp.items():
                 if c not in self.classes:
                     self._outside[c] = self._outside.get(c, 0.0) + self.weight * max(float(val), -1e300)
+        self._add_open(score)
+        v = v - _logsumexp(v)
+        self._acc = self._acc + self.weight * np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
+        self.presses += 1
+        return self._check(final=False)
+
+    def _add_open(self, score) -> None:
         d2 = getattr(score, "sq_distance", None)
         if math.isfinite(self.open_threshold) and d2:
             self._open_sum += min(float(d2[c]) for c in self.classes)
             self._open_n += 1
-        v = v - _logsumexp(v)
-        self._acc = self._acc + self.weight * np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
+
+    def _add_projected(self, score) -> ItemDecision | None:
+        """The offset rule (module doc): item scores of the presses' mean projection."""
+        z = getattr(score, "scene_z", None)
+        if z is None:
+            raise ValueError("Evidence: the scene model's offset rule needs the press's projection (scene_z), "
+                             "and this press score has none")
+        z = np.asarray(z, dtype=np.float64).reshape(-1)
+        if z.shape != self._z_sum.shape or not np.all(np.isfinite(z)):
+            raise ValueError(f"Evidence: press projection of shape {z.shape} (finite: {bool(np.all(np.isfinite(z)))}), "
+                             f"expected ({self._z_sum.shape[0]},) finite")
+        self._add_open(score)
+        self._z_sum += z
         self.presses += 1
+        scores = self.item_model.item_log_lik(self._z_sum / self.presses, self.presses)
+        self._acc = scores[self._rows]
+        if math.isfinite(self.known_margin):
+            self._inside = self._acc
+            self._outside = {self.item_model.classes[i]: float(scores[i]) for i in self._others}
         return self._check(final=False)
 
     def decide(self) -> ItemDecision:

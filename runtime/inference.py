@@ -48,6 +48,8 @@ class PressScore:
     # squared distance to every bundle class in the scene model's space (runtime/scene_model.py);
     # None when the bundle has no scene model (its log posterior is then the router's, below)
     sq_distance: dict[str, float] | None = None
+    # the press in the scene model's space, (k,) float64 (its offset item rule averages these)
+    scene_z: np.ndarray | None = None
 
 
 def log_sigmoid(z: np.ndarray) -> np.ndarray:
@@ -275,14 +277,14 @@ class TactileModel:
         self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 0.0, "router_ms": 1e3 * (t2 - t1)}
         return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64), router_z, scene_z)
 
-    def scene_log_posterior(self, out: Outputs) -> tuple[np.ndarray, np.ndarray]:
-        """(N, C) scene-model log posterior and squared distances: from the graph's scene_z when
-        the bundle is fused, else the numpy projection of the feature (float32, as before)."""
+    def scene_projection(self, out: Outputs) -> np.ndarray:
+        """(N, k) the presses in the scene model's space: the graph's scene_z when the bundle is
+        fused, else the numpy projection of the feature (float32, as before)."""
         if out.scene_z is not None:
             if not np.all(np.isfinite(out.scene_z)):
                 raise FrameError("model output not usable for this frame (non-finite scene projection)", "model_output")
-            return self.scene_model.log_posterior_projected(out.scene_z)
-        return self.scene_model.log_posterior(out.feature, dtype=np.float32)
+            return out.scene_z
+        return self.scene_model.project(out.feature, dtype=np.float32)
 
     def log_posterior(self, out: Outputs, beta: float | None = None) -> np.ndarray:
         return gzsl_log_posterior(out.logits_t, out.logits_u, out.novelty, self.beta if beta is None else beta,
@@ -303,10 +305,12 @@ class TactileModel:
         if not (np.all(np.isfinite(out.logits_t)) and np.all(np.isfinite(out.logits_u))):
             raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
         novelty = float(out.novelty[0])
-        sq = None
+        sq = z = None
         if self.scene_model is not None:
-            lp_all, d2 = self.scene_log_posterior(out)
+            z = self.scene_projection(out)
+            lp_all, d2 = self.scene_model.log_posterior_projected(z)
             lp, sq = lp_all[0], dict(zip(self.classes, d2[0].tolist()))  # tolist: python floats, one C call
+            z = np.asarray(z[0], np.float64)
         else:
             lp = self.log_posterior(out)[0]
         log_posterior = dict(zip(self.classes, lp.tolist()))
@@ -314,7 +318,7 @@ class TactileModel:
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
         self.last_timing = timing
-        return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq)
+        return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq, z)
 
 
 __all__ = ["PressScore", "TactileModel", "Outputs", "fused_novelty", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",

@@ -24,6 +24,23 @@ never seen; refused above ``open_threshold``), and whether a bundle class outsid
 explains the presses better than the best scene class by ``known_margin`` (a fabric the cell knows
 that does not belong to this job). Both thresholds are fitted on validation fabrics too.
 
+Per item there are two rules (``item_rule``), both chosen on validation fabrics:
+
+* ``"sum"``: the per-press log posteriors, restricted to the scene, summed with ``evidence_weight``
+  (runtime/evidence.py);
+* ``"offset"``: a piece's presses share an offset from their class mean - a piece's region differs
+  from the training presses', and a synthesised mean is off its fabric's real one by the
+  generator's error, the same on every press. Presses z_i = mu_c + e + eps_i with eps_i ~ N(0,
+  ``press_var`` I) and e ~ N(0, s_c I), s_c = ``offset_var_touched`` or ``offset_var_untouched``;
+  so the mean of n presses zbar ~ N(mu_c, (s_c + press_var / n) I) and the item's score of class c
+  is
+
+      L_c = (-||zbar - mu_c||^2 / (2 v_c) - k/2 log v_c) / item_temperature + item_bias [c untouched],
+      v_c = s_c + press_var / n
+
+  (``item_log_lik``): evidence for a synthesised class stops growing once the presses have pinned
+  the piece's mean down to the generator's error, where the sum rule grows it with every press.
+
 Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
 scored on the cell.
 """
@@ -31,13 +48,15 @@ scored on the cell.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
 
 PARAMS_VERSION = 1
 KIND = "scene_gaussian"
+ITEM_RULES = ("sum", "offset")
+OFFSET_KEYS = ("press_var", "offset_var_touched", "offset_var_untouched", "item_temperature", "item_bias")
 
 
 class SceneModelError(ValueError):
@@ -59,6 +78,14 @@ class SceneModel:
     confidence: float = 0.95  # leading scene posterior that sorts an item into a touched class
     untouched_confidence: float = 0.95  # ... into an untouched class (both chosen for the mis-sort target)
     info: Mapping[str, Any] = field(default_factory=dict, repr=False)
+    # the item rule (module doc): "sum" reads the five fields above; "offset" these five instead of
+    # evidence_weight (the confidences, open_threshold and known_margin serve both)
+    item_rule: str = "sum"
+    press_var: float = 1.0
+    offset_var_touched: float = 0.0
+    offset_var_untouched: float = 0.0
+    item_temperature: float = 1.0
+    item_bias: float = 0.0
 
     @property
     def dim(self) -> int:
@@ -121,16 +148,34 @@ class SceneModel:
         m = s.max(axis=1, keepdims=True)
         return s - (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True))), d2
 
+    def item_log_lik(self, z_mean: np.ndarray, n: int) -> np.ndarray:
+        """(C,) the offset rule's item scores L_c (module doc) of a piece whose ``n`` presses have
+        the mean projection ``z_mean`` (k,)."""
+        if n < 1:
+            raise SceneModelError(f"scene model: an item of {n} presses has no score")
+        z = np.asarray(z_mean, np.float64).reshape(-1)
+        means_t, means_sq, _ = self._consts()
+        d2 = max(float(z @ z), 0.0) - 2.0 * (z @ means_t) + means_sq
+        v = self._offset_vars() + self.press_var / n
+        return (-0.5 * d2.clip(min=0.0) / v - 0.5 * self.k * np.log(v)) / self.item_temperature \
+            + self.item_bias * self._offset_vars(flags=True)
+
+    def _offset_vars(self, flags: bool = False) -> np.ndarray:
+        """(C,) each class's offset variance (or, ``flags``, 1.0 for an untouched class), once."""
+        cache = self.__dict__.setdefault("_cast_cache", {})
+        if "offsets" not in cache:
+            is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
+            cache["offsets"] = (np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched), is_u)
+        return cache["offsets"][1 if flags else 0]
+
     def subset(self, classes) -> "SceneModel":
         """The same model over ``classes`` only (bundle classes, in the given order)."""
         missing = [c for c in classes if c not in self.classes]
         if missing:
             raise SceneModelError(f"scene model has no class {missing}")
         rows = [self.classes.index(c) for c in classes]
-        return SceneModel(tuple(classes), frozenset(c for c in classes if c in self.untouched), self.center,
-                          self.basis, self.means[rows], self.temperature, self.untouched_bias,
-                          self.evidence_weight, self.open_threshold, self.known_margin, self.confidence,
-                          self.untouched_confidence, dict(self.info))
+        return replace(self, classes=tuple(classes), untouched=frozenset(c for c in classes if c in self.untouched),
+                       means=self.means[rows], info=dict(self.info))
 
     # ------------------------------------------------------------------ fitting (numpy)
 
@@ -173,7 +218,8 @@ class SceneModel:
                 "temperature": float(self.temperature), "untouched_bias": float(self.untouched_bias),
                 "evidence_weight": float(self.evidence_weight), "open_threshold": float(self.open_threshold),
                 "known_margin": float(self.known_margin), "confidence": float(self.confidence),
-                "untouched_confidence": float(self.untouched_confidence)}
+                "untouched_confidence": float(self.untouched_confidence), "item_rule": np.array(self.item_rule),
+                **{key: float(getattr(self, key)) for key in OFFSET_KEYS}}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -214,8 +260,19 @@ class SceneModel:
             raise SceneModelError(f"scene model scalars out of range: temperature {temperature}, bias {bias}, "
                                   f"evidence_weight {weight}, confidence {conf}/{conf_u}, open_threshold {open_thr}, "
                                   f"known_margin {margin}")
-        return cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
-                   temperature, bias, weight, open_thr, margin, conf, conf_u)
+        model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
+                    temperature, bias, weight, open_thr, margin, conf, conf_u)
+        # a file written before the offset rule has none of its keys: the sum rule, as it was
+        rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
+        if rule not in ITEM_RULES:
+            raise SceneModelError(f"scene model item_rule {rule!r}: this runtime knows {', '.join(ITEM_RULES)}")
+        if rule == "sum":
+            return model
+        offset = {key: scalar(key) for key in OFFSET_KEYS}
+        if not (offset["press_var"] > 0 and offset["offset_var_touched"] >= 0 and offset["offset_var_untouched"] >= 0
+                and offset["item_temperature"] > 0 and all(math.isfinite(v) for v in offset.values())):
+            raise SceneModelError(f"scene model offset rule scalars out of range: {offset}")
+        return replace(model, item_rule=rule, **offset)
 
 
-__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION"]
+__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION", "ITEM_RULES"]

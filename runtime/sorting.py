@@ -208,6 +208,16 @@ class Press:
 
     log_posterior: dict
     sq_distance: dict | None = None
+    scene_z: np.ndarray | None = None
+
+
+def scene_model_presses(scene_model, features: np.ndarray, dtype=np.float64) -> list[Press]:
+    """Presses of ``features`` (N, D) as the cell scores them with a scene model: log posterior and
+    squared distance over its classes, and the projection its offset item rule reads."""
+    z = scene_model.project(features, dtype)
+    lp, d2 = scene_model.log_posterior_projected(z)
+    classes = scene_model.classes
+    return [Press(dict(zip(classes, a.tolist())), dict(zip(classes, b.tolist())), c) for a, b, c in zip(lp, d2, z)]
 
 
 @dataclass(frozen=True)
@@ -293,4 +303,4 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
            "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
-           "log_softmax", "Press", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]
+           "log_softmax", "Press", "scene_model_presses", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]

@@ -13,7 +13,11 @@ Per split (``fit_scene_decision``):
    simulating scenes of validation fabrics (``runtime.sorting.simulate_scenes``: the cell's own
    ``Evidence`` on held-out presses): the most pieces in the right bin among the settings whose
    mis-sort rate meets ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set
-   threshold accepts ``OPEN_ACCEPT`` of the in-scene validation presses;
+   threshold is a quantile (``OPEN_QUANTILES``) of the in-scene validation presses' distances to
+   their own class; then the same for the
+   offset item rule (runtime/scene_model.py: a piece's presses share an offset from their class
+   mean, larger for a synthesised class) over its own knobs, searched on the same jobs by the
+   vectorised simulation of train/item_search.py; the item rule that scores better is kept;
 4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
 
 ``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
@@ -29,7 +33,8 @@ from dataclasses import replace
 import numpy as np
 
 from vs2t_edge.runtime import sorting as so
-from vs2t_edge.runtime.scene_model import SceneModel
+from vs2t_edge.runtime.scene_model import OFFSET_KEYS, SceneModel
+from vs2t_edge.train import item_search as ns
 
 K_CHOICES = (32, 64, 128)
 BIASES = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -45,12 +50,7 @@ MAX_PRESSES = 5
 
 def press_tables(model: SceneModel, rows: dict[str, np.ndarray]) -> dict[str, list[so.Press]]:
     """Per fabric, its presses as the cell scores them with ``model``."""
-    out = {}
-    for fabric, x in rows.items():
-        lp, d2 = model.log_posterior(x)
-        out[fabric] = [so.Press(dict(zip(model.classes, a.tolist())), dict(zip(model.classes, b.tolist())))
-                       for a, b in zip(lp, d2)]
-    return out
+    return {fabric: so.scene_model_presses(model, x) for fabric, x in rows.items()}
 
 
 def _balanced_nll(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -73,6 +73,21 @@ def _fit_t_b(d2: np.ndarray, labels: np.ndarray, is_u: np.ndarray) -> tuple[floa
 def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES):
     """The evidence the cell builds for a scene from the model's operating point."""
     return so.scene_evidence(model, max_presses)
+
+
+def _offset_candidate(vm: SceneModel, rows: dict[str, np.ndarray], scenes, own_d2: np.ndarray, seed: int,
+                      target: float) -> tuple[SceneModel, dict]:
+    """The offset item rule (runtime/scene_model.py) searched on the same validation jobs as the
+    sum rule (train/item_search.py, vectorised), and its summary from the cell's own evidence."""
+    projections = {f: vm.project(x) for f, x in rows.items()}
+    prepared = ns.Prepared.of(ns.draw_items(scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=seed), vm)
+    thresholds = {q: float(np.quantile(own_d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
+    base = {"press_var_scale": 1.0, "touched_scale": 1.0, "item_bias": 0.0, "known_margin": 0.0, "open_quantile": 1.0,
+            "confidence": 0.9, "untouched_confidence": 0.9}
+    setting, _ = ns.search_offset_rule(prepared, ns.offset_estimates(vm, projections), base, thresholds, CONFIDENCES,
+                                       lambda summary: _score(summary, target))
+    cand = replace(vm, item_rule="offset", **setting)
+    return cand, so.summarise(so.simulate_scenes(scenes, press_tables(cand, rows), evidence_for(cand), seed=seed))
 
 
 def _score(summary: dict, target: float) -> tuple:
@@ -144,26 +159,37 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     for _ in range(3):
         for knob, values in grid.items():
             point[knob] = max(values, key=lambda v: trial({**point, knob: v})[0])
-    best = trial(point)
-    best = (best[0], best[1], best[2], {"nll_before": nll0, "nll_after": nll, "k": k})
     tried_rows = [{**dict(key), "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                    "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, _, s) in tried.items()]
-    _, chosen, val_summary, nll = best
+    # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
+    # the same score (the mis-sort target first, then pieces in the right bin) is kept
+    score_sum, cand_sum, summary_sum = trial(point)
+    cand_off, summary_off = _offset_candidate(vm, rows, scenes, own_d2, seed, target_mis_sort)
+    by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
+    _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
-    deployed = replace(deployed, temperature=chosen.temperature, untouched_bias=chosen.untouched_bias,
-                       evidence_weight=chosen.evidence_weight, open_threshold=chosen.open_threshold,
-                       known_margin=chosen.known_margin, confidence=chosen.confidence,
-                       untouched_confidence=chosen.untouched_confidence, info={**deployed.info, "target_mis_sort": target_mis_sort})
+    deployed = replace(chosen, classes=deployed.classes, untouched=deployed.untouched, center=deployed.center,
+                       basis=deployed.basis, means=deployed.means,
+                       info={**deployed.info, "target_mis_sort": target_mis_sort})
+    rule = {"evidence_weight": chosen.evidence_weight} if chosen.item_rule == "sum" else \
+        {key: getattr(chosen, key) for key in OFFSET_KEYS}
     report = {"chosen": {"k": chosen.k, "temperature": chosen.temperature, "untouched_bias": chosen.untouched_bias,
-                         "evidence_weight": chosen.evidence_weight, "known_margin": chosen.known_margin,
+                         "item_rule": chosen.item_rule, **rule, "known_margin": chosen.known_margin,
                          "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
                          "open_threshold": chosen.open_threshold},
-              "validation": val_summary, "validation_nll": nll, "target_mis_sort": target_mis_sort,
+              "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
+              "target_mis_sort": target_mis_sort,
               "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
+              "item_rules": {name: {"right": r[2]["all"]["right"], "mis_sort": r[2]["all"]["mis-sort"],
+                                    "reject": r[2]["all"]["reject"], "presses": r[2]["all"]["presses"]}
+                             for name, r in by_rule.items()},
               "tried": tried_rows}
-    log(f"scene decision chosen on validation: k={chosen.k}, weight {chosen.evidence_weight:g}, "
-        f"margin {chosen.known_margin:g}, confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): right {val_summary['all']['right']:.1%}, "
-        f"mis-sort {val_summary['all']['mis-sort']:.1%}, reject {val_summary['all']['reject']:.1%}")
+    log(f"scene decision chosen on validation: k={chosen.k}, item rule {chosen.item_rule}, "
+        f"margin {chosen.known_margin:g}, confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
+        f"right {val_summary['all']['right']:.1%}, mis-sort {val_summary['all']['mis-sort']:.1%}, "
+        f"reject {val_summary['all']['reject']:.1%} (sum rule {summary_sum['all']['right']:.1%} / "
+        f"{summary_sum['all']['mis-sort']:.1%}, offset rule {summary_off['all']['right']:.1%} / "
+        f"{summary_off['all']['mis-sort']:.1%})")
     return deployed, report
 
 

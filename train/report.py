@@ -265,11 +265,23 @@ def scene_lines(splits: list[dict]) -> list[str]:
                f"{_ms([d['test']['press_gzsl']['acc_t'] for d in sd])}, acc_u {_ms([d['test']['press_gzsl']['acc_u'] for d in sd])}, "
                f"H {_ms([d['test']['press_gzsl']['H'] for d in sd])} (paper: H 84.27)."]
               if all("press_gzsl" in d["test"] for d in sd) else []),
+            *(["Item rules on validation per split (right / mis-sort, %; the better one by the target is kept): "
+               + "; ".join(" ".join(f"{name} {100 * r['right']:.1f} / {100 * r['mis_sort']:.1f}"
+                                    for name, r in d["validation"]["item_rules"].items()) for d in sd)]
+              if all("item_rules" in d["validation"] for d in sd) else []),
             "", "Chosen per split: " + "; ".join(
-                f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, weight "
-                f"{c['evidence_weight']:g}, margin {c['known_margin']:g}, confidence {c['confidence']:g}/"
-                f"{c['untouched_confidence']:g}" for c in (d["validation"]["chosen"] for d in sd)), ""]
+                f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
+                f"margin {c['known_margin']:g}, confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
+                for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
+
+
+def _item_rule_text(c: dict) -> str:
+    if c.get("item_rule", "sum") == "sum":
+        return f"sum rule, weight {c['evidence_weight']:g}"
+    return (f"offset rule (press variance {c['press_var']:.3g}, offsets {c['offset_var_touched']:.3g} touched / "
+            f"{c['offset_var_untouched']:.3g} synthesised, item temperature {c['item_temperature']:g}, "
+            f"bias {c['item_bias']:g})")
 
 
 __all__ = ["LEGEND", "figures", "legend_lines", "render", "scene_lines"]
