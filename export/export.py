@@ -283,8 +283,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             if fused is not None:
                 got = dict(zip(fused["outputs"], _run_batches(sess_t, x)))
                 f, lt, lu = got["feature"], got["logits_t"], got["logits_u"]
-                nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT))
-                return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.SCENE_OUT) if k in got}
+                nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT), got.get(fz.NOVELTY_OUT))
+                return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.NOVELTY_OUT, fz.SCENE_OUT) if k in got}
             (f,) = _run_batches(sess_t, x)
             lt, lu = sess_h.run(None, {"feature": f})
             return f, lt, lu, _novelty(router, f, lt, lu), {}
@@ -381,11 +381,12 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
     (f_ref,) = _run_batches(rb.open_session(trunk_file, threads), frames)
     lt_ref, lu_ref = _run_batches(rb.open_session(heads_file, threads), f_ref)
     last: dict = {}
+    rule = fz.logit_router_rule(router)
     for force_full in (False, True):
         proj = fz.router_projection(router, force_full=force_full)
         with tempfile.TemporaryDirectory() as work_s:
             work = Path(work_s)
-            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset)
+            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset, rule)
             names = fz.merge_into_trunk(trunk_file, work / "tail.onnx", work / "press.onnx")
             got = dict(zip(names, _run_batches(rb.open_session(work / "press.onnx", threads), frames)))
             f = got["feature"]
@@ -396,12 +397,17 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
                 check["novelty_vs_router_float64"] = _rel(fused_novelty(router, f, got["logits_t"], got["logits_u"],
                                                                         got[fz.ROUTER_OUT]), ref)
                 check["router_form"] = proj["form"]
+            if rule is not None:  # the graph's float32 novelty against the router's float64 one on the same logits
+                lt64, lu64 = got["logits_t"].astype(np.float64), got["logits_u"].astype(np.float64)
+                check["novelty_vs_router_float64"] = _rel(got[fz.NOVELTY_OUT][:, 0],
+                                                          router.novelty(f, lt64, logits_u=lu64))
             if scene is not None:
                 check["scene_z_vs_float64"] = _rel(got[fz.SCENE_OUT], scene.project(f.astype(np.float64)))
             bad = {k: v for k, v in check.items() if isinstance(v, float) and not v <= PARITY_TOLERANCE}
             if not bad:
                 shutil.copyfile(work / "press.onnx", trunk_file)
-                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim), "check": check}
+                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim, rule),
+                        "check": check}
             last = bad
             if proj is None or proj["form"] == "whitened":
                 break

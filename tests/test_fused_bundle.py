@@ -23,7 +23,7 @@ NOVELTY_RTOL = 1e-4
 
 def _router(kind: str):
     """gaussian on 40 presses (n > D = 16: the full whitening), gaussian on 8 presses (rank 7: the
-    low-rank form), energy (a logit router: nothing to fold)."""
+    low-rank form), energy (a logit router: its formula folded in as router_novelty)."""
     import torch
 
     from vs2t_edge.runtime import novelty as nv
@@ -83,7 +83,7 @@ def test_fused_bundle_scores_as_the_two_graph_path(pairs, kind, form):
     m = fused.manifest
     assert m["format_version"] == 2 and fused.fused and not two.fused
     assert "heads" not in m["graphs"] and "heads.onnx" not in m["files"] and not (fused_dir / "heads.onnx").exists()
-    want = {"feature", "logits_t", "logits_u", "scene_z"} | ({"router_z"} if form else set())
+    want = {"feature", "logits_t", "logits_u", "scene_z"} | ({"router_z"} if form else {"router_novelty"})
     assert set(m["graphs"]["trunk"]["outputs"]) == want
     assert (m["graphs"]["trunk"]["fused"].get("router_z") or {}).get("form") == form
     assert two.manifest["format_version"] == 1 and set(two.manifest["graphs"]) == {"trunk", "heads"}
@@ -118,6 +118,107 @@ def test_low_rank_router_projection_is_smaller_and_exact(pairs):
     ref, m2 = fused.bundle.router.novelty(f64), fused.bundle.router.squared_mahalanobis(f64)
     assert np.all(np.abs(out.novelty - ref) <= NOVELTY_RTOL * 0.5 * m2)  # the log-density's constant is exact
     assert fused.manifest["checks"]["fused_vs_two_graphs"]["novelty_vs_router_float64"] <= 1e-4
+
+
+def _scaled(head, k: float):
+    """The head with its logits times ``k``: logits of +-1e3 test the folded formula's stability
+    (logsumexp and softmax shift by the max, as runtime/novelty.py does)."""
+    import torch
+
+    class Scaled(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.head = head
+
+        def forward(self, f):
+            return self.head(f) * k
+
+    return Scaled()
+
+
+@pytest.mark.parametrize("params", [{"name": "energy", "temperature": 1.0}, {"name": "energy", "temperature": 3.5},
+                                    {"name": "max_softmax", "temperature": 1.0},
+                                    {"name": "max_softmax", "temperature": 0.5},
+                                    {"name": "calibrated_stacking", "scores": "log_softmax"},
+                                    {"name": "calibrated_stacking", "scores": "logits"}])
+@pytest.mark.parametrize("k", [1.0, 300.0])
+def test_folded_logit_router_is_the_numpy_router(params, k, tmp_path):
+    """router_novelty from the graph (float32) = the numpy router's float64 novelty on the graph's
+    own logits, to 1e-5 of the largest novelty, for every router on the logits."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.runtime import novelty as nv
+    from vs2t_edge.runtime.bundle import open_session
+
+    router = nv.Router.from_params({**params, "params_version": nv.PARAMS_VERSION})
+    rule = fz.logit_router_rule(router)
+    assert rule == params
+    _, cls_t, cls_u = tiny_modules(0)
+    names = fz.export_tail(tmp_path / "tail.onnx", _scaled(cls_t, k), _scaled(cls_u, k), 16, None, None, 20, rule)
+    assert names == ["logits_t", "logits_u", "router_novelty"]
+    f = np.random.default_rng(1).standard_normal((64, 16)).astype(np.float32) * 3
+    lt, lu, nov = open_session(tmp_path / "tail.onnx", 1).run(None, {"feature": f})
+    assert nov.shape == (64, 1) and nov.dtype == np.float32
+    ref = router.novelty(f, lt.astype(np.float64), logits_u=lu.astype(np.float64))
+    assert np.max(np.abs(nov[:, 0] - ref)) <= 1e-5 * np.max(np.abs(ref))
+    assert np.ptp(ref) > 1e-3 * np.max(np.abs(ref))  # the presses do not all score alike
+
+
+def test_feature_routers_fold_no_logit_rule():
+    from vs2t_edge.export import fuse as fz
+
+    assert fz.logit_router_rule(_router("gaussian")[0]) is None
+
+
+def test_fused_energy_bundle_without_router_novelty_scores_in_numpy(pairs, tmp_path):
+    """A fused bundle exported before the logit routers were folded in (no router_novelty): it loads,
+    and its novelty is the numpy router's, as before."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.export.export import graph_io
+
+    fused_dir, two_dir = pairs["energy"]
+    b = _copy(fused_dir, tmp_path)
+    _, cls_t, cls_u = tiny_modules(0)
+    sm = TactileModel.load(fused_dir, threads=1).scene_model
+    fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20)
+    fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    z = dict(np.load(b / "probe_expected.npz"))
+    del z["router_novelty"]
+    np.savez(b / "probe_expected.npz", **z)
+
+    def old_manifest(m):
+        m["graphs"]["trunk"]["outputs"] = graph_io(b / "trunk.onnx")["outputs"]
+        del m["graphs"]["trunk"]["fused"]["router_novelty"]
+
+    _reseal(b, old_manifest)
+    old, new = TactileModel.load(b, threads=1), TactileModel.load(fused_dir, threads=1)
+    assert "router_novelty" not in old._press_outputs and "router_novelty" in new._press_outputs
+    x = world_frames(SIZE)[0][60:]
+    a, c = old.forward(x), new.forward(x)
+    assert a.router_novelty is None and c.router_novelty is not None
+    np.testing.assert_allclose(a.novelty, c.novelty, rtol=1e-5, atol=1e-6)
+    assert np.array_equal(a.novelty, old.bundle.router.novelty(a.feature, a.logits_t, logits_u=a.logits_u))
+
+
+def test_folded_router_that_is_not_router_npz_is_refused(pairs, tmp_path):
+    """The graph folds energy at temperature 2, router.npz says 1 (probe regenerated, re-sealed):
+    the probe's cross-check against router.npz refuses it."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.runtime.bundle import open_session
+
+    fused_dir, two_dir = pairs["energy"]
+    b = _copy(fused_dir, tmp_path)
+    _, cls_t, cls_u = tiny_modules(0)
+    sm = TactileModel.load(fused_dir, threads=1).scene_model
+    fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20,
+                   {"name": "energy", "temperature": 2.0})
+    fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    sess = open_session(b / "trunk.onnx", 1)
+    got = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {"image": np.load(b / "probe_input.npy")})))
+    got["novelty"] = got["router_novelty"][:, 0].astype(np.float64)
+    np.savez(b / "probe_expected.npz", **got)
+    _reseal(b)
+    with pytest.raises(rb.BundleError, match=r"probe check failed: 'novelty_vs_router_file'"):
+        TactileModel.load(b)
 
 
 def test_two_graph_bundles_still_load(pairs):
@@ -242,7 +343,7 @@ def test_int8_trunk_is_fused_with_float_heads(tmp_path):
 
 
 @pytest.mark.parametrize("kind,bad", [("gaussian", "feature"), ("gaussian", "router_z"), ("gaussian", "scene_z"),
-                                      ("energy", "logits_t"), ("energy", "scene_z")])
+                                      ("energy", "logits_t"), ("energy", "scene_z"), ("energy", "router_novelty")])
 def test_non_finite_press_graph_output_is_a_frame_error(pairs, kind, bad):
     """A NaN in any output the cell reads is never routed to a bin: FrameError, as the two-graph
     path raises for a non-finite feature or logits."""
