@@ -51,7 +51,7 @@ def _scene_params(f: np.ndarray) -> dict:
     return sm.to_params()
 
 
-def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32"):
+def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32", heads: str = "fp32"):
     from vs2t_edge.export.export import write_bundle
     from vs2t_edge.runtime.preprocess import TactilePreprocess
 
@@ -61,7 +61,7 @@ def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp3
     return write_bundle(out, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=TOUCHED,
                         untouched=UNTOUCHED, preprocess=TactilePreprocess(size=SIZE), beta=beta, calibration=x[:40],
                         trunk_precision=precision, trunk_arch="tiny-test", validation=x[60:], touched_heldout=x[40:60],
-                        scene_model=_scene_params(f) if scene else None, fuse=fuse)
+                        scene_model=_scene_params(f) if scene else None, fuse=fuse, heads_precision=heads)
 
 
 @pytest.fixture(scope="module")
@@ -340,6 +340,45 @@ def test_int8_trunk_is_fused_with_float_heads(tmp_path):
     assert c["feature"] <= 1e-6 and c["logits_t"] <= 1e-4  # the same int8 kernels, then the same heads
     model = TactileModel.load(tmp_path / "b8", threads=1)
     assert model.probe_errors["novelty_vs_router_file"] <= m["probe"]["tolerance"]["novelty"]
+
+
+@pytest.mark.parametrize("kind", ["energy", "gaussian"])
+def test_int8_heads_fold_into_the_press_graph_and_keep_the_projections_float(pairs, kind, tmp_path):
+    """--heads-precision int8: the heads' Gemms become MatMulInteger with int8 weights, the
+    projections (router_z, scene_z) stay float MatMuls; the logits stay within the int8 tolerance
+    of the float heads', the scores the bundle's router and scene model make of them hold."""
+    import onnx
+
+    m = _write(tmp_path / "b", kind, True, heads="int8")
+    fused = m["graphs"]["trunk"]["fused"]
+    assert "int8" in fused["heads"] and m["probe"]["tolerance"]["logits"] == 2e-2
+    assert m["probe"]["tolerance"]["projection"] == 1e-4  # scene_z stays float32
+    c = m["checks"]["fused_vs_two_graphs"]
+    assert 0.0 < c["logits_t"] <= 2e-2 and c["scene_z_vs_float64"] <= 1e-4
+    g = onnx.load(str(tmp_path / "b" / "trunk.onnx")).graph
+    tail = [n for n in g.node if n.name.startswith("press_tail/")]
+    assert sum(n.op_type == "MatMulInteger" for n in tail) == 4  # the test heads: 2 linear layers each
+    assert not any(n.op_type == "Gemm" for n in tail)
+    floats = [n for n in tail if n.op_type == "MatMul"]
+    assert len(floats) == (2 if kind == "gaussian" else 1)  # router_z (whitened) and scene_z
+    int8 = TactileModel.load(tmp_path / "b", threads=1)
+    ref = TactileModel.load(pairs[kind][0], threads=1)
+    x = world_frames(SIZE)[0][60:]
+    a, b = int8.forward(x), ref.forward(x)
+    np.testing.assert_array_equal(a.feature, b.feature)
+    assert np.max(np.abs(a.logits_t - b.logits_t)) <= 2e-2 * np.max(np.abs(b.logits_t))
+    np.testing.assert_allclose(a.scene_z, b.scene_z, rtol=1e-5, atol=1e-6)
+    if kind == "energy":  # the folded router reads the int8 logits: its novelty is the router's of them
+        want = int8.bundle.router.novelty(a.feature, a.logits_t.astype(np.float64),
+                                          logits_u=a.logits_u.astype(np.float64))
+        np.testing.assert_allclose(a.novelty, want, rtol=1e-5)
+
+
+def test_int8_heads_need_the_fused_graph(tmp_path):
+    from vs2t_edge.export.export import ExportError
+
+    with pytest.raises(ExportError, match="heads precision"):
+        _write(tmp_path / "b", "energy", False, heads="int8")
 
 
 @pytest.mark.parametrize("kind,bad", [("gaussian", "feature"), ("gaussian", "router_z"), ("gaussian", "scene_z"),
