@@ -43,7 +43,7 @@ OPSET = 20
 # torch (float32, its own kernels) vs onnxruntime (fused BN/conv, other summation order) on the
 # same frames: max |diff| / max |torch output|. Measured ~1e-6 on the tiny and EfficientNet trunks.
 PARITY_TOLERANCE = 1e-4
-HEADS_INT8_TOLERANCE = 2e-2  # int8 heads' logits against the float heads' (measured 2e-3 on the paper_r2 run)
+HEADS_INT8_TOLERANCE = 2e-2  # int8 heads' logits against the float heads' (0.5-1 % on the paper profile's runs)
 PROBE_TOLERANCE = {"fp32": {"feature": 1e-4, "logits": 1e-4, "novelty": 1e-4},
                    # int8 kernels may pick other accumulation orders per thread count / CPU
                    "int8": {"feature": 2e-2, "logits": 2e-2, "novelty": 2e-2}}
