@@ -72,6 +72,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--two-graphs", action="store_true",
                         help="write the format-1 bundle of earlier releases (trunk.onnx + heads.onnx, router and scene "
                              "projection in numpy) instead of the fused press graph (format 2); for comparisons")
+    parser.add_argument("--heads-precision", choices=("fp32", "int8"), default="fp32",
+                        help="CLS_t / CLS_u weights in the fused press graph: fp32 (default) or int8 (dynamic "
+                             "quantisation, per channel; docs/bundle.md prices it)")
     parser.add_argument("--preprocess-reduce", choices=("off", "auto", "1", "2", "4", "8"), default="off",
                         help="with --random-trunk: the tactile pixel path (runtime/preprocess.py; a trained run's "
                              "bundle keeps the run's own, as `train --preprocess-reduce` chose it)")
@@ -141,6 +144,9 @@ def run(args) -> int:
               "--int8-keep-operating-point need --trunk-precision int8",
               file=sys.stderr)
         return 2
+    if args.heads_precision == "int8" and args.two_graphs:
+        print("export: --heads-precision int8 is for the fused press graph, not --two-graphs", file=sys.stderr)
+        return 2
     try:
         if args.random_trunk:
             if args.run or not args.dataset or not args.size:
@@ -155,7 +161,7 @@ def run(args) -> int:
                                     calibration_frames=min(FP32_CALIBRATION_FRAMES if args.calibration_frames is None
                                                            else args.calibration_frames, 32),
                                     log=log, threads=args.threads,
-                                    fuse=not args.two_graphs,
+                                    fuse=not args.two_graphs, heads_precision=args.heads_precision,
                                     reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
         else:
             if args.preprocess_reduce != "off":
@@ -174,7 +180,8 @@ def run(args) -> int:
                            calibration_method=opt["int8_calibration"], float_convs=args.float_convs,
                            router=args.router, threads=args.threads, fuse=not args.two_graphs,
                            float_nodes=float_nodes, float_auto=opt["int8_float_auto"], percentile=args.int8_percentile,
-                           int8_keep_operating_point=opt["int8_keep_operating_point"])
+                           int8_keep_operating_point=opt["int8_keep_operating_point"],
+                           heads_precision=args.heads_precision)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2
@@ -201,7 +208,7 @@ def run(args) -> int:
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")
     if "fused_vs_two_graphs" in checks:
         fc = checks["fused_vs_two_graphs"]
-        worst = max((v for k, v in fc.items() if isinstance(v, float) and k != "tolerance"), default=0.0)
+        worst = max((v for k, v in fc.items() if isinstance(v, float) and not k.endswith("tolerance")), default=0.0)
         print(f"  one press graph (format 2): {', '.join(m['graphs']['trunk']['outputs'])}; against the two-graph path "
               f"max rel. diff {worst:.1e}" + (f", router projection {fc['router_form']}" if "router_form" in fc else ""))
     return 0

@@ -43,6 +43,7 @@ OPSET = 20
 # torch (float32, its own kernels) vs onnxruntime (fused BN/conv, other summation order) on the
 # same frames: max |diff| / max |torch output|. Measured ~1e-6 on the tiny and EfficientNet trunks.
 PARITY_TOLERANCE = 1e-4
+HEADS_INT8_TOLERANCE = 2e-2  # int8 heads' logits against the float heads' (0.5-1 % on the paper profile's runs)
 PROBE_TOLERANCE = {"fp32": {"feature": 1e-4, "logits": 1e-4, "novelty": 1e-4},
                    # int8 kernels may pick other accumulation orders per thread count / CPU
                    "int8": {"feature": 2e-2, "logits": 2e-2, "novelty": 2e-2}}
@@ -184,7 +185,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  provenance: dict | None = None, calibration_method: str = "minmax", float_convs: int = 0,
                  quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
-                 fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None) -> dict:
+                 fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None,
+                 heads_precision: str = "fp32") -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
@@ -198,7 +200,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     trunk.onnx); False writes the two-graph format 1 of earlier releases (comparisons, tests).
     ``int8_beta``: for an int8 trunk, maps the deployed graph's novelty of ``touched_heldout`` to
     (beta, what to add to ``operating_point``, what to add to ``provenance``) - the operating point
-    set on the graph the cell will run, in the one write."""
+    set on the graph the cell will run, in the one write.
+    ``heads_precision`` int8: the fused graph's CLS_t / CLS_u weights in int8 (``fuse.quantize_heads``;
+    beta stays the run's, the gating is fitted on the graph written, as for an int8 trunk)."""
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -211,6 +215,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
 
     if trunk_precision not in ("fp32", "int8"):
         raise ExportError(f"trunk precision {trunk_precision!r}: choose fp32 or int8")
+    if heads_precision not in ("fp32", "int8") or (heads_precision == "int8" and not fuse):
+        raise ExportError(f"heads precision {heads_precision!r}: fp32, or int8 in the fused press graph")
     touched, untouched = [str(c) for c in touched], [str(c) for c in untouched]
     if not touched or not untouched:
         raise ExportError("a bundle needs at least one touched and one untouched class")
@@ -274,7 +280,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         if fuse:
             log("folding the heads and the router's / scene model's projections into the trunk graph")
             fused = fuse_press_graph(trunk_file, tmp / "heads.onnx", cls_t, cls_u, router, scene_model, dim, opset,
-                                     calibration, threads)
+                                     calibration, threads, heads_int8=heads_precision == "int8")
             checks["fused_vs_two_graphs"] = fused["check"]
             (tmp / "heads.onnx").unlink()
             sess_t = rb.open_session(trunk_file, threads)
@@ -283,8 +289,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             if fused is not None:
                 got = dict(zip(fused["outputs"], _run_batches(sess_t, x)))
                 f, lt, lu = got["feature"], got["logits_t"], got["logits_u"]
-                nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT))
-                return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.SCENE_OUT) if k in got}
+                nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT), got.get(fz.NOVELTY_OUT))
+                return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.NOVELTY_OUT, fz.SCENE_OUT) if k in got}
             (f,) = _run_batches(sess_t, x)
             lt, lu = sess_h.run(None, {"feature": f})
             return f, lt, lu, _novelty(router, f, lt, lu), {}
@@ -333,6 +339,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         tolerance = dict(PROBE_TOLERANCE[trunk_precision])
         if fused:  # the projections are linear in the feature, amplified like the novelty
             tolerance["projection"] = tolerance["novelty"]
+        if heads_precision == "int8":  # the logits (and a novelty made of them) from integer kernels
+            tolerance.update(logits=PROBE_TOLERANCE["int8"]["logits"], novelty=PROBE_TOLERANCE["int8"]["novelty"])
         files = sorted(p.name for p in tmp.iterdir())
         manifest = {
             "format": rb.FORMAT,
@@ -367,13 +375,16 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
 
 
 def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
-                     scene_model: dict | None, dim: int, opset: int, frames: np.ndarray, threads: int) -> dict:
+                     scene_model: dict | None, dim: int, opset: int, frames: np.ndarray, threads: int,
+                     heads_int8: bool = False) -> dict:
     """Replace ``trunk_file`` by the fused press graph (export/fuse.py) after checking it on
     ``frames`` against the two-graph path: feature and logits against trunk + heads sessions, the
     novelty against the router's own float64 novelty and scene_z against the scene model's float64
     projection of the same feature, each max|diff| / max|reference| <= PARITY_TOLERANCE. A low-rank
     router projection that misses it is replaced by the full whitening; a full one that misses it
-    refuses the export. Returns {"outputs", "manifest", "check"}."""
+    refuses the export. ``heads_int8``: the heads' weights in int8 (``fuse.quantize_heads``); their
+    logits are then held to the int8 probe tolerance (HEADS_INT8_TOLERANCE), the rest as before.
+    Returns {"outputs", "manifest", "check"}."""
     from vs2t_edge.runtime.scene_model import SceneModel
 
     scene = SceneModel.from_params(scene_model) if scene_model is not None else None
@@ -381,12 +392,17 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
     (f_ref,) = _run_batches(rb.open_session(trunk_file, threads), frames)
     lt_ref, lu_ref = _run_batches(rb.open_session(heads_file, threads), f_ref)
     last: dict = {}
+    rule = fz.logit_router_rule(router)
     for force_full in (False, True):
         proj = fz.router_projection(router, force_full=force_full)
         with tempfile.TemporaryDirectory() as work_s:
             work = Path(work_s)
-            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset)
-            names = fz.merge_into_trunk(trunk_file, work / "tail.onnx", work / "press.onnx")
+            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset, rule)
+            tail = work / "tail.onnx"
+            if heads_int8:
+                fz.quantize_heads(tail, work / "tail_int8.onnx")
+                tail = work / "tail_int8.onnx"
+            names = fz.merge_into_trunk(trunk_file, tail, work / "press.onnx")
             got = dict(zip(names, _run_batches(rb.open_session(work / "press.onnx", threads), frames)))
             f = got["feature"]
             check = {"frames": int(len(frames)), "feature": _rel(f, f_ref), "logits_t": _rel(got["logits_t"], lt_ref),
@@ -396,12 +412,20 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
                 check["novelty_vs_router_float64"] = _rel(fused_novelty(router, f, got["logits_t"], got["logits_u"],
                                                                         got[fz.ROUTER_OUT]), ref)
                 check["router_form"] = proj["form"]
+            if rule is not None:  # the graph's float32 novelty against the router's float64 one on the same logits
+                lt64, lu64 = got["logits_t"].astype(np.float64), got["logits_u"].astype(np.float64)
+                check["novelty_vs_router_float64"] = _rel(got[fz.NOVELTY_OUT][:, 0],
+                                                          router.novelty(f, lt64, logits_u=lu64))
             if scene is not None:
                 check["scene_z_vs_float64"] = _rel(got[fz.SCENE_OUT], scene.project(f.astype(np.float64)))
-            bad = {k: v for k, v in check.items() if isinstance(v, float) and not v <= PARITY_TOLERANCE}
+            if heads_int8:
+                check["logits_tolerance"] = HEADS_INT8_TOLERANCE
+            bad = {k: v for k, v in check.items() if isinstance(v, float) and not k.endswith("tolerance") and not v <= (
+                HEADS_INT8_TOLERANCE if heads_int8 and k in ("logits_t", "logits_u") else PARITY_TOLERANCE)}
             if not bad:
                 shutil.copyfile(work / "press.onnx", trunk_file)
-                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim), "check": check}
+                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim, rule, heads_int8),
+                        "check": check}
             last = bad
             if proj is None or proj["form"] == "whitened":
                 break

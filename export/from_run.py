@@ -168,7 +168,8 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                calibration_frames: int = 64, dataset: Path | str | None = None, calibration_method: str = "minmax",
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
                threads: int = 2, fuse: bool = True, float_nodes: Sequence[str] = (), float_auto: int = 0,
-               percentile: float | None = None, int8_keep_operating_point: bool = False) -> dict:
+               percentile: float | None = None, int8_keep_operating_point: bool = False,
+               heads_precision: str = "fp32") -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
@@ -271,7 +272,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         calibration_method=calibration_method, float_convs=float_convs,
                         quant_options=quant_options if trunk_precision == "int8" else None,
                         operating_point=operating_point, scene_model=art.scene_model if router is None else None,
-                        fuse=fuse, int8_beta=int8_beta if keep_op else None)
+                        fuse=fuse, int8_beta=int8_beta if keep_op else None, heads_precision=heads_precision)
 
 
 def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:
@@ -302,7 +303,7 @@ def _logit_score(cls_t: nn.Module, cls_u: nn.Module):
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
                         trunk_precision: str = "fp32", calibration_frames: int = 32, seed: int = 0,
                         log: Callable[[str], None] = lambda m: None, threads: int = 2, fuse: bool = True,
-                        reduce: int = 0) -> dict:
+                        reduce: int = 0, heads_precision: str = "fp32") -> dict:
     """A latency-only bundle: an UNTRAINED trunk (random init, or the offline ImageNet weights for
     efficientnet_lite0) with random heads over the dataset's fabrics and a Gaussian router on its
     own features. Its accuracy means nothing (the manifest says trained: false); its latency,
@@ -344,7 +345,7 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
                         beta=float(np.quantile(nov, 0.95)), calibration=calib, trunk_precision=trunk_precision,
                         trunk_arch=arch, operating_point="none (untrained, latency only)",
                         provenance={"trained": False, "dataset": str(Path(dataset).resolve()), "seed": seed},
-                        log=log, threads=threads, fuse=fuse)
+                        log=log, threads=threads, fuse=fuse, heads_precision=heads_precision)
 
 
 __all__ = ["export_run", "export_random_trunk", "matched_beta", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]

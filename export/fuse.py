@@ -9,6 +9,7 @@ scene model's D x k projection in numpy. Here they become one graph, written by 
     image -> trunk -> feature --+-> CLS_t -> logits_t
                                 +-> CLS_u -> logits_u
                                 +-> router_z   (Gaussian routers only)
+                                +-> router_novelty (routers on the logits only)
                                 +-> scene_z    (bundles with a scene model only)
 
 - ``router_z`` is a vector whose squared norm is the squared Mahalanobis distance the router's
@@ -21,10 +22,15 @@ scene model's D x k projection in numpy. Here they become one graph, written by 
   2 r D multiply-adds instead of D^2 (ResNet50's untrained latency bundle: r = 31 instead of 2048).
   Used when 2 r < D and the spectrum's floor is flat within ``FLAT_RTOL``; the exporter checks the
   novelty it gives against the router's own float64 novelty on the calibration presses either way.
+- ``router_novelty`` (N, 1): the novelty of a router that reads only the heads' logits (energy,
+  max_softmax, calibrated_stacking), its formula in float32 on the graph's own logits; the numpy
+  form cost about 0.1 ms of a press on the bench's 2-core CPU (some ten small numpy calls, cold
+  after the trunk's run), the graph's nodes a few microseconds.
 - ``scene_z`` = (x - center) @ basis, the scene model's k-dimensional whitened projection; the cell
   computes the class distances from it (k x C, float64).
 
-The heads and projections stay float32 behind an int8 trunk.
+The heads and projections stay float32 behind an int8 trunk; ``quantize_heads`` (export
+``--heads-precision int8``) puts the heads' weights in int8, the projections stay float32.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ import torch
 from torch import nn
 
 from vs2t_edge.runtime import novelty as nv
+from vs2t_edge.runtime.bundle import NOVELTY_OUT
 
 ROUTER_OUT, SCENE_OUT = "router_z", "scene_z"
 HEAD_OUTS = ("logits_t", "logits_u")
@@ -76,12 +83,24 @@ def router_projection(router: nv.Router, force_full: bool = False) -> dict[str, 
             "floor_scale": float(1.0 / np.sqrt(np.mean(lam[flat]))), "rank": r}
 
 
-class _Tail(nn.Module):
-    """feature -> logits_t, logits_u [, router_z] [, scene_z] (module doc), float32."""
+def logit_router_rule(router: nv.Router) -> dict[str, Any] | None:
+    """What the graph computes as ``router_novelty`` for a router on the logits (module doc); None
+    for the routers on the feature (Gaussian: ``router_projection``; discriminant: numpy)."""
+    if isinstance(router, (nv.EnergyRouter, nv.MaxSoftmaxRouter)):
+        return {"name": router.name, "temperature": float(router.temperature)}
+    if isinstance(router, nv.CalibratedStackingRouter):
+        return {"name": router.name, "scores": router.scores}
+    return None
 
-    def __init__(self, cls_t: nn.Module, cls_u: nn.Module, router: dict | None, scene: dict | None) -> None:
+
+class _Tail(nn.Module):
+    """feature -> logits_t, logits_u [, router_z] [, router_novelty] [, scene_z] (module doc), float32."""
+
+    def __init__(self, cls_t: nn.Module, cls_u: nn.Module, router: dict | None, scene: dict | None,
+                 novelty: dict | None = None) -> None:
         super().__init__()
         self.cls_t, self.cls_u = cls_t, cls_u
+        self.novelty_rule = dict(novelty) if novelty else None
         self.router_form = router["form"] if router else None
         f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
         if router:
@@ -107,24 +126,63 @@ class _Tail(nn.Module):
             else:
                 a = c @ self.r_basis
                 outs.append(torch.cat([a * self.r_scale, (c - a @ self.r_basis_t) * self.r_floor], dim=1))
+        if self.novelty_rule is not None:
+            outs.append(self._novelty(outs[0], outs[1]))
         if self.has_scene:
             outs.append((f - self.s_center) @ self.s_basis)
         return tuple(outs)
 
 
-def tail_outputs(router: dict | None, scene: dict | None) -> list[str]:
-    return [*HEAD_OUTS, *([ROUTER_OUT] if router else []), *([SCENE_OUT] if scene else [])]
+    def _novelty(self, lt, lu):
+        """(N, 1): the numpy router's formula (runtime/novelty.py) on the logits, in float32."""
+        rule = self.novelty_rule
+        if rule["name"] == "energy":
+            t = rule["temperature"]
+            return -t * torch.logsumexp(lt / t, dim=1, keepdim=True)
+        if rule["name"] == "max_softmax":
+            return -torch.amax(torch.softmax(lt / rule["temperature"], dim=1), dim=1, keepdim=True)
+        if rule["scores"] == "log_softmax":
+            lt, lu = torch.log_softmax(lt, dim=1), torch.log_softmax(lu, dim=1)
+        return torch.amax(lu, dim=1, keepdim=True) - torch.amax(lt, dim=1, keepdim=True)
+
+
+def tail_outputs(router: dict | None, scene: dict | None, novelty: dict | None = None) -> list[str]:
+    return [*HEAD_OUTS, *([ROUTER_OUT] if router else []), *([NOVELTY_OUT] if novelty else []),
+            *([SCENE_OUT] if scene else [])]
 
 
 def export_tail(path: Path, cls_t: nn.Module, cls_u: nn.Module, dim: int, router: dict | None,
-                scene: dict | None, opset: int) -> list[str]:
-    """Write the tail graph (input ``feature``); returns its output names."""
+                scene: dict | None, opset: int, novelty: dict | None = None) -> list[str]:
+    """Write the tail graph (input ``feature``); returns its output names. ``novelty``:
+    ``logit_router_rule`` of a router on the logits, folded in as ``router_novelty``."""
     from vs2t_edge.export.export import export_onnx
 
-    names = tail_outputs(router, scene)
-    export_onnx(_Tail(cls_t.eval(), cls_u.eval(), router, scene).eval(), torch.zeros(1, dim), path, "feature", names,
-                opset)
+    names = tail_outputs(router, scene, novelty)
+    export_onnx(_Tail(cls_t.eval(), cls_u.eval(), router, scene, novelty).eval(), torch.zeros(1, dim), path,
+                "feature", names, opset)
     return names
+
+
+def quantize_heads(tail_path: Path, out_path: Path) -> None:
+    """The tail with CLS_t's and CLS_u's Gemm weights in int8 (per output channel; activations
+    quantised per press by onnxruntime's dynamic quantisation: DynamicQuantizeLinear +
+    MatMulInteger, standard ONNX ops). The projections (MatMul: router_z, scene_z) stay float32.
+    The heads' float32 weights are 7.3 MB on EfficientNet-Lite0's 1280-d feature: read once per
+    press, cold after the trunk's run, they are most of the tail's time (int8: 1.8 MB)."""
+    import onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    # the quantiser rewrites each Gemm as MatMul + Add before it quantises MatMuls: name the
+    # projections' own MatMuls to keep them float
+    projections = [n.name for n in onnx.load(str(tail_path)).graph.node if n.op_type == "MatMul"]
+    quantize_dynamic(str(tail_path), str(out_path), weight_type=QuantType.QInt8, per_channel=True,
+                     op_types_to_quantize=["Gemm", "MatMul"], nodes_to_exclude=projections)
+    model = onnx.load(str(out_path))
+    ops = {(n.domain or "", n.op_type) for n in model.graph.node}
+    if any(d for d, _ in ops):
+        raise FuseError(f"dynamic quantisation of the heads wrote non-standard ops {sorted(ops)}")
+    if not any(op == "MatMulInteger" for _, op in ops):
+        raise FuseError("dynamic quantisation of the heads quantised nothing")
 
 
 def _prefix_internal(graph, prefix: str, keep: set[str]) -> None:
@@ -167,10 +225,16 @@ def merge_into_trunk(trunk_path: Path, tail_path: Path, out_path: Path) -> list[
     return ["feature", *tail_outs]
 
 
-def projection_manifest(router: dict | None, scene: dict | None, dim: int) -> dict:
+HEADS_INT8 = "CLS_t -> logits_t, CLS_u -> logits_u, int8 weights per channel, activations quantised per press"
+
+
+def projection_manifest(router: dict | None, scene: dict | None, dim: int, novelty: dict | None = None,
+                        heads_int8: bool = False) -> dict:
     """What ``graphs.trunk.fused`` (or a descriptor bundle's ``graphs.heads.fused``) says the extra
     outputs are (docs/bundle.md)."""
-    out: dict[str, Any] = {"heads": "CLS_t -> logits_t, CLS_u -> logits_u, float32"}
+    out: dict[str, Any] = {"heads": HEADS_INT8 if heads_int8 else "CLS_t -> logits_t, CLS_u -> logits_u, float32"}
+    if novelty:
+        out[NOVELTY_OUT] = {**novelty, "rule": "the router's novelty on the graph's logits, float32 (runtime/novelty.py)"}
     if router:
         out[ROUTER_OUT] = {"form": router["form"], "rank": int(router["rank"]), "width": int(
             dim if router["form"] == "whitened" else router["rank"] + dim),
@@ -181,5 +245,5 @@ def projection_manifest(router: dict | None, scene: dict | None, dim: int) -> di
     return out
 
 
-__all__ = ["FuseError", "ROUTER_OUT", "SCENE_OUT", "router_projection", "export_tail", "merge_into_trunk",
-           "projection_manifest", "tail_outputs"]
+__all__ = ["FuseError", "NOVELTY_OUT", "ROUTER_OUT", "SCENE_OUT", "logit_router_rule", "router_projection", "export_tail",
+           "merge_into_trunk", "projection_manifest", "quantize_heads", "tail_outputs"]

@@ -87,6 +87,8 @@ SEAL_KEY = "manifest_sha256"
 GRAPH_KEYS = ("trunk", "heads")
 # the fused press graph's outputs beyond feature / logits_t / logits_u (export/fuse.py)
 ROUTER_OUT, SCENE_OUT = "router_z", "scene_z"
+NOVELTY_OUT = "router_novelty"  # (N, 1): a router on the logits, folded into the press graph (export/fuse.py)
+LOGIT_ROUTERS = ("energy", "max_softmax", "calibrated_stacking")
 
 
 def sha256_file(path: Path | str, chunk: int = 1 << 20) -> str:
@@ -349,7 +351,8 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     if x.shape != want or x.dtype != np.float32:
         raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
     fused = is_fused(manifest)
-    extra = [k for k in (ROUTER_OUT, SCENE_OUT) if fused and k in (_get(manifest, "graphs", "trunk", "outputs") or {})]
+    extra = [k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT)
+             if fused and k in (_get(manifest, "graphs", "trunk", "outputs") or {})]
     for k in ("feature", "logits_t", "logits_u", "novelty", *extra):
         if k not in expected:
             raise BundleError(root, f"{probe_exp.name} lacks '{k}'")
@@ -489,7 +492,9 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
 
 def _check_press_outputs(bundle: Bundle, g: dict) -> None:
     """A fused press graph (format 2) outputs exactly what this bundle's router and scene model read:
-    feature and logits, a Gaussian router's router_z (the manifest's width), a scene model's scene_z."""
+    feature and logits, a Gaussian router's router_z (the manifest's width), a scene model's scene_z;
+    and may output a router on the logits' novelty (router_novelty, N x 1; bundles exported before
+    it was folded in leave it to numpy)."""
     from vs2t_edge.runtime.novelty import GaussianRouter
 
     d = bundle.feature_dim
@@ -502,6 +507,8 @@ def _check_press_outputs(bundle: Bundle, g: dict) -> None:
         want[ROUTER_OUT] = width
     if bundle.scene_model is not None:
         want[SCENE_OUT] = bundle.scene_model.k
+    if NOVELTY_OUT in g["outputs"] and bundle.router.name in LOGIT_ROUTERS:
+        want[NOVELTY_OUT] = 1
     if set(g["outputs"]) != set(want):
         raise BundleError(bundle.root, f"{g['file']}: outputs {sorted(g['outputs'])}, this bundle's router "
                                        f"'{bundle.router.name}'{' and scene model' if bundle.scene_model else ''} "

@@ -4,7 +4,8 @@ Per press: check + preprocess the frame (runtime/preprocess.py, the one preproce
 trunk (onnxruntime) -> heads CLS_t / CLS_u (onnxruntime) -> router novelty (numpy) -> the GZSL
 posterior by soft gating of the paper's route (docs/bundle.md "Decision"). A format-2 bundle runs
 trunk, heads and the router's and scene model's projections as ONE onnxruntime call (the fused
-press graph, export/fuse.py); numpy then only sums squares and handles C class scores.
+press graph, export/fuse.py; a router on the logits is folded in as ``router_novelty``); numpy then
+only sums squares and handles C class scores.
 
     P(untouched | x) = sigmoid((g(novelty) - g(beta)) / T),   g(n) = asinh(n / s)
     log p(c | x) = log P(touched | x)   + log softmax(logits_t)[c]   for touched c
@@ -30,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from vs2t_edge.runtime import tactile_descriptor as td
-from vs2t_edge.runtime.bundle import (ROUTER_OUT, SCENE_OUT, Bundle, BundleError, check_session_shapes, graph_keys,
+from vs2t_edge.runtime.bundle import (NOVELTY_OUT, ROUTER_OUT, SCENE_OUT, Bundle, BundleError, check_session_shapes, graph_keys,
                                       is_fused, load_bundle, open_session)
 from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax, squared_norm
 from vs2t_edge.runtime.preprocess import FrameError, PreparedReference, prepare_reference, preprocess_tactile
@@ -93,6 +94,7 @@ class Outputs:
     # fused press graph only (format 2): the router's whitened vector, the scene model's projection
     router_z: np.ndarray | None = None
     scene_z: np.ndarray | None = None
+    router_novelty: np.ndarray | None = None  # (N, 1) float32, a router on the logits folded into the graph
 
 
 def _rel_err(actual: np.ndarray, expected: np.ndarray) -> float:
@@ -115,9 +117,17 @@ def _float32_router(router):
 
 
 def fused_novelty(router, feature: np.ndarray, logits_t: np.ndarray, logits_u: np.ndarray,
-                  router_z: np.ndarray | None) -> np.ndarray:
+                  router_z: np.ndarray | None, router_novelty: np.ndarray | None = None) -> np.ndarray:
     """The novelty of a fused press graph's outputs (the cell's and the exporter's one way): from
-    router_z's squared norm (float64) for Gaussian routers, else the router on the logits."""
+    router_z's squared norm (float64) for Gaussian routers; the graph's own router_novelty (N, 1)
+    for a router on the logits folded into it; else the numpy router on the logits."""
+    if router_novelty is not None:
+        nov = router_novelty[:, 0].astype(np.float64)
+        # non-finite logits give a non-finite novelty here (logsumexp, softmax and max propagate NaN
+        # and +inf); score_press refuses non-finite logits either way, as the numpy router does
+        if not np.all(np.isfinite(nov)):
+            raise RouterError("logits contain NaN or Inf; refuse to score them")
+        return nov
     if router_z is None:
         return router.novelty(feature, logits_t, logits_u=logits_u)
     z = np.asarray(router_z, dtype=np.float64)
@@ -158,7 +168,8 @@ class TactileModel:
         # format 2: trunk.onnx is the whole press graph, fetched by name in this order
         self.fused = is_fused(bundle.manifest) if isinstance(bundle.manifest, dict) else False
         self._press_outputs = ["feature", "logits_t", "logits_u",
-                               *[k for k in (ROUTER_OUT, SCENE_OUT) if k in bundle.manifest["graphs"]["trunk"]["outputs"]]] \
+                               *[k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT)
+                                 if k in bundle.manifest["graphs"]["trunk"]["outputs"]]] \
             if self.fused else []
         self._reference: PreparedReference | td.DescriptorReference | None = None
         self.last_timing: dict[str, float] = {}
@@ -207,6 +218,10 @@ class TactileModel:
             checks[ROUTER_OUT] = (out.router_z, exp[ROUTER_OUT], tol["novelty"])
             checks["novelty_vs_router_file"] = (out.novelty, self.bundle.router.novelty(out.feature.astype(np.float64)),
                                                 tol["novelty"])
+        if out.router_novelty is not None:  # the folded router against router.npz's on the graph's logits
+            checks[NOVELTY_OUT] = (out.router_novelty, exp[NOVELTY_OUT], tol["novelty"])
+            checks["novelty_vs_router_file"] = (out.novelty, self.bundle.router.novelty(
+                out.feature, out.logits_t.astype(np.float64), logits_u=out.logits_u.astype(np.float64)), tol["novelty"])
         if out.scene_z is not None:
             checks[SCENE_OUT] = (out.scene_z, exp[SCENE_OUT], tol["projection"])
             checks["scene_z_vs_decision_file"] = (out.scene_z, self.scene_model.project(out.feature), tol["projection"])
@@ -271,11 +286,11 @@ class TactileModel:
         t1 = time.perf_counter()
         feature, logits_t, logits_u = got[0], got[1], got[2]
         extra = dict(zip(self._press_outputs[3:], got[3:]))
-        router_z, scene_z = extra.get(ROUTER_OUT), extra.get(SCENE_OUT)
-        novelty = fused_novelty(self.router, feature, logits_t, logits_u, router_z)
+        router_z, scene_z, graph_nov = extra.get(ROUTER_OUT), extra.get(SCENE_OUT), extra.get(NOVELTY_OUT)
+        novelty = fused_novelty(self.router, feature, logits_t, logits_u, router_z, graph_nov)
         t2 = time.perf_counter()
         self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 0.0, "router_ms": 1e3 * (t2 - t1)}
-        return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64), router_z, scene_z)
+        return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64), router_z, scene_z, graph_nov)
 
     def scene_projection(self, out: Outputs) -> np.ndarray:
         """(N, k) the presses in the scene model's space: the graph's scene_z when the bundle is

@@ -40,6 +40,7 @@ leaves at least ``size`` pixels across the crop.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -305,7 +306,7 @@ def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | PreparedRefere
         image, hw = _crop_resize(frame, spec), tuple(frame.shape[:2])
     else:
         small = _reduced_input(frame, spec, reduced_by)
-        image, hw = _crop_resize_u8(small, spec).astype(np.float32), tuple(small.shape[:2])
+        image, hw = _crop_resize_u8(small, spec), tuple(small.shape[:2])  # uint8 until the difference
     if spec.use_reference:
         if reference is None:
             raise FrameError("no-contact reference frame missing", "reference")
@@ -319,8 +320,19 @@ def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | PreparedRefere
                              f"reference frame's {w}x{h}", "size")
         if reference.spec != spec:
             raise ValueError("reference frame was prepared for another preprocessing")
-        image -= reference.resized
+        if spec.reduce == 0:
+            image -= reference.resized
+        else:  # uint8 - float32 -> float32 in one call: exact, the values are integers
+            image = cv2.subtract(image, reference.resized, dtype=cv2.CV_32F)
+    elif spec.reduce:
+        image = image.astype(np.float32)
     return _scaled_chw(image, spec)
+
+
+@functools.lru_cache(maxsize=16)
+def _reduced_scale(std: float) -> float:
+    """1 / (255 std) in float32 (the per-channel loop's factor), as the exactly equal double."""
+    return float(np.float32(1.0) / (np.float32(255.0) * np.float32(std)))
 
 
 def _scaled_chw(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
@@ -328,9 +340,15 @@ def _scaled_chw(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
 
     Float path: ``(diff / 255 - mean) / std`` per element, the same float32 operations in the same
     order as the whole-array form it replaced (bit-identical, tests/test_preprocess.py; 4x faster).
-    Reduced path: ``diff * (1 / (255 std)) - mean / std``, one multiply and one subtract."""
-    out = np.empty((3, *image.shape[:2]), np.float32)
+    Reduced path: ``diff * (1 / (255 std)) - mean / std``, one multiply and one subtract; with mean 0
+    and one std for all channels (every bundle so far) that is one scaling, done with the channel
+    swap and the transpose in one OpenCV call (``blobFromImage``: the same float32 products, bit for
+    bit; six numpy calls less per press, cold after the trunk's run: ~0.035 ms on the bench CPU)."""
+    if spec.reduce and all(m == 0.0 for m in spec.mean) and len(set(spec.std)) == 1:
+        return cv2.dnn.blobFromImage(image, scalefactor=_reduced_scale(spec.std[0]), swapRB=True,
+                                     ddepth=cv2.CV_32F)[0]
     mean, std = np.asarray(spec.mean, np.float32), np.asarray(spec.std, np.float32)
+    out = np.empty((3, *image.shape[:2]), np.float32)
     for c in range(3):  # RGB plane c is BGR channel 2 - c
         plane = out[c]
         if spec.reduce == 0:

@@ -67,6 +67,8 @@ def test_bundle_decides_with_the_router_it_names(bundles, name):
     limit = {"feature": tol["feature"], "logits_t": tol["logits"], "logits_u": tol["logits"], "novelty": tol["novelty"]}
     if name in nv.GAUSSIAN_ROUTERS:  # the fused graph's whitened vector, and its novelty against router.npz's
         limit.update(router_z=tol["novelty"], novelty_vs_router_file=tol["novelty"])
+    if name in rb.LOGIT_ROUTERS:  # folded into the graph: its output, and its novelty against router.npz's
+        limit.update(router_novelty=tol["novelty"], novelty_vs_router_file=tol["novelty"])
     assert set(model.probe_errors) == set(limit)
     assert all(model.probe_errors[k] <= limit[k] for k in limit), model.probe_errors
 

@@ -11,6 +11,7 @@ import pytest
 
 from vs2t_edge.runtime.camera import (
     ContactCheck,
+    FrameGuard,
     ReplayCamera,
     UVCCamera,
     capture_reference,
@@ -255,6 +256,28 @@ def test_the_default_threshold_refuses_the_first_repeated_frame():
     with pytest.raises(CameraFrozen, match="2 times in a row"):
         cam.grab()
     cam.grab()
+
+
+def test_a_frame_that_differs_only_between_the_pre_checked_rows_is_not_frozen():
+    """The frozen check compares every 16th row first; a frame that differs from the last one
+    only in other rows (or in one pixel) is still a fresh frame, and an exact repeat is frozen."""
+    from vs2t_edge.runtime.devices import CameraFrozen
+
+    guard = FrameGuard("cam", None, 2)
+    first = _pattern(0)
+    guard.admit(first)
+    for row, col in ((1, 0), (17, 5), (first.shape[0] - 1, first.shape[1] - 1)):  # none of them a multiple of 16
+        other = guard._last.copy()
+        other[row, col, 2] ^= 1
+        guard.admit(other)  # admitted: one bit differs
+    other = guard._last.copy()
+    other[32, 7, 0] ^= 1  # in a pre-checked row
+    guard.admit(other)
+    with pytest.raises(CameraFrozen):
+        guard.admit(other.copy())  # bit for bit the last frame: frozen, however it was compared
+    guard.reset()
+    guard.admit(first[:, :10].copy())
+    guard.admit(first[:, :11].copy())  # another size is never the same frame
 
 
 def test_simulated_camera_faults():

@@ -107,6 +107,40 @@ def test_contact_check_reads_what_it_read_before(seed):
     assert got.pressed == (area >= check.min_area_fraction)
 
 
+@pytest.mark.parametrize("threshold", [3.04, 12.0, 12.3, 12.5, 40.0])
+@pytest.mark.parametrize("window", [3, 5, 16, 17])
+def test_contact_check_counts_what_float32_window_sums_count(threshold, window):
+    """The uint16 window sums (windows up to 16 px; float32 past that) give the area and peak the
+    float32 sums gave, for thresholds whose bound on a window's sum is a fraction too."""
+    rng = np.random.default_rng(window)
+    check = ContactCheck(threshold_levels=threshold, window_px=window)
+    reference = cv2.GaussianBlur(rng.integers(60, 200, (120, 160, 3), dtype=np.uint8), (5, 5), 0)
+    noise = rng.integers(-2, 3, reference.shape)
+    noise[:, 80:] = rng.integers(-14, 15, (120, 80, 3))  # a noisier half: some windows over, some not
+    frame = np.clip(reference.astype(int) + noise, 0, 255).astype(np.uint8)
+    frame[40:70, 50:90] = np.clip(frame[40:70, 50:90].astype(int) + 60, 0, 255)  # an imprint
+    b, g, r = cv2.split(cv2.absdiff(frame, reference))
+    sums32 = cv2.boxFilter(cv2.max(cv2.max(b, g), r), cv2.CV_32F, (window, window), normalize=False)
+    got = check.read(frame, reference)
+    n = window * window
+    assert got.area_fraction == float(np.mean(sums32 > np.float32(threshold * n)))
+    assert got.peak_levels == float(sums32.max()) / n
+    assert 0.0 < got.area_fraction < 1.0  # neither nothing nor everything over: the count is tested
+
+
+def test_contact_check_decides_a_fractional_bound_exactly():
+    """threshold 12.3 over 5 x 5 windows: a window sum of 308 is over (mean 12.32), 307 is not -
+    also on uint16 sums, where the bound 307.5 is no value of the array's type."""
+    check = ContactCheck(threshold_levels=12.3, min_area_fraction=0.0, window_px=5)
+    reference = np.full((20, 20, 3), 100, np.uint8)
+    frame = reference.copy()
+    frame[..., 1] += 12  # every window sums to 300
+    frame[10, 10, 1] = 100 + 12 + 7  # the 25 windows holding it: 307
+    assert check.read(frame, reference).area_fraction == 0.0
+    frame[10, 10, 1] = 100 + 12 + 8  # 308
+    assert check.read(frame, reference).area_fraction == 25 / 400
+
+
 def test_contact_check_decides_a_tie_on_exact_window_sums():
     check = ContactCheck(threshold_levels=12.0, min_area_fraction=0.0, window_px=5)
     reference = np.full((20, 20, 3), 100, np.uint8)

@@ -23,7 +23,7 @@ NOVELTY_RTOL = 1e-4
 
 def _router(kind: str):
     """gaussian on 40 presses (n > D = 16: the full whitening), gaussian on 8 presses (rank 7: the
-    low-rank form), energy (a logit router: nothing to fold)."""
+    low-rank form), energy (a logit router: its formula folded in as router_novelty)."""
     import torch
 
     from vs2t_edge.runtime import novelty as nv
@@ -51,7 +51,7 @@ def _scene_params(f: np.ndarray) -> dict:
     return sm.to_params()
 
 
-def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32"):
+def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32", heads: str = "fp32"):
     from vs2t_edge.export.export import write_bundle
     from vs2t_edge.runtime.preprocess import TactilePreprocess
 
@@ -61,7 +61,7 @@ def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp3
     return write_bundle(out, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=TOUCHED,
                         untouched=UNTOUCHED, preprocess=TactilePreprocess(size=SIZE), beta=beta, calibration=x[:40],
                         trunk_precision=precision, trunk_arch="tiny-test", validation=x[60:], touched_heldout=x[40:60],
-                        scene_model=_scene_params(f) if scene else None, fuse=fuse)
+                        scene_model=_scene_params(f) if scene else None, fuse=fuse, heads_precision=heads)
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_fused_bundle_scores_as_the_two_graph_path(pairs, kind, form):
     m = fused.manifest
     assert m["format_version"] == 2 and fused.fused and not two.fused
     assert "heads" not in m["graphs"] and "heads.onnx" not in m["files"] and not (fused_dir / "heads.onnx").exists()
-    want = {"feature", "logits_t", "logits_u", "scene_z"} | ({"router_z"} if form else set())
+    want = {"feature", "logits_t", "logits_u", "scene_z"} | ({"router_z"} if form else {"router_novelty"})
     assert set(m["graphs"]["trunk"]["outputs"]) == want
     assert (m["graphs"]["trunk"]["fused"].get("router_z") or {}).get("form") == form
     assert two.manifest["format_version"] == 1 and set(two.manifest["graphs"]) == {"trunk", "heads"}
@@ -118,6 +118,107 @@ def test_low_rank_router_projection_is_smaller_and_exact(pairs):
     ref, m2 = fused.bundle.router.novelty(f64), fused.bundle.router.squared_mahalanobis(f64)
     assert np.all(np.abs(out.novelty - ref) <= NOVELTY_RTOL * 0.5 * m2)  # the log-density's constant is exact
     assert fused.manifest["checks"]["fused_vs_two_graphs"]["novelty_vs_router_float64"] <= 1e-4
+
+
+def _scaled(head, k: float):
+    """The head with its logits times ``k``: logits of +-1e3 test the folded formula's stability
+    (logsumexp and softmax shift by the max, as runtime/novelty.py does)."""
+    import torch
+
+    class Scaled(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.head = head
+
+        def forward(self, f):
+            return self.head(f) * k
+
+    return Scaled()
+
+
+@pytest.mark.parametrize("params", [{"name": "energy", "temperature": 1.0}, {"name": "energy", "temperature": 3.5},
+                                    {"name": "max_softmax", "temperature": 1.0},
+                                    {"name": "max_softmax", "temperature": 0.5},
+                                    {"name": "calibrated_stacking", "scores": "log_softmax"},
+                                    {"name": "calibrated_stacking", "scores": "logits"}])
+@pytest.mark.parametrize("k", [1.0, 300.0])
+def test_folded_logit_router_is_the_numpy_router(params, k, tmp_path):
+    """router_novelty from the graph (float32) = the numpy router's float64 novelty on the graph's
+    own logits, to 1e-5 of the largest novelty, for every router on the logits."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.runtime import novelty as nv
+    from vs2t_edge.runtime.bundle import open_session
+
+    router = nv.Router.from_params({**params, "params_version": nv.PARAMS_VERSION})
+    rule = fz.logit_router_rule(router)
+    assert rule == params
+    _, cls_t, cls_u = tiny_modules(0)
+    names = fz.export_tail(tmp_path / "tail.onnx", _scaled(cls_t, k), _scaled(cls_u, k), 16, None, None, 20, rule)
+    assert names == ["logits_t", "logits_u", "router_novelty"]
+    f = np.random.default_rng(1).standard_normal((64, 16)).astype(np.float32) * 3
+    lt, lu, nov = open_session(tmp_path / "tail.onnx", 1).run(None, {"feature": f})
+    assert nov.shape == (64, 1) and nov.dtype == np.float32
+    ref = router.novelty(f, lt.astype(np.float64), logits_u=lu.astype(np.float64))
+    assert np.max(np.abs(nov[:, 0] - ref)) <= 1e-5 * np.max(np.abs(ref))
+    assert np.ptp(ref) > 1e-3 * np.max(np.abs(ref))  # the presses do not all score alike
+
+
+def test_feature_routers_fold_no_logit_rule():
+    from vs2t_edge.export import fuse as fz
+
+    assert fz.logit_router_rule(_router("gaussian")[0]) is None
+
+
+def test_fused_energy_bundle_without_router_novelty_scores_in_numpy(pairs, tmp_path):
+    """A fused bundle exported before the logit routers were folded in (no router_novelty): it loads,
+    and its novelty is the numpy router's, as before."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.export.export import graph_io
+
+    fused_dir, two_dir = pairs["energy"]
+    b = _copy(fused_dir, tmp_path)
+    _, cls_t, cls_u = tiny_modules(0)
+    sm = TactileModel.load(fused_dir, threads=1).scene_model
+    fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20)
+    fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    z = dict(np.load(b / "probe_expected.npz"))
+    del z["router_novelty"]
+    np.savez(b / "probe_expected.npz", **z)
+
+    def old_manifest(m):
+        m["graphs"]["trunk"]["outputs"] = graph_io(b / "trunk.onnx")["outputs"]
+        del m["graphs"]["trunk"]["fused"]["router_novelty"]
+
+    _reseal(b, old_manifest)
+    old, new = TactileModel.load(b, threads=1), TactileModel.load(fused_dir, threads=1)
+    assert "router_novelty" not in old._press_outputs and "router_novelty" in new._press_outputs
+    x = world_frames(SIZE)[0][60:]
+    a, c = old.forward(x), new.forward(x)
+    assert a.router_novelty is None and c.router_novelty is not None
+    np.testing.assert_allclose(a.novelty, c.novelty, rtol=1e-5, atol=1e-6)
+    assert np.array_equal(a.novelty, old.bundle.router.novelty(a.feature, a.logits_t, logits_u=a.logits_u))
+
+
+def test_folded_router_that_is_not_router_npz_is_refused(pairs, tmp_path):
+    """The graph folds energy at temperature 2, router.npz says 1 (probe regenerated, re-sealed):
+    the probe's cross-check against router.npz refuses it."""
+    from vs2t_edge.export import fuse as fz
+    from vs2t_edge.runtime.bundle import open_session
+
+    fused_dir, two_dir = pairs["energy"]
+    b = _copy(fused_dir, tmp_path)
+    _, cls_t, cls_u = tiny_modules(0)
+    sm = TactileModel.load(fused_dir, threads=1).scene_model
+    fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20,
+                   {"name": "energy", "temperature": 2.0})
+    fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    sess = open_session(b / "trunk.onnx", 1)
+    got = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {"image": np.load(b / "probe_input.npy")})))
+    got["novelty"] = got["router_novelty"][:, 0].astype(np.float64)
+    np.savez(b / "probe_expected.npz", **got)
+    _reseal(b)
+    with pytest.raises(rb.BundleError, match=r"probe check failed: 'novelty_vs_router_file'"):
+        TactileModel.load(b)
 
 
 def test_two_graph_bundles_still_load(pairs):
@@ -241,8 +342,47 @@ def test_int8_trunk_is_fused_with_float_heads(tmp_path):
     assert model.probe_errors["novelty_vs_router_file"] <= m["probe"]["tolerance"]["novelty"]
 
 
+@pytest.mark.parametrize("kind", ["energy", "gaussian"])
+def test_int8_heads_fold_into_the_press_graph_and_keep_the_projections_float(pairs, kind, tmp_path):
+    """--heads-precision int8: the heads' Gemms become MatMulInteger with int8 weights, the
+    projections (router_z, scene_z) stay float MatMuls; the logits stay within the int8 tolerance
+    of the float heads', the scores the bundle's router and scene model make of them hold."""
+    import onnx
+
+    m = _write(tmp_path / "b", kind, True, heads="int8")
+    fused = m["graphs"]["trunk"]["fused"]
+    assert "int8" in fused["heads"] and m["probe"]["tolerance"]["logits"] == 2e-2
+    assert m["probe"]["tolerance"]["projection"] == 1e-4  # scene_z stays float32
+    c = m["checks"]["fused_vs_two_graphs"]
+    assert 0.0 < c["logits_t"] <= 2e-2 and c["scene_z_vs_float64"] <= 1e-4
+    g = onnx.load(str(tmp_path / "b" / "trunk.onnx")).graph
+    tail = [n for n in g.node if n.name.startswith("press_tail/")]
+    assert sum(n.op_type == "MatMulInteger" for n in tail) == 4  # the test heads: 2 linear layers each
+    assert not any(n.op_type == "Gemm" for n in tail)
+    floats = [n for n in tail if n.op_type == "MatMul"]
+    assert len(floats) == (2 if kind == "gaussian" else 1)  # router_z (whitened) and scene_z
+    int8 = TactileModel.load(tmp_path / "b", threads=1)
+    ref = TactileModel.load(pairs[kind][0], threads=1)
+    x = world_frames(SIZE)[0][60:]
+    a, b = int8.forward(x), ref.forward(x)
+    np.testing.assert_array_equal(a.feature, b.feature)
+    assert np.max(np.abs(a.logits_t - b.logits_t)) <= 2e-2 * np.max(np.abs(b.logits_t))
+    np.testing.assert_allclose(a.scene_z, b.scene_z, rtol=1e-5, atol=1e-6)
+    if kind == "energy":  # the folded router reads the int8 logits: its novelty is the router's of them
+        want = int8.bundle.router.novelty(a.feature, a.logits_t.astype(np.float64),
+                                          logits_u=a.logits_u.astype(np.float64))
+        np.testing.assert_allclose(a.novelty, want, rtol=1e-5)
+
+
+def test_int8_heads_need_the_fused_graph(tmp_path):
+    from vs2t_edge.export.export import ExportError
+
+    with pytest.raises(ExportError, match="heads precision"):
+        _write(tmp_path / "b", "energy", False, heads="int8")
+
+
 @pytest.mark.parametrize("kind,bad", [("gaussian", "feature"), ("gaussian", "router_z"), ("gaussian", "scene_z"),
-                                      ("energy", "logits_t"), ("energy", "scene_z")])
+                                      ("energy", "logits_t"), ("energy", "scene_z"), ("energy", "router_novelty")])
 def test_non_finite_press_graph_output_is_a_frame_error(pairs, kind, bad):
     """A NaN in any output the cell reads is never routed to a bin: FrameError, as the two-graph
     path raises for a non-finite feature or logits."""

@@ -189,6 +189,45 @@ def test_reduced_path_train_and_serve_are_one_function(reduce, size):
     np.testing.assert_allclose(train, want.transpose(2, 0, 1), atol=1e-4)
 
 
+def _reduced_before(frame, ref, spec):
+    """The reduced path as it was before its scaling became one OpenCV call: float32 difference,
+    then per RGB plane diff * (1 / (255 std)) - mean / std."""
+    def side(img):
+        img = reduce_frame(img, spec.reduce)
+        h, w = img.shape[:2]
+        s0 = min(h, w)
+        y0, x0 = (h - s0) // 2, (w - s0) // 2
+        return cv2.resize(img[y0:y0 + s0, x0:x0 + s0], (spec.size, spec.size), interpolation=cv2.INTER_LINEAR)
+    image = side(frame).astype(np.float32)
+    if ref is not None:
+        image -= side(ref).astype(np.float32)
+    out = np.empty((3, spec.size, spec.size), np.float32)
+    mean, std = np.asarray(spec.mean, np.float32), np.asarray(spec.std, np.float32)
+    for c in range(3):
+        np.multiply(image[:, :, 2 - c], np.float32(1.0) / (np.float32(255.0) * std[c]), out=out[c])
+        np.subtract(out[c], mean[c] / std[c], out=out[c])
+    return out
+
+
+@pytest.mark.parametrize("reduce,size,std", [(1, 32, 0.08), (2, 56, 0.08), (4, 24, 0.08), (2, 40, 0.0731),
+                                             (2, 40, 1.0)])
+@pytest.mark.parametrize("use_reference", [True, False])
+def test_reduced_path_one_call_scaling_is_the_per_plane_scaling_bit_for_bit(reduce, size, std, use_reference):
+    """mean 0 and one std for all channels (every bundle's): the scaling, channel swap and transpose
+    in one blobFromImage give the very floats of the per-plane loop; other specs keep the loop."""
+    frame, ref = _frames(120, 160, seed=size)
+    spec = TactilePreprocess(size=size, reduce=reduce, std=(std,) * 3, use_reference=use_reference)
+    got = preprocess_tactile(frame, prepare_reference(ref, spec) if use_reference else None, spec)
+    want = _reduced_before(frame, ref if use_reference else None, spec)
+    assert got.shape == want.shape and got.dtype == want.dtype and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+    assert np.ptp(got) > 0
+    other = TactilePreprocess(size=size, reduce=reduce, std=(std, std, std * 1.5), mean=(0.0, 0.01, 0.0),
+                              use_reference=use_reference)
+    np.testing.assert_array_equal(preprocess_tactile(frame, ref if use_reference else None, other),
+                                  _reduced_before(frame, ref if use_reference else None, other))
+
+
 def test_the_mjpeg_cameras_scaled_decode_adds_little_to_the_gap_mjpeg_already_makes():
     """Training reads lossless frames; a UVC camera hands MJPEG. On the float path the camera's full
     decode already differs from training's pixels (JPEG loss); on the reduced path the camera hands
