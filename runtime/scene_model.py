@@ -155,18 +155,18 @@ class SceneModel:
             raise SceneModelError(f"scene model: an item of {n} presses has no score")
         z = np.asarray(z_mean, np.float64).reshape(-1)
         means_t, means_sq, _ = self._consts()
-        d2 = max(float(z @ z), 0.0) - 2.0 * (z @ means_t) + means_sq
-        v = self._offset_vars() + self.press_var / n
-        return (-0.5 * d2.clip(min=0.0) / v - 0.5 * self.k * np.log(v)) / self.item_temperature \
-            + self.item_bias * self._offset_vars(flags=True)
+        d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
+        offset_var, is_u = self._offsets()
+        v = offset_var + self.press_var / n
+        return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * is_u
 
-    def _offset_vars(self, flags: bool = False) -> np.ndarray:
-        """(C,) each class's offset variance (or, ``flags``, 1.0 for an untouched class), once."""
+    def _offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        """(each class's offset variance, 1.0 for an untouched class), both (C,), computed once."""
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "offsets" not in cache:
             is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
             cache["offsets"] = (np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched), is_u)
-        return cache["offsets"][1 if flags else 0]
+        return cache["offsets"]
 
     def subset(self, classes) -> "SceneModel":
         """The same model over ``classes`` only (bundle classes, in the given order)."""

@@ -169,18 +169,26 @@ def test_feature_routers_fold_no_logit_rule():
     assert fz.logit_router_rule(_router("gaussian")[0]) is None
 
 
-def test_fused_energy_bundle_without_router_novelty_scores_in_numpy(pairs, tmp_path):
-    """A fused bundle exported before the logit routers were folded in (no router_novelty): it loads,
-    and its novelty is the numpy router's, as before."""
+def _fused_without_router_output(fused_dir, two_dir, tmp_path):
+    """A copy of a fused bundle whose press graph is re-fused with no router output (router_z or
+    router_novelty): the heads and the scene projection only. Manifest and probe left as they were."""
     from vs2t_edge.export import fuse as fz
-    from vs2t_edge.export.export import graph_io
 
-    fused_dir, two_dir = pairs["energy"]
     b = _copy(fused_dir, tmp_path)
     _, cls_t, cls_u = tiny_modules(0)
     sm = TactileModel.load(fused_dir, threads=1).scene_model
     fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20)
     fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    return b
+
+
+def test_fused_energy_bundle_without_router_novelty_scores_in_numpy(pairs, tmp_path):
+    """A fused bundle exported before the logit routers were folded in (no router_novelty): it loads,
+    and its novelty is the numpy router's, as before."""
+    from vs2t_edge.export.export import graph_io
+
+    fused_dir = pairs["energy"][0]
+    b = _fused_without_router_output(*pairs["energy"], tmp_path)
     z = dict(np.load(b / "probe_expected.npz"))
     del z["router_novelty"]
     np.savez(b / "probe_expected.npz", **z)
@@ -295,15 +303,9 @@ def test_fused_graph_whose_router_is_not_router_npz_is_refused(pairs, tmp_path):
 def test_fused_graph_without_the_router_output_is_refused(pairs, tmp_path):
     """A Gaussian router's bundle whose graph does not give router_z (re-fused without it, manifest
     re-declared and re-sealed): the outputs are not what this router needs."""
-    from vs2t_edge.export import fuse as fz
     from vs2t_edge.export.export import graph_io
 
-    fused_dir, two_dir = pairs["gaussian"]
-    b = _copy(fused_dir, tmp_path)
-    _, cls_t, cls_u = tiny_modules(0)
-    sm = TactileModel.load(fused_dir, threads=1).scene_model
-    fz.export_tail(tmp_path / "tail.onnx", cls_t, cls_u, 16, None, {"center": sm.center, "basis": sm.basis}, 20)
-    fz.merge_into_trunk(two_dir / "trunk.onnx", tmp_path / "tail.onnx", b / "trunk.onnx")
+    b = _fused_without_router_output(*pairs["gaussian"], tmp_path)
     _reseal(b, lambda m: m["graphs"]["trunk"].__setitem__("outputs", graph_io(b / "trunk.onnx")["outputs"]))
     with pytest.raises(rb.BundleError, match=r"trunk\.onnx: outputs \[.*\], this bundle's router 'gaussian'.*need"):
         TactileModel.load(b)
