@@ -14,10 +14,10 @@ Per split (``fit_scene_decision``):
    ``Evidence`` on held-out presses): the most pieces in the right bin among the settings whose
    mis-sort rate meets ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set
    threshold is a quantile (``OPEN_QUANTILES``) of the in-scene validation presses' distances to
-   their own class; then the same for the
-   offset item rule (runtime/scene_model.py: a piece's presses share an offset from their class
-   mean, larger for a synthesised class) over its own knobs, searched on the same jobs by the
-   vectorised simulation of train/item_search.py; the item rule that scores better is kept;
+   their own class; then the same for the offset item rule (runtime/scene_model.py: a piece's
+   presses share an offset from their class mean, larger for a synthesised class) over its own
+   knobs, searched on the same jobs by the vectorised simulation of train/item_search.py; the item
+   rule that scores better is kept (a tie keeps the sum rule);
 4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
 
 ``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
