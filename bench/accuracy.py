@@ -59,18 +59,27 @@ def _spread(idx: list[int], k: int) -> list[int]:
 # ------------------------------------------------------------------ accuracy
 
 
-def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str], None] = _log) -> dict:
-    """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u."""
+def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str], None] = _log,
+                  jpeg_quality: int | None = None) -> dict:
+    """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u.
+    ``jpeg_quality``: each frame (and the no-contact frame) goes through the camera's JPEG at that
+    quality and is decoded at the bundle's scale, as a UVC camera hands it; None: lossless frames."""
+    from vs2t_edge.bench.press_timing import decode_scale
     from vs2t_edge.runtime.novelty import log_softmax
     from vs2t_edge.runtime.preprocess import preprocess_tactile
+
+    scale = decode_scale(model) if jpeg_quality is not None else 1
+
+    def camera(frame: np.ndarray) -> np.ndarray:
+        return frame if jpeg_quality is None else through_jpeg(frame, jpeg_quality, scale)
 
     cls_index = {c: i for i, c in enumerate(model.classes)}
     lp, nov, lsu, lab, feat = [], [], [], [], []
     line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
-        ref = fab.load_reference()
-        x = np.stack([preprocess_tactile(fab.load_press(i), ref, model.preprocess_spec) for i in idx])
+        ref = camera(fab.load_reference())
+        x = np.stack([preprocess_tactile(camera(fab.load_press(i)), ref, model.preprocess_spec, scale) for i in idx])
         for a in range(0, len(x), 32):
             o = model.forward(x[a:a + 32])
             lp.append(model.log_posterior(o))
@@ -82,6 +91,20 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     line.keep()
     return {"lp": np.concatenate(lp), "novelty": np.concatenate(nov), "lsu": np.concatenate(lsu),
             "label": np.concatenate(lab), "feature": np.concatenate(feat)}
+
+
+def through_jpeg(frame: np.ndarray, quality: int, scale: int = 1) -> np.ndarray:
+    """``frame`` as a camera streaming MJPEG at ``quality`` hands it: encoded, then decoded at
+    1/``scale`` (runtime.preprocess.decode_jpeg, the cell's own decode)."""
+    import cv2
+
+    from vs2t_edge.runtime.preprocess import decode_jpeg
+
+    ok, enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    out = decode_jpeg(enc.tobytes(), scale) if ok else None
+    if out is None:
+        raise RuntimeError(f"could not pass a frame through JPEG at quality {quality}")
+    return out
 
 
 def _per_class_mean(correct: np.ndarray, labels: np.ndarray) -> float:

@@ -22,6 +22,11 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--items", type=int, default=100, help="simulated items per class (default 100)")
     parser.add_argument("--max-eval-presses", type=int, default=60, help="held-out presses per fabric (default 60)")
     parser.add_argument("--no-accuracy", action="store_true", help="speed only")
+    parser.add_argument("--jpeg-quality", type=int, default=95,
+                        help="JPEG quality of the camera's MJPEG frames the press is timed on (default 95)")
+    parser.add_argument("--accuracy-through-jpeg", action="store_true",
+                        help="score accuracy on frames passed through that JPEG, decoded at each bundle's scale as "
+                             "the camera hands them (default: the dataset's lossless frames)")
     parser.add_argument("--arm-times", default=None, metavar="JSON",
                         help="the arm's times per press, for pieces per minute: the JSON of "
                              "`python -m vs2t_edge.sim.ursim --bench 9 --json FILE` (or the same on a robot)")
@@ -40,6 +45,9 @@ def run(args) -> int:
             raise ValueError
     except ValueError:
         print(f"bench: --threads {args.threads!r}: give thread counts like 1,2", file=sys.stderr)
+        return 2
+    if not 1 <= args.jpeg_quality <= 100:
+        print(f"bench: --jpeg-quality {args.jpeg_quality}: give a JPEG quality from 1 to 100", file=sys.stderr)
         return 2
     arm = None
     if args.arm_times:
@@ -61,7 +69,8 @@ def run(args) -> int:
     try:
         result = run_bench(bundles, Path(args.out) if args.out else None, dataset=args.dataset, threads=threads,
                            budget_s=args.budget_s, n_items=args.items, cap=args.max_eval_presses,
-                           accuracy_on=not args.no_accuracy, arm=arm)
+                           accuracy_on=not args.no_accuracy, arm=arm, jpeg_quality=args.jpeg_quality,
+                           accuracy_through_jpeg=args.accuracy_through_jpeg)
     except (BundleError, FileNotFoundError, RuntimeError) as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 1

@@ -143,7 +143,7 @@ def _import_runtime() -> None:
 
 
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
-                 n_frames: int = 16) -> dict:
+                 n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY) -> dict:
     """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
 
     Per thread count: the trunk alone (``latency``) and the whole press (``press``: MJPEG decode +
@@ -162,7 +162,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     from vs2t_edge.runtime.preprocess import decode_jpeg
 
     _import_runtime()
-    out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": JPEG_QUALITY}
+    out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": jpeg_quality}
     raw_png: list[bytes] = []
     jpegs: list[bytes] = []
     ref = None
@@ -184,11 +184,11 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                 raw_png.append(fab.presses[i].path.read_bytes())
             for b in raw_png:  # encoded once: the camera's work, not the cell's
                 ok, enc = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                                       [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
                 if not ok:
                     raise RuntimeError(f"{bundle}: could not JPEG-encode a press frame")
                 jpegs.append(enc.tobytes())
-            ok, ref_jpeg = cv2.imencode(".jpg", ref, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            ok, ref_jpeg = cv2.imencode(".jpg", ref, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
             if not ok:
                 raise RuntimeError(f"{bundle}: could not JPEG-encode the no-contact frame")
             # as the cell's camera hands them: decoded at the bundle's scale, the reference too
@@ -309,8 +309,12 @@ def _made_by(manifest: dict) -> dict:
 
 def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
               threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 60,
-              accuracy_on: bool = True, arm=None, log: Callable[[str], None] = _log) -> dict:
-    """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute."""
+              accuracy_on: bool = True, arm=None, jpeg_quality: int = JPEG_QUALITY, accuracy_through_jpeg: bool = False,
+              log: Callable[[str], None] = _log) -> dict:
+    """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute.
+    ``jpeg_quality``: what the camera's MJPEG frames are encoded at (timing); with
+    ``accuracy_through_jpeg`` the held-out presses are scored through that JPEG too, decoded at the
+    bundle's scale as the camera hands them (else from the dataset's lossless frames)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -326,7 +330,8 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
         b = Path(b)
         row = describe(b)
         log(f"[{i + 1}/{len(bundles)}] {b.name}: speed ({row['arch']} {row['precision']} {row['size_px']} px)")
-        args = ["--worker", str(b), "--threads", ",".join(map(str, threads)), "--budget", str(budget_s)]
+        args = ["--worker", str(b), "--threads", ",".join(map(str, threads)), "--budget", str(budget_s),
+                "--jpeg-quality", str(jpeg_quality)]
         if dataset:
             args += ["--dataset", dataset]
         row.update(_run_worker(args))
@@ -344,7 +349,8 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
             if ds_root is not None and "data" in model.manifest.get("provenance", {}):
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses")
                 ds = load_dataset(ds_root)
-                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap))
+                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap),
+                                     jpeg_quality=jpeg_quality if accuracy_through_jpeg else None)
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
                 views[row["name"]] = paired_view(model, outs)  # for the paired int8-fp32 comparison
                 if arm is not None:
@@ -354,7 +360,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     machine["load_avg_at_end"] = list(os.getloadavg())  # includes the bench itself
     result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
               "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
-              "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+              "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "jpeg_quality": jpeg_quality,
+              "accuracy_frames": f"through JPEG q={jpeg_quality}, decoded at each bundle's scale" if accuracy_through_jpeg
+              else "lossless (the dataset's PNG)"}
     result["comparisons"] = compare_pairs(rows)
     for c in result["comparisons"]:  # the same presses and items: the difference with its noise
         if c["fp32"] in views and c["int8"] in views:
@@ -535,12 +543,14 @@ def _main(argv: list[str]) -> int:
     p.add_argument("--baseline", action="store_true")
     p.add_argument("--threads", default="1,2")
     p.add_argument("--budget", type=float, default=4.0)
+    p.add_argument("--jpeg-quality", type=int, default=JPEG_QUALITY)
     p.add_argument("--dataset")
     a = p.parse_args(argv)
     if a.baseline:
         print(json.dumps(baseline_worker()))
     else:
-        print(json.dumps(speed_worker(a.worker, a.dataset, [int(t) for t in a.threads.split(",")], a.budget)))
+        print(json.dumps(speed_worker(a.worker, a.dataset, [int(t) for t in a.threads.split(",")], a.budget,
+                                      jpeg_quality=a.jpeg_quality)))
     return 0
 
 

@@ -149,14 +149,15 @@ def render_markdown(result: dict) -> str:
                 if render_bins(result) else []),
               "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
               "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
-              f"press frame encoded once as JPEG q={JPEG_QUALITY}, cv2.imdecode timed) + preprocess + trunk + heads + "
+              f"press frame encoded once as JPEG q={result.get('jpeg_quality', JPEG_QUALITY)}, cv2.imdecode timed) + preprocess + trunk + heads + "
               "router + decision + evidence update, timed end to end per press; *outside trunk* = median over presses of "
               "(press - its own trunk run) at 2 threads, decode included: what the target (p50 <= 1 ms, p99 < 2 ms) is judged on (medians do "
               "not add: *press* p50 can exceed trunk p50 + outside p50, since a trunk run between other work wakes "
               "onnxruntime's thread pool instead of finding it spinning, as the trunk-alone loop does); RSS = "
               "peak resident memory of a process that "
               f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
-              f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training; H = harmonic mean of "
+              f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training "
+              f"(frames {result.get('accuracy_frames', 'lossless (the dataset PNG)')}); H = harmonic mean of "
               "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
               f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
               "counted wrong).", "", "## Outside the trunk, per press (ms)", "",

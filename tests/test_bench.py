@@ -353,3 +353,38 @@ def test_a_bench_of_one_thread_count_renders(bench_result):
             r.get(key, {}).pop("1", None)
     page = bench_report.render_markdown(result)
     assert "| fp32 | – | " in page
+
+
+def test_accuracy_through_the_cameras_jpeg_scores_what_the_camera_hands(bench_result):
+    """`--accuracy-through-jpeg`: each held-out frame and the no-contact frame go through JPEG at
+    the given quality and are decoded at the bundle's scale; the features are then those of the
+    cell's own path on such frames (set_reference + preprocess + forward on the decoded frames),
+    and a low quality changes them where lossless frames would not."""
+    import cv2
+    import numpy as np
+
+    from vs2t_edge.bench import accuracy as acc
+    from vs2t_edge.bench import measure as bench
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+
+    result, _ = bench_result
+    model = TactileModel.load(result["variants"][0]["bundle"], threads=1)
+    ds = load_dataset(model.manifest["provenance"]["data"]["dataset"])
+    presses = dict(list(bench.eval_presses(model.manifest, ds, 2).items())[:2])
+    lossless = acc.press_outputs(model, ds, presses, log=lambda m: None)
+    q20 = acc.press_outputs(model, ds, presses, log=lambda m: None, jpeg_quality=20)
+    fid, idx = next(iter(presses.items()))
+    fab = ds.by_id(fid)
+    frame = fab.load_press(idx[0])
+    ok, enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 20])
+    decoded = cv2.imdecode(enc, cv2.IMREAD_COLOR)
+    assert np.array_equal(acc.through_jpeg(frame, 20), decoded)
+    ok, enc_ref = cv2.imencode(".jpg", fab.load_reference(), [cv2.IMWRITE_JPEG_QUALITY, 20])
+    model.set_reference(cv2.imdecode(enc_ref, cv2.IMREAD_COLOR))
+    expected = model.forward(model.preprocess(decoded)).feature[0]
+    assert np.allclose(q20["feature"][0], expected, rtol=1e-4, atol=1e-4)
+    assert not np.allclose(q20["feature"], lossless["feature"], atol=1e-3)
+    assert np.array_equal(q20["label"], lossless["label"])
+    if model.preprocess_spec.reduce:  # the reduced path: decoded by libjpeg at the bundle's scale
+        assert acc.through_jpeg(frame, 95, 2).shape[0] == (frame.shape[0] + 1) // 2
