@@ -66,7 +66,7 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     quality and is decoded at the bundle's scale, as a UVC camera hands it; None: lossless frames."""
     from vs2t_edge.bench.press_timing import decode_scale
     from vs2t_edge.runtime.novelty import log_softmax
-    from vs2t_edge.runtime.preprocess import preprocess_tactile
+    from vs2t_edge.runtime.preprocess import prepare_reference, preprocess_tactile
 
     scale = decode_scale(model) if jpeg_quality is not None else 1
 
@@ -78,7 +78,9 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
-        ref = camera(fab.load_reference())
+        ref = fab.load_reference()
+        if jpeg_quality is not None:  # decoded reduced like the frames: prepared at that scale
+            ref = prepare_reference(camera(ref), model.preprocess_spec, scale)
         x = np.stack([preprocess_tactile(camera(fab.load_press(i)), ref, model.preprocess_spec, scale) for i in idx])
         for a in range(0, len(x), 32):
             o = model.forward(x[a:a + 32])

@@ -388,3 +388,31 @@ def test_accuracy_through_the_cameras_jpeg_scores_what_the_camera_hands(bench_re
     assert np.array_equal(q20["label"], lossless["label"])
     if model.preprocess_spec.reduce:  # the reduced path: decoded by libjpeg at the bundle's scale
         assert acc.through_jpeg(frame, 95, 2).shape[0] == (frame.shape[0] + 1) // 2
+
+
+def test_accuracy_through_jpeg_on_the_reduced_path_decodes_frames_and_reference_at_its_scale(tmp_path):
+    """A bundle on the reduced pixel path: the frames and the no-contact frame are decoded at
+    1/reduce, as the camera hands them, and score as the cell scores such frames."""
+    from types import SimpleNamespace
+
+    import cv2
+    import numpy as np
+    from test_bundle_fixtures import SIZE, make_bundle, world_frames
+
+    from vs2t_edge.bench import accuracy as acc
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, decode_jpeg
+
+    make_bundle(tmp_path / "b", "fp32", preprocess=TactilePreprocess(size=SIZE, reduce=2))
+    model = TactileModel.load(tmp_path / "b", threads=1)
+    _, raws, ref = world_frames()
+    fabric = SimpleNamespace(load_reference=lambda: ref, load_press=lambda i: raws[i])
+    ds = SimpleNamespace(by_id=lambda fid: fabric)
+    out = acc.press_outputs(model, ds, {model.classes[0]: [3, 5]}, log=lambda m: None, jpeg_quality=90)
+
+    def camera(frame):
+        return decode_jpeg(cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes(), 2)
+    model.set_reference(camera(ref), reduced_by=2)
+    expected = model.forward(np.concatenate([model.preprocess(camera(raws[i]), reduced_by=2) for i in (3, 5)]))
+    assert camera(raws[3]).shape[:2] == ((raws[3].shape[0] + 1) // 2, (raws[3].shape[1] + 1) // 2)
+    np.testing.assert_allclose(out["feature"], expected.feature, rtol=1e-5, atol=1e-5)
