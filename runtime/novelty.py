@@ -121,14 +121,14 @@ def squared_norm(z: np.ndarray) -> np.ndarray:
     return np.sum((z / safe[:, None]) ** 2, axis=1) * safe * safe
 
 
-def _cast_once(router: "Router", dtype, *names: str) -> tuple[np.ndarray, ...]:
-    """The router's arrays ``names`` in ``dtype``, C-contiguous, cast once and kept with the (frozen)
-    router: casting the Gaussian's 1280 x 1280 whitening on every press cost the cell ~1 ms of its
-    ~1.3 ms router time."""
-    cache = router.__dict__.setdefault("_cast_cache", {})
+def cast_once(model, dtype, *names: str) -> tuple[np.ndarray, ...]:
+    """A frozen model's arrays ``names`` in ``dtype``, C-contiguous, cast once and kept with it (the
+    routers here, the scene model): casting the Gaussian's 1280 x 1280 whitening on every press cost
+    the cell ~1 ms of its ~1.3 ms router time."""
+    cache = model.__dict__.setdefault("_cast_cache", {})
     key = np.dtype(dtype)
     if key not in cache:
-        cache[key] = tuple(np.ascontiguousarray(getattr(router, n), dtype=key) for n in names)
+        cache[key] = tuple(np.ascontiguousarray(getattr(model, n), dtype=key) for n in names)
     return cache[key]
 
 
@@ -285,7 +285,7 @@ class GaussianRouter(Router):
         """(x - mean)^T cov^-1 (x - mean) per row; ``dtype=np.float32`` is the cell's fast path."""
         x = _as_features(features, self.dim)
         dtype = np.dtype(dtype)
-        mean, whitening = _cast_once(self, dtype, "mean", "whitening")
+        mean, whitening = cast_once(self, dtype, "mean", "whitening")
         return squared_norm((x.astype(dtype, copy=False) - mean) @ whitening)
 
     def novelty(self, features, logits_t=None, *, logits_u=None, dtype=np.float64) -> np.ndarray:
@@ -395,7 +395,7 @@ class DiscriminantRouter(Router):
         float32 runs the centring and the D x K matmul in float32 (the cell's float32 feature)."""
         x = _as_features(features, self.dim)
         dtype = np.dtype(dtype)
-        centre, projection = _cast_once(self, dtype, "centre", "projection")
+        centre, projection = cast_once(self, dtype, "centre", "projection")
         z = (x.astype(dtype, copy=False) - centre) @ projection
         diff = z.astype(np.float64)[:, None, :] - self.class_means[None]
         return squared_norm(diff.reshape(-1, diff.shape[2])).reshape(diff.shape[:2])

@@ -53,6 +53,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from vs2t_edge.runtime.novelty import cast_once
+
 PARAMS_VERSION = 1
 KIND = "scene_gaussian"
 ITEM_RULES = ("sum", "offset")
@@ -95,29 +97,23 @@ class SceneModel:
     def k(self) -> int:
         return int(self.basis.shape[1])
 
-    def _cast(self, dtype) -> tuple[np.ndarray, np.ndarray]:
-        cache = self.__dict__.setdefault("_cast_cache", {})
-        dtype = np.dtype(dtype)
-        if dtype not in cache:
-            cache[dtype] = (self.center.astype(dtype), np.ascontiguousarray(self.basis, dtype=dtype))
-        return cache[dtype]
-
     def project(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         x = np.asarray(features)
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise SceneModelError(f"scene model: features of shape {x.shape}, expected (N, {self.dim})")
         if not np.all(np.isfinite(x)):
             raise SceneModelError("scene model: features contain NaN or Inf")
-        center, basis = self._cast(dtype)
+        center, basis = cast_once(self, dtype, "center", "basis")
         return ((x.astype(dtype, copy=False) - center) @ basis).astype(np.float64)
 
-    def _consts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(means^T, squared norms of the means, untouched bias per class), computed once."""
+    def _consts(self) -> tuple[np.ndarray, ...]:
+        """Per class, computed once: (means^T, squared norms of the means, untouched bias, 1.0 for an
+        untouched class, offset variance of the offset item rule)."""
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "consts" not in cache:
             is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
-            cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1),
-                               self.untouched_bias * is_u)
+            cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * is_u,
+                               is_u, np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched))
         return cache["consts"]
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
@@ -128,7 +124,7 @@ class SceneModel:
         """The same from projected presses z = (x - center) @ basis, (N, k) (``project``, or the
         ``scene_z`` output of a fused bundle graph, docs/bundle.md); float64."""
         z = np.asarray(z, np.float64)
-        means_t, means_sq, _ = self._consts()
+        means_t, means_sq = self._consts()[:2]
         return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ means_t + means_sq[None, :]).clip(min=0.0)
 
     def scores(self, sq_distances: np.ndarray) -> np.ndarray:
@@ -154,19 +150,10 @@ class SceneModel:
         if n < 1:
             raise SceneModelError(f"scene model: an item of {n} presses has no score")
         z = np.asarray(z_mean, np.float64).reshape(-1)
-        means_t, means_sq, _ = self._consts()
+        means_t, means_sq, _, is_u, offset_var = self._consts()
         d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
-        offset_var, is_u = self._offsets()
         v = offset_var + self.press_var / n
         return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * is_u
-
-    def _offsets(self) -> tuple[np.ndarray, np.ndarray]:
-        """(each class's offset variance, 1.0 for an untouched class), both (C,), computed once."""
-        cache = self.__dict__.setdefault("_cast_cache", {})
-        if "offsets" not in cache:
-            is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
-            cache["offsets"] = (np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched), is_u)
-        return cache["offsets"]
 
     def subset(self, classes) -> "SceneModel":
         """The same model over ``classes`` only (bundle classes, in the given order)."""

@@ -85,6 +85,7 @@ class Prepared:
     count: np.ndarray  # (N, M) presses so far (at least 1)
     is_u: np.ndarray  # (C,) 1.0 for an untouched class
     k: int
+    open_stat: np.ndarray  # (N, M) mean over the presses so far of the smallest squared distance to a scene class
 
     @classmethod
     def of(cls, items: Items, model) -> "Prepared":
@@ -97,12 +98,9 @@ class Prepared:
         d2 = (np.sum(z * z, -1)[..., None] - 2.0 * z @ means.T + msq).clip(min=0.0)
         d2_mean = (np.sum(zbar * zbar, -1)[..., None] - 2.0 * zbar @ means.T + msq).clip(min=0.0)
         is_u = np.array([c in model.untouched for c in model.classes], np.float64)
-        return cls(items, d2, d2_mean, count, is_u, int(means.shape[1]))
-
-    def open_stat(self) -> np.ndarray:
-        """(N, M) mean over the presses so far of the smallest squared distance to a scene class."""
-        nearest = np.where(self.items.scene[:, None, :], self.d2, np.inf).min(-1)
-        return np.cumsum(np.where(self.items.valid, nearest, 0.0), axis=1) / self.count
+        nearest = np.where(items.scene[:, None, :], d2, np.inf).min(-1)
+        open_stat = np.cumsum(np.where(items.valid, nearest, 0.0), axis=1) / count
+        return cls(items, d2, d2_mean, count, is_u, int(means.shape[1]), open_stat)
 
 
 def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: float, untouched_confidence: float,
@@ -124,7 +122,7 @@ def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: fl
         outside = np.where(scene, -np.inf, known).max(-1)
         off |= outside > inside + known_margin
     if math.isfinite(open_threshold):
-        off |= p.open_stat() > open_threshold
+        off |= p.open_stat > open_threshold
     go = (np.exp(top[..., 0]) >= needed) & decisive & ~off & items.valid
     sorted_ = go.any(axis=1)
     first = np.argmax(go, axis=1)
