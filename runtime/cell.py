@@ -434,6 +434,9 @@ class Cell:
         self.next_number += 1
         self.notifier.status(f"item {number} ({item.id}): pressing")
         self.journal.append({"type": "item", "item": number, "item_id": item.id, "t": time.time()})
+        learns = hasattr(self.evidence_factory, "remember")  # operator labels (runtime/feedback.py)
+        if learns:
+            self.evidence_factory.poll(self.journal)  # labels journaled before this piece is pressed
         evidence = self.evidence_factory()
         tally = Tally()  # presses, skipped frames, latencies and scores so far (fault paths read it)
         decision = None
@@ -480,12 +483,16 @@ class Cell:
                    "confidence": confidence, "presses": tally.presses,
                    "skipped_frames": tally.skipped, "stopped_by": stopped_by, "scores": tally.scores,
                    "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
+            if learns and getattr(evidence, "z_mean", None) is not None:  # what a later label reads
+                pre["scene_z_mean"] = [round(float(v), 5) for v in evidence.z_mean]
             if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)
                 pre["speculative_presses"] = tally.speculative
             if tally.speculative_error:  # ... and that press failed, which changed nothing
                 pre["speculative_error"] = tally.speculative_error
             self.journal.append(pre)  # durable BEFORE the gate moves
             pre_written = True
+            if "scene_z_mean" in pre:
+                self.evidence_factory.remember(item.id, evidence)
             self.notifier.status(f"item {number}: {label} -> bin {bin_}")
             self._check_time(t0)
             gate_told = True

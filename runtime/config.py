@@ -128,6 +128,10 @@ _SCHEMA: dict[str, Any] = {
                                      "a bundle without a scene model (decision.npz): refuse it at start, or allow "
                                      "it - then no off-scene rule: a piece of a fabric outside the scene goes to the "
                                      "likeliest scene fabric's bin (27-41 % of pieces mis-sorted where measured)"),
+        # runtime/feedback.py: outside the zero-shot protocol, so off unless a file is named
+        "operator_labels": _leaf("optpath", None, None,
+                                 "learn from the reject bin: a JSON-lines file of operator labels (`vs2t-edge "
+                                 "label`); each re-estimates an untouched fabric's mean from the labelled piece"),
     },
     "cell": {
         # runtime/press_pipeline.py: decisions are the same either way; off = the model's time
@@ -176,6 +180,7 @@ class CellConfig:
     wait_item_timeout_s: float
     overlap_scoring: bool = True
     without_scene_model: str = "refuse"  # evidence.without_scene_model: "allow" is the written opt-in
+    operator_labels: Path | None = None  # evidence.operator_labels (runtime/feedback.py)
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -487,7 +492,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         item_timeout_s=v["watchdog"]["item_timeout_s"],
         wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
-        raw=data if isinstance(data, dict) else {},
+        operator_labels=ev["operator_labels"], raw=data if isinstance(data, dict) else {},
     )
 
 

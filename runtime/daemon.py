@@ -44,7 +44,7 @@ from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
-from vs2t_edge.runtime.journal import Journal, JournalError
+from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime import wiring
 from vs2t_edge.runtime.wiring import SceneModelMissing, build_cell, build_live_devices, load_model, match_camera
@@ -98,7 +98,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     if evidence_factory is None:  # the config's item rule for this bundle (a caller may bring its own)
         try:
             evidence_factory = wiring.evidence_factory_for(cfg, model)
-        except SceneModelMissing as exc:
+        except (SceneModelMissing, ValueError) as exc:  # ValueError: operator labels on a sum-rule bundle
             notifier.status(f"bundle refused: {exc}")
             log(str(exc))
             return EXIT_USAGE
@@ -164,6 +164,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         _disconnect_all(camera, arm, gate)
         journal.close()
         return EXIT_USAGE
+    if hasattr(evidence_factory, "restore"):  # operator labels: the pieces and labels of this bundle so far
+        evidence_factory.restore(iter_records(cfg.journal), seal)
     cell.recover()
     if cell.fault is None:
         latched = gate_latched_at_start(gate)

@@ -120,7 +120,8 @@ class Evidence:
     def _add_open(self, score) -> None:
         d2 = getattr(score, "sq_distance", None)
         if math.isfinite(self.open_threshold) and d2:
-            self._open_sum += min(float(d2[c]) for c in self.classes)
+            # the scene's fabrics (a stranger the operator taught, runtime/feedback.py, has no press distance)
+            self._open_sum += min(float(d2[c]) for c in self.classes if c in d2)
             self._open_n += 1
 
     def _add_projected(self, score) -> ItemDecision | None:
@@ -143,8 +144,19 @@ class Evidence:
             self._outside = {self.item_model.classes[i]: float(scores[i]) for i in self._others}
         return self._check(final=False)
 
+    @property
+    def z_mean(self) -> np.ndarray | None:
+        """The mean projection of the presses so far (the offset rule's), else None."""
+        if self.item_model is None or not self.presses:
+            return None
+        return self._z_sum / self.presses
+
     def decide(self) -> ItemDecision:
         return self._check(final=True)
+
+    def peek(self) -> ItemDecision | None:
+        """What ``add`` returned for the presses so far: a decision, or None (press on)."""
+        return self._check(final=False)
 
     def off_scene(self) -> bool:
         """Whether the presses so far say the piece is none of the scene's fabrics (module doc)."""

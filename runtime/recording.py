@@ -26,7 +26,8 @@ from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.replay_file import FORMAT, SAFETY_CALLS, VERSION, ReplayError, decisions_of, error_to_json
+from vs2t_edge.runtime.replay_file import (FORMAT, SAFETY_CALLS, VERSION, ReplayError, decisions_of, error_to_json,
+                                            labels_of)
 
 
 class Recorder:
@@ -69,7 +70,7 @@ class Recorder:
         index = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                  "meta": meta or {}, "config": config, "items": self.items, "events": self.events,
                  "safety_steps": self.safety_steps,
-                 "decisions": decisions_of(journal_records)}
+                 "decisions": decisions_of(journal_records), "labels": labels_of(journal_records)}
         (tmp / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
         if folder.exists():
             shutil.rmtree(folder)

@@ -38,6 +38,7 @@ from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.daemon import bundle_seal, run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
+from vs2t_edge.runtime.feedback import append_label
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier
@@ -217,15 +218,24 @@ class ReplayGate(_ReplayBase):
 
 
 class ReplayItems:
-    def __init__(self, queues: _Queues) -> None:
+    """The recorded pieces in order; with ``labels`` (the replay's labels file), the operator
+    labels the session read before a piece are written there as that piece is handed out, so the
+    cell reads them at the same point (runtime/feedback.py)."""
+
+    def __init__(self, queues: _Queues, labels: Path | None = None) -> None:
         self.q = queues
         self.items = [Item(d["id"], d.get("truth")) for d in queues.rf.index["items"]]
+        self.labels_path = labels
+        self.labels = list(queues.rf.index.get("labels") or []) if labels is not None else []
 
     def next_item(self, timeout_s: float):
         if self.q.item_index + 1 >= len(self.items):
             return None
         self.q.item_index += 1
-        return self.items[self.q.item_index]
+        item = self.items[self.q.item_index]
+        for rec in [r for r in self.labels if isinstance(r, dict) and r.get("before_item") == item.id]:
+            append_label(self.labels_path, str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")))
+        return item
 
     def exhausted(self) -> bool:
         return self.q.item_index + 1 >= len(self.items)
@@ -308,6 +318,8 @@ def config_for_replay(rf: ReplayFile, workdir: Path, bundle: Path | None):
     if not isinstance(raw.get("evidence"), dict):
         raw["evidence"] = {}
     raw["evidence"]["without_scene_model"] = "allow"
+    if raw["evidence"].get("operator_labels"):  # the session's labels, handed over as it read them
+        raw["evidence"]["operator_labels"] = str(workdir / "labels.jsonl")
     beta = rf.index.get("meta", {}).get("beta")
     if beta is not None:
         raw["beta_override"] = float(beta)
@@ -369,7 +381,7 @@ def run_replay(file: Path | str, *, model=None, bundle: Path | None = None, evid
             check_same_bundle(rf, bundle, model)
         cfg = config_for_replay(rf, work, bundle)
         queues = _Queues(rf)
-        items = ReplayItems(queues)
+        items = ReplayItems(queues, labels=cfg.operator_labels)
         clears = dict(queues.clears)
         fault_file = cfg.fault_file
 

@@ -81,6 +81,19 @@ def decisions_of(records: list[dict]) -> list[dict]:
     return out
 
 
+def labels_of(records: list[dict]) -> list[dict]:
+    """The operator labels a session read (runtime/feedback.py), each with the item it was read
+    before: a replay hands them to the cell at the same points, so its decisions can match."""
+    out, before = [], None
+    for r in records:
+        if r.get("type") == "item":
+            before = r.get("item_id")
+        elif r.get("type") == "label" and before is not None:
+            out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
+                        **({"off_scene": True} if r.get("off_scene") else {})})
+    return out
+
+
 class ReplayError(ValueError):
     """A replay file that cannot be read, named with what is wrong."""
 
@@ -184,6 +197,11 @@ def _check_index(index: Any, path: Path) -> None:
     for i, it in enumerate(index["items"]):
         if not isinstance(it, dict) or not isinstance(it.get("id"), str):
             raise ReplayError(f"{path}: items[{i}] needs an 'id' text")
+    if not isinstance(index.get("labels", []), list):  # absent in files recorded before operator labels
+        raise ReplayError(f"{path}: 'labels' must be a list")
+    for i, lab in enumerate(index.get("labels", [])):
+        if not isinstance(lab, dict) or not all(isinstance(lab.get(k), str) for k in ("before_item", "item_id", "fabric")):
+            raise ReplayError(f"{path}: labels[{i}] needs 'before_item', 'item_id' and 'fabric' texts")
     for i, ev in enumerate(index["events"]):
         if not (isinstance(ev, dict) and isinstance(ev.get("dev"), str) and isinstance(ev.get("call"), str)
                 and isinstance(ev.get("item"), int) and not isinstance(ev.get("item"), bool)):

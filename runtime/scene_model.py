@@ -88,6 +88,9 @@ class SceneModel:
     offset_var_untouched: float = 0.0
     item_temperature: float = 1.0
     item_bias: float = 0.0
+    # per class, the offset variance that replaces the two above (runtime/feedback.py: an untouched
+    # class whose mean operator-labelled pieces re-estimated); None = the two. Cell state, not stored.
+    class_offset_var: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def dim(self) -> int:
@@ -112,8 +115,10 @@ class SceneModel:
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "consts" not in cache:
             is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
+            offset_var = np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched) \
+                if self.class_offset_var is None else np.asarray(self.class_offset_var, np.float64)
             cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * is_u,
-                               is_u, np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched))
+                               is_u, offset_var)
         return cache["consts"]
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
@@ -161,8 +166,9 @@ class SceneModel:
         if missing:
             raise SceneModelError(f"scene model has no class {missing}")
         rows = [self.classes.index(c) for c in classes]
+        var = None if self.class_offset_var is None else np.asarray(self.class_offset_var)[rows]
         return replace(self, classes=tuple(classes), untouched=frozenset(c for c in classes if c in self.untouched),
-                       means=self.means[rows], info=dict(self.info))
+                       means=self.means[rows], class_offset_var=var, info=dict(self.info))
 
     # ------------------------------------------------------------------ fitting (numpy)
 

@@ -281,6 +281,53 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
     return records
 
 
+def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]], model, *,
+                         labels: bool = True, items_per_fabric: int = 4, max_presses: int = 5,
+                         seed: int = 0) -> list[ItemRecord]:
+    """Each scene one job: its pieces (``items_per_fabric`` of every scene and off-scene fabric)
+    in a random order, decided by the cell's evidence with ``model``'s operating point; with
+    ``labels``, every piece that lands in the reject bin is labelled by the operator before the
+    next piece: a scene fabric's label re-estimates its mean if it is untouched, an off-scene
+    piece's teaches the cell that stranger (runtime/feedback.py). ``labels`` False gives the same
+    jobs, orders and presses without them: the paired zero-shot baseline. Needs the offset item rule."""
+    from vs2t_edge.runtime.feedback import adapt, item_evidence
+
+    confidence, opts = scene_model_rule(model)
+
+    def make(m, classes):
+        return Evidence(classes, confidence, max_presses, **{**opts, "item_model": m})
+
+    rng = np.random.default_rng(seed)
+    records = []
+    for scene in scenes:
+        stream = [f for f in scene.classes + scene.off_scene for _ in range(items_per_fabric)]
+        rng.shuffle(stream)
+        labelled: dict[str, list] = {}
+        strangers: dict[str, list] = {}
+        current = adapt(model, {})
+        for fabric in stream:
+            pool = presses[fabric]
+            order = rng.permutation(len(pool))[:max_presses]
+            ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
+            decision = None
+            for i in order:
+                decision = ev.add(pool[i])
+                if decision is not None:
+                    break
+            if decision is None:
+                decision = ev.decide()
+            rec = record(fabric, scene.kind(fabric), decision, scene.classes)
+            records.append(rec)
+            # in the reject bin the operator says what it was; an untouched fabric's or a stranger's
+            # label teaches the cell (a touched fabric's mean is its training presses')
+            rejected = rec.label not in scene.classes
+            if labels and rejected and (fabric in model.untouched or fabric not in scene.classes):
+                (labelled if fabric in scene.classes else strangers).setdefault(fabric, []).append(
+                    (ev.z_mean, ev.presses))
+                current = adapt(model, labelled, strangers)
+    return records
+
+
 def scene_evidence(model, max_presses: int = 5) -> Callable[[Scene], Evidence]:
     """The evidence the cell builds for a scene from a scene model's operating point
     (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules)."""

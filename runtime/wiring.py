@@ -29,6 +29,7 @@ from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.feedback import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
@@ -86,6 +87,14 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
     require_scene_model(model, cfg.bundle, cfg.without_scene_model,
                         f"set `evidence.without_scene_model: allow` in {cfg.path}")
     confidence, opts = evidence_settings(cfg, model)
+    if cfg.operator_labels is not None:  # learning from the reject bin (runtime/feedback.py)
+        if opts.get("item_model") is None:
+            raise ValueError(f"{cfg.path}: evidence.operator_labels needs a bundle whose scene model uses the offset "
+                             f"item rule; bundle {cfg.bundle} has "
+                             + ("no scene model" if getattr(model, "scene_model", None) is None else "the sum rule"))
+        return OperatorFeedback(opts["item_model"], cfg.scene_classes, cfg.operator_labels,
+                                lambda m, classes: Evidence(classes, confidence, cfg.max_presses,
+                                                            **{**opts, "item_model": m}))
     return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
 
 

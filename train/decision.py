@@ -21,8 +21,10 @@ Per split (``fit_scene_decision``):
 4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
 
 ``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
-untouched fabrics' presses) with the same simulation; ``press_tables`` gives the cell's per-press
-view (log posterior and squared distances) that both use.
+untouched fabrics' presses) with the same simulation, and for the offset rule the same scenes as
+jobs with operator labels (``operator_label_jobs``, runtime/feedback.py: a mode outside the
+zero-shot protocol, reported beside it); ``press_tables`` gives the cell's per-press view (log
+posterior and squared distances) that both use.
 """
 
 from __future__ import annotations
@@ -233,7 +235,26 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["press_gzsl"] = {"acc_t": acc_t, "acc_u": acc_u,
                          "H": 2 * acc_t * acc_u / (acc_t + acc_u) if acc_t + acc_u > 0 else 0.0}
     out["n_scenes"] = n_scenes
+    if model.item_rule == "offset":
+        out["operator_labels"] = operator_label_jobs(model, tables, scenes, seed=seed + 2)
     return out
 
 
-__all__ = ["fit_scene_decision", "evaluate_scenes", "press_tables", "evidence_for", "K_CHOICES"]
+LABEL_JOB_LENGTHS = (4, 10)  # pieces of each fabric in one job
+
+
+def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 0) -> dict:
+    """Learning from the reject bin (runtime/feedback.py), outside the zero-shot protocol: the
+    same scenes as jobs whose pieces come in a random order, each rejected piece of a scene fabric
+    labelled by the operator before the next; beside the same jobs, orders and presses without
+    labels (paired). Per job length (pieces per fabric, ``LABEL_JOB_LENGTHS``)."""
+    out = {}
+    for n in LABEL_JOB_LENGTHS:
+        pair = {name: so.summarise(so.simulate_with_labels(scenes, tables, model, labels=on, items_per_fabric=n,
+                                                           max_presses=MAX_PRESSES, seed=seed))
+                for name, on in (("without", False), ("with", True))}
+        out[str(n)] = pair
+    return out
+
+
+__all__ = ["fit_scene_decision", "evaluate_scenes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

@@ -269,10 +269,34 @@ def scene_lines(splits: list[dict]) -> list[str]:
                + "; ".join(" ".join(f"{name} {100 * r['right']:.1f} / {100 * r['mis_sort']:.1f}"
                                     for name, r in d["validation"]["item_rules"].items()) for d in sd)]
               if all("item_rules" in d["validation"] for d in sd) else []),
+            *label_lines(sd),
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
                 f"margin {c['known_margin']:g}, confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
+    return out
+
+
+def label_lines(sd: list[dict]) -> list[str]:
+    """Learning from the reject bin (runtime/feedback.py): the same scenes as jobs, without and
+    with operator labels, per job length, over the splits whose item rule is the offset rule."""
+    ol = [d["test"]["operator_labels"] for d in sd if "operator_labels" in d["test"]]
+    if not ol:
+        return []
+    out = ["", "With operator labels (`evidence.operator_labels`, runtime/feedback.py; outside the zero-shot "
+               "protocol): each scene as one job, its pieces in a random order, every rejected piece of a scene "
+               "fabric labelled by the operator before the next piece; the same jobs, orders and presses without "
+               "labels beside it. Right / mis-sort %, mean ± std over the "
+               f"{len(ol)} of {len(sd)} split(s) whose validation kept the offset rule (the mode needs it):", "",
+           "| pieces of each fabric per job | without labels | with labels | untouched right without → with |",
+           "| --- | --- | --- | --- |"]
+    for n in ol[0]:
+        w = [o[n]["without"] for o in ol]
+        t = [o[n]["with"] for o in ol]
+        u = lambda rs: _ms([r["by_kind"].get("untouched", {}).get("right") for r in rs])  # noqa: E731
+        out.append(f"| {n} | {_ms([r['all']['right'] for r in w])} / {_ms([r['all']['mis-sort'] for r in w])} | "
+                   f"{_ms([r['all']['right'] for r in t])} / {_ms([r['all']['mis-sort'] for r in t])} | "
+                   f"{u(w)} → {u(t)} |")
     return out
 
 

@@ -40,6 +40,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "verify-bundle": ("vs2t_edge.runtime.bundle_cli", "verify a model bundle's hashes, shapes and probe"),
     "validate-config": ("vs2t_edge.runtime.config_cli", "check a cell config file (use as ExecStartPre)"),
     "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),
+    "label": ("vs2t_edge.runtime.label_cli", "say what a rejected piece was: the cell learns its untouched "
+              "fabric from it (evidence.operator_labels)"),
     "demo": ("vs2t_edge.sim.demo", "the embedded default end to end on the simulated cell (needs [train])"),
     "calibrate-threshold": ("vs2t_edge.runtime.calibrate", "choose the novelty threshold beta from presses"),
     "record": ("vs2t_edge.runtime.record_cli", "record a live session into a replay file"),

@@ -1,0 +1,284 @@
+"""The cell learns from its reject bin: operator labels re-estimate the untouched fabrics' means.
+
+Zero-shot, an untouched fabric's class mean is the generator's synthesis from camera and
+attributes, off its real mean by the generator's error on that fabric - the same on every piece
+(runtime/scene_model.py, the offset item rule). That error, not the presses, is what keeps most
+untouched pieces out of their bin (docs/results/scene_decision_paper.md). A person already looks at
+every piece in the reject bin; when they say what it was (``vs2t-edge label``), the piece's presses
+are real tactile data of that fabric, and the next pieces of it are scored against a mean that
+moves from the synthesis towards the fabric's real one.
+
+The update is the offset model's own, no new knob: a synthesised mean m is the true mean mu
+plus the generator's error, mu ~ N(m, s_u I); a labelled piece's press mean zbar_j of n_j presses
+is mu plus the piece's own offset plus press noise, zbar_j ~ N(mu, (s_t + v / n_j) I). So
+
+    precision  P = 1 / s_u + sum_j 1 / (s_t + v / n_j),
+    mean       mu_post = (m / s_u + sum_j zbar_j / (s_t + v / n_j)) / P,
+
+and a new piece's mean zbar ~ N(mu_post, (1 / P + s_t + v / n) I): the class's offset variance
+becomes 1 / P + s_t (``SceneModel.class_offset_var``). s_u, s_t and v are the bundle's
+(``offset_var_untouched``, ``offset_var_touched``, ``press_var``), chosen on validation fabrics in
+training; so it needs the offset item rule. Touched fabrics' means come from their training
+presses and are left alone; a label naming one is recorded and not applied.
+
+This is a mode outside the zero-shot protocol, on only when the cell config names a labels file
+(``evidence.operator_labels``), and measured as such (train/decision.py ``evaluate_scenes``,
+"with operator labels"): the pure zero-shot numbers stay the product's headline.
+
+Files: the operator's labels are a JSON-lines file, one ``{"item_id": ..., "fabric": ...}`` a line,
+appended with an fsync (``append_label``). The cell reads new lines before each item
+(``OperatorFeedback.poll``) and journals what it did with each (``{"type": "label", ...}``,
+applied or not and why) before it presses the next piece; each decided item's pre_sort record
+carries its presses' mean projection (``scene_z_mean``), so a restarted service rebuilds the same
+state from the journal (``restore``) and reads on from the first line it has not journaled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from vs2t_edge.runtime.bundle import SEAL_KEY
+from vs2t_edge.runtime.evidence import UNKNOWN, Evidence, ItemDecision
+from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
+
+MAX_LABEL_LINE_BYTES = 4096
+
+
+OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
+
+
+def _piece_weights(model: SceneModel, fabric: str, pieces) -> tuple[float, np.ndarray]:
+    """(sum of the pieces' precisions, their precision-weighted sum of press means)."""
+    s_t, v = model.offset_var_touched, model.press_var
+    precision, weighted = 0.0, np.zeros(model.k)
+    for zbar, n in pieces:
+        if n < 1:
+            raise SceneModelError(f"operator labels: a piece of {fabric!r} with {n} presses")
+        w = 1.0 / (s_t + v / n)
+        precision += w
+        weighted = weighted + w * np.asarray(zbar, np.float64).reshape(-1)
+    return precision, weighted
+
+
+def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, int]]],
+          strangers: Mapping[str, Sequence[tuple[np.ndarray, int]]] | None = None) -> SceneModel:
+    """``model`` with each untouched class of ``labelled`` (class -> [(press mean, presses), ...])
+    re-estimated from its labelled pieces, and one class ``off-scene:NAME`` per stranger the
+    operator named (module doc). Classes without pieces are unchanged."""
+    if model.item_rule != "offset":
+        raise SceneModelError("operator labels need the scene model's offset item rule (its offset variances "
+                              f"weigh a labelled piece against the synthesis); this bundle's rule is "
+                              f"{model.item_rule!r}")
+    means = np.array(model.means, np.float64, copy=True)
+    is_u = np.array([c in model.untouched for c in model.classes])
+    var = np.where(is_u, model.offset_var_untouched, model.offset_var_touched).astype(np.float64) \
+        if model.class_offset_var is None else np.array(model.class_offset_var, np.float64, copy=True)
+    s_u, s_t = model.offset_var_untouched, model.offset_var_touched
+    for fabric, pieces in labelled.items():
+        if fabric not in model.classes:
+            raise SceneModelError(f"operator labels: the scene model has no class {fabric!r}")
+        c = model.classes.index(fabric)
+        if not is_u[c] or not pieces or not s_u > 0:  # s_u = 0: a perfect synthesis, nothing to learn
+            continue
+        precision, weighted = _piece_weights(model, fabric, pieces)
+        precision += 1.0 / s_u  # the synthesis is the prior: mu ~ N(m, s_u I)
+        means[c] = (weighted + means[c] / s_u) / precision
+        var[c] = 1.0 / precision + s_t
+    names, rows, extra_var = [], [], []
+    for name, pieces in (strangers or {}).items():
+        if not pieces:
+            continue
+        precision, weighted = _piece_weights(model, name, pieces)  # no prior: nothing synthesised it
+        names.append(OFF_SCENE_PREFIX + name)
+        rows.append(weighted / precision)
+        extra_var.append(1.0 / precision + s_t)
+    if names:
+        means = np.concatenate([means, np.stack(rows)])
+        var = np.concatenate([var, extra_var])
+    return replace(model, classes=tuple(model.classes) + tuple(names), means=means, class_offset_var=var)
+
+
+class GuardedEvidence:
+    """The item evidence with labels, never bolder than zero-shot where no label taught it.
+
+    Two evidences see every press: one scored with the adapted model, one with the bundle's own.
+    A class the labels taught (an untouched fabric with labelled pieces, a learned stranger)
+    is decided by the adapted one alone. Any other class is sorted only when the zero-shot
+    evidence decides the same class: a labelled class whose synthesis used to share a piece with
+    another synthesised class stops sharing it once its mean is real, and that piece - a fabric
+    the job does not list, between the two syntheses - would otherwise go to the other class's
+    bin with a confidence the zero-shot operating point never gave it (measured on the demo's job:
+    every piece of such a fabric mis-sorted). The cell keeps pressing while the two disagree, up to
+    the press limit, where the piece goes to the reject bin (``stopped_by`` "unlabelled_guard")."""
+
+    def __init__(self, adapted: Evidence, zero_shot: Evidence, learned: Iterable[str]) -> None:
+        self.adapted, self.zero_shot, self.learned = adapted, zero_shot, frozenset(learned)
+
+    @property
+    def presses(self) -> int:
+        return self.adapted.presses
+
+    @property
+    def z_mean(self):
+        return self.adapted.z_mean
+
+    def _guarded(self, d, final: bool):
+        if d is None or d.label == UNKNOWN or d.label in self.learned:
+            return d
+        z = self.zero_shot.decide() if final or d.stopped_by != "confident" else self.zero_shot.peek()
+        if z is not None and z.label == d.label:
+            return d
+        if final or self.adapted.presses >= self.adapted.max_presses:
+            return ItemDecision(UNKNOWN, d.confidence, d.presses, d.log_posterior, "unlabelled_guard")
+        return None  # press on: the zero-shot evidence may yet agree
+
+    def add(self, score):
+        self.zero_shot.add(score)
+        return self._guarded(self.adapted.add(score), final=False)
+
+    def decide(self):
+        return self._guarded(self.adapted.decide(), final=True)
+
+
+def item_evidence(base: SceneModel, adapted: SceneModel, scene: Sequence[str], labelled: Iterable[str],
+                  strangers: Iterable[str], make_evidence: Callable[[SceneModel, list[str]], Any]):
+    """One piece's evidence: the zero-shot one while nothing was learned, else the guarded pair
+    (``GuardedEvidence``) over the scene's fabrics and the learned strangers."""
+    taught = [OFF_SCENE_PREFIX + name for name in strangers]
+    learned = [*labelled, *taught]
+    if not learned:
+        return make_evidence(base, list(scene))
+    trusted = learned + [c for c in scene if c not in base.untouched]  # touched means are real already
+    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), make_evidence(base, list(scene)), trusted)
+
+
+def append_label(path: Path | str, item_id: str, fabric: str, off_scene: bool = False) -> dict:
+    """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
+    ``fabric`` names a piece that is none of the job's fabrics (any name the operator uses)."""
+    rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {})}
+    line = (json.dumps(rec, sort_keys=True) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o640)
+    try:
+        os.write(fd, line)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return rec
+
+
+def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]]:
+    """(line number from 1, label or the reason it is unusable) for every whole line from line
+    ``start`` + 1 on; a last line without its newline is being written and is left for later."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        return []
+    lines = data.split(b"\n")[:-1]  # the part after the last newline is not a whole line yet
+    out: list[tuple[int, dict | str]] = []
+    for k, raw in enumerate(lines[start:], start + 1):
+        if not raw.strip():
+            out.append((k, "an empty line"))
+            continue
+        if len(raw) > MAX_LABEL_LINE_BYTES:
+            out.append((k, f"a line of {len(raw)} bytes (at most {MAX_LABEL_LINE_BYTES})"))
+            continue
+        try:
+            rec = json.loads(raw)
+        except (ValueError, UnicodeDecodeError) as exc:
+            out.append((k, f"not JSON ({exc})"))
+            continue
+        if not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str) or not isinstance(rec.get("fabric"), str) \
+                or not isinstance(rec.get("off_scene", False), bool):
+            out.append((k, 'not {"item_id": "...", "fabric": "..."[, "off_scene": true]}'))
+            continue
+        out.append((k, rec))
+    return out
+
+
+class OperatorFeedback:
+    """The cell's item rule with operator labels (module doc): an evidence factory the cell calls per
+    item, which it also tells each decided item (``remember``) and lets read new labels (``poll``).
+    ``make_evidence(model, classes)``: the item evidence over ``classes`` (the scene's, then the
+    learned strangers', whose decisions go to the reject bin) scored with ``model``."""
+
+    def __init__(self, model: SceneModel, scene_classes: Iterable[str], labels_path: Path | str,
+                 make_evidence: Callable[[SceneModel, list[str]], Evidence]) -> None:
+        adapt(model, {})  # refuses a model without the offset rule, at start
+        self.base = model
+        self.scene = list(scene_classes)
+        self.path = Path(labels_path)
+        self.make_evidence = make_evidence
+        self.pieces: dict[str, tuple[list[float], int]] = {}  # item id -> (press mean, presses)
+        self.labelled: dict[str, list[tuple[np.ndarray, int]]] = {}
+        self.strangers: dict[str, list[tuple[np.ndarray, int]]] = {}
+        self.lines_read = 0
+        self.model = model
+
+    def __call__(self):
+        return item_evidence(self.base, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
+
+    def remember(self, item_id: str, evidence: Any) -> None:
+        z, n = getattr(evidence, "z_mean", None), getattr(evidence, "presses", 0)
+        if z is not None and n:
+            self.pieces[str(item_id)] = (np.asarray(z, np.float64).tolist(), int(n))
+
+    def _apply(self, item_id: str, fabric: str, off_scene: bool = False) -> str:
+        """'' when the label moved the model, else why not."""
+        if off_scene and fabric in self.scene:
+            return f"{fabric!r} is a fabric of this job, not an off-scene one"
+        if not off_scene and fabric not in self.scene:
+            return f"{fabric!r} is not a fabric of this job (an off-scene piece is labelled with off_scene)"
+        if not off_scene and fabric not in self.base.untouched:
+            return f"{fabric!r} is a touched fabric: its mean comes from training presses"
+        if item_id not in self.pieces:
+            return f"no decided item {item_id!r} with presses in this journal"
+        z, n = self.pieces[item_id]
+        (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
+        self.model = adapt(self.base, self.labelled, self.strangers)
+        return ""
+
+    def poll(self, journal) -> list[dict]:
+        """Read labels written since the last poll, apply them, journal each; the records written."""
+        out = []
+        for line, rec in read_labels(self.path, self.lines_read):
+            entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}
+            if isinstance(rec, str):
+                entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
+            else:
+                off = bool(rec.get("off_scene", False))
+                why = self._apply(rec["item_id"], rec["fabric"], off)
+                entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
+                             applied=not why, **({"why": why} if why else {}))
+            out.append(journal.append(entry))
+            self.lines_read = line
+        return out
+
+    def restore(self, records: Iterable[Mapping[str, Any]], seal: str | None) -> None:
+        """The state a restarted service resumes from: decided items' press means (pre_sort
+        records' ``scene_z_mean``), the labels already journaled, applied again in their order.
+        Records of sessions run on another bundle (their start record's ``seal``) are skipped:
+        their projections are in another model's space."""
+        current = True  # records before the first start record: this journal's own
+        for rec in records:
+            kind = rec.get("type")
+            if kind == "start":
+                current = rec.get(SEAL_KEY) == seal
+            elif not current:
+                continue
+            elif kind == "pre_sort" and isinstance(rec.get("scene_z_mean"), list) and rec.get("item_id") is not None \
+                    and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
+                self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
+            elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
+                if rec.get("applied"):
+                    self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")))
+                self.lines_read = max(self.lines_read, rec["line"])
+
+
+__all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",
+           "OFF_SCENE_PREFIX"]

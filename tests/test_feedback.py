@@ -1,0 +1,314 @@
+"""Learning from the reject bin (runtime/feedback.py): operator labels re-estimate an untouched
+fabric's mean; the cell reads them between pieces, journals them and resumes them after a restart."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cell_fakes import ScriptedCamera
+from vs2t_edge.cli import main
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.bundle import SEAL_KEY
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+from vs2t_edge.runtime.feedback import OperatorFeedback, adapt, append_label, item_evidence, read_labels
+from vs2t_edge.runtime.items import ContinuousFeed
+from vs2t_edge.runtime.journal import Journal, iter_records, read_records
+from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.runtime.preprocess import check_frame
+from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
+from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+from vs2t_edge.sim.scene import fake_cell_yaml
+
+CLASSES = ("denim", "silk", "wool")  # wool untouched: its mean (0, 10) is the generator's
+BINS = {"denim": 1, "silk": 2, "wool": 3}
+WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and the synthesis
+
+
+def _model(**kw) -> SceneModel:
+    m = SceneModel(CLASSES, frozenset({"wool"}), np.zeros(2), np.eye(2), np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]),
+                   item_rule="offset", press_var=1.0, offset_var_touched=0.1, offset_var_untouched=20.0,
+                   item_temperature=3.0)
+    return replace(m, **kw)
+
+
+def _evidence(model, max_presses=4):
+    return Evidence(list(CLASSES), 0.95, max_presses, item_model=model)
+
+
+def _decide(model, z, n=4):
+    ev = _evidence(model, n)
+    for _ in range(n):
+        d = ev.add(so.Press({}, None, np.asarray(z, float)))
+        if d is not None:
+            return d, ev
+    return ev.decide(), ev
+
+
+def test_a_label_moves_the_synthesised_mean_by_the_offset_models_own_weights():
+    m = _model()
+    z = np.array([8.0, 2.0])
+    out = adapt(m, {"wool": [(z, 4)]})
+    w = 1.0 / (0.1 + 1.0 / 4)  # one piece: its offset plus press noise over 4 presses
+    precision = 1.0 / 20.0 + w
+    assert np.allclose(out.means[2], (m.means[2] / 20.0 + w * z) / precision)
+    assert out.class_offset_var[2] == pytest.approx(1.0 / precision + 0.1)
+    assert np.array_equal(out.means[:2], m.means[:2]) and list(out.class_offset_var[:2]) == [0.1, 0.1]
+    # more pieces pin it down further; a touched fabric's label changes nothing
+    two = adapt(m, {"wool": [(z, 4), (z, 4)]})
+    assert np.linalg.norm(two.means[2] - z) < np.linalg.norm(out.means[2] - z)
+    assert two.class_offset_var[2] < out.class_offset_var[2]
+    same = adapt(m, {"silk": [(z, 4)]})
+    assert np.array_equal(same.means, m.means)
+    # the item score reads the per-class variance: the labelled class's score of the piece rises
+    assert out.item_log_lik(z, 4)[2] > m.item_log_lik(z, 4)[2]
+
+
+def test_a_rejected_piece_labelled_by_the_operator_sorts_the_next_one():
+    m = _model()
+    before, ev = _decide(m, WOOL_PIECE)
+    assert before.label == UNKNOWN  # silk and the distant synthesis share it: the reject bin
+    after, _ = _decide(adapt(m, {"wool": [(ev.z_mean, ev.presses)]}), WOOL_PIECE)
+    assert after.label == "wool" and after.confidence >= 0.95
+
+
+def test_labels_need_the_offset_rule_and_a_class_the_model_has():
+    with pytest.raises(SceneModelError, match="offset item rule"):
+        adapt(_model(item_rule="sum"), {})
+    with pytest.raises(SceneModelError, match="no class 'linen'"):
+        adapt(_model(), {"linen": [(np.zeros(2), 3)]})
+    with pytest.raises(SceneModelError, match="0 presses"):
+        adapt(_model(), {"wool": [(np.zeros(2), 0)]})
+
+
+def test_jobs_with_labels_put_more_untouched_pieces_in_their_bin_than_the_same_jobs_without():
+    """On a constructed world whose synthesised means are off their fabrics' by more than the spread
+    of a fabric's presses, the same jobs, orders and presses with labels sort more untouched pieces."""
+    rng = np.random.default_rng(0)
+    k, names = 6, [f"f{i}" for i in range(9)]
+    centres = rng.normal(0, 4.0, (9, k))
+    untouched = names[5:8]
+    synth = centres.copy()
+    synth[5:8] += rng.normal(0, 5.0, (3, k))  # the generator's error, per fabric
+    m = SceneModel(tuple(names[:8]), frozenset(untouched), np.zeros(k), np.eye(k), synth[:8], item_rule="offset",
+                   press_var=1.0, offset_var_touched=0.05, offset_var_untouched=25.0, item_temperature=1.0,
+                   confidence=0.95, untouched_confidence=0.95)
+    presses = {f: [so.Press({}, None, z) for z in centres[i] + rng.normal(0, 1.0, (30, k))] for i, f in enumerate(names)}
+    scenes = so.draw_scenes(names[:5], untouched, (names[8],), 6, seed=1)
+    runs = {on: so.summarise(so.simulate_with_labels(scenes, presses, m, labels=on, items_per_fabric=6, seed=2))
+            for on in (False, True)}
+    u0, u1 = runs[False]["by_kind"]["untouched"], runs[True]["by_kind"]["untouched"]
+    assert runs[False]["all"]["n"] == runs[True]["all"]["n"]
+    assert u0["right"] < 0.5 and u1["right"] > u0["right"] + 0.3  # measured: 36 % -> 94 %
+    assert runs[True]["all"]["mis-sort"] <= runs[False]["all"]["mis-sort"] + 0.02
+
+
+# --- the file, the poll, the journal --------------------------------------------------------------
+
+class _Journal:
+    def __init__(self):
+        self.records = []
+
+    def append(self, rec):
+        self.records.append(rec)
+        return rec
+
+
+def _feedback(tmp_path, model=None):
+    return OperatorFeedback(model or _model(), CLASSES, tmp_path / "labels.jsonl",
+                            lambda m, classes: Evidence(classes, 0.95, 4, item_model=m))
+
+
+def test_the_poll_applies_journals_and_refuses_in_words(tmp_path):
+    fb, j = _feedback(tmp_path), _Journal()
+    _, ev = _decide(fb.model, WOOL_PIECE)
+    fb.remember("piece-1", ev)
+    path = tmp_path / "labels.jsonl"
+    append_label(path, "piece-9", "wool")  # never decided here
+    append_label(path, "piece-1", "silk")  # touched: its mean is the training one
+    append_label(path, "piece-1", "linen")  # not in the job, and not said to be off-scene
+    with open(path, "a") as f:
+        f.write("{not json\n")
+    append_label(path, "piece-1", "wool")
+    with open(path, "a") as f:
+        f.write('{"item_id": "piece-2", "fab')  # still being written: left for the next poll
+    recs = fb.poll(j)
+    assert [r["applied"] for r in recs] == [False, False, False, False, True]
+    assert "no decided item 'piece-9'" in recs[0]["why"] and "touched fabric" in recs[1]["why"]
+    assert "not a fabric of this job (an off-scene piece" in recs[2]["why"]
+    assert f"{path} line 4: not JSON" in recs[3]["why"]
+    assert fb.model.means[2][0] > 5 and fb.lines_read == 5
+    assert fb.poll(j) == []  # nothing new: nothing journaled twice
+    with open(path, "a") as f:
+        f.write('ric": "wool"}\n')
+    assert [r["line"] for r in fb.poll(j)] == [6]
+    ev = fb()  # the next piece's evidence: the adapted model, guarded by the zero-shot one
+    assert ev.adapted.item_model is fb.model and ev.zero_shot.item_model is fb.base
+    fresh = _feedback(tmp_path / "nothing-learned")()
+    assert isinstance(fresh, Evidence) and fresh.item_model.classes == CLASSES  # nothing learned: zero-shot
+
+
+def test_a_stranger_the_operator_names_takes_its_pieces_to_the_reject_bin(tmp_path):
+    """A fabric the job does not list, sitting between a touched and an untouched class: once the
+    untouched class is labelled it stops sharing such pieces - unless the stranger is learned too."""
+    fb, j = _feedback(tmp_path), _Journal()
+    stranger = (5.0, 5.0)
+    for item, z in (("wool-1", WOOL_PIECE), ("odd-1", stranger)):
+        fb.remember(item, _decide(fb.model, z)[1])
+    append_label(fb.path, "wool-1", "wool")
+    append_label(fb.path, "odd-1", "wool", off_scene=True)  # a scene fabric cannot be off-scene
+    append_label(fb.path, "odd-1", "cord", off_scene=True)
+    assert [r["applied"] for r in fb.poll(j)] == [True, False, True]
+    assert fb.model.classes == (*CLASSES, "off-scene:cord")
+    ev = fb()
+    assert ev.adapted.classes == [*CLASSES, "off-scene:cord"] and ev.zero_shot.classes == list(CLASSES)
+    d = None
+    for _ in range(4):
+        d = ev.add(so.Press({c: 0.0 for c in CLASSES}, {c: 1.0 for c in CLASSES}, np.array(stranger)))
+        if d is not None:
+            break
+    d = d or ev.decide()
+    assert d.label == "off-scene:cord"  # no fabric of the job: the cell's bin_for sends it to reject
+    assert so.outcome("cord", d.label, CLASSES) == so.RIGHT and so.outcome("wool", d.label, CLASSES) == so.REJECT
+
+
+def test_a_class_no_label_taught_is_sorted_only_when_zero_shot_agrees():
+    """The demo's job before the guard: two synthesised classes shared a stranger's pieces (the
+    reject bin); once one was labelled its mean moved and narrowed, and the stranger's pieces went
+    to the other one's bin, confidently - mis-sorted. The guard sends them to reject; a piece the
+    zero-shot model also puts in that class is still sorted."""
+    m = SceneModel(("tw", "a", "b"), frozenset({"a", "b"}), np.zeros(2), np.eye(2),
+                   np.array([[0.0, -10.0], [0.0, 10.0], [10.0, 10.0]]), item_rule="offset", press_var=1.0,
+                   offset_var_touched=0.1, offset_var_untouched=20.0, item_temperature=1.0)
+    make = lambda model, classes: Evidence(classes, 0.9, 4, item_model=model)  # noqa: E731
+    adapted = adapt(m, {"a": [(np.array([0.0, 6.0]), 4)] * 3})
+
+    def run(ev, z):
+        for _ in range(4):
+            d = ev.add(so.Press({}, None, np.array(z)))
+            if d is not None:
+                return d
+        return ev.decide()
+
+    stranger, real_b = (5.0, 10.0), (10.0, 10.0)
+    assert run(make(m, ["tw", "a", "b"]), stranger).label == UNKNOWN  # zero-shot: a and b share it
+    assert run(make(adapted, ["tw", "a", "b"]), stranger).label == "b"  # unguarded: a mis-sort
+    guarded = run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), stranger)
+    assert guarded.label == UNKNOWN and guarded.stopped_by == "unlabelled_guard" and guarded.presses == 4
+    assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), real_b).label == "b"
+    assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), (0.0, 6.0)).label == "a"
+
+
+def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
+    fb = _feedback(tmp_path)
+    assert fb.poll(_Journal()) == []  # no file yet: nothing to read
+    (tmp_path / "labels.jsonl").write_bytes(b"\n" + b"x" * 5000 + b"\n" + b"[1, 2]\n")
+    got = read_labels(tmp_path / "labels.jsonl")
+    assert [k for k, _ in got] == [1, 2, 3] and all(isinstance(r, str) for _, r in got)
+    assert "empty line" in got[0][1] and "5000 bytes" in got[1][1] and "item_id" in got[2][1]
+
+
+class _ZModel:
+    """Every pressed frame of grey level 80 is a wool piece at WOOL_PIECE in the scene model's space."""
+
+    def set_reference(self, frame):
+        check_frame(frame, name="reference frame")
+
+    def score_press(self, frame):
+        check_frame(frame)
+        return so.Press({c: -1.0 for c in CLASSES}, None, np.array(WOOL_PIECE))
+
+
+def _cell(tmp_path, feedback, script):
+    arm = FakeArm()
+    arm.connect()
+    gate = FakeGate()
+    gate.connect()
+    journal = Journal.open(tmp_path / "journal.jsonl")
+    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=arm.config.grid_points_mm()[:20], max_presses=4,
+                      confidence=0.95, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
+    cell = Cell(camera=ScriptedCamera(arm, script), arm=arm, gate=gate, model=_ZModel(), journal=journal,
+                notifier=Notifier(address=""), scene=scene, evidence_factory=feedback,
+                items=ContinuousFeed(first_number=journal.next_item_number()), sleep=lambda s: None)
+    return cell, gate, journal
+
+
+def test_the_cell_learns_between_pieces_and_a_restart_resumes_it(tmp_path):
+    fb = _feedback(tmp_path)
+    cell, gate, journal = _cell(tmp_path, fb, [80] * 4)
+    first = cell.run(max_items=1)[0]
+    assert first.label == UNKNOWN and gate.sorted == [0]
+    pre = [r for r in read_records(journal.path) if r["type"] == "pre_sort"][0]
+    assert pre["scene_z_mean"] == list(WOOL_PIECE)  # what a later label reads, journaled with the decision
+    append_label(tmp_path / "labels.jsonl", first.item.id, "wool")  # the person at the reject bin
+    cell.camera.script = [80] * 4
+    second = cell.run(max_items=2)[-1]
+    assert second.label == "wool" and gate.sorted[-1] == BINS["wool"]
+    recs = read_records(journal.path)
+    kinds = [r["type"] for r in recs]
+    # the label is journaled before the piece it changed was decided: item 2's record, the label, its decision
+    assert kinds == ["item", "pre_sort", "final", "item", "label", "pre_sort", "final"]
+    journal.close()
+    # a restarted service: same journal, same labels file, a fresh factory - the same model
+    fresh = _feedback(tmp_path)
+    fresh.restore(iter_records(journal.path), seal=None)
+    assert np.allclose(fresh.model.means, fb.model.means) and fresh.lines_read == 1
+    assert fresh.poll(_Journal()) == []  # the label is not read (and journaled) a second time
+    # sessions of another bundle are skipped: their projections are another model's
+    other = _feedback(tmp_path)
+    other.restore([{"type": "start", SEAL_KEY: "other"}, *iter_records(journal.path)], seal="mine")
+    assert np.array_equal(other.model.means, _model().means)
+
+
+def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(journal="state/journal.jsonl"))
+    assert main(["label", str(cfg), "piece-000001", "wool"]) == 2
+    assert "does not turn operator labels on" in capsys.readouterr().err
+    cfg.write_text(fake_cell_yaml(journal="state/journal.jsonl", evidence={"operator_labels": "labels.jsonl"}))
+    assert main(["label", str(cfg), "piece-000001", "linen"]) == 2  # a typo must not become a stranger
+    assert "'linen' is not a fabric of the scene" in capsys.readouterr().err
+    assert main(["label", str(cfg), "piece-000001", "wool", "--off-scene"]) == 2
+    assert "drop --off-scene" in capsys.readouterr().err
+    assert main(["label", str(cfg), "piece-000001", "wool"]) == 0
+    assert main(["label", str(cfg), "piece-000002", "linen", "--off-scene"]) == 0
+    lines = (tmp_path / "labels.jsonl").read_text().splitlines()
+    assert [json.loads(x) for x in lines] == [{"fabric": "wool", "item_id": "piece-000001"},
+                                              {"fabric": "linen", "item_id": "piece-000002", "off_scene": True}]
+
+
+def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.recording import record_session
+    from vs2t_edge.runtime.replay import ReplayFile, run_replay
+
+    class Model(_ZModel):
+        scene_model = _model()
+
+    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
+        camera={"kind": "replay", "path": "x"}, journal="j.jsonl", cell={"overlap_scoring": False},
+        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
+    cfg = load_config(tmp_path / "cell.yaml")
+    arm = FakeArm(config=cfg.arm)
+
+    def operator(result):  # the person at the reject bin, before the next piece comes
+        if result.label == UNKNOWN:
+            append_label(cfg.operator_labels, result.item.id, "wool")
+
+    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
+                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=operator)
+    rf = ReplayFile.open(out)
+    finals = [d["label"] for d in rf.index["decisions"] if d["type"] == "final"]
+    assert finals == [UNKNOWN, "wool", "wool"]  # the first piece taught the cell
+    assert rf.index["labels"] == [{"before_item": "piece-000002", "item_id": "piece-000001", "fabric": "wool"}]
+    assert run_replay(out, model=Model()).ok
+    # without its labels the same frames decide otherwise: the replay used them (and it says where)
+    index = json.loads((out / "index.json").read_text())
+    index["labels"] = []
+    (out / "index.json").write_text(json.dumps(index))
+    report = run_replay(out, model=Model())
+    assert not report.ok and "gate.sort(0) but the recording sorted to [3]" in report.diverged
