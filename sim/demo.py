@@ -36,6 +36,7 @@ import numpy as np
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
+from vs2t_edge.runtime.feedback import append_label
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.wiring import SceneModelMissing, require_scene_model
@@ -138,11 +139,14 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
-                without_scene_model: str | None = None) -> dict:
+                without_scene_model: str | None = None, operator_labels: bool = False) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
     require_scene_model(model, bundle, without_scene_model,
                         "give --without-scene-model allow (`--force` redoes the demo's stages)")
+    if operator_labels and getattr(getattr(model, "scene_model", None), "item_rule", "") != "offset":
+        log("operator labels need a scene model with the offset item rule; this bundle sorts zero-shot only")
+        operator_labels = False
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)
     strangers = [f.id for f in ds.fabrics if f.id not in known]
@@ -153,8 +157,10 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     items = item_stream(ds, touched + untouched + off_scene, n_items, seed=seed)
     fabrics = assign_bins(touched, untouched)
     journal = workdir / "journal.jsonl"
-    if journal.exists():
-        journal.unlink()
+    labels = workdir / "labels.jsonl"  # the simulated operator's (runtime/feedback.py)
+    for old in (journal, labels):
+        if old.exists():
+            old.unlink()
     kinds = {n: k for n, k, _ in fabrics}
     bins = {n: b for n, _, b in fabrics}
     records: list = []
@@ -172,6 +178,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
         if r.outcome != "sorted":
             mark += f" ({r.outcome})"
+        elif operator_labels and r.label not in scene_names:  # a person at the reject bin says what it was
+            append_label(labels, r.item.id, truth, off_scene=truth not in scene_names)
+            mark += f" (operator: {truth}" + (")" if truth in scene_names else ", off-scene)")
         own = f"bin {bins[truth]}" if truth in bins else "reject"
         log(f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} ({kind:9s}, its bin: {own:6s}) -> "
             f"{said:>26s}  bin {r.bin}  {r.presses} press{'es' if r.presses != 1 else '  '}  "
@@ -187,6 +196,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         data["cell"] = {"overlap_scoring": overlap_scoring}
         if without_scene_model:
             data["evidence"]["without_scene_model"] = without_scene_model
+        if operator_labels:
+            data["evidence"]["operator_labels"] = str(labels)
         cfg = write_scene_config(workdir / "cell.yaml", data)
         if fault_at is not None:
             cell.schedule_fault(fault_at[0], fault_at[1], "protective_stop")
@@ -227,7 +238,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     speculative = sum(r.get("speculative_presses", 0) for r in read_records(journal) if r["type"] == "pre_sort")
     summary.update(scene={"touched": touched, "untouched": untouched, "off_scene": off_scene, "bins": bins},
                    items=len(records), sort_s=sort_s, rows=rows, overlap_scoring=overlap_scoring,
-                   speculative_presses=speculative,
+                   speculative_presses=speculative, operator_labels=operator_labels,
+                   labels_applied=sum(bool(r.get("applied")) for r in read_records(journal) if r["type"] == "label"),
                    latency_ms_median=float(np.median(lat)) if lat else float("nan"),
                    latency_ms_p95=float(np.percentile(lat, 95)) if lat else float("nan"),
                    item_s_median=float(np.median(item_s)) if item_s else float("nan"),
@@ -246,6 +258,11 @@ def report_lines(summary: dict) -> str:
     lines.append(f"presses per piece {a['presses']:.2f}; {summary['items_per_min']:.1f} pieces per minute with the "
                  f"simulated arm in real time ({summary['item_s_median']:.1f} s per piece); model latency median "
                  f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press")
+    if summary.get("operator_labels"):
+        lines.append(f"learning from the reject bin (evidence.operator_labels, outside the zero-shot protocol): the "
+                     f"simulated operator labelled every rejected piece, {summary['labels_applied']} label(s) taught the "
+                     "cell (an untouched fabric's real mean, or an off-scene fabric to refuse); `--operator-labels off` "
+                     "sorts zero-shot only")
     if "overlap_scoring" in summary:
         spec = summary.get("speculative_presses", 0)
         lines.append(f"scoring overlapped with the arm's moves: {'on' if summary['overlap_scoring'] else 'off'}"
@@ -277,6 +294,11 @@ def add_arguments(parser, verb: str) -> None:
                         help="evidence.without_scene_model for a bundle without a scene model (decision.npz): "
                              "refused by default; allow sorts with the router's posterior, which has no "
                              "off-scene rule (off-scene pieces go to a scene fabric's bin)")
+    parser.add_argument("--operator-labels", choices=("on", "off"), default="on",
+                        help="evidence.operator_labels: a simulated operator labels every piece in the reject bin "
+                             "with what it was, and the cell learns from it - an untouched fabric's real mean, an "
+                             "off-scene fabric to refuse (runtime/feedback.py; outside the zero-shot protocol; "
+                             "default on, as a line with a person at the reject bin would run; off: zero-shot only)")
     parser.add_argument("--overlap-scoring", choices=("on", "off"), default="on",
                         help="cell.overlap_scoring: score a press while the arm moves on (default on); off: "
                              "each press scored before the arm moves again, to compare pieces per minute")
@@ -309,7 +331,8 @@ def run(args) -> int:
                               gate_kind=args.gate, max_presses=args.max_presses, confidence=args.confidence,
                               threads=args.threads, record=Path(args.record) if args.record else None,
                               fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on",
-                              without_scene_model=args.without_scene_model)
+                              without_scene_model=args.without_scene_model,
+                              operator_labels=args.operator_labels == "on")
     except SceneModelMissing as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 2
