@@ -205,7 +205,8 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     """Per item, by bins (runtime/sorting.py), on scenes of 5 touched + 3 untouched bundle classes
     with off-scene pieces of the classes a scene leaves out: the bundle's scene decision (when it
     carries one) and the router's posterior with the fixed confidence (the baseline), on the same
-    scenes and presses. Percent; presses per item."""
+    scenes and presses; for an offset-rule scene model also the same scenes as jobs with operator
+    labels (``scene_model_labels``, runtime/feedback.py). Percent; presses per item."""
     from vs2t_edge.runtime import sorting as so
 
     classes = list(model.classes)
@@ -221,8 +222,13 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
                                                                     np.float32) for c in np.unique(lab)}
         rules["scene_model"] = so.scene_evidence(model.scene_model, BIN_MAX_PRESSES)
     res = {"scenes": n_scenes, "max_presses": BIN_MAX_PRESSES}
-    for name, table in tables.items():
-        recs = so.simulate_scenes(scenes, table, rules[name], max_presses=BIN_MAX_PRESSES, seed=seed + 1)
+    runs = {name: so.simulate_scenes(scenes, table, rules[name], max_presses=BIN_MAX_PRESSES, seed=seed + 1)
+            for name, table in tables.items()}
+    if getattr(getattr(model, "scene_model", None), "item_rule", "") == "offset":
+        # the same scenes as jobs, every rejected piece labelled by the operator (runtime/feedback.py)
+        runs["scene_model_labels"] = so.simulate_with_labels(scenes, tables["scene_model"], model.scene_model,
+                                                             max_presses=BIN_MAX_PRESSES, seed=seed + 2)
+    for name, recs in runs.items():
         summary = so.summarise(recs)
         res[name] = {kind: {k: (100 * v if k in so.OUTCOMES else v) for k, v in r.items()}
                      for kind, r in [("all", summary["all"]), *summary["by_kind"].items()]}

@@ -44,7 +44,7 @@ def render_bins(result: dict) -> str:
     """Per item, by bins (``by_bins``): one row per variant and decision; empty without accuracies."""
     rows = [(r["name"], name, {**b[name], "pieces_per_min": b.get("pieces_per_min", {}).get(name, {})})
             for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
-            for name in ("scene_model", "router") if name in b]
+            for name in ("scene_model", "scene_model_labels", "router") if name in b]
     if not rows:
         return ""
     lines = ["| variant | decision | right bin | mis-sort | reject | touched right | untouched right "
@@ -53,7 +53,9 @@ def render_bins(result: dict) -> str:
     for name, decision, b in rows:
         kind = lambda k, o: _f(b.get(k, {}).get(o))  # noqa: E731
         ppm = b.get("pieces_per_min", {})
-        lines.append(f"| {name} | {'scene decision' if decision == 'scene_model' else 'router, confidence 0.95'} | "
+        said = {"scene_model": "scene decision", "scene_model_labels": "scene decision + operator labels (not zero-shot)",
+                "router": "router, confidence 0.95"}[decision]
+        lines.append(f"| {name} | {said} | "
                      f"{kind('all', 'right')} | {kind('all', 'mis-sort')} | {kind('all', 'reject')} | "
                      f"{kind('touched', 'right')} | {kind('untouched', 'right')} | {kind('off-scene', 'right')} | "
                      f"{_f(b['all'].get('presses'), '{:.2f}')} | {_f(ppm.get('sequential'), '{:.2f}')} | "

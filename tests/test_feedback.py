@@ -312,3 +312,19 @@ def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
     (out / "index.json").write_text(json.dumps(index))
     report = run_replay(out, model=Model())
     assert not report.ok and "gate.sort(0) but the recording sorted to [3]" in report.diverged
+
+
+def test_the_bench_prices_operator_labels_beside_the_zero_shot_decision():
+    from types import SimpleNamespace
+
+    from vs2t_edge.bench.accuracy import by_bins
+
+    rng = np.random.default_rng(0)
+    centres = {"denim": (0.0, 0.0), "silk": (10.0, 0.0), "wool": WOOL_PIECE}
+    lab = np.repeat([0, 1, 2], 12)
+    feature = np.concatenate([np.array(centres[c]) + rng.normal(0, 0.3, (12, 2)) for c in CLASSES])
+    model = SimpleNamespace(classes=CLASSES, touched=("denim", "silk"), untouched=("wool",), scene_model=_model())
+    res = by_bins(model, {"label": lab, "lp": np.log(np.full((36, 3), 1 / 3)), "feature": feature}, n_scenes=2)
+    z0, z1 = res["scene_model"]["untouched"], res["scene_model_labels"]["untouched"]  # wool is the one
+    assert z0["n"] == z1["n"] and z0["right"] == 0.0  # zero-shot: every wool piece between silk and the synthesis
+    assert z1["right"] > 50.0  # each job's first wool piece is rejected and labelled, the rest sorted (75 %)
