@@ -19,7 +19,14 @@ and a new piece's mean zbar ~ N(mu_post, (1 / P + s_t + v / n) I): the class's o
 becomes 1 / P + s_t (``SceneModel.class_offset_var``). s_u, s_t and v are the bundle's
 (``offset_var_untouched``, ``offset_var_touched``, ``press_var``), chosen on validation fabrics in
 training; so it needs the offset item rule. Touched fabrics' means come from their training
-presses and are left alone; a label naming one is recorded and not applied.
+presses and are left alone; a label naming one is recorded and not applied. A piece the operator
+calls off-scene (none of the job's fabrics) teaches a stranger: a class ``off-scene:NAME`` at its
+labelled pieces' mean (no prior: nothing synthesised it), decided like any class and sent, being
+no fabric of the job, to the reject bin.
+
+A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
+on the same presses, decides the same class - labels make the cell surer of what they taught,
+never bolder elsewhere. Touched classes are not guarded: their means were real already.
 
 This is a mode outside the zero-shot protocol, on only when the cell config names a labels file
 (``evidence.operator_labels``), and measured as such (train/decision.py ``evaluate_scenes``,
@@ -48,8 +55,6 @@ from vs2t_edge.runtime.evidence import UNKNOWN, Evidence, ItemDecision
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 
 MAX_LABEL_LINE_BYTES = 4096
-
-
 OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
 
 
@@ -108,17 +113,18 @@ class GuardedEvidence:
     """The item evidence with labels, never bolder than zero-shot where no label taught it.
 
     Two evidences see every press: one scored with the adapted model, one with the bundle's own.
-    A class the labels taught (an untouched fabric with labelled pieces, a learned stranger)
-    is decided by the adapted one alone. Any other class is sorted only when the zero-shot
-    evidence decides the same class: a labelled class whose synthesis used to share a piece with
+    A ``trusted`` class - one the labels taught (an untouched fabric with labelled pieces, a
+    learned stranger) or a touched one (its mean was real already) - is decided by the adapted one
+    alone. Any other class is sorted only when the zero-shot evidence decides the same class: a
+    labelled class whose synthesis used to share a piece with
     another synthesised class stops sharing it once its mean is real, and that piece - a fabric
     the job does not list, between the two syntheses - would otherwise go to the other class's
     bin with a confidence the zero-shot operating point never gave it (measured on the demo's job:
     every piece of such a fabric mis-sorted). The cell keeps pressing while the two disagree, up to
     the press limit, where the piece goes to the reject bin (``stopped_by`` "unlabelled_guard")."""
 
-    def __init__(self, adapted: Evidence, zero_shot: Evidence, learned: Iterable[str]) -> None:
-        self.adapted, self.zero_shot, self.learned = adapted, zero_shot, frozenset(learned)
+    def __init__(self, adapted: Evidence, zero_shot: Evidence, trusted: Iterable[str]) -> None:
+        self.adapted, self.zero_shot, self.trusted = adapted, zero_shot, frozenset(trusted)
 
     @property
     def presses(self) -> int:
@@ -129,7 +135,7 @@ class GuardedEvidence:
         return self.adapted.z_mean
 
     def _guarded(self, d, final: bool):
-        if d is None or d.label == UNKNOWN or d.label in self.learned:
+        if d is None or d.label == UNKNOWN or d.label in self.trusted:
             return d
         z = self.zero_shot.decide() if final or d.stopped_by != "confident" else self.zero_shot.peek()
         if z is not None and z.label == d.label:
