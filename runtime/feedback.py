@@ -234,8 +234,8 @@ class OperatorFeedback:
         if z is not None and n:
             self.pieces[str(item_id)] = (np.asarray(z, np.float64).tolist(), int(n))
 
-    def _apply(self, item_id: str, fabric: str, off_scene: bool = False) -> str:
-        """'' when the label moved the model, else why not."""
+    def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
+        """'' when the label moved the model (``rebuild`` False: is to move it), else why not."""
         if off_scene and fabric in self.scene:
             return f"{fabric!r} is a fabric of this job, not an off-scene one"
         if not off_scene and fabric not in self.scene:
@@ -246,7 +246,8 @@ class OperatorFeedback:
             return f"no decided item {item_id!r} with presses in this journal"
         z, n = self.pieces[item_id]
         (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
-        self.model = adapt(self.base, self.labelled, self.strangers)
+        if rebuild:
+            self.model = adapt(self.base, self.labelled, self.strangers)
         return ""
 
     def poll(self, journal) -> list[dict]:
@@ -282,8 +283,10 @@ class OperatorFeedback:
                 self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
                 if rec.get("applied"):
-                    self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")))
+                    self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")),
+                                rebuild=False)
                 self.lines_read = max(self.lines_read, rec["line"])
+        self.model = adapt(self.base, self.labelled, self.strangers)  # once, not once per label
 
 
 __all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",
