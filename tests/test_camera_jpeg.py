@@ -166,3 +166,23 @@ def test_the_bench_scores_a_bundle_on_its_own_cameras_frames_and_pairs_two_scori
     p = paired(view(model, lossless), view(model, own), n_boot=20, n_items=2)
     text = render_pairs({"pairs": [{"a": "lossless", "b": "q90", "paired": p}]})
     assert "| q90 | lossless | press acc_t |" in text
+
+
+def test_calibrate_threshold_scores_a_dataset_through_the_bundles_camera_jpeg(jpeg_bundle):
+    from pathlib import Path
+
+    from vs2t_edge.runtime.calibrate import novelty_from_dataset
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+
+    out, m = jpeg_bundle
+    model = TactileModel.load(out, threads=1)
+    ds_root = Path(m["provenance"]["data"]["dataset"])
+    val = [f for f in load_dataset(ds_root).ids if f not in model.classes][:1]
+    touched, _ = novelty_from_dataset(model, ds_root, val)
+    fab = next(f for f in load_dataset(ds_root).fabrics if f.id in model.touched)
+    model.set_reference(through_camera_jpeg(fab.load_reference(), 90))
+    want = float(model.score_press(through_camera_jpeg(fab.load_press(0), 90)).novelty)
+    model.set_reference(fab.load_reference())
+    lossless = float(model.score_press(fab.load_press(0)).novelty)
+    assert touched[0] == pytest.approx(want, rel=1e-6) and touched[0] != pytest.approx(lossless, rel=1e-4)
