@@ -109,7 +109,7 @@ def accuracy_frames(model, jpeg_quality: int, through_jpeg: bool, lossless: bool
         return None, "lossless (the dataset's PNG)"
     if through_jpeg:
         return int(jpeg_quality), f"through JPEG q={int(jpeg_quality)}, decoded at the bundle's scale"
-    own = int(getattr(model.bundle, "camera_jpeg", 0) or 0)
+    own = int(getattr(model, "camera_jpeg", 0) or 0)
     if own:
         return own, f"through JPEG q={own} (the bundle's camera_jpeg: it trained on such frames), decoded at its scale"
     return None, "lossless (the dataset's PNG)"

@@ -199,7 +199,7 @@ def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None
     """Novelty of every press of the dataset, split into touched (bundle classes) and validation.
     A bundle trained through the camera's JPEG (manifest ``camera_jpeg``) scores the dataset's
     frames through it, decoded at its scale, as its camera hands them (``camera_frame``)."""
-    q = int(getattr(model.bundle, "camera_jpeg", 0) or 0)
+    q = int(getattr(model, "camera_jpeg", 0) or 0)
     scale = camera_scale(model.preprocess_spec) if q else 1
     by = {"reduced_by": scale} if scale != 1 else {}
     ds = load_dataset(dataset_root)

@@ -231,7 +231,7 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
     man90 = export_run(tmp_path / "run90", tmp_path / "bundle90", calibration_frames=16, threads=1)
     assert man90["camera_jpeg"] == 90 and "camera_jpeg" not in man
     assert man90["gating"]["scale"] != man["gating"]["scale"]
-    assert TactileModel.load(tmp_path / "bundle90", threads=1).bundle.camera_jpeg == 90
+    assert TactileModel.load(tmp_path / "bundle90", threads=1).camera_jpeg == 90
     from vs2t_edge.export.export import ExportError
 
     with pytest.raises(ExportError, match="apply to a trunk"):  # not silently a trunk export
