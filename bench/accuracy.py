@@ -63,25 +63,20 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
                   jpeg_quality: int | None = None) -> dict:
     """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u.
     ``jpeg_quality``: each frame (and the no-contact frame) goes through the camera's JPEG at that
-    quality and is decoded at the bundle's scale, as a UVC camera hands it; None: lossless frames."""
-    from vs2t_edge.bench.press_timing import decode_scale
+    quality and is decoded at the bundle's scale, as a UVC camera hands it (runtime.preprocess
+    ``camera_press``, what training with ``camera_jpeg`` reads); None: lossless frames."""
     from vs2t_edge.runtime.novelty import log_softmax
-    from vs2t_edge.runtime.preprocess import prepare_reference, preprocess_tactile
+    from vs2t_edge.runtime.preprocess import camera_press, camera_reference
 
-    scale = decode_scale(model) if jpeg_quality is not None else 1
-
-    def camera(frame: np.ndarray) -> np.ndarray:
-        return frame if jpeg_quality is None else through_jpeg(frame, jpeg_quality, scale)
-
+    q, spec = jpeg_quality or 0, model.preprocess_spec
     cls_index = {c: i for i, c in enumerate(model.classes)}
     lp, nov, lsu, lab, feat = [], [], [], [], []
     line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
-        ref = fab.load_reference()
-        if jpeg_quality is not None:  # decoded reduced like the frames: prepared at that scale
-            ref = prepare_reference(camera(ref), model.preprocess_spec, scale)
-        x = np.stack([preprocess_tactile(camera(fab.load_press(i)), ref, model.preprocess_spec, scale) for i in idx])
+        # through the JPEG, the no-contact frame is decoded reduced like the frames and prepared at that scale
+        ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame")
+        x = np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}") for i in idx])
         for a in range(0, len(x), 32):
             o = model.forward(x[a:a + 32])
             lp.append(model.log_posterior(o))
@@ -96,17 +91,28 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
 
 
 def through_jpeg(frame: np.ndarray, quality: int, scale: int = 1) -> np.ndarray:
-    """``frame`` as a camera streaming MJPEG at ``quality`` hands it: encoded, then decoded at
-    1/``scale`` (runtime.preprocess.decode_jpeg, the cell's own decode)."""
-    import cv2
+    """``frame`` as a camera streaming MJPEG at ``quality`` hands it: the runtime's
+    ``through_camera_jpeg`` (encoded, then decoded at 1/``scale`` by the cell's own decode)."""
+    from vs2t_edge.runtime.preprocess import through_camera_jpeg
 
-    from vs2t_edge.runtime.preprocess import decode_jpeg
+    return through_camera_jpeg(frame, quality, scale)
 
-    ok, enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    out = decode_jpeg(enc.tobytes(), scale) if ok else None
-    if out is None:
-        raise RuntimeError(f"could not pass a frame through JPEG at quality {quality}")
-    return out
+
+def accuracy_frames(model, jpeg_quality: int, through_jpeg: bool, lossless: bool = False) -> tuple[int | None, str]:
+    """(quality the held-out frames go through, or None for lossless; what the report says):
+    ``--accuracy-through-jpeg``'s ``jpeg_quality`` when asked; lossless when asked
+    (``--accuracy-lossless``); else the bundle's own camera JPEG (manifest ``camera_jpeg``: trained
+    on frames through it) when it records one; else lossless."""
+    if through_jpeg and lossless:
+        raise ValueError("frames through JPEG or lossless: not both")
+    if lossless:
+        return None, "lossless (the dataset's PNG)"
+    if through_jpeg:
+        return int(jpeg_quality), f"through JPEG q={int(jpeg_quality)}, decoded at the bundle's scale"
+    own = int(getattr(model, "camera_jpeg", 0) or 0)
+    if own:
+        return own, f"through JPEG q={own} (the bundle's camera_jpeg: it trained on such frames), decoded at its scale"
+    return None, "lossless (the dataset's PNG)"
 
 
 def _per_class_mean(correct: np.ndarray, labels: np.ndarray) -> float:

@@ -24,9 +24,17 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--no-accuracy", action="store_true", help="speed only")
     parser.add_argument("--jpeg-quality", type=int, default=95,
                         help="JPEG quality of the camera's MJPEG frames the press is timed on (default 95)")
-    parser.add_argument("--accuracy-through-jpeg", action="store_true",
+    frames = parser.add_mutually_exclusive_group()
+    frames.add_argument("--accuracy-through-jpeg", action="store_true",
                         help="score accuracy on frames passed through that JPEG, decoded at each bundle's scale as "
-                             "the camera hands them (default: the dataset's lossless frames)")
+                             "the camera hands them (default: a bundle trained through the camera's JPEG, manifest "
+                             "camera_jpeg, reads frames through its own; any other the dataset's lossless frames)")
+    frames.add_argument("--accuracy-lossless", action="store_true",
+                        help="score every bundle on the dataset's lossless frames, even one trained through the "
+                             "camera's JPEG")
+    parser.add_argument("--pair", action="append", default=[], metavar="A:B",
+                        help="pair two scored variants (bundle folder names): B minus A on the same presses and items, "
+                             "with 95 %% bootstrap intervals and flips, as int8 is paired with fp32 (repeatable)")
     parser.add_argument("--arm-times", default=None, metavar="JSON",
                         help="the arm's times per press, for pieces per minute: the JSON of "
                              "`python -m vs2t_edge.sim.ursim --bench 9 --json FILE` (or the same on a robot)")
@@ -34,8 +42,9 @@ def add_arguments(parser, verb: str) -> None:
 
 def run(args) -> int:
     from vs2t_edge.bench.measure import run_bench
-    from vs2t_edge.bench.report import arm_times_line, render_bins, render_table
+    from vs2t_edge.bench.report import arm_times_line, render_bins, render_pairs, render_table
     from vs2t_edge.runtime.bundle import BundleError, is_descriptor, read_manifest
+    from vs2t_edge.runtime.preprocess import FrameError
     from vs2t_edge.runtime.sorting import ArmTimes
 
     bundles = [Path(b) for b in args.bundles]
@@ -49,6 +58,15 @@ def run(args) -> int:
     if not 1 <= args.jpeg_quality <= 100:
         print(f"bench: --jpeg-quality {args.jpeg_quality}: give a JPEG quality from 1 to 100", file=sys.stderr)
         return 2
+    pairs = []
+    names = [b.name for b in bundles]
+    for p in args.pair:
+        a, sep, b = p.partition(":")
+        if not sep or a not in names or b not in names or a == b:
+            print(f"bench: --pair {p!r}: give A:B, two different bundle folder names of this bench ({', '.join(names)})",
+                  file=sys.stderr)
+            return 2
+        pairs.append((a, b))
     arm = None
     if args.arm_times:
         try:
@@ -70,13 +88,17 @@ def run(args) -> int:
         result = run_bench(bundles, Path(args.out) if args.out else None, dataset=args.dataset, threads=threads,
                            budget_s=args.budget_s, n_items=args.items, cap=args.max_eval_presses,
                            accuracy_on=not args.no_accuracy, arm=arm, jpeg_quality=args.jpeg_quality,
-                           accuracy_through_jpeg=args.accuracy_through_jpeg)
-    except (BundleError, FileNotFoundError, RuntimeError) as exc:
+                           accuracy_through_jpeg=args.accuracy_through_jpeg, accuracy_lossless=args.accuracy_lossless,
+                           pairs=pairs)
+    except (BundleError, FrameError, FileNotFoundError, RuntimeError) as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 1
     print(render_table(result))
     for r in result.get("recommendation", []):
         print(f"recommended on this machine: {r['recommended']} ({r['why']})")
+    pairs_text = render_pairs(result)
+    if pairs_text:
+        print("\npaired (--pair), B minus A on the same presses and items:\n" + pairs_text)
     bins = render_bins(result)
     if bins:
         print("\nper item, by bins (right / mis-sort / reject, %):\n" + bins + "\n" + arm_times_line(result))

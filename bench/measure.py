@@ -52,7 +52,7 @@ from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. st
     split_press_graph)
 from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
-    by_bins, eval_presses, pieces_per_minute, press_outputs)
+    accuracy_frames, by_bins, eval_presses, pieces_per_minute, press_outputs)
 
 
 def _log(msg: str) -> None:
@@ -297,6 +297,17 @@ def describe(bundle: Path) -> dict:
             "run": m.get("provenance", {}).get("run"), "made_by": _made_by(m)}
 
 
+def frames_said(rows: list[dict], jpeg_quality: int, through_jpeg: bool) -> str:
+    """Which frames the accuracies read, for the report: one phrase when every scored variant read
+    the same kind, else each variant's (a bundle trained through the camera's JPEG reads its own)."""
+    said = {r["name"]: r["accuracy_frames"] for r in rows if "accuracy_frames" in r}
+    if through_jpeg:
+        return f"through JPEG q={jpeg_quality}, decoded at each bundle's scale"
+    if len(set(said.values())) <= 1:
+        return next(iter(said.values()), "lossless (the dataset's PNG)")
+    return "per variant - " + "; ".join(f"{name}: {what}" for name, what in said.items())
+
+
 def _made_by(manifest: dict) -> dict:
     """What the bundle says produced it, so the bench page can say how to make it again."""
     prov = manifest.get("provenance", {}) if isinstance(manifest.get("provenance"), dict) else {}
@@ -310,11 +321,16 @@ def _made_by(manifest: dict) -> dict:
 def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
               threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 60,
               accuracy_on: bool = True, arm=None, jpeg_quality: int = JPEG_QUALITY, accuracy_through_jpeg: bool = False,
+              accuracy_lossless: bool = False, pairs: Sequence[tuple[str, str]] = (),
               log: Callable[[str], None] = _log) -> dict:
     """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute.
     ``jpeg_quality``: what the camera's MJPEG frames are encoded at (timing); with
     ``accuracy_through_jpeg`` the held-out presses are scored through that JPEG too, decoded at the
-    bundle's scale as the camera hands them (else from the dataset's lossless frames)."""
+    bundle's scale as the camera hands them; else a bundle trained through the camera's JPEG (manifest
+    ``camera_jpeg``) is scored through its own, the others on the dataset's lossless frames
+    (``accuracy_lossless``: every bundle on the lossless frames). ``pairs``: (A, B) variant names
+    whose difference B - A is paired on the same presses and items (bench/paired.py), as every
+    int8 bundle is with its fp32 twin."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -347,10 +363,11 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
             model = TactileModel.load(b, threads=max(threads))
             ds_root = _dataset_of(model.manifest, dataset)
             if ds_root is not None and "data" in model.manifest.get("provenance", {}):
-                log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses")
+                quality, row["accuracy_frames"] = accuracy_frames(model, jpeg_quality, accuracy_through_jpeg,
+                                                                  accuracy_lossless)
+                log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
-                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap),
-                                     jpeg_quality=jpeg_quality if accuracy_through_jpeg else None)
+                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality)
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
                 views[row["name"]] = paired_view(model, outs)  # for the paired int8-fp32 comparison
                 if arm is not None:
@@ -361,8 +378,13 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
               "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "jpeg_quality": jpeg_quality,
-              "accuracy_frames": f"through JPEG q={jpeg_quality}, decoded at each bundle's scale" if accuracy_through_jpeg
-              else "lossless (the dataset's PNG)"}
+              "accuracy_frames": frames_said(rows, jpeg_quality, accuracy_through_jpeg)}
+    result["pairs"] = [{"a": a, "b": b, "paired": paired(views[a], views[b], n_items=n_items)}
+                       for a, b in pairs if a in views and b in views]
+    for a, b in pairs:
+        if a not in views or b not in views:
+            log(f"--pair {a}:{b}: {'both were' if a not in views and b not in views else 'one was'} not scored "
+                "(no accuracy); not paired")
     result["comparisons"] = compare_pairs(rows)
     for c in result["comparisons"]:  # the same presses and items: the difference with its noise
         if c["fp32"] in views and c["int8"] in views:

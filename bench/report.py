@@ -207,6 +207,10 @@ def render_markdown(result: dict) -> str:
         paired_lines = render_paired(result)
         if paired_lines:
             lines += ["", "### Paired: int8 minus fp32 on the same presses and items, with its noise", "", paired_lines]
+    if render_pairs(result):
+        lines += ["", "## Paired (--pair): B minus A on the same presses and items, with its noise", "",
+                  "Bundles of different runs paired this way differ by their training too: the interval is the "
+                  "held-out presses' and scenes' noise, not a retraining's.", "", render_pairs(result)]
     lines += render_made_by(result)
     return "\n".join(lines) + "\n"
 
@@ -214,10 +218,22 @@ def render_markdown(result: dict) -> str:
 def render_paired(result: dict) -> str:
     """int8 minus fp32 per comparison (bench/paired.py): delta [95 % bootstrap], presses or items
     that flip worse / better, McNemar p. Empty when nothing was paired."""
-    rows = ["| int8 | fp32 | accuracy | fp32 | int8 | Δ [95 % CI] | flips worse / better | McNemar p | n |",
+    return _paired_rows([(c["int8"], c["fp32"], c.get("paired")) for c in result.get("comparisons", [])],
+                        ("int8", "fp32"))
+
+
+def render_pairs(result: dict) -> str:
+    """The ``--pair A:B`` comparisons, B minus A, as ``render_paired`` shows int8 minus fp32."""
+    return _paired_rows([(p["b"], p["a"], p.get("paired")) for p in result.get("pairs", [])], ("B", "A"))
+
+
+def _paired_rows(comparisons: list, heads: tuple[str, str]) -> str:
+    """(second, first, bench.paired result) per row: second minus first, as paired.py computes it
+    (its "int8" is the second, its "fp32" the first)."""
+    b_, a_ = heads
+    rows = [f"| {b_} | {a_} | accuracy | {a_} | {b_} | Δ [95 % CI] | flips worse / better | McNemar p | n |",
             "|---|---|---|---:|---:|---|---|---:|---:|"]
-    for c in result.get("comparisons", []):
-        p = c.get("paired")
+    for second, first, p in comparisons:
         if not p:
             continue
         items = [(f"press {k}", p["press"][k], "presses") for k in ("acc_t", "zsl", "acc_u", "H")]
@@ -226,7 +242,7 @@ def render_paired(result: dict) -> str:
         for name, d, unit in items:
             flips = "–" if d.get("flips_worse") is None else f"{d['flips_worse']} / {d['flips_better']}"
             pv = "–" if d.get("mcnemar_p") is None else f"{d['mcnemar_p']:.3g}"
-            rows.append(f"| {c['int8']} | {c['fp32']} | {name} | {d['fp32']:.1f} | {d['int8']:.1f} | {d['delta']:+.1f} "
+            rows.append(f"| {second} | {first} | {name} | {d['fp32']:.1f} | {d['int8']:.1f} | {d['delta']:+.1f} "
                         f"[{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}] | {flips} | {pv} | {d.get('presses', d.get('items'))} |")
     return "\n".join(rows) if len(rows) > 2 else ""
 

@@ -27,7 +27,7 @@ from torch import nn
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import tactile_descriptor as td
-from vs2t_edge.runtime.preprocess import TactilePreprocess
+from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_frame
 
 from vs2t_edge.export import export as ex
 
@@ -54,7 +54,7 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
                             touched_heldout: np.ndarray | None = None, gating_temperature: float | None = None,
                             operating_point: str = "balanced on validation fabrics", provenance: dict | None = None,
                             opset: int = ex.OPSET, scene_model: dict | None = None, threads: int = 2,
-                            log: Callable[[str], None] = lambda m: None, **_unused: Any) -> dict:
+                            log: Callable[[str], None] = lambda m: None, camera_jpeg: int = 0, **_unused: Any) -> dict:
     """Write and verify a descriptor bundle; returns the manifest. ``calibration``, ``validation``,
     ``touched_heldout``: RAW descriptors (N, D) (of touched presses, validation-fabric presses and
     held-out touched presses: the gating fit, as ``write_bundle``)."""
@@ -132,6 +132,7 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
             "classes": {"touched": touched, "untouched": untouched},
             # kept for the loader's checks and use_reference; size, crop and scaling do not apply
             "preprocess": TactilePreprocess().to_dict(),
+            **ex.camera_jpeg_entry(camera_jpeg),
             "feature_dim": dim,
             "trunk": {"kind": td.KIND, "name": name, "dim": dim, "file": "descriptor.npz",
                       "rule": "feature = (runtime.tactile_descriptor.<name>(press, item's no-contact frame) - mean) "
@@ -160,10 +161,13 @@ def write_descriptor_bundle(out_dir: Path | str, *, descriptor: Descriptor, cls_
     return manifest
 
 
-def _descriptors(ds, name: str, fid: str, indices: Sequence[int]) -> np.ndarray:
+def _descriptors(ds, name: str, fid: str, indices: Sequence[int], camera_jpeg: int = 0) -> np.ndarray:
+    """Raw descriptors of those presses, each frame through the camera's JPEG at ``camera_jpeg``
+    (full size; 0: lossless) as training read them (train.features.descriptor_table)."""
     fab = ds.by_id(fid)
-    ref = td.prepare_reference(fab.load_reference())
-    return np.stack([td.describe(name, fab.load_press(i), ref) for i in indices]).astype(np.float32)
+    ref = td.prepare_reference(camera_frame(fab.load_reference(), camera_jpeg, 1, f"{fid} reference frame"))
+    return np.stack([td.describe(name, camera_frame(fab.load_press(i), camera_jpeg, 1, f"{fid} press {i}"), ref)
+                     for i in indices]).astype(np.float32)
 
 
 def export_descriptor_run(run_dir: Path, art, out_dir: Path | str, *, dataset: Path | str | None = None,
@@ -193,10 +197,12 @@ def export_descriptor_run(run_dir: Path, art, out_dir: Path | str, *, dataset: P
                        ("the gating fit (validation presses)", art.validation)):
         check_zero_shot({fid: [0] for fid in fids}, art.untouched, what)
     per = max(1, math.ceil(calibration_frames / len(calib_ids)))
-    log(f"{name}: descriptors of {per} training presses of each of {len(calib_ids)} touched fabrics")
-    calib = np.concatenate([_descriptors(ds, name, fid, _spread(part[fid]["train"], per)) for fid in calib_ids])
-    heldout = np.concatenate([_descriptors(ds, name, fid, part[fid]["val"]) for fid in art.touched])
-    validation = np.concatenate([_descriptors(ds, name, fid, _spread(range(len(ds.by_id(fid).presses)), 12))
+    q = art.camera_jpeg
+    log(f"{name}: descriptors of {per} training presses of each of {len(calib_ids)} touched fabrics"
+        + (f" (frames through the camera's JPEG at q{q}, as the run trained)" if q else ""))
+    calib = np.concatenate([_descriptors(ds, name, fid, _spread(part[fid]["train"], per), q) for fid in calib_ids])
+    heldout = np.concatenate([_descriptors(ds, name, fid, part[fid]["val"], q) for fid in art.touched])
+    validation = np.concatenate([_descriptors(ds, name, fid, _spread(range(len(ds.by_id(fid).presses)), 12), q)
                                  for fid in art.validation]) if art.validation else None
     probe_fab = ds.by_id(calib_ids[0])
     frames = np.stack([probe_fab.load_reference(), probe_fab.load_press(part[calib_ids[0]]["train"][0])])
@@ -210,7 +216,7 @@ def export_descriptor_run(run_dir: Path, art, out_dir: Path | str, *, dataset: P
                            calibration=calib, validation=validation, touched_heldout=heldout, provenance=prov,
                            operating_point=f"{art.router_name} router, beta balanced on validation fabrics "
                                            f"{', '.join(art.validation)}",
-                           scene_model=art.scene_model, threads=threads, log=log,
+                           scene_model=art.scene_model, threads=threads, log=log, camera_jpeg=q,
                            descriptor=Descriptor(name, art.feature_mean, art.feature_std, frames))
 
 

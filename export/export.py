@@ -177,6 +177,15 @@ def _prepare_out(out: Path) -> None:
             raise ExportError(f"{out} is a non-empty folder that is not a bundle; refusing to overwrite it")
 
 
+def camera_jpeg_entry(camera_jpeg: int) -> dict:
+    """The manifest's ``camera_jpeg`` (docs/bundle.md): present only when the model was trained on
+    frames through the camera's JPEG, so every lossless bundle's manifest stays what it was."""
+    from vs2t_edge.runtime.preprocess import check_camera_jpeg
+
+    q = check_camera_jpeg(camera_jpeg)
+    return {"camera_jpeg": q} if q else {}
+
+
 def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
                  touched: Sequence[str], untouched: Sequence[str], preprocess: TactilePreprocess, beta: float,
                  calibration: np.ndarray, trunk_precision: str = "fp32", trunk_arch: str = "custom",
@@ -186,7 +195,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
                  fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None,
-                 heads_precision: str = "fp32") -> dict:
+                 heads_precision: str = "fp32", camera_jpeg: int = 0) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
@@ -202,7 +211,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     (beta, what to add to ``operating_point``, what to add to ``provenance``) - the operating point
     set on the graph the cell will run, in the one write.
     ``heads_precision`` int8: the fused graph's CLS_t / CLS_u weights in int8 (``fuse.quantize_heads``;
-    beta stays the run's, the gating is fitted on the graph written, as for an int8 trunk)."""
+    beta stays the run's, the gating is fitted on the graph written, as for an int8 trunk).
+    ``camera_jpeg``: the tactile camera's MJPEG quality the model was trained on and the given frames
+    were read through (train --camera-jpeg), recorded as the manifest's ``camera_jpeg`` (absent for 0)."""
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -211,7 +222,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                                        validation=validation, touched_heldout=touched_heldout,
                                        gating_temperature=gating_temperature, operating_point=operating_point,
                                        provenance=provenance, opset=opset, scene_model=scene_model, threads=threads,
-                                       log=log)
+                                       log=log, camera_jpeg=camera_jpeg)
 
     if trunk_precision not in ("fp32", "int8"):
         raise ExportError(f"trunk precision {trunk_precision!r}: choose fp32 or int8")
@@ -347,6 +358,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             "format_version": 2 if fused else 1,
             "classes": {"touched": touched, "untouched": untouched},
             "preprocess": preprocess.to_dict(),
+            **camera_jpeg_entry(camera_jpeg),
             "feature_dim": dim,
             "graphs": graphs,
             "router": {"name": router.name, "file": "router.npz"},

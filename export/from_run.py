@@ -20,7 +20,7 @@ from torch import nn
 
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
-from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference
 
 from vs2t_edge.export.calibration import calibration_presses, sensitivity_presses
 from vs2t_edge.export.export import ExportError, _novelty, write_bundle
@@ -52,10 +52,14 @@ def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int
     return out
 
 
-def _frames(ds, fid: str, indices: Sequence[int], spec: TactilePreprocess) -> np.ndarray:
+def _frames(ds, fid: str, indices: Sequence[int], spec: TactilePreprocess, camera_jpeg: int = 0) -> np.ndarray:
+    """Those presses of one fabric as the trunk takes them; with ``camera_jpeg`` Q > 0 each frame and
+    the no-contact frame through the camera's JPEG at Q, decoded at the bundle's scale, as the run
+    trained (runtime.preprocess.camera_press)."""
     fab = ds.by_id(fid)
-    ref = fab.load_reference()
-    return np.stack([preprocess_tactile(fab.load_press(i), ref, spec) for i in indices]).astype(np.float32)
+    ref = camera_reference(fab.load_reference(), spec, camera_jpeg, f"{fid} reference frame")
+    return np.stack([camera_press(fab.load_press(i), ref, spec, camera_jpeg, f"{fid} press {i}")
+                     for i in indices]).astype(np.float32)
 
 
 def _spread(indices: Sequence[int], k: int) -> list[int]:
@@ -98,7 +102,7 @@ def _outputs(trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module, x: np.ndarray
 def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cls_t: nn.Module, cls_u: nn.Module,
                  touched: Sequence[str], untouched: Sequence[str], validation: Sequence[str],
                  part: dict[str, dict[str, list[int]]], max_presses: int | None,
-                 log: Callable[[str], None] = lambda m: None) -> dict:
+                 log: Callable[[str], None] = lambda m: None, camera_jpeg: int = 0) -> dict:
     """Router ``name`` fitted and its beta tuned the way `vs2t-edge train` does it, on this run.
 
     - fit: ``train.run.fit_router`` (the trainer's own call) on the trunk features, CLS_t logits
@@ -106,7 +110,8 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
     - beta: ``novelty.tune_threshold(..., "balanced")`` between the held-out touched presses
       (``part[fid]["val"]``) and every cached press of the validation fabrics (``grid_presses``),
       as ``train.compare`` tunes it (its touched_val vs val_presses).
-    Untouched fabrics are never read (``check_zero_shot``). Calibrated stacking scores the
+    Untouched fabrics are never read (``check_zero_shot``); ``camera_jpeg``: the run's camera JPEG
+    quality, every frame read through it (``_frames``). Calibrated stacking scores the
     validation presses with the bundle's CLS_u (the untouched classes): training scored them
     with CLS_u retargeted to the validation fabrics, which the run does not keep.
     Returns {"router", "beta", "heldout", "validation" (preprocessed frames, for the gating fit),
@@ -130,7 +135,7 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
         frames, outs = [], []
         for fid, idx in src.items():  # per fabric: the paper run's ~1280 training frames are never all in memory
             if idx:
-                x = _frames(ds, fid, idx, spec)
+                x = _frames(ds, fid, idx, spec, camera_jpeg)
                 outs.append(_outputs(trunk, cls_t, cls_u, x))
                 if keep_frames:
                     frames.append(x)
@@ -152,7 +157,8 @@ def refit_router(name: str, *, ds, spec: TactilePreprocess, trunk: nn.Module, cl
         f"(touched kept {kept:.0%}, validation flagged {flagged:.0%})")
     prov = {"name": name, "refitted_at_export": True,
             "fit": "train.run.fit_router (as `vs2t-edge train` fits it) on the torch trunk's features and CLS_t "
-                   f"logits at {spec.size} px",
+                   f"logits at {spec.size} px" + (f", frames through the camera's JPEG at q{camera_jpeg}"
+                                                  if camera_jpeg else ""),
             "fitted_on": {"presses": "data.touched_presses[fabric].train", "fabrics": list(touched), "count": n_fit},
             "beta_rule": "runtime.novelty.tune_threshold balanced (mean of touched kept and validation flagged)",
             "beta_tuned_on": {"touched_heldout": "data.touched_presses[fabric].val", "touched_heldout_count":
@@ -218,14 +224,17 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     calib_src = calibration_presses(part, calib_ids, calibration_frames, untouched=art.untouched)
     log(f"reading {sum(map(len, calib_src.values()))} training presses of {len(calib_src)} touched fabrics "
         "(calibration)")
-    calib = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in calib_src.items()])
+    q = art.camera_jpeg  # the camera JPEG the run trained through: every frame read here goes through it too
+    if q:
+        log(f"frames through the camera's JPEG at q{q}, decoded at 1/{max(1, spec.reduce)}, as the run trained")
+    calib = np.concatenate([_frames(ds, fid, idx, spec, q) for fid, idx in calib_src.items()])
     for what, fids in (("int8 calibration, parity and the probe", calib_ids),
                        ("the gating fit (held-out touched presses)", art.touched),
                        ("the gating fit (validation presses)", art.validation)):
         check_zero_shot({fid: [0] for fid in fids}, art.untouched, what)
     if router is None:
-        heldout = np.concatenate([_frames(ds, fid, part[fid]["val"], spec) for fid in art.touched])
-        validation = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), 12), spec)
+        heldout = np.concatenate([_frames(ds, fid, part[fid]["val"], spec, q) for fid in art.touched])
+        validation = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), 12), spec, q)
                                      for fid in art.validation]) if art.validation else None
         chosen, beta = stored, art.beta
         operating_point = f"{art.router_name} router, beta balanced on validation fabrics {', '.join(art.validation)}"
@@ -234,7 +243,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     else:
         refit = refit_router(router, ds=ds, spec=spec, trunk=trunk, cls_t=cls_t, cls_u=cls_u, touched=art.touched,
                              untouched=art.untouched, validation=art.validation, part=part, max_presses=max_presses,
-                             log=log)
+                             log=log, camera_jpeg=q)
         chosen, beta, heldout, validation = refit["router"], refit["beta"], refit["heldout"], refit["validation"]
         operating_point = (f"{router} router (refitted at export on touched training presses), beta balanced on "
                            f"validation fabrics {', '.join(art.validation)} against held-out touched presses")
@@ -245,7 +254,8 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     if trunk_precision == "int8" and float_auto:
         val_n = {fid: len(ds.by_id(fid).presses) for fid in art.validation}
         sens_src = sensitivity_presses(part, art.touched, val_n, untouched=art.untouched)
-        quant_options["sensitivity_frames"] = np.concatenate([_frames(ds, fid, idx, spec) for fid, idx in sens_src.items()])
+        quant_options["sensitivity_frames"] = np.concatenate([_frames(ds, fid, idx, spec, q)
+                                                              for fid, idx in sens_src.items()])
         log(f"sensitivity scan on {len(quant_options['sensitivity_frames'])} held-out touched and validation presses")
         quant_options.update(score=_logit_score(cls_t, cls_u), rank_by="logit_error")
     prov = {"run": str(run_dir.resolve()), "trained": True, "trained_size_px": trained_size,
@@ -272,7 +282,8 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         calibration_method=calibration_method, float_convs=float_convs,
                         quant_options=quant_options if trunk_precision == "int8" else None,
                         operating_point=operating_point, scene_model=art.scene_model if router is None else None,
-                        fuse=fuse, int8_beta=int8_beta if keep_op else None, heads_precision=heads_precision)
+                        fuse=fuse, int8_beta=int8_beta if keep_op else None, heads_precision=heads_precision,
+                        camera_jpeg=q)
 
 
 def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:

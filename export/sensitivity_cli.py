@@ -11,6 +11,9 @@ validation fabrics' presses; never test, never an untouched fabric):
 - CLS_u on the validation fabrics' presses: top-1 agreement with fp32 (their zero-shot route);
 - the node's share of the trunk's multiply-accumulates (what keeping it float costs in time).
 
+Frames are read as the bundle's run trained: through the camera's JPEG at the manifest's
+``camera_jpeg`` when it records one (runtime.preprocess.camera_press), lossless otherwise.
+
 Prints the ranking and, with ``--out FILE``, writes JSON whose ``recommended`` list (the ``--top``
 nodes that buy back error) `vs2t-edge export RUN --trunk-precision int8 --int8-float-nodes @FILE`
 keeps in float. No torch.
@@ -72,7 +75,7 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
     from vs2t_edge.runtime.bundle import load_bundle, read_manifest
     from vs2t_edge.runtime.novelty import GaussianRouter
     from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference, check_camera_jpeg
 
     m = read_manifest(bundle)
     if m.get("graphs", {}).get("trunk", {}).get("precision") != "fp32":
@@ -85,6 +88,8 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
         raise FileNotFoundError(f"{bundle}: its dataset is not here; pass --dataset")
     ds = load_dataset(ds_root)
     spec = TactilePreprocess.from_dict(m["preprocess"])
+    # a bundle trained through the camera's JPEG (manifest camera_jpeg) is scanned on frames read the same way
+    q = check_camera_jpeg(m.get("camera_jpeg", 0), f"{bundle}: manifest.json 'camera_jpeg'")
     touched, untouched = list(m["classes"]["touched"]), list(m["classes"]["untouched"])
     part = data["touched_presses"]
     validation = {f: len(ds.by_id(f).presses) for f in data.get("validation", [])}
@@ -95,8 +100,8 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
         xs = []
         for fid, idx in src.items():
             fab = ds.by_id(fid)
-            ref = fab.load_reference()
-            xs.append(np.stack([preprocess_tactile(fab.load_press(i), ref, spec) for i in idx]))
+            ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame")
+            xs.append(np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}") for i in idx]))
         return np.concatenate(xs).astype(np.float32)
 
     log(f"reading {sum(map(len, calib_src.values()))} calibration and {sum(map(len, sens_src.values()))} "
@@ -141,7 +146,8 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
     for r in sens["rows"]:
         r["macs_share"] = macs.get(r["node"], 0) / total
     rec = [r["node"] for r in sens["rows"] if r["buys_back"] > 0][:top]
-    return {"bundle": str(bundle), "dataset": str(ds_root), "calibration": {"method": method, "presses": calib_src,
+    return {"bundle": str(bundle), "dataset": str(ds_root), "camera_jpeg": q,
+            "calibration": {"method": method, "presses": calib_src,
             **({"percentile": percentile} if method == "percentile" else {})},
             "held_out_presses": sens_src, "fp32": fp32_scores, "float_tail": tail, **sens,
             "recommended": list(float_nodes) + rec, "seconds": round(time.time() - t0, 1)}

@@ -126,6 +126,9 @@ class Bundle:
     # DescriptorFeature (manifest "trunk": {"kind": "descriptor", ...}), numpy, no graph
     descriptor: Any = None
     probe_frames: np.ndarray | None = None  # descriptor bundles: (2, H, W, 3) uint8, [reference, press]
+    # the tactile camera's MJPEG quality the model was trained and exported on (manifest "camera_jpeg",
+    # train --camera-jpeg); 0 = lossless frames, and every bundle without the key
+    camera_jpeg: int = 0
 
     def path(self, key: str) -> Path:
         return self.root / self.manifest["graphs"][key]["file"]
@@ -269,6 +272,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     except (TypeError, ValueError, OverflowError) as exc:
         raise BundleError(root, f"manifest.json 'preprocess': {exc}") from None
     _check_preprocess(spec, root)
+    camera_jpeg = _int(manifest.get("camera_jpeg", 0), root, "camera_jpeg", 0, 100)
     dim = _int(_need(manifest, root, "feature_dim"), root, "feature_dim", 1, 1 << 20)
     beta = _float(_need(manifest, root, "beta"), root, "beta", allow_inf=True)
     if beta_override is not None:
@@ -362,7 +366,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     return Bundle(root=root, manifest=manifest, touched=touched, untouched=untouched, preprocess=spec,
                   feature_dim=dim, beta=beta, gating_temperature=temp, gating_scale=gscale, router=router, probe_input=x,
                   probe_expected=expected, probe_tolerance=tolerance, opsets=opsets, scene_model=scene_model,
-                  descriptor=descriptor, probe_frames=frames)
+                  descriptor=descriptor, probe_frames=frames, camera_jpeg=camera_jpeg)
 
 
 def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int):

@@ -50,7 +50,7 @@ from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.router_eval import threshold_rates, tune_threshold
 from vs2t_edge.runtime.operating_point import (  # noqa: F401 - re-exported for callers of calibrate
     OverrideFileError, override_file_for, override_path_for, read_beta_override, write_beta_override)
-from vs2t_edge.runtime.preprocess import FrameError
+from vs2t_edge.runtime.preprocess import FrameError, camera_frame, camera_scale
 from vs2t_edge.runtime.progress import Line
 from vs2t_edge.runtime.record_cli import record
 from vs2t_edge.runtime.replay import ReplayFile
@@ -196,7 +196,12 @@ def _draw_curve_cv2(out_png: Path, betas, kept, flagged, beta: float, log_x: boo
 
 def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None = None,
                          progress=None) -> tuple[list[float], list[float]]:
-    """Novelty of every press of the dataset, split into touched (bundle classes) and validation."""
+    """Novelty of every press of the dataset, split into touched (bundle classes) and validation.
+    A bundle trained through the camera's JPEG (manifest ``camera_jpeg``) scores the dataset's
+    frames through it, decoded at its scale, as its camera hands them (``camera_frame``)."""
+    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    scale = camera_scale(model.preprocess_spec) if q else 1
+    by = {"reduced_by": scale} if scale != 1 else {}
     ds = load_dataset(dataset_root)
     touched_names = set(model.touched)
     touched, val = [], []
@@ -208,10 +213,11 @@ def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None
             group = val
         else:
             continue
-        model.set_reference(fab.load_reference())
+        model.set_reference(camera_frame(fab.load_reference(), q, scale, f"{fab.id} reference frame"), **by)
         for k in range(len(fab.presses)):
             try:
-                group.append(float(model.score_press(fab.load_press(k)).novelty))
+                group.append(float(model.score_press(camera_frame(fab.load_press(k), q, scale, f"{fab.id} press {k}"),
+                                                     **by).novelty))
             except FrameError:
                 continue  # a bad frame says nothing about beta
         if progress:

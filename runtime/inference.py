@@ -159,6 +159,7 @@ class TactileModel:
         self.router = _float32_router(bundle.router)
         self.scene_model = bundle.scene_model
         self.preprocess_spec = bundle.preprocess
+        self.camera_jpeg: int = bundle.camera_jpeg  # the camera's MJPEG quality it trained on (0: lossless frames)
         self.threads = threads
         # the tactile feature: the ONNX trunk, or a numpy descriptor (runtime/tactile_descriptor.py)
         self.descriptor: td.DescriptorFeature | None = bundle.descriptor

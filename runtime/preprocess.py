@@ -36,6 +36,12 @@ network input then differs by 1.08 grey levels on average on the synthetic 640x4
 at q95, where the float path's full MJPEG decode already differs by 0.90 (the JPEG loss;
 tests/test_preprocess.py bounds the ratio). ``auto_reduce`` picks the factor: the largest that
 leaves at least ``size`` pixels across the crop.
+
+The camera's JPEG itself: a UVC camera's MJPEG frames are lossy where the dataset's are lossless
+(at q95 the float-path paper bundle lost 7.3 points of touched accuracy per press, a train/serve
+skew). ``through_camera_jpeg(frame, quality, scale)`` is that camera: encode at ``quality``,
+``decode_jpeg`` at 1/scale. A run trained with ``camera_jpeg`` Q reads every press and no-contact
+frame through it (``camera_reference``, ``camera_press``), and so do its export and the bench.
 """
 
 from __future__ import annotations
@@ -210,6 +216,38 @@ def decode_jpeg(data: bytes | np.ndarray, factor: int = 1) -> np.ndarray | None:
     return cv2.imdecode(buf, _IMREAD[factor])
 
 
+def check_camera_jpeg(quality: object, what: str = "camera_jpeg") -> int:
+    """``quality`` as the camera's MJPEG quality a model is trained for: 0 (lossless frames, every
+    run and bundle before it) or a JPEG quality 1..100; ValueError naming ``what`` otherwise."""
+    if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 0 <= int(quality) <= 100:
+        raise ValueError(f"{what} = {quality!r}: 0 (lossless frames) or a JPEG quality from 1 to 100")
+    return int(quality)
+
+
+def camera_scale(spec: TactilePreprocess) -> int:
+    """The scale a UVC camera decodes its MJPEG at for this preprocessing: 1/reduce on the reduced
+    path, full size on the float path (runtime/camera.py)."""
+    return max(1, spec.reduce)
+
+
+def through_camera_jpeg(frame: np.ndarray, quality: int, scale: int = 1, name: str = "frame") -> np.ndarray:
+    """``frame`` (HxWx3 uint8 BGR, lossless) as a UVC camera streaming MJPEG at ``quality`` hands
+    it to the cell: JPEG-encoded by OpenCV's libjpeg at that quality, then decoded at 1/``scale``
+    by ``decode_jpeg``, the cell's own decode. Training (``camera_jpeg``), export and the bench read
+    a dataset's lossless frames through it so the model sees what the cell's camera hands it.
+    Raises FrameError (reason ``jpeg``) naming ``name`` when the frame does not encode or decode."""
+    quality = check_camera_jpeg(quality, "JPEG quality")
+    if quality == 0:
+        raise ValueError("JPEG quality 0: no JPEG; pass the lossless frame on (camera_jpeg 0)")
+    frame = check_frame(frame, name=name)
+    ok, enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    out = decode_jpeg(enc, scale) if ok else None
+    if out is None or out.ndim != 3 or out.shape[2] != 3:
+        raise FrameError(f"{name}: could not pass it through JPEG at quality {quality} "
+                         f"({'encode' if not ok else 'decode'} failed)", "jpeg")
+    return out
+
+
 def auto_reduce(frame_hw: tuple[int, int], size: int, crop_fraction: float = 1.0) -> int:
     """The largest factor of REDUCE_FACTORS that leaves at least ``size`` px across the crop
     (640x480 at 128 or 224 px: 2; 320x240 at 128 px: 1)."""
@@ -359,6 +397,33 @@ def _scaled_chw(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
             np.multiply(image[:, :, 2 - c], np.float32(1.0) / (np.float32(255.0) * std[c]), out=plane)
             np.subtract(plane, mean[c] / std[c], out=plane)
     return out
+
+
+def camera_frame(frame: np.ndarray, camera_jpeg: int, scale: int = 1, name: str = "frame") -> np.ndarray:
+    """A dataset's lossless frame as the camera hands it: through its JPEG at ``camera_jpeg``,
+    decoded at 1/``scale`` (``through_camera_jpeg``), or as it is for 0."""
+    return through_camera_jpeg(frame, camera_jpeg, scale, name) if camera_jpeg else frame
+
+
+def camera_reference(reference: np.ndarray, spec: TactilePreprocess, camera_jpeg: int = 0,
+                     name: str = "reference frame") -> PreparedReference:
+    """A dataset's lossless no-contact frame prepared as the cell prepares its camera's: with
+    ``camera_jpeg`` Q > 0 through the camera's JPEG at Q, decoded at ``camera_scale(spec)``
+    (``through_camera_jpeg``); 0: the lossless frame as it is (every run before the option)."""
+    if not camera_jpeg:
+        return prepare_reference(reference, spec)
+    scale = camera_scale(spec)
+    return prepare_reference(through_camera_jpeg(reference, camera_jpeg, scale, name), spec, scale)
+
+
+def camera_press(frame: np.ndarray, reference: PreparedReference | None, spec: TactilePreprocess,
+                 camera_jpeg: int = 0, name: str = "frame") -> np.ndarray:
+    """A dataset's lossless press frame -> (3, S, S) float32 as the cell scores its camera's frame
+    (``camera_reference``'s rule; ``reference`` from ``camera_reference`` with the same quality)."""
+    if not camera_jpeg:
+        return preprocess_tactile(frame, reference, spec)
+    scale = camera_scale(spec)
+    return preprocess_tactile(through_camera_jpeg(frame, camera_jpeg, scale, name), reference, spec, scale)
 
 
 def preprocess_batch(frames: list[np.ndarray], reference: np.ndarray | None, spec: TactilePreprocess) -> np.ndarray:

@@ -221,6 +221,17 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
     s = model.score_press(fab.load_press(0))
     assert set(s.log_posterior) == set(model.classes) and np.isfinite(s.novelty)
     assert all(np.isfinite(v) for v in s.log_posterior.values())
+    # the run as if trained with --camera-jpeg 90: its descriptors are read through that JPEG at
+    # export too (the gating is fitted on them), and the manifest says so
+    from dataclasses import replace
+
+    from vs2t_edge.train.artifacts import save_run_artifacts
+
+    save_run_artifacts(tmp_path / "run90", replace(art, camera_jpeg=90))
+    man90 = export_run(tmp_path / "run90", tmp_path / "bundle90", calibration_frames=16, threads=1)
+    assert man90["camera_jpeg"] == 90 and "camera_jpeg" not in man
+    assert man90["gating"]["scale"] != man["gating"]["scale"]
+    assert TactileModel.load(tmp_path / "bundle90", threads=1).camera_jpeg == 90
     from vs2t_edge.export.export import ExportError
 
     with pytest.raises(ExportError, match="apply to a trunk"):  # not silently a trunk export

@@ -48,6 +48,9 @@ class RunArtifacts:
     # "cnn": the trunk above; or a runtime/tactile_descriptor.py name - then trunk_state is empty,
     # feature_mean / feature_std standardise the descriptor, and export writes a descriptor bundle
     tactile_feature: str = "cnn"
+    # the tactile camera's MJPEG quality the run trained on (train --camera-jpeg; 0 = lossless
+    # frames, and every run before it): export reads its frames through the same JPEG
+    camera_jpeg: int = 0
 
     @property
     def tactile_preprocess(self) -> TactilePreprocess:

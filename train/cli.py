@@ -1,5 +1,5 @@
 """`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]
-[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers]`."""
+[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers] [--camera-jpeg Q]`."""
 
 from __future__ import annotations
 
@@ -33,6 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                              "reduced uint8 path - the frame reduced by a factor (auto: the largest leaving the "
                              "input size across the crop; the cell's MJPEG camera then decodes at that scale), "
                              "cropped and resized on uint8 (runtime/preprocess.py, docs/bundle.md)")
+    parser.add_argument("--camera-jpeg", type=int, metavar="Q",
+                        help="the tactile camera's MJPEG quality (1..100): every press and no-contact frame is read "
+                             "through a JPEG at Q, decoded at the bundle's scale, as a UVC camera hands them to the "
+                             "cell; export and the bench then read the same way (0: the dataset's lossless frames; "
+                             "profile default 0; docs/training.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -53,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
         print("vs2t-edge train: --max-presses must be 0 (all) or at least 5 (train, validation and test presses)",
               file=sys.stderr)
         return 2
+    if args.camera_jpeg is not None and not 0 <= args.camera_jpeg <= 100:
+        print(f"vs2t-edge train: --camera-jpeg {args.camera_jpeg}: give the camera's JPEG quality from 1 to 100 "
+              "(0: lossless frames)", file=sys.stderr)
+        return 2
     if args.weights is not None and not args.weights.is_file():
         print(f"vs2t-edge train: weights file {args.weights} does not exist", file=sys.stderr)
         return 2
@@ -63,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
               seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
               max_presses=args.max_presses, tactile_feature=args.tactile_feature,
-              preprocess_reduce=args.preprocess_reduce)
+              preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

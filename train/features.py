@@ -81,12 +81,17 @@ def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
 
 @torch.no_grad()
 def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None = None,
-                  batch: int = 64, progress: bool = True, spec=None) -> StemCache:
+                  batch: int = 64, progress: bool = True, spec=None, camera_jpeg: int = 0) -> StemCache:
     """Read every press once: tactile and visual stem activations, frozen visual and tactile features.
-    ``spec``: the run's TactilePreprocess (default: the float path at ``size``), the cell's own."""
+    ``spec``: the run's TactilePreprocess (default: the float path at ``size``), the cell's own.
+    ``camera_jpeg`` Q > 0: every press frame and the no-contact frame pass through the camera's JPEG
+    at Q, decoded at the bundle's scale (``runtime.preprocess.camera_press``: what the cell does
+    with a UVC camera's MJPEG frame); 0 reads the lossless frames. The camera crops (the visual
+    side) are another camera's and stay as they are."""
     from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.preprocess import TactilePreprocess, prepare_reference, preprocess_tactile
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference, check_camera_jpeg
 
+    camera_jpeg = check_camera_jpeg(camera_jpeg)
     ds = load_dataset(dataset_root)
     spec = spec or TactilePreprocess(size=size)
     if spec.size != size:
@@ -100,14 +105,16 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     done = 0
     for k, fabric in enumerate(ds.fabrics):
         # prepared once per fabric, as the cell prepares it once per item (the same result as the raw frame)
-        ref, camera = prepare_reference(fabric.load_reference(), spec), fabric.load_camera()
+        ref = camera_reference(fabric.load_reference(), spec, camera_jpeg, name=f"{fabric.id} reference frame")
+        camera = fabric.load_camera()
         n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
         # evenly spaced over the press order (the grid), not the first rows of the grid
         chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))
         n = len(chosen)
         for i0 in range(0, n, batch):
             idx = chosen[i0:i0 + batch]
-            tac = torch.from_numpy(np.stack([preprocess_tactile(fabric.load_press(i), ref, spec) for i in idx]))
+            tac = torch.from_numpy(np.stack([camera_press(fabric.load_press(i), ref, spec, camera_jpeg,
+                                                          name=f"{fabric.id} press {i}") for i in idx]))
             vis = torch.from_numpy(np.stack([_visual_input(fabric.visual_crop(i, camera), size) for i in idx]))
             a = trunk.stem(tac)
             stems.append(a.half().numpy())
@@ -127,26 +134,38 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
                       "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
-                      **({"reduce": spec.reduce} if spec.reduce else {})},  # as train.run.get_cache expects
+                      **cache_key_extra(spec, camera_jpeg)},  # as train.run.get_cache expects
                      np.concatenate(stems_v))
 
 
+def cache_key_extra(spec, camera_jpeg: int) -> dict:
+    """The feature cache's key beyond size, trunk, presses and dataset: the pixel path and the
+    camera's JPEG, each only when set (a float-path, lossless cache keeps its old key)."""
+    return {**({"reduce": spec.reduce} if spec.reduce else {}), **({"camera_jpeg": camera_jpeg} if camera_jpeg else {})}
+
+
 def descriptor_table(dataset_root: Path, name: str, max_presses: int | None = None,
-                     progress: bool = True) -> np.ndarray:
+                     progress: bool = True, camera_jpeg: int = 0) -> np.ndarray:
     """(P, D) float32: the no-network tactile descriptor ``name`` (runtime/tactile_descriptor.py,
     the cell's own function) of every press ``extract_cache`` reads, in its row order, each
     against its fabric's no-contact reference. Nothing in it is fitted: the per-dimension
-    standardisation comes later from touched training rows only (``compare.split_views``)."""
+    standardisation comes later from touched training rows only (``compare.split_views``).
+    ``camera_jpeg`` Q > 0: each frame through the camera's JPEG at Q first, decoded at full size
+    (``camera_frame``; a descriptor reads full frames)."""
     from vs2t_edge.runtime import tactile_descriptor as td
     from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.preprocess import camera_frame, check_camera_jpeg
 
+    camera_jpeg = check_camera_jpeg(camera_jpeg)
     ds = load_dataset(dataset_root)
     rows, line, t0 = [], Line(), time.time()
     for k, fabric in enumerate(ds.fabrics):
-        ref = td.prepare_reference(fabric.load_reference())
+        ref = td.prepare_reference(camera_frame(fabric.load_reference(), camera_jpeg, 1,
+                                                 f"{fabric.id} reference frame"))
         n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
         chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))  # as extract_cache
-        rows += [td.describe(name, fabric.load_press(i), ref) for i in chosen]
+        rows += [td.describe(name, camera_frame(fabric.load_press(i), camera_jpeg, 1, f"{fabric.id} press {i}"), ref)
+                 for i in chosen]
         if progress:
             line.draw(f"{name}: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", (k + 1) / len(ds.fabrics))
     if progress:
@@ -265,5 +284,5 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
                            for i in range(0, len(stem), chunk)]).astype(np.float32)
 
 
-__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "descriptor_table", "touched_training_rows", "finetune_tail",
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
            "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]

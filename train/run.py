@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime import novelty as nv
-from vs2t_edge.runtime.preprocess import TactilePreprocess
+from vs2t_edge.runtime.preprocess import TactilePreprocess, check_camera_jpeg
 from vs2t_edge.train import compare as cmp
 from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
@@ -68,6 +68,11 @@ class Profile:
     # before it; "auto" = the reduced uint8 path at the largest reduction that leaves ``size_px``
     # pixels across the crop (2 on 640x480 frames at 128 or 224 px); or a factor "1", "2", "4", "8".
     preprocess_reduce: str = "off"
+    # the tactile camera's MJPEG quality the model trains for: 0 = the dataset's lossless frames
+    # (every run before it); Q in 1..100 = every press and no-contact frame through a JPEG at Q,
+    # decoded at the bundle's scale, as a UVC camera hands them (runtime.preprocess.through_camera_jpeg;
+    # docs/training.md "The camera's JPEG"). Export and the bench read the run's frames the same way.
+    camera_jpeg: int = 0
 
 
 REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
@@ -116,13 +121,13 @@ def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray
     """The descriptor table of ``prof.tactile_feature`` (``features.descriptor_table``), cached
     beside the stem cache (it takes ~50 ms a press)."""
     path = cache_dir / f"descriptor_{prof.tactile_feature}.npz"
-    meta = f"{Path(dataset).resolve()}|{prof.max_presses}"
+    meta = f"{Path(dataset).resolve()}|{prof.max_presses}" + (f"|jpeg{prof.camera_jpeg}" if prof.camera_jpeg else "")
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if str(z["meta"]) == meta:
                 _log(f"features: cached ({path})")
                 return z["x"]
-    x = ft.descriptor_table(dataset, prof.tactile_feature, prof.max_presses)
+    x = ft.descriptor_table(dataset, prof.tactile_feature, prof.max_presses, camera_jpeg=prof.camera_jpeg)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, x=x, meta=np.array(meta))
     return x
@@ -132,18 +137,18 @@ def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCa
     spec = tactile_spec(prof, dataset)
     meta = {"size": prof.size_px, "arch": prof.trunk, "max_presses": -1 if prof.max_presses is None else prof.max_presses,
             "version": ft.CACHE_VERSION, "dataset": str(Path(dataset).resolve())}
-    if spec.reduce:  # a float-path cache keeps its old key
-        meta["reduce"] = spec.reduce
+    meta.update(ft.cache_key_extra(spec, prof.camera_jpeg))  # a float-path, lossless cache keeps its old key
     path = cache_dir / "stem_cache.npz"
     cache = ft.StemCache.load(path, meta)
     if cache is not None and prof.visual_tail == "finetuned" and cache.stem_v is None:
         _log(f"features: {path} predates visual stem caching; extracting again for the visual tail")
         cache = None
     if cache is None:
-        cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses, spec=spec)
+        cache = ft.extract_cache(dataset, trunk, prof.size_px, prof.max_presses, spec=spec, camera_jpeg=prof.camera_jpeg)
         cache.save(path)
         cmp.FeatureTable(cache.x_t0, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
-                         source=f"{dataset} (frozen {prof.trunk}, {prof.size_px} px)").save(cache_dir / "feature_table.npz")
+                         source=f"{dataset} (frozen {prof.trunk}, {prof.size_px} px"
+                                + (f", tactile frames through JPEG q{prof.camera_jpeg})" if prof.camera_jpeg else ")")).save(cache_dir / "feature_table.npz")
     else:
         _log(f"features: cached ({path})")
     return cache
@@ -265,6 +270,7 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
         router_name=router_name, router_params=router.to_params(), beta=float(g["beta"]),
         validation=list(split.validation), dataset=str(Path(dataset).resolve()),
         touched_fabric_ids=list(split.touched), info={"profile": prof.name, "split_seed": seed},
+        camera_jpeg=prof.camera_jpeg,
         scene_model=out["scene_model"].to_params() if out.get("scene_model") is not None else None)
 
 
@@ -335,26 +341,28 @@ def orderings(s: dict) -> dict:
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
-          preprocess_reduce: str | None = None) -> dict:
+          preprocess_reduce: str | None = None, camera_jpeg: int | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
+    ``camera_jpeg``: the tactile camera's MJPEG quality (``Profile.camera_jpeg``; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses, tactile_feature, preprocess_reduce)
+                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
            max_presses: int | None = None, tactile_feature: str | None = None,
-           preprocess_reduce: str | None = None) -> dict:
+           preprocess_reduce: str | None = None, camera_jpeg: int | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
-                                              ("preprocess_reduce", preprocess_reduce))
+                                              ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
+    check_camera_jpeg(prof.camera_jpeg)
     if prof.tactile_feature not in TACTILE_FEATURES:
         raise ValueError(f"tactile_feature {prof.tactile_feature!r}: choose one of {', '.join(TACTILE_FEATURES)}")
     if max_presses is not None:
