@@ -1,4 +1,6 @@
 """`vs2t-edge label CONFIG ITEM_ID FABRIC [--off-scene]`: the operator says what a piece in the reject bin was.
+`vs2t-edge label CONFIG --list [N]`: the last N pieces sent to the reject bin, and what became of
+their labels (none yet, waiting for the service, applied, or why not).
 
 The label is appended, durably, to the file the cell config names (``evidence.operator_labels``);
 the running service reads it before its next piece and re-estimates that untouched fabric's mean
@@ -11,16 +13,21 @@ ITEM_ID is a decided item of this journal only the service knows; it journals a 
 from __future__ import annotations
 
 import sys
+from collections import deque
 
 from vs2t_edge.runtime.config import ConfigError, load_config
-from vs2t_edge.runtime.feedback import append_label
+from vs2t_edge.runtime.feedback import append_label, read_labels
+from vs2t_edge.runtime.journal import iter_records
 
 
 def add_arguments(parser, verb: str) -> None:
     parser.add_argument("config", help="the cell config the service runs (evidence.operator_labels names the file)")
-    parser.add_argument("item_id", help="the piece's item id, as the journal and the status screen show it")
-    parser.add_argument("fabric", help="what the piece was: a fabric of the config's scene, or with --off-scene "
-                                       "any name for a fabric the job does not list")
+    parser.add_argument("item_id", nargs="?", help="the piece's item id, as the journal (and `--list`) show it")
+    parser.add_argument("fabric", nargs="?", help="what the piece was: a fabric of the config's scene, or with "
+                                                  "--off-scene any name for a fabric the job does not list")
+    parser.add_argument("--list", nargs="?", type=int, const=20, default=None, metavar="N",
+                        help="list the last N pieces (default 20) the journal sent to the reject bin, with their "
+                             "labels, instead of labelling one")
     parser.add_argument("--off-scene", action="store_true",
                         help="the piece is none of the job's fabrics: the cell learns it as a stranger, and pieces "
                              "like it go to the reject bin")
@@ -35,6 +42,15 @@ def run(args) -> int:
     if cfg.operator_labels is None:
         print(f"label: {cfg.path} does not turn operator labels on; set evidence.operator_labels to a file "
               "(docs/cell.md, \"Learning from the reject bin\")", file=sys.stderr)
+        return 2
+    if args.list is not None:
+        if args.list < 1:
+            print(f"label: --list {args.list}: give how many pieces to list (1 or more)", file=sys.stderr)
+            return 2
+        print("\n".join(rejected_pieces(cfg, args.list)))
+        return 0
+    if args.item_id is None or args.fabric is None:
+        print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
         return 2
     in_scene = args.fabric in cfg.scene_classes
     if in_scene == args.off_scene:
@@ -53,3 +69,29 @@ def run(args) -> int:
             "touched": f" ({args.fabric} is touched: recorded, its mean stays the training one)"}[kind]
     print(f"{args.item_id} labelled {args.fabric} in {cfg.operator_labels}{note}")
     return 0
+
+
+def rejected_pieces(cfg, n: int) -> list[str]:
+    """Lines for ``--list``: the last ``n`` pieces the journal sent to the reject bin, oldest first,
+    each with its decision and its label's fate (the journal's label records, else the labels file)."""
+    last: deque = deque(maxlen=n)
+    fate: dict[str, str] = {}
+    for rec in iter_records(cfg.journal):
+        kind = rec.get("type")
+        if kind == "final" and rec.get("bin") == cfg.reject_bin:
+            last.append(rec)
+        elif kind == "label" and rec.get("item_id") is not None:
+            said = f"{rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
+            fate[str(rec["item_id"])] = f"labelled {said}: " + ("applied" if rec.get("applied") else
+                                                               f"not applied ({rec.get('why', '?')})")
+    waiting = {str(r["item_id"]): r["fabric"] for _, r in read_labels(cfg.operator_labels) if isinstance(r, dict)}
+    if not last:
+        return [f"no piece in the reject bin in {cfg.journal}"]
+    out = [f"the last {len(last)} piece(s) in the reject bin ({cfg.journal}), oldest first:"]
+    for rec in last:
+        item = str(rec.get("item_id", ""))
+        label = fate.get(item) or (f"labelled {waiting[item]}: the service reads it before its next piece"
+                                   if item in waiting else "no label yet")
+        why = rec.get("reason") or ("" if rec.get("outcome") == "sorted" else str(rec.get("outcome", "")))
+        out.append(f"  {item:>14s}  decision {rec.get('label', '?'):>14s}  {why:<12.60s}  {label}")
+    return out

@@ -279,6 +279,21 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     lines = (tmp_path / "labels.jsonl").read_text().splitlines()
     assert [json.loads(x) for x in lines] == [{"fabric": "wool", "item_id": "piece-000001"},
                                               {"fabric": "linen", "item_id": "piece-000002", "off_scene": True}]
+    # --list: the pieces in the reject bin and what became of their labels, from the journal
+    (tmp_path / "state").mkdir()
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        for rec in ({"type": "final", "item": 1, "item_id": "piece-000001", "label": UNKNOWN, "bin": 0, "outcome": "sorted"},
+                    {"type": "final", "item": 2, "item_id": "piece-000002", "label": "silk", "bin": 2, "outcome": "sorted"},
+                    {"type": "final", "item": 3, "item_id": "piece-000003", "label": UNKNOWN, "bin": 0,
+                     "outcome": "rejected_fault", "reason": "gate jam"},
+                    {"type": "label", "line": 1, "item_id": "piece-000001", "fabric": "wool", "applied": True}):
+            j.append(rec)
+    capsys.readouterr()
+    assert main(["label", str(cfg), "--list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert len(listed) == 3 and "piece-000002" not in "".join(listed)  # sorted to silk: not in the reject bin
+    assert "labelled wool: applied" in listed[1] and "gate jam" in listed[2] and "no label yet" in listed[2]
+    assert main(["label", str(cfg)]) == 2 and "--list" in capsys.readouterr().err
 
 
 def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
