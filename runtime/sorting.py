@@ -269,16 +269,19 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
             pool = presses[fabric]
             for _ in range(items_per_fabric):
                 order = rng.permutation(len(pool))[:max_presses]
-                ev = evidence_factory(scene)
-                decision = None
-                for i in order:
-                    decision = ev.add(pool[i])
-                    if decision is not None:
-                        break
-                if decision is None:
-                    decision = ev.decide()
+                decision = _press_until_decided(evidence_factory(scene), pool, order)
                 records.append(record(fabric, scene.kind(fabric), decision, scene.classes))
     return records
+
+
+def _press_until_decided(ev, pool: list[Press], order):
+    """The item's decision: ``pool``'s presses in ``order`` fed to the evidence ``ev`` until it
+    decides, else its decision once they run out."""
+    for i in order:
+        decision = ev.add(pool[i])
+        if decision is not None:
+            return decision
+    return ev.decide()
 
 
 def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]], model, *,
@@ -309,14 +312,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             pool = presses[fabric]
             order = rng.permutation(len(pool))[:max_presses]
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
-            decision = None
-            for i in order:
-                decision = ev.add(pool[i])
-                if decision is not None:
-                    break
-            if decision is None:
-                decision = ev.decide()
-            rec = record(fabric, scene.kind(fabric), decision, scene.classes)
+            rec = record(fabric, scene.kind(fabric), _press_until_decided(ev, pool, order), scene.classes)
             records.append(rec)
             # in the reject bin the operator says what it was; an untouched fabric's or a stranger's
             # label teaches the cell (a touched fabric's mean is its training presses')
