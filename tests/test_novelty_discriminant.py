@@ -133,7 +133,7 @@ def test_float32_scores_agree_with_float64(scale):
     loaded = nv.Router.from_params({k: np.asarray(v) for k, v in r.to_params().items()})
     bundle = SimpleNamespace(manifest={}, touched=("t0",), untouched=("u0",), classes=("t0", "u0"), beta=0.0,
                              gating_temperature=1.0, gating_scale=None, router=loaded, preprocess=None,
-                             scene_model=None, descriptor=None)
+                             scene_model=None, descriptor=None, camera_jpeg=0)
 
     class Session:
         def __init__(self, name, fn):

@@ -100,7 +100,7 @@ def _cell_model(router, beta):
     loaded = nv.Router.from_params({k: np.asarray(v) for k, v in router.to_params().items()})
     bundle = SimpleNamespace(manifest={}, touched=("t0", "t1"), untouched=("u0",), classes=("t0", "t1", "u0"),
                              beta=beta, gating_temperature=1.0, gating_scale=None, router=loaded, preprocess=None,
-                             scene_model=None, descriptor=None)
+                             scene_model=None, descriptor=None, camera_jpeg=0)
     trunk = _Session("image", lambda x: [np.asarray(x, np.float32)])
     heads = _Session("feature", lambda f: [np.zeros((len(f), 2), np.float32), np.zeros((len(f), 1), np.float32)])
     model = TactileModel(bundle, trunk, heads, threads=1)
