@@ -41,8 +41,40 @@ def run(args) -> int:
                   "BUNDLE`, or set `evidence.without_scene_model: allow` knowing that risk (docs/cell.md)",
                   file=sys.stderr)
             return 2
+    if args.check_bundle and cfg.operator_labels is not None:
+        problem = operator_labels_problem(cfg)  # what `run` refuses at start (runtime/wiring.py), said before it
+        if problem:
+            print(f"config {cfg.path}: {problem}", file=sys.stderr)
+            return 2
     fabrics = ", ".join(f"{f.name}({f.kind[0]})->{f.bin}" for f in cfg.fabrics)
     print(f"{cfg.path}: ok - camera {cfg.camera['kind']}, arm {cfg.arm_kind}, gate {cfg.gate['kind']}, "
           f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "
           f"confidence {cfg.confidence}, max {cfg.max_presses} presses")
     return 0
+
+
+def operator_labels_problem(cfg) -> str:
+    """Why the bundle cannot learn from operator labels (runtime/feedback.py needs the scene model's
+    offset item rule), or '' when it can."""
+    import numpy as np
+
+    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+
+    try:
+        manifest = read_manifest(cfg.bundle)
+    except BundleError as exc:
+        return str(exc)
+    file = (manifest.get("decision") or {}).get("file") if isinstance(manifest.get("decision"), dict) else None
+    if not isinstance(file, str):
+        return (f"evidence.operator_labels is set and bundle {cfg.bundle} has no scene model (decision.npz) to "
+                "learn with; re-export it from its run, or remove the key")
+    try:
+        with np.load(cfg.bundle / file, allow_pickle=False) as z:
+            rule = str(z["item_rule"]) if "item_rule" in z.files else "sum"
+    except (OSError, ValueError, KeyError) as exc:
+        return f"bundle {cfg.bundle}: {file} unreadable ({exc})"
+    if rule != "offset":
+        return (f"evidence.operator_labels is set and bundle {cfg.bundle}'s scene model uses the {rule} item rule; "
+                "labels need the offset rule (its training chose the sum rule on validation): remove the key "
+                "or deploy a bundle whose run kept the offset rule")
+    return ""

@@ -343,3 +343,16 @@ def test_the_bench_prices_operator_labels_beside_the_zero_shot_decision():
     z0, z1 = res["scene_model"]["untouched"], res["scene_model_labels"]["untouched"]  # wool is the one
     assert z0["n"] == z1["n"] and z0["right"] == 0.0  # zero-shot: every wool piece between silk and the synthesis
     assert z1["right"] > 50.0  # each job's first wool piece is rejected and labelled, the rest sorted (75 %)
+
+
+def test_validate_config_says_before_the_start_that_labels_need_the_offset_rule(tmp_path, capsys):
+    (tmp_path / "bundle").mkdir()
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "decision": {"file": "decision.npz"}}))
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(evidence={"operator_labels": "labels.jsonl"}))
+    for rule, code in (("sum", 2), ("offset", 0)):
+        np.savez(tmp_path / "bundle" / "decision.npz", **_model(item_rule=rule).to_params())
+        assert main(["validate-config", str(cfg), "--check-bundle"]) == code
+        err = capsys.readouterr().err
+        assert ("uses the sum item rule; labels need the offset rule" in err) == (rule == "sum")
