@@ -230,7 +230,7 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     res = {"scenes": n_scenes, "max_presses": BIN_MAX_PRESSES}
     runs = {name: so.simulate_scenes(scenes, table, rules[name], max_presses=BIN_MAX_PRESSES, seed=seed + 1)
             for name, table in tables.items()}
-    if getattr(getattr(model, "scene_model", None), "item_rule", "") == "offset":
+    if getattr(model, "scene_model", None) is not None and model.scene_model.for_labels() is not None:
         # the same scenes as jobs, every rejected piece labelled by the operator (runtime/feedback.py)
         runs["scene_model_labels"] = so.simulate_with_labels(scenes, tables["scene_model"], model.scene_model,
                                                              max_presses=BIN_MAX_PRESSES, seed=seed + 2)

@@ -71,10 +71,11 @@ def operator_labels_problem(cfg) -> str:
     try:
         with np.load(cfg.bundle / file, allow_pickle=False) as z:
             rule = str(z["item_rule"]) if "item_rule" in z.files else "sum"
+            has_labels_rule = "labels_press_var" in z.files
     except (OSError, ValueError, KeyError) as exc:
         return f"bundle {cfg.bundle}: {file} unreadable ({exc})"
-    if rule != "offset":
-        return (f"evidence.operator_labels is set and bundle {cfg.bundle}'s scene model uses the {rule} item rule; "
-                "labels need the offset rule (its training chose the sum rule on validation): remove the key "
-                "or deploy a bundle whose run kept the offset rule")
+    if rule != "offset" and not has_labels_rule:
+        return (f"evidence.operator_labels is set and bundle {cfg.bundle}'s scene model uses the {rule} item rule "
+                "without an offset setting for labels (exported before bundles carried one): re-export it from its "
+                "run, or remove the key")
     return ""

@@ -152,16 +152,49 @@ class GuardedEvidence:
         return self._guarded(self.adapted.decide(), final=True)
 
 
-def item_evidence(base: SceneModel, adapted: SceneModel, scene: Sequence[str], labelled: Iterable[str],
+class TrackedEvidence:
+    """A sum-rule evidence that also keeps its presses' mean projection (``z_mean``), which a later
+    label of the piece reads (the offset rule's evidence keeps it itself)."""
+
+    def __init__(self, inner: Evidence, k: int) -> None:
+        self.inner, self._z_sum = inner, np.zeros(k)
+
+    @property
+    def presses(self) -> int:
+        return self.inner.presses
+
+    @property
+    def z_mean(self):
+        return self._z_sum / self.inner.presses if self.inner.presses else None
+
+    def add(self, score):
+        z = getattr(score, "scene_z", None)
+        if z is None:
+            raise ValueError("operator labels need the press's projection (scene_z), and this press score has none")
+        self._z_sum = self._z_sum + np.asarray(z, np.float64).reshape(-1)
+        return self.inner.add(score)
+
+    def decide(self):
+        return self.inner.decide()
+
+    def peek(self):
+        return self.inner.peek()
+
+
+def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str], labelled: Iterable[str],
                   strangers: Iterable[str], make_evidence: Callable[[SceneModel, list[str]], Any]):
-    """One piece's evidence: the zero-shot one while nothing was learned, else the guarded pair
-    (``GuardedEvidence``) over the scene's fabrics and the learned strangers."""
+    """One piece's evidence: the bundle's own (``deployed``, zero-shot) while nothing was learned,
+    else the guarded pair (``GuardedEvidence``): ``adapted`` (the offset-rule model the labels
+    updated, over the scene's fabrics and the learned strangers) checked by the zero-shot one."""
     taught = [OFF_SCENE_PREFIX + name for name in strangers]
     learned = [*labelled, *taught]
+    zero_shot = make_evidence(deployed, list(scene))
+    if deployed.item_rule != "offset":
+        zero_shot = TrackedEvidence(zero_shot, deployed.k)
     if not learned:
-        return make_evidence(base, list(scene))
-    trusted = learned + [c for c in scene if c not in base.untouched]  # touched means are real already
-    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), make_evidence(base, list(scene)), trusted)
+        return zero_shot
+    trusted = learned + [c for c in scene if c not in deployed.untouched]  # touched means are real already
+    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted)
 
 
 def append_label(path: Path | str, item_id: str, fabric: str, off_scene: bool = False) -> dict:
@@ -210,13 +243,18 @@ def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]
 class OperatorFeedback:
     """The cell's item rule with operator labels (module doc): an evidence factory the cell calls per
     item, which it also tells each decided item (``remember``) and lets read new labels (``poll``).
+    ``model``: the bundle's scene model (its own rule decides until a label teaches something; a
+    sum-rule model's stored offset setting is what labels update, ``SceneModel.for_labels``);
     ``make_evidence(model, classes)``: the item evidence over ``classes`` (the scene's, then the
-    learned strangers', whose decisions go to the reject bin) scored with ``model``."""
+    learned strangers', whose decisions go to the reject bin) at ``model``'s operating point."""
 
     def __init__(self, model: SceneModel, scene_classes: Iterable[str], labels_path: Path | str,
                  make_evidence: Callable[[SceneModel, list[str]], Evidence]) -> None:
-        adapt(model, {})  # refuses a model without the offset rule, at start
-        self.base = model
+        base = model.for_labels()
+        if base is None:
+            raise SceneModelError("operator labels need the scene model's offset item rule, and this sum-rule model "
+                                  "carries no offset setting (a bundle exported before it did: re-export it)")
+        self.deployed, self.base = model, base  # the zero-shot rule, and the offset-rule model labels update
         self.scene = list(scene_classes)
         self.path = Path(labels_path)
         self.make_evidence = make_evidence
@@ -224,10 +262,10 @@ class OperatorFeedback:
         self.labelled: dict[str, list[tuple[np.ndarray, int]]] = {}
         self.strangers: dict[str, list[tuple[np.ndarray, int]]] = {}
         self.lines_read = 0
-        self.model = model
+        self.model = base
 
     def __call__(self):
-        return item_evidence(self.base, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
+        return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
 
     def remember(self, item_id: str, evidence: Any) -> None:
         z, n = getattr(evidence, "z_mean", None), getattr(evidence, "presses", 0)
@@ -290,4 +328,4 @@ class OperatorFeedback:
 
 
 __all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",
-           "OFF_SCENE_PREFIX"]
+           "OFF_SCENE_PREFIX", "TrackedEvidence"]

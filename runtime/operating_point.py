@@ -167,9 +167,16 @@ def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
     scene_model = getattr(model, "scene_model", None)
     if scene_model is None:
         return cfg.confidence, {}
+    return scene_model_settings(cfg, scene_model)
+
+
+def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
+    """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
+    they adapted, runtime/feedback.py): its rule, the config's written confidence over its own."""
     confidence, opts = scene_model_rule(scene_model)
     return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
-           "write_beta_override", "scene_model_rule", "config_sets_confidence", "evidence_settings"]
+           "write_beta_override", "scene_model_rule", "config_sets_confidence", "evidence_settings",
+           "scene_model_settings"]

@@ -59,6 +59,8 @@ PARAMS_VERSION = 1
 KIND = "scene_gaussian"
 ITEM_RULES = ("sum", "offset")
 OFFSET_KEYS = ("press_var", "offset_var_touched", "offset_var_untouched", "item_temperature", "item_bias")
+# the offset rule's whole operating point, stored as "labels_<key>" by a sum-rule model (``labels_rule``)
+LABELS_KEYS = OFFSET_KEYS + ("known_margin", "open_threshold", "confidence", "untouched_confidence")
 
 
 class SceneModelError(ValueError):
@@ -91,6 +93,10 @@ class SceneModel:
     # per class, the offset variance that replaces the two above (runtime/feedback.py: an untouched
     # class whose mean operator-labelled pieces re-estimated); None = the two. Cell state, not stored.
     class_offset_var: np.ndarray | None = field(default=None, repr=False)
+    # a sum-rule model's offset setting for operator labels (runtime/feedback.py needs the offset
+    # rule): the offset candidate training searched on the same validation jobs (LABELS_KEYS); None
+    # for an offset-rule model (its own setting serves) and for files written before it
+    labels_rule: Mapping[str, float] | None = field(default=None, repr=False)
 
     @property
     def dim(self) -> int:
@@ -160,6 +166,15 @@ class SceneModel:
         v = offset_var + self.press_var / n
         return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * is_u
 
+    def for_labels(self) -> "SceneModel | None":
+        """The offset-rule model operator labels update (runtime/feedback.py): this one when its
+        rule is the offset rule, a sum-rule model with its stored offset setting, else None."""
+        if self.item_rule == "offset":
+            return self
+        if self.labels_rule is None:
+            return None
+        return replace(self, item_rule="offset", labels_rule=None, **self.labels_rule)
+
     def subset(self, classes) -> "SceneModel":
         """The same model over ``classes`` only (bundle classes, in the given order)."""
         missing = [c for c in classes if c not in self.classes]
@@ -212,7 +227,8 @@ class SceneModel:
                 "evidence_weight": float(self.evidence_weight), "open_threshold": float(self.open_threshold),
                 "known_margin": float(self.known_margin), "confidence": float(self.confidence),
                 "untouched_confidence": float(self.untouched_confidence), "item_rule": np.array(self.item_rule),
-                **{key: float(getattr(self, key)) for key in OFFSET_KEYS}}
+                **{key: float(getattr(self, key)) for key in OFFSET_KEYS},
+                **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()}}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -260,12 +276,24 @@ class SceneModel:
         if rule not in ITEM_RULES:
             raise SceneModelError(f"scene model item_rule {rule!r}: this runtime knows {', '.join(ITEM_RULES)}")
         if rule == "sum":
-            return model
+            if not any(f"labels_{key}" in params for key in LABELS_KEYS):
+                return model
+            labels = {key: scalar(f"labels_{key}") for key in LABELS_KEYS}
+            _check_offset(labels, "labels_")
+            if not (0 < labels["confidence"] <= 1 and 0 < labels["untouched_confidence"] <= 1
+                    and not math.isnan(labels["open_threshold"]) and not math.isnan(labels["known_margin"])):
+                raise SceneModelError(f"scene model labels_ operating point out of range: {labels}")
+            return replace(model, labels_rule=labels)
         offset = {key: scalar(key) for key in OFFSET_KEYS}
-        if not (offset["press_var"] > 0 and offset["offset_var_touched"] >= 0 and offset["offset_var_untouched"] >= 0
-                and offset["item_temperature"] > 0 and all(math.isfinite(v) for v in offset.values())):
-            raise SceneModelError(f"scene model offset rule scalars out of range: {offset}")
+        _check_offset(offset, "")
         return replace(model, item_rule=rule, **offset)
 
 
-__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION", "ITEM_RULES"]
+def _check_offset(offset: Mapping[str, float], prefix: str) -> None:
+    if not (offset["press_var"] > 0 and offset["offset_var_touched"] >= 0 and offset["offset_var_untouched"] >= 0
+            and offset["item_temperature"] > 0 and all(math.isfinite(offset[k]) for k in OFFSET_KEYS)):
+        raise SceneModelError(f"scene model {prefix}offset rule scalars out of range: "
+                              f"{ {k: offset[k] for k in OFFSET_KEYS} }")
+
+
+__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION", "ITEM_RULES", "OFFSET_KEYS", "LABELS_KEYS"]

@@ -292,13 +292,15 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
     ``labels``, every piece that lands in the reject bin is labelled by the operator before the
     next piece: a scene fabric's label re-estimates its mean if it is untouched, an off-scene
     piece's teaches the cell that stranger (runtime/feedback.py). ``labels`` False gives the same
-    jobs, orders and presses without them: the paired zero-shot baseline. Needs the offset item rule."""
+    jobs, orders and presses without them: the paired zero-shot baseline. Needs an offset-rule
+    setting (``SceneModel.for_labels``); the model's own rule decides until a label teaches."""
     from vs2t_edge.runtime.feedback import adapt, item_evidence
 
-    confidence, opts = scene_model_rule(model)
-
     def make(m, classes):
-        return Evidence(classes, confidence, max_presses, **{**opts, "item_model": m})
+        confidence, opts = scene_model_rule(m)
+        return Evidence(classes, confidence, max_presses, **opts)
+
+    base = model.for_labels()  # what labels update: the offset-rule setting (a sum-rule model's stored one)
 
     rng = np.random.default_rng(seed)
     records = []
@@ -307,7 +309,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         rng.shuffle(stream)
         labelled: dict[str, list] = {}
         strangers: dict[str, list] = {}
-        current = adapt(model, {})
+        current = adapt(base, {})
         for fabric in stream:
             pool = presses[fabric]
             order = rng.permutation(len(pool))[:max_presses]
@@ -320,7 +322,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             if labels and rejected and (fabric in model.untouched or fabric not in scene.classes):
                 (labelled if fabric in scene.classes else strangers).setdefault(fabric, []).append(
                     (ev.z_mean, ev.presses))
-                current = adapt(model, labelled, strangers)
+                current = adapt(base, labelled, strangers)
     return records
 
 

@@ -33,7 +33,7 @@ from vs2t_edge.runtime.feedback import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
-from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta
+from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, scene_model_settings
 
 
 class SceneModelMissing(ValueError):
@@ -88,13 +88,16 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
                         f"set `evidence.without_scene_model: allow` in {cfg.path}")
     confidence, opts = evidence_settings(cfg, model)
     if cfg.operator_labels is not None:  # learning from the reject bin (runtime/feedback.py)
-        if opts.get("item_model") is None:
-            raise ValueError(f"{cfg.path}: evidence.operator_labels needs a bundle whose scene model uses the offset "
-                             f"item rule; bundle {cfg.bundle} has "
-                             + ("no scene model" if getattr(model, "scene_model", None) is None else "the sum rule"))
-        return OperatorFeedback(opts["item_model"], cfg.scene_classes, cfg.operator_labels,
-                                lambda m, classes: Evidence(classes, confidence, cfg.max_presses,
-                                                            **{**opts, "item_model": m}))
+        scene_model = getattr(model, "scene_model", None)
+        if scene_model is None or scene_model.for_labels() is None:
+            raise ValueError(f"{cfg.path}: evidence.operator_labels needs a scene model with an offset item rule "
+                             f"setting; bundle {cfg.bundle} has "
+                             + ("no scene model" if scene_model is None else "a sum-rule one without it (re-export it)"))
+
+        def make(m, classes):
+            conf, kw = scene_model_settings(cfg, m)
+            return Evidence(classes, conf, cfg.max_presses, **kw)
+        return OperatorFeedback(scene_model, cfg.scene_classes, cfg.operator_labels, make)
     return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
 
 

@@ -144,8 +144,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
     require_scene_model(model, bundle, without_scene_model,
                         "give --without-scene-model allow (`--force` redoes the demo's stages)")
-    if operator_labels and getattr(getattr(model, "scene_model", None), "item_rule", "") != "offset":
-        log("operator labels need a scene model with the offset item rule; this bundle sorts zero-shot only")
+    if operator_labels and (getattr(model, "scene_model", None) is None or model.scene_model.for_labels() is None):
+        log("operator labels need a scene model with an offset item rule setting; this bundle sorts zero-shot only")
         operator_labels = False
     ds = load_dataset(dataset)
     known = set(model.touched) | set(model.untouched)

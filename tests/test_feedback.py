@@ -351,8 +351,46 @@ def test_validate_config_says_before_the_start_that_labels_need_the_offset_rule(
                                                                    "decision": {"file": "decision.npz"}}))
     cfg = tmp_path / "cell.yaml"
     cfg.write_text(fake_cell_yaml(evidence={"operator_labels": "labels.jsonl"}))
-    for rule, code in (("sum", 2), ("offset", 0)):
-        np.savez(tmp_path / "bundle" / "decision.npz", **_model(item_rule=rule).to_params())
+    for model, code in ((_model(item_rule="sum"), 2), (_model(), 0), (_sum_model_with_labels_rule()[0], 0)):
+        np.savez(tmp_path / "bundle" / "decision.npz", **model.to_params())
         assert main(["validate-config", str(cfg), "--check-bundle"]) == code
         err = capsys.readouterr().err
-        assert ("uses the sum item rule; labels need the offset rule" in err) == (rule == "sum")
+        assert ("uses the sum item rule without an offset setting" in err) == (code == 2)
+
+
+def _sum_model_with_labels_rule():
+    rule = {"press_var": 1.0, "offset_var_touched": 0.1, "offset_var_untouched": 20.0, "item_temperature": 3.0,
+            "item_bias": 0.0, "known_margin": float("inf"), "open_threshold": float("inf"), "confidence": 0.95,
+            "untouched_confidence": 0.95}
+    return _model(item_rule="sum", temperature=2.0, labels_rule=rule), rule
+
+
+def test_a_sum_rule_model_carries_an_offset_setting_for_labels_and_decides_by_its_own_rule_until_taught(tmp_path):
+    m, rule = _sum_model_with_labels_rule()
+    back = SceneModel.from_params(m.to_params())  # what export writes and the cell reads (decision.npz)
+    assert back.item_rule == "sum" and back.labels_rule == rule
+    assert SceneModel.from_params(_model(item_rule="sum").to_params()).for_labels() is None  # an older file
+    bad = {**m.to_params(), "labels_press_var": -1.0}
+    with pytest.raises(SceneModelError, match="labels_offset rule scalars out of range"):
+        SceneModel.from_params(bad)
+    labels_model = back.for_labels()
+    assert labels_model.item_rule == "offset" and labels_model.press_var == 1.0 and labels_model.labels_rule is None
+
+    def make(model, classes):
+        return Evidence(classes, 0.95, 4, item_model=model if model.item_rule == "offset" else None)
+
+    fb = OperatorFeedback(back, CLASSES, tmp_path / "labels.jsonl", make)
+    ev = fb()  # nothing learned: the sum rule (per-press log posteriors), keeping the projection a label reads
+    assert ev.inner.item_model is None
+    lp = dict(zip(CLASSES, back.log_posterior_projected(np.array([WOOL_PIECE]))[0][0]))
+    for _ in range(2):
+        ev.add(so.Press(lp, None, np.array(WOOL_PIECE)))
+    assert ev.z_mean.tolist() == list(WOOL_PIECE) and ev.presses == 2
+    fb.remember("piece-1", ev)
+    append_label(fb.path, "piece-1", "wool")
+    assert [r["applied"] for r in fb.poll(_Journal())] == [True]
+    taught = fb()
+    assert taught.adapted.item_model is fb.model and fb.model.item_rule == "offset"
+    assert taught.zero_shot.inner.item_model is None  # the guard asks the bundle's own rule
+    with pytest.raises(SceneModelError, match="carries no offset setting"):
+        OperatorFeedback(_model(item_rule="sum"), CLASSES, tmp_path / "l.jsonl", make)

@@ -35,7 +35,7 @@ from dataclasses import replace
 import numpy as np
 
 from vs2t_edge.runtime import sorting as so
-from vs2t_edge.runtime.scene_model import OFFSET_KEYS, SceneModel
+from vs2t_edge.runtime.scene_model import LABELS_KEYS, OFFSET_KEYS, SceneModel
 from vs2t_edge.train import item_search as ns
 
 K_CHOICES = (32, 64, 128)
@@ -170,8 +170,11 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
+    # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
+    # updates means only under the offset rule); it was searched on the same validation jobs
+    labels_rule = None if chosen.item_rule == "offset" else {key: float(getattr(cand_off, key)) for key in LABELS_KEYS}
     deployed = replace(chosen, classes=deployed.classes, untouched=deployed.untouched, center=deployed.center,
-                       basis=deployed.basis, means=deployed.means,
+                       basis=deployed.basis, means=deployed.means, labels_rule=labels_rule,
                        info={**deployed.info, "target_mis_sort": target_mis_sort})
     rule = {"evidence_weight": chosen.evidence_weight} if chosen.item_rule == "sum" else \
         {key: getattr(chosen, key) for key in OFFSET_KEYS}
@@ -235,7 +238,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["press_gzsl"] = {"acc_t": acc_t, "acc_u": acc_u,
                          "H": 2 * acc_t * acc_u / (acc_t + acc_u) if acc_t + acc_u > 0 else 0.0}
     out["n_scenes"] = n_scenes
-    if model.item_rule == "offset":
+    if model.for_labels() is not None:
         out["operator_labels"] = operator_label_jobs(model, tables, scenes, seed=seed + 2)
     return out
 
