@@ -281,15 +281,16 @@ def scene_lines(splits: list[dict]) -> list[str]:
 
 def label_lines(sd: list[dict]) -> list[str]:
     """Learning from the reject bin (runtime/feedback.py): the same scenes as jobs, without and
-    with operator labels, per job length, over the splits whose item rule is the offset rule."""
+    with operator labels, per job length, over the splits whose model can learn (``for_labels``)."""
     ol = [d["test"]["operator_labels"] for d in sd if "operator_labels" in d["test"]]
     if not ol:
         return []
     out = ["", "With operator labels (`evidence.operator_labels`, runtime/feedback.py; outside the zero-shot "
                "protocol): each scene as one job, its pieces in a random order, every rejected piece of a scene "
                "fabric labelled by the operator before the next piece; the same jobs, orders and presses without "
-               "labels beside it. Right / mis-sort %, mean ± std over the "
-               f"{len(ol)} of {len(sd)} split(s) whose validation kept the offset rule (the mode needs it):", "",
+               "labels beside it (a split whose validation kept the sum rule learns with the offset setting its "
+               "validation also searched). Right / mis-sort %, mean ± std over "
+               f"{len(ol)} of {len(sd)} split(s) (a run before that setting was kept: the offset-rule ones):", "",
            "| pieces of each fabric per job | without labels | with labels | untouched right without → with |",
            "| --- | --- | --- | --- |"]
     for n in ol[0]:
