@@ -18,7 +18,9 @@ is mu plus the piece's own offset plus press noise, zbar_j ~ N(mu, (s_t + v / n_
 and a new piece's mean zbar ~ N(mu_post, (1 / P + s_t + v / n) I): the class's offset variance
 becomes 1 / P + s_t (``SceneModel.class_offset_var``). s_u, s_t and v are the bundle's
 (``offset_var_untouched``, ``offset_var_touched``, ``press_var``), chosen on validation fabrics in
-training; so it needs the offset item rule. Touched fabrics' means come from their training
+training; so it needs an offset-rule setting: the bundle's own, or for a sum-rule bundle the offset
+setting training searched on the same validation jobs (``SceneModel.for_labels``; the bundle's own
+rule still decides until a label teaches something). Touched fabrics' means come from their training
 presses and are left alone; a label naming one is recorded and not applied. A piece the operator
 calls off-scene (none of the job's fabrics) teaches a stranger: a class ``off-scene:NAME`` at its
 labelled pieces' mean (no prior: nothing synthesised it), decided like any class and sent, being
