@@ -265,6 +265,7 @@ class OperatorFeedback:
         self.strangers: dict[str, list[tuple[np.ndarray, int]]] = {}
         self.lines_read = 0
         self.model = base
+        self._unreadable = ""  # the last unreadable-file error journaled (said once, not per piece)
 
     def __call__(self):
         return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
@@ -291,9 +292,20 @@ class OperatorFeedback:
         return ""
 
     def poll(self, journal) -> list[dict]:
-        """Read labels written since the last poll, apply them, journal each; the records written."""
+        """Read labels written since the last poll, apply them, journal each; the records written.
+        A labels file that cannot be read (permissions, a folder in its place) stops no piece: the
+        cell sorts on with what it learned, and the journal says so once per distinct error."""
+        try:
+            lines = read_labels(self.path, self.lines_read)
+        except OSError as exc:
+            why = f"labels file {self.path} unreadable ({exc.strerror or exc}); sorting on without new labels"
+            if why == self._unreadable:
+                return []
+            self._unreadable = why
+            return [journal.append({"type": "label", "file": str(self.path), "applied": False, "why": why})]
+        self._unreadable = ""
         out = []
-        for line, rec in read_labels(self.path, self.lines_read):
+        for line, rec in lines:
             entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}
             if isinstance(rec, str):
                 entry.update(applied=False, why=f"{self.path} line {line}: {rec}")

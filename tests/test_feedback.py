@@ -206,6 +206,11 @@ def test_a_class_no_label_taught_is_sorted_only_when_zero_shot_agrees():
 def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
     fb = _feedback(tmp_path)
     assert fb.poll(_Journal()) == []  # no file yet: nothing to read
+    (tmp_path / "labels.jsonl").mkdir()  # a folder where the file should be: said once, sorting goes on
+    j = _Journal()
+    said = fb.poll(j) + fb.poll(j)
+    assert len(said) == 1 and not said[0]["applied"] and "unreadable" in said[0]["why"]
+    (tmp_path / "labels.jsonl").rmdir()
     (tmp_path / "labels.jsonl").write_bytes(b"\n" + b"x" * 5000 + b"\n" + b"[1, 2]\n")
     got = read_labels(tmp_path / "labels.jsonl")
     assert [k for k, _ in got] == [1, 2, 3] and all(isinstance(r, str) for _, r in got)
