@@ -54,9 +54,11 @@ import numpy as np
 
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence, ItemDecision
+from vs2t_edge.runtime.files import InputRefused, read_regular_file
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 
 MAX_LABEL_LINE_BYTES = 4096
+MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; start a new file per job long before
 OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
 
 
@@ -216,8 +218,8 @@ def append_label(path: Path | str, item_id: str, fabric: str, off_scene: bool = 
 def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]]:
     """(line number from 1, label or the reason it is unusable) for every whole line from line
     ``start`` + 1 on; a last line without its newline is being written and is left for later."""
-    try:
-        data = Path(path).read_bytes()
+    try:  # a regular file under a cap: a FIFO put there must not hang the cell (InputRefused, an error)
+        data = read_regular_file(path, MAX_LABELS_FILE_BYTES, "labels file")
     except FileNotFoundError:
         return []
     lines = data.split(b"\n")[:-1]  # the part after the last newline is not a whole line yet
@@ -297,8 +299,9 @@ class OperatorFeedback:
         cell sorts on with what it learned, and the journal says so once per distinct error."""
         try:
             lines = read_labels(self.path, self.lines_read)
-        except OSError as exc:
-            why = f"labels file {self.path} unreadable ({exc.strerror or exc}); sorting on without new labels"
+        except (OSError, InputRefused) as exc:
+            said = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            why = f"labels file {self.path} unreadable ({said}); sorting on without new labels"
             if why == self._unreadable:
                 return []
             self._unreadable = why

@@ -47,7 +47,11 @@ def run(args) -> int:
         if args.list < 1:
             print(f"label: --list {args.list}: give how many pieces to list (1 or more)", file=sys.stderr)
             return 2
-        print("\n".join(rejected_pieces(cfg, args.list)))
+        try:
+            print("\n".join(rejected_pieces(cfg, args.list)))
+        except (OSError, ValueError) as exc:  # ValueError: InputRefused (a FIFO or a huge labels file)
+            print(f"label: {exc}", file=sys.stderr)
+            return 2
         return 0
     if args.item_id is None or args.fabric is None:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)

@@ -4,6 +4,7 @@ fabric's mean; the cell reads them between pieces, journals them and resumes the
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -211,6 +212,10 @@ def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
     said = fb.poll(j) + fb.poll(j)
     assert len(said) == 1 and not said[0]["applied"] and "unreadable" in said[0]["why"]
     (tmp_path / "labels.jsonl").rmdir()
+    os.mkfifo(tmp_path / "labels.jsonl")  # a FIFO would block a plain read for ever
+    said = fb.poll(j)
+    assert len(said) == 1 and "not a regular file" in said[0]["why"]
+    (tmp_path / "labels.jsonl").unlink()
     (tmp_path / "labels.jsonl").write_bytes(b"\n" + b"x" * 5000 + b"\n" + b"[1, 2]\n")
     got = read_labels(tmp_path / "labels.jsonl")
     assert [k for k, _ in got] == [1, 2, 3] and all(isinstance(r, str) for _, r in got)
