@@ -286,14 +286,17 @@ def _press_until_decided(ev, pool: list[Press], order):
 
 def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]], model, *,
                          labels: bool = True, items_per_fabric: int = 4, max_presses: int = 5,
-                         seed: int = 0) -> list[ItemRecord]:
+                         seed: int = 0, teach: bool = False) -> list[ItemRecord]:
     """Each scene one job: its pieces (``items_per_fabric`` of every scene and off-scene fabric)
     in a random order, decided by the cell's evidence with ``model``'s operating point; with
     ``labels``, every piece that lands in the reject bin is labelled by the operator before the
     next piece: a scene fabric's label re-estimates its mean if it is untouched, an off-scene
     piece's teaches the cell that stranger (runtime/feedback.py). ``labels`` False gives the same
     jobs, orders and presses without them: the paired zero-shot baseline. Needs an offset-rule
-    setting (``SceneModel.for_labels``); the model's own rule decides until a label teaches."""
+    setting (``SceneModel.for_labels``); the model's own rule decides until a label teaches.
+    ``teach``: before each job, one known piece of every untouched fabric of the job is pressed and
+    labelled (the operator's teach pieces; not counted), and no later piece of the job shows its
+    presses."""
     from vs2t_edge.runtime.feedback import adapt, item_evidence
 
     def make(m, classes):
@@ -309,10 +312,19 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         rng.shuffle(stream)
         labelled: dict[str, list] = {}
         strangers: dict[str, list] = {}
-        current = adapt(base, {})
+        shown: dict[str, np.ndarray] = {}  # a teach piece's presses, kept out of the job's pieces
+        for fabric in (scene.untouched if teach else ()):
+            shown[fabric] = rng.permutation(len(presses[fabric]))[:max_presses]
+            zs = np.stack([np.asarray(presses[fabric][i].scene_z, np.float64) for i in shown[fabric]])
+            labelled[fabric] = [(zs.mean(axis=0), len(zs))]
+        current = adapt(base, labelled)
         for fabric in stream:
             pool = presses[fabric]
-            order = rng.permutation(len(pool))[:max_presses]
+            if fabric in shown:
+                left = np.setdiff1d(np.arange(len(pool)), shown[fabric])
+                order = left[rng.permutation(len(left))[:max_presses]]
+            else:
+                order = rng.permutation(len(pool))[:max_presses]
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
             rec = record(fabric, scene.kind(fabric), _press_until_decided(ev, pool, order), scene.classes)
             records.append(rec)

@@ -250,13 +250,13 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     """Learning from the reject bin (runtime/feedback.py), outside the zero-shot protocol: the
     same scenes as jobs whose pieces come in a random order, each rejected piece of a scene fabric
     labelled by the operator before the next; beside the same jobs, orders and presses without
-    labels (paired). Per job length (pieces per fabric, ``LABEL_JOB_LENGTHS``)."""
+    labels (paired); and ``teach``: the same with one labelled teach piece of each untouched fabric
+    pressed before the job. Per job length (pieces per fabric, ``LABEL_JOB_LENGTHS``)."""
     out = {}
     for n in LABEL_JOB_LENGTHS:
-        pair = {name: so.summarise(so.simulate_with_labels(scenes, tables, model, labels=on, items_per_fabric=n,
-                                                           max_presses=MAX_PRESSES, seed=seed))
-                for name, on in (("without", False), ("with", True))}
-        out[str(n)] = pair
+        out[str(n)] = {name: so.summarise(so.simulate_with_labels(
+            scenes, tables, model, labels=on, items_per_fabric=n, max_presses=MAX_PRESSES, seed=seed, teach=teach))
+            for name, on, teach in (("without", False, False), ("with", True, False), ("teach", True, True))}
     return out
 
 

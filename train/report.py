@@ -288,18 +288,21 @@ def label_lines(sd: list[dict]) -> list[str]:
     out = ["", "With operator labels (`evidence.operator_labels`, runtime/feedback.py; outside the zero-shot "
                "protocol): each scene as one job, its pieces in a random order, every rejected piece of a scene "
                "fabric labelled by the operator before the next piece; the same jobs, orders and presses without "
-               "labels beside it (a split whose validation kept the sum rule learns with the offset setting its "
+               "labels beside it, and the same with one known piece of each untouched fabric pressed and labelled "
+               "before the job (a teach piece: not counted, its presses not shown again) "
+               "(a split whose validation kept the sum rule learns with the offset setting its "
                "validation also searched). Right / mis-sort %, mean ± std over "
                f"{len(ol)} of {len(sd)} split(s) (a run before that setting was kept: the offset-rule ones):", "",
-           "| pieces of each fabric per job | without labels | with labels | untouched right without → with |",
-           "| --- | --- | --- | --- |"]
+           "| pieces of each fabric per job | without labels | with labels | with labels and a teach piece of each "
+           "untouched fabric first | untouched right without → with → with teach |",
+           "| --- | --- | --- | --- | --- |"]
     for n in ol[0]:
-        w = [o[n]["without"] for o in ol]
-        t = [o[n]["with"] for o in ol]
+        runs = [[o[n][k] for o in ol if k in o[n]] for k in ("without", "with", "teach")]
         u = lambda rs: _ms([r["by_kind"].get("untouched", {}).get("right") for r in rs])  # noqa: E731
-        out.append(f"| {n} | {_ms([r['all']['right'] for r in w])} / {_ms([r['all']['mis-sort'] for r in w])} | "
-                   f"{_ms([r['all']['right'] for r in t])} / {_ms([r['all']['mis-sort'] for r in t])} | "
-                   f"{u(w)} → {u(t)} |")
+        cell = lambda rs: f"{_ms([r['all']['right'] for r in rs])} / {_ms([r['all']['mis-sort'] for r in rs])}" \
+            if rs else "-"  # noqa: E731
+        out.append(f"| {n} | {cell(runs[0])} | {cell(runs[1])} | {cell(runs[2])} | "
+                   f"{u(runs[0])} → {u(runs[1])} → {u(runs[2]) if runs[2] else '-'} |")
     return out
 
 
