@@ -21,9 +21,9 @@ Per split (``fit_scene_decision``):
 4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
 
 ``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
-untouched fabrics' presses) with the same simulation, and for the offset rule the same scenes as
-jobs with operator labels (``operator_label_jobs``, runtime/feedback.py: a mode outside the
-zero-shot protocol, reported beside it); ``press_tables`` gives the cell's per-press view (log
+untouched fabrics' presses) with the same simulation, and the same scenes as jobs with operator
+labels (``operator_label_jobs``, runtime/feedback.py: a mode outside the zero-shot protocol,
+reported beside it; a sum-rule model learns with the offset candidate kept as its ``labels_rule``); ``press_tables`` gives the cell's per-press view (log
 posterior and squared distances) that both use.
 """
 
