@@ -333,8 +333,8 @@ class OperatorFeedback:
                 current = rec.get(SEAL_KEY) == seal
             elif not current:
                 continue
-            elif kind == "pre_sort" and isinstance(rec.get("scene_z_mean"), list) and rec.get("item_id") is not None \
-                    and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
+            elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
+                    and rec.get("item_id") is not None and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
                 self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
                 if rec.get("applied"):
@@ -342,6 +342,13 @@ class OperatorFeedback:
                                 rebuild=False)
                 self.lines_read = max(self.lines_read, rec["line"])
         self.model = adapt(self.base, self.labelled, self.strangers)  # once, not once per label
+
+
+def _projection(z: Any, k: int) -> bool:
+    """Whether a journal's ``scene_z_mean`` is one this model can learn from (a hand-edited or
+    damaged record is skipped at restore, not a crash at start)."""
+    return isinstance(z, list) and len(z) == k and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
 __all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",

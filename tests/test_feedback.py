@@ -272,6 +272,12 @@ def test_the_cell_learns_between_pieces_and_a_restart_resumes_it(tmp_path):
     fresh.restore(iter_records(journal.path), seal=None)
     assert np.allclose(fresh.model.means, fb.model.means) and fresh.lines_read == 1
     assert fresh.poll(_Journal()) == []  # the label is not read (and journaled) a second time
+    # a damaged or hand-edited projection is skipped, never a crash at start
+    odd = _feedback(tmp_path)
+    odd.restore([{"type": "pre_sort", "item_id": "x1", "presses": 2, "scene_z_mean": [1.0, "a"]},
+                 {"type": "pre_sort", "item_id": "x2", "presses": 2, "scene_z_mean": [1.0, 2.0, 3.0]},
+                 {"type": "pre_sort", "item_id": "x3", "presses": 2, "scene_z_mean": [1.0, float("nan")]}], seal=None)
+    assert odd.pieces == {}
     # sessions of another bundle are skipped: their projections are another model's
     other = _feedback(tmp_path)
     other.restore([{"type": "start", SEAL_KEY: "other"}, *iter_records(journal.path)], seal="mine")
