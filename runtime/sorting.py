@@ -304,6 +304,9 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         return Evidence(classes, confidence, max_presses, **opts)
 
     base = model.for_labels()  # what labels update: the offset-rule setting (a sum-rule model's stored one)
+    if base is None:
+        raise ValueError("simulate_with_labels: the scene model has no offset-rule setting to learn with "
+                         "(a sum-rule model exported before labels_rule)")
 
     rng = np.random.default_rng(seed)
     records = []
