@@ -86,8 +86,7 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
                               f"{model.item_rule!r}")
     means = np.array(model.means, np.float64, copy=True)
     is_u = np.array([c in model.untouched for c in model.classes])
-    var = np.where(is_u, model.offset_var_untouched, model.offset_var_touched).astype(np.float64) \
-        if model.class_offset_var is None else np.array(model.class_offset_var, np.float64, copy=True)
+    var = model.offset_vars()  # a fresh array: rows of labelled classes are replaced below
     s_u, s_t = model.offset_var_untouched, model.offset_var_touched
     for fabric, pieces in labelled.items():
         if fabric not in model.classes:

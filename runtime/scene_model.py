@@ -121,11 +121,17 @@ class SceneModel:
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "consts" not in cache:
             is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
-            offset_var = np.where(is_u > 0, self.offset_var_untouched, self.offset_var_touched) \
-                if self.class_offset_var is None else np.asarray(self.class_offset_var, np.float64)
             cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * is_u,
-                               is_u, offset_var)
+                               is_u, self.offset_vars())
         return cache["consts"]
+
+    def offset_vars(self) -> np.ndarray:
+        """(C,) the offset item rule's offset variance per class: ``class_offset_var`` when set (a
+        class operator labels re-estimated), else the touched or untouched one by kind."""
+        if self.class_offset_var is not None:
+            return np.array(self.class_offset_var, np.float64)
+        is_u = np.array([c in self.untouched for c in self.classes])
+        return np.where(is_u, self.offset_var_untouched, self.offset_var_touched).astype(np.float64)
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
