@@ -98,7 +98,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     if evidence_factory is None:  # the config's item rule for this bundle (a caller may bring its own)
         try:
             evidence_factory = wiring.evidence_factory_for(cfg, model)
-        except (SceneModelMissing, ValueError) as exc:  # ValueError: operator labels on a sum-rule bundle
+        except SceneModelMissing as exc:  # also: operator labels on a bundle that cannot learn
             notifier.status(f"bundle refused: {exc}")
             log(str(exc))
             return EXIT_USAGE

@@ -267,6 +267,7 @@ class OperatorFeedback:
         self.lines_read = 0
         self.model = base
         self._unreadable = ""  # the last unreadable-file error journaled (said once, not per piece)
+        self._size_read = -1  # the labels file's size when last read (the file is append-only)
 
     def __call__(self):
         return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
@@ -297,7 +298,12 @@ class OperatorFeedback:
         A labels file that cannot be read (permissions, a folder in its place) stops no piece: the
         cell sorts on with what it learned, and the journal says so once per distinct error."""
         try:
+            size = os.stat(self.path).st_size
+            if size == self._size_read:  # nothing appended since the last read: no re-read per piece
+                return []
             lines = read_labels(self.path, self.lines_read)
+        except FileNotFoundError:
+            return []
         except (OSError, InputRefused) as exc:
             said = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             why = f"labels file {self.path} unreadable ({said}); sorting on without new labels"
@@ -306,6 +312,7 @@ class OperatorFeedback:
             self._unreadable = why
             return [journal.append({"type": "label", "file": str(self.path), "applied": False, "why": why})]
         self._unreadable = ""
+        self._size_read = size  # a line still being written grows the file, so it is read when whole
         out = []
         for line, rec in lines:
             entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}

@@ -37,7 +37,8 @@ from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, s
 
 
 class SceneModelMissing(ValueError):
-    """A bundle without a scene model, and a config that did not opt in to run it."""
+    """A bundle without a scene model, and a config that did not opt in to run it; or operator
+    labels on one without an offset-rule setting to learn with."""
 
 
 def load_model(cfg: CellConfig) -> TactileModel:
@@ -90,7 +91,7 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
     if cfg.operator_labels is not None:  # learning from the reject bin (runtime/feedback.py)
         scene_model = getattr(model, "scene_model", None)
         if scene_model is None or scene_model.for_labels() is None:
-            raise ValueError(f"{cfg.path}: evidence.operator_labels needs a scene model with an offset item rule "
+            raise SceneModelMissing(f"{cfg.path}: evidence.operator_labels needs a scene model with an offset item rule "
                              f"setting; bundle {cfg.bundle} has "
                              + ("no scene model" if scene_model is None else "a sum-rule one without it (re-export it)"))
 
