@@ -35,7 +35,11 @@ This is a mode outside the zero-shot protocol, on only when the cell config name
 "with operator labels"): the pure zero-shot numbers stay the product's headline.
 
 Files: the operator's labels are a JSON-lines file, one ``{"item_id": ..., "fabric": ...}`` a line,
-appended with an fsync (``append_label``). The cell reads new lines before each item
+appended with an fsync (``append_label``). A piece has at most one label that counts, its latest: a
+second line for the same piece replaces the first (a correction; the same label again changes
+nothing, so a piece is never counted twice), and ``{"item_id": ..., "retract": true}`` withdraws it -
+a wrong label would otherwise pull its fabric's mean towards another fabric for the rest of the job,
+and a restart, which rebuilds from the journal, would keep it. The cell reads new lines before each item
 (``OperatorFeedback.poll``) and journals what it did with each (``{"type": "label", ...}``,
 applied or not and why) before it presses the next piece; each decided item's pre_sort record
 carries its presses' mean projection (``scene_z_mean``), so a restarted service rebuilds the same
@@ -200,10 +204,14 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted)
 
 
-def append_label(path: Path | str, item_id: str, fabric: str, off_scene: bool = False) -> dict:
+def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
     """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
-    ``fabric`` names a piece that is none of the job's fabrics (any name the operator uses)."""
-    rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {})}
+    ``fabric`` names a piece that is none of the job's fabrics (any name the operator uses);
+    ``fabric`` None: withdraw the piece's label (module doc)."""
+    if fabric is None:
+        rec: dict = {"item_id": str(item_id), "retract": True}
+    else:
+        rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {})}
     line = (json.dumps(rec, sort_keys=True) + "\n").encode()
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o640)
     try:
@@ -235,9 +243,13 @@ def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]
         except (ValueError, UnicodeDecodeError) as exc:
             out.append((k, f"not JSON ({exc})"))
             continue
-        if not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str) or not isinstance(rec.get("fabric"), str) \
-                or not isinstance(rec.get("off_scene", False), bool):
-            out.append((k, 'not {"item_id": "...", "fabric": "..."[, "off_scene": true]}'))
+        retract = isinstance(rec, dict) and rec.get("retract") is True and "fabric" not in rec \
+            and "off_scene" not in rec and isinstance(rec.get("item_id"), str)
+        if not retract and (not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str)
+                            or not isinstance(rec.get("fabric"), str) or "retract" in rec
+                            or not isinstance(rec.get("off_scene", False), bool)):
+            out.append((k, 'not {"item_id": "...", "fabric": "..."[, "off_scene": true]} '
+                           'nor {"item_id": "...", "retract": true}'))
             continue
         out.append((k, rec))
     return out
@@ -262,6 +274,7 @@ class OperatorFeedback:
         self.path = Path(labels_path)
         self.make_evidence = make_evidence
         self.pieces: dict[str, tuple[list[float], int]] = {}  # item id -> (press mean, presses)
+        self.item_labels: dict[str, tuple[str, bool]] = {}  # item id -> its label that counts (fabric, off-scene)
         self.labelled: dict[str, list[tuple[np.ndarray, int]]] = {}
         self.strangers: dict[str, list[tuple[np.ndarray, int]]] = {}
         self.lines_read = 0
@@ -278,7 +291,8 @@ class OperatorFeedback:
             self.pieces[str(item_id)] = (np.asarray(z, np.float64).tolist(), int(n))
 
     def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
-        """'' when the label moved the model (``rebuild`` False: is to move it), else why not."""
+        """'' when the label moved the model (``rebuild`` False: is to move it), else why not. A
+        piece's earlier label is replaced (``item_labels``), never added to."""
         if off_scene and fabric in self.scene:
             return f"{fabric!r} is a fabric of this job, not an off-scene one"
         if not off_scene and fabric not in self.scene:
@@ -287,11 +301,28 @@ class OperatorFeedback:
             return f"{fabric!r} is a touched fabric: its mean comes from training presses"
         if item_id not in self.pieces:
             return f"no decided item {item_id!r} with presses in this journal"
-        z, n = self.pieces[item_id]
-        (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
+        if self.item_labels.get(item_id) == (fabric, off_scene):
+            return f"{item_id!r} is labelled {fabric!r} already (a piece counts once)"
+        self.item_labels[item_id] = (fabric, off_scene)
+        self._relearn(rebuild)
+        return ""
+
+    def _retract(self, item_id: str, rebuild: bool = True) -> str:
+        """'' when the piece's label was withdrawn, else why not."""
+        if item_id not in self.item_labels:
+            return f"{item_id!r} has no applied label to retract"
+        del self.item_labels[item_id]
+        self._relearn(rebuild)
+        return ""
+
+    def _relearn(self, rebuild: bool) -> None:
+        """The labelled pieces per class from each piece's label that counts, in the order labelled."""
+        self.labelled, self.strangers = {}, {}
+        for item_id, (fabric, off_scene) in self.item_labels.items():
+            z, n = self.pieces[item_id]
+            (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
         if rebuild:
             self.model = adapt(self.base, self.labelled, self.strangers)
-        return ""
 
     def poll(self, journal) -> list[dict]:
         """Read labels written since the last poll, apply them, journal each; the records written.
@@ -318,11 +349,18 @@ class OperatorFeedback:
             entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}
             if isinstance(rec, str):
                 entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
+            elif rec.get("retract"):
+                before = self.item_labels.get(rec["item_id"])
+                why = self._retract(rec["item_id"])
+                entry.update(item_id=rec["item_id"], retract=True, applied=not why, **({"why": why} if why else {}),
+                             **({"withdrew": before[0]} if before and not why else {}))
             else:
                 off = bool(rec.get("off_scene", False))
+                before = self.item_labels.get(rec["item_id"])
                 why = self._apply(rec["item_id"], rec["fabric"], off)
                 entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
-                             applied=not why, **({"why": why} if why else {}))
+                             applied=not why, **({"why": why} if why else {}),
+                             **({"replaces": before[0]} if before and not why else {}))
             out.append(journal.append(entry))
             self.lines_read = line
         return out
@@ -343,7 +381,9 @@ class OperatorFeedback:
                     and rec.get("item_id") is not None and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
                 self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
-                if rec.get("applied"):
+                if rec.get("applied") and rec.get("retract"):
+                    self._retract(str(rec.get("item_id")), rebuild=False)
+                elif rec.get("applied"):
                     self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")),
                                 rebuild=False)
                 self.lines_read = max(self.lines_read, rec["line"])

@@ -1,4 +1,6 @@
 """`vs2t-edge label CONFIG ITEM_ID FABRIC [--off-scene]`: the operator says what a piece in the reject bin was.
+`vs2t-edge label CONFIG ITEM_ID --retract`: withdraws a piece's label (a wrong one); labelling a piece
+again replaces its label instead of adding a second.
 `vs2t-edge label CONFIG --list [N]`: the last N pieces sent to the reject bin, and what became of
 their labels (none yet, waiting for the service, applied, or why not).
 
@@ -28,6 +30,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--list", nargs="?", type=int, const=20, default=None, metavar="N",
                         help="list the last N pieces (default 20) the journal sent to the reject bin, with their "
                              "labels, instead of labelling one")
+    parser.add_argument("--retract", action="store_true",
+                        help="withdraw ITEM_ID's label (a wrong one): the cell forgets what it learned from the "
+                             "piece; to correct a label, label the piece again instead")
     parser.add_argument("--off-scene", action="store_true",
                         help="the piece is none of the job's fabrics: the cell learns it as a stranger, and pieces "
                              "like it go to the reject bin")
@@ -52,6 +57,18 @@ def run(args) -> int:
         except (OSError, ValueError) as exc:  # ValueError: InputRefused (a FIFO or a huge labels file)
             print(f"label: {exc}", file=sys.stderr)
             return 2
+        return 0
+    if args.retract:
+        if args.item_id is None or args.fabric is not None or args.off_scene:
+            print("label: --retract takes ITEM_ID alone (to correct a label, label the piece again)", file=sys.stderr)
+            return 2
+        try:
+            append_label(cfg.operator_labels, args.item_id, None)
+        except OSError as exc:
+            print(f"label: cannot write {cfg.operator_labels}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+        print(f"{args.item_id}: label withdrawn in {cfg.operator_labels} (the service forgets the piece before its "
+              "next one)")
         return 0
     if args.item_id is None or args.fabric is None:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
@@ -85,10 +102,12 @@ def rejected_pieces(cfg, n: int) -> list[str]:
         if kind == "final" and rec.get("bin") == cfg.reject_bin:
             last.append(rec)
         elif kind == "label" and rec.get("item_id") is not None:
-            said = f"{rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
-            fate[str(rec["item_id"])] = f"labelled {said}: " + ("applied" if rec.get("applied") else
-                                                               f"not applied ({rec.get('why', '?')})")
-    waiting = {str(r["item_id"]): r["fabric"] for _, r in read_labels(cfg.operator_labels) if isinstance(r, dict)}
+            said = "withdrawn" if rec.get("retract") else \
+                f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
+            fate[str(rec["item_id"])] = f"{said}: " + ("applied" if rec.get("applied") else
+                                                      f"not applied ({rec.get('why', '?')})")
+    waiting = {str(r["item_id"]): r.get("fabric", "(withdrawn)") for _, r in read_labels(cfg.operator_labels)
+               if isinstance(r, dict)}
     if not last:
         return [f"no piece in the reject bin in {cfg.journal}"]
     out = [f"the last {len(last)} piece(s) in the reject bin ({cfg.journal}), oldest first:"]

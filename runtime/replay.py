@@ -234,7 +234,8 @@ class ReplayItems:
         self.q.item_index += 1
         item = self.items[self.q.item_index]
         for rec in [r for r in self.labels if isinstance(r, dict) and r.get("before_item") == item.id]:
-            append_label(self.labels_path, str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")))
+            append_label(self.labels_path, str(rec.get("item_id")),
+                         None if rec.get("retract") else str(rec.get("fabric")), bool(rec.get("off_scene")))
         return item
 
     def exhausted(self) -> bool:

@@ -90,7 +90,8 @@ def labels_of(records: list[dict]) -> list[dict]:
             before = r.get("item_id")
         elif r.get("type") == "label" and before is not None:
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
-                        **({"off_scene": True} if r.get("off_scene") else {})})
+                        **({"off_scene": True} if r.get("off_scene") else {}),
+                        **({"retract": True} if r.get("retract") else {})})
     return out
 
 

@@ -157,6 +157,49 @@ def test_the_poll_applies_journals_and_refuses_in_words(tmp_path):
     assert isinstance(fresh, Evidence) and fresh.item_model.classes == CLASSES  # nothing learned: zero-shot
 
 
+def test_a_piece_counts_once_a_new_label_replaces_its_last_and_a_retraction_withdraws_it(tmp_path):
+    """A wrong label would pull its fabric's mean towards another fabric for the rest of the job (and
+    a restart rebuilds from the journal, so it would stay): the operator corrects it by labelling the
+    piece again or withdraws it; the same label twice must not count the piece twice."""
+    fb, j = _feedback(tmp_path), _Journal()
+    for item in ("piece-1", "piece-2"):
+        _, ev = _decide(fb.model, WOOL_PIECE)
+        fb.remember(item, ev)
+    path = tmp_path / "labels.jsonl"
+    append_label(path, "piece-1", "wool")
+    once = fb.poll(j)[0]
+    learned_once = fb.model.means.copy()
+    append_label(path, "piece-1", "wool")  # said twice (a double click): counted once
+    again = fb.poll(j)[0]
+    assert once["applied"] and not again["applied"] and "already" in again["why"]
+    assert np.array_equal(fb.model.means, learned_once)
+    append_label(path, "piece-1", "stray", off_scene=True)  # corrected: it was none of the job's fabrics
+    fixed = fb.poll(j)[0]
+    assert fixed["applied"] and fixed["replaces"] == "wool"
+    assert np.array_equal(fb.model.means[:3], _model().means) and fb.model.classes[-1] == "off-scene:stray"
+    assert fb.labelled == {} and list(fb.strangers) == ["stray"]
+    append_label(path, "piece-2", "wool")
+    append_label(path, "piece-1", None)  # withdrawn: the cell forgets the piece
+    append_label(path, "piece-1", None)  # nothing left to withdraw: said, not a crash
+    got = fb.poll(j)
+    assert [r["applied"] for r in got] == [True, True, False] and got[1]["withdrew"] == "stray"
+    assert "no applied label to retract" in got[2]["why"]
+    assert fb.model.classes == CLASSES and list(fb.labelled) == ["wool"]
+    assert np.array_equal(fb.model.means, learned_once)  # piece-2 is the same piece as piece-1 was
+    # a restart rebuilds exactly this from the journal: the correction and the withdrawal included
+    fresh = _feedback(tmp_path)
+    fresh.restore([{"type": "pre_sort", "item_id": i, "presses": 4, "scene_z_mean": list(WOOL_PIECE)}
+                   for i in ("piece-1", "piece-2")] + j.records, seal=None)
+    assert fresh.model.classes == CLASSES and np.array_equal(fresh.model.means, fb.model.means)
+    assert fresh.item_labels == fb.item_labels == {"piece-2": ("wool", False)}
+    # malformed withdrawals are refused in words, never taken for a label
+    with open(path, "a") as f:
+        f.write('{"item_id": "piece-2", "retract": "yes"}\n{"item_id": "piece-2", "fabric": "wool", "retract": true}\n')
+    bad = fb.poll(j)
+    assert [r["applied"] for r in bad] == [False, False] and all('"retract": true}' in r["why"] for r in bad)
+    assert fb.item_labels == {"piece-2": ("wool", False)}
+
+
 def test_a_stranger_the_operator_names_takes_its_pieces_to_the_reject_bin(tmp_path):
     """A fabric the job does not list, sitting between a touched and an untouched class: once the
     untouched class is labelled it stops sharing such pieces - unless the stranger is learned too."""
@@ -314,6 +357,17 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert len(listed) == 3 and "piece-000002" not in "".join(listed)  # sorted to silk: not in the reject bin
     assert "labelled wool: applied" in listed[1] and "gate jam" in listed[2] and "no label yet" in listed[2]
     assert main(["label", str(cfg)]) == 2 and "--list" in capsys.readouterr().err
+    # --retract withdraws a label; it takes the item alone
+    assert main(["label", str(cfg), "piece-000001", "wool", "--retract"]) == 2
+    assert "--retract takes ITEM_ID alone" in capsys.readouterr().err
+    assert main(["label", str(cfg), "piece-000001", "--retract"]) == 0
+    assert json.loads((tmp_path / "labels.jsonl").read_text().splitlines()[-1]) == {"item_id": "piece-000001",
+                                                                                 "retract": True}
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        j.append({"type": "label", "line": 3, "item_id": "piece-000001", "retract": True, "applied": True})
+    capsys.readouterr()
+    assert main(["label", str(cfg), "--list"]) == 0
+    assert "withdrawn: applied" in capsys.readouterr().out.splitlines()[1]
 
 
 def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
@@ -347,6 +401,39 @@ def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
     (out / "index.json").write_text(json.dumps(index))
     report = run_replay(out, model=Model())
     assert not report.ok and "gate.sort(0) but the recording sorted to [3]" in report.diverged
+
+
+def test_a_withdrawn_label_is_recorded_and_replayed_at_its_point(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.recording import record_session
+    from vs2t_edge.runtime.replay import ReplayFile, run_replay
+
+    class Model(_ZModel):
+        scene_model = _model()
+
+    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
+        camera={"kind": "replay", "path": "x"}, journal="j.jsonl", cell={"overlap_scoring": False},
+        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
+    cfg = load_config(tmp_path / "cell.yaml")
+    arm = FakeArm(config=cfg.arm)
+
+    def operator(result):  # labels the first piece, then thinks better of it
+        if result.item.id == "piece-000001":
+            append_label(cfg.operator_labels, result.item.id, "wool")
+        elif result.item.id == "piece-000002":
+            append_label(cfg.operator_labels, "piece-000001", None)
+
+    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
+                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=operator)
+    rf = ReplayFile.open(out)
+    assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == [UNKNOWN, "wool", UNKNOWN]
+    assert rf.index["labels"][-1] == {"before_item": "piece-000003", "item_id": "piece-000001", "fabric": "",
+                                      "retract": True}
+    assert run_replay(out, model=Model()).ok
+    index = json.loads((out / "index.json").read_text())
+    index["labels"] = index["labels"][:-1]  # without the withdrawal the third piece is sorted: it was used
+    (out / "index.json").write_text(json.dumps(index))
+    assert not run_replay(out, model=Model()).ok
 
 
 def test_the_bench_prices_operator_labels_beside_the_zero_shot_decision():
