@@ -291,8 +291,8 @@ class OperatorFeedback:
             self.pieces[str(item_id)] = (np.asarray(z, np.float64).tolist(), int(n))
 
     def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
-        """'' when the label moved the model (``rebuild`` False: is to move it), else why not. A
-        piece's earlier label is replaced (``item_labels``), never added to."""
+        """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
+        else why not. A piece's earlier label is replaced (``item_labels``), never added to."""
         if off_scene and fabric in self.scene:
             return f"{fabric!r} is a fabric of this job, not an off-scene one"
         if not off_scene and fabric not in self.scene:
@@ -304,7 +304,8 @@ class OperatorFeedback:
         if self.item_labels.get(item_id) == (fabric, off_scene):
             return f"{item_id!r} is labelled {fabric!r} already (a piece counts once)"
         self.item_labels[item_id] = (fabric, off_scene)
-        self._relearn(rebuild)
+        if rebuild:
+            self._relearn()
         return ""
 
     def _retract(self, item_id: str, rebuild: bool = True) -> str:
@@ -312,17 +313,18 @@ class OperatorFeedback:
         if item_id not in self.item_labels:
             return f"{item_id!r} has no applied label to retract"
         del self.item_labels[item_id]
-        self._relearn(rebuild)
+        if rebuild:
+            self._relearn()
         return ""
 
-    def _relearn(self, rebuild: bool) -> None:
-        """The labelled pieces per class from each piece's label that counts, in the order labelled."""
+    def _relearn(self) -> None:
+        """The labelled pieces per class from each piece's label that counts, in the order labelled,
+        and the model they teach."""
         self.labelled, self.strangers = {}, {}
         for item_id, (fabric, off_scene) in self.item_labels.items():
             z, n = self.pieces[item_id]
             (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
-        if rebuild:
-            self.model = adapt(self.base, self.labelled, self.strangers)
+        self.model = adapt(self.base, self.labelled, self.strangers)
 
     def poll(self, journal) -> list[dict]:
         """Read labels written since the last poll, apply them, journal each; the records written.
@@ -387,7 +389,7 @@ class OperatorFeedback:
                     self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")),
                                 rebuild=False)
                 self.lines_read = max(self.lines_read, rec["line"])
-        self.model = adapt(self.base, self.labelled, self.strangers)  # once, not once per label
+        self._relearn()  # once, not once per label
 
 
 def _projection(z: Any, k: int) -> bool:

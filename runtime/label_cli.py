@@ -106,14 +106,14 @@ def rejected_pieces(cfg, n: int) -> list[str]:
                 f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
             fate[str(rec["item_id"])] = f"{said}: " + ("applied" if rec.get("applied") else
                                                       f"not applied ({rec.get('why', '?')})")
-    waiting = {str(r["item_id"]): r.get("fabric", "(withdrawn)") for _, r in read_labels(cfg.operator_labels)
-               if isinstance(r, dict)}
+    waiting = {str(r["item_id"]): "withdrawn" if r.get("retract") else f"labelled {r['fabric']}"
+               for _, r in read_labels(cfg.operator_labels) if isinstance(r, dict)}
     if not last:
         return [f"no piece in the reject bin in {cfg.journal}"]
     out = [f"the last {len(last)} piece(s) in the reject bin ({cfg.journal}), oldest first:"]
     for rec in last:
         item = str(rec.get("item_id", ""))
-        label = fate.get(item) or (f"labelled {waiting[item]}: the service reads it before its next piece"
+        label = fate.get(item) or (f"{waiting[item]}: the service reads it before its next piece"
                                    if item in waiting else "no label yet")
         why = rec.get("reason") or ("" if rec.get("outcome") == "sorted" else str(rec.get("outcome", "")))
         out.append(f"  {item:>14s}  decision {rec.get('label', '?'):>14s}  {why:<12.60s}  {label}")

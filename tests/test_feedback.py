@@ -365,9 +365,11 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
                                                                                  "retract": True}
     with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
         j.append({"type": "label", "line": 3, "item_id": "piece-000001", "retract": True, "applied": True})
+    assert main(["label", str(cfg), "piece-000003", "--retract"]) == 0  # not read by the service yet
     capsys.readouterr()
     assert main(["label", str(cfg), "--list"]) == 0
-    assert "withdrawn: applied" in capsys.readouterr().out.splitlines()[1]
+    listed = capsys.readouterr().out.splitlines()
+    assert "withdrawn: applied" in listed[1] and "withdrawn: the service reads it before its next piece" in listed[2]
 
 
 def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
