@@ -211,8 +211,9 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
     """Per item, by bins (runtime/sorting.py), on scenes of 5 touched + 3 untouched bundle classes
     with off-scene pieces of the classes a scene leaves out: the bundle's scene decision (when it
     carries one) and the router's posterior with the fixed confidence (the baseline), on the same
-    scenes and presses; for an offset-rule scene model also the same scenes as jobs with operator
-    labels (``scene_model_labels``, runtime/feedback.py). Percent; presses per item."""
+    scenes and presses; for a scene model that can learn also the same scenes as jobs with operator
+    labels (``scene_model_labels``, runtime/feedback.py), and with a labelled teach piece of each
+    untouched fabric first (``scene_model_teach``). Percent; presses per item."""
     from vs2t_edge.runtime import sorting as so
 
     classes = list(model.classes)
@@ -234,6 +235,9 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
         # the same scenes as jobs, every rejected piece labelled by the operator (runtime/feedback.py)
         runs["scene_model_labels"] = so.simulate_with_labels(scenes, tables["scene_model"], model.scene_model,
                                                              max_presses=BIN_MAX_PRESSES, seed=seed + 2)
+        # and with a labelled teach piece of each untouched fabric before each job (docs/cell.md)
+        runs["scene_model_teach"] = so.simulate_with_labels(scenes, tables["scene_model"], model.scene_model,
+                                                            max_presses=BIN_MAX_PRESSES, seed=seed + 2, teach=True)
     for name, recs in runs.items():
         summary = so.summarise(recs)
         res[name] = {kind: {k: (100 * v if k in so.OUTCOMES else v) for k, v in r.items()}

@@ -44,7 +44,7 @@ def render_bins(result: dict) -> str:
     """Per item, by bins (``by_bins``): one row per variant and decision; empty without accuracies."""
     rows = [(r["name"], name, {**b[name], "pieces_per_min": b.get("pieces_per_min", {}).get(name, {})})
             for r in result["variants"] for b in [r.get("accuracy", {}).get("bins", {})]
-            for name in ("scene_model", "scene_model_labels", "router") if name in b]
+            for name in ("scene_model", "scene_model_labels", "scene_model_teach", "router") if name in b]
     if not rows:
         return ""
     lines = ["| variant | decision | right bin | mis-sort | reject | touched right | untouched right "
@@ -54,6 +54,8 @@ def render_bins(result: dict) -> str:
         kind = lambda k, o: _f(b.get(k, {}).get(o))  # noqa: E731
         ppm = b.get("pieces_per_min", {})
         said = {"scene_model": "scene decision", "scene_model_labels": "scene decision + operator labels (not zero-shot)",
+                "scene_model_teach": "scene decision + operator labels + a teach piece of each untouched fabric "
+                                     "(not zero-shot)",
                 "router": "router, confidence 0.95"}[decision]
         lines.append(f"| {name} | {said} | "
                      f"{kind('all', 'right')} | {kind('all', 'mis-sort')} | {kind('all', 'reject')} | "

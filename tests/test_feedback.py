@@ -452,6 +452,8 @@ def test_the_bench_prices_operator_labels_beside_the_zero_shot_decision():
     z0, z1 = res["scene_model"]["untouched"], res["scene_model_labels"]["untouched"]  # wool is the one
     assert z0["n"] == z1["n"] and z0["right"] == 0.0  # zero-shot: every wool piece between silk and the synthesis
     assert z1["right"] > 50.0  # each job's first wool piece is rejected and labelled, the rest sorted (75 %)
+    z2 = res["scene_model_teach"]["untouched"]  # a teach piece first: no wool piece needs the reject bin
+    assert z2["n"] == z0["n"] and z2["right"] > z1["right"] and z2["right"] == 100.0
 
 
 def test_validate_config_says_before_the_start_that_labels_need_the_offset_rule(tmp_path, capsys):
