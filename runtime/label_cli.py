@@ -7,9 +7,11 @@ their labels (none yet, waiting for the service, applied, or why not).
 The label is appended, durably, to the file the cell config names (``evidence.operator_labels``);
 the running service reads it before its next piece and re-estimates that untouched fabric's mean
 from the piece's presses (runtime/feedback.py), journaling whether it applied it and why not.
-Checked here first: the config turns the mode on, and FABRIC is a fabric of its scene (or, with
-``--off-scene``, is not: a stranger the cell then learns to refuse). Whether
-ITEM_ID is a decided item of this journal only the service knows; it journals a label it cannot use.
+Checked here first: the config turns the mode on, FABRIC is a fabric of its scene (or, with
+``--off-scene``, is not: a stranger the cell then learns to refuse), and the config's journal has
+a decided piece ITEM_ID (a typo would otherwise only show as a refusal in the journal); what the
+cell decided for it is printed with the label. A journal this command cannot read is said and the
+label written anyway: the service journals a label it cannot use.
 """
 
 from __future__ import annotations
@@ -62,13 +64,15 @@ def run(args) -> int:
         if args.item_id is None or args.fabric is not None or args.off_scene:
             print("label: --retract takes ITEM_ID alone (to correct a label, label the piece again)", file=sys.stderr)
             return 2
+        if (decided := _decided(cfg, args.item_id)) is None:
+            return 2
         try:
             append_label(cfg.operator_labels, args.item_id, None)
         except OSError as exc:
             print(f"label: cannot write {cfg.operator_labels}: {exc.strerror or exc}", file=sys.stderr)
             return 2
         print(f"{args.item_id}: label withdrawn in {cfg.operator_labels} (the service forgets the piece before its "
-              "next one)")
+              f"next one){decided}")
         return 0
     if args.item_id is None or args.fabric is None:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
@@ -80,6 +84,8 @@ def run(args) -> int:
               + ("; drop --off-scene" if in_scene else "; a piece the job does not list takes --off-scene"),
               file=sys.stderr)
         return 2
+    if (decided := _decided(cfg, args.item_id)) is None:
+        return 2
     try:
         append_label(cfg.operator_labels, args.item_id, args.fabric, off_scene=args.off_scene)
     except OSError as exc:
@@ -88,8 +94,31 @@ def run(args) -> int:
     kind = next((f.kind for f in cfg.fabrics if f.name == args.fabric), "off-scene")
     note = {"untouched": "", "off-scene": " (off-scene: pieces like it will go to the reject bin)",
             "touched": f" ({args.fabric} is touched: recorded, its mean stays the training one)"}[kind]
-    print(f"{args.item_id} labelled {args.fabric} in {cfg.operator_labels}{note}")
+    print(f"{args.item_id} labelled {args.fabric} in {cfg.operator_labels}{note}{decided}")
     return 0
+
+
+def _decided(cfg, item_id: str) -> str | None:
+    """'; the cell decided ...' for a decided piece ``item_id`` of the config's journal ('' when
+    the journal cannot be read: said on stderr), None (refused, said) when the journal has no such
+    piece."""
+    last, found = None, None
+    try:
+        for rec in iter_records(cfg.journal):
+            if rec.get("type") == "pre_sort":
+                last = rec.get("item_id")
+                if rec.get("item_id") == item_id:
+                    found = rec
+    except OSError as exc:
+        print(f"label: cannot read the journal {cfg.journal} to check {item_id} ({exc.strerror or exc}); "
+              "writing the label anyway - the service journals whether it could use it", file=sys.stderr)
+        return ""
+    if found is None:
+        print(f"label: {cfg.journal} has no decided piece {item_id!r}"
+              + (f" (the last decided is {last})" if last else " (no piece decided yet)")
+              + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin", file=sys.stderr)
+        return None
+    return f"; the cell had decided {found.get('label', '?')} after {found.get('presses', '?')} press(es)"
 
 
 def rejected_pieces(cfg, n: int) -> list[str]:

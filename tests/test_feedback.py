@@ -337,13 +337,21 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert "'linen' is not a fabric of the scene" in capsys.readouterr().err
     assert main(["label", str(cfg), "piece-000001", "wool", "--off-scene"]) == 2
     assert "drop --off-scene" in capsys.readouterr().err
+    assert main(["label", str(cfg), "piece-000001", "wool"]) == 2  # no journal yet: no decided piece to label
+    assert "has no decided piece 'piece-000001' (no piece decided yet)" in capsys.readouterr().err
+    (tmp_path / "state").mkdir()
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        for item, label in (("piece-000001", UNKNOWN), ("piece-000002", "silk"), ("piece-000003", UNKNOWN)):
+            j.append({"type": "pre_sort", "item_id": item, "label": label, "presses": 5})
+    assert main(["label", str(cfg), "piece-00001", "wool"]) == 2  # a typo'd id is caught here, not in the journal
+    assert "(the last decided is piece-000003)" in capsys.readouterr().err
     assert main(["label", str(cfg), "piece-000001", "wool"]) == 0
+    assert f"the cell had decided {UNKNOWN} after 5 press(es)" in capsys.readouterr().out
     assert main(["label", str(cfg), "piece-000002", "linen", "--off-scene"]) == 0
     lines = (tmp_path / "labels.jsonl").read_text().splitlines()
     assert [json.loads(x) for x in lines] == [{"fabric": "wool", "item_id": "piece-000001"},
                                               {"fabric": "linen", "item_id": "piece-000002", "off_scene": True}]
     # --list: the pieces in the reject bin and what became of their labels, from the journal
-    (tmp_path / "state").mkdir()
     with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
         for rec in ({"type": "final", "item": 1, "item_id": "piece-000001", "label": UNKNOWN, "bin": 0, "outcome": "sorted"},
                     {"type": "final", "item": 2, "item_id": "piece-000002", "label": "silk", "bin": 2, "outcome": "sorted"},
