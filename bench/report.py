@@ -147,7 +147,10 @@ def render_markdown(result: dict) -> str:
                  f"Scenes of 5 touched + 3 untouched bundle classes ({BIN_SCENES} per bundle), off-scene pieces of the "
                  f"classes a scene leaves out; items of at most {BIN_MAX_PRESSES} presses drawn from presses never "
                  "trained on, decided by the cell's own evidence (runtime/sorting.py, as the demo and training's report "
-                 "count). *scene decision*: the bundle's scene model at its operating point; *router*: the GZSL "
+                 "count). *scene decision*: the bundle's scene model at its operating point; *+ operator labels*: "
+                 "the same scenes as jobs of 4 pieces a fabric in a random order, every rejected piece labelled before "
+                 "the next (runtime/feedback.py; not zero-shot); *+ a teach piece*: the same with one labelled piece of "
+                 "each untouched fabric pressed before the job, not counted; *router*: the GZSL "
                  "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), "",
                  arm_times_line(result), ""]
                 if render_bins(result) else []),
