@@ -292,12 +292,15 @@ class OperatorFeedback:
 
     def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
         """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
-        else why not. A piece's earlier label is replaced (``item_labels``), never added to."""
+        else why not. A piece's earlier label is replaced (``item_labels``), never added to; by a
+        touched fabric's (which teaches nothing) it is withdrawn."""
         if off_scene and fabric in self.scene:
             return f"{fabric!r} is a fabric of this job, not an off-scene one"
         if not off_scene and fabric not in self.scene:
             return f"{fabric!r} is not a fabric of this job (an off-scene piece is labelled with off_scene)"
         if not off_scene and fabric not in self.base.untouched:
+            if item_id in self.item_labels:  # a correction: the piece was this touched fabric, its label is withdrawn
+                return self._retract(item_id, rebuild)
             return f"{fabric!r} is a touched fabric: its mean comes from training presses"
         if item_id not in self.pieces:
             return f"no decided item {item_id!r} with presses in this journal"

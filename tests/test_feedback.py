@@ -192,12 +192,23 @@ def test_a_piece_counts_once_a_new_label_replaces_its_last_and_a_retraction_with
                    for i in ("piece-1", "piece-2")] + j.records, seal=None)
     assert fresh.model.classes == CLASSES and np.array_equal(fresh.model.means, fb.model.means)
     assert fresh.item_labels == fb.item_labels == {"piece-2": ("wool", False)}
+    # corrected to a touched fabric: that teaches nothing, so the earlier label is withdrawn
+    append_label(path, "piece-2", "silk")
+    to_touched = fb.poll(j)[0]
+    assert to_touched["applied"] and to_touched["replaces"] == "wool" and fb.item_labels == {}
+    assert np.array_equal(fb.model.means, _model().means)
+    append_label(path, "piece-2", "silk")  # once nothing is learned from it, a touched label is only recorded
+    assert "touched fabric" in fb.poll(j)[0]["why"]
+    again = _feedback(tmp_path)
+    again.restore([{"type": "pre_sort", "item_id": i, "presses": 4, "scene_z_mean": list(WOOL_PIECE)}
+                   for i in ("piece-1", "piece-2")] + j.records, seal=None)
+    assert again.item_labels == {} and np.array_equal(again.model.means, _model().means)
     # malformed withdrawals are refused in words, never taken for a label
     with open(path, "a") as f:
         f.write('{"item_id": "piece-2", "retract": "yes"}\n{"item_id": "piece-2", "fabric": "wool", "retract": true}\n')
     bad = fb.poll(j)
     assert [r["applied"] for r in bad] == [False, False] and all('"retract": true}' in r["why"] for r in bad)
-    assert fb.item_labels == {"piece-2": ("wool", False)}
+    assert fb.item_labels == {}
 
 
 def test_a_stranger_the_operator_names_takes_its_pieces_to_the_reject_bin(tmp_path):
