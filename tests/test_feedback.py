@@ -391,10 +391,12 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert "withdrawn: applied" in listed[1] and "withdrawn: the service reads it before its next piece" in listed[2]
 
 
-def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
+def _recorded_with_labels(tmp_path, operator):
+    """A session of 3 pieces recorded with operator labels (``operator(cfg, result)`` after each
+    piece), the wool piece's presses every time: (replay folder, ReplayFile, the model class)."""
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.recording import record_session
-    from vs2t_edge.runtime.replay import ReplayFile, run_replay
+    from vs2t_edge.runtime.replay import ReplayFile
 
     class Model(_ZModel):
         scene_model = _model()
@@ -404,14 +406,19 @@ def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
         evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
     cfg = load_config(tmp_path / "cell.yaml")
     arm = FakeArm(config=cfg.arm)
+    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
+                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=lambda result: operator(cfg, result))
+    return out, ReplayFile.open(out), Model
 
-    def operator(result):  # the person at the reject bin, before the next piece comes
+
+def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
+    from vs2t_edge.runtime.replay import run_replay
+
+    def operator(cfg, result):  # the person at the reject bin, before the next piece comes
         if result.label == UNKNOWN:
             append_label(cfg.operator_labels, result.item.id, "wool")
 
-    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
-                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=operator)
-    rf = ReplayFile.open(out)
+    out, rf, Model = _recorded_with_labels(tmp_path, operator)
     finals = [d["label"] for d in rf.index["decisions"] if d["type"] == "final"]
     assert finals == [UNKNOWN, "wool", "wool"]  # the first piece taught the cell
     assert rf.index["labels"] == [{"before_item": "piece-000002", "item_id": "piece-000001", "fabric": "wool"}]
@@ -425,28 +432,15 @@ def test_a_recorded_session_replays_its_labels_at_the_same_points(tmp_path):
 
 
 def test_a_withdrawn_label_is_recorded_and_replayed_at_its_point(tmp_path):
-    from vs2t_edge.runtime.config import load_config
-    from vs2t_edge.runtime.recording import record_session
-    from vs2t_edge.runtime.replay import ReplayFile, run_replay
+    from vs2t_edge.runtime.replay import run_replay
 
-    class Model(_ZModel):
-        scene_model = _model()
-
-    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
-        camera={"kind": "replay", "path": "x"}, journal="j.jsonl", cell={"overlap_scoring": False},
-        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
-    cfg = load_config(tmp_path / "cell.yaml")
-    arm = FakeArm(config=cfg.arm)
-
-    def operator(result):  # labels the first piece, then thinks better of it
+    def operator(cfg, result):  # labels the first piece, then thinks better of it
         if result.item.id == "piece-000001":
             append_label(cfg.operator_labels, result.item.id, "wool")
         elif result.item.id == "piece-000002":
             append_label(cfg.operator_labels, "piece-000001", None)
 
-    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
-                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=operator)
-    rf = ReplayFile.open(out)
+    out, rf, Model = _recorded_with_labels(tmp_path, operator)
     assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == [UNKNOWN, "wool", UNKNOWN]
     assert rf.index["labels"][-1] == {"before_item": "piece-000003", "item_id": "piece-000001", "fabric": "",
                                       "retract": True}
