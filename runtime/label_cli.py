@@ -1,6 +1,7 @@
 """`vs2t-edge label CONFIG ITEM_ID FABRIC [--off-scene]`: the operator says what a piece in the reject bin was.
 `vs2t-edge label CONFIG ITEM_ID --retract`: withdraws a piece's label (a wrong one); labelling a piece
 again replaces its label instead of adding a second.
+`vs2t-edge label CONFIG --last FABRIC`: labels the piece the cell decided last (a teach piece).
 `vs2t-edge label CONFIG --list [N]`: the last N pieces sent to the reject bin, and what became of
 their labels (none yet, waiting for the service, applied, or why not).
 
@@ -35,6 +36,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--retract", action="store_true",
                         help="withdraw ITEM_ID's label (a wrong one): the cell forgets what it learned from the "
                              "piece; to correct a label, label the piece again instead")
+    parser.add_argument("--last", metavar="FABRIC", default=None,
+                        help="label the piece the cell decided last FABRIC (a teach piece just pressed, whatever "
+                             "bin it went to), instead of ITEM_ID FABRIC")
     parser.add_argument("--off-scene", action="store_true",
                         help="the piece is none of the job's fabrics: the cell learns it as a stranger, and pieces "
                              "like it go to the reject bin")
@@ -60,12 +64,19 @@ def run(args) -> int:
             print(f"label: {exc}", file=sys.stderr)
             return 2
         return 0
+    if args.last is not None:
+        if args.item_id is not None or args.retract:
+            print("label: --last FABRIC takes no ITEM_ID (the piece is the one the journal decided last)",
+                  file=sys.stderr)
+            return 2
+        args.fabric = args.last
     if args.retract:
         if args.item_id is None or args.fabric is not None or args.off_scene:
             print("label: --retract takes ITEM_ID alone (to correct a label, label the piece again)", file=sys.stderr)
             return 2
-        if (decided := _decided(cfg, args.item_id)) is None:
+        if (found := _decided(cfg, args.item_id)) is None:
             return 2
+        decided = found[1]
         try:
             append_label(cfg.operator_labels, args.item_id, None)
         except OSError as exc:
@@ -74,7 +85,7 @@ def run(args) -> int:
         print(f"{args.item_id}: label withdrawn in {cfg.operator_labels} (the service forgets the piece before its "
               f"next one){decided}")
         return 0
-    if args.item_id is None or args.fabric is None:
+    if (args.item_id is None and args.last is None) or args.fabric is None:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
         return 2
     in_scene = args.fabric in cfg.scene_classes
@@ -84,8 +95,9 @@ def run(args) -> int:
               + ("; drop --off-scene" if in_scene else "; a piece the job does not list takes --off-scene"),
               file=sys.stderr)
         return 2
-    if (decided := _decided(cfg, args.item_id)) is None:
+    if (found := _decided(cfg, args.item_id)) is None:
         return 2
+    args.item_id, decided = found
     try:
         append_label(cfg.operator_labels, args.item_id, args.fabric, off_scene=args.off_scene)
     except OSError as exc:
@@ -98,27 +110,33 @@ def run(args) -> int:
     return 0
 
 
-def _decided(cfg, item_id: str) -> str | None:
-    """'; the cell decided ...' for a decided piece ``item_id`` of the config's journal ('' when
-    the journal cannot be read: said on stderr), None (refused, said) when the journal has no such
-    piece."""
+def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
+    """(the piece's id, '; the cell had decided ...') for a decided piece ``item_id`` of the config's
+    journal, or the last decided one for ``item_id`` None; ('' when the journal cannot be read: said
+    on stderr); None (refused, said) when the journal has no such piece."""
     last, found = None, None
     try:
         for rec in iter_records(cfg.journal):
-            if rec.get("type") == "pre_sort":
-                last = rec.get("item_id")
+            if rec.get("type") == "pre_sort" and rec.get("item_id") is not None:
+                last = rec
                 if rec.get("item_id") == item_id:
                     found = rec
     except OSError as exc:
+        if item_id is None:
+            print(f"label: cannot read the journal {cfg.journal} to find the last piece ({exc.strerror or exc})",
+                  file=sys.stderr)
+            return None
         print(f"label: cannot read the journal {cfg.journal} to check {item_id} ({exc.strerror or exc}); "
               "writing the label anyway - the service journals whether it could use it", file=sys.stderr)
-        return ""
+        return item_id, ""
+    found = last if item_id is None else found
     if found is None:
-        print(f"label: {cfg.journal} has no decided piece {item_id!r}"
-              + (f" (the last decided is {last})" if last else " (no piece decided yet)")
+        print(f"label: {cfg.journal} has no decided piece" + (f" {item_id!r}" if item_id is not None else "")
+              + (f" (the last decided is {last['item_id']})" if last else " (no piece decided yet)")
               + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin", file=sys.stderr)
         return None
-    return f"; the cell had decided {found.get('label', '?')} after {found.get('presses', '?')} press(es)"
+    return str(found["item_id"]), (f"; the cell had decided {found.get('label', '?')} after "
+                                   f"{found.get('presses', '?')} press(es)")
 
 
 def rejected_pieces(cfg, n: int) -> list[str]:

@@ -389,6 +389,13 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert main(["label", str(cfg), "--list"]) == 0
     listed = capsys.readouterr().out.splitlines()
     assert "withdrawn: applied" in listed[1] and "withdrawn: the service reads it before its next piece" in listed[2]
+    # --last: the piece the cell decided last, e.g. a teach piece pressed just now (whatever its bin)
+    assert main(["label", str(cfg), "piece-000003", "--last", "wool"]) == 2
+    assert "--last FABRIC takes no ITEM_ID" in capsys.readouterr().err
+    assert main(["label", str(cfg), "--last", "wool"]) == 0
+    assert capsys.readouterr().out.startswith("piece-000003 labelled wool")
+    assert json.loads((tmp_path / "labels.jsonl").read_text().splitlines()[-1]) == {"item_id": "piece-000003",
+                                                                                 "fabric": "wool"}
 
 
 def _recorded_with_labels(tmp_path, operator):
