@@ -112,6 +112,12 @@ class Row:
         return not (self.passed or self.pending or self.known_bug)
 
 
+def _labels_row(w: Path):
+    from vs2t_edge.sim import faults_labels  # operator labels' file faults
+
+    return faults_labels.labels_file_faults(w)
+
+
 def _inputs_row(name: str, w: Path):
     from vs2t_edge.sim import faults_inputs  # issue 17's input rows, kept in their own module
 
@@ -146,6 +152,10 @@ SCENARIOS = [
              lambda w: _inputs_row("watchdog_gate_behind_heartbeat", w)),
     Scenario("camera_covered", "loop", "black frames on a press and its retry",
              "camera fault latched naming 'all black', piece rejected; rest sorted", all_frames_black),
+    Scenario("operator_labels_file", "loop", "operator labels: a label, the labels file a folder, back with junk and "
+             "a withdrawal, a FIFO, back with a new label (between pieces)",
+             "sorting goes on; wool pieces in wool's bin exactly while a label stands, else reject; each unreadable "
+             "state journaled once; a restart rebuilds the same learned model", _labels_row),
     Scenario("protective_stop", "loop", "protective stop mid-press (FakeArm)",
              "fault latched, piece rejected, resumes after operator clear", protective_stop_fake),
     Scenario("emergency_stop", "loop", "emergency stop mid-press (FakeArm)",
