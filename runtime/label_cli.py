@@ -21,6 +21,7 @@ import sys
 from collections import deque
 
 from vs2t_edge.runtime.config import ConfigError, load_config
+from vs2t_edge.runtime.evidence import UNKNOWN
 from vs2t_edge.runtime.feedback import append_label, read_labels
 from vs2t_edge.runtime.journal import iter_records
 
@@ -37,8 +38,8 @@ def add_arguments(parser, verb: str) -> None:
                         help="withdraw ITEM_ID's label (a wrong one): the cell forgets what it learned from the "
                              "piece; to correct a label, label the piece again instead")
     parser.add_argument("--last", metavar="FABRIC", default=None,
-                        help="label the piece the cell decided last FABRIC (a teach piece just pressed, whatever "
-                             "bin it went to), instead of ITEM_ID FABRIC")
+                        help="label the piece the cell decided last as FABRIC, instead of ITEM_ID FABRIC (a teach "
+                             "piece just pressed, whatever bin it went to)")
     parser.add_argument("--off-scene", action="store_true",
                         help="the piece is none of the job's fabrics: the cell learns it as a stranger, and pieces "
                              "like it go to the reject bin")
@@ -135,8 +136,9 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
               + (f" (the last decided is {last['item_id']})" if last else " (no piece decided yet)")
               + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin", file=sys.stderr)
         return None
-    return str(found["item_id"]), (f"; the cell had decided {found.get('label', '?')} after "
-                                   f"{found.get('presses', '?')} press(es)")
+    label = found.get("label", "?")
+    return str(found["item_id"]), ("; the cell had decided " + ("the reject bin" if label == UNKNOWN else label)
+                                   + f" after {found.get('presses', '?')} press(es)")
 
 
 def rejected_pieces(cfg, n: int) -> list[str]:

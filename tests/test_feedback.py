@@ -357,7 +357,7 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert main(["label", str(cfg), "piece-00001", "wool"]) == 2  # a typo'd id is caught here, not in the journal
     assert "(the last decided is piece-000003)" in capsys.readouterr().err
     assert main(["label", str(cfg), "piece-000001", "wool"]) == 0
-    assert f"the cell had decided {UNKNOWN} after 5 press(es)" in capsys.readouterr().out
+    assert "the cell had decided the reject bin after 5 press(es)" in capsys.readouterr().out
     assert main(["label", str(cfg), "piece-000002", "linen", "--off-scene"]) == 0
     lines = (tmp_path / "labels.jsonl").read_text().splitlines()
     assert [json.loads(x) for x in lines] == [{"fabric": "wool", "item_id": "piece-000001"},
