@@ -154,7 +154,8 @@ SCENARIOS = [
              "camera fault latched naming 'all black', piece rejected; rest sorted", all_frames_black),
     Scenario("operator_labels_file", "loop", "operator labels: a label, the labels file a folder, back with junk and "
              "a withdrawal, a FIFO, back with a new label (between pieces)",
-             "sorting goes on; wool pieces in wool's bin exactly while a label stands, else reject; each unreadable "
+             "sorting goes on; wool pieces in wool's bin exactly while a label stands, else reject; denim and silk "
+             "in theirs; each unreadable "
              "state journaled once; a restart rebuilds the same learned model", _labels_row),
     Scenario("protective_stop", "loop", "protective stop mid-press (FakeArm)",
              "fault latched, piece rejected, resumes after operator clear", protective_stop_fake),

@@ -41,7 +41,7 @@ def _scene_model():
 
     return SceneModel(tuple(CLASSES), frozenset({"wool"}), np.zeros(2), np.eye(2), np.array(SYNTH_MEANS),
                       item_rule="offset", press_var=1.0, offset_var_touched=0.1, offset_var_untouched=20.0,
-                      item_temperature=3.0, confidence=0.95, untouched_confidence=0.95)
+                      item_temperature=2.0, confidence=0.95, untouched_confidence=0.95)
 
 
 def _said(rec: dict) -> str:
@@ -60,8 +60,8 @@ def labels_file_faults(w: Path):
     piece, the labels file turns into a folder (twice in a row), comes back with a junk line and a
     withdrawal of that label, turns into a FIFO (a plain read would block for ever), and comes back
     with a new label. Wool pieces go to the wool bin exactly while a label stands, to the reject bin
-    otherwise; each unreadable state is journaled once; a service restarted on the journal rebuilds
-    the same learned model."""
+    otherwise, denim and silk pieces to their own bins throughout; each unreadable state is journaled
+    once; a service restarted on the journal rebuilds the same learned model."""
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
     from vs2t_edge.runtime.journal import iter_records
@@ -115,6 +115,9 @@ def labels_file_faults(w: Path):
     _check(problems, wool_bins == [0, wool, wool, 0, wool, wool],
            f"wool pieces went to bins {wool_bins}: expected reject while no label stood (zero-shot, withdrawn), "
            "wool's bin while one did")
+    others = [f["bin"] for f, t in zip(finals, truths) if t != "wool"]
+    _check(problems, others == [BINS[t] for t in truths if t != "wool"],
+           f"the denim and silk pieces went to bins {others}, expected each to its own")
     records = [r for r in held["audit"]["records"] if r.get("type") == "label"]
     said = [_said(r) for r in records]
     unreadable = [r for r in records if "unreadable" in r.get("why", "")]
