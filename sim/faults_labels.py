@@ -19,7 +19,7 @@ from vs2t_edge.sim.fakes import BINS, CLASSES, GREY, GreyModel
 # synthesis, far from where real wool lands, so zero-shot a wool piece is refused (between silk and
 # the synthesis) until a label moves wool's mean to its real presses.
 REAL = {"denim": (0.0, 0.0), "silk": (10.0, 0.0), "wool": (8.0, 2.0)}
-SYNTH_MEANS = ((0.0, 0.0), (10.0, 0.0), (0.0, 10.0))
+MEANS = ((0.0, 0.0), (10.0, 0.0), (0.0, 10.0))  # the model's: denim's and silk's real, wool's synthesised
 PRESSES = 4  # at most, per piece
 
 
@@ -39,9 +39,9 @@ class _ProjectingGreyModel(GreyModel):
 def _scene_model():
     from vs2t_edge.runtime.scene_model import SceneModel
 
-    return SceneModel(tuple(CLASSES), frozenset({"wool"}), np.zeros(2), np.eye(2), np.array(SYNTH_MEANS),
+    return SceneModel(tuple(CLASSES), frozenset({"wool"}), np.zeros(2), np.eye(2), np.array(MEANS),
                       item_rule="offset", press_var=1.0, offset_var_touched=0.1, offset_var_untouched=20.0,
-                      item_temperature=2.0, confidence=0.95, untouched_confidence=0.95)
+                      item_temperature=2.0)  # the row's evidence sets the confidence (0.95)
 
 
 def _said(rec: dict) -> str:
