@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import stat
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -507,6 +508,16 @@ def load_config(path: Path | str) -> CellConfig:
         raise ConfigError(path, [f"{path}: not UTF-8 text (byte {exc.start}); a cell config is YAML text"]) from None
     data, lines = parse_yaml_with_lines(text, path)
     return validate_config_dict(data, lines, path)
+
+
+def load_config_or_say(path: Path | str) -> CellConfig | None:
+    """``load_config`` for a command: the config, or None after every problem went to stderr (the
+    command then exits 2)."""
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(str(exc), file=sys.stderr)
+        return None
 
 
 def _read_private(path: Path) -> str:

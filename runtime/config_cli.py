@@ -16,12 +16,9 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.config import ConfigError, load_config
+    from vs2t_edge.runtime.config import load_config_or_say
 
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        print(str(exc), file=sys.stderr)
+    if (cfg := load_config_or_say(args.config)) is None:
         return 2
     if args.check_bundle and not cfg.bundle.is_dir():
         print(f"config {cfg.path}: bundle folder {cfg.bundle} does not exist", file=sys.stderr)

@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
-from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config
+from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config_or_say
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
@@ -236,10 +236,7 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        print(str(exc), file=sys.stderr)
+    if (cfg := load_config_or_say(args.config)) is None:
         return EXIT_USAGE
     if args.clear_fault:
         return clear_fault(cfg)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import sys
 from collections import deque
 
-from vs2t_edge.runtime.config import ConfigError, load_config
+from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
 from vs2t_edge.runtime.feedback import append_label, read_labels
 from vs2t_edge.runtime.journal import iter_records
@@ -46,10 +46,7 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        print(str(exc), file=sys.stderr)
+    if (cfg := load_config_or_say(args.config)) is None:
         return 2
     if cfg.operator_labels is None:
         print(f"label: {cfg.path} does not turn operator labels on; set evidence.operator_labels to a file "
