@@ -87,7 +87,6 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
     fabric outside the scene is sorted into the likeliest scene fabric's bin."""
     require_scene_model(model, cfg.bundle, cfg.without_scene_model,
                         f"set `evidence.without_scene_model: allow` in {cfg.path}")
-    confidence, opts = evidence_settings(cfg, model)
     if cfg.operator_labels is not None:  # learning from the reject bin (runtime/feedback.py)
         scene_model = getattr(model, "scene_model", None)
         if scene_model is None or scene_model.for_labels() is None:
@@ -99,6 +98,7 @@ def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evi
             conf, kw = scene_model_settings(cfg, m)
             return Evidence(classes, conf, cfg.max_presses, **kw)
         return OperatorFeedback(scene_model, cfg.scene_classes, cfg.operator_labels, make)
+    confidence, opts = evidence_settings(cfg, model)
     return lambda: Evidence(cfg.scene_classes, confidence, cfg.max_presses, **opts)
 
 
