@@ -22,7 +22,7 @@ import math
 import multiprocessing as mp
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, fields, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -111,6 +111,10 @@ PROFILES: dict[str, SynthProfile] = {
     # are never trained on (runtime.dataset.press_partition), enough for a 5-press item.
     "demo": SynthProfile(n_fabrics=24, grid=(7, 7), frame_px=(320, 240), camera_px=500,
                          constructions=("plain", "rib_knit", "terry", "felt", "lace", "corduroy")),
+    # The paper's world three times over, at the 45 presses a fabric the paper profile trains on
+    # (a 9 x 5 sub-grid): how zero-shot grows with the fabrics a cell has touched
+    # (`vs2t-edge train DS --profile paper --touched N`, docs/results/scene_decision_paper.md).
+    "wide": SynthProfile(n_fabrics=150, grid=(9, 5), frame_px=(640, 480), camera_px=1000),
 }
 
 
@@ -430,10 +434,29 @@ def pressed_deformation(p: FabricParams, surface: Surface, x_mm: float, y_mm: fl
     return deform
 
 
-def _render_fabric(args: tuple) -> tuple:
-    index, params, attrs, profile_name, seed, markers = args
-    prof = PROFILES[profile_name]
-    p: FabricParams = params
+def fabric_params(params: object, where: str = "fabric.yaml") -> FabricParams:
+    """A fabric's hidden parameters as ``generate`` stores them (fabric.yaml ``extra.params``),
+    back as FabricParams; a missing or unknown key is named."""
+    names = [f.name for f in fields(FabricParams)]
+    if not isinstance(params, dict):
+        raise ValueError(f"{where}: extra.params is not a mapping (only a synthetic world's fabric.yaml has one)")
+    missing, unknown = sorted(set(names) - set(params)), sorted(set(params) - set(names))
+    if missing or unknown:
+        raise ValueError(f"{where}: extra.params" + (f" lacks {missing}" if missing else "")
+                         + (f" has unknown {unknown}" if unknown else ""))
+    d = dict(params)
+    d["colour_hsv"] = tuple(float(v) for v in d["colour_hsv"])
+    return FabricParams(**d)
+
+
+def render_fabric(p: FabricParams, profile: str, index: int, seed: int, *, markers: bool = True,
+                  presses: list[int] | None = None) -> tuple[np.ndarray, np.ndarray, list[tuple]]:
+    """(camera image, no-contact frame, [(frame, x_mm, y_mm, force_n)]) of fabric ``index`` of the
+    world ``generate(..., profile, seed)`` draws: with ``presses`` None, every grid point, the
+    dataset's own frames bit for bit. ``presses`` (grid indices) renders only those, with press noise
+    from a stream of its own: other presses at the same points (``train/world_check.py`` re-renders
+    a fabric so, with its parameters or another ``phase_seed``)."""
+    prof = PROFILES[profile]
     surface = Surface(p)
     # Markers only darken the gel (no random draws), so switching them off leaves every other
     # pixel of the world as it was: same seed, same fabrics, same presses, no dots.
@@ -444,16 +467,25 @@ def _render_fabric(args: tuple) -> tuple:
     reference = reference_frame(bg, sensor, rng)
     camera = camera_image(p, surface, prof.camera_px)
     work_scale = 0.5 if prof.frame_px[0] >= 480 else 1.0  # the gel blurs finer detail anyway
-    presses = []
-    for x, y in _grid(prof):
+    grid = _grid(prof)
+    if presses is not None:
+        rng = np.random.default_rng([seed, index, 7, 1])
+        grid = [grid[i] for i in presses]
+    out = []
+    for x, y in grid:
         force = float(np.clip(rng.normal(15.0, 1.0), 11.0, 19.0))
         rot = float(rng.normal(0, 2.0))
         jx, jy = rng.normal(0, 0.15, 2)  # the arm's placement repeatability
         deform = pressed_deformation(p, surface, x + jx, y + jy, force, rot, sensor, work_scale)
         shift = tuple(rng.normal(0, 0.3, 2) * prof.frame_px[0] / 640)  # press shear moves markers slightly
         frame = render_press(deform, bg, sensor, rng, marker_shift_px=shift)
-        presses.append((frame, x, y, force))
-    return index, camera, reference, presses
+        out.append((frame, x, y, force))
+    return camera, reference, out
+
+
+def _render_fabric(args: tuple) -> tuple:
+    index, params, attrs, profile_name, seed, markers = args
+    return (index, *render_fabric(params, profile_name, index, seed, markers=markers))
 
 
 def _grid(prof: SynthProfile) -> list[tuple[float, float]]:

@@ -148,6 +148,19 @@ def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
     run's profile says ``visual_tail: finetuned``, the visual tail too (the camera crops at the
     same touched-train presses, seed split seed + 1, as train/run.py); otherwise the cache's
     frozen visual features. Every method of the comparison gets these visual features."""
+    features_for = finetuned_features(run, log, weights, tactile)
+
+    def table_for(split: FabricSplit) -> FeatureTable:
+        feats, cache, source = features_for(split)
+        return FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes, source=source)
+
+    return table_for
+
+
+def finetuned_features(run: RunSource, log: Callable[[str], None] = print, weights: Path | None = None,
+                       tactile: bool = True) -> Callable[[FabricSplit], tuple]:
+    """``finetuned_tables``' work, with what it keeps: per split (``features.SplitFeatures`` - the
+    features and the tuned tactile trunk -, the run's stem cache, a source line)."""
     from vs2t_edge.train import features as ft
     from vs2t_edge.train.trunks import build_trunk
 
@@ -175,17 +188,16 @@ def finetuned_tables(run: RunSource, log: Callable[[str], None] = print,
     max_rows = run.profile.get("ft_max_rows", None)
     what = " + ".join(w for w, on in (("tactile", tactile), ("visual", visual)) if on)
 
-    def table_for(split: FabricSplit) -> FeatureTable:
+    def features_for(split: FabricSplit) -> tuple:
         t0 = time.time()
         # training's own per-split fine-tuning (run.run_split calls the same function)
         feats = ft.finetune_split(cache, trunk, split, epochs=epochs, max_rows=max_rows, tactile=tactile,
                                   visual=visual, progress=False)
         log(f"  {what} tail fine-tuned on {feats.n_rows} touched-train presses ({time.time() - t0:.0f} s)")
-        return FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
-                            source=f"{path} ({what} tail fine-tuned per split, seed = split seed"
-                                   + (f", visual {ft.visual_tail_seed(split.seed)}" if visual else "") + ")")
+        return feats, cache, (f"{path} ({what} tail fine-tuned per split, seed = split seed"
+                              + (f", visual {ft.visual_tail_seed(split.seed)}" if visual else "") + ")")
 
-    return table_for
+    return features_for
 
 
 def run_vs2t_numbers(run: RunSource) -> dict | None:

@@ -79,6 +79,13 @@ def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
     return img.transpose(2, 0, 1).astype(np.float32)
 
 
+def extracted_presses(n_presses: int, max_presses: int | None) -> np.ndarray:
+    """The presses of a fabric ``extract_cache`` reads: at most ``max_presses``, evenly spaced over
+    the press order (the grid), not the first rows of the grid."""
+    n = n_presses if max_presses is None or max_presses <= 0 else min(max_presses, n_presses)
+    return np.unique(np.linspace(0, n_presses - 1, n).round().astype(int))
+
+
 @torch.no_grad()
 def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None = None,
                   batch: int = 64, progress: bool = True, spec=None, camera_jpeg: int = 0) -> StemCache:
@@ -107,9 +114,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
         # prepared once per fabric, as the cell prepares it once per item (the same result as the raw frame)
         ref = camera_reference(fabric.load_reference(), spec, camera_jpeg, name=f"{fabric.id} reference frame")
         camera = fabric.load_camera()
-        n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
-        # evenly spaced over the press order (the grid), not the first rows of the grid
-        chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))
+        chosen = extracted_presses(len(fabric.presses), max_presses)
         n = len(chosen)
         for i0 in range(0, n, batch):
             idx = chosen[i0:i0 + batch]
@@ -284,5 +289,5 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
                            for i in range(0, len(stem), chunk)]).astype(np.float32)
 
 
-__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
            "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]
