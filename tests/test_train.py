@@ -337,6 +337,30 @@ def test_training_twice_with_one_seed_gives_the_same_run(tmp_path, tiny_world, m
     assert _same(art_a, art_b) == []
 
 
+def test_train_on_fewer_touched_fabrics(tmp_path, tiny_world, monkeypatch, capsys):
+    """`train --touched N` trains each split on N of its touched fabrics and says so in
+    metrics.json and config.yaml; a count a split cannot give is refused before any work."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.train import run as tr
+
+    code = main(["train", str(tiny_world), "--profile", "tiny", "--touched", "7", "--out", str(tmp_path / "no")])
+    assert code == 2 and "has 6 touched ones; give 2 to 6" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+    monkeypatch.setitem(tr.PROFILES, "tiny", replace(tr.PROFILES["tiny"], steps=20, cls_steps=20,
+                                                     n_synth_per_class=20, ft_epochs=1))
+    m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, touched=4)
+    import yaml
+
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    full = cmp.make_splits(load_dataset(tiny_world).ids, 1, 2, 2, seed=3)[0]  # what the run drew from
+    sp = m["splits"][0]["split"]
+    assert sp["touched"] == cmp.fewer_touched(full, 4).touched and len(full.touched) == 6
+    assert (sp["validation"], sp["untouched"]) == (full.validation, full.untouched)
+    assert m["split_sizes"] == [4, 2, 2] and m["profile"]["touched"] == 4
+    assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["profile"]["touched"] == 4
+
+
 def test_visual_condition_is_clipped_for_unseen_fabrics():
     # a channel nearly constant on touched fabrics standardises to huge values for an unseen one;
     # unclipped, G extrapolated (W1 real-synth ~500 on the small world)

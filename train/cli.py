@@ -38,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                              "through a JPEG at Q, decoded at the bundle's scale, as a UVC camera hands them to the "
                              "cell; export and the bench then read the same way (0: the dataset's lossless frames; "
                              "profile default 0; docs/training.md)")
+    parser.add_argument("--touched", type=int, metavar="N",
+                        help="train each split on only N of its touched fabrics (a nested draw with the split's "
+                             "seed; the others take no part): what touching fewer fabrics costs zero-shot "
+                             "(default: all; docs/results/scene_decision_paper.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,10 +51,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"vs2t-edge train: dataset folder {args.dataset} does not exist", file=sys.stderr)
         return 2
     try:
-        load_dataset(args.dataset)
+        n_fabrics = len(load_dataset(args.dataset).fabrics)
     except Exception as exc:  # the loader names the file and key
         print(f"vs2t-edge train: {args.dataset} is not a readable dataset: {exc}", file=sys.stderr)
         return 2
+    if args.touched is not None:
+        from vs2t_edge.train.run import n_holdout
+
+        most = n_fabrics - 2 * n_holdout(n_fabrics)
+        if not 2 <= args.touched <= most:
+            print(f"vs2t-edge train: --touched {args.touched}: a split of {args.dataset}'s {n_fabrics} fabrics has "
+                  f"{most} touched ones; give 2 to {most}", file=sys.stderr)
+            return 2
     if args.splits is not None and args.splits < 1:
         print("vs2t-edge train: --splits must be at least 1", file=sys.stderr)
         return 2
@@ -72,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     m = train(args.dataset, args.out, args.profile, splits=args.splits, trunk_arch=args.trunk, weights=args.weights,
               seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
               max_presses=args.max_presses, tactile_feature=args.tactile_feature,
-              preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg)
+              preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg, touched=args.touched)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

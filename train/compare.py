@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -120,6 +120,17 @@ def make_splits(fabric_ids: list[str], n_splits: int = 5, n_val: int | None = No
         out.append(FabricSplit(touched=sorted(ids[n_val + n_untouched:]), validation=sorted(ids[:n_val]),
                                untouched=sorted(ids[n_val:n_val + n_untouched]), seed=seed * 1000 + k))
     return out
+
+
+def fewer_touched(split: FabricSplit, n: int) -> FabricSplit:
+    """``split`` with only ``n`` of its touched fabrics, drawn with the split's seed. The draws
+    nest (the fabrics kept at n are among those kept at any larger n), so runs that differ only in
+    n set the same validation and untouched fabrics against more or fewer touched ones; the
+    fabrics left out take no part (not trained on, not scored)."""
+    if not 2 <= n <= len(split.touched):
+        raise ValueError(f"touched fabrics: {n} asked, the split has {len(split.touched)} (at least 2)")
+    order = np.random.default_rng(split.seed + 77).permutation(len(split.touched))
+    return replace(split, touched=sorted(split.touched[i] for i in order[:n]))
 
 
 def _per_class_acc(pred: np.ndarray, y: np.ndarray) -> float:

@@ -73,6 +73,10 @@ class Profile:
     # decoded at the bundle's scale, as a UVC camera hands them (runtime.preprocess.through_camera_jpeg;
     # docs/training.md "The camera's JPEG"). Export and the bench read the run's frames the same way.
     camera_jpeg: int = 0
+    # per split, train on only this many of its touched fabrics (``compare.fewer_touched``: a nested
+    # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
+    # cell has touched (docs/results/scene_decision_paper.md, "More touched fabrics").
+    touched: int | None = None
 
 
 REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
@@ -341,25 +345,27 @@ def orderings(s: dict) -> dict:
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
-          preprocess_reduce: str | None = None, camera_jpeg: int | None = None) -> dict:
+          preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
+    ``touched``: train each split on this many of its touched fabrics (``Profile.touched``).
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
     ``camera_jpeg``: the tactile camera's MJPEG quality (``Profile.camera_jpeg``; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg)
+                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
            max_presses: int | None = None, tactile_feature: str | None = None,
-           preprocess_reduce: str | None = None, camera_jpeg: int | None = None) -> dict:
+           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
-                                              ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg))
+                                              ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg),
+                                              ("touched", touched))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
     check_camera_jpeg(prof.camera_jpeg)
@@ -394,6 +400,8 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     n = len(cache.fabric_ids)
     k = n_holdout(n)
     split_list = cmp.make_splits(cache.fabric_ids, prof.splits, k, k, seed=prof.seed)
+    if prof.touched is not None:
+        split_list = [cmp.fewer_touched(sp, prof.touched) for sp in split_list]
     results, first = [], None
     for i, sp in enumerate(split_list):
         _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
@@ -414,7 +422,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, split_list[0], first, budget, router))
     summary = summarise(results)
     metrics = {"dataset": str(Path(dataset).resolve()), "profile": asdict(prof), "n_fabrics": n,
-               "split_sizes": [n - 2 * k, k, k], "summary": summary, "orderings": orderings(summary),
+               "split_sizes": [len(split_list[0].touched), k, k], "summary": summary, "orderings": orderings(summary),
                "orderings_paired": {"test": paired_orderings(results), "validation": paired_orderings(results, "val_zsl_acc")},
                "router": {"chosen": router, "per_split": per_split,
                           "rule": "per split, the highest validation AUSUC of VS2T-ZSL on that split's own validation "
