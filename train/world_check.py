@@ -45,22 +45,30 @@ ALPHAS = (0.1, 1.0, 10.0, 100.0, 1000.0)
 OTHER_SURFACE = 7919  # added to a fabric's phase_seed for its other realisation
 
 
+def hidden_parameters(fabric):
+    """The FabricParams a synthetic world's fabric.yaml keeps (``extra.params``), or a ValueError
+    naming the file."""
+    import yaml
+
+    from vs2t_edge.sim.synth import fabric_params
+
+    path = fabric.folder / "fabric.yaml"
+    extra = (yaml.safe_load(path.read_text()) or {}).get("extra") or {}
+    if "params" not in extra:
+        raise ValueError(f"{path}: no extra.params - the world check needs a synthetic world "
+                         f"(`vs2t-edge synth`), whose fabric.yaml keeps each fabric's hidden parameters")
+    return fabric_params(extra["params"], str(path))
+
+
 def physical_parameters(dataset) -> np.ndarray:
     """(F, P) numeric hidden parameters of every fabric of a synthetic world, constructions
     one-hot; colour, print and the surface seed left out (they change no tactile frame, or are
     the realisation itself)."""
-    import yaml
-
-    from vs2t_edge.sim.synth import CONSTRUCTIONS, fabric_params
+    from vs2t_edge.sim.synth import CONSTRUCTIONS
 
     rows = []
     for fab in dataset.fabrics:
-        path = fab.folder / "fabric.yaml"
-        extra = (yaml.safe_load(path.read_text()) or {}).get("extra") or {}
-        if "params" not in extra:
-            raise ValueError(f"{path}: no extra.params - the world check needs a synthetic world "
-                             f"(`vs2t-edge synth`), whose fabric.yaml keeps each fabric's hidden parameters")
-        p = fabric_params(extra["params"], str(path))
+        p = hidden_parameters(fab)
         rows.append([p.pitch_mm, p.yarn_fill, p.relief_mm, p.hairiness, p.stiffness, p.thickness_mm, p.stretch,
                      p.absorbency, p.hole_fraction, float(p.embroidery), float(p.jacquard),
                      *(float(p.construction == c) for c in CONSTRUCTIONS)])
@@ -101,15 +109,11 @@ def rerendered_features(dataset, fabric_id: str, presses: np.ndarray, phase_shif
                         camera_jpeg: int) -> np.ndarray:
     """The tuned tactile trunk's features of fabric ``fabric_id`` rendered again at the grid points
     ``presses`` with its phase_seed moved by ``phase_shift`` (0: its own surface)."""
-    import yaml
-
     from vs2t_edge.runtime.preprocess import camera_press, camera_reference
-    from vs2t_edge.sim.synth import fabric_params, render_fabric
+    from vs2t_edge.sim.synth import render_fabric
 
     prov = dataset.meta.get("provenance") or {}
-    fab = dataset.fabrics[dataset.ids.index(fabric_id)]
-    path = fab.folder / "fabric.yaml"
-    p = fabric_params(((yaml.safe_load(path.read_text()) or {}).get("extra") or {}).get("params"), str(path))
+    p = hidden_parameters(dataset.fabrics[dataset.ids.index(fabric_id)])
     p = replace(p, phase_seed=(p.phase_seed + phase_shift) % (2 ** 31 - 1))
     _, reference, out = render_fabric(p, str(prov["profile"]), dataset.ids.index(fabric_id), int(prov["seed"]),
                                       markers=prov.get("markers", True), presses=[int(i) for i in presses])
@@ -131,7 +135,8 @@ def check_split(dataset, params: np.ndarray, run, split, features_for, k: int, s
     feats, cache, _ = features_for(split)
     table = cmp.FeatureTable(feats.x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     views = cmp.split_views(table, split)
-    scaler = cmp.FeatureScaler.fit(feats.x_t[touched_training_rows(cache.fabric, cache.fabric_ids, split)[0]])
+    fit_rows = touched_training_rows(cache.fabric, cache.fabric_ids, split)[0]
+    scaler, scaler_v = cmp.FeatureScaler.fit(feats.x_t[fit_rows]), cmp.FeatureScaler.fit(feats.x_v[fit_rows])
     budget = run_budget(run.profile, run.budget)
     t0 = time.time()
     gen = vs2t.variant_class("VS2T-ZSL")().fit(views.train, budget, split.seed)
@@ -148,7 +153,9 @@ def check_split(dataset, params: np.ndarray, run, split, features_for, k: int, s
     touched_means = np.stack([white(tr.x_t[tr.y == c]).mean(0) for c in range(tr.n_t)])
     index = {f: i for i, f in enumerate(cache.fabric_ids)}
     t_rows = [index[f] for f in split.touched]
-    visual = np.stack([np.clip(feats.x_v[cache.fabric == i], -4, 4).mean(0) for i in range(len(cache.fabric_ids))])
+    # a fabric's mean camera feature, scaled and clipped as the generator's condition is (train/vs2t.py)
+    visual = np.stack([np.clip(scaler_v(feats.x_v[cache.fabric == i]), -vs2t.CLIP_SD, vs2t.CLIP_SD).mean(0)
+                       for i in range(len(cache.fabric_ids))])
     seen = np.hstack([visual, cache.attributes])
     out = {"seed": split.seed}
     for role, names, (x, _, y) in (("validation", split.validation, views.val_presses),
