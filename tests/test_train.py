@@ -346,6 +346,9 @@ def test_train_on_fewer_touched_fabrics(tmp_path, tiny_world, monkeypatch, capsy
     code = main(["train", str(tiny_world), "--profile", "tiny", "--touched", "7", "--out", str(tmp_path / "no")])
     assert code == 2 and "has 6 touched ones; give 2 to 6" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+    with pytest.raises(ValueError, match="has 6 touched ones; give 2 to 6"):  # the API refuses it before work too
+        tr.train(tiny_world, tmp_path / "no", profile="tiny", touched=1)
+    assert not (tmp_path / "no").exists()
     monkeypatch.setitem(tr.PROFILES, "tiny", replace(tr.PROFILES["tiny"], steps=20, cls_steps=20,
                                                      n_synth_per_class=20, ft_epochs=1))
     m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, touched=4)

@@ -55,14 +55,12 @@ def run(args: argparse.Namespace) -> int:
     except Exception as exc:  # the loader names the file and key
         print(f"vs2t-edge train: {args.dataset} is not a readable dataset: {exc}", file=sys.stderr)
         return 2
-    if args.touched is not None:
-        from vs2t_edge.train.run import n_holdout
+    from vs2t_edge.train.run import touched_problem
 
-        most = n_fabrics - 2 * n_holdout(n_fabrics)
-        if not 2 <= args.touched <= most:
-            print(f"vs2t-edge train: --touched {args.touched}: a split of {args.dataset}'s {n_fabrics} fabrics has "
-                  f"{most} touched ones; give 2 to {most}", file=sys.stderr)
-            return 2
+    problem = touched_problem(n_fabrics, args.touched, args.dataset)
+    if problem:
+        print(f"vs2t-edge train: {problem}", file=sys.stderr)
+        return 2
     if args.splits is not None and args.splits < 1:
         print("vs2t-edge train: --splits must be at least 1", file=sys.stderr)
         return 2

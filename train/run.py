@@ -113,6 +113,15 @@ def n_holdout(n_fabrics: int) -> int:
     return 5 if n_fabrics >= 50 else max(2, round(0.15 * n_fabrics))
 
 
+def touched_problem(n_fabrics: int, touched: int | None, dataset: Path | str) -> str | None:
+    """What is wrong with training on ``touched`` of each split's touched fabrics (``Profile.touched``)
+    in a world of ``n_fabrics``, or None."""
+    most = n_fabrics - 2 * n_holdout(n_fabrics)
+    if touched is None or 2 <= touched <= most:
+        return None
+    return f"--touched {touched}: a split of {dataset}'s {n_fabrics} fabrics has {most} touched ones; give 2 to {most}"
+
+
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
@@ -368,6 +377,12 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
                                               ("touched", touched))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
+    if prof.touched is not None:
+        from vs2t_edge.runtime.dataset import load_dataset
+
+        problem = touched_problem(len(load_dataset(dataset).fabrics), prof.touched, dataset)
+        if problem:
+            raise ValueError(problem)
     check_camera_jpeg(prof.camera_jpeg)
     if prof.tactile_feature not in TACTILE_FEATURES:
         raise ValueError(f"tactile_feature {prof.tactile_feature!r}: choose one of {', '.join(TACTILE_FEATURES)}")
@@ -456,5 +471,5 @@ def _json_default(o):
     return str(o)
 
 
-__all__ = ["PROFILES", "VISUAL_TAILS", "TACTILE_FEATURES", "get_descriptors", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout", "choose_router",
+__all__ = ["PROFILES", "VISUAL_TAILS", "TACTILE_FEATURES", "get_descriptors", "Profile", "train", "run_split", "summarise", "wasserstein_mean_1d", "n_holdout", "touched_problem", "choose_router",
            "fit_router"]
