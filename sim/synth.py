@@ -111,7 +111,8 @@ PROFILES: dict[str, SynthProfile] = {
     # are never trained on (runtime.dataset.press_partition), enough for a 5-press item.
     "demo": SynthProfile(n_fabrics=24, grid=(7, 7), frame_px=(320, 240), camera_px=500,
                          constructions=("plain", "rib_knit", "terry", "felt", "lace", "corduroy")),
-    # The paper's world three times over, at the 45 presses a fabric the paper profile trains on
+    # A paper-like world three times as wide (another draw, not the paper world's 50 plus 100), at
+    # the 45 presses a fabric the paper profile trains on
     # (a 9 x 5 sub-grid): how zero-shot grows with the fabrics a cell has touched
     # (`vs2t-edge train DS --profile paper --touched N`, docs/results/scene_decision_paper.md).
     "wide": SynthProfile(n_fabrics=150, grid=(9, 5), frame_px=(640, 480), camera_px=1000),
