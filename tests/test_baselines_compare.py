@@ -13,7 +13,7 @@ import torch
 
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
-from vs2t_edge.train import compare as cmp, compare_report as report, compare_sources as sources
+from vs2t_edge.train import compare as cmp, compare_report as report, compare_sources as sources, splits as fabric_splits
 from vs2t_edge.train.baselines import DAP, Budget
 from vs2t_edge.train.generators_modern import CADAVAE
 
@@ -40,16 +40,16 @@ def test_fewer_touched_nests_its_draws_and_keeps_the_held_out_fabrics():
     ids = [f"f{i:03d}" for i in range(150)]
     splits = cmp.make_splits(ids, 3, 5, 5, seed=0)
     for sp in splits:
-        by_n = {n: cmp.fewer_touched(sp, n) for n in (2, 40, 80, 140)}
+        by_n = {n: fabric_splits.fewer_touched(sp, n) for n in (2, 40, 80, 140)}
         assert all((f.validation, f.untouched, f.seed) == (sp.validation, sp.untouched, sp.seed) for f in by_n.values())
         assert [len(by_n[n].touched) for n in (2, 40, 80, 140)] == [2, 40, 80, 140]
         assert set(by_n[2].touched) < set(by_n[40].touched) < set(by_n[80].touched) < set(sp.touched)
-        assert by_n[140].touched == sp.touched and by_n[40] == cmp.fewer_touched(sp, 40)
+        assert by_n[140].touched == sp.touched and by_n[40] == fabric_splits.fewer_touched(sp, 40)
         assert by_n[40].touched != sorted(sp.touched)[:40]  # a draw, not the first ids
-    assert cmp.fewer_touched(splits[0], 40).touched != cmp.fewer_touched(splits[1], 40).touched
+    assert fabric_splits.fewer_touched(splits[0], 40).touched != fabric_splits.fewer_touched(splits[1], 40).touched
     for n in (1, 141):
         with pytest.raises(ValueError, match=f"{n} asked, the split has 140"):
-            cmp.fewer_touched(splits[0], n)
+            fabric_splits.fewer_touched(splits[0], n)
 
 
 def asdict_(s):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from vs2t_edge.train import compare as cmp, compare_sources as sources
+from vs2t_edge.train import compare as cmp, compare_sources as sources, splits as fabric_splits
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.run import wasserstein_mean_1d
 from vs2t_edge.train.trunks import ResNet50, build_trunk, resnet50_state_for_torchvision
@@ -358,7 +358,7 @@ def test_train_on_fewer_touched_fabrics(tmp_path, tiny_world, monkeypatch, capsy
 
     full = cmp.make_splits(load_dataset(tiny_world).ids, 1, 2, 2, seed=3)[0]  # what the run drew from
     sp = m["splits"][0]["split"]
-    assert sp["touched"] == cmp.fewer_touched(full, 4).touched and len(full.touched) == 6
+    assert sp["touched"] == fabric_splits.fewer_touched(full, 4).touched and len(full.touched) == 6
     assert (sp["validation"], sp["untouched"]) == (full.validation, full.untouched)
     assert m["split_sizes"] == [4, 2, 2] and m["profile"]["touched"] == 4
     assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["profile"]["touched"] == 4

@@ -27,6 +27,7 @@ from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
 from vs2t_edge.train.baselines import flush_denormals, predict_logits, train_classifier
+from vs2t_edge.train.splits import fewer_touched
 from vs2t_edge.train.trunks import build_trunk
 
 
@@ -73,7 +74,7 @@ class Profile:
     # decoded at the bundle's scale, as a UVC camera hands them (runtime.preprocess.through_camera_jpeg;
     # docs/training.md "The camera's JPEG"). Export and the bench read the run's frames the same way.
     camera_jpeg: int = 0
-    # per split, train on only this many of its touched fabrics (``compare.fewer_touched``: a nested
+    # per split, train on only this many of its touched fabrics (``splits.fewer_touched``: a nested
     # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
     # cell has touched (docs/results/scene_decision_paper.md, "More touched fabrics").
     touched: int | None = None
@@ -416,7 +417,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     k = n_holdout(n)
     split_list = cmp.make_splits(cache.fabric_ids, prof.splits, k, k, seed=prof.seed)
     if prof.touched is not None:
-        split_list = [cmp.fewer_touched(sp, prof.touched) for sp in split_list]
+        split_list = [fewer_touched(sp, prof.touched) for sp in split_list]
     results, first = [], None
     for i, sp in enumerate(split_list):
         _log(f"split {i + 1}/{len(split_list)}: {len(sp.touched)} touched / {len(sp.validation)} validation / "
