@@ -60,19 +60,19 @@ def hidden_parameters(fabric):
     return fabric_params(extra["params"], str(path))
 
 
-def physical_parameters(dataset) -> np.ndarray:
-    """(F, P) numeric hidden parameters of every fabric of a synthetic world, constructions
-    one-hot; colour, print and the surface seed left out (they change no tactile frame, or are
-    the realisation itself)."""
+def physical_parameters(dataset) -> tuple[np.ndarray, list]:
+    """Every fabric's FabricParams of a synthetic world (its fabric.yaml read once), and their
+    (F, P) numeric matrix, constructions one-hot; colour, print and the surface seed left out of it
+    (they change no tactile frame, or are the realisation itself)."""
     from vs2t_edge.sim.synth import CONSTRUCTIONS
 
+    hidden = [hidden_parameters(fab) for fab in dataset.fabrics]
     rows = []
-    for fab in dataset.fabrics:
-        p = hidden_parameters(fab)
+    for p in hidden:
         rows.append([p.pitch_mm, p.yarn_fill, p.relief_mm, p.hairiness, p.stiffness, p.thickness_mm, p.stretch,
                      p.absorbency, p.hole_fraction, float(p.embroidery), float(p.jacquard),
                      *(float(p.construction == c) for c in CONSTRUCTIONS)])
-    return np.asarray(rows, np.float64)
+    return np.asarray(rows, np.float64), hidden
 
 
 def ridge_map(cond_fit: np.ndarray, target_fit: np.ndarray, cond_new: np.ndarray) -> tuple[np.ndarray, float]:
@@ -105,15 +105,15 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
-def rerendered_features(dataset, fabric_id: str, presses: np.ndarray, phase_shift: int, trunk, spec,
+def rerendered_features(dataset, fabric_id: str, p, presses: np.ndarray, phase_shift: int, trunk, spec,
                         camera_jpeg: int) -> np.ndarray:
-    """The tuned tactile trunk's features of fabric ``fabric_id`` rendered again at the grid points
-    ``presses`` with its phase_seed moved by ``phase_shift`` (0: its own surface)."""
+    """The tuned tactile trunk's features of fabric ``fabric_id`` (its FabricParams ``p``) rendered
+    again at the grid points ``presses`` with its phase_seed moved by ``phase_shift`` (0: its own
+    surface)."""
     from vs2t_edge.runtime.preprocess import camera_press, camera_reference
     from vs2t_edge.sim.synth import render_fabric
 
     prov = dataset.meta.get("provenance") or {}
-    p = hidden_parameters(dataset.fabrics[dataset.ids.index(fabric_id)])
     p = replace(p, phase_seed=(p.phase_seed + phase_shift) % (2 ** 31 - 1))
     _, reference, out = render_fabric(p, str(prov["profile"]), dataset.ids.index(fabric_id), int(prov["seed"]),
                                       markers=prov.get("markers", True), presses=[int(i) for i in presses])
@@ -124,7 +124,7 @@ def rerendered_features(dataset, fabric_id: str, presses: np.ndarray, phase_shif
         return trunk.eval()(torch.from_numpy(x)).numpy()
 
 
-def check_split(dataset, params: np.ndarray, run, split, features_for, k: int, spec, camera_jpeg: int,
+def check_split(dataset, params: np.ndarray, hidden: list, run, split, features_for, k: int, spec, camera_jpeg: int,
                 max_presses: int | None, log=print) -> dict:
     from vs2t_edge.runtime.scene_model import SceneModel
     from vs2t_edge.train import compare as cmp
@@ -170,7 +170,7 @@ def check_split(dataset, params: np.ndarray, run, split, features_for, k: int, s
         for row, shift in (("another realisation", OTHER_SURFACE), ("same surface", 0)):
             t1 = time.time()
             means[row] = np.stack([white(scaler(rerendered_features(
-                dataset, f, extracted_presses(len(dataset.fabrics[dataset.ids.index(f)].presses), max_presses),
+                dataset, f, hidden[index[f]], extracted_presses(len(dataset.fabrics[index[f]].presses), max_presses),
                 shift, feats.tactile_trunk, spec, camera_jpeg))).mean(0) for f in names])
             log(f"  {role}: {len(names)} fabrics rendered again ({row}, {time.time() - t1:.0f} s)")
         nearest = np.sqrt(((real[:, None] - touched_means[None]) ** 2).sum(-1)).min(1)
@@ -234,7 +234,7 @@ def world_check(run_dir: Path, dataset_dir: Path | None = None, splits: list[int
     prov = dataset.meta.get("provenance") or {}
     if "profile" not in prov or "seed" not in prov:
         raise ValueError(f"{dataset_dir / 'dataset.yaml'}: no provenance profile/seed - not a synthetic world")
-    params = physical_parameters(dataset)
+    params, hidden = physical_parameters(dataset)
     prof = tr.PROFILES[str(run.profile.get("name", "paper"))]
     prof = replace(prof, **{key: run.profile[key] for key in ("size_px", "preprocess_reduce", "camera_jpeg")
                             if run.profile.get(key) is not None})
@@ -247,7 +247,7 @@ def world_check(run_dir: Path, dataset_dir: Path | None = None, splits: list[int
     for i in chosen:
         t0 = time.time()
         log(f"split {i + 1}/{len(run.splits)}")
-        per_split.append(check_split(dataset, params, run, run.splits[i], features_for, k, spec, prof.camera_jpeg,
+        per_split.append(check_split(dataset, params, hidden, run, run.splits[i], features_for, k, spec, prof.camera_jpeg,
                                      max_presses, log))
         log(f"split {i + 1}: {time.time() - t0:.0f} s")
     return {"run": str(run_dir), "dataset": str(dataset_dir), "k": k, "splits": chosen,
