@@ -14,6 +14,9 @@ mean is set against:
 - *map from the physical parameters*: a ridge map, its penalty chosen by leave-one-fabric-out on
   the touched fabrics, from the hidden parameters to the touched fabrics' real means - what an
   observer who saw every parameter of the cloth would get from the touched fabrics;
+- *kernel map from the physical parameters*: the same observer, non-linear (kernel ridge with a
+  Gaussian kernel, its width and penalty chosen by leave-one-fabric-out): whether the parameters
+  predict the touch better than a linear map can, from as many touched fabrics as the run has;
 - *map from camera + attributes*: the same ridge map from what the model sees (the fabric's mean
   visual feature and its 24 attributes);
 - *another realisation*: the fabric rendered again (``sim.synth.render_fabric``, at the grid points
@@ -39,9 +42,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROWS = ("generator", "map from the physical parameters", "map from camera + attributes",
-        "another realisation", "same surface", "nearest touched fabric")
+ROWS = ("generator", "map from the physical parameters", "kernel map from the physical parameters",
+        "map from camera + attributes", "another realisation", "same surface", "nearest touched fabric")
 ALPHAS = (0.1, 1.0, 10.0, 100.0, 1000.0)
+# the Gaussian kernel's width, as multiples of 1 / (median squared distance between fitting rows)
+KERNEL_GAMMAS = (0.1, 0.3, 1.0, 3.0, 10.0)
+KERNEL_ALPHAS = (0.001, 0.01, 0.1, 1.0, 10.0)
 OTHER_SURFACE = 7919  # added to a fabric's phase_seed for its other realisation
 
 
@@ -93,6 +99,32 @@ def ridge_map(cond_fit: np.ndarray, target_fit: np.ndarray, cond_new: np.ndarray
             best = (err, alpha, inv)
     _, alpha, inv = best
     return b @ a.T @ inv @ y + t_mu, alpha
+
+
+def kernel_map(cond_fit: np.ndarray, target_fit: np.ndarray, cond_new: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """Kernel ridge regression with a Gaussian kernel from standardised conditions to targets, the
+    kernel's width (KERNEL_GAMMAS over the median squared distance between fitting rows) and the
+    penalty (KERNEL_ALPHAS) the pair with the least leave-one-out error on the fitting rows
+    (closed form); (predictions, (gamma, penalty))."""
+    mu, sd = cond_fit.mean(0), cond_fit.std(0)
+    sd[sd == 0] = 1.0
+    a, b = (cond_fit - mu) / sd, (cond_new - mu) / sd
+    t_mu = target_fit.mean(0)
+    y = target_fit - t_mu
+    d_fit = ((a[:, None, :] - a[None]) ** 2).sum(-1)
+    d_new = ((b[:, None, :] - a[None]) ** 2).sum(-1)
+    scale = float(np.median(d_fit[np.triu_indices(len(a), 1)])) or 1.0
+    best = None
+    for g in KERNEL_GAMMAS:
+        kern = np.exp(-(g / scale) * d_fit)
+        for alpha in KERNEL_ALPHAS:
+            inv = np.linalg.inv(kern + alpha * np.eye(len(a)))
+            hat = kern @ inv
+            err = float((((y - hat @ y) / (1.0 - np.diag(hat))[:, None]) ** 2).sum())
+            if best is None or err < best[0]:
+                best = (err, g, alpha, inv)
+    _, g, alpha, inv = best
+    return np.exp(-(g / scale) * d_new) @ inv @ y + t_mu, (g, alpha)
 
 
 def _nearest_mean_acc(z: np.ndarray, y: np.ndarray, means: np.ndarray) -> float:
@@ -166,6 +198,7 @@ def check_split(dataset, params: np.ndarray, hidden: list, run, split, features_
         xs, ys = synth[role]
         means = {"generator": np.stack([white(xs[ys == c]).mean(0) for c in range(len(names))])}
         means["map from the physical parameters"], a_p = ridge_map(params[t_rows], touched_means, params[rows])
+        means["kernel map from the physical parameters"], a_k = kernel_map(params[t_rows], touched_means, params[rows])
         means["map from camera + attributes"], a_s = ridge_map(seen[t_rows], touched_means, seen[rows])
         for row, shift in (("another realisation", OTHER_SURFACE), ("same surface", 0)):
             t1 = time.time()
@@ -179,7 +212,8 @@ def check_split(dataset, params: np.ndarray, hidden: list, run, split, features_
         r["nearest touched fabric"] = {"rms": float(np.sqrt(np.mean(nearest ** 2))), "zsl": None,
                                        "per_fabric": [float(v) for v in nearest]}
         r["real means"] = {"zsl": _nearest_mean_acc(z, y, real)}
-        r["fabrics"], r["ridge_penalty"] = list(names), {"physical parameters": a_p, "camera + attributes": a_s}
+        r["fabrics"], r["ridge_penalty"] = list(names), {"physical parameters": a_p, "camera + attributes": a_s,
+                                                        "physical parameters, kernel (gamma, penalty)": list(a_k)}
         out[role] = r
     return out
 
