@@ -483,8 +483,9 @@ class Cell:
                    "confidence": confidence, "presses": tally.presses,
                    "skipped_frames": tally.skipped, "stopped_by": stopped_by, "scores": tally.scores,
                    "log_posterior": _jsonable(getattr(decision, "log_posterior", None))}
-            if learns and getattr(evidence, "z_mean", None) is not None:  # what a later label reads
-                pre["scene_z_mean"] = [round(float(v), 5) for v in evidence.z_mean]
+            z_mean = self.evidence_factory.journal_z_mean(evidence) if learns else None
+            if z_mean is not None:  # what a later label reads (live and after a restart alike)
+                pre["scene_z_mean"] = z_mean
             if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)
                 pre["speculative_presses"] = tally.speculative
             if tally.speculative_error:  # ... and that press failed, which changed nothing

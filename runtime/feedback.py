@@ -61,6 +61,8 @@ from vs2t_edge.runtime.evidence import UNKNOWN, Evidence, ItemDecision
 from vs2t_edge.runtime.files import InputRefused, read_regular_file
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 
+JOURNAL_DECIMALS = 5  # of a pre_sort record's scene_z_mean, what live and restarted cells learn from
+
 MAX_LABEL_LINE_BYTES = 4096
 MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; start a new file per job long before
 OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
@@ -285,10 +287,18 @@ class OperatorFeedback:
     def __call__(self):
         return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
 
+    @staticmethod
+    def journal_z_mean(evidence: Any) -> list[float] | None:
+        """The piece's press mean as its ``pre_sort`` record keeps it (``scene_z_mean``, 5 decimals),
+        None when the evidence has none. The live cell learns from exactly these numbers
+        (``remember``), as a restart does from the journal: the same state either way."""
+        z = getattr(evidence, "z_mean", None)
+        return None if z is None else [round(float(v), JOURNAL_DECIMALS) for v in np.asarray(z).reshape(-1)]
+
     def remember(self, item_id: str, evidence: Any) -> None:
-        z, n = getattr(evidence, "z_mean", None), getattr(evidence, "presses", 0)
+        z, n = self.journal_z_mean(evidence), getattr(evidence, "presses", 0)
         if z is not None and n:
-            self.pieces[str(item_id)] = (np.asarray(z, np.float64).tolist(), int(n))
+            self.pieces[str(item_id)] = (z, int(n))
 
     def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
         """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
@@ -345,13 +355,14 @@ class OperatorFeedback:
             why = f"labels file {self.path} unreadable ({said}); sorting on without new labels"
             if why == self._unreadable:
                 return []
-            self._unreadable = why
-            return [journal.append({"type": "label", "file": str(self.path), "applied": False, "why": why})]
+            out = [journal.append({"type": "label", "file": str(self.path), "applied": False, "why": why})]
+            self._unreadable = why  # said once it is in the journal
+            return out
         self._unreadable = ""
-        self._size_read = size  # a line still being written grows the file, so it is read when whole
         out = []
         for line, rec in lines:
             entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}
+            before_line = dict(self.item_labels)  # what a label that cannot be journaled must leave
             if isinstance(rec, str):
                 entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
             elif rec.get("retract"):
@@ -366,8 +377,17 @@ class OperatorFeedback:
                 entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
                              applied=not why, **({"why": why} if why else {}),
                              **({"replaces": before[0]} if before and not why else {}))
-            out.append(journal.append(entry))
+            try:
+                out.append(journal.append(entry))
+            except BaseException:
+                # not in the journal, so not in the state: a restart could not rebuild it. The line
+                # is read again at the next poll (lines_read, _size_read not moved past it).
+                if self.item_labels != before_line:
+                    self.item_labels = before_line
+                    self._relearn()
+                raise
             self.lines_read = line
+        self._size_read = size  # a line still being written grows the file, so it is read when whole
         return out
 
     def restore(self, records: Iterable[Mapping[str, Any]], seal: str | None) -> None:

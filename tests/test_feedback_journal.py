@@ -1,0 +1,154 @@
+"""Operator labels: what the cell learns is what its journal holds, live and after a restart, and a
+label reaches only the piece it names (runtime/feedback.py, runtime/cell.py, runtime/record_cli.py)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cell_fakes import ScriptedCamera
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
+from vs2t_edge.runtime.items import ContinuousFeed
+from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
+from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.runtime.preprocess import check_frame
+from vs2t_edge.runtime.scene_model import SceneModel
+from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+
+CLASSES = ("denim", "silk", "wool")  # wool untouched: its mean (0, 10) is the generator's
+BINS = {"denim": 1, "silk": 2, "wool": 3}
+
+
+def _model(**kw) -> SceneModel:
+    m = SceneModel(CLASSES, frozenset({"wool"}), np.zeros(2), np.eye(2),
+                   np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]), item_rule="offset", press_var=1.0,
+                   offset_var_touched=0.1, offset_var_untouched=20.0, item_temperature=3.0)
+    return replace(m, **kw)
+
+
+def _feedback(tmp_path):
+    return OperatorFeedback(_model(), CLASSES, tmp_path / "labels.jsonl",
+                            lambda m, classes: Evidence(classes, 0.95, 4, item_model=m))
+
+
+def _decide(evidence, z, n=4):
+    for _ in range(n):
+        d = evidence.add(so.Press({c: -1.0 for c in CLASSES}, None, np.asarray(z, float)))
+        if d is not None:
+            return d
+    return evidence.decide()
+
+
+# --- 1. restart rebuilds other learned means than the live cell had -------------------------------
+
+PIECE_Z = (8.123456789, 2.987654321)  # a real press mean is never a round number
+
+
+class _ZModel:
+    def set_reference(self, frame):
+        check_frame(frame, name="reference frame")
+
+    def score_press(self, frame):
+        check_frame(frame)
+        return so.Press({c: -1.0 for c in CLASSES}, None, np.array(PIECE_Z))
+
+
+def _cell(tmp_path, feedback, script):
+    arm = FakeArm()
+    arm.connect()
+    gate = FakeGate()
+    gate.connect()
+    journal = Journal.open(tmp_path / "journal.jsonl")
+    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=arm.config.grid_points_mm()[:20], max_presses=4,
+                      confidence=0.95, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
+    cell = Cell(camera=ScriptedCamera(arm, script), arm=arm, gate=gate, model=_ZModel(), journal=journal,
+                notifier=Notifier(address=""), scene=scene, evidence_factory=feedback,
+                items=ContinuousFeed(first_number=journal.next_item_number()), sleep=lambda s: None)
+    return cell, journal
+
+
+def _boundary(fb, a, b, iters=60):
+    """t in [0, 1] where fb's decision of a piece at a + t (b - a) stops being 'wool'."""
+    lo, hi = 0.0, 1.0
+    assert _decide(fb(), a).label == "wool" and _decide(fb(), b).label != "wool"
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        if _decide(fb(), a + mid * (b - a)).label == "wool":
+            lo = mid
+        else:
+            hi = mid
+    return lo, hi
+
+
+def test_restart_rebuilds_the_same_learned_means_as_the_live_cell(tmp_path):
+    """The live cell learns from the piece's unrounded press mean (feedback.remember), the journal
+    keeps it rounded to 5 decimals (cell.py pre_sort 'scene_z_mean'), and a restart learns from the
+    rounded one: the restarted cell's wool mean is not the live cell's, so the same presses can be
+    decided differently before and after a restart (the doc: 'rebuilds the same state')."""
+    live = _feedback(tmp_path)
+    cell, journal = _cell(tmp_path, live, [80] * 4)
+    first = cell.run(max_items=1)[0]
+    append_label(tmp_path / "labels.jsonl", first.item.id, "wool")
+    cell.camera.script = [80] * 4
+    cell.run(max_items=2)
+    assert "wool" in live.labelled  # the live cell learned from the piece
+    journal.close()
+    restarted = _feedback(tmp_path)
+    restarted.restore(iter_records(journal.path), seal=None)
+    # the piece whose presses sit on the live cell's decision boundary is decided differently
+    a, b = live.model.means[2].copy(), np.array([10.0, 0.0])
+    lo_live, hi_live = _boundary(live, a, b)
+    lo_rest, hi_rest = _boundary(restarted, a, b)
+    z_between = a + 0.5 * (min(hi_live, hi_rest) + max(lo_live, lo_rest)) * (b - a)
+    live_label, restarted_label = _decide(live(), z_between).label, _decide(restarted(), z_between).label
+    assert np.array_equal(restarted.model.means, live.model.means), (
+        f"restart learned wool mean {restarted.model.means[2].tolist()}, live {live.model.means[2].tolist()}; "
+        f"a piece at {z_between.tolist()}: live {live_label}, after restart {restarted_label}")
+
+
+class _FailingOnce:
+    """A journal whose first label append fails (disk full), then works."""
+
+    def __init__(self):
+        self.records, self.failed = [], False
+
+    def append(self, rec):
+        if rec.get("type") == "label" and not self.failed:
+            self.failed = True
+            raise JournalError("writing a label record failed (No space left on device)")
+        self.records.append(rec)
+        return rec
+
+
+def test_a_label_that_cannot_be_journaled_is_not_applied_and_is_read_again(tmp_path):
+    """A label whose journal record fails (disk full: the cell latches 'journal write failed')
+    leaves the model as it was - what the journal does not hold, a restart could not rebuild - and
+    the next poll, once the operator has cleared the fault, reads the line again, applies it and
+    journals it: live and restarted cells then hold the same labels."""
+    fb = _feedback(tmp_path)
+    pre_sorts = []
+    for item in ("piece-1", "piece-2"):
+        ev = fb()
+        _decide(ev, PIECE_Z)
+        fb.remember(item, ev)
+        pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
+                          "scene_z_mean": fb.journal_z_mean(ev)})
+    j = _FailingOnce()
+    means_before = fb.model.means.copy()
+    append_label(fb.path, "piece-1", "wool")
+    with pytest.raises(JournalError):
+        fb.poll(j)
+    assert fb.item_labels == {} and np.array_equal(fb.model.means, means_before)
+    again = fb.poll(j)  # the fault cleared: the same line, read again
+    assert [(r["item_id"], r["applied"]) for r in again] == [("piece-1", True)]
+    append_label(fb.path, "piece-2", "wool")
+    fb.poll(j)
+    restarted = _feedback(tmp_path)
+    restarted.restore(pre_sorts + j.records, seal=None)
+    assert restarted.item_labels == fb.item_labels == {"piece-1": ("wool", False), "piece-2": ("wool", False)}
+    assert np.array_equal(restarted.model.means, fb.model.means)
