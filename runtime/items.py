@@ -27,17 +27,19 @@ class ContinuousFeed:
 
     Pieces are numbered from ``first_number``: the daemon passes the journal's next item number,
     so a restarted service goes on where the last one stopped instead of naming the next piece
-    ``piece-000001`` again (two pieces with one id would make the journal ambiguous)."""
+    ``piece-000001`` again (two pieces with one id would make the journal ambiguous). ``prefix``
+    names them (``piece``): a recording's own prefix keeps its ids out of the live journal's, so a
+    label given a recorded piece can never name a live one (runtime/record_cli.py)."""
 
-    def __init__(self, limit: int | None = None, first_number: int = 1) -> None:
-        self.limit, self.count, self.first_number = limit, 0, first_number
+    def __init__(self, limit: int | None = None, first_number: int = 1, prefix: str = "piece") -> None:
+        self.limit, self.count, self.first_number, self.prefix = limit, 0, first_number, prefix
 
     def next_item(self, timeout_s: float) -> Item | None:
         if self.limit is not None and self.count >= self.limit:
             time.sleep(min(timeout_s, 0.05))
             return None
         self.count += 1
-        return Item(id=f"piece-{self.first_number + self.count - 1:06d}")
+        return Item(id=f"{self.prefix}-{self.first_number + self.count - 1:06d}")
 
     def exhausted(self) -> bool:
         return self.limit is not None and self.count >= self.limit

@@ -12,13 +12,16 @@ Checked here first: the config turns the mode on, FABRIC is a fabric of its scen
 ``--off-scene``, is not: a stranger the cell then learns to refuse), and the config's journal has
 a decided piece ITEM_ID (a typo would otherwise only show as a refusal in the journal); what the
 cell decided for it is printed with the label. A journal this command cannot read is said and the
-label written anyway: the service journals a label it cannot use.
+label written anyway: the service journals a label it cannot use. ``--recording OUT`` labels a
+piece of a `vs2t-edge record` session instead: checked against that recording's journal, written
+to the same labels file (recorded pieces' ids, ``rec<time>-NNNNNN``, are never a live piece's).
 """
 
 from __future__ import annotations
 
 import sys
 from collections import deque
+from dataclasses import replace
 
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
@@ -40,6 +43,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--last", metavar="FABRIC", default=None,
                         help="label the piece the cell decided last as FABRIC, instead of ITEM_ID FABRIC (a teach "
                              "piece just pressed, whatever bin it went to)")
+    parser.add_argument("--recording", metavar="OUT", default=None,
+                        help="the piece is one of the `vs2t-edge record --out OUT` session's (checked against that "
+                             "recording's journal instead of the service's)")
     parser.add_argument("--off-scene", action="store_true",
                         help="the piece is none of the job's fabrics: the cell learns it as a stranger, and pieces "
                              "like it go to the reject bin")
@@ -52,6 +58,10 @@ def run(args) -> int:
         print(f"label: {cfg.path} does not turn operator labels on; set evidence.operator_labels to a file "
               "(docs/cell.md, \"Learning from the reject bin\")", file=sys.stderr)
         return 2
+    if getattr(args, "recording", None):
+        from vs2t_edge.runtime.recording import recording_journal  # the daemon's imports: only when asked
+
+        cfg = replace(cfg, journal=recording_journal(args.recording))
     if args.list is not None:
         if args.list < 1:
             print(f"label: --list {args.list}: give how many pieces to list (1 or more)", file=sys.stderr)
@@ -131,7 +141,8 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
     if found is None:
         print(f"label: {cfg.journal} has no decided piece" + (f" {item_id!r}" if item_id is not None else "")
               + (f" (the last decided is {last['item_id']})" if last else " (no piece decided yet)")
-              + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin", file=sys.stderr)
+              + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin"
+              + ("; a recorded piece takes --recording OUT" if str(item_id).startswith("rec") else ""), file=sys.stderr)
         return None
     label = found.get("label", "?")
     return str(found["item_id"]), ("; the cell had decided " + ("the reject bin" if label == UNKNOWN else label)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from vs2t_edge.runtime import wiring
@@ -61,6 +62,15 @@ def record(config: Path | str, out: Path | str, max_items: int) -> int:
             signal.signal(sig, handler)
 
 
+def recording_feed(max_items: int) -> ContinuousFeed:
+    """The pieces of a recording, named ``rec<UTC time>-000001``...: never a live journal's
+    ``piece-...`` nor another recording's. The recording reads the config's operator-labels file,
+    and so does the live service: a label given a recorded piece (`vs2t-edge label CONFIG ITEM
+    FABRIC --recording OUT`) is then applied by that recording alone - by the live service, or a
+    later recording, it is journaled as naming no piece of theirs."""
+    return ContinuousFeed(limit=max_items, prefix="rec" + time.strftime("%Y%m%dT%H%M%S", time.gmtime()))
+
+
 def _record(config: Path, out: Path, max_items: int, stop_event: threading.Event) -> int:
     # wiring's builders looked up when called: a test replaces one (fake devices, a fake model) in one place
     try:
@@ -77,7 +87,7 @@ def _record(config: Path, out: Path, max_items: int, stop_event: threading.Event
     wiring.match_camera(camera, model)  # a UVC camera decodes MJPEG at the bundle's scale
     # the item rule is the daemon's own (wiring.build_cell): what `run` would decide is recorded
     out = record_session(cfg, out, model=model, camera=camera, arm=arm, gate=gate,
-                         items=ContinuousFeed(limit=max_items), log=lambda m: print(m, file=sys.stderr),
+                         items=recording_feed(max_items), log=lambda m: print(m, file=sys.stderr),
                          stop_event=stop_event)
     index = ReplayFile.open(out).index
     finals = [d for d in index["decisions"] if d["type"] == "final"]

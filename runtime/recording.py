@@ -190,6 +190,13 @@ class RecordingItems:
         return getattr(self.inner, name)
 
 
+def recording_journal(out: Path | str) -> Path:
+    """The journal a recording into the replay folder ``out`` writes (beside it: its decisions
+    alone; `vs2t-edge label --recording OUT` finds the recorded pieces there)."""
+    out = Path(out)
+    return out.with_name(out.name + ".journal.jsonl")
+
+
 def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items, evidence_factory=None,
                    max_items: int | None = None, operator_clear=None, meta: dict | None = None,
                    on_item=None, log=lambda m: None, stop_event: threading.Event | None = None) -> Path:
@@ -209,7 +216,7 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    journal = out.with_name(out.name + ".journal.jsonl")
+    journal = recording_journal(out)
     for p in (journal, journal.with_name("FAULT." + out.name)):
         if p.exists():
             p.unlink()

@@ -152,3 +152,70 @@ def test_a_label_that_cannot_be_journaled_is_not_applied_and_is_read_again(tmp_p
     restarted.restore(pre_sorts + j.records, seal=None)
     assert restarted.item_labels == fb.item_labels == {"piece-1": ("wool", False), "piece-2": ("wool", False)}
     assert np.array_equal(restarted.model.means, fb.model.means)
+
+
+# --- 3. a recording shares the live labels file: its pieces' ids must never be live ones --------------
+
+class _JournalStub:
+    def __init__(self):
+        self.records = []
+
+    def append(self, rec):
+        self.records.append(rec)
+        return rec
+
+
+def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_path, capsys):
+    """`vs2t-edge record CONFIG` runs the live config with its own journal but the config's
+    operator-labels file, which the live service reads too. Its pieces are named by
+    ``record_cli.recording_feed`` (``rec<time>-NNNNNN``), never a live journal's ``piece-NNNNNN``:
+    the label the operator gives a recorded piece (`vs2t-edge label CONFIG ITEM FABRIC --recording
+    OUT`) is read by the recording before its next piece, and the live service, restarted on its journal and the same
+    file, journals it as naming no piece of its own - its piece-000001, between denim and silk,
+    does not pull wool's mean to it (with the recording numbered from piece-000001, it did)."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.record_cli import recording_feed
+    from vs2t_edge.runtime.recording import record_session
+    from vs2t_edge.runtime.replay import ReplayFile
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    class Model(_ZModel):
+        scene_model = _model()
+
+    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
+        camera={"kind": "replay", "path": "x"}, journal="live.jsonl", cell={"overlap_scoring": False},
+        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
+    cfg = load_config(tmp_path / "cell.yaml")
+    other_piece = (3.0, 0.0)  # the live service's piece-000001: rejected, unlabelled
+    with Journal.open(cfg.journal) as live:
+        live.append({"type": "start"})
+        live.append({"type": "item", "item": 1, "item_id": "piece-000001"})
+        live.append({"type": "pre_sort", "item": 1, "item_id": "piece-000001", "label": "unknown", "bin": 0,
+                     "presses": 4, "scene_z_mean": list(other_piece)})
+        live.append({"type": "final", "item": 1, "item_id": "piece-000001", "label": "unknown", "bin": 0,
+                     "outcome": "sorted"})
+    out = tmp_path / "s.replay"
+    recorded = []
+
+    def operator(result):  # the person at the reject bin labels the recorded piece, as the tool says
+        recorded.append(result.item.id)
+        assert main(["label", str(cfg.path), result.item.id, "wool"]) == 2  # not a piece of the live journal
+        assert "--recording" in capsys.readouterr().err
+        assert main(["label", str(cfg.path), result.item.id, "wool", "--recording", str(out)]) == 0
+
+    arm = FakeArm(config=cfg.arm)
+    feed = recording_feed(2)
+    record_session(cfg, out, model=Model(), camera=ScriptedCamera(arm, [80] * 8), arm=arm, gate=FakeGate(),
+                   items=feed, on_item=operator)
+    assert recorded[0].startswith("rec") and recorded[0] != "piece-000001"
+    index = ReplayFile.open(out).index
+    assert [(lab["item_id"], lab["before_item"]) for lab in index["labels"]] == [(recorded[0], recorded[1])]
+    # the live service restarts on its journal and the shared labels file
+    fb = _feedback(tmp_path)
+    fb.restore(iter_records(cfg.journal), seal=None)
+    before = _decide(fb(), other_piece).label
+    polled = fb.poll(_JournalStub())
+    assert polled and not any(r.get("applied") for r in polled)
+    assert all("no decided item" in r["why"] for r in polled)
+    assert _decide(fb(), other_piece).label == before
