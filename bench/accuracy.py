@@ -36,13 +36,15 @@ def _dataset_of(manifest: dict, override: str | None) -> Path | None:
 
 
 def eval_presses(manifest: dict, ds, cap: int) -> dict[str, list[int]]:
-    """Presses the bundle never trained on, per fabric: touched = test + unused (not train, not
-    the val presses beta and the gate were tuned on); untouched = all; at most ``cap`` each,
-    evenly spread over the grid."""
+    """Presses the bundle never trained on, per fabric: touched = its test presses and the presses
+    training did not extract that come after its last training or validation press (fit on earlier
+    presses, test on later ones: an unextracted press between two training presses is not a later
+    one); untouched = all; at most ``cap`` each, evenly spread over the grid."""
     part = manifest["provenance"]["data"]["touched_presses"]
     out = {}
     for fid in manifest["classes"]["touched"]:
-        idx = sorted(part[fid]["test"] + part[fid]["unused"])
+        last_fit = max(part[fid]["train"] + part[fid]["val"], default=-1)
+        idx = sorted(part[fid]["test"] + [i for i in part[fid]["unused"] if i > last_fit])
         out[fid] = _spread(idx, cap)
     for fid in manifest["classes"]["untouched"]:
         out[fid] = _spread(list(range(len(ds.by_id(fid).presses))), cap)
