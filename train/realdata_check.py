@@ -3,9 +3,9 @@
 ``../shared/real/gelsight_mini_materials`` holds 10 unnamed materials x 20 presses (real
 GelSight Mini frames, 400 rows x 300 columns). For each seeded material split:
 
-- ``n_touched`` materials are "touched": ``train_presses`` presses of each fine-tune the
-  tactile trunk (EfficientNet-Lite0, ImageNet weights) with a softmax head (CLS_t); the rest
-  of their presses are the touched test presses;
+- ``n_touched`` materials are "touched": the first ``train_presses`` presses of each (in press
+  order) fine-tune the tactile trunk (EfficientNet-Lite0, ImageNet weights) with a softmax head
+  (CLS_t); their later presses are the touched test presses;
 - of the other materials, ``n_val`` are validation materials (thresholds are tuned on them
   only) and the remaining ones are the untouched test materials.
 
@@ -128,10 +128,10 @@ def run_check(root: Path = DEFAULT_ROOT, cfg: RealCheckConfig | None = None, pro
     t_start = time.time()
     splits = []
     for split in range(cfg.n_splits):
-        touched, val, test, rng = _split_materials(len(names), cfg, split)
+        touched, val, test, _ = _split_materials(len(names), cfg, split)
         tr_x, tr_y, te_x, te_y = [], [], [], []
         for k, m in enumerate(touched):
-            order = rng.permutation(len(tensors[m]))
+            order = np.arange(len(tensors[m]))  # earlier presses fit, later ones test (never interleaved)
             tr_x.append(tensors[m][order[:cfg.train_presses]])
             te_x.append(tensors[m][order[cfg.train_presses:]])
             tr_y += [k] * cfg.train_presses
