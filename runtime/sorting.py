@@ -295,8 +295,9 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
     jobs, orders and presses without them: the paired zero-shot baseline. Needs an offset-rule
     setting (``SceneModel.for_labels``); the model's own rule decides until a label teaches.
     ``teach``: before each job, one known piece of every untouched fabric of the job is pressed and
-    labelled (the operator's teach pieces; not counted), and no later piece of the job shows its
-    presses."""
+    labelled (the operator's teach pieces; not counted). No piece of a job shows a press a labelled
+    or teach piece of the job showed (what taught a mean never tests it); a piece left no press of
+    its own is not counted."""
     from vs2t_edge.runtime.feedback import adapt, item_evidence
 
     def make(m, classes):
@@ -315,19 +316,19 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         rng.shuffle(stream)
         labelled: dict[str, list] = {}
         strangers: dict[str, list] = {}
-        shown: dict[str, np.ndarray] = {}  # a teach piece's presses, kept out of the job's pieces
+        shown: dict[str, set] = {}  # presses of the job's teach and labelled pieces, kept out of its other pieces
         for fabric in (scene.untouched if teach else ()):
-            shown[fabric] = rng.permutation(len(presses[fabric]))[:max_presses]
-            zs = np.stack([np.asarray(presses[fabric][i].scene_z, np.float64) for i in shown[fabric]])
+            taught = rng.permutation(len(presses[fabric]))[:max_presses]
+            shown[fabric] = set(taught.tolist())
+            zs = np.stack([np.asarray(presses[fabric][i].scene_z, np.float64) for i in taught])
             labelled[fabric] = [(zs.mean(axis=0), len(zs))]
         current = adapt(base, labelled)
         for fabric in stream:
             pool = presses[fabric]
-            if fabric in shown:
-                left = np.setdiff1d(np.arange(len(pool)), shown[fabric])
-                order = left[rng.permutation(len(left))[:max_presses]]
-            else:
-                order = rng.permutation(len(pool))[:max_presses]
+            perm = rng.permutation(len(pool))  # drawn alike with and without labels: the runs pair
+            order = [i for i in perm.tolist() if i not in shown.get(fabric, ())][:max_presses]
+            if not order:  # every press of the fabric taught this job already
+                continue
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
             rec = record(fabric, scene.kind(fabric), _press_until_decided(ev, pool, order), scene.classes)
             records.append(rec)
@@ -337,6 +338,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             if labels and rejected and (fabric in model.untouched or fabric not in scene.classes):
                 (labelled if fabric in scene.classes else strangers).setdefault(fabric, []).append(
                     (ev.z_mean, ev.presses))
+                shown.setdefault(fabric, set()).update(order[:ev.presses])
                 current = adapt(base, labelled, strangers)
     return records
 
