@@ -135,7 +135,13 @@ class TrackingArm(PressTrackingArm):
 
 
 class DatasetFrames:
-    """The frame under the gel: reference when up, nearest recorded press when pressed."""
+    """The frame under the gel: reference when up, nearest recorded press when pressed.
+
+    Every piece is pressed at the same arm points, but each piece is another region of the cloth:
+    a press shows the recorded press nearest to the point among those no earlier piece of that
+    fabric showed (then among those this piece did not show, then any). Without it every piece of
+    a fabric showed the same frames, so what one labelled piece taught the cell was tested on the
+    very frames that taught it."""
 
     def __init__(self, dataset: Dataset, items: SceneItems, arm: TrackingArm, cache_size: int = 256,
                  allowed: dict[str, list[int]] | None = None) -> None:
@@ -144,6 +150,7 @@ class DatasetFrames:
         # touched fabrics to presses no training step saw (runtime.dataset.press_partition)
         self.allowed = allowed or {}
         self._shown: dict[tuple, int] = {}  # (item id, arm point) -> recorded press shown
+        self._seen: dict[str, set[int]] = {}  # fabric id -> presses shown to any piece of it so far
         self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self.cache_size = cache_size
         self._fallback: np.ndarray | None = None
@@ -158,11 +165,14 @@ class DatasetFrames:
             self._cache.popitem(last=False)
         return image
 
-    def nearest_press(self, fabric: Fabric, x_mm: float, y_mm: float, taken: set[int] = frozenset()) -> int:
-        """The recorded press nearest to the arm's point among the allowed ones not yet shown for
-        this piece (all of them again once every allowed press was shown)."""
-        ok = [i for i in (self.allowed.get(fabric.id) or range(len(fabric.presses))) if i not in taken] or \
-            list(self.allowed.get(fabric.id) or range(len(fabric.presses)))
+    def nearest_press(self, fabric: Fabric, x_mm: float, y_mm: float, taken: set[int] = frozenset(),
+                      seen: set[int] = frozenset()) -> int:
+        """The recorded press nearest to the arm's point among the allowed ones no piece of the
+        fabric showed yet (``seen``), else among those this piece did not show (``taken``), else
+        any allowed one."""
+        allowed = list(self.allowed.get(fabric.id) or range(len(fabric.presses)))
+        ok = [i for i in allowed if i not in seen and i not in taken] or [i for i in allowed if i not in taken] \
+            or allowed
         return min(ok, key=lambda i: (fabric.presses[i].x_mm - x_mm) ** 2 + (fabric.presses[i].y_mm - y_mm) ** 2)
 
     def __call__(self) -> np.ndarray:
@@ -173,7 +183,9 @@ class DatasetFrames:
         key = (item.id if item else "", tuple(self.arm.target))
         if key not in self._shown:  # one recorded press per point of a piece, never one press twice
             taken = {k for (it, _), k in self._shown.items() if it == key[0]}
-            self._shown[key] = self.nearest_press(fabric, *self.arm.target, taken=taken)
+            seen = self._seen.setdefault(fabric.id, set())
+            self._shown[key] = self.nearest_press(fabric, *self.arm.target, taken=taken, seen=seen)
+            seen.add(self._shown[key])
         k = self._shown[key]
         return self._load((fabric.id, k), lambda: fabric.load_press(k))
 

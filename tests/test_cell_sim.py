@@ -94,3 +94,33 @@ def test_simulated_session_with_a_protective_stop_records_and_replays(tmp_path, 
     report = run_replay(out, model=FakeModel({v: k for k, v in GREY.items() if k in CLASSES}, CLASSES, strength=1.0),
                         evidence_factory=lambda: FakeEvidence(CLASSES, 0.95, 3))
     assert report.ok, report.mismatches + [report.diverged]
+
+
+def test_each_piece_of_a_fabric_shows_presses_no_earlier_piece_showed(tmp_path):
+    """Every piece is pressed at the same arm points, but a piece is another region of the cloth:
+    the simulated camera shows the nearest recorded press no earlier piece of the fabric showed
+    (else what a labelled piece taught would be tested on its own frames), never one press twice
+    within a piece, and once the fabric's presses run out, presses an earlier piece showed."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.sim.scene import DatasetFrames, SceneItems, SimItem, make_reference_world
+
+    ds = load_dataset(make_reference_world(tmp_path / "ds", seed=0, progress=False))
+    fabric = ds.fabrics[1]
+    points = [(p.x_mm, p.y_mm) for p in fabric.presses[:3]]
+    items = SceneItems([SimItem(f"piece-{k}", fabric.id, fabric.id) for k in range(4)])
+    arm = SimpleNamespace(pressed=True, target=None)
+    frames = DatasetFrames(ds, items, arm)
+    shown = []
+    for _ in range(4):
+        items.index += 1
+        for point in points:
+            arm.target = point
+            frames()
+        shown.append([frames._shown[(items.current.id, pt)] for pt in points])
+    assert len(fabric.presses) == 9
+    assert shown[0] == [0, 1, 2]  # the first piece: the presses at the arm's points
+    assert not set(shown[1]) & set(shown[0]) and not set(shown[2]) & (set(shown[0]) | set(shown[1]))
+    assert all(len(set(s)) == 3 for s in shown)
+    assert set(shown[3]) <= set(shown[0]) | set(shown[1]) | set(shown[2])  # 9 presses, 12 asked: reused
