@@ -242,8 +242,9 @@ def scene_lines(splits: list[dict]) -> list[str]:
     n_sc = sd[0]["test"].get("n_scenes", "?")
     out = ["## Per item, by bins: the scene decision (train/decision.py)", "",
            f"Scenes of 5 touched + 3 untouched TEST fabrics ({n_sc} per split; touched pieces show only their "
-           "test presses), off-scene pieces of the fabrics a scene leaves out and of the validation fabrics "
-           "(never a class of the model); items decided by the cell's own evidence, at most 5 presses. "
+           "test presses), off-scene pieces of the fabrics the model knows that a scene leaves out (the "
+           "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
+           "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
            "Operating point chosen on the validation fabrics only, for at most "
            f"{100 * sd[0]['validation']['target_mis_sort']:.0f} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
            "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
