@@ -5,36 +5,28 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from cell_fakes import ScriptedCamera
+from feedback_fakes import (BINS, CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback,
+                            scene_model)
 from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
-from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
 from vs2t_edge.runtime.feedback import OperatorFeedback, adapt, append_label, item_evidence, read_labels
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, iter_records, read_records
-from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.preprocess import check_frame
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 from vs2t_edge.sim.scene import fake_cell_yaml
 
-CLASSES = ("denim", "silk", "wool")  # wool untouched: its mean (0, 10) is the generator's
-BINS = {"denim": 1, "silk": 2, "wool": 3}
 WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and the synthesis
 
 
-def _model(**kw) -> SceneModel:
-    m = SceneModel(CLASSES, frozenset({"wool"}), np.zeros(2), np.eye(2), np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]),
-                   item_rule="offset", press_var=1.0, offset_var_touched=0.1, offset_var_untouched=20.0,
-                   item_temperature=3.0)
-    return replace(m, **kw)
+_model = scene_model
 
 
 def _evidence(model, max_presses=4):
@@ -114,18 +106,7 @@ def test_jobs_with_labels_put_more_untouched_pieces_in_their_bin_than_the_same_j
 
 # --- the file, the poll, the journal --------------------------------------------------------------
 
-class _Journal:
-    def __init__(self):
-        self.records = []
-
-    def append(self, rec):
-        self.records.append(rec)
-        return rec
-
-
-def _feedback(tmp_path, model=None):
-    return OperatorFeedback(model or _model(), CLASSES, tmp_path / "labels.jsonl",
-                            lambda m, classes: Evidence(classes, 0.95, 4, item_model=m))
+_Journal, _feedback = ListJournal, operator_feedback
 
 
 def test_the_poll_applies_journals_and_refuses_in_words(tmp_path):
@@ -280,29 +261,14 @@ def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
     assert "empty line" in got[0][1] and "5000 bytes" in got[1][1] and "item_id" in got[2][1]
 
 
-class _ZModel:
+class _ZModel(PieceModel):
     """Every pressed frame of grey level 80 is a wool piece at WOOL_PIECE in the scene model's space."""
 
-    def set_reference(self, frame):
-        check_frame(frame, name="reference frame")
-
-    def score_press(self, frame):
-        check_frame(frame)
-        return so.Press({c: -1.0 for c in CLASSES}, None, np.array(WOOL_PIECE))
+    z = WOOL_PIECE
 
 
 def _cell(tmp_path, feedback, script):
-    arm = FakeArm()
-    arm.connect()
-    gate = FakeGate()
-    gate.connect()
-    journal = Journal.open(tmp_path / "journal.jsonl")
-    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=arm.config.grid_points_mm()[:20], max_presses=4,
-                      confidence=0.95, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
-    cell = Cell(camera=ScriptedCamera(arm, script), arm=arm, gate=gate, model=_ZModel(), journal=journal,
-                notifier=Notifier(address=""), scene=scene, evidence_factory=feedback,
-                items=ContinuousFeed(first_number=journal.next_item_number()), sleep=lambda s: None)
-    return cell, gate, journal
+    return labelled_cell(tmp_path, feedback, script, _ZModel())
 
 
 def test_the_cell_learns_between_pieces_and_a_restart_resumes_it(tmp_path):
@@ -401,17 +367,13 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
 def _recorded_with_labels(tmp_path, operator):
     """A session of 3 pieces recorded with operator labels (``operator(cfg, result)`` after each
     piece), the wool piece's presses every time: (replay folder, ReplayFile, the model class)."""
-    from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.recording import record_session
     from vs2t_edge.runtime.replay import ReplayFile
 
     class Model(_ZModel):
         scene_model = _model()
 
-    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
-        camera={"kind": "replay", "path": "x"}, journal="j.jsonl", cell={"overlap_scoring": False},
-        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
-    cfg = load_config(tmp_path / "cell.yaml")
+    cfg = labels_config(tmp_path, "j.jsonl")
     arm = FakeArm(config=cfg.arm)
     out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
                          gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=lambda result: operator(cfg, result))

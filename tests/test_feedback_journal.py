@@ -3,37 +3,17 @@ label reaches only the piece it names (runtime/feedback.py, runtime/cell.py, run
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
 from cell_fakes import ScriptedCamera
+from feedback_fakes import CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback, scene_model
 from vs2t_edge.runtime import sorting as so
-from vs2t_edge.runtime.cell import Cell, SceneSpec
-from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
-from vs2t_edge.runtime.items import ContinuousFeed
+from vs2t_edge.runtime.feedback import append_label
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
-from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime.preprocess import check_frame
-from vs2t_edge.runtime.scene_model import SceneModel
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 
-CLASSES = ("denim", "silk", "wool")  # wool untouched: its mean (0, 10) is the generator's
-BINS = {"denim": 1, "silk": 2, "wool": 3}
-
-
-def _model(**kw) -> SceneModel:
-    m = SceneModel(CLASSES, frozenset({"wool"}), np.zeros(2), np.eye(2),
-                   np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]), item_rule="offset", press_var=1.0,
-                   offset_var_touched=0.1, offset_var_untouched=20.0, item_temperature=3.0)
-    return replace(m, **kw)
-
-
-def _feedback(tmp_path):
-    return OperatorFeedback(_model(), CLASSES, tmp_path / "labels.jsonl",
-                            lambda m, classes: Evidence(classes, 0.95, 4, item_model=m))
+_model, _feedback = scene_model, operator_feedback
 
 
 def _decide(evidence, z, n=4):
@@ -49,26 +29,12 @@ def _decide(evidence, z, n=4):
 PIECE_Z = (8.123456789, 2.987654321)  # a real press mean is never a round number
 
 
-class _ZModel:
-    def set_reference(self, frame):
-        check_frame(frame, name="reference frame")
-
-    def score_press(self, frame):
-        check_frame(frame)
-        return so.Press({c: -1.0 for c in CLASSES}, None, np.array(PIECE_Z))
+class _ZModel(PieceModel):
+    z = PIECE_Z
 
 
 def _cell(tmp_path, feedback, script):
-    arm = FakeArm()
-    arm.connect()
-    gate = FakeGate()
-    gate.connect()
-    journal = Journal.open(tmp_path / "journal.jsonl")
-    scene = SceneSpec(bins=dict(BINS), reject_bin=0, points_mm=arm.config.grid_points_mm()[:20], max_presses=4,
-                      confidence=0.95, fault_file=tmp_path / "FAULT", wait_item_timeout_s=0.01)
-    cell = Cell(camera=ScriptedCamera(arm, script), arm=arm, gate=gate, model=_ZModel(), journal=journal,
-                notifier=Notifier(address=""), scene=scene, evidence_factory=feedback,
-                items=ContinuousFeed(first_number=journal.next_item_number()), sleep=lambda s: None)
+    cell, _, journal = labelled_cell(tmp_path, feedback, script, _ZModel())
     return cell, journal
 
 
@@ -156,15 +122,6 @@ def test_a_label_that_cannot_be_journaled_is_not_applied_and_is_read_again(tmp_p
 
 # --- 3. a recording shares the live labels file: its pieces' ids must never be live ones --------------
 
-class _JournalStub:
-    def __init__(self):
-        self.records = []
-
-    def append(self, rec):
-        self.records.append(rec)
-        return rec
-
-
 def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_path, capsys):
     """`vs2t-edge record CONFIG` runs the live config with its own journal but the config's
     operator-labels file, which the live service reads too. Its pieces are named by
@@ -174,19 +131,14 @@ def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_p
     file, journals it as naming no piece of its own - its piece-000001, between denim and silk,
     does not pull wool's mean to it (with the recording numbered from piece-000001, it did)."""
     from vs2t_edge.cli import main
-    from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.record_cli import recording_feed
     from vs2t_edge.runtime.recording import record_session
     from vs2t_edge.runtime.replay import ReplayFile
-    from vs2t_edge.sim.scene import fake_cell_yaml
 
     class Model(_ZModel):
         scene_model = _model()
 
-    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
-        camera={"kind": "replay", "path": "x"}, journal="live.jsonl", cell={"overlap_scoring": False},
-        evidence={"max_presses": 4, "operator_labels": "labels.jsonl"}))
-    cfg = load_config(tmp_path / "cell.yaml")
+    cfg = labels_config(tmp_path, "live.jsonl")
     other_piece = (3.0, 0.0)  # the live service's piece-000001: rejected, unlabelled
     with Journal.open(cfg.journal) as live:
         live.append({"type": "start"})
@@ -215,7 +167,7 @@ def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_p
     fb = _feedback(tmp_path)
     fb.restore(iter_records(cfg.journal), seal=None)
     before = _decide(fb(), other_piece).label
-    polled = fb.poll(_JournalStub())
+    polled = fb.poll(ListJournal())
     assert polled and not any(r.get("applied") for r in polled)
     assert all("no decided item" in r["why"] for r in polled)
     assert _decide(fb(), other_piece).label == before
