@@ -28,11 +28,13 @@ def _clean(a: np.ndarray, what: str) -> np.ndarray:
 
 
 def _gap_thresholds(values: np.ndarray) -> np.ndarray:
-    """One beta per gap of the sorted unique values: -inf, midpoints, +inf."""
+    """One beta per gap of the sorted unique values: -inf, midpoints, +inf. A beta routes
+    novelty <= beta as touched, so each must lie below the gap's upper value: where the midpoint of
+    two neighbouring floats rounds up onto it (values one ulp apart), the lower value stands in."""
     u = np.unique(values)
     with np.errstate(over="ignore", invalid="ignore"):
         mids = u[:-1] + 0.5 * (u[1:] - u[:-1])  # avoids (a+b) overflow near float max
-    mids = np.where(np.isfinite(mids), mids, u[:-1])
+    mids = np.where(np.isfinite(mids) & (mids < u[1:]), mids, u[:-1])
     return np.concatenate([[-np.inf], mids, [np.inf]])
 
 

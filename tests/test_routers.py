@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from vs2t_edge.runtime import novelty as nv
@@ -117,6 +117,7 @@ def test_tuned_beta_is_optimal_among_all_gaps(t, u):
     assert best >= 0.5 - 1e-12  # never worse than "all touched"
 
 
+@example(t=[100.0], u=[99.99999999999999])  # one ulp apart: the midpoint rounds onto the upper value
 @settings(max_examples=40, deadline=None)
 @given(
     t=st.lists(st.floats(-100, 100, allow_nan=False), min_size=1, max_size=20),
