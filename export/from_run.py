@@ -27,10 +27,11 @@ from vs2t_edge.export.export import ExportError, _novelty, write_bundle
 
 
 def grid_presses(n_presses: int, max_presses: int | None) -> np.ndarray:
-    """The presses of one fabric that training's feature cache holds (train/features.py
-    ``extract_cache``): ``max_presses`` evenly spaced over the grid, or all of them."""
-    n = n_presses if max_presses is None else min(max_presses, n_presses)
-    return np.unique(np.linspace(0, n_presses - 1, n).round().astype(int))
+    """The presses of one fabric that training's feature cache holds: training's own rule
+    (``train.features.extracted_presses``: ``max_presses`` evenly spaced over the grid, or all)."""
+    from vs2t_edge.train.features import extracted_presses
+
+    return extracted_presses(n_presses, max_presses)
 
 
 def press_partition(n_presses: dict[str, int], touched: Sequence[str], seed: int,

@@ -107,7 +107,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     stems, stems_v, xv, xt0, fab = [], [], [], [], []
     line = Line()
     t0 = time.time()
-    total = sum(len(f.presses) if max_presses is None else min(max_presses, len(f.presses)) for f in ds.fabrics)
+    total = sum(len(extracted_presses(len(f.presses), max_presses)) for f in ds.fabrics)
     total = max(total, 1)
     done = 0
     for k, fabric in enumerate(ds.fabrics):
@@ -167,10 +167,8 @@ def descriptor_table(dataset_root: Path, name: str, max_presses: int | None = No
     for k, fabric in enumerate(ds.fabrics):
         ref = td.prepare_reference(camera_frame(fabric.load_reference(), camera_jpeg, 1,
                                                  f"{fabric.id} reference frame"))
-        n = len(fabric.presses) if max_presses is None else min(max_presses, len(fabric.presses))
-        chosen = np.unique(np.linspace(0, len(fabric.presses) - 1, n).round().astype(int))  # as extract_cache
         rows += [td.describe(name, camera_frame(fabric.load_press(i), camera_jpeg, 1, f"{fabric.id} press {i}"), ref)
-                 for i in chosen]
+                 for i in extracted_presses(len(fabric.presses), max_presses)]
         if progress:
             line.draw(f"{name}: fabric {k + 1}/{len(ds.fabrics)} ({time.time() - t0:.0f} s)", (k + 1) / len(ds.fabrics))
     if progress:

@@ -81,14 +81,19 @@ def physical_parameters(dataset) -> tuple[np.ndarray, list]:
     return np.asarray(rows, np.float64), hidden
 
 
+def _standardised(cond_fit: np.ndarray, cond_new: np.ndarray, target_fit: np.ndarray) -> tuple:
+    """(fitting conditions, new conditions) standardised by the fitting rows' mean and spread (a
+    constant column left as it is), the targets centred, and their mean."""
+    mu, sd = cond_fit.mean(0), cond_fit.std(0)
+    sd[sd == 0] = 1.0
+    t_mu = target_fit.mean(0)
+    return (cond_fit - mu) / sd, (cond_new - mu) / sd, target_fit - t_mu, t_mu
+
+
 def ridge_map(cond_fit: np.ndarray, target_fit: np.ndarray, cond_new: np.ndarray) -> tuple[np.ndarray, float]:
     """Ridge regression from standardised conditions to targets, its penalty the one of ALPHAS with
     the least leave-one-out error on the fitting rows (closed form); (predictions, penalty)."""
-    mu, sd = cond_fit.mean(0), cond_fit.std(0)
-    sd[sd == 0] = 1.0
-    a, b = (cond_fit - mu) / sd, (cond_new - mu) / sd
-    t_mu = target_fit.mean(0)
-    y = target_fit - t_mu
+    a, b, y, t_mu = _standardised(cond_fit, cond_new, target_fit)
     best = None
     for alpha in ALPHAS:
         inv = np.linalg.inv(a @ a.T + alpha * np.eye(len(a)))  # dual form: fabrics, not features
@@ -106,11 +111,7 @@ def kernel_map(cond_fit: np.ndarray, target_fit: np.ndarray, cond_new: np.ndarra
     kernel's width (KERNEL_GAMMAS over the median squared distance between fitting rows) and the
     penalty (KERNEL_ALPHAS) the pair with the least leave-one-out error on the fitting rows
     (closed form); (predictions, (gamma, penalty))."""
-    mu, sd = cond_fit.mean(0), cond_fit.std(0)
-    sd[sd == 0] = 1.0
-    a, b = (cond_fit - mu) / sd, (cond_new - mu) / sd
-    t_mu = target_fit.mean(0)
-    y = target_fit - t_mu
+    a, b, y, t_mu = _standardised(cond_fit, cond_new, target_fit)
     d_fit = ((a[:, None, :] - a[None]) ** 2).sum(-1)
     d_new = ((b[:, None, :] - a[None]) ** 2).sum(-1)
     scale = float(np.median(d_fit[np.triu_indices(len(a), 1)])) or 1.0
