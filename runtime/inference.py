@@ -97,14 +97,29 @@ class Outputs:
     router_novelty: np.ndarray | None = None  # (N, 1) float32, a router on the logits folded into the graph
 
 
-def _rel_err(actual: np.ndarray, expected: np.ndarray) -> float:
-    """max |a - e| / max(max |e|, 1e-6): one number per output, scale-free."""
+def _rel_err(actual: np.ndarray, expected: np.ndarray, floor: float = 1e-6) -> float:
+    """max |a - e| / max(max |e|, floor): one number per output, scale-free above ``floor``."""
     a, e = np.asarray(actual, np.float64), np.asarray(expected, np.float64)
     if a.shape != e.shape:
         return math.inf
     if not np.all(np.isfinite(a)):
         return math.inf
-    return float(np.max(np.abs(a - e)) / max(float(np.max(np.abs(e))), 1e-6)) if a.size else 0.0
+    return float(np.max(np.abs(a - e)) / max(float(np.max(np.abs(e))), floor)) if a.size else 0.0
+
+
+# A router's novelty is a log-probability, a logit, a probability or a squared distance: one unit
+# of it is the least a threshold (beta) ever resolves. Calibrated stacking's novelty on a press both
+# heads are sure of is the difference of two log-probabilities near 0 (2.8e-6 on a demo world's
+# probe press), where float32 cancellation alone is a few percent of it: relative to itself, the
+# probe refused a sound bundle (the float32 graph 4e-8 off numpy's float64). Relative to at least
+# one unit, the probe still refuses a graph that computes another router (tests/test_fused_bundle.py).
+NOVELTY_UNIT = 1.0
+NOVELTY_CHECKS = frozenset({"novelty", NOVELTY_OUT, "novelty_vs_router_file"})
+
+
+def probe_error(name: str, actual: np.ndarray, expected: np.ndarray) -> float:
+    """The probe's error of output ``name``: relative, a novelty's relative to at least one unit."""
+    return _rel_err(actual, expected, NOVELTY_UNIT if name in NOVELTY_CHECKS else 1e-6)
 
 
 def _float32_router(router):
@@ -227,7 +242,7 @@ class TactileModel:
             checks[SCENE_OUT] = (out.scene_z, exp[SCENE_OUT], tol["projection"])
             checks["scene_z_vs_decision_file"] = (out.scene_z, self.scene_model.project(out.feature), tol["projection"])
         for name, (a, e, t) in checks.items():
-            err = _rel_err(a, e)
+            err = probe_error(name, a, e)
             self.probe_errors[name] = err
             if not err <= t:
                 raise BundleError(self.bundle.root, f"probe check failed: '{name}' differs from the exporter's "

@@ -229,6 +229,28 @@ def test_folded_router_that_is_not_router_npz_is_refused(pairs, tmp_path):
         TactileModel.load(b)
 
 
+def test_probe_reads_a_novelty_near_zero_relative_to_one_unit(pairs, tmp_path):
+    """Calibrated stacking on a press both heads are sure of: novelty is the difference of two
+    log-probabilities near 0 (a demo world's probe press: 2.86e-6 from the float32 graph, 2.82e-6 from
+    numpy's float64). Relative to itself that is 1.4 % off and the probe refused the sound bundle,
+    so its export failed; relative to one unit it is 4e-8. A shift the size of a threshold's
+    resolution still fails, and a graph whose novelty differs from its expected probe output by a
+    hundredth of a unit is refused on load."""
+    from vs2t_edge.runtime import inference as inf
+
+    assert inf.probe_error("novelty_vs_router_file", np.array([2.86101886e-06]), np.array([2.82146396e-06])) < 1e-6
+    assert inf.probe_error("router_novelty", np.array([0.01]), np.array([0.0])) > 1e-4
+    assert inf.probe_error("novelty", np.array([1000.5]), np.array([1000.0])) > 1e-4
+    assert inf.probe_error("feature", np.array([2.86101886e-06]), np.array([2.82146396e-06])) > 1e-4  # features stay relative
+    b = _copy(pairs["energy"][0], tmp_path)
+    exp = dict(np.load(b / "probe_expected.npz"))
+    exp["novelty"] = exp["novelty"] + 0.01 * max(1.0, float(np.max(np.abs(exp["novelty"]))))
+    np.savez(b / "probe_expected.npz", **exp)
+    _reseal(b)
+    with pytest.raises(rb.BundleError, match=r"probe check failed: 'novelty'"):
+        TactileModel.load(b)
+
+
 def test_two_graph_bundles_still_load(pairs):
     """Format 1 (every bundle before the fused graph): the committed replay bundle (opset 17) and a
     fresh --two-graphs export load, run two sessions, and pass their probes."""
