@@ -241,8 +241,24 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     a = test["all"]
     _log(f"scene decision, test scenes: right {a['right']:.1%}, mis-sort {a['mis-sort']:.1%}, reject {a['reject']:.1%}, "
          f"{a['presses']:.1f} presses per item")
+    warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"], len(split.validation))
+    if warning:
+        _log(warning)
     chosen = {k: v for k, v in chosen.items() if k != "tried"}
     return model, {"validation": chosen, "test": test}
+
+
+def test_target_warning(mis_sort: float, target: float, n_validation: int) -> str | None:
+    """What training says when its test jobs put more pieces in wrong bins than the target that
+    validation chose the operating point for (None when they do not). A report, not a choice:
+    nothing is re-chosen on test fabrics. On the demo's world drawn with seed 1, validation met the
+    1 % target (0.2 %) and the test jobs mis-sorted 11 %: four validation fabrics had not shown
+    the generator's errors on the test ones."""
+    if not mis_sort > target:
+        return None
+    return (f"WARNING: the test jobs mis-sorted {mis_sort:.1%} of their pieces, above the {target:.0%} target "
+            f"that the {n_validation} validation fabrics chose the operating point for: expect that share in wrong "
+            "bins on fabrics like these (more validation or touched fabrics, or operator labels, docs/cell.md)")
 
 
 def fit_router(name: str, x_t: np.ndarray, logits_t: np.ndarray, labels: np.ndarray | None = None) -> nv.Router:
