@@ -46,7 +46,7 @@ def test_scene_decision_test_strangers_were_not_read_by_the_choice(monkeypatch):
 
     def fake_fit(train_x, train_y, touched, touched_val, val_fabrics, val_presses, *a, **k):
         seen["fit_val_presses"] = val_presses[0]
-        return "model", {"chosen": {}, "tried": []}
+        return "model", {"chosen": {}, "tried": [], "target_mis_sort": 0.01}
 
     def fake_eval(model, touched, touched_test, untouched, untouched_presses, *, off_pool=None, **k):
         seen["test_strangers"] = off_pool
