@@ -46,7 +46,7 @@ from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.runtime.notify import Notifier
-from vs2t_edge.runtime import wiring
+from vs2t_edge.runtime import job_check, wiring
 from vs2t_edge.runtime.wiring import SceneModelMissing, build_cell, build_live_devices, load_model, match_camera
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DEVICE = 0, 1, 2, 3
@@ -68,6 +68,20 @@ def clear_fault(cfg: CellConfig) -> int:
     ff.unlink()
     print(f"fault cleared: {reason}\nthe running service clears the gate and arm and resumes sorting")
     return EXIT_OK
+
+
+def job_check_lines(cfg: CellConfig, model, evidence_factory) -> list[str]:
+    """Before the first piece: the job's fabrics whose own picture the cell cannot sort
+    (runtime/job_check.py), with the item rule the cell will use; nothing for a bundle without a
+    scene model. Advice in the log, never a reason not to start."""
+    scene_model = getattr(model, "scene_model", None)
+    if scene_model is None:
+        return []
+    try:
+        return job_check.summary_lines(job_check.check_job(scene_model, cfg.scene_classes, evidence_factory,
+                                                           cfg.max_presses))
+    except ValueError as exc:  # a scene class the scene model lacks: the start refuses that elsewhere
+        return [f"job check skipped: {exc}"]
 
 
 def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None, items=None,
@@ -108,6 +122,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                 f"(max relative error {max(probe.values()):.2g}) in {load_s:.1f} s")
         log(said)
         notifier.status(said)
+    for line in job_check_lines(cfg, model, evidence_factory):
+        log(line)
     try:
         journal = Journal.open(cfg.journal)
     except (JournalError, OSError) as exc:

@@ -269,6 +269,11 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     a = sd["all"]
     assert f"| all | {100 * a['right']:.1f} ± 0.0 | {100 * a['mis-sort']:.1f} ± 0.0 | {100 * a['reject']:.1f} ± 0.0 |" in report
     assert f"H {100 * g['H']:.1f} ± 0.0 (paper: H 84.27)" in report
+    # the job check (runtime/job_check.py) is scored on every job fabric of every test job
+    jc = sd["job_check"]
+    n_fabrics = sum(g["fabrics"] for kind in jc.values() for g in kind.values())
+    assert n_fabrics == sd["n_scenes"] * (5 + 2)  # jobs of 5 touched + the tiny split's 2 untouched fabrics
+    assert "Job check (runtime/job_check.py: before each job" in report
     # a test miss of the mis-sort target is said where the user looks: the report and the printout
     missed = a["mis-sort"] > split["scene_decision"]["validation"]["target_mis_sort"]
     assert f"on the test jobs above in {0 if missed else 1} of 1" in report

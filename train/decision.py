@@ -214,6 +214,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     scenes = so.draw_scenes(touched, untouched, tuple(off_pool or ()), n_scenes, n_untouched=n_u, seed=seed + 1)
     recs = so.simulate_scenes(scenes, tables, evidence_for(model), seed=seed + 1, items_per_fabric=items_per_fabric)
     out = so.summarise(recs)
+    out["job_check"] = job_check_outcomes(model, scenes, recs, items_per_fabric)
     rc = so.risk_coverage(recs)
     out["risk_coverage"] = {"area": rc["area"], "coverage": rc["coverage"][::max(1, len(rc["coverage"]) // 50)],
                             "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
@@ -243,6 +244,31 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     return out
 
 
+def job_check_outcomes(model: SceneModel, scenes, recs, items_per_fabric: int) -> dict:
+    """How well the job check (runtime/job_check.py, run before a job on the model alone) foretold
+    the bins of these jobs: per kind, the scene fabrics it passed and those it flagged, with the share
+    of their pieces in the right bin (each job's fabric counted once per job). ``recs``: the jobs'
+    records as ``runtime.sorting.simulate_scenes`` made them from ``scenes`` (in their order)."""
+    from vs2t_edge.runtime.job_check import check_job
+
+    make = evidence_for(model)
+    groups: dict[str, dict[str, list]] = {}
+    start = 0
+    for scene in scenes:
+        n = items_per_fabric * len(scene.classes + scene.off_scene)
+        mine = recs[start:start + n]
+        start += n
+        for check in check_job(model, scene.classes, lambda: make(scene), MAX_PRESSES):
+            right = [r.outcome == so.RIGHT for r in mine if r.truth == check.fabric]
+            if right:
+                groups.setdefault(check.kind, {}).setdefault("passed" if check.sorts else "flagged", []).append(
+                    float(np.mean(right)))
+    if start != len(recs):
+        raise ValueError(f"job check: {len(recs)} records for jobs that make {start}")
+    return {kind: {name: {"fabrics": len(v), "right": float(np.mean(v))} for name, v in g.items()}
+            for kind, g in groups.items()}
+
+
 LABEL_JOB_LENGTHS = (4, 10)  # pieces of each fabric in one job
 
 
@@ -260,4 +286,4 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     return out
 
 
-__all__ = ["fit_scene_decision", "evaluate_scenes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]
+__all__ = ["fit_scene_decision", "evaluate_scenes", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

@@ -276,12 +276,32 @@ def scene_lines(splits: list[dict]) -> list[str]:
                + "; ".join(" ".join(f"{name} {100 * r['right']:.1f} / {100 * r['mis_sort']:.1f}"
                                     for name, r in d["validation"]["item_rules"].items()) for d in sd)]
               if all("item_rules" in d["validation"] for d in sd) else []),
+            *job_check_lines(sd),
             *label_lines(sd),
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
                 f"margin {c['known_margin']:g}, confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
+
+
+def job_check_lines(sd: list[dict]) -> list[str]:
+    """How well the job check (runtime/job_check.py: before a job, from the model alone) foretold
+    these test jobs' bins: per kind, the job fabrics it passed and flagged over all splits, with the
+    share of their pieces in the right bin (a mean over job fabrics)."""
+    if not all("job_check" in d["test"] for d in sd):
+        return []
+    parts = []
+    for kind in ("touched", "untouched"):
+        said = []
+        for name in ("passed", "flagged"):
+            rows = [d["test"]["job_check"].get(kind, {}).get(name) for d in sd]
+            n = sum(r["fabrics"] for r in rows if r)
+            right = sum(r["fabrics"] * r["right"] for r in rows if r) / n if n else float("nan")
+            said.append(f"{name} {n}" + (f" ({100 * right:.1f} % of their pieces right)" if n else ""))
+        parts.append(f"{kind} job fabrics {', '.join(said)}")
+    return ["Job check (runtime/job_check.py: before each job, from the model alone, does each fabric's own "
+            "picture sort?): " + "; ".join(parts) + "."]
 
 
 def label_lines(sd: list[dict]) -> list[str]:
