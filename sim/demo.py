@@ -40,7 +40,7 @@ from vs2t_edge.runtime.feedback import append_label
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.wiring import SceneModelMissing, require_scene_model
-from vs2t_edge.sim.scene import SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
+from vs2t_edge.sim.scene import SimItem, SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 # world profile -> training profile (the demo's world trains with the small profile's budget)
 TRAIN_PROFILE = {"demo": "small"}
@@ -139,7 +139,7 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
-                without_scene_model: str | None = None, operator_labels: bool = False) -> dict:
+                without_scene_model: str | None = None, operator_labels: bool = False, teach: bool = False) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
     require_scene_model(model, bundle, without_scene_model,
@@ -155,6 +155,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     names_of = {f.id: f.name for f in ds.fabrics}
     # Mostly the job's own fabrics, as on a line; each off-scene fabric as often as one scene fabric.
     items = item_stream(ds, touched + untouched + off_scene, n_items, seed=seed)
+    taught = teach_fabrics(model, touched + untouched, confidence, max_presses) if teach and operator_labels else []
+    items = [SimItem(f"teach-{i + 1:02d}", f, f) for i, f in enumerate(taught)] + items
     fabrics = assign_bins(touched, untouched)
     journal = workdir / "journal.jsonl"
     labels = workdir / "labels.jsonl"  # the simulated operator's (runtime/feedback.py)
@@ -168,6 +170,11 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
 
     def on_item(r) -> None:
         truth = r.item.truth
+        if r.item.id.startswith("teach-"):  # the operator labels it whatever bin it went to; not counted
+            append_label(labels, r.item.id, truth)
+            log(f"{r.item.id}  {truth} {names_of.get(truth, ''):>22s} (teach piece: {r.presses} press"
+                f"{'es' if r.presses != 1 else ''}, the cell said {r.label}; operator: {truth}) - not counted")
+            return
         kind = kinds.get(truth, "off-scene")
         o = so.outcome(truth, r.label, scene_names, sorted_=r.outcome == "sorted")
         records.append(so.ItemRecord(truth, kind, r.label, float(r.confidence), int(r.presses), o))
@@ -208,6 +215,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
             results_holder.append(r)
             on_item(r)
 
+        if taught:
+            log(f"the operator starts the job with a teach piece of {', '.join(taught)}: the fabrics the job check "
+                "(below) says the cell cannot sort at their synthesised picture (docs/cell.md; not zero-shot)")
         log(f"[4/4] sorting {n_items} pieces: the job is {len(touched)} touched + {len(untouched)} untouched "
             f"fabrics ({', '.join(f'{f} bin {bins[f]}' for f in touched + untouched)}); off-scene pieces of "
             f"{', '.join(off_scene)} must go to the reject bin 0; arm {arm_kind}, gate {gate_kind}; touched pieces "
@@ -238,13 +248,30 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     speculative = sum(r.get("speculative_presses", 0) for r in read_records(journal) if r["type"] == "pre_sort")
     summary.update(scene={"touched": touched, "untouched": untouched, "off_scene": off_scene, "bins": bins},
                    items=len(records), sort_s=sort_s, rows=rows, overlap_scoring=overlap_scoring,
-                   speculative_presses=speculative, operator_labels=operator_labels,
+                   speculative_presses=speculative, operator_labels=operator_labels, teach_pieces=taught,
                    labels_applied=sum(bool(r.get("applied")) for r in read_records(journal) if r["type"] == "label"),
                    latency_ms_median=float(np.median(lat)) if lat else float("nan"),
                    latency_ms_p95=float(np.percentile(lat, 95)) if lat else float("nan"),
                    item_s_median=float(np.median(item_s)) if item_s else float("nan"),
                    items_per_min=60.0 * len(item_s) / sum(item_s) if item_s and sum(item_s) > 0 else float("nan"))
     return summary
+
+
+def teach_fabrics(model, scene: list[str], confidence: float | None, max_presses: int) -> list[str]:
+    """The untouched fabrics of the job that the job check (runtime/job_check.py) flags: the ones
+    a line would start the job with a teach piece of (docs/cell.md). The evidence is the one the
+    demo's config gives the daemon (the bundle's operating point, or ``--confidence`` over it)."""
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.job_check import check_job
+    from vs2t_edge.runtime.operating_point import scene_model_rule
+
+    sm = getattr(model, "scene_model", None)
+    if sm is None:
+        return []
+    conf, opts = scene_model_rule(sm)
+    conf = conf if confidence is None else confidence
+    checks = check_job(sm, scene, lambda: Evidence(scene, conf, max_presses, **opts), max_presses)
+    return [c.fabric for c in checks if c.kind == "untouched" and not c.sorts]
 
 
 def report_lines(summary: dict) -> str:
@@ -263,6 +290,9 @@ def report_lines(summary: dict) -> str:
                      f"simulated operator labelled every rejected piece, {summary['labels_applied']} label(s) taught the "
                      "cell (an untouched fabric's real mean, or an off-scene fabric to refuse); `--operator-labels off` "
                      "sorts zero-shot only")
+    if summary.get("teach_pieces"):
+        lines.append(f"teach pieces (not counted): {', '.join(summary['teach_pieces'])} - the job check's flagged "
+                     "untouched fabrics, one labelled piece each before the job; `--teach off` leaves them out")
     if "overlap_scoring" in summary:
         spec = summary.get("speculative_presses", 0)
         lines.append(f"scoring overlapped with the arm's moves: {'on' if summary['overlap_scoring'] else 'off'}"
@@ -299,6 +329,10 @@ def add_arguments(parser, verb: str) -> None:
                              "with what it was, and the cell learns from it - an untouched fabric's real mean, an "
                              "off-scene fabric to refuse (runtime/feedback.py; outside the zero-shot protocol; "
                              "default on, as a line with a person at the reject bin would run; off: zero-shot only)")
+    parser.add_argument("--teach", choices=("on", "off"), default="on",
+                        help="with operator labels: start the job with one labelled teach piece of each untouched "
+                             "fabric the job check (runtime/job_check.py) says the cell cannot sort at its synthesised "
+                             "picture, as docs/cell.md advises (default on; not counted; off: labels only)")
     parser.add_argument("--overlap-scoring", choices=("on", "off"), default="on",
                         help="cell.overlap_scoring: score a press while the arm moves on (default on); off: "
                              "each press scored before the arm moves again, to compare pieces per minute")
@@ -332,7 +366,7 @@ def run(args) -> int:
                               threads=args.threads, record=Path(args.record) if args.record else None,
                               fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on",
                               without_scene_model=args.without_scene_model,
-                              operator_labels=args.operator_labels == "on")
+                              operator_labels=args.operator_labels == "on", teach=args.teach == "on")
     except SceneModelMissing as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 2

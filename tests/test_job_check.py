@@ -114,3 +114,16 @@ def test_training_counts_how_the_check_foretold_its_jobs():
     assert out["touched"]["passed"] == {"fabrics": 3, "right": 1.0}
     with pytest.raises(ValueError, match="records for jobs"):
         job_check_outcomes(m, scenes, recs[:-1], 3)
+
+
+def test_the_demo_teaches_exactly_the_flagged_untouched_fabrics():
+    """`vs2t-edge demo` (teach on) starts the job with a teach piece of each untouched fabric the
+    job check flags - never a touched one (a label teaches a touched fabric nothing) - and of none
+    for a bundle without a scene model."""
+    from vs2t_edge.sim.demo import teach_fabrics
+
+    m = SimpleNamespace(scene_model=model())
+    assert teach_fabrics(m, ["silk", "cashmere", "wool"], None, 5) == ["wool"]  # cashmere is flagged too, touched
+    assert teach_fabrics(m, ["denim", "silk", "wool"], None, 5) == ["wool"]
+    assert teach_fabrics(SimpleNamespace(scene_model=model(known_margin=math.inf)), ["denim", "silk", "wool"], None, 5) == []
+    assert teach_fabrics(SimpleNamespace(), ["silk", "wool"], None, 5) == []
