@@ -11,8 +11,8 @@ before the first piece, not from the reject bin, and can start the job with a te
 (docs/cell.md, "Starting a job with teach pieces") or leave its rival out of the job.
 
 Training's report measures how well the check foretells the bins of its test jobs
-(train/decision.py ``job_check_outcomes``). Paper world, the 5 splits' test jobs (re-decided offline
-from dumps of each split's features, 2026-11-27): of 300 touched job fabrics the check flagged 23,
+(train/decision.py ``job_check_outcomes``). Paper world, the 5 splits' test jobs (`vs2t-edge train DS
+--profile paper --out RUN`, 2026-11-27, RUN/report.md "Job check"): of 300 touched job fabrics the check flagged 23,
 none of whose pieces went to their bin, against 93.7 % of the others' pieces; of 180 untouched ones
 it flagged 93, 5.1 % of whose pieces went to their bin, against 48.3 %. It is no promise for a
 fabric it passes: an untouched fabric's real presses lie off its synthesis by the generator's
