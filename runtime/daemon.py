@@ -73,7 +73,9 @@ def clear_fault(cfg: CellConfig) -> int:
 def job_check_lines(cfg: CellConfig, model, evidence_factory) -> list[str]:
     """Before the first piece: the job's fabrics whose own picture the cell cannot sort
     (runtime/job_check.py), with the item rule the cell will use; nothing for a bundle without a
-    scene model. Advice in the log, never a reason not to start."""
+    scene model. Advice in the log, never a reason not to start. It reads the bundle's model as it
+    came: with operator labels, what earlier labels taught (restored from the journal when the cell
+    is built) is not in it, so a restarted job may hear of a fabric it has taught already."""
     scene_model = getattr(model, "scene_model", None)
     if scene_model is None:
         return []
