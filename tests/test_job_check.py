@@ -127,3 +127,34 @@ def test_the_demo_teaches_exactly_the_flagged_untouched_fabrics():
     assert teach_fabrics(m, ["denim", "silk", "wool"], None, 5) == ["wool"]
     assert teach_fabrics(SimpleNamespace(scene_model=model(known_margin=math.inf)), ["denim", "silk", "wool"], None, 5) == []
     assert teach_fabrics(SimpleNamespace(), ["silk", "wool"], None, 5) == []
+
+
+def test_check_job_says_the_check_for_a_config_before_the_service_starts(tmp_path, capsys):
+    """`vs2t-edge check-job CONFIG` loads the config's bundle as the service does, runs the same
+    check with the evidence the service would build, prints one line per fabric and exits 1 when a
+    fabric cannot be sorted at its own picture (0 when all can); a bundle without a scene model is
+    said and refused (2)."""
+    from test_bundle_fixtures import TOUCHED, UNTOUCHED
+    from test_fused_bundle import _write
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.wiring import evidence_factory_for
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    _write(tmp_path / "bundle", "energy", True)
+    fabrics = [(c, "touched", i + 1) for i, c in enumerate(TOUCHED)] + [(UNTOUCHED[0], "untouched", 4)]
+    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(fabrics=fabrics, bundle=str(tmp_path / "bundle")))
+    code = main(["check-job", str(tmp_path / "cell.yaml")])
+    said = capsys.readouterr().out.splitlines()
+    cfg = load_config(tmp_path / "cell.yaml")
+    model = TactileModel.load(tmp_path / "bundle", threads=1)
+    want = jc.check_job(model.scene_model, cfg.scene_classes, evidence_factory_for(cfg, model), cfg.max_presses)
+    assert said[:-1] == [c.describe() for c in want] and len(want) == 4
+    assert code == (0 if all(c.sorts for c in want) else 1)
+    assert said[-1].endswith("sorts at its own picture" if code == 0 else "cannot be sorted even at their own picture")
+    _write(tmp_path / "plain", "energy", True, scene=False)
+    (tmp_path / "plain.yaml").write_text(fake_cell_yaml(fabrics=fabrics, bundle=str(tmp_path / "plain")))
+    assert main(["check-job", str(tmp_path / "plain.yaml")]) == 2
+    assert "no scene model" in capsys.readouterr().err

@@ -42,6 +42,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "run": ("vs2t_edge.runtime.daemon", "run the sorting cell (the systemd service's command)"),
     "label": ("vs2t_edge.runtime.label_cli", "say what a rejected piece was: the cell learns its untouched "
               "fabric from it (evidence.operator_labels)"),
+    "check-job": ("vs2t_edge.runtime.check_job_cli", "before a job: the fabrics the cell cannot sort even at its "
+                  "own picture of them (start with a teach piece of those)"),
     "demo": ("vs2t_edge.sim.demo", "the embedded default end to end on the simulated cell (needs [train])"),
     "calibrate-threshold": ("vs2t_edge.runtime.calibrate", "choose the novelty threshold beta from presses"),
     "record": ("vs2t_edge.runtime.record_cli", "record a live session into a replay file"),
