@@ -286,7 +286,7 @@ def _press_until_decided(ev, pool: list[Press], order):
 
 def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]], model, *,
                          labels: bool = True, items_per_fabric: int = 4, max_presses: int = 5,
-                         seed: int = 0, teach: bool = False) -> list[ItemRecord]:
+                         seed: int = 0, teach: bool | Callable[[Scene], Sequence[str]] = False) -> list[ItemRecord]:
     """Each scene one job: its pieces (``items_per_fabric`` of every scene and off-scene fabric)
     in a random order, decided by the cell's evidence with ``model``'s operating point; with
     ``labels``, every piece that lands in the reject bin is labelled by the operator before the
@@ -295,7 +295,8 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
     jobs, orders and presses without them: the paired zero-shot baseline. Needs an offset-rule
     setting (``SceneModel.for_labels``); the model's own rule decides until a label teaches.
     ``teach``: before each job, one known piece of every untouched fabric of the job is pressed and
-    labelled (the operator's teach pieces; not counted). No piece of a job shows a press a labelled
+    labelled (the operator's teach pieces; not counted); a function of the scene instead names the
+    fabrics to teach (the job check's flagged ones, train/decision.py). No piece of a job shows a press a labelled
     or teach piece of the job showed (what taught a mean never tests it); a piece left no press of
     its own is not counted."""
     from vs2t_edge.runtime.feedback import adapt, item_evidence
@@ -317,7 +318,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         labelled: dict[str, list] = {}
         strangers: dict[str, list] = {}
         shown: dict[str, set] = {}  # presses of the job's teach and labelled pieces, kept out of its other pieces
-        for fabric in (scene.untouched if teach else ()):
+        for fabric in (teach(scene) if callable(teach) else scene.untouched if teach else ()):
             taught = rng.permutation(len(presses[fabric]))[:max_presses]
             shown[fabric] = set(taught.tolist())
             zs = np.stack([np.asarray(presses[fabric][i].scene_z, np.float64) for i in taught])

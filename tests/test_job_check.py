@@ -158,3 +158,24 @@ def test_check_job_says_the_check_for_a_config_before_the_service_starts(tmp_pat
     (tmp_path / "plain.yaml").write_text(fake_cell_yaml(fabrics=fabrics, bundle=str(tmp_path / "plain")))
     assert main(["check-job", str(tmp_path / "plain.yaml")]) == 2
     assert "no scene model" in capsys.readouterr().err
+
+
+def test_teaching_the_named_fabrics_is_teaching_them_all_or_none_at_the_ends():
+    """``simulate_with_labels(teach=f)``: a function naming every untouched fabric of the job is the
+    teach-all run, one naming none is the labels-only run, record for record; training's
+    ``teach_flagged`` row names the job check's flagged ones."""
+    m = model()
+    rng = np.random.default_rng(3)
+    presses = {c: so.scene_model_presses(m, MEANS[i] + 0.3 * rng.standard_normal((30, 2)))
+               for i, c in enumerate(CLASSES)}
+    scenes = [so.Scene(("denim", "silk", "cashmere"), ("wool",), ("twill",)), so.Scene(("silk", "twill"), ("wool",), ())]
+    run = lambda teach: so.simulate_with_labels(scenes, presses, m, items_per_fabric=3, seed=2, teach=teach)  # noqa: E731
+    assert run(lambda s: list(s.untouched)) == run(True)
+    assert run(lambda s: []) == run(False)
+    assert run(True) != run(False)  # the teach piece changes something, so the two checks above can fail
+    from vs2t_edge.train.decision import operator_label_jobs
+
+    out = operator_label_jobs(m, presses, scenes, seed=0)
+    for n in out.values():
+        assert set(n) == {"without", "with", "teach", "teach_flagged"}
+        assert 0 <= n["teach_flagged"]["teach_pieces_per_job"] <= 1

@@ -274,6 +274,8 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     n_fabrics = sum(g["fabrics"] for kind in jc.values() for g in kind.values())
     assert n_fabrics == sd["n_scenes"] * (5 + 2)  # jobs of 5 touched + the tiny split's 2 untouched fabrics
     assert "Job check (runtime/job_check.py: before each job" in report
+    if "operator_labels" in sd:  # an offset-rule model also prices teaching only what the check flags
+        assert "With labels and a teach piece only of the untouched fabrics the job check flags" in report
     # a test miss of the mis-sort target is said where the user looks: the report and the printout
     missed = a["mis-sort"] > split["scene_decision"]["validation"]["target_mis_sort"]
     assert f"on the test jobs above in {0 if missed else 1} of 1" in report

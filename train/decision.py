@@ -276,13 +276,25 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     """Learning from the reject bin (runtime/feedback.py), outside the zero-shot protocol: the
     same scenes as jobs whose pieces come in a random order, each rejected piece of a scene fabric
     labelled by the operator before the next; beside the same jobs, orders and presses without
-    labels (paired); and ``teach``: the same with one labelled teach piece of each untouched fabric
-    pressed before the job. Per job length (pieces per fabric, ``LABEL_JOB_LENGTHS``)."""
+    labels (paired); ``teach``: the same with one labelled teach piece of each untouched fabric
+    pressed before the job; and ``teach_flagged``: a teach piece only of the untouched fabrics the
+    job check flags (runtime/job_check.py; what the demo's operator does). Per job length (pieces
+    per fabric, ``LABEL_JOB_LENGTHS``)."""
+    from vs2t_edge.runtime.job_check import check_job
+
+    make = evidence_for(model)
+
+    def flagged(scene) -> list[str]:
+        return [c.fabric for c in check_job(model, scene.classes, lambda: make(scene), MAX_PRESSES)
+                if c.kind == "untouched" and not c.sorts]
+
     out = {}
     for n in LABEL_JOB_LENGTHS:
         out[str(n)] = {name: so.summarise(so.simulate_with_labels(
             scenes, tables, model, labels=on, items_per_fabric=n, max_presses=MAX_PRESSES, seed=seed, teach=teach))
-            for name, on, teach in (("without", False, False), ("with", True, False), ("teach", True, True))}
+            for name, on, teach in (("without", False, False), ("with", True, False), ("teach", True, True),
+                                    ("teach_flagged", True, flagged))}
+        out[str(n)]["teach_flagged"]["teach_pieces_per_job"] = float(np.mean([len(flagged(s)) for s in scenes]))
     return out
 
 

@@ -328,6 +328,14 @@ def label_lines(sd: list[dict]) -> list[str]:
             if rs else "-"  # noqa: E731
         out.append(f"| {n} | {cell(runs[0])} | {cell(runs[1])} | {cell(runs[2])} | "
                    f"{u(runs[0])} → {u(runs[1])} → {u(runs[2]) if runs[2] else '-'} |")
+    flagged = {n: [o[n]["teach_flagged"] for o in ol if "teach_flagged" in o[n]] for n in ol[0]}
+    if all(flagged.values()):
+        out += ["", "With labels and a teach piece only of the untouched fabrics the job check flags (what the demo's "
+                    "operator does; right / mis-sort %): " + "; ".join(
+                        f"{n} pieces of each fabric {_ms([r['all']['right'] for r in rs])} / "
+                        f"{_ms([r['all']['mis-sort'] for r in rs])}, "
+                        f"{np.mean([r['teach_pieces_per_job'] for r in rs]):.1f} teach pieces a job"
+                        for n, rs in flagged.items()) + "."]
     return out
 
 
