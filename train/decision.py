@@ -214,7 +214,8 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     scenes = so.draw_scenes(touched, untouched, tuple(off_pool or ()), n_scenes, n_untouched=n_u, seed=seed + 1)
     recs = so.simulate_scenes(scenes, tables, evidence_for(model), seed=seed + 1, items_per_fabric=items_per_fabric)
     out = so.summarise(recs)
-    out["job_check"] = job_check_outcomes(model, scenes, recs, items_per_fabric)
+    checks = scene_checks(model, scenes)  # once: the outcomes and the label jobs' teach_flagged read them
+    out["job_check"] = job_check_outcomes(model, scenes, recs, items_per_fabric, checks)
     rc = so.risk_coverage(recs)
     out["risk_coverage"] = {"area": rc["area"], "coverage": rc["coverage"][::max(1, len(rc["coverage"]) // 50)],
                             "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
@@ -240,25 +241,33 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
                          "H": 2 * acc_t * acc_u / (acc_t + acc_u) if acc_t + acc_u > 0 else 0.0}
     out["n_scenes"] = n_scenes
     if model.for_labels() is not None:
-        out["operator_labels"] = operator_label_jobs(model, tables, scenes, seed=seed + 2)
+        out["operator_labels"] = operator_label_jobs(model, tables, scenes, seed=seed + 2, checks=checks)
     return out
 
 
-def job_check_outcomes(model: SceneModel, scenes, recs, items_per_fabric: int) -> dict:
-    """How well the job check (runtime/job_check.py, run before a job on the model alone) foretold
-    the bins of these jobs: per kind, the scene fabrics it passed and those it flagged, with the share
-    of their pieces in the right bin (each job's fabric counted once per job). ``recs``: the jobs'
-    records as ``runtime.sorting.simulate_scenes`` made them from ``scenes`` (in their order)."""
+def scene_checks(model: SceneModel, scenes) -> dict:
+    """The job check (runtime/job_check.py) of each scene with the model's own evidence: scene ->
+    its ``FabricCheck`` list."""
     from vs2t_edge.runtime.job_check import check_job
 
     make = evidence_for(model)
+    return {scene: check_job(model, scene.classes, lambda: make(scene), MAX_PRESSES) for scene in scenes}
+
+
+def job_check_outcomes(model: SceneModel, scenes, recs, items_per_fabric: int, checks: dict | None = None) -> dict:
+    """How well the job check (runtime/job_check.py, run before a job on the model alone) foretold
+    the bins of these jobs: per kind, the scene fabrics it passed and those it flagged, with the share
+    of their pieces in the right bin (each job's fabric counted once per job). ``recs``: the jobs'
+    records as ``runtime.sorting.simulate_scenes`` made them from ``scenes`` (in their order);
+    ``checks``: ``scene_checks`` of them, when the caller has it."""
+    checks = checks if checks is not None else scene_checks(model, scenes)
     groups: dict[str, dict[str, list]] = {}
     start = 0
     for scene in scenes:
         n = items_per_fabric * len(scene.classes + scene.off_scene)
         mine = recs[start:start + n]
         start += n
-        for check in check_job(model, scene.classes, lambda: make(scene), MAX_PRESSES):
+        for check in checks[scene]:
             right = [r.outcome == so.RIGHT for r in mine if r.truth == check.fabric]
             if right:
                 groups.setdefault(check.kind, {}).setdefault("passed" if check.sorts else "flagged", []).append(
@@ -272,30 +281,25 @@ def job_check_outcomes(model: SceneModel, scenes, recs, items_per_fabric: int) -
 LABEL_JOB_LENGTHS = (4, 10)  # pieces of each fabric in one job
 
 
-def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 0) -> dict:
+def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 0, checks: dict | None = None) -> dict:
     """Learning from the reject bin (runtime/feedback.py), outside the zero-shot protocol: the
     same scenes as jobs whose pieces come in a random order, each rejected piece of a scene fabric
     labelled by the operator before the next; beside the same jobs, orders and presses without
     labels (paired); ``teach``: the same with one labelled teach piece of each untouched fabric
     pressed before the job; and ``teach_flagged``: a teach piece only of the untouched fabrics the
     job check flags (runtime/job_check.py; what the demo's operator does). Per job length (pieces
-    per fabric, ``LABEL_JOB_LENGTHS``)."""
-    from vs2t_edge.runtime.job_check import check_job
-
-    make = evidence_for(model)
-
-    def flagged(scene) -> list[str]:
-        return [c.fabric for c in check_job(model, scene.classes, lambda: make(scene), MAX_PRESSES)
-                if c.kind == "untouched" and not c.sorts]
-
+    per fabric, ``LABEL_JOB_LENGTHS``); ``checks``: ``scene_checks`` of the scenes, when the caller has it."""
+    checks = checks if checks is not None else scene_checks(model, scenes)
+    flagged = {scene: [c.fabric for c in cs if c.kind == "untouched" and not c.sorts] for scene, cs in checks.items()}
+    per_job = float(np.mean([len(flagged[scene]) for scene in scenes]))
     out = {}
     for n in LABEL_JOB_LENGTHS:
         out[str(n)] = {name: so.summarise(so.simulate_with_labels(
             scenes, tables, model, labels=on, items_per_fabric=n, max_presses=MAX_PRESSES, seed=seed, teach=teach))
             for name, on, teach in (("without", False, False), ("with", True, False), ("teach", True, True),
-                                    ("teach_flagged", True, flagged))}
-        out[str(n)]["teach_flagged"]["teach_pieces_per_job"] = float(np.mean([len(flagged(s)) for s in scenes]))
+                                    ("teach_flagged", True, flagged.__getitem__))}
+        out[str(n)]["teach_flagged"]["teach_pieces_per_job"] = per_job
     return out
 
 
-__all__ = ["fit_scene_decision", "evaluate_scenes", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]
+__all__ = ["fit_scene_decision", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

@@ -255,12 +255,12 @@ def scene_lines(splits: list[dict]) -> list[str]:
         out.append(f"| {kind} | {_ms([r.get('right') for r in rs])} | {_ms([r.get('mis-sort') for r in rs])} | "
                    f"{_ms([r.get('reject') for r in rs])} | {pr:.2f} |")
     val = [d["validation"]["validation"]["all"] for d in sd]
+    kept = [d["test"]["all"]["mis-sort"] <= d["validation"]["target_mis_sort"] for d in sd]
     out += ["", f"Validation (what chose the operating point): right {_ms([v['right'] for v in val])}, mis-sort "
                 f"{_ms([v['mis-sort'] for v in val])}, reject {_ms([v['reject'] for v in val])}; the mis-sort target "
                 f"was met on validation in {sum(d['validation']['meets_target_on_validation'] for d in sd)} of "
-                f"{len(sd)} split(s); on the test jobs above in "
-                f"{sum(d['test']['all']['mis-sort'] <= d['validation']['target_mis_sort'] for d in sd)} of {len(sd)}"
-                + ("" if all(d['test']['all']['mis-sort'] <= d['validation']['target_mis_sort'] for d in sd) else
+                f"{len(sd)} split(s); on the test jobs above in {sum(kept)} of {len(sd)}"
+                + ("" if all(kept) else
                    " (**missed**: a split's test fabrics put that share of pieces in wrong bins, which its "
                    "validation fabrics did not show)") + ".",
             f"Calibration: per-press expected calibration error {_ms([d['test']['press_ece']['before'] for d in sd])} "
