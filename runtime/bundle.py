@@ -384,9 +384,11 @@ def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim:
             model = SceneModel.from_params({k: z[k] for k in z.files})
     except (*_DATA_ERRORS, SceneModelError) as exc:
         raise BundleError(root, f"{path.name} ('decision.file'): {exc}") from None
-    if model.classes != classes:
+    # the manifest's classes in order, then the fabrics the model knows only to refuse (scene_model.py)
+    if model.classes != classes + model.known_only or set(model.known_only) & set(classes):
         raise BundleError(root, f"{path.name}: scene model classes {list(model.classes)[:6]}... are not the "
-                                f"manifest's classes in order")
+                                f"manifest's classes in order" + (f" then its known_only {list(model.known_only)}"
+                                                                    if model.known_only else ""))
     if set(model.untouched) != set(classes[len(classes) - len(model.untouched):]) or \
             len(model.untouched) != len(_get(manifest, "classes", "untouched") or []):
         raise BundleError(root, f"{path.name}: scene model's untouched classes are not the manifest's")

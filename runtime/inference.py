@@ -42,7 +42,7 @@ WARMUP_RUNS = 3
 
 @dataclass(frozen=True)
 class PressScore:
-    log_posterior: dict[str, float]  # over the bundle's classes (touched + untouched), normalised in log space
+    log_posterior: dict[str, float]  # over the bundle's classes (touched + untouched; a scene model adds its known_only), normalised in log space
     novelty: float  # router score, higher = more likely untouched
     untouched: bool  # novelty > beta
     latency_ms: float
@@ -337,14 +337,16 @@ class TactileModel:
             raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
         novelty = float(out.novelty[0])
         sq = z = None
+        classes = self.classes
         if self.scene_model is not None:
             z = self.scene_projection(out)
             lp_all, d2 = self.scene_model.log_posterior_projected(z)
-            lp, sq = lp_all[0], dict(zip(self.classes, d2[0].tolist()))  # tolist: python floats, one C call
+            classes = self.scene_model.classes  # the bundle's, then those it knows only to refuse
+            lp, sq = lp_all[0], dict(zip(classes, d2[0].tolist()))  # tolist: python floats, one C call
             z = np.asarray(z[0], np.float64)
         else:
             lp = self.log_posterior(out)[0]
-        log_posterior = dict(zip(self.classes, lp.tolist()))
+        log_posterior = dict(zip(classes, lp.tolist()))
         t3 = time.perf_counter()
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))

@@ -24,6 +24,12 @@ never seen; refused above ``open_threshold``), and whether a bundle class outsid
 explains the presses better than the best scene class by ``known_margin`` (a fabric the cell knows
 that does not belong to this job). Both thresholds are fitted on validation fabrics too.
 
+Fabrics the run pressed but kept out of the bundle's heads - its validation fabrics, whose presses
+chose the operating point - are known to the model only to be refused (``known_only``): classes
+after the bundle's, at their training presses' real means (train/decision.py ``with_known``),
+never a job's fabric. A piece of one goes to the reject bin by the known-class rule instead of
+into the bin of the job fabric that feels most like it.
+
 Per item there are two rules (``item_rule``), both chosen on validation fabrics:
 
 * ``"sum"``: the per-press log posteriors, restricted to the scene, summed with ``evidence_weight``
@@ -69,7 +75,7 @@ class SceneModelError(ValueError):
 
 @dataclass(frozen=True)
 class SceneModel:
-    classes: tuple[str, ...]  # bundle classes, touched first, in the manifest's order
+    classes: tuple[str, ...]  # bundle classes, touched first, in the manifest's order; then ``known_only``
     untouched: frozenset[str]
     center: np.ndarray = field(repr=False)  # (D,) float64
     basis: np.ndarray = field(repr=False)  # (D, k) float64: projection and whitening in one
@@ -97,6 +103,9 @@ class SceneModel:
     # rule): the offset candidate training searched on the same validation jobs (LABELS_KEYS); None
     # for an offset-rule model (its own setting serves) and for files written before it
     labels_rule: Mapping[str, float] | None = field(default=None, repr=False)
+    # the last classes: fabrics the run pressed that are no bundle class (its validation fabrics),
+    # real means, known only to refuse their pieces (module doc); () for files written before them
+    known_only: tuple[str, ...] = ()
 
     @property
     def dim(self) -> int:
@@ -189,7 +198,8 @@ class SceneModel:
         rows = [self.classes.index(c) for c in classes]
         var = None if self.class_offset_var is None else np.asarray(self.class_offset_var)[rows]
         return replace(self, classes=tuple(classes), untouched=frozenset(c for c in classes if c in self.untouched),
-                       means=self.means[rows], class_offset_var=var, info=dict(self.info))
+                       means=self.means[rows], class_offset_var=var, info=dict(self.info),
+                       known_only=tuple(c for c in classes if c in self.known_only))
 
     # ------------------------------------------------------------------ fitting (numpy)
 
@@ -234,7 +244,8 @@ class SceneModel:
                 "known_margin": float(self.known_margin), "confidence": float(self.confidence),
                 "untouched_confidence": float(self.untouched_confidence), "item_rule": np.array(self.item_rule),
                 **{key: float(getattr(self, key)) for key in OFFSET_KEYS},
-                **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()}}
+                **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()},
+                **({"known_only": np.array(self.known_only)} if self.known_only else {})}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -275,8 +286,13 @@ class SceneModel:
             raise SceneModelError(f"scene model scalars out of range: temperature {temperature}, bias {bias}, "
                                   f"evidence_weight {weight}, confidence {conf}/{conf_u}, open_threshold {open_thr}, "
                                   f"known_margin {margin}")
+        known_only = tuple(str(c) for c in np.asarray(params.get("known_only", np.array([], str))).reshape(-1))
+        if known_only and (classes[len(classes) - len(known_only):] != known_only
+                           or any(flags[len(classes) - len(known_only):]) or len(set(classes)) != len(classes)):
+            raise SceneModelError(f"scene model known_only {list(known_only)} are not its last classes, touched "
+                                  "kind, each once")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
-                    temperature, bias, weight, open_thr, margin, conf, conf_u)
+                    temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only)
         # a file written before the offset rule has none of its keys: the sum rule, as it was
         rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
         if rule not in ITEM_RULES:

@@ -60,6 +60,11 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     scene needs the bundle's scene model: without its off-scene rules no piece could be refused."""
     touched, untouched = list(model.touched), list(model.untouched)
     missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
+    refuse_only = [f for f in missing if f in getattr(getattr(model, "scene_model", None), "known_only", ())]
+    if refuse_only:
+        raise ValueError(f"scene fabric(s) {refuse_only} are known to bundle {cfg.bundle} only to refuse their "
+                         "pieces (fabrics its training run held out to choose with: no classifier has them); "
+                         "train a run that touches them to sort them")
     if missing:
         raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
                          f"(touched: {touched}, untouched: {untouched})")

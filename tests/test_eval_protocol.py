@@ -52,8 +52,18 @@ def test_scene_decision_test_strangers_were_not_read_by_the_choice(monkeypatch):
         seen["test_strangers"] = off_pool
         return {"all": {"right": 1.0, "mis-sort": 0.0, "reject": 0.0, "presses": 1.0}}
 
+    def fake_known(model, x, y, names):
+        seen["known"] = list(names)
+        return model, {n: x[y == c] for c, n in enumerate(names)}
+
+    def fake_strangers(models, *a, **k):
+        seen["priced_apart"] = sorted(models)
+        return {}
+
     monkeypatch.setattr(dc, "fit_scene_decision", fake_fit)
     monkeypatch.setattr(dc, "evaluate_scenes", fake_eval)
+    monkeypatch.setattr(dc, "with_known", fake_known)
+    monkeypatch.setattr(dc, "stranger_jobs", fake_strangers)
 
     class _Data:
         x_t = rng.normal(size=(20, 4))
@@ -73,6 +83,9 @@ def test_scene_decision_test_strangers_were_not_read_by_the_choice(monkeypatch):
     assert len(fit_rows) == 9  # the choice read every validation fabric's presses ...
     reused = [f for f, x in (seen["test_strangers"] or {}).items() if any(r.tobytes() in fit_rows for r in x)]
     assert not reused, f"test off-scene fabrics {reused}: their presses chose the operating point on validation"
+    # the deployed model knows the validation fabrics (to refuse them); pieces of them as strangers
+    # are priced apart from the test jobs above, never mixed into them
+    assert seen["known"] == ["v0", "v1", "v2"] and seen["priced_apart"] == ["knowing", "unaware"]
 
 
 # ---------------------------------------------------------------- operator labels: a labelled piece's presses come back

@@ -311,5 +311,7 @@ def test_bundle_from_a_real_tiny_training_run_passes_runtime_verification(tmp_pa
         fab = ds.by_id(art.untouched[0])
         model.set_reference(fab.load_reference())
         s = model.score_press(fab.load_press(0))
-        assert set(s.log_posterior) == set(model.classes)
+        # the deployed scene model knows the run's validation fabrics too, only to refuse them
+        assert model.scene_model.known_only == tuple(art.validation) and art.validation
+        assert set(s.log_posterior) == set(model.classes) | set(art.validation)
         assert all(np.isfinite(v) for v in s.log_posterior.values()) and np.isfinite(s.novelty)

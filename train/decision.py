@@ -18,9 +18,13 @@ Per split (``fit_scene_decision``):
    presses share an offset from their class mean, larger for a synthesised class) over its own
    knobs, searched on the same jobs by the vectorised simulation of train/item_search.py; the item
    rule that scores better is kept (a tie keeps the sum rule);
-4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means.
+4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means,
+   and knowing the validation fabrics only to refuse them (``with_known``: their training presses'
+   real means; runtime/scene_model.py ``known_only``) - they were pressed, and a line that meets a
+   piece of one should send it to the reject bin, not into the bin of the job fabric it feels like.
 
-``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
+``stranger_jobs`` prices that on the same test jobs with the validation fabrics' later presses as
+off-scene pieces. ``evaluate_scenes`` scores a model on scenes of the split's TEST fabrics (touched test presses,
 untouched fabrics' presses) with the same simulation, and the same scenes as jobs with operator
 labels (``operator_label_jobs``, runtime/feedback.py: a mode outside the zero-shot protocol,
 reported beside it; a sum-rule model learns with the offset candidate kept as its ``labels_rule``); ``press_tables`` gives the cell's per-press view (log
@@ -198,6 +202,50 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     return deployed, report
 
 
+def with_known(model: SceneModel, x: np.ndarray, y: np.ndarray, names: list[str]) -> tuple[SceneModel, dict]:
+    """``model`` that also knows ``names`` (fabrics no bundle class is: the validation fabrics)
+    only to refuse them: one class each at the mean of its training presses (the first part of
+    each fabric's presses in press order, ``runtime.dataset.press_partition``, as touched fabrics'
+    means are) in the model's own space, appended as ``known_only``; every choice stays as it
+    was. ``x``, ``y``: each fabric's presses in press order (``y`` indexes ``names``). Returns the
+    model and each fabric's later presses (the rest), which no mean read."""
+    from vs2t_edge.runtime.dataset import press_partition
+
+    clash = sorted(set(names) & set(model.classes))
+    if clash:
+        raise ValueError(f"scene model: {clash} are classes already")
+    z = model.project(x)
+    means, later = [], {}
+    for c, name in enumerate(names):
+        rows = np.flatnonzero(y == c)
+        if len(rows) < 5:
+            raise ValueError(f"fabric {name}: {len(rows)} presses, need at least 5 to split train/val/test")
+        p_tr, p_va, p_te = press_partition(len(rows))
+        means.append(z[rows[p_tr]].mean(axis=0))
+        later[name] = x[rows[np.concatenate([p_va, p_te])]]
+    if not names:
+        return model, later
+    return replace(model, classes=tuple(model.classes) + tuple(names), means=np.concatenate([model.means, np.stack(means)]),
+                   known_only=tuple(model.known_only) + tuple(names)), later
+
+
+def stranger_jobs(models: dict[str, SceneModel], touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
+                  untouched: list[str], untouched_presses: tuple[np.ndarray, np.ndarray],
+                  strangers: dict[str, np.ndarray], *, n_scenes: int = N_SCENES, seed: int = 0) -> dict:
+    """The test jobs of ``evaluate_scenes`` with ``strangers`` (fabric -> presses) in the pool of
+    off-scene pieces, decided by each of ``models`` on the same jobs and presses: name -> summary
+    (runtime.sorting.summarise)."""
+    xt, yt = touched_test
+    xu, yu = untouched_presses
+    rows = {touched[c]: xt[yt == c] for c in range(len(touched))}
+    rows.update({untouched[c]: xu[yu == c] for c in range(len(untouched))})
+    rows.update(strangers)
+    scenes = so.draw_scenes(touched, untouched, tuple(strangers), n_scenes, n_untouched=min(3, len(untouched)),
+                            seed=seed + 3)
+    return {name: so.summarise(so.simulate_scenes(scenes, press_tables(m, rows), evidence_for(m), seed=seed + 3))
+            for name, m in models.items()}
+
+
 def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
                     untouched: list[str], untouched_presses: tuple[np.ndarray, np.ndarray], *,
                     off_pool: dict[str, np.ndarray] | None = None, n_scenes: int = N_SCENES, seed: int = 0,
@@ -302,4 +350,4 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     return out
 
 
-__all__ = ["fit_scene_decision", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]
+__all__ = ["fit_scene_decision", "with_known", "stranger_jobs", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

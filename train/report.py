@@ -277,6 +277,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
                                     for name, r in d["validation"]["item_rules"].items()) for d in sd)]
               if all("item_rules" in d["validation"] for d in sd) else []),
             *job_check_lines(sd),
+            *stranger_lines(sd),
             *label_lines(sd),
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
@@ -302,6 +303,25 @@ def job_check_lines(sd: list[dict]) -> list[str]:
         parts.append(f"{kind} job fabrics {', '.join(said)}")
     return ["Job check (runtime/job_check.py: before each job, from the model alone, does each fabric's own "
             "picture sort?): " + "; ".join(parts) + "."]
+
+
+def stranger_lines(sd: list[dict]) -> list[str]:
+    """The deployed model knows the validation fabrics only to refuse them (train/decision.py
+    ``with_known``): the same test jobs with their later presses among the off-scene pieces, decided
+    without and with that knowledge."""
+    ps = [d["test"]["pressed_strangers"] for d in sd if "pressed_strangers" in d["test"]]
+    if not ps:
+        return []
+
+    def cell(name: str, kind: str) -> str:
+        rs = [p[name]["all"] if kind == "all" else p[name]["by_kind"].get(kind, {}) for p in ps]
+        return f"{_ms([r.get('right') for r in rs])} / {_ms([r.get('mis-sort') for r in rs])}"
+
+    return [f"Pieces of the validation fabrics among the off-scene ones (their later presses; fabrics the run "
+            f"pressed, not never-seen ones), right / mis-sort % over {len(ps)} split(s): all pieces "
+            f"{cell('unaware', 'all')} with a model that does not know them, {cell('knowing', 'all')} with the "
+            f"deployed one, which knows them only to refuse them; off-scene pieces {cell('unaware', 'off-scene')} → "
+            f"{cell('knowing', 'off-scene')}."]
 
 
 def label_lines(sd: list[dict]) -> list[str]:

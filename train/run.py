@@ -224,7 +224,10 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     router at its validation beta) on the same scenes. The test jobs' off-scene pieces are fabrics
     the model knows that the job does not list: the validation fabrics' presses chose the operating
     point (one of them as its stranger), so they cannot test it, and the 40/5/5 split leaves no
-    fabric no step has read - a stranger's rejection is measured on validation only."""
+    fabric no step has read - a stranger's rejection is measured on validation only. The deployed
+    model knows the validation fabrics only to refuse them (``decision.with_known``); the same test
+    jobs with their later presses among the off-scene pieces price that (``pressed_strangers``:
+    the model without and with them - pressed fabrics as strangers, not never-seen ones)."""
     from vs2t_edge.train import decision as dc
 
     synth_u = method.synthesise(views.train, budget, split.seed)
@@ -236,11 +239,18 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
         synth_v, list(split.untouched), synth_u, seed=split.seed, log=_log)
     x_tt, _, y_tt = views.touched_test
     x_up, _, y_up = views.test_presses
+    # the deployed model knows the validation fabrics too, only to refuse them (decision.with_known)
+    unaware = model
+    model, later = dc.with_known(model, x_vp, y_vp, list(split.validation))
     test = dc.evaluate_scenes(model, list(split.touched), (x_tt, y_tt), list(split.untouched), (x_up, y_up),
                               off_pool=None, seed=split.seed)
     a = test["all"]
     _log(f"scene decision, test scenes: right {a['right']:.1%}, mis-sort {a['mis-sort']:.1%}, reject {a['reject']:.1%}, "
          f"{a['presses']:.1f} presses per item")
+    if later:
+        test["pressed_strangers"] = dc.stranger_jobs({"unaware": unaware, "knowing": model}, list(split.touched),
+                                                     (x_tt, y_tt), list(split.untouched), (x_up, y_up), later,
+                                                     seed=split.seed)
     warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"], len(split.validation))
     if warning:
         _log(warning)
