@@ -95,3 +95,29 @@ def test_a_job_cannot_list_a_fabric_the_bundle_knows_only_to_refuse():
                                                                  SimpleNamespace(name="twill", kind="touched")])
     with pytest.raises(ValueError, match=r"\['twill'\] are known to bundle b only to refuse"):
         check_scene_against_bundle(cfg, bundle)
+
+
+def test_the_per_press_protocol_stays_over_the_bundle_classes_and_the_report_pairs_the_price():
+    """The paper's per-press numbers (train/decision.py evaluate_scenes) are over touched and
+    untouched classes: the fabrics the model knows only to refuse do not enter them. The report's
+    line pairs the stranger jobs by split."""
+    from vs2t_edge.train.decision import evaluate_scenes
+    from vs2t_edge.train.report import stranger_lines
+
+    # twill right on denim: it would take denim's presses if it counted per press
+    m, _ = with_known(model(), presses(MEANS[0], 20, 8), np.zeros(20, int), ["twill"])
+    rows = {c: presses(MEANS[i], 20, 9 + i) for i, c in enumerate(CLASSES)}
+    args = (["denim", "silk"], (np.concatenate([rows["denim"], rows["silk"]]), np.repeat([0, 1], 20)), ["wool"],
+            (rows["wool"], np.zeros(20, int)))
+    plain, knowing = evaluate_scenes(model(), *args, n_scenes=2), evaluate_scenes(m, *args, n_scenes=2)
+    assert knowing["press_gzsl"] == plain["press_gzsl"] and knowing["press_gzsl"]["acc_t"] == 1.0
+    assert knowing["all"]["right"] < plain["all"]["right"]  # per item, twill refuses denim's pieces: its price
+
+    def summary(right, mis):
+        return {"all": {"right": right, "mis-sort": mis}, "by_kind": {"off-scene": {"right": 1 - mis, "mis-sort": mis}}}
+
+    sd = [{"test": {"pressed_strangers": {"unaware": summary(0.7, u), "knowing": summary(0.7, k)}}}
+          for u, k in ((0.02, 0.01), (0.01, 0.01), (0.03, 0.02))]
+    line = stranger_lines(sd)[0]
+    assert "mis-sorts -0.7 ± 0.5 points paired by split, fewer in 2, more in 0" in line
+    assert stranger_lines([{"test": {}}]) == []

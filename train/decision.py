@@ -270,12 +270,14 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     in_scene = [r for r in recs if r.kind != "off-scene"]
     out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
                                                     [r.candidate == r.truth for r in in_scene])
-    # per press over all bundle classes
+    # per press over all bundle classes (not the fabrics it knows only to refuse: the paper's
+    # protocol is over touched and untouched classes)
     x = np.concatenate([xt, xu])
     lab = np.concatenate([yt, len(touched) + yu])
-    d2 = model.sq_distances(x)
+    pm = model.subset([c for c in model.classes if c not in model.known_only]) if model.known_only else model
+    d2 = pm.sq_distances(x)
     raw = so.log_softmax(-0.5 * d2)
-    cal = so.log_softmax(model.scores(d2))
+    cal = so.log_softmax(pm.scores(d2))
     out["press_ece"] = {"before": so.expected_calibration_error(np.exp(raw.max(1)), raw.argmax(1) == lab),
                         "after": so.expected_calibration_error(np.exp(cal.max(1)), cal.argmax(1) == lab)}
     out["press_accuracy"] = float(np.mean(cal.argmax(1) == lab))

@@ -317,11 +317,13 @@ def stranger_lines(sd: list[dict]) -> list[str]:
         rs = [p[name]["all"] if kind == "all" else p[name]["by_kind"].get(kind, {}) for p in ps]
         return f"{_ms([r.get('right') for r in rs])} / {_ms([r.get('mis-sort') for r in rs])}"
 
+    diff = [p["knowing"]["all"]["mis-sort"] - p["unaware"]["all"]["mis-sort"] for p in ps]
     return [f"Pieces of the validation fabrics among the off-scene ones (their later presses; fabrics the run "
             f"pressed, not never-seen ones), right / mis-sort % over {len(ps)} split(s): all pieces "
             f"{cell('unaware', 'all')} with a model that does not know them, {cell('knowing', 'all')} with the "
-            f"deployed one, which knows them only to refuse them; off-scene pieces {cell('unaware', 'off-scene')} → "
-            f"{cell('knowing', 'off-scene')}."]
+            f"deployed one, which knows them only to refuse them (mis-sorts {_ms(diff)} points paired by split, "
+            f"fewer in {sum(d < 0 for d in diff)}, more in {sum(d > 0 for d in diff)}); off-scene pieces "
+            f"{cell('unaware', 'off-scene')} → {cell('knowing', 'off-scene')}."]
 
 
 def label_lines(sd: list[dict]) -> list[str]:
