@@ -116,8 +116,8 @@ def choose_scene(touched: list[str], untouched: list[str], others: list[str], se
                  n_touched: int = 4, n_untouched: int = 3) -> tuple[list[str], list[str], list[str]]:
     """The demo's sorting job: ``n_touched`` of the bundle's touched fabrics and ``n_untouched`` of
     its untouched ones (one bin each on the 8-bin gate, bin 0 rejects), drawn with the seed; the
-    off-scene pieces are one touched fabric the job leaves out (the cell knows it) and one fabric the
-    bundle has never seen (a validation fabric)."""
+    off-scene pieces are one touched fabric the job leaves out (the cell knows it) and one of the
+    ``others`` (the validation fabrics: no bundle class, known to its scene model only to refuse)."""
     rng = np.random.default_rng(seed)
     st = sorted(rng.choice(touched, min(n_touched, len(touched)), replace=False).tolist())
     su = sorted(rng.choice(untouched, min(n_untouched, len(untouched)), replace=False).tolist())
