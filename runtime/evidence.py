@@ -17,6 +17,10 @@ Off-scene checks (off unless set; the scene model sets both):
   the leading scene class's by more than it means the piece is a fabric the cell knows that this
   job does not list.
 Either makes the item "unknown" (``stopped_by`` "off_scene"), confident or not.
+``refuse_early``: a piece whose leading class over every known class is one the job leaves out,
+at ``confidence`` (and by ``known_margin`` over the scene's best), goes to the reject bin at that
+press instead of at the press limit: more presses would only risk it becoming confident for a job
+fabric. Off unless set (the scene model's operating point sets it when validation keeps it).
 ``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
 
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
@@ -55,7 +59,7 @@ class Evidence:
     def __init__(self, scene_classes, confidence: float = 0.95, max_presses: int = 9,
                  min_presses: int = 1, unknown_floor: float | None = None, *, weight: float = 1.0,
                  open_threshold: float = math.inf, known_margin: float = math.inf,
-                 class_confidence: dict[str, float] | None = None, item_model=None):
+                 class_confidence: dict[str, float] | None = None, item_model=None, refuse_early: bool = False):
         self.classes = list(dict.fromkeys(scene_classes))
         if not self.classes:
             raise ValueError("Evidence: the scene has no classes")
@@ -69,6 +73,7 @@ class Evidence:
             raise ValueError("Evidence: open_threshold and known_margin must not be NaN")
         self.confidence, self.max_presses, self.min_presses = confidence, max_presses, min_presses
         self.weight, self.open_threshold, self.known_margin = weight, open_threshold, known_margin
+        self.refuse_early = bool(refuse_early)
         # the posterior that sorts into a class when it differs from ``confidence`` (the scene model
         # asks more of an untouched class, whose mean the generator synthesised, than of a touched one)
         self._needed = np.array([float((class_confidence or {}).get(c, confidence)) for c in self.classes])
@@ -167,6 +172,17 @@ class Evidence:
             return max(self._outside.values()) > best_in + self.known_margin
         return False
 
+    def known_outsider(self) -> bool:
+        """Whether a class the job leaves out leads every known class at ``confidence`` and beats
+        the scene's best by ``known_margin`` (``refuse_early``; False when it is off)."""
+        if not (self.refuse_early and self._outside):
+            return False
+        best_out = max(self._outside.values())
+        if not best_out > float(np.max(self._inside)) + self.known_margin:
+            return False
+        every = np.concatenate([np.asarray(self._inside, np.float64), np.fromiter(self._outside.values(), np.float64)])
+        return math.exp(best_out - _logsumexp(every)) >= self.confidence
+
     def _decisive(self, post: np.ndarray, i: int) -> bool:
         """Whether the presses can pick a bin at all: at least ``min_presses`` of them, and a
         leading class ahead of every other (a tie - a two-fabric scene at confidence 0.5 - would
@@ -179,6 +195,8 @@ class Evidence:
         confident = self._decisive(post, i) and math.exp(float(post[i])) >= self._needed[i]
         if confident and not self.off_scene():
             return self._make(post, "confident")
+        if self.known_outsider():  # a fabric the job leaves out, surely: refused now (refuse_early)
+            return self._make(post, "off_scene")
         if final or self.presses >= self.max_presses:
             return self._make(post, "off_scene" if self.off_scene() else "press_limit")
         return None

@@ -150,7 +150,7 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     return m.confidence, {"weight": m.evidence_weight, "open_threshold": m.open_threshold,
                           "known_margin": m.known_margin,
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
-                          "item_model": m if m.item_rule == "offset" else None}
+                          "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early}
 
 
 def config_sets_confidence(cfg) -> bool:

@@ -106,6 +106,9 @@ class SceneModel:
     # the last classes: fabrics the run pressed that are no bundle class (its validation fabrics),
     # real means, known only to refuse their pieces (module doc); () for files written before them
     known_only: tuple[str, ...] = ()
+    # a piece that surely is a known fabric the job leaves out goes to the reject bin at that press,
+    # not at the press limit (runtime/evidence.py refuse_early); chosen on validation, off in older files
+    refuse_early: bool = False
 
     @property
     def dim(self) -> int:
@@ -245,7 +248,8 @@ class SceneModel:
                 "untouched_confidence": float(self.untouched_confidence), "item_rule": np.array(self.item_rule),
                 **{key: float(getattr(self, key)) for key in OFFSET_KEYS},
                 **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()},
-                **({"known_only": np.array(self.known_only)} if self.known_only else {})}
+                **({"known_only": np.array(self.known_only)} if self.known_only else {}),
+                **({"refuse_early": np.array(True)} if self.refuse_early else {})}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -291,8 +295,12 @@ class SceneModel:
                            or any(flags[len(classes) - len(known_only):]) or len(set(classes)) != len(classes)):
             raise SceneModelError(f"scene model known_only {list(known_only)} are not its last classes, touched "
                                   "kind, each once")
+        refuse_early = np.asarray(params.get("refuse_early", False)).reshape(())
+        if refuse_early.dtype != bool:
+            raise SceneModelError(f"scene model refuse_early is {refuse_early.dtype}, not a boolean")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
-                    temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only)
+                    temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only,
+                    refuse_early=bool(refuse_early))
         # a file written before the offset rule has none of its keys: the sum rule, as it was
         rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
         if rule not in ITEM_RULES:

@@ -48,3 +48,22 @@ def test_no_presses_or_a_tie_is_never_a_sort():
     assert d.label == "unknown" and d.stopped_by == "press_limit" and d.presses == 3
     d = Evidence(["a", "b"], 0.5, 3).add(S({"a": math.log(0.51), "b": math.log(0.49)}))
     assert d.label == "a" and d.stopped_by == "confident"  # a lead, however small, is still a lead
+
+
+def test_refuse_early_stops_at_the_press_that_makes_a_left_out_fabric_sure():
+    """A known fabric the job leaves out ("z") leads every class: with ``refuse_early`` the piece
+    goes to the reject bin at the first press where z holds the confidence over all classes;
+    without it the cell presses to the limit for the same reject bin. A z that only leads (below
+    the confidence) presses on either way."""
+    sure = S({"a": math.log(0.02), "b": math.log(0.01), "z": math.log(0.97)})
+    early = Evidence(["a", "b"], 0.9, 5, known_margin=0.0, refuse_early=True)
+    d = early.add(sure)
+    assert d is not None and d.label == "unknown" and d.stopped_by == "off_scene" and d.presses == 1
+    late = Evidence(["a", "b"], 0.9, 5, known_margin=0.0)
+    ds = [late.add(sure) for _ in range(5)]
+    assert ds[:4] == [None] * 4 and ds[4].label == "unknown" and ds[4].presses == 5
+    leads = S({"a": math.log(0.3), "b": math.log(0.1), "z": math.log(0.6)})
+    ev = Evidence(["a", "b"], 0.99, 5, known_margin=0.0, refuse_early=True, weight=0.1)
+    assert ev.add(leads) is None  # 0.6 share < 0.99: not sure yet
+    # off without the known-class rule: nothing to compare with
+    assert Evidence(["a", "b"], 0.9, 5, refuse_early=True).add(sure) is None

@@ -80,6 +80,12 @@ def test_offset_rule_parameters_round_trip_and_are_checked():
             SceneModel.from_params({**p, key: bad})
     with pytest.raises(SceneModelError, match="lack 'item_bias'"):
         SceneModel.from_params({k: v for k, v in p.items() if k != "item_bias"})
+    # refuse_early: written only when on (older files read as off), a boolean or refused
+    assert "refuse_early" not in p and not SceneModel.from_params(p).refuse_early
+    on = replace(m, refuse_early=True).to_params()
+    assert SceneModel.from_params(on).refuse_early
+    with pytest.raises(SceneModelError, match="refuse_early"):
+        SceneModel.from_params({**on, "refuse_early": np.array(0.5)})
 
 
 def test_the_evidence_runs_the_offset_rule_on_the_presses_projection():
@@ -114,9 +120,12 @@ def test_the_vectorised_search_decides_every_item_as_the_cells_evidence(rule):
     prepared = ns.Prepared.of(ns.draw_items(scenes, {f: model.project(x) for f, x in held.items()}, model.classes,
                                             seed=7), model)
     thresholds = np.quantile(prepared.d2.min(-1)[prepared.items.valid], [0.5, 1.0]).tolist() + [math.inf]
-    settings = [(conf, margin, thr) for conf in (0.6, 0.95) for margin in (0.0, 2.0, math.inf) for thr in thresholds]
-    for conf, margin, thr in settings:
-        common = dict(confidence=conf, untouched_confidence=0.8, known_margin=margin, open_threshold=thr)
+    settings = [(conf, margin, thr, early) for conf in (0.6, 0.95) for margin in (0.0, 2.0, math.inf)
+                for thr in thresholds for early in (False, True)]
+    refused_early = 0
+    for conf, margin, thr, early in settings:
+        common = dict(confidence=conf, untouched_confidence=0.8, known_margin=margin, open_threshold=thr,
+                      refuse_early=early)
         if rule == "sum":
             cand = replace(model, temperature=2.0, untouched_bias=0.5, evidence_weight=0.5, **common)
             fast = ns.sum_rule(prepared, temperature=2.0, untouched_bias=0.5, weight=0.5, **common)
@@ -126,9 +135,11 @@ def test_the_vectorised_search_decides_every_item_as_the_cells_evidence(rule):
                                   item_temperature=4.0, item_bias=0.5, **common)
         tables = {f: so.scene_model_presses(cand, x) for f, x in held.items()}  # the press posterior is cand's
         recs = so.simulate_scenes(scenes, tables, so.scene_evidence(cand), seed=7)
-        assert [r.outcome for r in recs] == fast[0].tolist(), (conf, margin, thr)
+        assert [r.outcome for r in recs] == fast[0].tolist(), (conf, margin, thr, early)
         assert [r.presses for r in recs] == fast[1].tolist()
         assert ns.summary(prepared, *fast)["all"] == pytest.approx(so.summarise(recs)["all"])
+        refused_early += early and sum(r.off_scene and r.presses < 5 for r in recs)
+    assert refused_early > 0  # the early refusal was exercised, not only its absence
 
 
 def test_the_decision_search_keeps_the_better_item_rule_on_validation_fabrics():

@@ -9,7 +9,9 @@ Per split (``fit_scene_decision``):
 2. for each subspace size ``k``: temperature and untouched bias by the class-balanced negative log
    likelihood of the touched fabrics' validation presses and the validation fabrics' presses
    (temperature scaling with a calibrated-stacking bias); the ``k`` with the lowest one is kept;
-3. the item rule - evidence weight, known-class margin and the confidence that sorts - by
+3. the item rule - evidence weight, known-class margin, whether a piece surely of a known fabric
+   the job leaves out is refused at once (``refuse_early``, runtime/evidence.py) and the confidence
+   that sorts - by
    simulating scenes of validation fabrics (``runtime.sorting.simulate_scenes``: the cell's own
    ``Evidence`` on held-out presses): the most pieces in the right bin among the settings whose
    mis-sort rate meets ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set
@@ -89,7 +91,7 @@ def _offset_candidate(vm: SceneModel, rows: dict[str, np.ndarray], scenes, own_d
     prepared = ns.Prepared.of(ns.draw_items(scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=seed), vm)
     thresholds = {q: float(np.quantile(own_d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
     base = {"press_var_scale": 1.0, "touched_scale": 1.0, "item_bias": 0.0, "known_margin": 0.0, "open_quantile": 1.0,
-            "confidence": 0.9, "untouched_confidence": 0.9}
+            "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
     setting, _ = ns.search_offset_rule(prepared, ns.offset_estimates(vm, projections), base, thresholds, CONFIDENCES,
                                        lambda summary: _score(summary, target))
     cand = replace(vm, item_rule="offset", **setting)
@@ -141,9 +143,10 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     # The item rule by coordinate search (each knob over its values with the others held, three
     # rounds): a full grid of the six knobs would cost thousands of simulated scene sets.
     grid = {"untouched_bias": sorted({0.0, b / 2, b}), "open_quantile": OPEN_QUANTILES, "evidence_weight": WEIGHTS,
-            "known_margin": MARGINS, "confidence": CONFIDENCES, "untouched_confidence": CONFIDENCES}
+            "known_margin": MARGINS, "confidence": CONFIDENCES, "untouched_confidence": CONFIDENCES,
+            "refuse_early": (True, False)}  # True first: fewer presses where validation cannot tell them apart
     point = {"untouched_bias": b, "open_quantile": 1.0, "evidence_weight": 0.5, "known_margin": 2.0,
-             "confidence": 0.9, "untouched_confidence": 0.9}
+             "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
     tables_by_bias: dict[float, dict] = {}
     tried: dict[tuple, tuple] = {}
 
@@ -156,7 +159,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
             q = p["open_quantile"]
             cand = replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
                            known_margin=p["known_margin"], confidence=p["confidence"],
-                           untouched_confidence=p["untouched_confidence"],
+                           untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
                            open_threshold=float(np.quantile(own_d2, q)) if q < 1 else math.inf)
             s = so.summarise(so.simulate_scenes(scenes, tables_by_bias[bias], evidence_for(cand), seed=seed))
             tried[key] = (_score(s, target_mis_sort), cand, s)
@@ -185,7 +188,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     report = {"chosen": {"k": chosen.k, "temperature": chosen.temperature, "untouched_bias": chosen.untouched_bias,
                          "item_rule": chosen.item_rule, **rule, "known_margin": chosen.known_margin,
                          "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
-                         "open_threshold": chosen.open_threshold},
+                         "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
               "target_mis_sort": target_mis_sort,
               "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
@@ -194,7 +197,8 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                              for name, r in by_rule.items()},
               "tried": tried_rows}
     log(f"scene decision chosen on validation: k={chosen.k}, item rule {chosen.item_rule}, "
-        f"margin {chosen.known_margin:g}, confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
+        f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "
+        f"confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
         f"right {val_summary['all']['right']:.1%}, mis-sort {val_summary['all']['mis-sort']:.1%}, "
         f"reject {val_summary['all']['reject']:.1%} (sum rule {summary_sum['all']['right']:.1%} / "
         f"{summary_sum['all']['mis-sort']:.1%}, offset rule {summary_off['all']['right']:.1%} / "

@@ -7,7 +7,9 @@ the same items as ``runtime.sorting.simulate_scenes`` draws (same seed, same pre
 as ``Evidence`` decides them - per press step: the scene posterior, the confidence its leader needs,
 the off-scene rules (mean over presses of the smallest squared distance to a scene class against
 ``open_threshold``; the best class outside the scene against the best inside plus
-``known_margin``); the first step that is confident and not off-scene sorts, else the reject bin.
+``known_margin``); the first step that is confident and not off-scene sorts, and with
+``refuse_early`` the first step where a known class the job leaves out leads every class at the
+confidence refuses; else the reject bin at the last press.
 tests/test_item_search.py holds the two equal, outcome for outcome, for both item rules.
 
 Two item rules (runtime/scene_model.py): ``sum`` (per-press log posteriors restricted to the
@@ -104,7 +106,7 @@ class Prepared:
 
 
 def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: float, untouched_confidence: float,
-           known_margin: float, open_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+           known_margin: float, open_threshold: float, refuse_early: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(outcome per item - "right" / "mis-sort" / "reject" -, presses per item), as ``Evidence``
     decides: ``scores`` (N, M, C) the item's class scores after each press (their softmax over the
     scene is the posterior), ``known`` (N, M, C) what the known-class rule compares."""
@@ -117,18 +119,23 @@ def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: fl
     decisive = np.sum(post == top, axis=-1) == 1  # a tie never sorts
     needed = np.where(p.is_u > 0, untouched_confidence, confidence)[lead]
     off = np.zeros(lead.shape, bool)
+    early = np.zeros(lead.shape, bool)
     if math.isfinite(known_margin):
         inside = np.where(scene, known, -np.inf).max(-1)
         outside = np.where(scene, -np.inf, known).max(-1)
         off |= outside > inside + known_margin
+        if refuse_early:  # Evidence.known_outsider: the leader over every class is outside, at the confidence
+            early = off & (np.exp(outside - _lse(known)) >= confidence) & np.isfinite(outside)
     if math.isfinite(open_threshold):
         off |= p.open_stat > open_threshold
     go = (np.exp(top[..., 0]) >= needed) & decisive & ~off & items.valid
-    sorted_ = go.any(axis=1)
-    first = np.argmax(go, axis=1)
+    stop = (go | early) & items.valid
+    stopped = stop.any(axis=1)
+    first = np.argmax(stop, axis=1)
     rows = np.arange(len(first))
+    sorted_ = stopped & go[rows, first]
     label = np.where(sorted_, lead[rows, first], -1)
-    presses = np.where(sorted_, first + 1, items.n)
+    presses = np.where(stopped, first + 1, items.n)
     in_scene = items.in_scene
     outcome = np.where(in_scene, np.where(label < 0, so.REJECT, np.where(label == items.truth, so.RIGHT, so.MIS_SORT)),
                        np.where(label < 0, so.RIGHT, so.MIS_SORT))
@@ -178,6 +185,7 @@ OFFSET_GRID = {
     "untouched_scale": MULTIPLIERS,
     "item_bias": (-4.0, -2.0, -1.0, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
     "known_margin": (0.0, 2.0, 8.0, math.inf),
+    "refuse_early": (True, False),  # True first: fewer presses where validation cannot tell them apart
 }
 # the coordinate search is local: it starts from each of these (item temperature x untouched scale)
 OFFSET_STARTS = tuple((t, u) for t in (8.0, 32.0, 128.0) for u in (0.125, 0.5, 2.0))
@@ -220,7 +228,8 @@ def search_offset_rule(prepared: Prepared, estimates: dict[str, float], base: di
                 "offset_var_untouched": estimates["offset_var_untouched"] * q["untouched_scale"],
                 "item_temperature": q["item_temperature"], "item_bias": q["item_bias"],
                 "known_margin": q["known_margin"], "open_threshold": open_thresholds[q["open_quantile"]],
-                "confidence": q["confidence"], "untouched_confidence": q["untouched_confidence"]}
+                "confidence": q["confidence"], "untouched_confidence": q["untouched_confidence"],
+                "refuse_early": q["refuse_early"]}
 
     def trial(q: dict) -> tuple:
         key = tuple(sorted(q.items()))

@@ -281,7 +281,8 @@ def scene_lines(splits: list[dict]) -> list[str]:
             *label_lines(sd),
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
-                f"margin {c['known_margin']:g}, confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
+                f"margin {c['known_margin']:g}{', refuse early' if c.get('refuse_early') else ''}, "
+                f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
 
