@@ -219,7 +219,9 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
     fab = load_dataset(world).by_id(art.untouched[0])
     model.set_reference(fab.load_reference())
     s = model.score_press(fab.load_press(0))
-    assert set(s.log_posterior) == set(model.classes) and np.isfinite(s.novelty)
+    # the scene model also knows the run's validation fabrics, only to refuse them
+    assert model.scene_model.known_only == tuple(art.validation)
+    assert set(s.log_posterior) == set(model.classes) | set(art.validation) and np.isfinite(s.novelty)
     assert all(np.isfinite(v) for v in s.log_posterior.values())
     # the run as if trained with --camera-jpeg 90: its descriptors are read through that JPEG at
     # export too (the gating is fitted on them), and the manifest says so

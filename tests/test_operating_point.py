@@ -55,11 +55,12 @@ def test_the_override_keeps_its_history_and_a_bad_file_is_named(tmp_path):
 
 def test_the_scene_models_item_rule_unless_the_config_writes_a_confidence(tmp_path):
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
-                            known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum")
+                            known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
     model = SimpleNamespace(scene_model=scene)
     confidence, opts = op.evidence_settings(_cfg(tmp_path), model)
     assert confidence == 0.97 and opts == {"weight": 0.25, "open_threshold": 40.0, "known_margin": 0.0,
-                                           "class_confidence": {"wool": 0.9}, "item_model": None}
+                                           "class_confidence": {"wool": 0.9}, "item_model": None,
+                                           "refuse_early": True}
     offset = SimpleNamespace(**{**vars(scene), "item_rule": "offset"})
     assert op.evidence_settings(_cfg(tmp_path), SimpleNamespace(scene_model=offset))[1]["item_model"] is offset
     confidence, opts = op.evidence_settings(_cfg(tmp_path, "evidence: {confidence: 0.8}\n"), model)
@@ -76,7 +77,7 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     from vs2t_edge.runtime.wiring import evidence_factory_for
 
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
-                            known_margin=1.5, untouched=frozenset({"wool"}), item_rule="sum")
+                            known_margin=1.5, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
     (tmp_path / "c.yaml").write_text(CFG.replace("{name: denim, kind: touched, bin: 1}",
                                                  "{name: denim, kind: touched, bin: 1}, {name: wool, kind: untouched, "
                                                  "bin: 2}"))
@@ -86,7 +87,7 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     for ev in (cell, jobs):
         assert (ev.confidence, ev.weight, ev.open_threshold, ev.known_margin) == (0.97, 0.25, 40.0, 1.5)
         assert dict(zip(ev.classes, ev._needed.tolist())) == {"denim": 0.97, "wool": 0.9}
-        assert ev.item_model is None
+        assert ev.item_model is None and ev.refuse_early
 
 
 # --- an override file and the bundle it was calibrated for -------------------------------------
