@@ -229,8 +229,20 @@ def with_known(model: SceneModel, x: np.ndarray, y: np.ndarray, names: list[str]
         later[name] = x[rows[np.concatenate([p_va, p_te])]]
     if not names:
         return model, later
-    return replace(model, classes=tuple(model.classes) + tuple(names), means=np.concatenate([model.means, np.stack(means)]),
+    return replace(model, classes=tuple(model.classes) + tuple(names),
+                   means=np.concatenate([model.means, np.stack(means)]),
                    known_only=tuple(model.known_only) + tuple(names)), later
+
+
+def _test_rows(touched: list[str], touched_test: tuple[np.ndarray, np.ndarray], untouched: list[str],
+               untouched_presses: tuple[np.ndarray, np.ndarray], extra: dict[str, np.ndarray] | None) -> dict:
+    """fabric -> presses of the test jobs: touched fabrics' test presses, untouched fabrics' presses,
+    and ``extra`` (off-scene pools)."""
+    (xt, yt), (xu, yu) = touched_test, untouched_presses
+    rows = {touched[c]: xt[yt == c] for c in range(len(touched))}
+    rows.update({untouched[c]: xu[yu == c] for c in range(len(untouched))})
+    rows.update(extra or {})
+    return rows
 
 
 def stranger_jobs(models: dict[str, SceneModel], touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
@@ -239,11 +251,7 @@ def stranger_jobs(models: dict[str, SceneModel], touched: list[str], touched_tes
     """The test jobs of ``evaluate_scenes`` with ``strangers`` (fabric -> presses) in the pool of
     off-scene pieces, decided by each of ``models`` on the same jobs and presses: name -> summary
     (runtime.sorting.summarise)."""
-    xt, yt = touched_test
-    xu, yu = untouched_presses
-    rows = {touched[c]: xt[yt == c] for c in range(len(touched))}
-    rows.update({untouched[c]: xu[yu == c] for c in range(len(untouched))})
-    rows.update(strangers)
+    rows = _test_rows(touched, touched_test, untouched, untouched_presses, strangers)
     scenes = so.draw_scenes(touched, untouched, tuple(strangers), n_scenes, n_untouched=min(3, len(untouched)),
                             seed=seed + 3)
     return {name: so.summarise(so.simulate_scenes(scenes, press_tables(m, rows), evidence_for(m), seed=seed + 3))
@@ -258,10 +266,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     curve and the per-press and per-item calibration error."""
     xt, yt = touched_test
     xu, yu = untouched_presses
-    rows = {touched[c]: xt[yt == c] for c in range(len(touched))}
-    rows.update({untouched[c]: xu[yu == c] for c in range(len(untouched))})
-    rows.update(off_pool or {})
-    tables = press_tables(model, rows)
+    tables = press_tables(model, _test_rows(touched, touched_test, untouched, untouched_presses, off_pool))
     n_u = min(3, len(untouched))
     scenes = so.draw_scenes(touched, untouched, tuple(off_pool or ()), n_scenes, n_untouched=n_u, seed=seed + 1)
     recs = so.simulate_scenes(scenes, tables, evidence_for(model), seed=seed + 1, items_per_fabric=items_per_fabric)
