@@ -45,6 +45,9 @@ class FabricCheck:
     confidence: float
     rival: str  # the bundle class nearest the picture after the fabric itself (the model's per-press posterior)
     rival_in_job: bool
+    # the rival is a fabric the model knows only to refuse (a validation fabric of its training run,
+    # runtime/scene_model.py known_only): no job can list it, so leaving it out changes nothing
+    rival_refuse_only: bool = False
 
     @property
     def sorts(self) -> bool:
@@ -55,8 +58,11 @@ class FabricCheck:
         if self.sorts:
             return f"{self.fabric} ({self.kind}): its own picture goes to {where} (confidence {self.confidence:.2f})"
         why = STOPPED.get(self.stopped_by, self.stopped_by)
-        rival = f"{self.rival}, " + ("in this job" if self.rival_in_job else "a fabric the cell knows that this job leaves out")
+        rival = f"{self.rival}, " + ("in this job" if self.rival_in_job else
+                                     "a fabric the cell knows only to refuse, pressed in training and in no classifier"
+                                     if self.rival_refuse_only else "a fabric the cell knows that this job leaves out")
         advice = "start the job with a teach piece of it" if self.kind == "untouched" else \
+            "no job can list that rival, so leaving it out changes nothing" if self.rival_refuse_only else \
             "leave its rival out of the job, or teach the rival if it is untouched"
         return (f"{self.fabric} ({self.kind}): even its own picture goes to {where} ({why}; nearest {rival}): "
                 f"expect its pieces there - {advice}")
@@ -90,7 +96,8 @@ def check_job(model: Any, scene: Sequence[str], make_evidence: Callable[[], Any]
         lp = presses[0].log_posterior
         rival = max((c for c in model.classes if c != fabric), key=lambda c: lp[c], default="")
         out.append(FabricCheck(fabric, "untouched" if fabric in model.untouched else "touched", decision.label,
-                               decision.stopped_by, float(decision.confidence), rival, rival in scene))
+                               decision.stopped_by, float(decision.confidence), rival, rival in scene,
+                               rival in getattr(model, "known_only", ())))
     return out
 
 

@@ -121,3 +121,23 @@ def test_the_per_press_protocol_stays_over_the_bundle_classes_and_the_report_pai
     line = stranger_lines(sd)[0]
     assert "mis-sorts -0.7 ± 0.5 points paired by split, fewer in 2, more in 0" in line
     assert stranger_lines([{"test": {}}]) == []
+
+
+def test_the_job_check_names_a_rival_the_bundle_knows_only_to_refuse():
+    """denim's own picture cannot sort (cloth, a twin, is in the job) and the class nearest it is
+    twill, a fabric the bundle knows only to refuse: the check says so, and that leaving twill out
+    of a job changes nothing (no job can list it)."""
+    from vs2t_edge.runtime import job_check as jc
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.operating_point import scene_model_rule
+
+    base = replace(model(), classes=CLASSES + ("cloth",), means=np.concatenate([MEANS, [[0.3, 0.0]]]))
+    m, _ = with_known(base, np.full((20, 2), [0.05, 0.0]), np.zeros(20, int), ["twill"])
+    scene = ["denim", "silk", "cloth"]
+    conf, opts = scene_model_rule(m)
+    checks = {c.fabric: c for c in jc.check_job(m, scene, lambda: Evidence(scene, conf, 5, **opts), 5)}
+    d = checks["denim"]
+    assert not d.sorts and d.rival == "twill" and d.rival_refuse_only and not d.rival_in_job
+    assert "nearest twill, a fabric the cell knows only to refuse, pressed in training and in no classifier" in d.describe()
+    assert d.describe().endswith("no job can list that rival, so leaving it out changes nothing")
+    assert checks["silk"].sorts and not checks["silk"].rival_refuse_only
