@@ -97,7 +97,7 @@ def check_job(model: Any, scene: Sequence[str], make_evidence: Callable[[], Any]
         rival = max((c for c in model.classes if c != fabric), key=lambda c: lp[c], default="")
         out.append(FabricCheck(fabric, "untouched" if fabric in model.untouched else "touched", decision.label,
                                decision.stopped_by, float(decision.confidence), rival, rival in scene,
-                               rival in getattr(model, "known_only", ())))
+                               rival in model.known_only))
     return out
 
 

@@ -283,7 +283,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     # protocol is over touched and untouched classes)
     x = np.concatenate([xt, xu])
     lab = np.concatenate([yt, len(touched) + yu])
-    pm = model.subset([c for c in model.classes if c not in model.known_only]) if model.known_only else model
+    pm = model.subset([c for c in model.classes if c not in model.known_only])
     d2 = pm.sq_distances(x)
     raw = so.log_softmax(-0.5 * d2)
     cal = so.log_softmax(pm.scores(d2))

@@ -125,7 +125,7 @@ def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: fl
         outside = np.where(scene, -np.inf, known).max(-1)
         off |= outside > inside + known_margin
         if refuse_early:  # Evidence.known_outsider: the leader over every class is outside, at the confidence
-            early = off & (np.exp(outside - _lse(known)) >= confidence) & np.isfinite(outside)
+            early = off & (np.exp(outside - _lse(known)) >= confidence)
     if math.isfinite(open_threshold):
         off |= p.open_stat > open_threshold
     go = (np.exp(top[..., 0]) >= needed) & decisive & ~off & items.valid
