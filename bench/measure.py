@@ -253,6 +253,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     if model.fused:
         out["overhead_ms"]["in_graph"] = in_graph[max(threads_list)]
     out["fused"] = bool(model.fused)
+    out["split"] = bool(getattr(model, "split", False))  # format 3: no heads, no router on the press path
     out["overhead_ms"]["decode_png"] = _pct(png, 50)
     # what the target is judged on: everything per press outside the trunk, decode included (the
     # median of (press - its trunk), measured end to end, not a sum of stage medians)

@@ -173,7 +173,9 @@ def render_markdown(result: dict) -> str:
               "*MJPEG decode* at 1/reduce scale for a bundle on the reduced pixel path (runtime/preprocess.py); "
               "*frame checks* = the camera's frame guard and the press-frame contact check a UVC cell runs. "
               "*heads* = the second onnxruntime call of a two-graph bundle (format 1); *in graph* = what the heads and "
-              "projections cost inside a fused bundle's one call (format 2): that tail cut out of the press graph and "
+              "projections cost inside a fused bundle's one call (format 2; format 3's press graph of a scene decision "
+              "has only the scene projection there, and no router stage: its heads run off the press path): that tail "
+              "cut out of the press graph and "
               "timed right after each run of the trunk cut out of it (median; one session call more than the cell "
               "pays), added to its *outside* values, whose trunk is that cut-out trunk. "
               "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",

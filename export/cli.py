@@ -72,6 +72,10 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--two-graphs", action="store_true",
                         help="write the format-1 bundle of earlier releases (trunk.onnx + heads.onnx, router and scene "
                              "projection in numpy) instead of the fused press graph (format 2); for comparisons")
+    parser.add_argument("--heads-in-press-graph", action="store_true",
+                        help="for a bundle with a scene model: keep the heads and the router in the press graph "
+                             "(format 2, as exported before 2026-11-27) instead of heads.onnx beside it (format 3, "
+                             "the cell's press graph ends at the scene projection); to price it (docs/bundle.md)")
     parser.add_argument("--heads-precision", choices=("fp32", "int8"), default="fp32",
                         help="CLS_t / CLS_u weights in the fused press graph: fp32 (default) or int8 (dynamic "
                              "quantisation, per channel; docs/bundle.md prices it)")
@@ -147,6 +151,9 @@ def run(args) -> int:
     if args.heads_precision == "int8" and args.two_graphs:
         print("export: --heads-precision int8 is for the fused press graph, not --two-graphs", file=sys.stderr)
         return 2
+    if args.heads_in_press_graph and args.two_graphs:
+        print("export: --heads-in-press-graph is for the fused press graph, not --two-graphs", file=sys.stderr)
+        return 2
     try:
         if args.random_trunk:
             if args.run or not args.dataset or not args.size:
@@ -162,7 +169,7 @@ def run(args) -> int:
                                                            else args.calibration_frames, 32),
                                     log=log, threads=args.threads,
                                     fuse=not args.two_graphs, heads_precision=args.heads_precision,
-                                    reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
+                                    heads_in_press_graph=args.heads_in_press_graph, reduce=_reduce(args.preprocess_reduce, args.dataset, args.size))
         else:
             if args.preprocess_reduce != "off":
                 print("export: --preprocess-reduce is for --random-trunk; a trained run's bundle takes the pixel "
@@ -181,7 +188,7 @@ def run(args) -> int:
                            router=args.router, threads=args.threads, fuse=not args.two_graphs,
                            float_nodes=float_nodes, float_auto=opt["int8_float_auto"], percentile=args.int8_percentile,
                            int8_keep_operating_point=opt["int8_keep_operating_point"],
-                           heads_precision=args.heads_precision)
+                           heads_precision=args.heads_precision, heads_in_press_graph=args.heads_in_press_graph)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 2
@@ -209,6 +216,9 @@ def run(args) -> int:
     if "fused_vs_two_graphs" in checks:
         fc = checks["fused_vs_two_graphs"]
         worst = max((v for k, v in fc.items() if isinstance(v, float) and not k.endswith("tolerance")), default=0.0)
-        print(f"  one press graph (format 2): {', '.join(m['graphs']['trunk']['outputs'])}; against the two-graph path "
+        heads = (f"; heads.onnx apart ({', '.join(m['graphs']['heads']['outputs'])}), off the press path"
+                 if m["format_version"] == 3 else "")
+        print(f"  one press graph (format {m['format_version']}): {', '.join(m['graphs']['trunk']['outputs'])}{heads}; "
+              f"against the two-graph path "
               f"max rel. diff {worst:.1e}" + (f", router projection {fc['router_form']}" if "router_form" in fc else ""))
     return 0

@@ -195,7 +195,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
                  fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None,
-                 heads_precision: str = "fp32", camera_jpeg: int = 0) -> dict:
+                 heads_precision: str = "fp32", camera_jpeg: int = 0, heads_in_press_graph: bool = False) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
@@ -206,7 +206,10 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     ``descriptor``: an ``export.descriptor.Descriptor``; the tactile feature is then that numpy
     descriptor, no trunk graph (``trunk`` None; calibration, validation, held-out: raw descriptors).
     ``fuse``: one press graph (format 2, export/fuse.py: heads and projections folded into
-    trunk.onnx); False writes the two-graph format 1 of earlier releases (comparisons, tests).
+    trunk.onnx; with ``scene_model``, format 3: the scene projection alone folded in, the heads and
+    the router's outputs in heads.onnx, off the cell's press path; ``heads_in_press_graph`` writes
+    format 2 for it, as before that split: to price it); False writes the two-graph format 1 of
+    earlier releases (comparisons, tests).
     ``int8_beta``: for an int8 trunk, maps the deployed graph's novelty of ``touched_heldout`` to
     (beta, what to add to ``operating_point``, what to add to ``provenance``) - the operating point
     set on the graph the cell will run, in the one write.
@@ -289,16 +292,23 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         sess_t, sess_h = rb.open_session(trunk_file, threads), rb.open_session(tmp / "heads.onnx", threads)
         fused: dict | None = None
         if fuse:
-            log("folding the heads and the router's / scene model's projections into the trunk graph")
+            split = scene_model is not None and not heads_in_press_graph
+            log("folding the scene model's projection into the trunk graph (the heads and the router's apart)"
+                if split else "folding the heads and the router's / scene model's projections into the trunk graph")
             fused = fuse_press_graph(trunk_file, tmp / "heads.onnx", cls_t, cls_u, router, scene_model, dim, opset,
-                                     calibration, threads, heads_int8=heads_precision == "int8")
+                                     calibration, threads, heads_int8=heads_precision == "int8", split=split)
             checks["fused_vs_two_graphs"] = fused["check"]
-            (tmp / "heads.onnx").unlink()
+            if "heads_outputs" in fused:  # format 3: heads.onnx now holds the heads and the router's outputs
+                sess_h = rb.open_session(tmp / "heads.onnx", threads)
+            else:
+                (tmp / "heads.onnx").unlink()
             sess_t = rb.open_session(trunk_file, threads)
 
         def score(x: np.ndarray):
             if fused is not None:
                 got = dict(zip(fused["outputs"], _run_batches(sess_t, x)))
+                if "heads_outputs" in fused:
+                    got.update(zip(fused["heads_outputs"], _run_batches(sess_h, got["feature"])))
                 f, lt, lu = got["feature"], got["logits_t"], got["logits_u"]
                 nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT), got.get(fz.NOVELTY_OUT))
                 return f, lt, lu, nov, {k: got[k] for k in (fz.ROUTER_OUT, fz.NOVELTY_OUT, fz.SCENE_OUT) if k in got}
@@ -337,15 +347,18 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         if scene_model is not None:
             np.savez(tmp / "decision.npz", **{k: np.asarray(v) for k, v in scene_model.items()})
 
+        split = fused is not None and "heads_outputs" in fused  # format 3
         graphs = {}
-        for key, path in (("trunk", trunk_file), *(() if fused else (("heads", tmp / "heads.onnx"),))):
+        for key, path in (("trunk", trunk_file), *(() if fused and not split else (("heads", tmp / "heads.onnx"),))):
             graphs[key] = {"file": path.name, "opset": rb.read_onnx_opsets(path)[""], **graph_io(path)}
         graphs["trunk"].update(arch=trunk_arch, precision=trunk_precision, input_size_px=s, macs_per_frame=macs)
         if quant:
             graphs["trunk"]["quantisation"] = quant
         if fused:
             graphs["trunk"]["fused"] = fused["manifest"]
-        else:
+        if split:
+            graphs["heads"].update(precision=heads_precision, fused=fused["heads_manifest"])
+        elif not fused:
             graphs["heads"]["precision"] = "fp32"
         tolerance = dict(PROBE_TOLERANCE[trunk_precision])
         if fused:  # the projections are linear in the feature, amplified like the novelty
@@ -355,7 +368,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         files = sorted(p.name for p in tmp.iterdir())
         manifest = {
             "format": rb.FORMAT,
-            "format_version": 2 if fused else 1,
+            "format_version": 3 if split else 2 if fused else 1,
             "classes": {"touched": touched, "untouched": untouched},
             "preprocess": preprocess.to_dict(),
             **camera_jpeg_entry(camera_jpeg),
@@ -388,7 +401,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
 
 def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,
                      scene_model: dict | None, dim: int, opset: int, frames: np.ndarray, threads: int,
-                     heads_int8: bool = False) -> dict:
+                     heads_int8: bool = False, split: bool = False) -> dict:
     """Replace ``trunk_file`` by the fused press graph (export/fuse.py) after checking it on
     ``frames`` against the two-graph path: feature and logits against trunk + heads sessions, the
     novelty against the router's own float64 novelty and scene_z against the scene model's float64
@@ -396,11 +409,18 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
     router projection that misses it is replaced by the full whitening; a full one that misses it
     refuses the export. ``heads_int8``: the heads' weights in int8 (``fuse.quantize_heads``); their
     logits are then held to the int8 probe tolerance (HEADS_INT8_TOLERANCE), the rest as before.
-    Returns {"outputs", "manifest", "check"}."""
+
+    ``split`` (format 3, a scene model needed): the press graph is the trunk and the scene projection only, and
+    ``heads_file`` is replaced by the heads with the router's outputs on the feature (fuse.py's
+    module doc); the same checks, the logits and novelty read from that graph on the press graph's
+    feature. Returns {"outputs", "manifest", "check"} and, for format 3, "heads_outputs" and
+    "heads_manifest"."""
     from vs2t_edge.runtime.scene_model import SceneModel
 
     scene = SceneModel.from_params(scene_model) if scene_model is not None else None
     scene_params = {"center": scene.center, "basis": scene.basis} if scene is not None else None
+    if split and scene is None:
+        raise ExportError("a press graph without the heads (format 3) is a scene model's: this bundle has none")
     (f_ref,) = _run_batches(rb.open_session(trunk_file, threads), frames)
     lt_ref, lu_ref = _run_batches(rb.open_session(heads_file, threads), f_ref)
     last: dict = {}
@@ -409,14 +429,21 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
         proj = fz.router_projection(router, force_full=force_full)
         with tempfile.TemporaryDirectory() as work_s:
             work = Path(work_s)
-            fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, scene_params, opset, rule)
+            # the heads (and the router's outputs): in the press graph's tail, or apart (format 3)
+            head_names = fz.export_tail(work / "tail.onnx", cls_t, cls_u, dim, proj, None if split else scene_params,
+                                        opset, rule)
             tail = work / "tail.onnx"
             if heads_int8:
                 fz.quantize_heads(tail, work / "tail_int8.onnx")
                 tail = work / "tail_int8.onnx"
+            if split:
+                heads_tail, tail = tail, work / "scene_tail.onnx"
+                fz.export_tail(tail, cls_t, cls_u, dim, None, scene_params, opset, heads=False)
             names = fz.merge_into_trunk(trunk_file, tail, work / "press.onnx")
             got = dict(zip(names, _run_batches(rb.open_session(work / "press.onnx", threads), frames)))
             f = got["feature"]
+            if split:
+                got.update(zip(head_names, _run_batches(rb.open_session(heads_tail, threads), f)))
             check = {"frames": int(len(frames)), "feature": _rel(f, f_ref), "logits_t": _rel(got["logits_t"], lt_ref),
                      "logits_u": _rel(got["logits_u"], lu_ref), "tolerance": PARITY_TOLERANCE}
             if proj is not None:
@@ -436,8 +463,13 @@ def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u
                 HEADS_INT8_TOLERANCE if heads_int8 and k in ("logits_t", "logits_u") else PARITY_TOLERANCE)}
             if not bad:
                 shutil.copyfile(work / "press.onnx", trunk_file)
-                return {"outputs": names, "manifest": fz.projection_manifest(proj, scene_params, dim, rule, heads_int8),
-                        "check": check}
+                if not split:
+                    return {"outputs": names, "check": check,
+                            "manifest": fz.projection_manifest(proj, scene_params, dim, rule, heads_int8)}
+                shutil.copyfile(heads_tail, heads_file)
+                return {"outputs": names, "check": check, "heads_outputs": head_names,
+                        "manifest": fz.projection_manifest(None, scene_params, dim, heads=False),
+                        "heads_manifest": fz.projection_manifest(proj, None, dim, rule, heads_int8)}
             last = bad
             if proj is None or proj["form"] == "whitened":
                 break

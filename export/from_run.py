@@ -176,7 +176,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
                threads: int = 2, fuse: bool = True, float_nodes: Sequence[str] = (), float_auto: int = 0,
                percentile: float | None = None, int8_keep_operating_point: bool = False,
-               heads_precision: str = "fp32") -> dict:
+               heads_precision: str = "fp32", heads_in_press_graph: bool = False) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
@@ -284,7 +284,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         quant_options=quant_options if trunk_precision == "int8" else None,
                         operating_point=operating_point, scene_model=art.scene_model if router is None else None,
                         fuse=fuse, int8_beta=int8_beta if keep_op else None, heads_precision=heads_precision,
-                        camera_jpeg=q)
+                        camera_jpeg=q, heads_in_press_graph=heads_in_press_graph)
 
 
 def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:
@@ -315,12 +315,13 @@ def _logit_score(cls_t: nn.Module, cls_u: nn.Module):
 def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: Path | str,
                         trunk_precision: str = "fp32", calibration_frames: int = 32, seed: int = 0,
                         log: Callable[[str], None] = lambda m: None, threads: int = 2, fuse: bool = True,
-                        reduce: int = 0, heads_precision: str = "fp32") -> dict:
+                        reduce: int = 0, heads_precision: str = "fp32", heads_in_press_graph: bool = False) -> dict:
     """A latency-only bundle: an UNTRAINED trunk (random init, or the offline ImageNet weights for
     efficientnet_lite0) with random heads over the dataset's fabrics and a Gaussian router on its
-    own features. Its accuracy means nothing (the manifest says trained: false); its latency,
-    memory and int8 behaviour on real-looking frames are those of the architecture. ``reduce``:
-    the pixel path (runtime/preprocess.py; 0 the float path)."""
+    own features, and a scene model of the trained runs' width (``latency_scene_model``), so that
+    its press path is a deployed bundle's. Its accuracy means nothing (the manifest says trained:
+    false); its latency, memory and int8 behaviour on real-looking frames are those of the
+    architecture. ``reduce``: the pixel path (runtime/preprocess.py; 0 the float path)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.models import Classifier
     from vs2t_edge.train.trunks import build_trunk
@@ -332,8 +333,10 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
     ids = ds.ids
     touched, untouched = ids[: max(1, len(ids) - 3)], ids[max(1, len(ids) - 3):]
     per = max(1, math.ceil(calibration_frames / len(touched)))
-    calib = np.concatenate([_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), per), spec) for fid in touched])
-    calib = calib[_spread(range(len(calib)), calibration_frames)]
+    parts = [_frames(ds, fid, _spread(range(len(ds.by_id(fid).presses)), per), spec) for fid in touched]
+    keep = _spread(range(sum(len(p) for p in parts)), calibration_frames)
+    calib = np.concatenate(parts)[keep]
+    labels = np.concatenate([np.full(len(p), c) for c, p in enumerate(parts)])[keep]
     with torch.no_grad():
         feats = torch.cat([trunk(torch.from_numpy(calib[i:i + 8])) for i in range(0, len(calib), 8)]).numpy()
     mean, std = feats.mean(0), feats.std(0) + 1e-6
@@ -352,12 +355,38 @@ def export_random_trunk(arch: str, out_dir: Path | str, *, size: int, dataset: P
     d = feats.shape[1]
     router = nv.fit_router("gaussian", (feats - mean) / std, keep_covariance=False)
     nov = router.novelty((feats - mean) / std)
+    scene = latency_scene_model((feats - mean) / std, labels, touched, untouched, seed)
     return write_bundle(out_dir, trunk=deploy, cls_t=Classifier(d, len(touched)), cls_u=Classifier(d, len(untouched)),
                         router=router, touched=touched, untouched=untouched, preprocess=spec,
                         beta=float(np.quantile(nov, 0.95)), calibration=calib, trunk_precision=trunk_precision,
-                        trunk_arch=arch, operating_point="none (untrained, latency only)",
+                        trunk_arch=arch, operating_point="none (untrained, latency only)", scene_model=scene,
                         provenance={"trained": False, "dataset": str(Path(dataset).resolve()), "seed": seed},
-                        log=log, threads=threads, fuse=fuse, heads_precision=heads_precision)
+                        log=log, threads=threads, fuse=fuse, heads_precision=heads_precision,
+                        heads_in_press_graph=heads_in_press_graph)
 
 
-__all__ = ["export_run", "export_random_trunk", "matched_beta", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]
+LATENCY_SCENE_K = 128  # the scene model's width in the paper profile's runs (train/decision.py)
+
+
+def latency_scene_model(features: np.ndarray, labels: np.ndarray, touched: Sequence[str], untouched: Sequence[str],
+                        seed: int = 0) -> dict:
+    """A latency-only bundle's scene model (``SceneModel.to_params()``): ``LATENCY_SCENE_K`` random
+    orthonormal directions (an untrained trunk's few calibration presses span fewer), the touched
+    classes at their presses' mean there, the untouched ones at random points of the same spread.
+    Its decisions mean nothing; its shapes, and so the press's cost, are a trained bundle's."""
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    rng = np.random.default_rng(seed)
+    x = np.asarray(features, np.float64)
+    k = min(LATENCY_SCENE_K, x.shape[1])
+    basis = np.linalg.qr(rng.standard_normal((x.shape[1], k)))[0]
+    center = x.mean(axis=0)
+    z = (x - center) @ basis
+    means_t = np.stack([z[labels == c].mean(axis=0) if np.any(labels == c) else z.mean(axis=0)
+                        for c in range(len(touched))])
+    means_u = rng.standard_normal((len(untouched), k)) * z.std(axis=0)
+    return SceneModel(tuple(touched) + tuple(untouched), frozenset(untouched), center, basis,
+                      np.concatenate([means_t, means_u]), info={"k": k, "latency_only": True}).to_params()
+
+
+__all__ = ["export_run", "export_random_trunk", "latency_scene_model", "matched_beta", "press_partition", "grid_presses", "refit_router", "check_zero_shot"]

@@ -1,5 +1,6 @@
 """One onnxruntime call per press: the heads and the per-press projections folded into the trunk
-graph at export (docs/bundle.md "The fused press graph", format_version 2).
+graph at export (docs/bundle.md "The fused press graph", format_version 2), or, for a bundle that
+decides with a scene model, only the scene projection (format_version 3, ``heads=False`` below).
 
 A two-graph bundle (format 1) pays per press a second ``session.run`` for the heads, the Gaussian
 router's D x D whitening matvec in numpy (2048 x 2048 for ResNet50: 16 MB read per press) and the
@@ -31,6 +32,16 @@ scene model's D x k projection in numpy. Here they become one graph, written by 
 
 The heads and projections stay float32 behind an int8 trunk; ``quantize_heads`` (export
 ``--heads-precision int8``) puts the heads' weights in int8, the projections stay float32.
+
+Format 3: a bundle with a scene model decides every piece from ``scene_z`` alone; the logits and
+the router's novelty are never read on the cell's press path. onnxruntime runs every node of a
+graph whatever outputs are fetched (measured: fetching only ``feature`` and ``scene_z`` from the
+format-2 graph cost the same as fetching all), so there the press graph is only
+
+    image -> trunk -> feature --+-> scene_z
+
+and the heads with the router's outputs go to ``heads.onnx`` (input ``feature``), which the probe,
+the bench's accuracy and calibration run on the feature when they need the logits.
 """
 
 from __future__ import annotations
@@ -94,11 +105,15 @@ def logit_router_rule(router: nv.Router) -> dict[str, Any] | None:
 
 
 class _Tail(nn.Module):
-    """feature -> logits_t, logits_u [, router_z] [, router_novelty] [, scene_z] (module doc), float32."""
+    """feature -> logits_t, logits_u [, router_z] [, router_novelty] [, scene_z] (module doc), float32;
+    ``heads`` False: feature -> scene_z alone (format 3's press tail)."""
 
     def __init__(self, cls_t: nn.Module, cls_u: nn.Module, router: dict | None, scene: dict | None,
-                 novelty: dict | None = None) -> None:
+                 novelty: dict | None = None, heads: bool = True) -> None:
         super().__init__()
+        if not heads and (router or novelty or not scene):
+            raise FuseError("a tail without the heads carries the scene projection alone")
+        self.heads = heads
         self.cls_t, self.cls_u = cls_t, cls_u
         self.novelty_rule = dict(novelty) if novelty else None
         self.router_form = router["form"] if router else None
@@ -118,7 +133,7 @@ class _Tail(nn.Module):
             self.register_buffer("s_basis", f32(scene["basis"]))
 
     def forward(self, f):
-        outs = [self.cls_t(f), self.cls_u(f)]
+        outs = [self.cls_t(f), self.cls_u(f)] if self.heads else []
         if self.router_form is not None:
             c = f - self.r_mean
             if self.router_form == "whitened":
@@ -146,19 +161,21 @@ class _Tail(nn.Module):
         return torch.amax(lu, dim=1, keepdim=True) - torch.amax(lt, dim=1, keepdim=True)
 
 
-def tail_outputs(router: dict | None, scene: dict | None, novelty: dict | None = None) -> list[str]:
-    return [*HEAD_OUTS, *([ROUTER_OUT] if router else []), *([NOVELTY_OUT] if novelty else []),
+def tail_outputs(router: dict | None, scene: dict | None, novelty: dict | None = None,
+                 heads: bool = True) -> list[str]:
+    return [*(HEAD_OUTS if heads else ()), *([ROUTER_OUT] if router else []), *([NOVELTY_OUT] if novelty else []),
             *([SCENE_OUT] if scene else [])]
 
 
 def export_tail(path: Path, cls_t: nn.Module, cls_u: nn.Module, dim: int, router: dict | None,
-                scene: dict | None, opset: int, novelty: dict | None = None) -> list[str]:
+                scene: dict | None, opset: int, novelty: dict | None = None, heads: bool = True) -> list[str]:
     """Write the tail graph (input ``feature``); returns its output names. ``novelty``:
-    ``logit_router_rule`` of a router on the logits, folded in as ``router_novelty``."""
+    ``logit_router_rule`` of a router on the logits, folded in as ``router_novelty``. ``heads``
+    False: the scene projection alone (format 3's press tail; ``router`` and ``novelty`` None)."""
     from vs2t_edge.export.export import export_onnx
 
-    names = tail_outputs(router, scene, novelty)
-    export_onnx(_Tail(cls_t.eval(), cls_u.eval(), router, scene, novelty).eval(), torch.zeros(1, dim), path,
+    names = tail_outputs(router, scene, novelty, heads)
+    export_onnx(_Tail(cls_t.eval(), cls_u.eval(), router, scene, novelty, heads).eval(), torch.zeros(1, dim), path,
                 "feature", names, opset)
     return names
 
@@ -229,10 +246,13 @@ HEADS_INT8 = "CLS_t -> logits_t, CLS_u -> logits_u, int8 weights per channel, ac
 
 
 def projection_manifest(router: dict | None, scene: dict | None, dim: int, novelty: dict | None = None,
-                        heads_int8: bool = False) -> dict:
-    """What ``graphs.trunk.fused`` (or a descriptor bundle's ``graphs.heads.fused``) says the extra
-    outputs are (docs/bundle.md)."""
-    out: dict[str, Any] = {"heads": HEADS_INT8 if heads_int8 else "CLS_t -> logits_t, CLS_u -> logits_u, float32"}
+                        heads_int8: bool = False, heads: bool = True) -> dict:
+    """What ``graphs.trunk.fused`` (or a descriptor bundle's or a format-3 bundle's
+    ``graphs.heads.fused``) says the extra outputs are (docs/bundle.md); ``heads`` False: a graph
+    without the heads (format 3's press graph)."""
+    out: dict[str, Any] = {}
+    if heads:
+        out["heads"] = HEADS_INT8 if heads_int8 else "CLS_t -> logits_t, CLS_u -> logits_u, float32"
     if novelty:
         out[NOVELTY_OUT] = {**novelty, "rule": "the router's novelty on the graph's logits, float32 (runtime/novelty.py)"}
     if router:

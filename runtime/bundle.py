@@ -43,7 +43,8 @@ from vs2t_edge.runtime.preprocess import TactilePreprocess
 
 FORMAT = "vs2t-bundle"
 FORMAT_VERSION = 2  # what the exporter writes: a trunk bundle is one fused press graph (docs/bundle.md)
-READ_VERSIONS = (1, 2)  # 1: trunk.onnx + heads.onnx, router and scene projection in numpy; still loaded
+SPLIT_VERSION = 3  # ... and for a bundle with a scene model: the press graph ends at scene_z, heads.onnx apart
+READ_VERSIONS = (1, 2, 3)  # 1: trunk.onnx + heads.onnx, router and scene projection in numpy; still loaded
 # Opsets this runtime accepts for the default ONNX domain (ai.onnx).
 # MIN_OPSET: the oldest any exporter of this project wrote (17, before the move to 20; those
 # bundles still load). MAX_OPSET: the newest opset the INSTALLED onnxruntime implements. ONNX
@@ -199,16 +200,24 @@ def is_descriptor(manifest: dict) -> bool:
 
 
 def is_fused(manifest: dict) -> bool:
-    """A format-2 trunk bundle: trunk.onnx is the whole press graph (heads and projections in it)."""
-    return manifest.get("format_version") == 2 and not is_descriptor(manifest)
+    """A format-2 or -3 trunk bundle: trunk.onnx is the press graph (format 2: the heads and every
+    projection in it; format 3: ``is_split``)."""
+    return manifest.get("format_version") in (FORMAT_VERSION, SPLIT_VERSION) and not is_descriptor(manifest)
+
+
+def is_split(manifest: dict) -> bool:
+    """A format-3 trunk bundle: trunk.onnx is the press graph of a scene decision (feature,
+    scene_z) and heads.onnx the heads with the router's outputs on the feature, which the cell's
+    press path never runs (export/fuse.py)."""
+    return manifest.get("format_version") == SPLIT_VERSION and not is_descriptor(manifest)
 
 
 def graph_keys(manifest: dict) -> tuple[str, ...]:
-    """The ONNX graphs a bundle holds: trunk and heads, the fused trunk alone (format 2), or the
-    heads alone behind a descriptor."""
+    """The ONNX graphs a bundle holds: trunk and heads (formats 1 and 3), the fused trunk alone
+    (format 2), or the heads alone behind a descriptor."""
     if is_descriptor(manifest):
         return ("heads",)
-    return ("trunk",) if is_fused(manifest) else GRAPH_KEYS
+    return ("trunk",) if is_fused(manifest) and not is_split(manifest) else GRAPH_KEYS
 
 
 def _used_files(manifest: dict) -> dict[str, Any]:
@@ -355,8 +364,9 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     if x.shape != want or x.dtype != np.float32:
         raise BundleError(root, f"{probe_in.name}: {x.dtype} {x.shape}, expected float32 {want}")
     fused = is_fused(manifest)
-    extra = [k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT)
-             if fused and k in (_get(manifest, "graphs", "trunk", "outputs") or {})]
+    outputs = {**(_get(manifest, "graphs", "trunk", "outputs") or {}),
+               **((_get(manifest, "graphs", "heads", "outputs") or {}) if is_split(manifest) else {})}
+    extra = [k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT) if fused and k in outputs]
     for k in ("feature", "logits_t", "logits_u", "novelty", *extra):
         if k not in expected:
             raise BundleError(root, f"{probe_exp.name} lacks '{k}'")
@@ -474,8 +484,8 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"the manifest says {shape}")
     # and the manifest agrees with the rest of the bundle
     s = bundle.preprocess.size
-    if key == "trunk" and is_fused(bundle.manifest):
-        _check_press_outputs(bundle, g)
+    if is_fused(bundle.manifest) and (key == "trunk" or is_split(bundle.manifest)):
+        _check_press_outputs(bundle, key, g)
     if key == "trunk":
         if len(g["inputs"]) != 1 or (len(g["outputs"]) != 1 and not is_fused(bundle.manifest)):
             raise BundleError(bundle.root, f"{g['file']}: inputs {sorted(g['inputs'])}, outputs {sorted(g['outputs'])}: "
@@ -496,25 +506,34 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
                                                f"{n} class names in the manifest")
 
 
-def _check_press_outputs(bundle: Bundle, g: dict) -> None:
+def _check_press_outputs(bundle: Bundle, key: str, g: dict) -> None:
     """A fused press graph (format 2) outputs exactly what this bundle's router and scene model read:
     feature and logits, a Gaussian router's router_z (the manifest's width), a scene model's scene_z;
     and may output a router on the logits' novelty (router_novelty, N x 1; bundles exported before
-    it was folded in leave it to numpy)."""
+    it was folded in leave it to numpy). Format 3 (``is_split``) shares them out: trunk.onnx gives
+    feature and scene_z (it needs a scene model), heads.onnx the rest (``key``: which graph)."""
     from vs2t_edge.runtime.novelty import GaussianRouter
 
     d = bundle.feature_dim
+    split = is_split(bundle.manifest)
+    if split and bundle.scene_model is None:
+        raise BundleError(bundle.root, f"format version {SPLIT_VERSION} is a scene decision's press graph, and "
+                                       "this bundle has no scene model (manifest.json 'decision')")
     want = {"feature": d, "logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
     if isinstance(bundle.router, GaussianRouter):
-        width = _get(bundle.manifest, "graphs", "trunk", "fused", ROUTER_OUT, "width")
+        where = "heads" if split else "trunk"  # the graph that outputs router_z
+        width = _get(bundle.manifest, "graphs", where, "fused", ROUTER_OUT, "width")
         if isinstance(width, bool) or not isinstance(width, int) or not d <= width <= 2 * d:
-            raise BundleError(bundle.root, f"manifest.json 'graphs.trunk.fused.{ROUTER_OUT}.width' = {_short(width)}: "
+            raise BundleError(bundle.root, f"manifest.json 'graphs.{where}.fused.{ROUTER_OUT}.width' = {_short(width)}: "
                                            f"the Gaussian router's projection is {d}..{2 * d} wide")
         want[ROUTER_OUT] = width
     if bundle.scene_model is not None:
         want[SCENE_OUT] = bundle.scene_model.k
     if NOVELTY_OUT in g["outputs"] and bundle.router.name in LOGIT_ROUTERS:
         want[NOVELTY_OUT] = 1
+    if split:  # the press graph ends at the scene projection; the heads' graph takes the feature
+        press = ("feature", SCENE_OUT)
+        want = {k: v for k, v in want.items() if (k in press) == (key == "trunk")}
     if set(g["outputs"]) != set(want):
         raise BundleError(bundle.root, f"{g['file']}: outputs {sorted(g['outputs'])}, this bundle's router "
                                        f"'{bundle.router.name}'{' and scene model' if bundle.scene_model else ''} "

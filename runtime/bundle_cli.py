@@ -41,7 +41,9 @@ def run(args) -> int:
         trunk = m["graphs"]["trunk"]
         print(f"  trunk {trunk.get('arch', '?')} {trunk.get('precision', '?')} at {model.preprocess_spec.size} px, "
               f"opset {trunk['opset']}, feature {m['feature_dim']}-d")
-        print(f"  format {m['format_version']}: " + (f"one press graph per press ({', '.join(trunk['outputs'])})"
+        heads = (f"; the heads apart, off the press path ({', '.join(m['graphs']['heads']['outputs'])})"
+                 if model.split else "")
+        print(f"  format {m['format_version']}: " + (f"one press graph per press ({', '.join(trunk['outputs'])}){heads}"
                                                      if model.fused else "two graphs (trunk.onnx, heads.onnx)"))
     print(f"  classes: {len(model.touched)} touched, {len(model.untouched)} untouched; router {m['router']['name']}, "
           f"beta {model.beta:.6g}, gating T {model.temperature:.6g}")

@@ -216,8 +216,7 @@ def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None
         model.set_reference(camera_frame(fab.load_reference(), q, scale, f"{fab.id} reference frame"), **by)
         for k in range(len(fab.presses)):
             try:
-                group.append(float(model.score_press(camera_frame(fab.load_press(k), q, scale, f"{fab.id} press {k}"),
-                                                     **by).novelty))
+                group.append(model.press_novelty(camera_frame(fab.load_press(k), q, scale, f"{fab.id} press {k}"), **by))
             except FrameError:
                 continue  # a bad frame says nothing about beta
         if progress:
@@ -235,7 +234,7 @@ def novelty_from_replays(model, files: list[Path]) -> list[float]:
             model.set_reference(ref, **reduced)
             for frame in frames:
                 try:
-                    out.append(float(model.score_press(frame, **reduced).novelty))
+                    out.append(model.press_novelty(frame, **reduced))
                 except FrameError:
                     continue
     return out

@@ -32,7 +32,7 @@ import numpy as np
 
 from vs2t_edge.runtime import tactile_descriptor as td
 from vs2t_edge.runtime.bundle import (NOVELTY_OUT, ROUTER_OUT, SCENE_OUT, Bundle, BundleError, check_session_shapes, graph_keys,
-                                      is_fused, load_bundle, open_session)
+                                      is_fused, is_split, load_bundle, open_session)
 from vs2t_edge.runtime.novelty import GaussianRouter, RouterError, log_softmax, squared_norm
 from vs2t_edge.runtime.preprocess import FrameError, PreparedReference, prepare_reference, preprocess_tactile
 
@@ -43,8 +43,10 @@ WARMUP_RUNS = 3
 @dataclass(frozen=True)
 class PressScore:
     log_posterior: dict[str, float]  # over the bundle's classes (touched + untouched; a scene model adds its known_only), normalised in log space
-    novelty: float  # router score, higher = more likely untouched
-    untouched: bool  # novelty > beta
+    # router score, higher = more likely untouched; None on a format-3 bundle's press path, which
+    # decides with its scene model and never runs the heads (runtime/bundle.py is_split)
+    novelty: float | None
+    untouched: bool | None  # novelty > beta (None with novelty)
     latency_ms: float
     # squared distance to every bundle class in the scene model's space (runtime/scene_model.py);
     # None when the bundle has no scene model (its log posterior is then the router's, below)
@@ -183,10 +185,14 @@ class TactileModel:
         self._heads_in = heads_session.get_inputs()[0].name if heads_session is not None else None
         # format 2: trunk.onnx is the whole press graph, fetched by name in this order
         self.fused = is_fused(bundle.manifest) if isinstance(bundle.manifest, dict) else False
-        self._press_outputs = ["feature", "logits_t", "logits_u",
-                               *[k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT)
-                                 if k in bundle.manifest["graphs"]["trunk"]["outputs"]]] \
+        # format 3: the press graph ends at scene_z; the heads' graph (logits, router) runs on demand
+        self.split = is_split(bundle.manifest) if isinstance(bundle.manifest, dict) else False
+        graphs = bundle.manifest["graphs"] if self.fused else {}
+        self._press_outputs = ["feature", *([] if self.split else ["logits_t", "logits_u"]),
+                               *[k for k in (ROUTER_OUT, NOVELTY_OUT, SCENE_OUT) if k in graphs["trunk"]["outputs"]]] \
             if self.fused else []
+        self._heads_outputs = ["logits_t", "logits_u", *[k for k in (ROUTER_OUT, NOVELTY_OUT)
+                                                         if k in graphs["heads"]["outputs"]]] if self.split else []
         self._reference: PreparedReference | td.DescriptorReference | None = None
         self.last_timing: dict[str, float] = {}
         self.probe_errors: dict[str, float] = {}
@@ -297,16 +303,33 @@ class TactileModel:
         return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64))
 
     def _forward_fused(self, x: np.ndarray, t0: float) -> Outputs:
-        """One onnxruntime call gives feature, logits and the projections; numpy sums squares."""
-        got = self._trunk.run(self._press_outputs, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})
-        t1 = time.perf_counter()
-        feature, logits_t, logits_u = got[0], got[1], got[2]
-        extra = dict(zip(self._press_outputs[3:], got[3:]))
-        router_z, scene_z, graph_nov = extra.get(ROUTER_OUT), extra.get(SCENE_OUT), extra.get(NOVELTY_OUT)
+        """One onnxruntime call gives feature, logits and the projections; numpy sums squares.
+        Format 3: the press graph's call, then the heads' graph on its feature."""
+        got = dict(zip(self._press_outputs, self._press_run(x)))
+        t1 = t2 = time.perf_counter()
+        if self.split:
+            got.update(zip(self._heads_outputs, self._heads.run(self._heads_outputs, {self._heads_in: got["feature"]})))
+            t2 = time.perf_counter()
+        feature, logits_t, logits_u = got["feature"], got["logits_t"], got["logits_u"]
+        router_z, scene_z, graph_nov = got.get(ROUTER_OUT), got.get(SCENE_OUT), got.get(NOVELTY_OUT)
         novelty = fused_novelty(self.router, feature, logits_t, logits_u, router_z, graph_nov)
-        t2 = time.perf_counter()
-        self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 0.0, "router_ms": 1e3 * (t2 - t1)}
+        t3 = time.perf_counter()
+        self.last_timing = {"trunk_ms": 1e3 * (t1 - t0), "heads_ms": 1e3 * (t2 - t1), "router_ms": 1e3 * (t3 - t2)}
         return Outputs(feature, logits_t, logits_u, np.asarray(novelty, dtype=np.float64), router_z, scene_z, graph_nov)
+
+    def _press_run(self, x: np.ndarray) -> list:
+        return self._trunk.run(self._press_outputs, {self._trunk_in: np.ascontiguousarray(x, dtype=np.float32)})
+
+    def press_novelty(self, frame: np.ndarray, reduced_by: int = 1) -> float:
+        """The router's novelty of one press frame (``vs2t-edge calibrate``'s beta), the heads run
+        even where the cell's press path leaves them out (format 3). FrameError as ``score_press``."""
+        try:
+            novelty = float(self.forward(self.preprocess(frame, reduced_by)).novelty[0])
+        except RouterError as exc:
+            raise FrameError(f"model output not usable for this frame ({exc})", "model_output") from None
+        if not math.isfinite(novelty):
+            raise FrameError("model output not usable for this frame (non-finite novelty)", "model_output")
+        return novelty
 
     def scene_projection(self, out: Outputs) -> np.ndarray:
         """(N, k) the presses in the scene model's space: the graph's scene_z when the bundle is
@@ -328,6 +351,8 @@ class TactileModel:
         t0 = time.perf_counter()
         x = self.preprocess(frame, reduced_by)
         t1 = time.perf_counter()
+        if self.split and self.scene_model is not None:
+            return self._score_scene(x, t0, t1)
         try:
             out = self.forward(x)
         except RouterError as exc:  # NaN/Inf features: never route such a press to a bin
@@ -352,6 +377,23 @@ class TactileModel:
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
         self.last_timing = timing
         return PressScore(log_posterior, novelty, bool(novelty > self.beta), timing["total_ms"], sq, z)
+
+    def _score_scene(self, x: np.ndarray, t0: float, t1: float) -> PressScore:
+        """``score_press`` of a format-3 bundle: the press graph's one call (feature, scene_z), the
+        scene model's posterior; no heads, no router (novelty None)."""
+        feature, z = self._press_run(x)
+        t2 = time.perf_counter()
+        if not np.all(np.isfinite(feature)):
+            raise FrameError("model output not usable for this frame (non-finite feature)", "model_output")
+        if not np.all(np.isfinite(z)):
+            raise FrameError("model output not usable for this frame (non-finite scene projection)", "model_output")
+        lp_all, d2 = self.scene_model.log_posterior_projected(z)
+        classes = self.scene_model.classes
+        log_posterior, sq = dict(zip(classes, lp_all[0].tolist())), dict(zip(classes, d2[0].tolist()))
+        t3 = time.perf_counter()
+        self.last_timing = {"trunk_ms": 1e3 * (t2 - t1), "heads_ms": 0.0, "router_ms": 0.0, "preprocess_ms": 1e3 * (t1 - t0),
+                            "decision_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}
+        return PressScore(log_posterior, None, None, self.last_timing["total_ms"], sq, np.asarray(z[0], np.float64))
 
 
 __all__ = ["PressScore", "TactileModel", "Outputs", "fused_novelty", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",

@@ -161,7 +161,7 @@ BUNDLE_TAMPERS: list[tuple[str, Callable[[Path], None], tuple[str, ...]]] = [
     ("graph truncated", _truncate("heads.onnx"), ("heads.onnx", "sha256")),
     ("router file missing", lambda d: (d / "router.npz").unlink(), ("router.npz", "missing")),
     ("manifest truncated", _truncate("manifest.json"), ("manifest.json", "not valid JSON")),
-    ("format version 3", _manifest_edit(lambda m: m.update(format_version=3)), ("format version 3",)),
+    ("format version 4", _manifest_edit(lambda m: m.update(format_version=4)), ("format version 4",)),
     ("opset 11 (hash updated)", _old_opset, ("trunk.onnx", "opset 11")),
     ("probe mismatch (hash updated)", _probe_mismatch, ("probe check failed",)),
 ]

@@ -39,6 +39,9 @@ class FakeModel:
         lp = {c: (0.0 if c == target else -self.strength) for c in self.classes}
         return FakeScore(lp, novelty=float(v), untouched=False)
 
+    def press_novelty(self, frame, reduced_by=1):  # TactileModel's, for calibrate
+        return float(self.score_press(frame).novelty)
+
 
 class ScriptedCamera:
     """Returns a reference frame when the gel is up and the scripted frames when pressed.

@@ -23,8 +23,9 @@ def bench_result(tiny_run, tmp_path_factory):  # noqa: F811
     run, _ = tiny_run
     root = tmp_path_factory.mktemp("bench")
     bundles = []
-    for prec in ("fp32", "int8"):
-        ex.export_run(run, root / f"tiny_{prec}", trunk_precision=prec, calibration_frames=16)
+    for prec in ("fp32", "int8"):  # format 3 (what export writes for a scene model), and format 2
+        ex.export_run(run, root / f"tiny_{prec}", trunk_precision=prec, calibration_frames=16,
+                      heads_in_press_graph=prec == "int8")
         bundles.append(root / f"tiny_{prec}")
     out = root / "results"
     result = bench.run_bench(bundles, out, threads=(1, 2), budget_s=0.2, n_items=4, cap=3, arm=ARM,
@@ -84,7 +85,9 @@ def test_bench_numbers_are_measured_and_sane(bench_result):
             # trunk is timed cut out of the press graph and the graph's tail counted outside it
             assert r["fused"] and st["heads"] == 0.0 and math.isfinite(lat["in_graph_ms"])
             assert lat["press_graph_p50_ms"] > 0 and "includes_tail" not in lat
-            assert all(st[k] > 0 for k in bench.STAGES if k != "heads")
+            # format 3 (fp32 here): the press graph ends at the scene projection, no router runs
+            assert r["split"] == (r["precision"] == "fp32") and (st["router"] == 0.0) == r["split"]
+            assert all(st[k] > 0 for k in bench.STAGES if k not in ("heads", "router"))
             # outside_i = press_i - graph_i + tail <= press_i + tail, and >= each of its stages
             # (decode included), press by press; medians and p99s keep a pointwise order
             tail = lat["in_graph_ms"]

@@ -102,8 +102,8 @@ def test_seal_ignores_layout_but_not_values():
 
 
 def test_format_version_mismatch_is_refused(bundle_copy):
-    _edit(bundle_copy, lambda m: m.__setitem__("format_version", 3))
-    with pytest.raises(rb.BundleError, match="format version 3"):
+    _edit(bundle_copy, lambda m: m.__setitem__("format_version", 4))
+    with pytest.raises(rb.BundleError, match="format version 4"):
         TactileModel.load(bundle_copy)
 
 

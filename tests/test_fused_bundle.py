@@ -1,6 +1,8 @@
 """The fused press graph (format 2, export/fuse.py): one onnxruntime call per press gives what the
 two-graph path (format 1) gave, old bundles keep loading and scoring as before, and a fused graph
-that computes something else than the bundle's router / scene model files is refused."""
+that computes something else than the bundle's router / scene model files is refused. A scene
+model's bundle (format 3, tests/test_split_bundle.py) writes format 2 with ``--heads-in-press-graph``,
+as every export did before it: what these tests build."""
 from __future__ import annotations
 
 import json
@@ -51,7 +53,8 @@ def _scene_params(f: np.ndarray) -> dict:
     return sm.to_params()
 
 
-def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32", heads: str = "fp32"):
+def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp32", heads: str = "fp32",
+           heads_in_press_graph: bool = True):
     from vs2t_edge.export.export import write_bundle
     from vs2t_edge.runtime.preprocess import TactilePreprocess
 
@@ -61,7 +64,8 @@ def _write(out, kind: str, fuse: bool, scene: bool = True, precision: str = "fp3
     return write_bundle(out, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=router, touched=TOUCHED,
                         untouched=UNTOUCHED, preprocess=TactilePreprocess(size=SIZE), beta=beta, calibration=x[:40],
                         trunk_precision=precision, trunk_arch="tiny-test", validation=x[60:], touched_heldout=x[40:60],
-                        scene_model=_scene_params(f) if scene else None, fuse=fuse, heads_precision=heads)
+                        scene_model=_scene_params(f) if scene else None, fuse=fuse, heads_precision=heads,
+                        heads_in_press_graph=heads_in_press_graph)
 
 
 @pytest.fixture(scope="module")
@@ -350,8 +354,8 @@ def test_fused_probe_must_cover_the_projections(pairs, tmp_path):
 
 def test_unknown_format_version_names_the_readable_ones(pairs, tmp_path):
     b = _copy(pairs["energy"][0], tmp_path)
-    _reseal(b, lambda m: m.__setitem__("format_version", 3))
-    with pytest.raises(rb.BundleError, match=r"format version 3, this runtime reads versions 1, 2"):
+    _reseal(b, lambda m: m.__setitem__("format_version", 4))
+    with pytest.raises(rb.BundleError, match=r"format version 4, this runtime reads versions 1, 2, 3"):
         TactileModel.load(b)
 
 

@@ -1,0 +1,143 @@
+"""Format 3 (export/fuse.py): a scene model's bundle whose press graph ends at the scene projection.
+The cell's press is one onnxruntime call that runs no head and no router, and decides exactly as
+the format-2 graph of the same modules (heads folded in) decided; the heads and the router's
+outputs sit in heads.onnx for the probe, the bench's accuracy and calibration."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from test_bundle_fixtures import SIZE, world_frames
+from test_fused_bundle import LOG_POSTERIOR_ATOL, _copy, _reseal, _write
+from vs2t_edge.runtime import bundle as rb
+from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.preprocess import FrameError
+
+
+@pytest.fixture(scope="module")
+def formats(tmp_path_factory):
+    """{router kind: (format-3 bundle, format-2 bundle)} of the same modules and scene model."""
+    root = tmp_path_factory.mktemp("split")
+    out = {}
+    for kind in ("gaussian", "energy"):
+        _write(root / f"{kind}_3", kind, True, heads_in_press_graph=False)
+        _write(root / f"{kind}_2", kind, True)
+        out[kind] = (root / f"{kind}_3", root / f"{kind}_2")
+    return out
+
+
+@pytest.mark.parametrize("kind", ["gaussian", "energy"])
+def test_press_graph_ends_at_the_scene_projection_and_decides_as_format_2(formats, kind):
+    split_dir, fused_dir = formats[kind]
+    split, fused = TactileModel.load(split_dir, threads=1), TactileModel.load(fused_dir, threads=1)
+    m = split.manifest
+    assert m["format_version"] == 3 and split.split and split.fused and not fused.split
+    assert set(m["graphs"]["trunk"]["outputs"]) == {"feature", "scene_z"}
+    router_out = "router_z" if kind == "gaussian" else "router_novelty"
+    assert set(m["graphs"]["heads"]["outputs"]) == {"logits_t", "logits_u", router_out}
+    assert (split_dir / "heads.onnx").exists() and "heads.onnx" in m["files"]
+    # the probe still covers every output of both graphs, and their agreement with the files
+    assert set(split.probe_errors) >= {"feature", "logits_t", "logits_u", "novelty", "scene_z", router_out,
+                                       "novelty_vs_router_file", "scene_z_vs_decision_file"}
+    _, raws, ref = world_frames(SIZE)
+    split.set_reference(ref)
+    fused.set_reference(ref)
+    for frame in raws[::3]:
+        a, b = split.score_press(frame), fused.score_press(frame)
+        assert a.novelty is None and a.untouched is None and b.novelty is not None
+        assert split.last_timing["heads_ms"] == 0.0 and split.last_timing["router_ms"] == 0.0
+        assert list(a.log_posterior) == list(b.log_posterior) == list(split.scene_model.classes)
+        np.testing.assert_allclose(list(a.log_posterior.values()), list(b.log_posterior.values()),
+                                   rtol=0, atol=LOG_POSTERIOR_ATOL)
+        np.testing.assert_allclose(list(a.sq_distance.values()), list(b.sq_distance.values()), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(a.scene_z, b.scene_z, rtol=1e-5, atol=1e-6)
+    # off the press path the heads and the router give what format 2's one graph gives
+    x = world_frames(SIZE)[0][60:]
+    o3, o2 = split.forward(x), fused.forward(x)
+    assert split.last_timing["heads_ms"] > 0.0
+    np.testing.assert_allclose(o3.logits_t, o2.logits_t, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(o3.novelty, o2.novelty, rtol=1e-4, atol=1e-5)
+    assert split.press_novelty(raws[0]) == pytest.approx(fused.press_novelty(raws[0]), rel=1e-4, abs=1e-5)
+
+
+def test_the_journal_of_a_format_3_press_has_no_router_numbers(formats):
+    """score_dict (what the journal keeps of a press) leaves out the router's novelty and route
+    rather than writing nulls, and keeps the posterior the decision read."""
+    from vs2t_edge.runtime.press_pipeline import score_dict
+
+    model = TactileModel.load(formats["energy"][0], threads=1)
+    _, raws, ref = world_frames(SIZE)
+    model.set_reference(ref)
+    d = score_dict(model.score_press(raws[1]))
+    assert "novelty" not in d and "untouched" not in d and set(d["log_posterior"]) == set(model.scene_model.classes)
+    json.dumps(d, allow_nan=False)
+
+
+def test_int8_heads_go_to_the_heads_graph(tmp_path):
+    import onnx
+
+    m = _write(tmp_path / "b", "gaussian", True, heads="int8", heads_in_press_graph=False)
+    assert m["format_version"] == 3 and m["graphs"]["heads"]["precision"] == "int8"
+    assert "int8" in m["graphs"]["heads"]["fused"]["heads"] and "heads" not in m["graphs"]["trunk"]["fused"]
+    press = onnx.load(str(tmp_path / "b" / "trunk.onnx")).graph.node
+    heads = onnx.load(str(tmp_path / "b" / "heads.onnx")).graph.node
+    assert not any(n.op_type in ("MatMulInteger", "Gemm") for n in press if n.name.startswith("press_tail/"))
+    assert sum(n.op_type == "MatMulInteger" for n in heads) == 4 and not any(n.op_type == "Gemm" for n in heads)
+    TactileModel.load(tmp_path / "b", threads=1)
+
+
+def test_format_3_without_a_scene_model_is_refused(formats, tmp_path):
+    """Format 3 is a scene decision's press graph: without decision.npz nothing would read scene_z
+    and nothing would decide, so the manifest is refused in words."""
+    b = _copy(formats["energy"][0], tmp_path)
+    (b / "decision.npz").unlink()
+
+    def drop(m):
+        del m["decision"], m["files"]["decision.npz"]
+
+    _reseal(b, drop)
+    with pytest.raises(rb.BundleError, match=r"format version 3 is a scene decision's press graph.*no scene model"):
+        TactileModel.load(b)
+
+
+def test_format_3_press_graph_with_heads_is_refused(formats, tmp_path):
+    """A format-3 manifest over a press graph that still computes the heads (format 2's graph,
+    re-declared and re-sealed): the outputs are not what format 3's press graph gives."""
+    from vs2t_edge.export.export import graph_io
+
+    split_dir, fused_dir = formats["energy"]
+    b = _copy(split_dir, tmp_path)
+    (b / "trunk.onnx").write_bytes((fused_dir / "trunk.onnx").read_bytes())
+    _reseal(b, lambda m: m["graphs"]["trunk"].__setitem__("outputs", graph_io(b / "trunk.onnx")["outputs"]))
+    with pytest.raises(rb.BundleError, match=r"trunk\.onnx: outputs \[.*logits_t.*\].*need \['feature', 'scene_z'\]"):
+        TactileModel.load(b)
+
+
+def test_format_2_still_written_on_request_and_without_a_scene_model(tmp_path):
+    m = _write(tmp_path / "b", "energy", True, scene=False, heads_in_press_graph=False)
+    assert m["format_version"] == 2 and "heads" not in m["graphs"]
+
+
+@pytest.mark.parametrize("bad", ["feature", "scene_z"])
+def test_non_finite_format_3_press_output_is_a_frame_error(formats, bad):
+    model = TactileModel.load(formats["gaussian"][0], threads=1)
+    real = model._trunk
+
+    class Poisoned:
+        def get_inputs(self):
+            return real.get_inputs()
+
+        def run(self, names, feeds):
+            out = real.run(names, feeds)
+            i = names.index(bad)
+            out[i] = out[i].copy()
+            out[i][0, 0] = np.nan
+            return out
+
+    model._trunk = Poisoned()
+    _, raws, ref = world_frames(SIZE)
+    model.set_reference(ref)
+    with pytest.raises(FrameError, match="model output not usable"):
+        model.score_press(raws[0])
