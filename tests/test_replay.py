@@ -102,6 +102,20 @@ def test_compare_is_exact_on_decisions_and_tolerant_on_scores():
     assert compare(a, [dict(a[0], bin=3)]) and compare(a, [dict(a[0], label="wool")])
 
 
+def test_a_press_score_without_the_router_numbers_compares_on_the_rest():
+    """A session recorded with a format-2 bundle replayed with the format-3 export of the same run:
+    its presses have no router novelty (the scene decision never read it). The posterior is still
+    compared, and a router number that both sides have still must agree."""
+    press = {"point": 0, "novelty": 3.5, "untouched": False, "log_posterior": {"silk": -0.1, "wool": -2.4}}
+    a = [{"type": "pre_sort", "item": 1, "scores": [press]}]
+    lean = {k: v for k, v in press.items() if k not in ("novelty", "untouched")}
+    assert compare(a, [{"type": "pre_sort", "item": 1, "scores": [lean]}]) == []
+    moved = dict(lean, log_posterior={"silk": -0.2, "wool": -2.4})
+    assert compare(a, [{"type": "pre_sort", "item": 1, "scores": [moved]}])
+    assert compare(a, [{"type": "pre_sort", "item": 1, "scores": [dict(press, novelty=4.5)]}])
+    assert compare(a, [{"type": "pre_sort", "item": 1, "scores": [dict(lean, point=1)]}])
+
+
 def test_timings_are_not_decisions():
     """Model time per press and wall-clock stamps depend on the machine and its load (1.9 ms
     recorded beside the UR simulator, 0.6 ms replayed alone): never part of a reference, never
