@@ -145,6 +145,8 @@ def accuracy(model, out: dict, n_items: int = 100, seed: int = 0) -> dict:
                     "acc_t": 100 * g["acc_t"], "acc_u": 100 * g["acc_u"], "H": 100 * g["H"],
                     "touched_routed_untouched": 100 * float(np.mean(routed_u[is_t])),
                     "untouched_routed_untouched": 100 * float(np.mean(routed_u[~is_t]))}
+    if getattr(model, "scene_model", None) is not None:
+        res["press_scene"] = scene_press_accuracy(model, out)
     # per item
     items, item_lab, replaced = draw_items(lab, n_items, seed)
     it_t = item_lab < ct
@@ -207,6 +209,25 @@ def sequential_items(classes: list, lp: np.ndarray, items: np.ndarray, item_lab:
         correct.append(d.label == classes[c])
         unknown.append(d.label == UNKNOWN)
     return np.asarray(correct), np.asarray(used), np.asarray(unknown)
+
+
+def scene_press_accuracy(model, out: dict) -> dict:
+    """The paper's per-press protocol for the decision the cell makes per press: the bundle's scene
+    model, one softmax over every bundle class (not the fabrics it knows only to refuse), on the
+    same presses as the router's columns - acc_t, acc_u (per-class means), H, and ZSL (untouched
+    presses among the untouched classes). Percent. As training's report computes it
+    (train/decision.py ``evaluate_scenes`` "press_gzsl"), on the graph's float32 feature."""
+    sm = model.scene_model
+    pm = sm.subset([c for c in sm.classes if c not in sm.known_only])
+    lab, ct = out["label"], len(model.touched)
+    scores = pm.scores(pm.sq_distances(out["feature"]))
+    pred = np.argmax(scores, axis=1)
+    is_t = lab < ct
+    at = _per_class_mean(pred[is_t] == lab[is_t], lab[is_t])
+    au = _per_class_mean(pred[~is_t] == lab[~is_t], lab[~is_t])
+    zs = ct + np.argmax(scores[:, ct:], axis=1)
+    return {"acc_t": 100 * at, "acc_u": 100 * au, "H": 100 * _h(at, au),
+            "zsl": 100 * _per_class_mean(zs[~is_t] == lab[~is_t], lab[~is_t])}
 
 
 def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict:

@@ -499,6 +499,8 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
                                          "press_acc_t": a8["press"]["acc_t"] - a32["press"]["acc_t"],
                                          "item5_H": a8["items"]["5"]["H"] - a32["items"]["5"]["H"],
                                          "sequential_H": a8["sequential"]["H"] - a32["sequential"]["H"]}
+                    if "press_scene" in a8 and "press_scene" in a32:  # the cell's own per-press decision
+                        c["delta_points"]["scene_press_H"] = a8["press_scene"]["H"] - a32["press_scene"]["H"]
                     for name in ("scene_model", "router"):  # per item, by bins: right bin, and mis-sorts
                         b8, b32 = a8.get("bins", {}).get(name), a32.get("bins", {}).get(name)
                         if b8 and b32:

@@ -17,17 +17,19 @@ def _f(v, fmt="{:.1f}") -> str:
 def render_table(result: dict) -> str:
     hdr = ("| variant | trunk | px | prec | MMAC | p50 1t | p99 1t | p50 2t | p99 2t | limit 2t | of peak 2t "
            "| press p50 1t | press p99 1t | press p50 2t | press p99 2t "
-           "| outside trunk | RSS MB | bundle MB | ZSL/press | H/press | H 1 | H 3 | H 5 | H 9 | seq presses | seq H | seq unknown |")
+           "| outside trunk | RSS MB | bundle MB | ZSL/press | H/press | scene H/press | H 1 | H 3 | H 5 | H 9 | seq presses "
+           "| seq H | seq unknown |")
     lines = [hdr, "|" + "---|" * (hdr.count("|") - 1)]
     for r in result["variants"]:
         a = r.get("accuracy")
         lat = r["latency"]
-        acc = ["–"] * 9
+        acc = ["–"] * 10
         if a:
-            acc = [_f(a["press"]["zsl"]), _f(a["press"]["H"])] + [_f(a["items"][str(k)]["H"]) for k in ITEM_PRESSES] + [
+            acc = [_f(a["press"]["zsl"]), _f(a["press"]["H"]), _f(a.get("press_scene", {}).get("H"))] + [
+                _f(a["items"][str(k)]["H"]) for k in ITEM_PRESSES] + [
                 _f(a["sequential"]["presses_mean"], "{:.2f}"), _f(a["sequential"]["H"]), _f(a["sequential"]["unknown"])]
         elif not r["trained"]:
-            acc = ["untrained"] + ["–"] * 8
+            acc = ["untrained"] + ["–"] * 9
         lines.append("| " + " | ".join([
             r["name"], r["arch"], str(r["size_px"]), r["precision"], _f((r["macs"] or math.nan) / 1e6, "{:.0f}"),
             _f(lat.get("1", {}).get("p50_ms"), "{:.2f}"), _f(lat.get("1", {}).get("p99_ms"), "{:.2f}"),
@@ -165,7 +167,9 @@ def render_markdown(result: dict) -> str:
               f"loaded the bundle and ran presses (a process importing the same modules and loading nothing peaks at "
               f"{result['baseline_rss_mb']:.0f} MB); accuracies in % on presses never used in training "
               f"(frames {result.get('accuracy_frames', 'lossless (the dataset PNG)')}); H = harmonic mean of "
-              "acc_t and acc_u (per-class means); *H k* = items of k presses, log posteriors summed; *seq* = sequential "
+              "acc_t and acc_u (per-class means) of the router's hard route at beta; *scene H/press* = the same for the "
+              "bundle's scene model, one softmax over every bundle class (the cell's own per-press decision); "
+              "*H k* = items of k presses, log posteriors summed; *seq* = sequential "
               f"rule (stop at posterior >= {SEQ_CONFIDENCE}, at most {SEQ_MAX_PRESSES} presses; unknown = reject bin, "
               "counted wrong).", "", "## Outside the trunk, per press (ms)", "",
               "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
@@ -201,16 +205,19 @@ def render_markdown(result: dict) -> str:
         lines += ["", "## int8 against fp32", "",
                   "Δ = int8 - fp32, points. *largest loss*: the measure int8 loses most on (less accuracy, or more "
                   "mis-sorts by bins; a gain is no loss); *within 1 point*: it loses at most 1 point on every measure.", "",
-                  "| int8 | fp32 | speed-up (2 threads) | Δ press acc_t | Δ press H | Δ press ZSL | Δ item-5 H | Δ seq H "
-                  "| Δ right bin (scene) | Δ mis-sort (scene) | largest loss | within 1 point |", "|" + "---|" * 12]
-        keys = ("press_acc_t", "press_H", "press_zsl", "item5_H", "sequential_H", "bins_right_scene_model",
-                "bins_mis_sort_scene_model")
+                  "*press* columns: the router's hard route at beta (the paper's protocol); *scene press H*: the "
+                  "bundle's scene model, one softmax over every bundle class, per press (what the cell decides with).", "",
+                  "| int8 | fp32 | speed-up (2 threads) | Δ press acc_t | Δ press H | Δ press ZSL | Δ scene press H "
+                  "| Δ item-5 H | Δ seq H | Δ right bin (scene) | Δ mis-sort (scene) | largest loss | within 1 point |",
+                  "|" + "---|" * 13]
+        keys = ("press_acc_t", "press_H", "press_zsl", "scene_press_H", "item5_H", "sequential_H",
+                "bins_right_scene_model", "bins_mis_sort_scene_model")
         for c in result["comparisons"]:
             d, cost = c.get("delta_points"), c.get("cost_points") or {}
             worst = max(cost.items(), key=lambda kv: kv[1]) if cost else None
             lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
                 _f(d.get(k), "{:+.1f}") for k in keys) + f" | {f'{worst[1]:.1f} ({worst[0]})' if worst else '–'} | "
-                f"{'yes' if c['within_1_point'] else 'no'} |" if d else " | ".join(["–"] * 9) + " |"))
+                f"{'yes' if c['within_1_point'] else 'no'} |" if d else " | ".join(["–"] * 10) + " |"))
         paired_lines = render_paired(result)
         if paired_lines:
             lines += ["", "### Paired: int8 minus fp32 on the same presses and items, with its noise", "", paired_lines]

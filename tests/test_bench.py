@@ -102,7 +102,9 @@ def test_bench_numbers_are_measured_and_sane(bench_result):
         for v in (a["press"]["zsl"], a["press"]["H"], a["sequential"]["H"], *(a["items"][str(k)]["H"] for k in bench.ITEM_PRESSES)):
             assert 0.0 <= v <= 100.0 or math.isnan(v)
         assert 1.0 <= a["sequential"]["presses_mean"] <= 9.0
+        assert 0.0 <= a["press_scene"]["H"] <= 100.0  # the tiny run's bundles decide with a scene model
     (pair,) = result["comparisons"]
+    assert "scene_press_H" in pair["delta_points"]
     assert pair["int8"] == "tiny_int8" and pair["fp32"] == "tiny_fp32" and pair["speedup_2t"] > 0
     # a loss is less accuracy or more mis-sorts; a gain costs nothing
     d = pair["delta_points"]
@@ -419,3 +421,24 @@ def test_accuracy_through_jpeg_on_the_reduced_path_decodes_frames_and_reference_
     expected = model.forward(np.concatenate([model.preprocess(camera(raws[i]), reduced_by=2) for i in (3, 5)]))
     assert camera(raws[3]).shape[:2] == ((raws[3].shape[0] + 1) // 2, (raws[3].shape[1] + 1) // 2)
     np.testing.assert_allclose(out["feature"], expected.feature, rtol=1e-5, atol=1e-5)
+
+
+def test_scene_press_accuracy_is_the_scene_models_argmax_per_class():
+    """Hand-made: 2 touched + 1 untouched class and a known-only one at fixed means; presses at
+    the means are right, except the untouched class's, placed at touched class 0's mean (the
+    synthesis missed): acc_t 100, acc_u 0, H 0; ZSL (untouched presses among the untouched classes
+    only) 100. The known-only class never competes, though one press sits on it."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from vs2t_edge.bench.accuracy import scene_press_accuracy
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    means = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    sm = SceneModel(("a", "b", "u", "v"), frozenset({"u"}), np.zeros(2), np.eye(2), means, known_only=("v",))
+    model = SimpleNamespace(scene_model=sm, touched=("a", "b"), untouched=("u",))
+    feature = np.array([[0.0, 0.0], [10.0, 0.0], [9.0, 10.0], [0.0, 0.0], [0.0, 0.0]])
+    got = scene_press_accuracy(model, {"feature": feature, "label": np.array([0, 1, 1, 2, 2])})
+    assert got["acc_t"] == pytest.approx(75.0)  # a 100 %, b 50 %: its press by v goes to u, v not competing
+    assert got["acc_u"] == 0.0 and got["H"] == 0.0 and got["zsl"] == 100.0
