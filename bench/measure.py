@@ -142,6 +142,22 @@ def _import_runtime() -> None:
     from vs2t_edge.runtime import evidence, inference  # noqa: F401
 
 
+def cell_evidence(model) -> tuple[Callable[[], Any], int]:
+    """(a new item's evidence, presses per item) as the cell builds them: for a bundle with a scene
+    model, its item rule and operating point over a job of 5 touched and 3 untouched fabrics with
+    the bench's frames' fabric among them (runtime/sorting.py ``scene_evidence``) at the bins'
+    press limit; without one, the router's posterior at the sequential rule's confidence over every
+    class."""
+    from vs2t_edge.runtime import sorting as so
+    from vs2t_edge.runtime.evidence import Evidence
+
+    if getattr(model, "scene_model", None) is None:
+        return (lambda: Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)), SEQ_MAX_PRESSES
+    scene = so.Scene(tuple(model.touched[:5]), tuple(model.untouched[:3]), ())
+    make = so.scene_evidence(model.scene_model, BIN_MAX_PRESSES)
+    return (lambda: make(scene)), BIN_MAX_PRESSES
+
+
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
                  n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY) -> dict:
     """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
@@ -157,7 +173,6 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     import cv2
 
     from vs2t_edge.runtime.dataset import load_dataset
-    from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.inference import TactileModel
     from vs2t_edge.runtime.preprocess import decode_jpeg
 
@@ -209,13 +224,14 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         # the whole press, as the cell runs it with t threads
         stages = {k: [] for k in (*STAGES, "press")}
         png: list[float] = []
-        ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+        new_item, item_presses = cell_evidence(model)
+        ev = new_item()
         for k in range(3):
             press_stages(model, jpegs[k % len(jpegs)], ev, checks)
         n_press = int(min(400, max(60, 4 * len(jpegs), budget_s / max(est + 1e-3, 1e-4))))
         for k in range(n_press):
-            if k % SEQ_MAX_PRESSES == 0:  # a new item every 9 presses, as the cell's evidence would
-                ev = Evidence(model.classes, SEQ_CONFIDENCE, SEQ_MAX_PRESSES)
+            if k % item_presses == 0:  # a new item at the press limit, as the cell's evidence would
+                ev = new_item()
             for key, v in press_stages(model, jpegs[k % len(jpegs)], ev, checks).items():
                 stages[key].append(v)
             t0 = time.perf_counter()  # beside each press (same process state), not in its total
