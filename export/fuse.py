@@ -224,6 +224,8 @@ def merge_into_trunk(trunk_path: Path, tail_path: Path, out_path: Path) -> list[
     import onnx
     from onnx import compose
 
+    from vs2t_edge.export.quantize import one_opset_per_domain
+
     trunk, tail = onnx.load(str(trunk_path)), onnx.load(str(tail_path))
     t_outs = [o.name for o in trunk.graph.output]
     if t_outs != ["feature"]:
@@ -237,6 +239,7 @@ def merge_into_trunk(trunk_path: Path, tail_path: Path, out_path: Path) -> list[
             raise FuseError(f"opset of domain {o.domain or 'ai.onnx'}: trunk {ops_t[o.domain or '']}, tail {o.version}")
     merged = compose.merge_models(trunk, tail, io_map=[("feature", "feature")], outputs=["feature", *tail_outs],
                                   producer_name="vs2t-edge export (fused press graph)")
+    one_opset_per_domain(merged)  # merge_models lists the ai.onnx import of both graphs
     onnx.checker.check_model(merged)
     onnx.save(merged, str(out_path))
     return ["feature", *tail_outs]

@@ -58,6 +58,22 @@ class _Reader:
         self.i, self.end = 0, None
 
 
+def one_opset_per_domain(model) -> bool:
+    """Drop repeated opset imports of a domain (``onnx.compose.merge_models`` lists the trunk's and
+    the tail's both: onnxruntime runs such a graph, its quantiser refuses it). True if it changed."""
+    seen: dict[str, int] = {}
+    for o in model.opset_import:
+        if seen.setdefault(o.domain or "", o.version) != o.version:
+            raise ValueError(f"the graph imports domain {o.domain or 'ai.onnx'!r} at opsets {seen[o.domain or '']} "
+                             f"and {o.version}")
+    if len(seen) == len(model.opset_import):
+        return False
+    del model.opset_import[:]
+    for domain, version in seen.items():
+        model.opset_import.add(domain=domain, version=version)
+    return True
+
+
 def _float_tail_nodes(model, float_convs: int = 0) -> list[str]:
     """Names of the nodes after the last ``float_convs + 1``-th Conv from the end (pooling,
     standardisation, and the last ``float_convs`` convolutions): kept in float."""
@@ -119,6 +135,8 @@ class Quantiser:
         # symbolic shape inference + constant folding (BatchNorm already folded by the exporter)
         quant_pre_process(str(self.fp32), str(self.pre), skip_symbolic_shape=False)
         self.model = onnx.load(str(self.pre))
+        if one_opset_per_domain(self.model):  # a press graph fused before merge_into_trunk said each domain once
+            onnx.save(self.model, str(self.pre))
         self.input_name = self.model.graph.input[0].name
         self.nodes = {n.name: n.op_type for n in self.model.graph.node if n.name}
         self.order = [n.name for n in self.model.graph.node if n.name]

@@ -78,6 +78,10 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
     from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference, check_camera_jpeg
 
     m = read_manifest(bundle)
+    if "heads" not in m.get("graphs", {}):
+        raise ValueError(f"{bundle}: its heads are inside its press graph (format {m.get('format_version')}); the scan "
+                         "quantises the trunk alone and reads the heads from heads.onnx: give a bundle with a scene "
+                         "model as `export` writes it (format 3), or one exported with --two-graphs (format 1)")
     if m.get("graphs", {}).get("trunk", {}).get("precision") != "fp32":
         raise ValueError(f"{bundle}: give an fp32 bundle (its trunk graph is what int8 is made from)")
     data = m.get("provenance", {}).get("data")
@@ -158,7 +162,7 @@ def _heads(path: Path, threads: int):
 
     sess = _session(path, threads)
     name = sess.get_inputs()[0].name
-    return lambda f: sess.run(None, {name: f.astype("float32")})
+    return lambda f: sess.run(["logits_t", "logits_u"], {name: f.astype("float32")})  # format 3's also gives the router's
 
 
 def _run_fp32(path, frames, threads):

@@ -499,6 +499,11 @@ def check_session_shapes(bundle: Bundle, key: str, session) -> None:
         if shape_out[-1] != bundle.feature_dim:
             raise BundleError(bundle.root, f"{g['file']}: feature dim {shape_out[-1]}, feature_dim is {bundle.feature_dim}")
     else:
+        inputs = list(g["inputs"].values())
+        if len(inputs) != 1 or inputs[0][-1] != bundle.feature_dim:
+            # else onnxruntime's own error at the probe, not a refusal naming the file
+            raise BundleError(bundle.root, f"{g['file']}: inputs {g['inputs']}, the heads take one "
+                                           f"(N, {bundle.feature_dim}) feature")
         want = {"logits_t": len(bundle.touched), "logits_u": len(bundle.untouched)}
         for name, n in want.items():
             if name not in g["outputs"] or g["outputs"][name][-1] != n:

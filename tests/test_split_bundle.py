@@ -38,6 +38,10 @@ def test_press_graph_ends_at_the_scene_projection_and_decides_as_format_2(format
     router_out = "router_z" if kind == "gaussian" else "router_novelty"
     assert set(m["graphs"]["heads"]["outputs"]) == {"logits_t", "logits_u", router_out}
     assert (split_dir / "heads.onnx").exists() and "heads.onnx" in m["files"]
+    import onnx  # the merged press graph imports each opset domain once (onnxruntime's quantiser needs it)
+
+    domains = [o.domain for o in onnx.load(str(split_dir / "trunk.onnx")).opset_import]
+    assert len(domains) == len(set(domains))
     # the probe still covers every output of both graphs, and their agreement with the files
     assert set(split.probe_errors) >= {"feature", "logits_t", "logits_u", "novelty", "scene_z", router_out,
                                        "novelty_vs_router_file", "scene_z_vs_decision_file"}
@@ -141,3 +145,66 @@ def test_non_finite_format_3_press_output_is_a_frame_error(formats, bad):
     model.set_reference(ref)
     with pytest.raises(FrameError, match="model output not usable"):
         model.score_press(raws[0])
+
+
+def test_heads_graph_of_another_feature_width_is_refused_in_words(formats, tmp_path):
+    """heads.onnx re-exported for 17-d features beside a 16-d trunk (manifest re-declared, re-sealed):
+    refused naming the file, before onnxruntime's own error at the probe could surface."""
+    import torch
+
+    from vs2t_edge.export.export import export_onnx, graph_io
+
+    class Wide(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.t, self.u, self.z = torch.nn.Linear(17, 3), torch.nn.Linear(17, 2), torch.nn.Linear(17, 16)
+
+        def forward(self, f):
+            return self.t(f), self.u(f), self.z(f)
+
+    b = _copy(formats["gaussian"][0], tmp_path)
+    export_onnx(Wide().eval(), torch.zeros(1, 17), b / "heads.onnx", "feature", ["logits_t", "logits_u", "router_z"], 20)
+    _reseal(b, lambda m: m["graphs"]["heads"].update(graph_io(b / "heads.onnx")))
+    with pytest.raises(rb.BundleError, match=r"heads\.onnx: inputs .*the heads take one \(N, 16\) feature"):
+        TactileModel.load(b)
+
+
+def _world_bundle(out, heads_in_press_graph: bool) -> dict:
+    """A trained-style fp32 bundle over the tiny world's fabrics (its manifest records which
+    presses trained it, as int8-sensitivity needs), with a scene model."""
+    import torch
+
+    from test_bundle_fixtures import tiny_modules, tiny_world
+
+    from vs2t_edge.export.export import write_bundle
+    from vs2t_edge.runtime import novelty as nv
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    touched, untouched = ("f00", "f01", "f02"), ("f03", "f04")
+    trunk, cls_t, cls_u = tiny_modules(0)
+    x, _, _ = world_frames(SIZE)
+    with torch.no_grad():
+        f = trunk(torch.from_numpy(x[:40])).numpy()
+    fu = np.random.default_rng(0).standard_normal((20, f.shape[1])) * f.std(0) + f.mean(0)
+    sm = SceneModel.fit(f, np.arange(40) % 3, list(touched), fu, np.arange(20) % 2, list(untouched), k=6)
+    part = {fid: {"train": [0, 1, 2, 3, 4, 5], "val": [6, 7], "test": [8], "unused": []} for fid in touched}
+    return write_bundle(out, trunk=trunk, cls_t=cls_t, cls_u=cls_u, router=nv.fit_router("gaussian", f, keep_covariance=False),
+                        touched=touched, untouched=untouched, preprocess=TactilePreprocess(size=SIZE), beta=0.0,
+                        calibration=x[:40], trunk_arch="tiny-test", validation=x[60:], touched_heldout=x[40:60],
+                        scene_model=sm.to_params(), heads_in_press_graph=heads_in_press_graph,
+                        provenance={"data": {"dataset": str(tiny_world()), "touched_presses": part, "validation": []}})
+
+
+def test_int8_sensitivity_reads_format_3_heads_and_refuses_format_2_in_words(tmp_path):
+    """`vs2t-edge int8-sensitivity` quantises the trunk graph alone and reads the logits from
+    heads.onnx: a format-3 bundle's heads graph also gives the router's output, fetched by name; a
+    format-2 bundle has no heads graph and is refused saying which formats it reads."""
+    from vs2t_edge.export.sensitivity_cli import scan
+
+    for fmt in (3, 2):
+        assert _world_bundle(tmp_path / f"b{fmt}", heads_in_press_graph=fmt == 2)["format_version"] == fmt
+    res = scan(tmp_path / "b3", calibration_frames=6, validation_presses=2, ops=["Conv"], top=1)
+    assert res["rows"] and 0.0 <= res["fp32"]["cls_t_agreement"] <= 1.0
+    with pytest.raises(ValueError, match=r"heads are inside its press graph \(format 2\).*format 3.*--two-graphs"):
+        scan(tmp_path / "b2", calibration_frames=6, validation_presses=2, ops=["Conv"], top=1)
