@@ -429,7 +429,8 @@ def decision_margins(index: dict) -> dict:
 
     For every scored press: the scene posterior after it against ``evidence.confidence`` (the stop
     and unknown rule), the gap between the two leading classes (the label), and the novelty
-    against beta in log units (the press's touched/untouched route). A replay on another CPU
+    against beta in log units (the press's touched/untouched route; absent when no press has a
+    novelty: a format-3 bundle's press runs no router). A replay on another CPU
     differs in the last bits of a score; a margin well above the replay tolerance (1e-3) means
     that cannot change a decision.
     """
@@ -438,6 +439,7 @@ def decision_margins(index: dict) -> dict:
     # The evidence uses the scene's classes only (an off-scene class never wins), renormalised.
     scene = [f["name"] for f in index["config"].get("scene", {}).get("fabrics", [])]
     out = {"confidence": math.inf, "label_gap": math.inf, "novelty_log_ratio": math.inf}
+    routed = False  # a format-3 bundle's presses carry no router novelty: no route to flip
     for d in index["decisions"]:
         if d.get("type") != "pre_sort":
             continue
@@ -454,8 +456,11 @@ def decision_margins(index: dict) -> dict:
                 if len(top) > 1:
                     out["label_gap"] = min(out["label_gap"], float(top[0] - top[1]))
             nov = sc.get("novelty")
+            routed = routed or nov is not None
             if beta and nov and nov > 0 and beta > 0:
                 out["novelty_log_ratio"] = min(out["novelty_log_ratio"], abs(math.log(float(nov) / float(beta))))
+    if not routed:
+        del out["novelty_log_ratio"]
     return out
 
 

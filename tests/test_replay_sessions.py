@@ -13,6 +13,7 @@ exactly and every score within 1e-3.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -74,6 +75,20 @@ def test_reference_decisions_are_not_on_a_knife_edge():
         margins = decision_margins(index)
         assert all(math.isfinite(v) for v in margins.values()), (session.stem, margins)
         assert min(margins.values()) > SCORE_RTOL, (session.stem, margins)
+
+
+def test_decision_margins_of_presses_without_a_router_have_no_route_margin():
+    """A session recorded with a format-3 bundle: its presses carry no novelty, so there is no
+    touched/untouched route to flip; the other margins are still measured."""
+    from vs2t_edge.sim.scene import decision_margins
+
+    index = {"config": {"evidence": {"confidence": 0.9}, "scene": {"fabrics": [{"name": "a"}, {"name": "b"}]}},
+             "meta": {"beta": 2.0},
+             "decisions": [{"type": "pre_sort", "scores": [{"log_posterior": {"a": -0.01, "b": -4.6}}]}]}
+    m = decision_margins(index)
+    assert "novelty_log_ratio" not in m and 0 < m["confidence"] < 0.1 and m["label_gap"] > 0.9
+    index["decisions"][0]["scores"][0]["novelty"] = 4.0
+    assert decision_margins(index)["novelty_log_ratio"] == pytest.approx(math.log(2.0))
 
 
 def test_decision_margins_recompute_the_recorded_evidence():
