@@ -462,19 +462,31 @@ def cpu_features(cpuinfo: str | None = None) -> dict[str, bool]:
 
 
 MIN_INT8_SPEEDUP = 1.2  # below this, int8's accuracy cost buys too little time to recommend it
+# what a format-3 bundle's cell decides with (its press runs no router): the scene model per press
+# and per item by bins. The router's columns still count for the int8 target, not for the advice.
+CELL_MEASURES = ("scene_press_H", "bins_right_scene_model", "bins_mis_sort_scene_model")
 
 
 def recommend(result: dict) -> list[dict]:
     """Per fp32/int8 pair measured in this run: the precision to deploy on this machine. int8 when
     it is at least ``MIN_INT8_SPEEDUP`` x faster (2 threads) and loses at most ``TARGET_INT8_POINTS``
-    against fp32 on every measure the bench took (``cost_points``); else fp32, saying why."""
+    against fp32 on every measure the bench took (``cost_points``); else fp32, saying why. For a
+    pair of format-3 bundles (no router on the cell's press) "every measure" is every measure of
+    what the cell decides with (``CELL_MEASURES``), and the advice says what the router loses."""
     out = []
     isa = result.get("machine", {}).get("instruction_sets", {})
     vnni = isa.get("avx512_vnni") or isa.get("avx_vnni")
     for c in result.get("comparisons", []):
         fast = c["speedup_2t"] >= MIN_INT8_SPEEDUP
-        accurate = c.get("within_1_point")
-        if fast and accurate:
+        cell_only = "cell_within_1_point" in c and not c.get("within_1_point")
+        accurate = c["cell_within_1_point"] if cell_only else c.get("within_1_point")
+        if fast and accurate and cell_only:
+            worst = max(c["cost_points"].items(), key=lambda kv: kv[1])
+            pick, why = c["int8"], (f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every "
+                                    f"accuracy of what the cell decides with (the scene model: {', '.join(CELL_MEASURES)}); "
+                                    f"the router, which a format-3 bundle's press never runs, loses {worst[1]:.1f} "
+                                    f"({worst[0]}: {c['delta_points'][worst[0]]:+.1f})")
+        elif fast and accurate:
             pick, why = c["int8"], f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every accuracy"
         elif not fast:
             pick, why = c["fp32"], (f"int8 only {c['speedup_2t']:.2f}x faster here (< {MIN_INT8_SPEEDUP}x"
@@ -524,6 +536,10 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
                             c["delta_points"][f"bins_mis_sort_{name}"] = b8["all"]["mis-sort"] - b32["all"]["mis-sort"]
                     c["cost_points"] = cost_points(c["delta_points"])
                     c["within_1_point"] = all(v <= TARGET_INT8_POINTS for v in c["cost_points"].values())
+                    if r8.get("split") and r32.get("split"):  # format 3: no router on the cell's press
+                        cell = {k: v for k, v in c["cost_points"].items() if k in CELL_MEASURES}
+                        if set(cell) == set(CELL_MEASURES):
+                            c["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
                 out.append(c)
     return out
 

@@ -343,6 +343,31 @@ def test_bench_records_the_cpu_and_recommends_a_precision_for_it(bench_result):
     assert "no VNNI" in bench.recommend(slow)[0]["why"]
 
 
+def test_format_3_pairs_are_advised_on_what_the_cell_decides_with():
+    """A format-3 bundle's press runs no router: int8 that loses 2.6 points of the router's H but
+    holds the scene model's measures is recommended, the router's loss said; the int8 target
+    (every measure) still fails. A pair that is not format 3 on both sides is advised as before."""
+    from vs2t_edge.bench import measure as bench
+
+    def row(prec, ms, press_h, scene_h, right, mis, split=True):
+        bins = {"all": {"right": right, "mis-sort": mis}}
+        return {"name": f"b_{prec}", "precision": prec, "arch": "lite0", "size_px": 128, "run": "r", "split": split,
+                "latency": {"2": {"p50_ms": ms}},
+                "accuracy": {"press": {"H": press_h, "zsl": 30.0, "acc_t": 80.0}, "items": {"5": {"H": 40.0}},
+                             "sequential": {"H": 40.0}, "press_scene": {"H": scene_h},
+                             "bins": {"scene_model": bins, "router": bins}}}
+
+    (c,) = bench.compare_pairs([row("fp32", 2.0, 38.5, 43.6, 75.6, 1.5), row("int8", 1.0, 35.9, 44.2, 76.4, 0.7)])
+    assert c["within_1_point"] is False and c["cell_within_1_point"] is True
+    (rec,) = bench.recommend({"machine": {}, "comparisons": [c]})
+    assert rec["recommended"] == "b_int8" and "loses 2.6 (press_H: -2.6)" in rec["why"] and "scene_press_H" in rec["why"]
+    (c,) = bench.compare_pairs([row("fp32", 2.0, 38.5, 43.6, 75.6, 1.5), row("int8", 1.0, 35.9, 42.0, 76.4, 0.7)])
+    assert c["cell_within_1_point"] is False and bench.recommend({"machine": {}, "comparisons": [c]})[0]["recommended"] == "b_fp32"
+    (c,) = bench.compare_pairs([row("fp32", 2.0, 38.5, 43.6, 75.6, 1.5, split=False),
+                                row("int8", 1.0, 35.9, 44.2, 76.4, 0.7)])
+    assert "cell_within_1_point" not in c and bench.recommend({"machine": {}, "comparisons": [c]})[0]["recommended"] == "b_fp32"
+
+
 def test_a_bench_of_one_thread_count_renders(bench_result):
     """`vs2t-edge bench --threads 2` (one thread count): the page renders with '–' for the count not
     timed instead of a KeyError."""
