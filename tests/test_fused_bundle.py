@@ -416,7 +416,15 @@ def test_non_finite_press_graph_output_is_a_frame_error(pairs, kind, bad):
     path raises for a non-finite feature or logits."""
     from vs2t_edge.runtime.preprocess import FrameError
 
-    model = TactileModel.load(pairs[kind][0], threads=1)
+    model = poison_output(TactileModel.load(pairs[kind][0], threads=1), bad)
+    _, raws, ref = world_frames(SIZE)
+    model.set_reference(ref)
+    with pytest.raises(FrameError, match="model output not usable"):
+        model.score_press(raws[0])
+
+
+def poison_output(model: TactileModel, bad: str) -> TactileModel:
+    """``model`` whose press graph puts a NaN in output ``bad`` of every run."""
     real = model._trunk
 
     class Poisoned:
@@ -431,7 +439,4 @@ def test_non_finite_press_graph_output_is_a_frame_error(pairs, kind, bad):
             return out
 
     model._trunk = Poisoned()
-    _, raws, ref = world_frames(SIZE)
-    model.set_reference(ref)
-    with pytest.raises(FrameError, match="model output not usable"):
-        model.score_press(raws[0])
+    return model

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from test_bundle_fixtures import SIZE, world_frames
-from test_fused_bundle import LOG_POSTERIOR_ATOL, _copy, _reseal, _write
+from test_fused_bundle import LOG_POSTERIOR_ATOL, _copy, _reseal, _write, poison_output
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.preprocess import FrameError
@@ -126,21 +126,7 @@ def test_format_2_still_written_on_request_and_without_a_scene_model(tmp_path):
 
 @pytest.mark.parametrize("bad", ["feature", "scene_z"])
 def test_non_finite_format_3_press_output_is_a_frame_error(formats, bad):
-    model = TactileModel.load(formats["gaussian"][0], threads=1)
-    real = model._trunk
-
-    class Poisoned:
-        def get_inputs(self):
-            return real.get_inputs()
-
-        def run(self, names, feeds):
-            out = real.run(names, feeds)
-            i = names.index(bad)
-            out[i] = out[i].copy()
-            out[i][0, 0] = np.nan
-            return out
-
-    model._trunk = Poisoned()
+    model = poison_output(TactileModel.load(formats["gaussian"][0], threads=1), bad)
     _, raws, ref = world_frames(SIZE)
     model.set_reference(ref)
     with pytest.raises(FrameError, match="model output not usable"):
