@@ -291,14 +291,14 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
 
         sess_t, sess_h = rb.open_session(trunk_file, threads), rb.open_session(tmp / "heads.onnx", threads)
         fused: dict | None = None
+        split = fuse and scene_model is not None and not heads_in_press_graph  # format 3
         if fuse:
-            split = scene_model is not None and not heads_in_press_graph
             log("folding the scene model's projection into the trunk graph (the heads and the router's apart)"
                 if split else "folding the heads and the router's / scene model's projections into the trunk graph")
             fused = fuse_press_graph(trunk_file, tmp / "heads.onnx", cls_t, cls_u, router, scene_model, dim, opset,
                                      calibration, threads, heads_int8=heads_precision == "int8", split=split)
             checks["fused_vs_two_graphs"] = fused["check"]
-            if "heads_outputs" in fused:  # format 3: heads.onnx now holds the heads and the router's outputs
+            if split:  # heads.onnx now holds the heads and the router's outputs
                 sess_h = rb.open_session(tmp / "heads.onnx", threads)
             else:
                 (tmp / "heads.onnx").unlink()
@@ -307,7 +307,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         def score(x: np.ndarray):
             if fused is not None:
                 got = dict(zip(fused["outputs"], _run_batches(sess_t, x)))
-                if "heads_outputs" in fused:
+                if split:
                     got.update(zip(fused["heads_outputs"], _run_batches(sess_h, got["feature"])))
                 f, lt, lu = got["feature"], got["logits_t"], got["logits_u"]
                 nov = fused_novelty(router, f, lt, lu, got.get(fz.ROUTER_OUT), got.get(fz.NOVELTY_OUT))
@@ -347,7 +347,6 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         if scene_model is not None:
             np.savez(tmp / "decision.npz", **{k: np.asarray(v) for k, v in scene_model.items()})
 
-        split = fused is not None and "heads_outputs" in fused  # format 3
         graphs = {}
         for key, path in (("trunk", trunk_file), *(() if fused and not split else (("heads", tmp / "heads.onnx"),))):
             graphs[key] = {"file": path.name, "opset": rb.read_onnx_opsets(path)[""], **graph_io(path)}
