@@ -25,7 +25,7 @@ Per bundle (a variant: trunk, input size, fp32/int8):
 
 The machine is recorded with its instruction sets (AVX2, AVX-512, VNNI, AMX: int8's gain
 depends on them) and the onnxruntime build, and for every fp32/int8 pair the bench says which
-precision it recommends on the machine it ran on (``recommend``).
+precision it recommends on the machine it ran on (``recommend``; the verdict: bench/verdict.py).
 
 No torch here (runtime/). ``onnx`` (train extra) is used only to build the GEMM graphs of the
 peak measurement; without it the fp32 peak comes from numpy and the int8 peak is not measured.
@@ -50,6 +50,9 @@ import numpy as np
 from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. stay importable from here
     JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, decode_scale, press_stages,
     split_press_graph)
+from vs2t_edge.bench.verdict import (  # noqa: F401 - the verdict's names stay importable from here
+    CELL_MEASURES, MIN_INT8_SPEEDUP, TARGET_CELL_MS, TARGET_CELL_P99_MS, TARGET_INT8_POINTS, TARGET_OF_LIMIT,
+    compare_pairs, cost_points, recommend, targets)
 from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
     accuracy_frames, by_bins, eval_presses, pieces_per_minute, press_outputs)
@@ -459,137 +462,6 @@ def cpu_features(cpuinfo: str | None = None) -> dict[str, bool]:
             flags = set(line.split(":", 1)[1].split())
             break
     return {name: name in flags for name in INSTRUCTION_SETS}
-
-
-MIN_INT8_SPEEDUP = 1.2  # below this, int8's accuracy cost buys too little time to recommend it
-# what a format-3 bundle's cell decides with (its press runs no router): the scene model per press
-# and per item by bins. The router's columns still count for the int8 target, not for the advice.
-CELL_MEASURES = ("scene_press_H", "bins_right_scene_model", "bins_mis_sort_scene_model")
-
-
-def recommend(result: dict) -> list[dict]:
-    """Per fp32/int8 pair measured in this run: the precision to deploy on this machine. int8 when
-    it is at least ``MIN_INT8_SPEEDUP`` x faster (2 threads) and loses at most ``TARGET_INT8_POINTS``
-    against fp32 on every measure the bench took (``cost_points``); else fp32, saying why. For a
-    pair of format-3 bundles (no router on the cell's press) "every measure" is every measure of
-    what the cell decides with (``CELL_MEASURES``), and the advice says what the router loses."""
-    out = []
-    isa = result.get("machine", {}).get("instruction_sets", {})
-    vnni = isa.get("avx512_vnni") or isa.get("avx_vnni")
-    for c in result.get("comparisons", []):
-        fast = c["speedup_2t"] >= MIN_INT8_SPEEDUP
-        cell_only = "cell_within_1_point" in c and not c.get("within_1_point")
-        accurate = c["cell_within_1_point"] if cell_only else c.get("within_1_point")
-        if fast and accurate and cell_only:
-            worst = max(c["cost_points"].items(), key=lambda kv: kv[1])
-            pick, why = c["int8"], (f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every "
-                                    f"accuracy of what the cell decides with (the scene model: {', '.join(CELL_MEASURES)}); "
-                                    f"the router, which a format-3 bundle's press never runs, loses {worst[1]:.1f} "
-                                    f"({worst[0]}: {c['delta_points'][worst[0]]:+.1f})")
-        elif fast and accurate:
-            pick, why = c["int8"], f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every accuracy"
-        elif not fast:
-            pick, why = c["fp32"], (f"int8 only {c['speedup_2t']:.2f}x faster here (< {MIN_INT8_SPEEDUP}x"
-                                    f"{'' if vnni else '; this CPU has no VNNI'})")
-        elif accurate is None:
-            pick, why = c["fp32"], "int8's accuracy was not measured (trained bundles with --dataset measure it)"
-        else:
-            worst = max(c["cost_points"].items(), key=lambda kv: kv[1])
-            pick, why = c["fp32"], (f"int8 {c['speedup_2t']:.2f}x faster but costs {worst[1]:.1f} points ({worst[0]}: "
-                                    f"{c['delta_points'][worst[0]]:+.1f}), more than {TARGET_INT8_POINTS:g}")
-        out.append({"fp32": c["fp32"], "int8": c["int8"], "recommended": pick, "why": why})
-    return out
-
-
-def cost_points(delta_points: dict[str, float]) -> dict[str, float]:
-    """What int8 costs on each measure, in points (int8 - fp32 signed so that a loss is positive):
-    less accuracy, or more mis-sorts. A gain costs nothing: "int8 within 1 point of fp32" asks
-    that it lose at most 1 point anywhere, not that it never do better."""
-    return {k: (v if "mis_sort" in k else -v) for k, v in delta_points.items()}
-
-
-def compare_pairs(rows: list[dict]) -> list[dict]:
-    """int8 vs fp32 of the same trunk, size and run: speed-up and accuracy difference."""
-    out = []
-    for r8 in rows:
-        if r8["precision"] != "int8":
-            continue
-        for r32 in rows:
-            if (r32["precision"] == "fp32" and r32["arch"] == r8["arch"] and r32["size_px"] == r8["size_px"]
-                    and r32.get("run") == r8.get("run")):
-                t = max(set(r32["latency"]) & set(r8["latency"]), key=int)  # 2 threads unless --threads says
-                c = {"int8": r8["name"], "fp32": r32["name"],
-                     "speedup_2t": r32["latency"][t]["p50_ms"] / r8["latency"][t]["p50_ms"]}
-                if "accuracy" in r8 and "accuracy" in r32:
-                    a8, a32 = r8["accuracy"], r32["accuracy"]
-                    c["delta_points"] = {"press_H": a8["press"]["H"] - a32["press"]["H"],
-                                         "press_zsl": a8["press"]["zsl"] - a32["press"]["zsl"],
-                                         "press_acc_t": a8["press"]["acc_t"] - a32["press"]["acc_t"],
-                                         "item5_H": a8["items"]["5"]["H"] - a32["items"]["5"]["H"],
-                                         "sequential_H": a8["sequential"]["H"] - a32["sequential"]["H"]}
-                    if "press_scene" in a8 and "press_scene" in a32:  # the cell's own per-press decision
-                        c["delta_points"]["scene_press_H"] = a8["press_scene"]["H"] - a32["press_scene"]["H"]
-                    for name in ("scene_model", "router"):  # per item, by bins: right bin, and mis-sorts
-                        b8, b32 = a8.get("bins", {}).get(name), a32.get("bins", {}).get(name)
-                        if b8 and b32:
-                            c["delta_points"][f"bins_right_{name}"] = b8["all"]["right"] - b32["all"]["right"]
-                            c["delta_points"][f"bins_mis_sort_{name}"] = b8["all"]["mis-sort"] - b32["all"]["mis-sort"]
-                    c["cost_points"] = cost_points(c["delta_points"])
-                    c["within_1_point"] = all(v <= TARGET_INT8_POINTS for v in c["cost_points"].values())
-                    if r8.get("split") and r32.get("split"):  # format 3: no router on the cell's press
-                        cell = {k: v for k, v in c["cost_points"].items() if k in CELL_MEASURES}
-                        if set(cell) == set(CELL_MEASURES):
-                            c["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
-                out.append(c)
-    return out
-
-
-# The issue's targets (benchmarked, not timed tests).
-TARGET_OF_LIMIT = 1.25  # the ResNet50 trunk within 1.25x of this CPU's compute limit, batch 1, 2 threads
-TARGET_CELL_MS = 1.0  # p50, everything per press outside the trunk: decode (MJPEG), frame checks, preprocess, heads,
-TARGET_CELL_P99_MS = 2.0  # router, decision, evidence (issue 14: <= 1 ms p50, < 2 ms p99 at 2 threads)
-TARGET_INT8_POINTS = 1.0  # int8 within 1 point of fp32 accuracy
-
-
-def targets(result: dict) -> list[dict]:
-    """Where each variant stands against the targets: one row per (variant, target)."""
-    rows = []
-    for r in result["variants"]:
-        if r["arch"] == "resnet50" and r.get("limit_ms", {}).get("2"):
-            ratio = r["latency"]["2"]["p50_ms"] / r["limit_ms"]["2"]
-            rows.append({"variant": r["name"], "target": f"trunk p50 (2 threads) <= {TARGET_OF_LIMIT}x compute limit",
-                         "measured": f"{r['latency']['2']['p50_ms']:.1f} ms = {ratio:.2f}x the {r['limit_ms']['2']:.1f} ms limit",
-                         "met": ratio <= TARGET_OF_LIMIT})
-        o = r["overhead_ms"]
-        cell = o.get("cell")
-        if cell is not None and "decode_mjpeg" in o:
-            t = max(r.get("press", {"2": None}), key=int)
-            rest, p99 = cell - o["decode_mjpeg"], r.get("overhead_p99_ms", {}).get("cell", math.nan)
-            met = cell <= TARGET_CELL_MS and p99 < TARGET_CELL_P99_MS
-            miss = "" if cell <= TARGET_CELL_MS else (
-                f"; p50 misses by {cell - TARGET_CELL_MS:.2f} ms" + (
-                    " (decode alone takes the budget)" if o["decode_mjpeg"] >= TARGET_CELL_MS
-                    else " even without decode" if rest >= TARGET_CELL_MS else ", met without decode"))
-            if not p99 < TARGET_CELL_P99_MS:
-                miss += f"; p99 over {TARGET_CELL_P99_MS:g} ms"
-            rows.append({"variant": r["name"],
-                         "target": f"per press outside the trunk, decode included, p50 <= {TARGET_CELL_MS:g} ms and "
-                                   f"p99 < {TARGET_CELL_P99_MS:g} ms ({t} threads)",
-                         "measured": f"{cell:.2f} ms = MJPEG decode {o['decode_mjpeg']:.2f} + the rest {rest:.2f}"
-                                     f" (p99 {p99:.2f}){miss}",
-                         "met": met})
-        elif cell is not None:  # a bench.json from before decode was timed: the rest only
-            rows.append({"variant": r["name"], "target": f"per press outside the trunk, decode NOT included, "
-                                                         f"<= {TARGET_CELL_MS:g} ms",
-                         "measured": f"{cell:.2f} ms", "met": cell <= TARGET_CELL_MS})
-    for c in result.get("comparisons", []):
-        if c.get("cost_points"):
-            worst = max(c["cost_points"].items(), key=lambda kv: kv[1])
-            rows.append({"variant": c["int8"], "target": f"int8 loses at most {TARGET_INT8_POINTS:g} point against "
-                                                         f"{c['fp32']} on every measure",
-                         "measured": f"largest loss {worst[1]:.1f} points ({worst[0]}: {c['delta_points'][worst[0]]:+.1f})",
-                         "met": c["within_1_point"]})
-    return rows
 
 
 def _main(argv: list[str]) -> int:

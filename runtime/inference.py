@@ -351,7 +351,7 @@ class TactileModel:
         t0 = time.perf_counter()
         x = self.preprocess(frame, reduced_by)
         t1 = time.perf_counter()
-        if self.split and self.scene_model is not None:
+        if self.split:  # the loader refuses format 3 without a scene model
             return self._score_scene(x, t0, t1)
         try:
             out = self.forward(x)
@@ -361,17 +361,10 @@ class TactileModel:
         if not (np.all(np.isfinite(out.logits_t)) and np.all(np.isfinite(out.logits_u))):
             raise FrameError("model output not usable for this frame (non-finite logits)", "model_output")
         novelty = float(out.novelty[0])
-        sq = z = None
-        classes = self.classes
         if self.scene_model is not None:
-            z = self.scene_projection(out)
-            lp_all, d2 = self.scene_model.log_posterior_projected(z)
-            classes = self.scene_model.classes  # the bundle's, then those it knows only to refuse
-            lp, sq = lp_all[0], dict(zip(classes, d2[0].tolist()))  # tolist: python floats, one C call
-            z = np.asarray(z[0], np.float64)
+            log_posterior, sq, z = self._scene_posterior(self.scene_projection(out))
         else:
-            lp = self.log_posterior(out)[0]
-        log_posterior = dict(zip(classes, lp.tolist()))
+            log_posterior, sq, z = dict(zip(self.classes, self.log_posterior(out)[0].tolist())), None, None
         t3 = time.perf_counter()
         timing = dict(self.last_timing)
         timing.update(preprocess_ms=1e3 * (t1 - t0), decision_ms=1e3 * (t3 - t2), total_ms=1e3 * (t3 - t0))
@@ -387,13 +380,19 @@ class TactileModel:
             raise FrameError("model output not usable for this frame (non-finite feature)", "model_output")
         if not np.all(np.isfinite(z)):
             raise FrameError("model output not usable for this frame (non-finite scene projection)", "model_output")
-        lp_all, d2 = self.scene_model.log_posterior_projected(z)
-        classes = self.scene_model.classes
-        log_posterior, sq = dict(zip(classes, lp_all[0].tolist())), dict(zip(classes, d2[0].tolist()))
+        log_posterior, sq, z64 = self._scene_posterior(z)
         t3 = time.perf_counter()
         self.last_timing = {"trunk_ms": 1e3 * (t2 - t1), "heads_ms": 0.0, "router_ms": 0.0, "preprocess_ms": 1e3 * (t1 - t0),
                             "decision_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}
-        return PressScore(log_posterior, None, None, self.last_timing["total_ms"], sq, np.asarray(z[0], np.float64))
+        return PressScore(log_posterior, None, None, self.last_timing["total_ms"], sq, z64)
+
+    def _scene_posterior(self, z: np.ndarray) -> tuple[dict, dict, np.ndarray]:
+        """One press's (1, k) projection -> its log posterior and squared distances over the scene
+        model's classes (the bundle's, then those it knows only to refuse), and the projection (k,)
+        float64 (tolist: python floats, one C call)."""
+        lp, d2 = self.scene_model.log_posterior_projected(z)
+        classes = self.scene_model.classes
+        return dict(zip(classes, lp[0].tolist())), dict(zip(classes, d2[0].tolist())), np.asarray(z[0], np.float64)
 
 
 __all__ = ["PressScore", "TactileModel", "Outputs", "fused_novelty", "gzsl_log_posterior", "gate_logit", "log_sigmoid", "LOG_ZERO",
