@@ -43,11 +43,39 @@ def run(args) -> int:
         if problem:
             print(f"config {cfg.path}: {problem}", file=sys.stderr)
             return 2
+    if args.check_bundle:  # said at the start too (runtime/daemon.py); a warning, not a refusal
+        from vs2t_edge.runtime.operating_point import confidence_override_note
+
+        note = confidence_override_note(cfg, bundle_scene_model(cfg))
+        if note:
+            print(f"warning: {note}", file=sys.stderr)
+    from vs2t_edge.runtime.operating_point import config_sets_confidence
+
     fabrics = ", ".join(f"{f.name}({f.kind[0]})->{f.bin}" for f in cfg.fabrics)
+    confidence = (f"confidence {cfg.confidence}" if config_sets_confidence(cfg)
+                  else f"confidence the scene model's (or {cfg.confidence} for a bundle without one)")
     print(f"{cfg.path}: ok - camera {cfg.camera['kind']}, arm {cfg.arm_kind}, gate {cfg.gate['kind']}, "
           f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "
-          f"confidence {cfg.confidence}, max {cfg.max_presses} presses")
+          f"{confidence}, max {cfg.max_presses} presses")
     return 0
+
+
+def bundle_scene_model(cfg):
+    """The bundle's scene model read from its decision file alone (no ONNX session), or None when
+    it has none or it cannot be read (the start says why, with the whole bundle's checks)."""
+    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+    from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
+
+    try:
+        decision = read_manifest(cfg.bundle).get("decision")
+        if not isinstance(decision, dict) or not isinstance(decision.get("file"), str):
+            return None
+        import numpy as np
+
+        with np.load(cfg.bundle / decision["file"], allow_pickle=False) as z:
+            return SceneModel.from_params({k: z[k] for k in z.files})
+    except (BundleError, OSError, ValueError, KeyError, SceneModelError):
+        return None
 
 
 def operator_labels_problem(cfg) -> str:

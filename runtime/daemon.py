@@ -46,6 +46,7 @@ from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.runtime.notify import Notifier
+from vs2t_edge.runtime.operating_point import confidence_override_note
 from vs2t_edge.runtime import job_check, wiring
 from vs2t_edge.runtime.wiring import SceneModelMissing, build_cell, build_live_devices, load_model, match_camera
 
@@ -124,6 +125,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                 f"(max relative error {max(probe.values()):.2g}) in {load_s:.1f} s")
         log(said)
         notifier.status(said)
+    note = confidence_override_note(cfg, getattr(model, "scene_model", None))
+    if note:  # the config moves the operating point training chose for the mis-sort target
+        log(note)
     for line in job_check_lines(cfg, model, evidence_factory):
         log(line)
     try:

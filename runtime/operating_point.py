@@ -170,6 +170,22 @@ def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
     return scene_model_settings(cfg, scene_model)
 
 
+def confidence_override_note(cfg, scene_model) -> str:
+    """What the config's written ``evidence.confidence`` does to a scene model's operating point,
+    in words for the start log and ``validate-config --check-bundle``; '' when the config writes
+    none (the model's own confidence decides) or there is no scene model."""
+    if scene_model is None or not config_sets_confidence(cfg):
+        return ""
+    ours, theirs = float(cfg.confidence), float(scene_model.confidence)
+    if ours == theirs:
+        return ""
+    effect = ("bolder: expect more pieces in wrong bins" if ours < theirs
+              else "more cautious: expect more pieces in the reject bin")
+    return (f"{cfg.path}: evidence.confidence {ours:g} overrides the touched confidence {theirs:g} that training "
+            f"chose on validation for the scene model's mis-sort target ({effect}); remove the key to sort at the "
+            "model's own operating point")
+
+
 def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
     they adapted, runtime/feedback.py): its rule, the config's written confidence over its own."""
@@ -178,5 +194,5 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
 
 
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
-           "write_beta_override", "scene_model_rule", "config_sets_confidence", "evidence_settings",
-           "scene_model_settings"]
+           "write_beta_override", "scene_model_rule", "config_sets_confidence", "confidence_override_note",
+           "evidence_settings", "scene_model_settings"]

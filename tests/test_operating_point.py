@@ -215,3 +215,74 @@ def test_a_bundle_without_a_scene_model_is_refused_at_start_unless_the_config_op
     (tmp_path / "c.yaml").write_text(BUNDLE_CFG + "evidence: {without_scene_model: yes}\n")
     with pytest.raises(ConfigError, match=r"c.yaml:\d+: evidence.without_scene_model = True: must be"):
         load_config(tmp_path / "c.yaml")
+
+
+def test_the_shipped_config_sorts_at_the_scene_models_own_confidence():
+    """systemd/cell.yaml wrote `evidence.confidence: 0.95`, which overrode the touched confidence
+    training chose for the mis-sort target on every cell deployed from it (0.97 or 0.99 on some
+    worlds: bolder there)."""
+    from pathlib import Path
+
+    cfg = load_config(Path(__file__).parents[1] / "systemd" / "cell.yaml")
+    assert not op.config_sets_confidence(cfg)
+    scene = SimpleNamespace(confidence=0.99)
+    assert op.confidence_override_note(cfg, scene) == ""
+    assert op.scene_model_settings(cfg, SimpleNamespace(**{**vars(_SCENE), "confidence": 0.99}))[0] == 0.99
+
+
+_SCENE = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
+                         known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
+
+
+def test_a_written_confidence_says_how_it_moves_the_operating_point(tmp_path):
+    assert op.confidence_override_note(_cfg(tmp_path), _SCENE) == ""  # not written: the model's decides
+    bold = op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.9}\n"), _SCENE)
+    assert "evidence.confidence 0.9 overrides the touched confidence 0.97" in bold and "wrong bins" in bold
+    careful = op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.99}\n"), _SCENE)
+    assert "more cautious" in careful and "reject bin" in careful
+    assert op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.97}\n"), _SCENE) == ""
+    assert op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.9}\n"), None) == ""
+
+
+def test_validate_config_warns_when_the_config_overrides_the_models_confidence(tmp_path, capsys):
+    import numpy as np
+    from feedback_fakes import scene_model
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    (tmp_path / "bundle").mkdir()
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "decision": {"file": "decision.npz"}}))
+    np.savez(tmp_path / "bundle" / "decision.npz", **scene_model(confidence=0.99).to_params())
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "touched", 2), ("wool", "untouched", 3)),
+                                  evidence={"confidence": 0.95}))
+    assert main(["validate-config", str(cfg), "--check-bundle"]) == 0  # a warning, not a refusal
+    out = capsys.readouterr()
+    assert "warning:" in out.err and "overrides the touched confidence 0.99" in out.err
+    assert "confidence 0.95" in out.out
+    cfg.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "touched", 2), ("wool", "untouched", 3))))
+    assert main(["validate-config", str(cfg), "--check-bundle"]) == 0
+    out = capsys.readouterr()
+    assert "warning" not in out.err and "confidence the scene model's" in out.out
+
+
+def test_the_service_says_at_start_that_its_config_overrides_the_models_confidence(tmp_path):
+    from feedback_fakes import PieceModel, scene_model
+
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.notify import Notifier
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    (tmp_path / "state").write_text("a file where the journal's folder should be")  # stops the start after the log
+    (tmp_path / "cell.yaml").write_text(fake_cell_yaml(
+        fabrics=(("denim", "touched", 1), ("silk", "touched", 2), ("wool", "untouched", 3)),
+        evidence={"confidence": 0.95}, journal="state/journal.jsonl"))
+    cfg = load_config(tmp_path / "cell.yaml")
+    model = PieceModel()
+    model.scene_model = scene_model(confidence=0.99)
+    logged: list[str] = []
+    assert run_daemon(cfg, model=model, notifier=Notifier(""), install_signals=False, log=logged.append) == 2
+    assert any("evidence.confidence 0.95 overrides the touched confidence 0.99" in line and "wrong bins" in line
+               for line in logged), logged
