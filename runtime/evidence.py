@@ -12,7 +12,9 @@ item is "unknown" (the reject bin).
 
 Off-scene checks (off unless set; the scene model sets both):
 - ``open_threshold``: the mean over presses of the smallest squared distance to a scene class
-  (``PressScore.sq_distance``) above it means the piece is like none of the scene's fabrics;
+  (``PressScore.sq_distance``; with an ``item_model``, from the press's projection to that model's
+  means, which operator labels may have moved) above it means the piece is like none of the
+  scene's fabrics;
 - ``known_margin``: a bundle class outside the scene whose summed (weighted) log posterior beats
   the leading scene class's by more than it means the piece is a fabric the cell knows that this
   job does not list.
@@ -95,6 +97,7 @@ class Evidence:
             self._rows = np.array([item_model.classes.index(c) for c in self.classes])
             self._others = np.setdiff1d(np.arange(len(item_model.classes)), self._rows)
             self._z_sum = np.zeros(item_model.k, dtype=np.float64)
+        self._open_rows: np.ndarray | None = None  # item-model rows of the scene classes the open-set rule reads
 
     def _posterior(self) -> np.ndarray:
         return self._acc - _logsumexp(self._acc)
@@ -122,11 +125,20 @@ class Evidence:
         self.presses += 1
         return self._check(final=False)
 
-    def _add_open(self, score) -> None:
+    def _add_open(self, score, z: np.ndarray | None = None) -> None:
         d2 = getattr(score, "sq_distance", None)
         if math.isfinite(self.open_threshold) and d2:
             # the scene's fabrics (a stranger the operator taught, runtime/feedback.py, has no press distance)
-            self._open_sum += min(float(d2[c]) for c in self.classes if c in d2)
+            if z is None:
+                self._open_sum += min(float(d2[c]) for c in self.classes if c in d2)
+            else:
+                # the item model's own means: where operator labels moved a class's mean to its real
+                # presses, the distance to the learned mean, not to the bundle's synthesis the press
+                # was scored against (which would refuse that fabric's pieces as off-scene for ever)
+                if self._open_rows is None:
+                    self._open_rows = np.array([self.item_model.classes.index(c) for c in self.classes if c in d2])
+                own = self.item_model.sq_distances_projected(z[None, :])[0]
+                self._open_sum += float(own[self._open_rows].min())
             self._open_n += 1
 
     def _add_projected(self, score) -> ItemDecision | None:
@@ -139,7 +151,7 @@ class Evidence:
         if z.shape != self._z_sum.shape or not np.all(np.isfinite(z)):
             raise ValueError(f"Evidence: press projection of shape {z.shape} (finite: {bool(np.all(np.isfinite(z)))}), "
                              f"expected ({self._z_sum.shape[0]},) finite")
-        self._add_open(score)
+        self._add_open(score, z)
         self._z_sum += z
         self.presses += 1
         scores = self.item_model.item_log_lik(self._z_sum / self.presses, self.presses)

@@ -243,6 +243,32 @@ def test_a_class_no_label_taught_is_sorted_only_when_zero_shot_agrees():
     assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), (0.0, 6.0)).label == "a"
 
 
+def test_the_off_scene_rule_measures_a_labelled_fabric_from_its_learned_mean():
+    """The press's distances are the bundle's (the synthesis); after labels moved an untouched
+    fabric's mean to its real presses, the open-set rule used to measure its pieces from the
+    synthesis still, and refused every one as off-scene however many labels taught it. A stranger
+    far from every scene fabric is still refused."""
+    m = scene_model(open_threshold=20.0)  # wool synthesised at (0, 10); its real presses at (0, 16)
+    make = lambda model, classes: Evidence(classes, 0.9, 4, item_model=model, open_threshold=model.open_threshold)  # noqa: E731
+    real_wool, stranger = np.array([0.0, 16.0]), np.array([-20.0, -20.0])
+    labelled = {"wool": [(real_wool, 4)] * 3}
+    adapted = adapt(m, labelled)
+
+    def run(ev, z):
+        d2 = dict(zip(m.classes, m.sq_distances_projected(z[None, :])[0].tolist()))  # as the cell scores it
+        for _ in range(4):
+            d = ev.add(so.Press({c: 0.0 for c in m.classes}, d2, z))
+            if d is not None:
+                return d
+        return ev.decide()
+
+    assert float(m.sq_distances_projected(real_wool[None, :])[0, 2]) > 20.0  # the synthesis is too far
+    assert run(make(m, list(CLASSES)), real_wool).stopped_by == "off_scene"  # zero-shot refuses it
+    taught = run(item_evidence(m, adapted, list(CLASSES), ["wool"], [], make), real_wool)
+    assert (taught.label, taught.stopped_by) == ("wool", "confident")
+    assert run(item_evidence(m, adapted, list(CLASSES), ["wool"], [], make), stranger).stopped_by == "off_scene"
+
+
 def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
     fb = _feedback(tmp_path)
     assert fb.poll(_Journal()) == []  # no file yet: nothing to read
