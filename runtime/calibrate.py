@@ -264,6 +264,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--curve", default=None, help="curve PNG (default: next to the bundle)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--dry-run", action="store_true", help="print the beta, write nothing")
+    parser.add_argument("--for-router", action="store_true",
+                        help="calibrate a bundle that decides with its scene model anyway: its beta moves no piece "
+                             "there, only the router's columns of the bench (refused without this flag)")
 
 
 def _override_target(args) -> tuple[Path | None, Path | None, str]:
@@ -283,6 +286,18 @@ def _override_target(args) -> tuple[Path | None, Path | None, str]:
                             "calibrate the bundle the service runs")
     path, problem = override_file_for(cfg)
     return bundle, path, problem
+
+
+def decides_with_scene_model(bundle: Path) -> bool:
+    """Whether ``bundle``'s manifest lists a scene model (the cell then decides with it, and beta
+    moves no piece); False when the manifest cannot be read (the load says why, later)."""
+    from vs2t_edge.runtime.bundle import BundleError, read_manifest
+
+    try:
+        manifest = read_manifest(bundle)
+    except (BundleError, OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and isinstance(manifest.get("decision"), dict)
 
 
 def _record_live(args, bundle: Path) -> int:
@@ -317,6 +332,14 @@ def run(args) -> int:
     if problem:  # --dry-run: say it, write nothing anyway
         print(f"calibrate-threshold: note: {problem}", file=sys.stderr)
         override = override_path_for(bundle)
+    if not args.for_router and decides_with_scene_model(bundle):
+        # said before any live session: the presses would be pressed for nothing
+        print(f"calibrate-threshold: bundle {bundle} decides every piece with its scene model (decision.npz); beta, "
+              "the router's threshold, moves no piece there, so calibrating it would change nothing the cell sorts. "
+              "The scene model's operating point (its confidences and off-scene rules) was chosen in training on "
+              "validation fabrics (docs/training.md). Give --for-router to calibrate the router's beta anyway (the "
+              "bench's router columns read it)", file=sys.stderr)
+        return 2
     if args.live_touched or args.live_validation:
         code = _record_live(args, bundle)
         if code:

@@ -404,3 +404,37 @@ def test_cli_names_the_calibrated_bundle_in_the_override(tmp_path, monkeypatch):
     assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds")]) == 0
     data = json.loads(override_path_for(bundle).read_text())
     assert data["bundle_seal"] == "ab" * 32 and data["bundle_beta"] == 65.0
+
+
+def test_a_bundle_that_decides_with_its_scene_model_is_refused_before_any_press(tmp_path, monkeypatch, capsys):
+    """beta moves no piece of a bundle with a scene model (the cell decides with the scene model):
+    calibrating it used to take two live sessions on the cell and end with "restart the service
+    to use it", which changed nothing. Refused in words before anything is pressed or written;
+    --for-router calibrates the router anyway."""
+    import json
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime import calibrate
+
+    _fake_inference(monkeypatch, ["denim", "silk"], [])
+    _grey_dataset(tmp_path / "ds", {"denim": 40, "silk": 60, "velvet": 200, "tweed": 220})
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 3,
+                                                      "decision": {"file": "decision.npz"}}))
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\njournal: journal.jsonl\n"
+        "devices: {camera: {kind: replay, path: frames}, arm: {kind: fake}, gate: {kind: fake}}\n"
+        "scene: {reject_bin: 0, fabrics: [{name: denim, kind: touched, bin: 1}]}\n")
+    monkeypatch.chdir(tmp_path)
+    recorded = []
+    monkeypatch.setattr(calibrate, "record", lambda *a, **k: recorded.append(a) or 0)
+    for argv in (["--bundle", str(bundle), "--dataset", str(tmp_path / "ds")],
+                 ["--config", "cell.yaml", "--live-touched", "2", "--live-validation", "2"]):
+        assert main(["calibrate-threshold", *argv]) == 2
+        err = capsys.readouterr().err
+        assert "decides every piece with its scene model" in err and "--for-router" in err
+    assert recorded == [] and not calibrate.override_path_for(bundle).exists()
+    assert main(["calibrate-threshold", "--bundle", str(bundle), "--dataset", str(tmp_path / "ds"), "--for-router"]) == 0
+    assert calibrate.override_path_for(bundle).exists()
