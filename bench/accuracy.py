@@ -39,7 +39,7 @@ def eval_presses(manifest: dict, ds, cap: int) -> dict[str, list[int]]:
     """Presses the bundle never trained on, per fabric: touched = its test presses and the presses
     training did not extract that come after its last training or validation press (fit on earlier
     presses, test on later ones: an unextracted press between two training presses is not a later
-    one); untouched = all; at most ``cap`` each, evenly spread over the grid."""
+    one); untouched = all; at most ``cap`` each, evenly spread over the grid (``cap`` <= 0: no cap)."""
     part = manifest["provenance"]["data"]["touched_presses"]
     out = {}
     for fid in manifest["classes"]["touched"]:
@@ -52,7 +52,7 @@ def eval_presses(manifest: dict, ds, cap: int) -> dict[str, list[int]]:
 
 
 def _spread(idx: list[int], k: int) -> list[int]:
-    if len(idx) <= k:
+    if k <= 0 or len(idx) <= k:
         return list(idx)
     return [idx[int(j)] for j in np.linspace(0, len(idx) - 1, k).round().astype(int)]
 

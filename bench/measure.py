@@ -339,7 +339,7 @@ def _made_by(manifest: dict) -> dict:
 
 
 def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | None = None,
-              threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 60,
+              threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 0,
               accuracy_on: bool = True, arm=None, jpeg_quality: int = JPEG_QUALITY, accuracy_through_jpeg: bool = False,
               accuracy_lossless: bool = False, pairs: Sequence[tuple[str, str]] = (),
               log: Callable[[str], None] = _log) -> dict:

@@ -31,6 +31,34 @@ def test_bench_touched_eval_presses_come_after_every_training_press():
                         f"(last training/val press {last_fit}): e.g. {inside[:8]}")
 
 
+def test_the_bench_scores_every_press_a_bundle_never_trained_on_by_default():
+    """A cap of 60 left 300 untouched presses on the paper world (5 fabrics), where int8's router H
+    read -2.6 [-5.2, -0.2]; on all 1125 it read -0.8 [-2.2, +0.5]: the cap measured noise. The
+    default scores every press the bundle never trained on; a cap still spreads evenly."""
+    import argparse
+    import inspect
+    from types import SimpleNamespace
+
+    from vs2t_edge.bench.accuracy import eval_presses
+    from vs2t_edge.bench.cli import add_arguments
+    from vs2t_edge.bench.measure import run_bench
+    from vs2t_edge.export.from_run import press_partition
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser, "bench")
+    assert parser.parse_args(["b"]).max_eval_presses == 0
+    assert inspect.signature(run_bench).parameters["cap"].default == 0
+    part = press_partition({"a": 225}, ["a"], seed=0, max_presses=45)
+    manifest = {"provenance": {"data": {"touched_presses": part}}, "classes": {"touched": ["a"], "untouched": ["u"]}}
+    ds = SimpleNamespace(by_id=lambda fid: SimpleNamespace(presses=[None] * 225))
+    every = eval_presses(manifest, ds, cap=0)
+    assert every["u"] == list(range(225))
+    later = [i for i in part["a"]["test"] + part["a"]["unused"] if i > max(part["a"]["train"] + part["a"]["val"])]
+    assert every["a"] == sorted(later)
+    capped = eval_presses(manifest, ds, cap=60)["u"]
+    assert len(capped) == 60 and capped[0] == 0 and capped[-1] == 224
+
+
 # ---------------------------------------------------------------- training: test strangers are validation fabrics
 
 def test_scene_decision_test_strangers_were_not_read_by_the_choice(monkeypatch):
