@@ -196,7 +196,9 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     else the guarded pair (``GuardedEvidence``): ``adapted`` (the offset-rule model the labels
     updated, over the scene's fabrics and the learned strangers) checked by the zero-shot one."""
     taught = [OFF_SCENE_PREFIX + name for name in strangers]
-    learned = [*labelled, *taught]
+    # a labelled class is taught only where ``adapt`` moved its mean: with no offset for syntheses
+    # (offset_var_untouched 0, "a perfect synthesis") a label leaves it as it was, guarded like any other
+    learned = [*(labelled if adapted.offset_var_untouched > 0 else ()), *taught]
     zero_shot = make_evidence(deployed, list(scene))
     if deployed.item_rule != "offset":
         zero_shot = TrackedEvidence(zero_shot, deployed.k)

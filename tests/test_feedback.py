@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,8 @@ from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback, adapt, append_label, item_evidence, read_labels
+from vs2t_edge.runtime.feedback import (GuardedEvidence, OperatorFeedback, adapt, append_label, item_evidence,
+                                        read_labels)
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, iter_records, read_records
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
@@ -267,6 +269,23 @@ def test_the_off_scene_rule_measures_a_labelled_fabric_from_its_learned_mean():
     taught = run(item_evidence(m, adapted, list(CLASSES), ["wool"], [], make), real_wool)
     assert (taught.label, taught.stopped_by) == ("wool", "confident")
     assert run(item_evidence(m, adapted, list(CLASSES), ["wool"], [], make), stranger).stopped_by == "off_scene"
+
+
+def test_a_label_that_moved_no_mean_makes_the_cell_no_bolder():
+    """With no offset for syntheses (offset_var_untouched 0, a setting validation may choose) a
+    label moves no mean, yet its class used to count as taught, and the guard let the adapted
+    evidence decide it alone. It is now guarded like a class no label taught."""
+    m = SceneModel(("tw", "a", "b"), frozenset({"a", "b"}), np.zeros(2), np.eye(2),
+                   np.array([[0.0, -10.0], [0.0, 10.0], [10.0, 10.0]]), item_rule="offset", press_var=1.0,
+                   offset_var_touched=0.1, offset_var_untouched=0.0, item_temperature=1.0)
+    make = lambda model, classes: Evidence(classes, 0.9, 4, item_model=model)  # noqa: E731
+    adapted = adapt(m, {"a": [(np.array([0.0, 6.0]), 4)] * 3})
+    assert np.array_equal(adapted.means, m.means)  # nothing learned
+    ev = item_evidence(m, adapted, ["tw", "a", "b"], {"a": [(np.array([0.0, 6.0]), 4)] * 3}, {}, make)
+    assert not isinstance(ev, GuardedEvidence)  # decided as zero-shot decides, not trusted
+    assert isinstance(item_evidence(replace(m, offset_var_untouched=20.0), adapt(replace(m, offset_var_untouched=20.0),
+                      {"a": [(np.array([0.0, 6.0]), 4)]}), ["tw", "a", "b"], {"a": [(np.array([0.0, 6.0]), 4)]}, {},
+                      make), GuardedEvidence)
 
 
 def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
