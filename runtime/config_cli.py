@@ -63,15 +63,16 @@ def run(args) -> int:
 def bundle_scene_model(cfg):
     """The bundle's scene model read from its decision file alone (no ONNX session), or None when
     it has none or it cannot be read (the start says why, with the whole bundle's checks)."""
+    import numpy as np
+
     from vs2t_edge.runtime.bundle import BundleError, read_manifest
     from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 
     try:
-        decision = read_manifest(cfg.bundle).get("decision")
+        manifest = read_manifest(cfg.bundle)
+        decision = manifest.get("decision") if isinstance(manifest, dict) else None
         if not isinstance(decision, dict) or not isinstance(decision.get("file"), str):
             return None
-        import numpy as np
-
         with np.load(cfg.bundle / decision["file"], allow_pickle=False) as z:
             return SceneModel.from_params({k: z[k] for k in z.files})
     except (BundleError, OSError, ValueError, KeyError, SceneModelError):
