@@ -279,13 +279,13 @@ def test_a_label_that_moved_no_mean_makes_the_cell_no_bolder():
                    np.array([[0.0, -10.0], [0.0, 10.0], [10.0, 10.0]]), item_rule="offset", press_var=1.0,
                    offset_var_touched=0.1, offset_var_untouched=0.0, item_temperature=1.0)
     make = lambda model, classes: Evidence(classes, 0.9, 4, item_model=model)  # noqa: E731
-    adapted = adapt(m, {"a": [(np.array([0.0, 6.0]), 4)] * 3})
+    labelled = {"a": [(np.array([0.0, 6.0]), 4)] * 3}
+    adapted = adapt(m, labelled)
     assert np.array_equal(adapted.means, m.means)  # nothing learned
-    ev = item_evidence(m, adapted, ["tw", "a", "b"], {"a": [(np.array([0.0, 6.0]), 4)] * 3}, {}, make)
+    ev = item_evidence(m, adapted, ["tw", "a", "b"], labelled, {}, make)
     assert not isinstance(ev, GuardedEvidence)  # decided as zero-shot decides, not trusted
-    assert isinstance(item_evidence(replace(m, offset_var_untouched=20.0), adapt(replace(m, offset_var_untouched=20.0),
-                      {"a": [(np.array([0.0, 6.0]), 4)]}), ["tw", "a", "b"], {"a": [(np.array([0.0, 6.0]), 4)]}, {},
-                      make), GuardedEvidence)
+    learns = replace(m, offset_var_untouched=20.0)  # the same label moves this model's mean: taught, guarded pair
+    assert isinstance(item_evidence(learns, adapt(learns, labelled), ["tw", "a", "b"], labelled, {}, make), GuardedEvidence)
 
 
 def test_a_bad_or_missing_labels_file_never_stops_the_cell(tmp_path):
