@@ -7,6 +7,7 @@ runs it as ExecStartPre, so a bad config stops the service before any device is 
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 
 def add_arguments(parser, verb: str) -> None:
@@ -38,15 +39,17 @@ def run(args) -> int:
                   "BUNDLE`, or set `evidence.without_scene_model: allow` knowing that risk (docs/cell.md)",
                   file=sys.stderr)
             return 2
-    if args.check_bundle and cfg.operator_labels is not None:
-        problem = operator_labels_problem(cfg)  # what `run` refuses at start (runtime/wiring.py), said before it
-        if problem:
-            print(f"config {cfg.path}: {problem}", file=sys.stderr)
-            return 2
-    if args.check_bundle:  # said at the start too (runtime/daemon.py); a warning, not a refusal
+    if args.check_bundle:
+        read = read_scene_model(cfg)  # once, for both checks below
+        if cfg.operator_labels is not None:
+            problem = operator_labels_problem(cfg, read)  # what `run` refuses at start (runtime/wiring.py), said before it
+            if problem:
+                print(f"config {cfg.path}: {problem}", file=sys.stderr)
+                return 2
+        # said at the start too (runtime/daemon.py); a warning, not a refusal
         from vs2t_edge.runtime.operating_point import confidence_override_note
 
-        note = confidence_override_note(cfg, bundle_scene_model(cfg))
+        note = confidence_override_note(cfg, read[0])
         if note:
             print(f"warning: {note}", file=sys.stderr)
     from vs2t_edge.runtime.operating_point import config_sets_confidence
@@ -60,9 +63,9 @@ def run(args) -> int:
     return 0
 
 
-def bundle_scene_model(cfg):
-    """The bundle's scene model read from its decision file alone (no ONNX session), or None when
-    it has none or it cannot be read (the start says why, with the whole bundle's checks)."""
+def read_scene_model(cfg) -> tuple[Any, str]:
+    """(the bundle's scene model, read from its decision file alone - no ONNX session - or None;
+    why it could not be read, '' when it was or the manifest lists none)."""
     import numpy as np
 
     from vs2t_edge.runtime.bundle import BundleError, read_manifest
@@ -70,38 +73,30 @@ def bundle_scene_model(cfg):
 
     try:
         manifest = read_manifest(cfg.bundle)
-        decision = manifest.get("decision") if isinstance(manifest, dict) else None
-        if not isinstance(decision, dict) or not isinstance(decision.get("file"), str):
-            return None
-        with np.load(cfg.bundle / decision["file"], allow_pickle=False) as z:
-            return SceneModel.from_params({k: z[k] for k in z.files})
-    except (BundleError, OSError, ValueError, KeyError, SceneModelError):
-        return None
-
-
-def operator_labels_problem(cfg) -> str:
-    """Why the bundle cannot learn from operator labels (runtime/feedback.py needs the scene model's
-    offset item rule), or '' when it can."""
-    import numpy as np
-
-    from vs2t_edge.runtime.bundle import BundleError, read_manifest
-
-    try:
-        manifest = read_manifest(cfg.bundle)
     except BundleError as exc:
-        return str(exc)
-    file = (manifest.get("decision") or {}).get("file") if isinstance(manifest.get("decision"), dict) else None
+        return None, str(exc)
+    decision = manifest.get("decision") if isinstance(manifest, dict) else None
+    file = decision.get("file") if isinstance(decision, dict) else None
     if not isinstance(file, str):
-        return (f"evidence.operator_labels is set and bundle {cfg.bundle} has no scene model (decision.npz) to "
-                "learn with; re-export it from its run, or remove the key")
+        return None, ""
     try:
         with np.load(cfg.bundle / file, allow_pickle=False) as z:
-            rule = str(z["item_rule"]) if "item_rule" in z.files else "sum"
-            has_labels_rule = "labels_press_var" in z.files
-    except (OSError, ValueError, KeyError) as exc:
-        return f"bundle {cfg.bundle}: {file} unreadable ({exc})"
-    if rule != "offset" and not has_labels_rule:
-        return (f"evidence.operator_labels is set and bundle {cfg.bundle}'s scene model uses the {rule} item rule "
-                "without an offset setting for labels (exported before bundles carried one): re-export it from its "
-                "run, or remove the key")
+            return SceneModel.from_params({k: z[k] for k in z.files}), ""
+    except (OSError, ValueError, KeyError, SceneModelError) as exc:
+        return None, f"bundle {cfg.bundle}: {file} unreadable ({exc})"
+
+
+def operator_labels_problem(cfg, read: tuple[Any, str] | None = None) -> str:
+    """Why the bundle cannot learn from operator labels (runtime/feedback.py needs the scene model's
+    offset item rule), or '' when it can; ``read``: ``read_scene_model(cfg)`` when done already."""
+    model, problem = read_scene_model(cfg) if read is None else read
+    if problem:
+        return problem
+    if model is None:
+        return (f"evidence.operator_labels is set and bundle {cfg.bundle} has no scene model (decision.npz) to "
+                "learn with; re-export it from its run, or remove the key")
+    if model.for_labels() is None:
+        return (f"evidence.operator_labels is set and bundle {cfg.bundle}'s scene model uses the {model.item_rule} "
+                "item rule without an offset setting for labels (exported before bundles carried one): re-export it "
+                "from its run, or remove the key")
     return ""

@@ -81,6 +81,12 @@ def _piece_weights(model: SceneModel, fabric: str, pieces) -> tuple[float, np.nd
     return precision, weighted
 
 
+def labels_teach(model: SceneModel) -> bool:
+    """Whether a label moves an untouched class's mean under ``model``'s offsets (``adapt``): with no
+    offset for syntheses (``offset_var_untouched`` 0, a perfect synthesis) there is nothing to learn."""
+    return model.offset_var_untouched > 0
+
+
 def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, int]]],
           strangers: Mapping[str, Sequence[tuple[np.ndarray, int]]] | None = None) -> SceneModel:
     """``model`` with each untouched class of ``labelled`` (class -> [(press mean, presses), ...])
@@ -98,7 +104,7 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
         if fabric not in model.classes:
             raise SceneModelError(f"operator labels: the scene model has no class {fabric!r}")
         c = model.classes.index(fabric)
-        if not is_u[c] or not pieces or not s_u > 0:  # s_u = 0: a perfect synthesis, nothing to learn
+        if not is_u[c] or not pieces or not labels_teach(model):
             continue
         precision, weighted = _piece_weights(model, fabric, pieces)
         precision += 1.0 / s_u  # the synthesis is the prior: mu ~ N(m, s_u I)
@@ -196,9 +202,8 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     else the guarded pair (``GuardedEvidence``): ``adapted`` (the offset-rule model the labels
     updated, over the scene's fabrics and the learned strangers) checked by the zero-shot one."""
     taught = [OFF_SCENE_PREFIX + name for name in strangers]
-    # a labelled class is taught only where ``adapt`` moved its mean: with no offset for syntheses
-    # (offset_var_untouched 0, "a perfect synthesis") a label leaves it as it was, guarded like any other
-    learned = [*(labelled if adapted.offset_var_untouched > 0 else ()), *taught]
+    # a labelled class is taught only where ``adapt`` moved its mean; else it is guarded like any other
+    learned = [*(labelled if labels_teach(adapted) else ()), *taught]
     zero_shot = make_evidence(deployed, list(scene))
     if deployed.item_rule != "offset":
         zero_shot = TrackedEvidence(zero_shot, deployed.k)
@@ -425,4 +430,4 @@ def _projection(z: Any, k: int) -> bool:
 
 
 __all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",
-           "OFF_SCENE_PREFIX", "TrackedEvidence"]
+           "OFF_SCENE_PREFIX", "TrackedEvidence", "labels_teach"]
