@@ -48,6 +48,7 @@ state from the journal (``restore``) and reads on from the first line it has not
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import replace
@@ -64,7 +65,7 @@ from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 JOURNAL_DECIMALS = 5  # of a pre_sort record's scene_z_mean, what live and restarted cells learn from
 
 MAX_LABEL_LINE_BYTES = 4096
-MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; start a new file per job long before
+MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; a new file per job (at a new path) long before
 OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
 
 
@@ -238,30 +239,48 @@ def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]
         data = read_regular_file(path, MAX_LABELS_FILE_BYTES, "labels file")
     except FileNotFoundError:
         return []
+    return [(k, rec) for k, rec, _ in _parse_labels(data, start)]
+
+
+def _parse_labels(data: bytes, start: int = 0) -> list[tuple[int, dict | str, int]]:
+    """``read_labels``'s lines of ``data``, each with the byte offset just past its newline."""
     lines = data.split(b"\n")[:-1]  # the part after the last newline is not a whole line yet
-    out: list[tuple[int, dict | str]] = []
+    end = sum(len(raw) + 1 for raw in lines[:start])
+    out: list[tuple[int, dict | str, int]] = []
     for k, raw in enumerate(lines[start:], start + 1):
-        if not raw.strip():
-            out.append((k, "an empty line"))
-            continue
-        if len(raw) > MAX_LABEL_LINE_BYTES:
-            out.append((k, f"a line of {len(raw)} bytes (at most {MAX_LABEL_LINE_BYTES})"))
-            continue
-        try:
-            rec = json.loads(raw)
-        except (ValueError, UnicodeDecodeError) as exc:
-            out.append((k, f"not JSON ({exc})"))
-            continue
-        retract = isinstance(rec, dict) and rec.get("retract") is True and "fabric" not in rec \
-            and "off_scene" not in rec and isinstance(rec.get("item_id"), str)
-        if not retract and (not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str)
-                            or not isinstance(rec.get("fabric"), str) or "retract" in rec
-                            or not isinstance(rec.get("off_scene", False), bool)):
-            out.append((k, 'not {"item_id": "...", "fabric": "..."[, "off_scene": true]} '
-                           'nor {"item_id": "...", "retract": true}'))
-            continue
-        out.append((k, rec))
+        end += len(raw) + 1
+        out.append((k, _parse_label(raw), end))
     return out
+
+
+def _parse_label(raw: bytes) -> dict | str:
+    if not raw.strip():
+        return "an empty line"
+    if len(raw) > MAX_LABEL_LINE_BYTES:
+        return f"a line of {len(raw)} bytes (at most {MAX_LABEL_LINE_BYTES})"
+    try:
+        rec = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        return f"not JSON ({exc})"
+    retract = isinstance(rec, dict) and rec.get("retract") is True and "fabric" not in rec \
+        and "off_scene" not in rec and isinstance(rec.get("item_id"), str)
+    if not retract and (not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str)
+                        or not isinstance(rec.get("fabric"), str) or "retract" in rec
+                        or not isinstance(rec.get("off_scene", False), bool)):
+        return ('not {"item_id": "...", "fabric": "..."[, "off_scene": true]} '
+                'nor {"item_id": "...", "retract": true}')
+    return rec
+
+
+_EMPTY_SHA256 = hashlib.sha256(b"").hexdigest()
+
+
+def _line_end(data: bytes, n: int) -> int:
+    """The offset just past the ``n``-th newline of ``data`` (0 for none)."""
+    end = 0
+    for _ in range(n):
+        end = data.index(b"\n", end) + 1
+    return end
 
 
 class OperatorFeedback:
@@ -289,7 +308,9 @@ class OperatorFeedback:
         self.lines_read = 0
         self.model = base
         self._unreadable = ""  # the last unreadable-file error journaled (said once, not per piece)
-        self._size_read = -1  # the labels file's size when last read (the file is append-only)
+        self._seen: tuple | None = None  # the labels file's (device, inode, size, mtime) when last read
+        # (bytes, SHA-256) of the file through line lines_read; None: unknown (a journal older than them)
+        self._prefix: tuple[int, str] | None = (0, _EMPTY_SHA256)
 
     def __call__(self):
         return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
@@ -349,12 +370,16 @@ class OperatorFeedback:
     def poll(self, journal) -> list[dict]:
         """Read labels written since the last poll, apply them, journal each; the records written.
         A labels file that cannot be read (permissions, a folder in its place) stops no piece: the
-        cell sorts on with what it learned, and the journal says so once per distinct error."""
+        cell sorts on with what it learned, and the journal says so once per distinct error. A file
+        that no longer begins with the lines read before (a new file in its place, truncated, edited)
+        is read again from its first line, said in the journal: none of its lines is skipped, and a
+        label already in force changes nothing when read again."""
         try:
-            size = os.stat(self.path).st_size
-            if size == self._size_read:  # nothing appended since the last read: no re-read per piece
+            st = os.stat(self.path)
+            seen = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+            if seen == self._seen:  # nothing written since the last read: no re-read per piece
                 return []
-            lines = read_labels(self.path, self.lines_read)
+            data = read_regular_file(self.path, MAX_LABELS_FILE_BYTES, "labels file")
         except FileNotFoundError:
             return []
         except (OSError, InputRefused) as exc:
@@ -367,8 +392,21 @@ class OperatorFeedback:
             return out
         self._unreadable = ""
         out = []
-        for line, rec in lines:
-            entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path)}
+        if not self._begins_with_lines_read(data):
+            why = (f"labels file {self.path} no longer begins with the {self.lines_read} line(s) read before (a new "
+                   "file in its place, truncated or edited): read again from line 1. The labels in force stay (one "
+                   "read again changes nothing); a line taken out withdraws nothing: `vs2t-edge label --retract` does")
+            out.append(journal.append({"type": "label", "file": str(self.path), "applied": False, "reread": True,
+                                       "why": why}))
+            self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)
+        lines = _parse_labels(data, self.lines_read)
+        start = self._prefix[0] if self._prefix is not None else _line_end(data, self.lines_read)
+        digest = hashlib.sha256(data[:start])
+        for line, rec, end in lines:
+            digest.update(data[start:end])
+            start = end
+            entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path),
+                                     "file_bytes": end, "file_sha256": digest.hexdigest()}
             before_line = dict(self.item_labels)  # what a label that cannot be journaled must leave
             if isinstance(rec, str):
                 entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
@@ -388,14 +426,22 @@ class OperatorFeedback:
                 out.append(journal.append(entry))
             except BaseException:
                 # not in the journal, so not in the state: a restart could not rebuild it. The line
-                # is read again at the next poll (lines_read, _size_read not moved past it).
+                # is read again at the next poll (lines_read, _seen not moved past it).
                 if self.item_labels != before_line:
                     self.item_labels = before_line
                     self._relearn()
                 raise
-            self.lines_read = line
-        self._size_read = size  # a line still being written grows the file, so it is read when whole
+            self.lines_read, self._prefix = line, (end, entry["file_sha256"])
+        self._seen = seen  # a line still being written grows the file, so it is read when whole
         return out
+
+    def _begins_with_lines_read(self, data: bytes) -> bool:
+        """Whether ``data`` still begins with the lines read so far, byte for byte (their length and
+        SHA-256, journaled with each line; a journal written before they were: at least as many lines)."""
+        if self._prefix is None:
+            return data.count(b"\n") >= self.lines_read
+        n, sha = self._prefix
+        return len(data) >= n and hashlib.sha256(data[:n]).hexdigest() == sha
 
     def restore(self, records: Iterable[Mapping[str, Any]], seal: str | None) -> None:
         """The state a restarted service resumes from: decided items' press means (pre_sort
@@ -412,13 +458,17 @@ class OperatorFeedback:
             elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
                     and rec.get("item_id") is not None and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
                 self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
+            elif kind == "label" and rec.get("file") == str(self.path) and rec.get("reread") is True:
+                self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
                 if rec.get("applied") and rec.get("retract"):
                     self._retract(str(rec.get("item_id")), rebuild=False)
                 elif rec.get("applied"):
                     self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")),
                                 rebuild=False)
-                self.lines_read = max(self.lines_read, rec["line"])
+                n, sha = rec.get("file_bytes"), rec.get("file_sha256")
+                self.lines_read = rec["line"]
+                self._prefix = (n, sha) if isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str) else None
         self._relearn()  # once, not once per label
 
 

@@ -88,7 +88,8 @@ def labels_of(records: list[dict]) -> list[dict]:
     for r in records:
         if r.get("type") == "item":
             before = r.get("item_id")
-        elif r.get("type") == "label" and before is not None:
+        elif r.get("type") == "label" and isinstance(r.get("line"), int) and before is not None:  # a line read, not
+            # a note about the file (unreadable, read again from line 1)
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
                         **({"off_scene": True} if r.get("off_scene") else {}),
                         **({"retract": True} if r.get("retract") else {})})

@@ -3,6 +3,9 @@ label reaches only the piece it names (runtime/feedback.py, runtime/cell.py, run
 
 from __future__ import annotations
 
+import json
+import os
+
 import numpy as np
 import pytest
 
@@ -118,6 +121,69 @@ def test_a_label_that_cannot_be_journaled_is_not_applied_and_is_read_again(tmp_p
     restarted.restore(pre_sorts + j.records, seal=None)
     assert restarted.item_labels == fb.item_labels == {"piece-1": ("wool", False), "piece-2": ("wool", False)}
     assert np.array_equal(restarted.model.means, fb.model.means)
+
+
+# --- 2b. a labels file replaced, truncated or edited: none of its lines is skipped -----------------
+
+def _label_lines(*labels):
+    return "".join(json.dumps({"item_id": i, "fabric": f}, sort_keys=True) + "\n" for i, f in labels)
+
+
+def test_a_labels_file_put_in_place_of_the_one_read_is_read_from_its_first_line(tmp_path):
+    """The cell reads the labels file on from the last line it read. A new file in its place (a new
+    job's, or an editor's save), or the old one cut short, has other lines there: reading on from
+    that line number skipped its first lines without a word - labels the operator gave, lost. Now
+    the file is checked to begin with the lines read (their SHA-256, journaled with each line, so a
+    restart checks it too), and read again from line 1 when it does not, said in the journal."""
+    fb = _feedback(tmp_path)
+    pre_sorts = []
+    for item in ("piece-1", "piece-2", "piece-3"):
+        ev = fb()
+        _decide(ev, PIECE_Z)
+        fb.remember(item, ev)
+        pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
+                          "scene_z_mean": fb.journal_z_mean(ev)})
+    j = ListJournal()
+    fb.path.write_text(_label_lines(("piece-9", "wool"), ("piece-8", "wool")))  # two lines naming no piece here
+    assert [r["applied"] for r in fb.poll(j)] == [False, False] and fb.item_labels == {}
+    # an editor's save: a new file (new inode), the same two lines and one more - read on, nothing twice
+    tmp = tmp_path / "labels.new"
+    tmp.write_text(_label_lines(("piece-9", "wool"), ("piece-8", "wool"), ("piece-1", "wool")))
+    os.replace(tmp, fb.path)
+    got = fb.poll(j)
+    assert [(r["line"], r["item_id"], r["applied"]) for r in got] == [(3, "piece-1", True)]
+    # a new file for the next job: one line, the same size as before or not - read from its first line
+    tmp.write_text(_label_lines(("piece-2", "wool")))
+    os.replace(tmp, fb.path)
+    got = fb.poll(j)
+    assert [r.get("reread") for r in got] == [True, None] and "read again from line 1" in got[0]["why"]
+    assert (got[1]["line"], got[1]["item_id"], got[1]["applied"]) == (1, "piece-2", True)
+    assert fb.item_labels == {"piece-1": ("wool", False), "piece-2": ("wool", False)}  # what was learned stays
+    # the same file edited in place, its line count unchanged: read again, the label in force a no-op
+    fb.path.write_text(_label_lines(("piece-3", "wool")))
+    got = fb.poll(j)
+    assert [r.get("reread") for r in got] == [True, None] and got[1]["applied"]
+    assert fb.poll(j) == []  # and nothing twice
+    # a restart checks the file against the journal: a file replaced while the service was down
+    restarted = _feedback(tmp_path)
+    restarted.restore(pre_sorts + j.records, seal=None)
+    assert restarted.item_labels == fb.item_labels and restarted.lines_read == 1
+    assert restarted.poll(ListJournal()) == []  # the file it journaled: nothing read twice
+    fb.path.write_text(_label_lines(("piece-9", "wool"), ("piece-1", "silk")))  # while it was down
+    restarted = _feedback(tmp_path)
+    restarted.restore(pre_sorts + j.records, seal=None)
+    got = restarted.poll(ListJournal())
+    assert [r.get("reread") for r in got] == [True, None, None] and got[2]["item_id"] == "piece-1" and got[2]["applied"]
+    assert restarted.item_labels == {"piece-2": ("wool", False), "piece-3": ("wool", False)}
+    # a journal written before the checksums: at least as many lines as it read, else read again
+    old = [{k: v for k, v in r.items() if k not in ("file_bytes", "file_sha256")} for r in j.records]
+    fb.path.write_text("")
+    restarted = _feedback(tmp_path)
+    restarted.restore(pre_sorts + old, seal=None)
+    assert [r.get("reread") for r in restarted.poll(ListJournal())] == [True]  # fewer lines than it read
+    append_label(fb.path, "piece-1", None)
+    got = restarted.poll(ListJournal())
+    assert [(r["line"], r.get("retract"), r["applied"]) for r in got] == [(1, True, True)]
 
 
 # --- 3. a recording shares the live labels file: its pieces' ids must never be live ones --------------
