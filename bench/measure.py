@@ -416,7 +416,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
 
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+        from vs2t_edge.runtime.files import portable
+
+        (out_dir / "bench.json").write_text(json.dumps(portable(result), indent=1, default=float) + "\n")
         md = out_dir / "bench.md"
         md.write_text(render_markdown(result) + hand_written_tail(md))
         try:

@@ -4,9 +4,9 @@ tail kept, the per-item-by-bins table and the Pareto plot, from a result of runt
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 
+from vs2t_edge.runtime.files import portable
 from vs2t_edge.bench.measure import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
 
 
@@ -94,9 +94,8 @@ def hand_written_tail(md: Path) -> str:
 
 
 def _portable(text: object) -> str:
-    """A manifest's command or path without this machine's folders: absolute paths keep their last
-    component (the name anyone gives their own dataset, run or bundle folder)."""
-    return re.sub(r"(?<![\w.])/(?:[\w.+-]+/)+([\w.+-]+)", r"\1", str(text))
+    """A manifest's command or path without this machine's folders (``runtime.files.portable``)."""
+    return portable(str(text))
 
 
 def render_made_by(result: dict) -> list[str]:

@@ -19,10 +19,12 @@ silently turning it into the 8-bit BGR frame a GelSight sends.
 from __future__ import annotations
 
 import os
+import re
 import stat
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -218,3 +220,27 @@ def atomic_write(path: Path, text: str) -> None:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/(?:[\w.+-]+/)*?(?:([\w.+-]+)/)?([\w.+-]+)(?![\w.+-]*/)")
+
+
+def _name_of(m: re.Match) -> str:
+    """A folder's name; a file's with its folder's (``run/metrics.json``, not ``metrics.json``)."""
+    folder, name = m.group(1), m.group(2)
+    return f"{folder}/{name}" if folder and "." in name.strip(".") else name
+
+
+def portable(value: Any) -> Any:
+    """``value`` (text, or lists and dicts of it, as a result JSON holds) without this machine's
+    folders: every absolute path keeps its last component, the name anyone gives their own dataset,
+    run or bundle folder (a file's keeps its folder's too). Results that are committed and read on other machines are written so
+    (bench.json, a comparison's JSON); a run's own files keep their paths, which its tools follow."""
+    if isinstance(value, str):
+        return _ABSOLUTE_PATH.sub(_name_of, value)
+    if isinstance(value, dict):
+        return {k: portable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [portable(v) for v in value]
+    return value
+

@@ -127,3 +127,32 @@ def test_the_demos_default_work_folder_is_ignored_by_git():
     workdir = parser.parse_args([]).workdir
     checked = subprocess.run(["git", "check-ignore", "-q", f"{workdir}/dataset/fabrics.csv"], cwd=ROOT)
     assert checked.returncode == 0, f"{workdir}/ is not in .gitignore"
+
+
+_MACHINE_FOLDERS = ("/work/", "/root/", "/home/", "/Users/")  # where one machine keeps its data and runs
+
+
+def test_committed_docs_and_results_name_no_folder_of_one_machine():
+    """Docs and results are read on other machines: they name commands anyone can run, never the
+    folders of the machine that made them (a bench.json or comparison JSON used to keep them)."""
+    docs = [ROOT / "README.md", *sorted(p for p in (ROOT / "docs").rglob("*") if p.is_file())]
+    found = []
+    for path in docs:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:  # a plot
+            continue
+        for n, line in enumerate(text.splitlines(), 1):
+            found += [f"{path.relative_to(ROOT)}:{n}: {line.strip()[:120]}" for f in _MACHINE_FOLDERS if f in line]
+    assert not found, "paths of one machine in committed docs:\n" + "\n".join(found[:20])
+
+
+def test_results_are_written_without_this_machines_folders():
+    from vs2t_edge.runtime.files import portable
+
+    made = {"command": ".venv/bin/vs2t-edge export /work/runs/paper --out /srv/b/paper_fp32",
+            "splits": "exactly the splits of /tmp/r/paper_v3/metrics.json",
+            "see": ["https://github.com/a/b", "docs/results/bench/bench.json"], "n": 3}
+    assert portable(made) == {"command": ".venv/bin/vs2t-edge export paper --out paper_fp32",
+                              "splits": "exactly the splits of paper_v3/metrics.json",
+                              "see": ["https://github.com/a/b", "docs/results/bench/bench.json"], "n": 3}

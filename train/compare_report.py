@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vs2t_edge.runtime.files import portable
 from vs2t_edge.train.baselines import PAPER_GZSL_VS2T, PAPER_ZSL
 from vs2t_edge.train.compare import (GAUSSIAN_ROUTER, ITEM_CONFIDENCE, ITEM_MAX_PRESSES, ITEM_SCENES,
                                      _evidence_strength, _lead, _pct, pool_into, summarise)
@@ -376,6 +377,9 @@ def write_results(result: dict, out_dir: Path, real: dict | None = None, name: s
     tail = hand_written_tail(paths["md"], unmarked)  # before writing anything: a refusal leaves the old files
     out_dir.mkdir(parents=True, exist_ok=True)
     result.setdefault("meta", {})["png"] = paths["png"].name
+    # written as other machines read it: its paths without this machine's folders (the JSON and
+    # the page alike, so a page rebuilt from the JSON is this page)
+    result, real = portable(result), portable(real)
     payload = dict(result)
     if real is not None:
         payload["real_sensor_check"] = real

@@ -42,6 +42,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vs2t_edge.runtime.files import portable
+
 ROWS = ("generator", "map from the physical parameters", "kernel map from the physical parameters",
         "map from camera + attributes", "another realisation", "same surface", "nearest touched fabric")
 ALPHAS = (0.1, 1.0, 10.0, 100.0, 1000.0)
@@ -305,7 +307,7 @@ def main(argv=None) -> int:
     print(render_table(res["summary"], res["k"], len(res["splits"])))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(res, indent=1))
+        args.out.write_text(json.dumps(portable(res), indent=1))
     return 0
 
 

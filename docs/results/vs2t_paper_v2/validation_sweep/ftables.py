@@ -1,4 +1,6 @@
 """Per-split fine-tuned tactile feature tables (exactly what `vs2t-edge train` feeds the model), cached."""
+import os
+EXP = os.environ.get("VS2T_EXP", "exp")  # the folder of the feature tables ftables.py writes
 import sys, time
 from pathlib import Path
 import numpy as np, torch
@@ -26,4 +28,4 @@ def tables(run_dir, profile, n_splits, out):
         print(profile, i, sp.seed, f"{time.time()-t0:.1f}s", file=sys.stderr)
 
 if __name__ == "__main__":
-    tables(sys.argv[1], sys.argv[2], int(sys.argv[3]), "/work/data/fede/exp")
+    tables(sys.argv[1], sys.argv[2], int(sys.argv[3]), EXP)

@@ -1,5 +1,7 @@
 """Validation-only measurements: fit a VS2T variant on touched training presses, build CLS_u for the
 VALIDATION fabrics (views.val), score ZSL on validation presses. Test (untouched) fabrics: never read."""
+import os
+EXP = os.environ.get("VS2T_EXP", "exp")  # the folder of the feature tables ftables.py writes
 import json, sys, time
 from dataclasses import replace
 import numpy as np, torch
@@ -14,7 +16,7 @@ def acc(pred, y):
 def measure(profile, splits, budget, variant="VS2T-ZSL", extra=None):
     out = []
     for i in splits:
-        t = cmp.FeatureTable.load(f"/work/data/fede/exp/{profile}_split{i}.npz")
+        t = cmp.FeatureTable.load(f"{EXP}/{profile}_split{i}.npz")
         k = 5 if len(t.fabric_ids) >= 50 else 3
         sp = cmp.make_splits(t.fabric_ids, i + 1, k, k, seed=0)[i]
         views = cmp.split_views(t, sp)
@@ -50,5 +52,5 @@ if __name__ == "__main__":
             "per_split": [round(100*x["val_zsl"],1) for x in r["per_split"]],
             "hist": r["per_split"][0]["hist_last"], "s": sum(x["s"] for x in r["per_split"])}
     print(json.dumps(line))
-    with open("/work/data/fede/exp/log.jsonl", "a") as f:
+    with open(f"{EXP}/log.jsonl", "a") as f:
         f.write(json.dumps(line) + "\n")

@@ -1,7 +1,9 @@
+import os
+EXP = os.environ.get("VS2T_EXP", "exp")  # the folder of the feature tables ftables.py writes
 import sys, numpy as np
 from vs2t_edge.train import compare as cmp
 def ridge_val(profile, i, parts="vs", alpha=10.0):
-    t = cmp.FeatureTable.load(f"/work/data/fede/exp/{profile}_split{i}.npz")
+    t = cmp.FeatureTable.load(f"{EXP}/{profile}_split{i}.npz")
     k = 5 if len(t.fabric_ids) >= 50 else 3
     sp = cmp.make_splits(t.fabric_ids, i + 1, k, k, seed=0)[i]
     v = cmp.split_views(t, sp); tr = v.val

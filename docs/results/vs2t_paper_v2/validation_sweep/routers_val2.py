@@ -1,3 +1,5 @@
+import os
+EXP = os.environ.get("VS2T_EXP", "exp")  # the folder of the feature tables ftables.py writes
 import numpy as np, sys
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.train import compare as cmp
@@ -5,7 +7,7 @@ from vs2t_edge.train.baselines import train_classifier, predict_logits
 import torch; torch.set_num_threads(1)
 prof = sys.argv[1]; res = {}
 for i in range(5):
-    t = cmp.FeatureTable.load(f"/work/data/fede/exp/{prof}_split{i}.npz")
+    t = cmp.FeatureTable.load(f"{EXP}/{prof}_split{i}.npz")
     k = 5 if len(t.fabric_ids) >= 50 else 3
     sp = cmp.make_splits(t.fabric_ids, i + 1, k, k, seed=0)[i]
     v = cmp.split_views(t, sp)
