@@ -39,7 +39,9 @@ in STATUS and in the fault file — each step guarded so one failing step does n
 rest. The item in hand gets its final record (``rejected_fault``). Nothing moves until an
 operator clears the fault: the fault file is removed (``vs2t-edge run --clear-fault``), after
 which the loop clears the gate and carries on. The fault file survives a restart, so a restart
-does not clear a fault either.
+does not clear a fault either. A fault file that could not be written is no clear: it is written
+again while the fault stays latched, and a restart that finds none restores the journal's fault if
+its record says so (runtime/fault_latch.py, which holds this part of the loop).
 
 A journal write that fails (disk full, I/O error) latches a fault too: the journal has cut the
 partial record back, the item in hand stays open in the journal (its ``item`` or ``pre_sort``
@@ -56,7 +58,6 @@ from __future__ import annotations
 
 import math
 import time
-import traceback
 from collections import Counter, deque
 from typing import Any, Callable
 
@@ -68,19 +69,16 @@ from vs2t_edge.runtime.devices import (
     DeviceError,
     GateError,
 )
-from vs2t_edge.runtime.files import atomic_write, read_regular_file
+from vs2t_edge.runtime.fault_latch import (  # noqa: F401 - MAX_FAULT_FILE_BYTES, INTERNAL: importable from here
+    INTERNAL, MAX_FAULT_FILE_BYTES, UNKNOWN, FaultLatch)
 from vs2t_edge.runtime.items import Item, ItemResult, ItemSource
 from vs2t_edge.runtime.journal import JournalError
 from vs2t_edge.runtime.preprocess import FrameError
 from vs2t_edge.runtime.press_pipeline import PressLoop, PressScorer, Tally, reduced_kw
 from vs2t_edge.runtime.scene_spec import SceneSpec
 
-UNKNOWN = "unknown"
 NO_CONTACT = "no_contact"  # CameraError kind: the press frame shows the gel untouched
 RECENT_RESULTS = 100  # ItemResults kept in memory (Cell.results); on_item sees every one
-MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
-
-
 class CellFault(Exception):
     """Raised inside the loop to latch a fault; ``reason`` is what the operator reads.
     ``maybe_routed``: a SORT sent for this item may have been executed whatever ``kind`` says
@@ -110,14 +108,12 @@ class _Done(Exception):
     """Cell.run's own end (max_items, stop_when): not a fault."""
 
 
-INTERNAL = "internal"  # fault kind of an exception the loop has no rule for (Cell._latch_internal)
-
 
 def _finite(x: float) -> float | None:
     return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
-class Cell:
+class Cell(FaultLatch):
     def __init__(self, *, camera, arm, gate, model, journal, notifier, scene: SceneSpec,
                  evidence_factory: Callable[[], Any], items: ItemSource,
                  clock: Callable[[], float] = time.monotonic, stop_event: threading.Event | None = None,
@@ -139,6 +135,7 @@ class Cell:
         self.log = log or (lambda msg: None)
         self.sleep = sleep
         self.fault: str | None = None
+        self._fault_file_written = False  # FaultLatch: only a fault file that was there and is gone clears it
         self.results: deque[ItemResult] = deque(maxlen=RECENT_RESULTS)  # the most recent only
         self.items_done = 0  # items finished by this Cell (every outcome)
         self.outcomes: Counter = Counter()  # items finished by outcome
@@ -146,108 +143,6 @@ class Cell:
         self.next_number = journal.next_item_number()
 
     # --- start-up ----------------------------------------------------------------------
-
-    def recover(self) -> list[dict]:
-        """Resolve items the last run left between pre_sort and final; restore a latched fault."""
-        resolved = self._resolve_open_items()
-        ff = self.scene.fault_file
-        if ff is not None and ff.exists():
-            try:  # bounded, and never a FIFO's endless wait: the fault stays latched either way
-                text = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
-            except (OSError, ValueError) as exc:
-                text = f"fault file {ff} unreadable ({exc})"
-            reason = text.strip() or "fault latched before restart"
-            self.fault = reason
-            self.notifier.status(f"FAULT (latched before restart): {reason}")
-        return resolved
-
-    def _resolve_open_items(self) -> list[dict]:
-        """One final record for every item the journal has open (a restart, or a failed journal
-        write in this run): after its pre_sort the gate may have moved, before it the gate was not told."""
-        resolved = []
-        for pre in self.journal.unresolved_items():
-            if pre.get("type") == "pre_sort":
-                rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
-                                  bin_=self.scene.reject_bin, outcome="unknown_outcome",
-                                  maybe_bin=pre.get("bin", self.scene.reject_bin),
-                                  note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
-                                       "and before the gate's ack; the gate may have moved - check the bins")
-                self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
-            else:
-                rec = self._final(pre["item"], pre.get("item_id", ""), label=UNKNOWN, bin_=self.scene.reject_bin,
-                                  outcome="aborted", note="process stopped before a decision; the gate was "
-                                                          "not told - the piece is still at the station")
-                self.log(f"recovered item {pre['item']}: stopped before a decision, logged as aborted")
-            resolved.append(rec)
-        return resolved
-
-    # --- journal helpers ---------------------------------------------------------------
-
-    def _final(self, number: int, item_id: str, *, label: str, bin_: int, outcome: str, **extra) -> dict:
-        rec = {"type": "final", "item": number, "item_id": item_id, "label": label, "bin": bin_,
-               "outcome": outcome, **extra}
-        return self.journal.append(rec)
-
-    # --- the fault latch ---------------------------------------------------------------
-
-    def latch_fault(self, reason: str, kind: str = "fault") -> None:
-        """Arm stopped, gate to reject, reason journalled and reported; every step guarded."""
-        self.fault = reason
-        steps: list[str] = []
-        try:
-            self.notifier.ping_if_due()  # the stop and to-reject below are un-leased waits
-        except Exception:  # noqa: BLE001 - a failing notifier must not skip the latch
-            pass
-        for what, fn in (("arm.stop", self.arm.stop), ("gate.to_reject", self.gate.to_reject)):
-            try:
-                fn()
-            except Exception as exc:  # noqa: BLE001 - one failing step must not skip the rest
-                steps.append(f"{what} failed: {exc}")
-        try:
-            self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
-                                 "t": time.time()})
-        except Exception as exc:  # noqa: BLE001
-            steps.append(f"journal failed: {exc}")
-        try:
-            if self.scene.fault_file is not None:
-                atomic_write(self.scene.fault_file, reason + "\n")
-        except Exception as exc:  # noqa: BLE001
-            steps.append(f"fault file failed: {exc}")
-        try:
-            self.notifier.status(f"FAULT: {reason} - clear with `vs2t-edge run --clear-fault`")
-        except Exception:  # noqa: BLE001
-            pass
-        self.log(f"FAULT latched: {reason}" + (f" ({'; '.join(steps)})" if steps else ""))
-
-    def fault_cleared_by_operator(self) -> bool:
-        ff = self.scene.fault_file
-        return ff is None or not ff.exists()
-
-    def clear_fault(self) -> bool:
-        """Called when the operator removed the fault file: clear the gate, journal, resume."""
-        try:
-            # an item a failed journal write left open gets its final record first (the disk
-            # must be writable again, else the fault latches again here)
-            self._resolve_open_items()
-            with self.notifier.bounded_wait(self.scene.bounds.clear_s if self.scene.bounds else None):
-                self.gate.clear()
-                clear_arm = getattr(self.arm, "clear_protective_stop", None)
-                if clear_arm is not None:
-                    clear_arm()
-                    connect = getattr(self.arm, "connect", None)
-                    if connect is not None:
-                        connect()
-                # a camera that left the bus (cable out, driver reset) only comes back through a new
-                # open; still gone -> the clear fails and the fault latches again, naming the camera
-                self._reopen_camera("the operator's clear", raise_on_failure=True)
-            self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
-        except (DeviceError, JournalError) as exc:
-            self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
-            return False
-        self.log(f"fault cleared by the operator: {self.fault}")
-        self.fault = None
-        self.notifier.status("fault cleared; sorting")
-        return True
 
     # --- the loop ----------------------------------------------------------------------
 
@@ -268,16 +163,6 @@ class Cell:
                     self.log(f"while latched ({self.fault}): {type(exc).__name__}: {exc}")
                     self.sleep(min(1.0, self.scene.wait_item_timeout_s))
         return list(self.results)
-
-    def _latch_internal(self, exc: BaseException, where: str) -> str:
-        """An exception the loop has no rule for (a model RuntimeError, a device used while not
-        connected, a bug) latches a fault like any other: without it the service would exit,
-        systemd would restart it and the cell would resume with no operator. The traceback goes
-        to the log; the reason names the exception's type and text."""
-        reason = f"{where}internal error: {type(exc).__name__}: {exc}"
-        self.log("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip())
-        self.latch_fault(reason, INTERNAL)
-        return reason
 
     def _run_once(self, max_items: int | None, stop_when: Callable[[], bool] | None) -> None:
         """One turn of the loop: wait out a latched fault, or take and sort one item."""

@@ -1,0 +1,171 @@
+"""The cell's fault latch (runtime/cell.py's module doc, "Latched fault"): latch, wait for the
+operator's clear, clear, and what a restart restores - the part of the loop that decides whether
+anything may move. ``Cell`` inherits it; it uses the cell's devices, journal, notifier, scene,
+log and ``_reopen_camera``.
+
+Only a fault file that was there and is gone clears a fault: one that could not be written (a
+full disk, a folder the service may not write) is written again while the fault stays latched,
+and a restart that finds no file restores a fault whose journal record says its file was never
+written."""
+
+from __future__ import annotations
+
+import time
+import traceback
+
+from vs2t_edge.runtime.devices import DeviceError
+from vs2t_edge.runtime.evidence import UNKNOWN
+from vs2t_edge.runtime.files import atomic_write, read_regular_file
+from vs2t_edge.runtime.journal import JournalError
+
+INTERNAL = "internal"  # fault kind of an exception the loop has no rule for (Cell._latch_internal)
+MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
+FAULT_FILE_FAILED = "fault file failed"  # the latch step a fault record's steps_failed names
+
+
+def _fault_file_never_written(fault: dict | None) -> bool:
+    """Whether a journal's latched fault record says its fault file could not be written."""
+    steps = fault.get("steps_failed") if isinstance(fault, dict) else None
+    return isinstance(steps, list) and any(isinstance(s, str) and s.startswith(FAULT_FILE_FAILED) for s in steps)
+
+
+class FaultLatch:
+    """The fault latch's half of ``Cell``."""
+
+    fault: str | None = None
+    _fault_file_written = False  # only a fault file that was there and is gone clears a fault
+
+    def recover(self) -> list[dict]:
+        """Resolve items the last run left between pre_sort and final; restore a latched fault."""
+        resolved = self._resolve_open_items()
+        ff = self.scene.fault_file
+        if ff is not None and ff.exists():
+            try:  # bounded, and never a FIFO's endless wait: the fault stays latched either way
+                text = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
+            except (OSError, ValueError) as exc:
+                text = f"fault file {ff} unreadable ({exc})"
+            reason = text.strip() or "fault latched before restart"
+            self.fault, self._fault_file_written = reason, True
+            self.notifier.status(f"FAULT (latched before restart): {reason}")
+        elif ff is not None and _fault_file_never_written(self.journal.latched_fault()):
+            # the journal's last fault, its file never written: no operator can have cleared it
+            self.fault = str(self.journal.latched_fault().get("reason") or "fault latched before restart")
+            self._fault_file_written = False
+            self.fault_cleared_by_operator()  # writes the file now if it can
+            self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")
+        return resolved
+
+    def _resolve_open_items(self) -> list[dict]:
+        """One final record for every item the journal has open (a restart, or a failed journal
+        write in this run): after its pre_sort the gate may have moved, before it the gate was not told."""
+        resolved = []
+        for pre in self.journal.unresolved_items():
+            if pre.get("type") == "pre_sort":
+                rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
+                                  bin_=self.scene.reject_bin, outcome="unknown_outcome",
+                                  maybe_bin=pre.get("bin", self.scene.reject_bin),
+                                  note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
+                                       "and before the gate's ack; the gate may have moved - check the bins")
+                self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
+            else:
+                rec = self._final(pre["item"], pre.get("item_id", ""), label=UNKNOWN, bin_=self.scene.reject_bin,
+                                  outcome="aborted", note="process stopped before a decision; the gate was "
+                                                          "not told - the piece is still at the station")
+                self.log(f"recovered item {pre['item']}: stopped before a decision, logged as aborted")
+            resolved.append(rec)
+        return resolved
+
+    # --- journal helpers ---------------------------------------------------------------
+
+    def _final(self, number: int, item_id: str, *, label: str, bin_: int, outcome: str, **extra) -> dict:
+        rec = {"type": "final", "item": number, "item_id": item_id, "label": label, "bin": bin_,
+               "outcome": outcome, **extra}
+        return self.journal.append(rec)
+
+    # --- the fault latch ---------------------------------------------------------------
+
+    def latch_fault(self, reason: str, kind: str = "fault") -> None:
+        """Arm stopped, gate to reject, reason journalled and reported; every step guarded."""
+        self.fault = reason
+        steps: list[str] = []
+        try:
+            self.notifier.ping_if_due()  # the stop and to-reject below are un-leased waits
+        except Exception:  # noqa: BLE001 - a failing notifier must not skip the latch
+            pass
+        for what, fn in (("arm.stop", self.arm.stop), ("gate.to_reject", self.gate.to_reject)):
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - one failing step must not skip the rest
+                steps.append(f"{what} failed: {exc}")
+        # the fault file before the journal record: that record then says whether the file was
+        # written, which a restart needs (a file never written is no operator's clear)
+        self._fault_file_written = False
+        if self.scene.fault_file is not None:
+            try:
+                atomic_write(self.scene.fault_file, reason + "\n")
+                self._fault_file_written = True
+            except Exception as exc:  # noqa: BLE001
+                steps.append(f"{FAULT_FILE_FAILED}: {exc}")
+        try:
+            self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
+                                 "t": time.time()})
+        except Exception as exc:  # noqa: BLE001
+            steps.append(f"journal failed: {exc}")
+        try:
+            self.notifier.status(f"FAULT: {reason} - clear with `vs2t-edge run --clear-fault`")
+        except Exception:  # noqa: BLE001
+            pass
+        self.log(f"FAULT latched: {reason}" + (f" ({'; '.join(steps)})" if steps else ""))
+
+    def fault_cleared_by_operator(self) -> bool:
+        """Whether the operator cleared the latched fault: removed its fault file. A fault file that
+        could not be written (a full disk, a folder the service may not write) is written again
+        here, never taken for a clear: until it is there, nothing clears the fault."""
+        ff = self.scene.fault_file
+        if ff is None:
+            return True
+        if not self._fault_file_written:
+            try:
+                atomic_write(ff, f"{self.fault}\n")
+            except Exception:  # noqa: BLE001 - still unwritable: still latched (latch_fault said why)
+                return False
+            self._fault_file_written = True
+            self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
+            return False
+        return not ff.exists()
+
+    def clear_fault(self) -> bool:
+        """Called when the operator removed the fault file: clear the gate, journal, resume."""
+        try:
+            # an item a failed journal write left open gets its final record first (the disk
+            # must be writable again, else the fault latches again here)
+            self._resolve_open_items()
+            with self.notifier.bounded_wait(self.scene.bounds.clear_s if self.scene.bounds else None):
+                self.gate.clear()
+                clear_arm = getattr(self.arm, "clear_protective_stop", None)
+                if clear_arm is not None:
+                    clear_arm()
+                    connect = getattr(self.arm, "connect", None)
+                    if connect is not None:
+                        connect()
+                # a camera that left the bus (cable out, driver reset) only comes back through a new
+                # open; still gone -> the clear fails and the fault latches again, naming the camera
+                self._reopen_camera("the operator's clear", raise_on_failure=True)
+            self.journal.append({"type": "fault_cleared", "reason": self.fault, "t": time.time()})
+        except (DeviceError, JournalError) as exc:
+            self.latch_fault(f"could not clear the fault: {exc}", "clear_failed")
+            return False
+        self.log(f"fault cleared by the operator: {self.fault}")
+        self.fault = None
+        self.notifier.status("fault cleared; sorting")
+        return True
+
+    def _latch_internal(self, exc: BaseException, where: str) -> str:
+        """An exception the loop has no rule for (a model RuntimeError, a device used while not
+        connected, a bug) latches a fault like any other: without it the service would exit,
+        systemd would restart it and the cell would resume with no operator. The traceback goes
+        to the log; the reason names the exception's type and text."""
+        reason = f"{where}internal error: {type(exc).__name__}: {exc}"
+        self.log("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip())
+        self.latch_fault(reason, INTERNAL)
+        return reason
