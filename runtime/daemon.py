@@ -33,6 +33,7 @@ name when the config asks for it (runtime/devices.py).
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -135,6 +136,15 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     except (JournalError, OSError) as exc:
         log(f"journal: {exc}")
         notifier.status(f"journal unusable: {exc}")
+        return EXIT_USAGE
+    folder = cfg.fault_file.parent
+    if not (folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)):
+        # a fault the service could not latch durably: refused before anything moves (the loop
+        # would hold such a fault anyway, runtime/fault_latch.py, but no operator could clear it)
+        log(f"fault file {cfg.fault_file}: its folder {folder} is not a folder this service may write "
+            "(the unit's ReadWritePaths, permissions); set fault_file to a writable place")
+        notifier.status(f"fault file unwritable: {cfg.fault_file}")
+        journal.close()
         return EXIT_USAGE
     if journal.torn_bytes:
         log(f"journal {cfg.journal}: torn last record ({journal.torn_bytes} bytes) cut, kept in "

@@ -206,6 +206,28 @@ def test_full_disk_at_start_exits_2_in_words(tmp_path, monkeypatch):
     assert not gate._connected and not arm.connected
 
 
+def test_a_fault_file_the_service_cannot_write_stops_the_start_in_words(tmp_path):
+    """A fault_file outside the unit's ReadWritePaths (EROFS) or in a missing folder: a fault could
+    not be latched durably, so the service refuses to start, before any device moves."""
+    from cell_fakes import FakeModel, ScriptedCamera
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.notify import Notifier
+    from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+
+    cfg_path = tmp_path / "cell.yaml"
+    cfg_path.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
+                                       evidence={"confidence": 0.95, "max_presses": 4, "without_scene_model": "allow"},
+                                       fault_file="no-such-folder/FAULT"))
+    cfg = load_config(cfg_path)
+    arm, gate, logged = FakeArm(config=cfg.arm), FakeGate(), []
+    code = run_daemon(cfg, model=FakeModel({50: "denim"}, cfg.scene_classes), camera=ScriptedCamera(arm, [50]),
+                      arm=arm, gate=gate, notifier=Notifier(""), max_items=1, install_signals=False,
+                      log=logged.append)
+    assert code == 2 and gate.sorted == [] and not arm.connected
+    assert any(f"fault file {cfg.fault_file}" in line and "writable" in line for line in logged), logged
+
+
 def test_a_model_crash_latches_a_fault_and_a_restart_refuses_until_cleared(tmp_path):
     """An onnxruntime RuntimeError mid-item: run_daemon used to re-raise it (no FAULT file; systemd
     restarted the service, which sorted on with no operator). Now the fault latches, the service
