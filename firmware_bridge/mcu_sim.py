@@ -150,6 +150,9 @@ class GateFirmware:
     def _failsafe(self, now_ms: int) -> list[bytes]:
         out = []
         move, self.move = self.move, None
+        # the duplicate memory is forgotten: a cached ACK says READY at a bin, and after the host's
+        # 8-bit SEQ wraps a new SORT could match it and be answered "done" while the flap is at reject
+        self.last_request = self.last_reply = None
         self.state, self.fault = p.STATE_FAILSAFE, p.FAULT_HEARTBEAT_LOST
         self.bin = p.REJECT_BIN  # the servo is commanded to reject at once
         if move is not None:

@@ -129,6 +129,24 @@ def test_duplicate_sort_frame_is_acked_again_not_executed_twice(sim, client):
         assert sim.executed == [2, 2]
 
 
+def test_a_fail_safe_forgets_the_duplicate_memory():
+    """After a fail-safe the same SORT frame (the host's 8-bit SEQ wrapped after 255 lost frames)
+    must be refused as latched: the ACK cached before the latch says READY at bin 3 while the flap
+    is at reject, and the host would have journaled the piece as sorted there."""
+    from vs2t_edge.firmware_bridge.mcu_sim import GateFirmware
+
+    fw = GateFirmware(now_ms=0, boot_id=1, heartbeat_timeout_ms=500, move_time_ms=60)
+    fw.on_frame(p.Frame(1, p.CLEAR, b""), 0)
+    assert [p.decode_frame(f).type for f in fw.tick(60)] == [p.ACK]  # out of the boot latch
+    sort = p.Frame(5, p.SORT, b"\x03")
+    fw.on_frame(sort, 60)
+    assert fw.tick(120) and fw.bin == 3
+    fw.tick(700)  # 580 ms of silence: fail-safe, flap at reject
+    assert fw.state == p.STATE_FAILSAFE and fw.bin == p.REJECT_BIN
+    (reply,) = [p.decode_frame(f) for f in fw.on_frame(sort, 701)]
+    assert reply.type == p.NAK and reply.payload[1] == p.NAK_LATCHED  # Nak: acked type, reason, ...
+
+
 def test_duplicated_mcu_frames_do_not_confuse_the_host(sim, client):
     sim.faults.duplicate_tx = 10
     for bin_index in (1, 2, 3, 1):

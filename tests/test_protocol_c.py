@@ -248,6 +248,10 @@ event_st = st.one_of(
           ("advance", 500), ("advance", 1)])
 @example([("send", (1, p.CLEAR, b"")), ("advance", 60), ("jam", True), ("send", (2, p.SORT, b"\x03")),
           ("advance", 299), ("advance", 1), ("repeat", None), ("send", (3, p.CLEAR, b"")), ("advance", 300)])
+# A fail-safe forgets the duplicate memory: the same SORT frame again (a wrapped SEQ) is refused, not
+# answered with the ACK cached before the latch.
+@example([("send", (1, p.CLEAR, b"")), ("advance", 60), ("send", (5, p.SORT, b"\x03")), ("advance", 60),
+          ("advance", 501), ("repeat", None)])
 def test_python_simulator_behaves_as_the_c_firmware(c_script, events):
     """Same bytes and clock into mcu_sim.GateFirmware and gate_core.c: same frames out, byte for byte."""
     from vs2t_edge.firmware_bridge.mcu_sim import GateFirmware

@@ -191,6 +191,10 @@ void gate_core_tick(gate_core_t *g, uint32_t now_ms)
     if ((g->state == GATE_STATE_READY || g->state == GATE_STATE_BUSY) &&
         (uint32_t)(now_ms - g->last_rx_ms) > g->heartbeat_timeout_ms) {
         uint8_t was_moving = g->moving;
+        /* Forget the duplicate memory: a cached ACK says READY at a bin, and after the host's 8-bit
+           SEQ wraps a new SORT could match it and be answered "done" while the flap is at reject. */
+        g->have_last = 0;
+        g->have_reply = 0;
         g->moving = 0;
         g->state = GATE_STATE_FAILSAFE;
         g->fault = GATE_FAULT_HEARTBEAT_LOST;
