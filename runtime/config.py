@@ -195,6 +195,21 @@ class CellConfig:
                 return f.bin
         return self.reject_bin
 
+    def shared_bins_note(self) -> str:
+        """Fabrics that share a bin while a bin of the gate (1..7) stays free, in words, or "": a
+        copied line that merged two fabrics in one bin mis-sorts every piece of one of them. Sharing
+        is meant when the job has more fabrics than the gate has bins (sim/scene.assign_bins)."""
+        by_bin: dict[int, list[str]] = {}
+        for f in self.fabrics:
+            by_bin.setdefault(f.bin, []).append(f.name)
+        shared = {b: names for b, names in sorted(by_bin.items()) if len(names) > 1}
+        free = [b for b in range(1, 8) if b != self.reject_bin and b not in by_bin]
+        if not shared or not free:
+            return ""
+        said = "; ".join(f"{' and '.join(names)} share bin {b}" for b, names in shared.items())
+        return (f"{self.path}: scene.fabrics: {said}, while bin(s) {free} stay free - one bin for two fabrics "
+                "puts the pieces of one in the other's bin; give each its own bin unless that is meant")
+
     def press_points_mm(self) -> list[tuple[float, float]]:
         grid = self.arm.grid_points_mm(N_GRID_X, N_GRID_Y)
         return [grid[i] for i in self.grid_points]

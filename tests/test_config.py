@@ -236,3 +236,19 @@ def test_the_reject_bin_is_the_bin_the_gate_fails_safe_to(tmp_path):
     path = write(tmp_path, GOOD.replace("reject_bin: 0", "reject_bin: 3"))
     with pytest.raises(ConfigError, match="scene.reject_bin = 3: the gate's own reject bin is 0"):
         load_config(path)
+
+
+def test_two_fabrics_in_one_bin_while_bins_are_free_is_said_before_the_start(tmp_path, capsys):
+    """A copied line that gives silk denim's bin sorts every silk piece into denim's bin: allowed
+    (a job with more fabrics than bins shares them on purpose), but validate-config warns when a
+    bin stays free, naming the fabrics and the bin."""
+    ok = load_config(write(tmp_path, GOOD))
+    assert ok.shared_bins_note() == ""
+    path = write(tmp_path, GOOD.replace("kind: untouched, bin: 2", "kind: untouched, bin: 1"))
+    assert main(["validate-config", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "warning:" in err and "denim and silk share bin 1" in err and "[2, 3, 4, 5, 6, 7] stay free" in err
+    full = GOOD.replace("    - {name: silk, kind: untouched, bin: 2}\n",
+                        "".join(f"    - {{name: f{b}, kind: touched, bin: {b}}}\n" for b in range(2, 8))
+                        + "    - {name: silk, kind: untouched, bin: 1}\n")
+    assert load_config(write(tmp_path, full)).shared_bins_note() == ""  # every bin used: sharing is meant
