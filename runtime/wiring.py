@@ -58,6 +58,13 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
     config or a wrong bundle, and the cell would sort it with the wrong expectation. A one-fabric
     scene needs the bundle's scene model: without its off-scene rules no piece could be refused."""
+    provenance = (getattr(model, "manifest", None) or {}).get("provenance") or {}
+    if provenance.get("trained") is False:
+        # `export --random-trunk`: the shapes and cost of a trained bundle, with real fabric names,
+        # and decisions that mean nothing (on the paper world 17 of 21 pieces into wrong bins)
+        raise ValueError(f"bundle {cfg.bundle} was never trained (manifest provenance.trained: false, operating "
+                         f"point {(model.manifest or {}).get('operating_point', '?')!r}): a latency bundle for "
+                         "`vs2t-edge bench`, not one to sort with; deploy a bundle exported from a training run")
     touched, untouched = list(model.touched), list(model.untouched)
     missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
     refuse_only = [f for f in missing if f in getattr(getattr(model, "scene_model", None), "known_only", ())]

@@ -189,6 +189,18 @@ def test_export_cli_random_trunk_writes_latency_bundle(tmp_path, capsys):
     m = json.loads((out / "manifest.json").read_text())
     assert m["provenance"]["trained"] is False and m["graphs"]["trunk"]["macs_per_frame"]["total"] > 0
     assert "verified" in capsys.readouterr().out
+    # its classes carry the dataset's real fabric names, its decisions mean nothing: no cell sorts with it
+    from types import SimpleNamespace
+
+    from vs2t_edge.runtime.config import SceneFabric
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.wiring import check_scene_against_bundle
+
+    model = TactileModel.load(out)
+    cfg = SimpleNamespace(bundle=out, path=tmp_path / "cell.yaml",
+                          fabrics=(SceneFabric(model.touched[0], "touched", 1), SceneFabric(model.untouched[0], "untouched", 2)))
+    with pytest.raises(ValueError, match=r"never trained \(manifest provenance.trained: false"):
+        check_scene_against_bundle(cfg, model)
 
 
 # ------------------------------------------------ export --router NAME (issue 4: ship any router)
