@@ -135,12 +135,16 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
         fab.append(np.full(n, k))
     if progress:
         line.keep()
-    return StemCache(np.concatenate(stems), np.concatenate(xv).astype(np.float32), np.concatenate(xt0).astype(np.float32),
+    # C order, as a cache read back from its file is: a conv's output may come out in another memory
+    # layout (the visual stem's did), and the tails fine-tuned on such an array came out differently
+    # from the same run's reruns on its saved cache (oneDNN picks its kernels by layout)
+    c = np.ascontiguousarray
+    return StemCache(c(np.concatenate(stems)), c(np.concatenate(xv), np.float32), c(np.concatenate(xt0), np.float32),
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
                       "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
                       **cache_key_extra(spec, camera_jpeg)},  # as train.run.get_cache expects
-                     np.concatenate(stems_v))
+                     c(np.concatenate(stems_v)))
 
 
 def cache_key_extra(spec, camera_jpeg: int) -> dict:
@@ -211,7 +215,7 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
     rows = np.arange(len(y))
     if max_rows is not None and len(rows) > max_rows:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_rows, replace=False))
-    a = torch.from_numpy(np.asarray(stem_touched[rows], dtype=np.float32))
+    a = torch.from_numpy(np.ascontiguousarray(stem_touched[rows], dtype=np.float32))  # one layout: one result
     yt = torch.as_tensor(np.asarray(y)[rows], dtype=torch.long)
     head = nn.Linear(out.feature_dim, n_classes)
     opt = torch.optim.Adam([{"params": out.tail.parameters(), "lr": lr}, {"params": head.parameters(), "lr": 10 * lr}])
@@ -283,7 +287,8 @@ def finetune_split(cache: StemCache, trunk: Trunk, split, *, epochs: int, max_ro
 @torch.no_grad()
 def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.ndarray:
     trunk.eval()
-    return np.concatenate([trunk.features_from_stem(torch.from_numpy(stem[i:i + chunk].astype(np.float32))).numpy()
+    return np.concatenate([trunk.features_from_stem(torch.from_numpy(np.ascontiguousarray(stem[i:i + chunk],
+                                                                                         np.float32))).numpy()
                            for i in range(0, len(stem), chunk)]).astype(np.float32)
 
 
