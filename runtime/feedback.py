@@ -28,7 +28,14 @@ no fabric of the job, to the reject bin.
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,
-never bolder elsewhere. Touched classes are not guarded: their means were real already.
+never bolder elsewhere. Touched classes are not guarded: their means were real already. Nor is a
+taught class - unless an untouched fabric of the job that no label taught may feel like it
+(``confusable``): the generator put the two syntheses closer than its own error (within the 99 %
+region of the offset model's N(m, s_u I)), so it could not tell the two fabrics apart, and the
+taught mean says nothing of where the other fabric's pieces lie. The taught class is then guarded
+too (``stopped_by`` "confusable_guard") until a label teaches the other fabric as well: found on
+the paper world, where one label of a jersey sent every piece of its touch-twin (another colour of
+the same knit) into its bin.
 
 This is a mode outside the zero-shot protocol, on only when the cell config names a labels file
 (``evidence.operator_labels``), and measured as such (train/decision.py ``evaluate_scenes``,
@@ -125,6 +132,38 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
     return replace(model, classes=tuple(model.classes) + tuple(names), means=means, class_offset_var=var)
 
 
+CONFUSABLE_Z = 2.326  # the 99 % quantile of the standard normal: ``confusable``'s region
+
+
+def _chi2_quantile(k: int, z: float = CONFUSABLE_Z) -> float:
+    """The chi-square quantile of ``k`` degrees of freedom at the normal quantile ``z``
+    (Wilson-Hilferty; within 0.3 % of the exact value from k = 10 on)."""
+    c = 2.0 / (9.0 * k)
+    return k * (1.0 - c + z * c ** 0.5) ** 3
+
+
+def confusable(model: SceneModel, offset_var_untouched: float, taught: Iterable[str],
+               untaught: Iterable[str]) -> dict[str, list[str]]:
+    """For each ``taught`` class, the ``untaught`` untouched classes whose synthesis in ``model``
+    (the bundle's, before any label) lies within the generator's error of the taught class's
+    synthesis: ||m_taught - m||^2 <= s_u chi2_0.99(k), s_u = ``offset_var_untouched`` (module doc)."""
+    untaught = [c for c in untaught if c in model.classes]
+    if offset_var_untouched <= 0 or not untaught:
+        return {}
+    radius2 = offset_var_untouched * _chi2_quantile(model.k)
+    means = np.asarray(model.means, np.float64)
+    rows_u = [model.classes.index(c) for c in untaught]
+    out = {}
+    for t in taught:
+        if t not in model.classes:
+            continue
+        d2 = ((means[rows_u] - means[model.classes.index(t)]) ** 2).sum(axis=1)
+        near = [c for c, v in zip(untaught, d2) if v <= radius2]
+        if near:
+            out[t] = near
+    return out
+
+
 class GuardedEvidence:
     """The item evidence with labels, never bolder than zero-shot where no label taught it.
 
@@ -139,8 +178,10 @@ class GuardedEvidence:
     every piece of such a fabric mis-sorted). The cell keeps pressing while the two disagree, up to
     the press limit, where the piece goes to the reject bin (``stopped_by`` "unlabelled_guard")."""
 
-    def __init__(self, adapted: Evidence, zero_shot: Evidence, trusted: Iterable[str]) -> None:
+    def __init__(self, adapted: Evidence, zero_shot: Evidence, trusted: Iterable[str],
+                 confusable_with: Mapping[str, Sequence[str]] | None = None) -> None:
         self.adapted, self.zero_shot, self.trusted = adapted, zero_shot, frozenset(trusted)
+        self.confusable_with = dict(confusable_with or {})  # taught, yet guarded (module doc)
 
     @property
     def presses(self) -> int:
@@ -157,7 +198,8 @@ class GuardedEvidence:
         if z is not None and z.label == d.label:
             return d
         if final or self.adapted.presses >= self.adapted.max_presses:
-            return ItemDecision(UNKNOWN, d.confidence, d.presses, d.log_posterior, "unlabelled_guard")
+            why = "confusable_guard" if d.label in self.confusable_with else "unlabelled_guard"
+            return ItemDecision(UNKNOWN, d.confidence, d.presses, d.log_posterior, why)
         return None  # press on: the zero-shot evidence may yet agree
 
     def add(self, score):
@@ -210,8 +252,12 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
         zero_shot = TrackedEvidence(zero_shot, deployed.k)
     if not learned:
         return zero_shot
-    trusted = learned + [c for c in scene if c not in deployed.untouched]  # touched means are real already
-    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted)
+    labelled_taught = [c for c in learned if c not in taught]
+    untaught = [c for c in scene if c in deployed.untouched and c not in labelled_taught]
+    # taught, yet guarded: an untaught fabric of the job the generator could not tell from it
+    near = confusable(deployed, adapted.offset_var_untouched, labelled_taught, untaught)
+    trusted = [c for c in learned if c not in near] + [c for c in scene if c not in deployed.untouched]
+    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted, near)
 
 
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
@@ -468,7 +514,8 @@ class OperatorFeedback:
                                 rebuild=False)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
-                self._prefix = (n, sha) if isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str) else None
+                known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
+                self._prefix = (n, sha) if known else None
         self._relearn()  # once, not once per label
 
 
@@ -479,5 +526,6 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["adapt", "append_label", "read_labels", "item_evidence", "GuardedEvidence", "OperatorFeedback",
+__all__ = ["adapt", "append_label", "read_labels", "item_evidence", "confusable", "GuardedEvidence",
+           "OperatorFeedback",
            "OFF_SCENE_PREFIX", "TrackedEvidence", "labels_teach"]

@@ -234,8 +234,9 @@ def _name_of(m: re.Match) -> str:
 def portable(value: Any) -> Any:
     """``value`` (text, or lists and dicts of it, as a result JSON holds) without this machine's
     folders: every absolute path keeps its last component, the name anyone gives their own dataset,
-    run or bundle folder (a file's keeps its folder's too). Results that are committed and read on other machines are written so
-    (bench.json, a comparison's JSON); a run's own files keep their paths, which its tools follow."""
+    run or bundle folder (a file's keeps its folder's too). Results that are committed and read on
+    other machines are written so (bench.json, a comparison's JSON); a run's own files keep their
+    paths, which its tools follow."""
     if isinstance(value, str):
         return _ABSOLUTE_PATH.sub(_name_of, value)
     if isinstance(value, dict):

@@ -17,8 +17,8 @@ from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.feedback import (GuardedEvidence, OperatorFeedback, adapt, append_label, item_evidence,
-                                        read_labels)
+from vs2t_edge.runtime.feedback import (GuardedEvidence, OperatorFeedback, adapt, append_label, confusable,
+                                        item_evidence, read_labels)
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, iter_records, read_records
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
@@ -243,6 +243,42 @@ def test_a_class_no_label_taught_is_sorted_only_when_zero_shot_agrees():
     assert guarded.label == UNKNOWN and guarded.stopped_by == "unlabelled_guard" and guarded.presses == 4
     assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), real_b).label == "b"
     assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), (0.0, 6.0)).label == "a"
+
+
+def test_a_taught_class_is_guarded_while_an_untaught_twin_of_it_is_in_the_job():
+    """Two untouched fabrics of one knit in two colours feel the same; the generator put their
+    syntheses closer together than its own error. One label of the first moved its mean to its real
+    presses, and every piece of the twin - which lands there too - went to the first one's bin,
+    confidently: the zero-shot model had sent both to reject (paper world, jersey f03 and f20: 5 of
+    5). Now the taught class is guarded while such a twin is untaught; a label of the twin ends it.
+    A fabric whose synthesis lies far off (beyond the generator's error) keeps the taught class trusted."""
+    def model(twin_at):
+        return SceneModel(("tw", "a", "b"), frozenset({"a", "b"}), np.zeros(2), np.eye(2),
+                          np.array([[0.0, -10.0], [0.0, 10.0], twin_at]), item_rule="offset", press_var=1.0,
+                          offset_var_touched=0.1, offset_var_untouched=4.0, item_temperature=1.0)
+    make = lambda m, classes: Evidence(classes, 0.9, 4, item_model=m)  # noqa: E731
+    real = np.array([4.0, 6.0])  # where the pieces of a - and of its twin b - really land
+
+    def run(ev):
+        for _ in range(4):
+            d = ev.add(so.Press({}, None, real))
+            if d is not None:
+                return d
+        return ev.decide()
+
+    near = model([1.0, 12.0])  # 2.2 units from a's synthesis; the generator's 99 % error: 6.1 units
+    labelled = {"a": [(real, 4)] * 3}
+    assert confusable(near, near.offset_var_untouched, ["a"], ["b"]) == {"a": ["b"]}
+    assert run(make(near, ["tw", "a", "b"])).label == UNKNOWN  # zero-shot: both to reject
+    assert run(make(adapt(near, labelled), ["tw", "a", "b"])).label == "a"  # a twin's piece too: a mis-sort
+    guarded = run(item_evidence(near, adapt(near, labelled), ["tw", "a", "b"], labelled, [], make))
+    assert (guarded.label, guarded.stopped_by) == (UNKNOWN, "confusable_guard")
+    both = {**labelled, "b": [(real + 0.1, 4)]}  # the twin labelled too: nothing left unshown
+    assert confusable(near, near.offset_var_untouched, ["a", "b"], []) == {}
+    assert run(item_evidence(near, adapt(near, both), ["tw", "a", "b"], both, [], make)).label == UNKNOWN  # twins
+    far = model([30.0, 30.0])  # the generator told them apart: a label of a is trusted
+    assert confusable(far, far.offset_var_untouched, ["a"], ["b"]) == {}
+    assert run(item_evidence(far, adapt(far, labelled), ["tw", "a", "b"], labelled, [], make)).label == "a"
 
 
 def test_the_off_scene_rule_measures_a_labelled_fabric_from_its_learned_mean():
