@@ -467,7 +467,9 @@ class OperatorFeedback:
                 why = self._apply(rec["item_id"], rec["fabric"], off)
                 entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
                              applied=not why, **({"why": why} if why else {}),
-                             **({"replaces": before[0]} if before and not why else {}))
+                             **({"replaces": before[0]} if before and not why else {}),
+                             **({"guarded_while_untaught": self.twins_of(rec["fabric"])}
+                                if not why and not off and self.twins_of(rec["fabric"]) else {}))
             try:
                 out.append(journal.append(entry))
             except BaseException:
@@ -480,6 +482,12 @@ class OperatorFeedback:
             self.lines_read, self._prefix = line, (end, entry["file_sha256"])
         self._seen = seen  # a line still being written grows the file, so it is read when whole
         return out
+
+    def twins_of(self, fabric: str) -> list[str]:
+        """The job's untaught untouched fabrics that keep ``fabric``'s label guarded (``confusable``):
+        its pieces go to the reject bin unless zero-shot agrees, until one of each is labelled."""
+        untaught = [c for c in self.scene if c in self.deployed.untouched and c not in self.labelled]
+        return confusable(self.deployed, self.base.offset_var_untouched, [fabric], untaught).get(fabric, [])
 
     def _begins_with_lines_read(self, data: bytes) -> bool:
         """Whether ``data`` still begins with the lines read so far, byte for byte (their length and

@@ -245,7 +245,7 @@ def test_a_class_no_label_taught_is_sorted_only_when_zero_shot_agrees():
     assert run(item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], make), (0.0, 6.0)).label == "a"
 
 
-def test_a_taught_class_is_guarded_while_an_untaught_twin_of_it_is_in_the_job():
+def test_a_taught_class_is_guarded_while_an_untaught_twin_of_it_is_in_the_job(tmp_path):
     """Two untouched fabrics of one knit in two colours feel the same; the generator put their
     syntheses closer together than its own error. One label of the first moved its mean to its real
     presses, and every piece of the twin - which lands there too - went to the first one's bin,
@@ -276,6 +276,16 @@ def test_a_taught_class_is_guarded_while_an_untaught_twin_of_it_is_in_the_job():
     both = {**labelled, "b": [(real + 0.1, 4)]}  # the twin labelled too: nothing left unshown
     assert confusable(near, near.offset_var_untouched, ["a", "b"], []) == {}
     assert run(item_evidence(near, adapt(near, both), ["tw", "a", "b"], both, [], make)).label == UNKNOWN  # twins
+    fb = OperatorFeedback(near, ("tw", "a", "b"), tmp_path / "labels.jsonl", make)  # said in the journal
+    for item in ("p1", "p2"):
+        ev = fb()
+        run(ev)
+        fb.remember(item, ev)
+    append_label(fb.path, "p1", "a")
+    append_label(fb.path, "p2", "b")
+    said = fb.poll(ListJournal())
+    assert said[0]["applied"] and said[0]["guarded_while_untaught"] == ["b"]
+    assert said[1]["applied"] and "guarded_while_untaught" not in said[1]  # a, its twin, is taught now
     far = model([30.0, 30.0])  # the generator told them apart: a label of a is trusted
     assert confusable(far, far.offset_var_untouched, ["a"], ["b"]) == {}
     assert run(item_evidence(far, adapt(far, labelled), ["tw", "a", "b"], labelled, [], make)).label == "a"
