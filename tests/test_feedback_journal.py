@@ -94,19 +94,25 @@ class _FailingOnce:
         return rec
 
 
+def _decided(fb, *items):
+    """Each item decided by ``fb``'s evidence at PIECE_Z and remembered; their pre_sort records."""
+    pre_sorts = []
+    for item in items:
+        ev = fb()
+        _decide(ev, PIECE_Z)
+        fb.remember(item, ev)
+        pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
+                          "scene_z_mean": fb.journal_z_mean(ev)})
+    return pre_sorts
+
+
 def test_a_label_that_cannot_be_journaled_is_not_applied_and_is_read_again(tmp_path):
     """A label whose journal record fails (disk full: the cell latches 'journal write failed')
     leaves the model as it was - what the journal does not hold, a restart could not rebuild - and
     the next poll, once the operator has cleared the fault, reads the line again, applies it and
     journals it: live and restarted cells then hold the same labels."""
     fb = _feedback(tmp_path)
-    pre_sorts = []
-    for item in ("piece-1", "piece-2"):
-        ev = fb()
-        _decide(ev, PIECE_Z)
-        fb.remember(item, ev)
-        pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
-                          "scene_z_mean": fb.journal_z_mean(ev)})
+    pre_sorts = _decided(fb, "piece-1", "piece-2")
     j = _FailingOnce()
     means_before = fb.model.means.copy()
     append_label(fb.path, "piece-1", "wool")
@@ -136,13 +142,7 @@ def test_a_labels_file_put_in_place_of_the_one_read_is_read_from_its_first_line(
     the file is checked to begin with the lines read (their SHA-256, journaled with each line, so a
     restart checks it too), and read again from line 1 when it does not, said in the journal."""
     fb = _feedback(tmp_path)
-    pre_sorts = []
-    for item in ("piece-1", "piece-2", "piece-3"):
-        ev = fb()
-        _decide(ev, PIECE_Z)
-        fb.remember(item, ev)
-        pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
-                          "scene_z_mean": fb.journal_z_mean(ev)})
+    pre_sorts = _decided(fb, "piece-1", "piece-2", "piece-3")
     j = ListJournal()
     fb.path.write_text(_label_lines(("piece-9", "wool"), ("piece-8", "wool")))  # two lines naming no piece here
     assert [r["applied"] for r in fb.poll(j)] == [False, False] and fb.item_labels == {}
