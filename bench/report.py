@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from vs2t_edge.runtime.files import portable
 from vs2t_edge.bench.measure import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
+from vs2t_edge.runtime.files import portable
 
 
 def _f(v, fmt="{:.1f}") -> str:

@@ -30,10 +30,11 @@ def _fault_file_never_written(fault: dict | None) -> bool:
 
 
 class FaultLatch:
-    """The fault latch's half of ``Cell``."""
+    """The fault latch's half of ``Cell``, whose ``__init__`` sets ``fault`` (None) and
+    ``_fault_file_written`` (False: only a fault file that was there and is gone clears a fault)."""
 
-    fault: str | None = None
-    _fault_file_written = False  # only a fault file that was there and is gone clears a fault
+    fault: str | None
+    _fault_file_written: bool
 
     def recover(self) -> list[dict]:
         """Resolve items the last run left between pre_sort and final; restore a latched fault."""
@@ -47,9 +48,9 @@ class FaultLatch:
             reason = text.strip() or "fault latched before restart"
             self.fault, self._fault_file_written = reason, True
             self.notifier.status(f"FAULT (latched before restart): {reason}")
-        elif ff is not None and _fault_file_never_written(self.journal.latched_fault()):
+        elif ff is not None and _fault_file_never_written(last := self.journal.latched_fault()):
             # the journal's last fault, its file never written: no operator can have cleared it
-            self.fault = str(self.journal.latched_fault().get("reason") or "fault latched before restart")
+            self.fault = str(last.get("reason") or "fault latched before restart")
             self._fault_file_written = False
             self.fault_cleared_by_operator()  # writes the file now if it can
             self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")

@@ -244,4 +244,3 @@ def portable(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [portable(v) for v in value]
     return value
-

@@ -287,9 +287,11 @@ def finetune_split(cache: StemCache, trunk: Trunk, split, *, epochs: int, max_ro
 @torch.no_grad()
 def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.ndarray:
     trunk.eval()
-    return np.concatenate([trunk.features_from_stem(torch.from_numpy(np.ascontiguousarray(stem[i:i + chunk],
-                                                                                         np.float32))).numpy()
-                           for i in range(0, len(stem), chunk)]).astype(np.float32)
+    out = []
+    for i in range(0, len(stem), chunk):
+        x = torch.from_numpy(np.ascontiguousarray(stem[i:i + chunk], np.float32))  # one layout: one result
+        out.append(trunk.features_from_stem(x).numpy())
+    return np.concatenate(out).astype(np.float32)
 
 
 __all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
