@@ -93,11 +93,6 @@ def hand_written_tail(md: Path) -> str:
     return f"\n{HAND_WRITTEN}{tail}" if marker else ""
 
 
-def _portable(text: object) -> str:
-    """A manifest's command or path without this machine's folders (``runtime.files.portable``)."""
-    return portable(str(text))
-
-
 def render_made_by(result: dict) -> list[str]:
     rows = [r for r in result["variants"] if r.get("made_by")]
     if not rows:
@@ -106,8 +101,8 @@ def render_made_by(result: dict) -> list[str]:
              "| variant | command | commit | dataset | router |", "|---|---|---|---|---|"]
     for r in rows:
         mb = r["made_by"]
-        lines.append(f"| {r['name']} | `{_portable(mb.get('command', '?'))}` | {str(mb.get('git_commit', '?'))[:12]} | "
-                     f"{_portable(mb.get('dataset', '–'))} | {mb.get('router', '?')} |")
+        lines.append(f"| {r['name']} | `{portable(str(mb.get('command', '?')))}` | {str(mb.get('git_commit', '?'))[:12]} | "
+                     f"{portable(str(mb.get('dataset', '–')))} | {mb.get('router', '?')} |")
     return lines
 
 

@@ -51,8 +51,7 @@ class FaultLatch:
         elif ff is not None and _fault_file_never_written(last := self.journal.latched_fault()):
             # the journal's last fault, its file never written: no operator can have cleared it
             self.fault = str(last.get("reason") or "fault latched before restart")
-            self._fault_file_written = False
-            self.fault_cleared_by_operator()  # writes the file now if it can
+            self._write_fault_file()  # now, if it can
             self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")
         return resolved
 
@@ -100,13 +99,9 @@ class FaultLatch:
                 steps.append(f"{what} failed: {exc}")
         # the fault file before the journal record: that record then says whether the file was
         # written, which a restart needs (a file never written is no operator's clear)
-        self._fault_file_written = False
-        if self.scene.fault_file is not None:
-            try:
-                atomic_write(self.scene.fault_file, reason + "\n")
-                self._fault_file_written = True
-            except Exception as exc:  # noqa: BLE001
-                steps.append(f"{FAULT_FILE_FAILED}: {exc}")
+        failed = self._write_fault_file()
+        if failed:
+            steps.append(f"{FAULT_FILE_FAILED}: {failed}")
         try:
             self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
                                  "t": time.time()})
@@ -126,14 +121,23 @@ class FaultLatch:
         if ff is None:
             return True
         if not self._fault_file_written:
-            try:
-                atomic_write(ff, f"{self.fault}\n")
-            except Exception:  # noqa: BLE001 - still unwritable: still latched (latch_fault said why)
-                return False
-            self._fault_file_written = True
-            self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
+            if not self._write_fault_file():  # still unwritable: still latched (latch_fault said why)
+                self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
             return False
         return not ff.exists()
+
+    def _write_fault_file(self) -> str:
+        """The latched fault's reason into the fault file (if the scene has one); '' when written,
+        else why not. ``_fault_file_written`` says which."""
+        self._fault_file_written = False
+        if self.scene.fault_file is None:
+            return ""
+        try:
+            atomic_write(self.scene.fault_file, f"{self.fault}\n")
+        except Exception as exc:  # noqa: BLE001 - any failure leaves the fault latched, said by the caller
+            return str(exc)
+        self._fault_file_written = True
+        return ""
 
     def clear_fault(self) -> bool:
         """Called when the operator removed the fault file: clear the gate, journal, resume."""

@@ -285,18 +285,19 @@ def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]
         data = read_regular_file(path, MAX_LABELS_FILE_BYTES, "labels file")
     except FileNotFoundError:
         return []
-    return [(k, rec) for k, rec, _ in _parse_labels(data, start)]
+    return [(k, rec) for k, rec, _ in _parse_labels(data, start)[1]]
 
 
-def _parse_labels(data: bytes, start: int = 0) -> list[tuple[int, dict | str, int]]:
-    """``read_labels``'s lines of ``data``, each with the byte offset just past its newline."""
+def _parse_labels(data: bytes, start: int = 0) -> tuple[int, list[tuple[int, dict | str, int]]]:
+    """(the byte offset where line ``start`` + 1 begins, ``read_labels``'s lines of ``data`` from
+    it, each with the byte offset just past its newline)."""
     lines = data.split(b"\n")[:-1]  # the part after the last newline is not a whole line yet
-    end = sum(len(raw) + 1 for raw in lines[:start])
+    begin = end = sum(len(raw) + 1 for raw in lines[:start])
     out: list[tuple[int, dict | str, int]] = []
     for k, raw in enumerate(lines[start:], start + 1):
         end += len(raw) + 1
         out.append((k, _parse_label(raw), end))
-    return out
+    return begin, out
 
 
 def _parse_label(raw: bytes) -> dict | str:
@@ -319,14 +320,6 @@ def _parse_label(raw: bytes) -> dict | str:
 
 
 _EMPTY_SHA256 = hashlib.sha256(b"").hexdigest()
-
-
-def _line_end(data: bytes, n: int) -> int:
-    """The offset just past the ``n``-th newline of ``data`` (0 for none)."""
-    end = 0
-    for _ in range(n):
-        end = data.index(b"\n", end) + 1
-    return end
 
 
 class OperatorFeedback:
@@ -445,8 +438,7 @@ class OperatorFeedback:
             out.append(journal.append({"type": "label", "file": str(self.path), "applied": False, "reread": True,
                                        "why": why}))
             self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)
-        lines = _parse_labels(data, self.lines_read)
-        start = self._prefix[0] if self._prefix is not None else _line_end(data, self.lines_read)
+        start, lines = _parse_labels(data, self.lines_read)
         digest = hashlib.sha256(data[:start])
         for line, rec, end in lines:
             digest.update(data[start:end])
@@ -465,11 +457,11 @@ class OperatorFeedback:
                 off = bool(rec.get("off_scene", False))
                 before = self.item_labels.get(rec["item_id"])
                 why = self._apply(rec["item_id"], rec["fabric"], off)
+                twins = [] if why or off else self.twins_of(rec["fabric"])
                 entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
                              applied=not why, **({"why": why} if why else {}),
                              **({"replaces": before[0]} if before and not why else {}),
-                             **({"guarded_while_untaught": self.twins_of(rec["fabric"])}
-                                if not why and not off and self.twins_of(rec["fabric"]) else {}))
+                             **({"guarded_while_untaught": twins} if twins else {}))
             try:
                 out.append(journal.append(entry))
             except BaseException:
