@@ -1,7 +1,9 @@
 """`vs2t-edge label CONFIG ITEM_ID FABRIC [--off-scene]`: the operator says what a piece in the reject bin was.
 `vs2t-edge label CONFIG ITEM_ID --retract`: withdraws a piece's label (a wrong one); labelling a piece
 again replaces its label instead of adding a second.
-`vs2t-edge label CONFIG --last FABRIC`: labels the piece the cell decided last (a teach piece).
+`vs2t-edge label CONFIG --last FABRIC`: labels the piece the cell decided last (a teach piece), and
+refuses once the cell has begun another piece since (the piece decided last may then be a later
+one than the operator saw: name it by ITEM_ID).
 `vs2t-edge label CONFIG --list [N]`: the last N pieces sent to the reject bin, and what became of
 their labels (none yet, waiting for the service, applied, or why not).
 
@@ -42,7 +44,7 @@ def add_arguments(parser, verb: str) -> None:
                              "piece; to correct a label, label the piece again instead")
     parser.add_argument("--last", metavar="FABRIC", default=None,
                         help="label the piece the cell decided last as FABRIC, instead of ITEM_ID FABRIC (a teach "
-                             "piece just pressed, whatever bin it went to)")
+                             "piece just pressed, whatever bin it went to); refused once the cell has begun another piece")
     parser.add_argument("--recording", metavar="OUT", default=None,
                         help="the piece is one of the `vs2t-edge record --out OUT` session's (checked against that "
                              "recording's journal instead of the service's)")
@@ -122,13 +124,15 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
     """(the piece's id, '; the cell had decided ...') for a decided piece ``item_id`` of the config's
     journal, or the last decided one for ``item_id`` None; ('' when the journal cannot be read: said
     on stderr); None (refused, said) when the journal has no such piece."""
-    last, found = None, None
+    last, found, begun = None, None, None
     try:
         for rec in iter_records(cfg.journal):
             if rec.get("type") == "pre_sort" and rec.get("item_id") is not None:
-                last = rec
+                last, begun = rec, None
                 if rec.get("item_id") == item_id:
                     found = rec
+            elif rec.get("type") == "item" and rec.get("item_id") is not None:
+                begun = rec  # a piece the cell began after the last decided one
     except OSError as exc:
         if item_id is None:
             print(f"label: cannot read the journal {cfg.journal} to find the last piece ({exc.strerror or exc})",
@@ -137,6 +141,16 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
         print(f"label: cannot read the journal {cfg.journal} to check {item_id} ({exc.strerror or exc}); "
               "writing the label anyway - the service journals whether it could use it", file=sys.stderr)
         return item_id, ""
+    if item_id is None and last is not None and begun is not None and begun.get("item_id") != last.get("item_id"):
+        # --last names the piece the operator just saw decided; once the line has begun another, the
+        # last decided piece may already be a later one than that (a teach piece's label would then
+        # teach its fabric another piece's presses, and every piece like that one would follow it)
+        print(f"label: --last is ambiguous: the cell has begun piece {begun['item_id']} since it decided "
+              f"{last['item_id']} (the cell had decided " + ("the reject bin" if last.get("label") == UNKNOWN
+                                                               else last.get("label", "?"))
+              + f"); name the piece: `vs2t-edge label {cfg.path} ITEM_ID FABRIC` (`--list` shows the pieces in "
+              "the reject bin)", file=sys.stderr)
+        return None
     found = last if item_id is None else found
     if found is None:
         print(f"label: {cfg.journal} has no decided piece" + (f" {item_id!r}" if item_id is not None else "")

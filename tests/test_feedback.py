@@ -453,6 +453,21 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("piece-000003 labelled wool")
     assert json.loads((tmp_path / "labels.jsonl").read_text().splitlines()[-1]) == {"item_id": "piece-000003",
                                                                                  "fabric": "wool"}
+    # once the cell has begun another piece, the piece decided last may be a later one than the
+    # operator saw: --last refuses and asks for the id (the label names a piece, never "whatever is last")
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        j.append({"type": "item", "item": 4, "item_id": "piece-000004"})
+    capsys.readouterr()
+    assert main(["label", str(cfg), "--last", "wool"]) == 2
+    err = capsys.readouterr().err
+    assert "--last is ambiguous" in err and "begun piece piece-000004 since it decided piece-000003" in err
+    assert len((tmp_path / "labels.jsonl").read_text().splitlines()) == 5  # nothing appended
+    assert main(["label", str(cfg), "piece-000003", "wool"]) == 0  # by its id it still can be
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        j.append({"type": "pre_sort", "item_id": "piece-000004", "label": UNKNOWN, "presses": 5})
+    capsys.readouterr()
+    assert main(["label", str(cfg), "--last", "wool"]) == 0  # decided, nothing begun since: it is the last one
+    assert capsys.readouterr().out.startswith("piece-000004 labelled wool")
 
 
 def _recorded_with_labels(tmp_path, operator):
