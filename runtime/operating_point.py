@@ -155,8 +155,9 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
 
 def config_sets_confidence(cfg) -> bool:
     """Whether the config's file writes ``evidence.confidence`` (a default does not count: it
-    must not override the scene model's fitted confidence)."""
-    return "confidence" in ((cfg.raw or {}).get("evidence") or {})
+    must not override the scene model's fitted confidence; nor does ``confidence: null``, which
+    loads as the default)."""
+    return ((cfg.raw or {}).get("evidence") or {}).get("confidence") is not None
 
 
 def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:

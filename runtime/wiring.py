@@ -19,6 +19,7 @@ in; a config's simulated gate or fake arm and gate (a dry run) are looked up by 
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Any, Callable
 
@@ -87,6 +88,16 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
                          "no scene model (decision.npz), so nothing could refuse a piece: every piece on the line "
                          "would be sorted into that fabric's bin. Export the bundle with its scene model, or list "
                          "the other fabrics the line carries")
+    scene_model = getattr(model, "scene_model", None)
+    if len(cfg.fabrics) == 1 and scene_model is not None and not (
+            math.isfinite(float(scene_model.open_threshold)) or math.isfinite(float(scene_model.known_margin))):
+        # the same with a scene model whose off-scene rules are both off (a choice training's search
+        # can make for scenes of several fabrics, where the posterior itself can refuse a piece)
+        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and the scene model of bundle "
+                         f"{cfg.bundle} has both off-scene rules off (open_threshold and known_margin infinite), so "
+                         "nothing could refuse a piece: every piece on the line would be sorted into that fabric's "
+                         "bin. List the other fabrics the line carries, or deploy a bundle whose training chose an "
+                         "off-scene rule")
 
 
 def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from vs2t_edge.runtime import operating_point as op
@@ -175,6 +176,46 @@ def test_a_one_fabric_scene_needs_a_bundle_that_can_refuse_a_piece(tmp_path):
         load_model(load_config(tmp_path / "c.yaml"))
     (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
     assert load_model(load_config(tmp_path / "c.yaml")).scene_model is None  # two fabrics: it starts
+
+
+def test_a_one_fabric_scene_needs_an_off_scene_rule_of_the_scene_model(tmp_path):
+    """A scene model refuses a piece of a one-fabric scene only by its off-scene rules; training may
+    turn both off (open_threshold and known_margin infinite: a choice for scenes of several fabrics,
+    where the posterior itself can reject). With both off, every piece - another bundle fabric or one
+    never seen - went to the one fabric's bin, and the job check said every fabric sorts."""
+    import math
+    from dataclasses import replace
+
+    from vs2t_edge.runtime.scene_model import SceneModel
+    from vs2t_edge.runtime.sorting import scene_model_presses
+    from vs2t_edge.runtime.wiring import check_scene_against_bundle, evidence_factory_for
+
+    means = np.array([[0.0, 0, 0], [8, 0, 0], [0, 8, 0]])
+    sm = SceneModel(("f00", "f02", "f03"), frozenset({"f03"}), np.zeros(6), np.eye(6)[:, :3], means,
+                    open_threshold=math.inf, known_margin=math.inf, confidence=0.99, untouched_confidence=0.99)
+    model = SimpleNamespace(touched=["f00", "f02"], untouched=["f03"], scene_model=sm,
+                            manifest={"provenance": {"trained": True}})
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG.replace(", {name: f02, kind: touched, bin: 2}", ""))
+    cfg = load_config(tmp_path / "c.yaml")
+    x = np.zeros((5, 6))
+    x[:, 1] = 8.0  # presses at f02's mean: surely not f00
+    ev = evidence_factory_for(cfg, model)()
+    assert ev.add(scene_model_presses(sm, x)[0]).label == "f00"  # what the cell would have done
+    with pytest.raises(ValueError, match=r"one fabric \(f00\).*both off-scene rules off.*every piece"):
+        check_scene_against_bundle(cfg, model)
+    for rule in ({"open_threshold": 40.0}, {"known_margin": 0.0}):  # either rule can refuse: it starts
+        check_scene_against_bundle(cfg, SimpleNamespace(**{**vars(model), "scene_model": replace(sm, **rule)}))
+    (tmp_path / "c.yaml").write_text(BUNDLE_CFG)
+    check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # two fabrics: the posterior can reject
+
+
+def test_confidence_null_is_no_written_confidence(tmp_path):
+    """``evidence.confidence: null`` loads as the default 0.9; counted as written, it replaced the
+    scene model's fitted touched confidence (0.97 here) with 0.9: a bolder cell nobody chose."""
+    cfg = _cfg(tmp_path, "evidence: {confidence: null}\n")
+    assert cfg.confidence == 0.9 and not op.config_sets_confidence(cfg)
+    assert op.scene_model_settings(cfg, _SCENE)[0] == 0.97
+    assert op.config_sets_confidence(_cfg(tmp_path, "evidence: {confidence: 0.9}\n"))
 
 
 def _run_daemon_on(cfg):
