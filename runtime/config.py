@@ -20,12 +20,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from vs2t_edge.firmware_bridge.gate_client import timing_problems as gate_timing_problems
 from vs2t_edge.firmware_bridge.protocol import REJECT_BIN as GATE_REJECT_BIN
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_problems
+from vs2t_edge.runtime.config_yaml import ConfigError, parse_yaml_with_lines
 from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
@@ -34,16 +33,6 @@ GATE_KINDS = ("serial", "sim", "fake")
 GRID_ORDERS = ("spread", "rows", "list")
 WITHOUT_SCENE_MODEL = ("refuse", "allow")
 N_GRID_X = N_GRID_Y = GRID_N  # 15: the paper's 15 x 15 grid of press points on the 8 cm piece
-
-
-class ConfigError(ValueError):
-    """Every problem in one config file; ``problems`` are ``FILE:LINE: key: message`` lines."""
-
-    def __init__(self, path: Path | str, problems: list[str]) -> None:
-        self.path = Path(path)
-        self.problems = list(problems)
-        body = "\n".join(f"  {p}" for p in self.problems)
-        super().__init__(f"config {self.path}: {len(self.problems)} problem(s)\n{body}")
 
 
 # --- the schema --------------------------------------------------------------------------
@@ -233,73 +222,6 @@ def spread_order(n_x: int = N_GRID_X, n_y: int = N_GRID_Y) -> list[int]:
         for c in chosen:
             d2[c] = -1
     return chosen
-
-
-# --- YAML with line numbers --------------------------------------------------------------
-
-_MAX_NODES = 5000  # a cell config has a few hundred; aliases must not expand without bound (each
-# scalar costs a ~90 us serialize + safe_load round trip: 20000 made an alias bomb take 1.8 s)
-
-
-def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[int] | None = None) -> Any:
-    budget = budget if budget is not None else [_MAX_NODES]
-    budget[0] -= 1
-    if budget[0] < 0:
-        raise _TooBig()
-    lines[key] = node.start_mark.line + 1
-    if isinstance(node, yaml.MappingNode):
-        out: dict[str, Any] = {}
-        for k_node, v_node in node.value:
-            k = str(yaml.safe_load(yaml.serialize(k_node))) if not isinstance(k_node, yaml.ScalarNode) else k_node.value
-            sub = f"{key}.{k}" if key else k
-            lines[sub] = k_node.start_mark.line + 1
-            if k in out:
-                lines.setdefault("__dup__", [])  # type: ignore[arg-type]
-                lines["__dup__"].append(sub)  # type: ignore[union-attr]
-            out[k] = _to_python(v_node, sub, lines, budget)
-            lines[sub] = k_node.start_mark.line + 1
-        return out
-    if isinstance(node, yaml.SequenceNode):
-        return [_to_python(v, f"{key}[{i}]", lines, budget) for i, v in enumerate(node.value)]
-    try:
-        return yaml.safe_load(yaml.serialize(node))
-    except (yaml.YAMLError, ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
-        # An explicit tag the value does not fit ("!!timestamp x" -> AttributeError, "!!bool maybe"
-        # -> KeyError, "!!int ''" -> IndexError inside PyYAML): say where, like every other problem.
-        raise _BadScalar(node.start_mark.line + 1, key or "the document", node.tag, exc) from None
-
-
-def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-    except RecursionError:  # thousands of nested [ or {: the composer recurses per level
-        raise ConfigError(path, [f"{path}: nested too deeply to be a cell config"]) from None
-    except (yaml.YAMLError, ValueError) as exc:  # ValueError: e.g. NUL bytes the reader refuses
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise ConfigError(path, [f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})"]) from None
-    lines: dict[str, int] = {}
-    if node is None:
-        return {}, lines
-    try:
-        return _to_python(node, "", lines), lines
-    except (_TooBig, RecursionError):
-        raise ConfigError(path, [f"{path}: too large or self-referencing (YAML aliases); a cell config is "
-                                 "a few dozen keys"]) from None
-    except _BadScalar as bad:
-        line, key, tag, exc = bad.args
-        raise ConfigError(path, [f"{path}:{line}: {key}: not valid YAML for tag {tag} "
-                                 f"({type(exc).__name__}: {str(exc)[:200]})"]) from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(path, [f"{path}: not valid YAML ({str(exc)[:200]})"]) from None
-
-
-class _TooBig(Exception):
-    pass
-
-
-class _BadScalar(Exception):
-    """(line, key, tag, the constructor's exception) of a scalar PyYAML could not build."""
 
 
 def _finite(value: int | float) -> bool:
@@ -495,6 +417,8 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         bounds = bounds_of(cam, arm_sec["kind"], arm_cfg, gate)
         for key, problem in watchdog_problems(bounds, v["watchdog"]["wait_item_timeout_s"]):
             chk.err(key, f"{key}: {problem}")
+    if not chk.problems:  # the paths are paths only when every key is valid
+        _state_files_apart(chk, v, ev)
     if chk.problems:
         raise ConfigError(path, chk.problems)
     journal = v["journal"]
@@ -510,6 +434,27 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
         operator_labels=ev["operator_labels"], raw=data if isinstance(data, dict) else {},
     )
+
+
+def _state_files_apart(chk: "_Checker", v: dict, ev: dict) -> None:
+    """The journal, the fault file, the labels file and the beta override file are four files: the
+    fault latch writes and deletes its file whole, so a fault file that is the journal would replace
+    every decision record with the fault's text (and clearing the fault would delete the journal)."""
+    journal = v["journal"]
+    files = {"journal": journal, "fault_file": v["fault_file"] or journal.with_name("FAULT"),
+             "evidence.operator_labels": ev["operator_labels"], "beta_override_file": v["beta_override_file"]}
+    seen: dict[str, str] = {}
+    for key, p in files.items():
+        if p is None:
+            continue
+        where = os.path.normpath(os.path.abspath(p))
+        if where in seen:
+            default = " (the fault file's default: FAULT beside the journal)" if key == "fault_file" and \
+                v["fault_file"] is None else ""
+            chk.err(key, f"{key}: {p} is also the {seen[where]}{default}; each needs a file of its own - a fault "
+                         "latch writes and deletes its file whole, and the journal must keep every record")
+        else:
+            seen[where] = key
 
 
 def load_config(path: Path | str) -> CellConfig:

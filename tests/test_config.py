@@ -252,3 +252,24 @@ def test_two_fabrics_in_one_bin_while_bins_are_free_is_said_before_the_start(tmp
                         "".join(f"    - {{name: f{b}, kind: touched, bin: {b}}}\n" for b in range(2, 8))
                         + "    - {name: silk, kind: untouched, bin: 1}\n")
     assert load_config(write(tmp_path, full)).shared_bins_note() == ""  # every bin used: sharing is meant
+
+
+def test_the_state_files_are_four_files(tmp_path):
+    """A fault file that is the journal: the first latched fault replaced every decision record with
+    the fault's text, and clearing the fault deleted the journal. The journal, the fault file, the
+    labels file and the beta override file must each be a file of its own, named with its line."""
+    path = write(tmp_path, GOOD + "fault_file: state/journal.jsonl\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert f"{path}:{GOOD.count(chr(10)) + 1}: fault_file: " in str(info.value) and "is also the journal" in str(info.value)
+    labels = GOOD.replace("  max_presses: 6\n", "  max_presses: 6\n  operator_labels: state/./journal.jsonl\n")
+    with pytest.raises(ConfigError, match="evidence.operator_labels: .* is also the journal"):
+        load_config(write(tmp_path, labels))
+    with pytest.raises(ConfigError, match=r"beta_override_file: .* is also the evidence.operator_labels"):
+        load_config(write(tmp_path, labels.replace("state/./journal.jsonl", "labels.jsonl")
+                          + "beta_override_file: labels.jsonl\n"))
+    named_fault = GOOD.replace("journal: state/journal.jsonl", "journal: state/FAULT")
+    with pytest.raises(ConfigError, match=r"fault_file: .*FAULT is also the journal \(the fault file's default"):
+        load_config(write(tmp_path, named_fault))
+    ok = load_config(write(tmp_path, GOOD + "fault_file: state/FAULT.txt\n"))
+    assert ok.fault_file == tmp_path / "state" / "FAULT.txt"
