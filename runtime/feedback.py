@@ -491,7 +491,9 @@ class OperatorFeedback:
 
     def restore(self, records: Iterable[Mapping[str, Any]], seal: str | None) -> None:
         """The state a restarted service resumes from: decided items' press means (pre_sort
-        records' ``scene_z_mean``), the labels already journaled, applied again in their order.
+        records' ``scene_z_mean``), the labels already journaled, applied again in their order -
+        each judged by this job, whether its own session applied it or not (a label is what a piece
+        was, whatever job it was given in).
         Records of sessions run on another bundle (their start record's ``seal``) are skipped:
         their projections are in another model's space."""
         current = True  # records before the first start record: this journal's own
@@ -507,11 +509,15 @@ class OperatorFeedback:
             elif kind == "label" and rec.get("file") == str(self.path) and rec.get("reread") is True:
                 self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
-                if rec.get("applied") and rec.get("retract"):
-                    self._retract(str(rec.get("item_id")), rebuild=False)
-                elif rec.get("applied"):
-                    self._apply(str(rec.get("item_id")), str(rec.get("fabric")), bool(rec.get("off_scene")),
-                                rebuild=False)
+                # every label the operator gave, applied in its session or not, judged again by this
+                # job: a retraction or correction given while its fabric was out of the job (so not
+                # applied then) must still withdraw the label when the fabric is back
+                if rec.get("item_id") is None:
+                    pass  # a line that was no label (unreadable): nothing to apply
+                elif rec.get("retract"):
+                    self._retract(str(rec["item_id"]), rebuild=False)
+                elif isinstance(rec.get("fabric"), str):
+                    self._apply(str(rec["item_id"]), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)

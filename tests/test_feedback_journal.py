@@ -12,7 +12,8 @@ import pytest
 from cell_fakes import ScriptedCamera
 from feedback_fakes import CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback, scene_model
 from vs2t_edge.runtime import sorting as so
-from vs2t_edge.runtime.feedback import append_label
+from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 
@@ -237,3 +238,43 @@ def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_p
     assert polled and not any(r.get("applied") for r in polled)
     assert all("no decided item" in r["why"] for r in polled)
     assert _decide(fb(), other_piece).label == before
+
+
+def test_a_retraction_or_correction_given_while_its_fabric_was_out_of_the_job_holds_when_it_is_back(tmp_path):
+    """Same bundle, three jobs. Job 1 lists wool: piece P (silk) is labelled wool by mistake. Job 2
+    leaves wool out: the restart drops P's label, and the operator's retraction is journaled "no
+    applied label to retract". Job 3 lists wool again: the restart applied only records applied in
+    their session, so the wrong label came back for good (wool's mean on silk's presses) - and so
+    did a wrong label corrected to a touched fabric in a job without wool."""
+    labels, journal = tmp_path / "labels.jsonl", ListJournal()
+    silk = np.array([10.0, 0.0])
+    make = lambda m, classes: Evidence(classes, 0.95, 4, item_model=m)  # noqa: E731
+
+    def session(scene):
+        journal.append({"type": "start", "manifest_sha256": "SEAL"})
+        fb = OperatorFeedback(scene_model(), scene, labels, make)
+        fb.restore(list(journal.records), "SEAL")
+        return fb
+
+    def piece(fb, item):
+        ev = fb()
+        for _ in range(4):
+            if ev.add(so.Press({}, None, silk + 0.3)) is not None:
+                break
+        journal.append({"type": "pre_sort", "item_id": item, "presses": ev.presses, "scene_z_mean": fb.journal_z_mean(ev)})
+        fb.remember(item, ev)
+
+    first = session(["denim", "silk", "wool"])
+    piece(first, "P")
+    piece(first, "Q")
+    append_label(labels, "P", "wool")
+    append_label(labels, "Q", "wool")
+    assert [r["applied"] for r in first.poll(journal)] == [True, True]
+    second = session(["denim", "silk"])
+    assert second.item_labels == {}  # wool is no fabric of this job
+    append_label(labels, "P", None)  # withdrawn
+    append_label(labels, "Q", "silk")  # corrected: a touched fabric's label withdraws it
+    assert [r["applied"] for r in second.poll(journal)] == [False, False]  # nothing in force to withdraw here
+    third = session(["denim", "silk", "wool"])
+    assert third.item_labels == {} and third.poll(journal) == []
+    assert np.allclose(third.model.means, scene_model().means)  # wool's mean is its synthesis again
