@@ -180,6 +180,17 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
             log(f"journal {cfg.journal}: start_failed not recorded ({jexc})")
         journal.close()
         return EXIT_DEVICE
+    missing = scene_bins_missing(cfg, gate)
+    if missing:  # every piece of those fabrics would latch a fault at its sort, mid-job
+        log(f"cannot start: {missing}")
+        notifier.status(f"gate has too few bins: {missing}")
+        _disconnect_all(camera, arm, gate)
+        try:
+            journal.append({"type": "start_failed", "reason": missing, "t": time.time()})
+        except JournalError as jexc:
+            log(f"journal {cfg.journal}: start_failed not recorded ({jexc})")
+        journal.close()
+        return EXIT_USAGE
     try:
         gate.to_reject()  # a fresh start routes nothing until a decision says so
     except Exception:  # noqa: BLE001
@@ -225,6 +236,23 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     notifier.stopping(f"stopped ({reason}); {cell.items_done} items")
     notifier.close()
     return EXIT_OK
+
+
+def scene_bins_missing(cfg: CellConfig, gate) -> str:
+    """'' when the gate has every bin the scene names, else which fabrics' bins it lacks. A gate
+    that cannot say now (status fails, or a gate that reports no bin count) is not refused here:
+    ``gate_latched_at_start`` deals with a gate that does not answer."""
+    try:
+        n_bins = gate.status().n_bins
+    except DeviceError:
+        return ""
+    if not isinstance(n_bins, int):
+        return ""
+    beyond = [f"{f.name} (bin {f.bin})" for f in cfg.fabrics if f.bin >= n_bins]
+    if not beyond:
+        return ""
+    return (f"{cfg.path}: the gate has bins 0..{n_bins - 1}, and the scene sends {', '.join(beyond)} beyond them; "
+            "every such piece would latch a fault at its sort - give those fabrics bins the gate has")
 
 
 def gate_latched_at_start(gate) -> tuple[str, str] | None:

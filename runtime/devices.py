@@ -123,6 +123,7 @@ class GateStatus:
     bin: int  # current bin position
     fault: str = ""  # reason when state is fault/failsafe
     seq: int = 0
+    n_bins: int | None = None  # the bins the gate has (0 .. n_bins - 1), where it says (STATUS)
 
 
 @runtime_checkable

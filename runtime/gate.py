@@ -73,7 +73,7 @@ class SerialGate:
             report: GateReport = self._client.status()
         except GateClientError as exc:
             raise _to_gate_error(exc) from exc
-        return GateStatus(state=report.state, bin=report.bin, fault=report.fault, seq=report.seq)
+        return GateStatus(state=report.state, bin=report.bin, fault=report.fault, seq=report.seq, n_bins=report.n_bins)
 
     def clear(self) -> None:
         self._need_connection()

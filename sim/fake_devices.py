@@ -184,7 +184,7 @@ class FakeGate:
     def status(self) -> GateStatus:
         self._need_connection()
         with self._lock:
-            return GateStatus(state=self._state, bin=self._bin, fault=self._fault, seq=self._seq)
+            return GateStatus(state=self._state, bin=self._bin, fault=self._fault, seq=self._seq, n_bins=self.n_bins)
 
     def clear(self) -> None:
         self._need_connection()

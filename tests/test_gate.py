@@ -354,7 +354,8 @@ def test_fake_gate_latches_like_the_firmware():
         assert latched.value.kind == "fault_latched"
         gate.clear()
         gate.lose_heartbeat()
-        assert gate.status() == GateStatus(state="failsafe", bin=0, fault="heartbeat_lost", seq=gate.status().seq)
+        assert gate.status() == GateStatus(state="failsafe", bin=0, fault="heartbeat_lost", seq=gate.status().seq,
+                                           n_bins=gate.n_bins)
         gate.to_reject()
         gate.clear()
         gate.time_out_next()

@@ -269,6 +269,32 @@ def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_pa
     assert gate.sorted == [1, 2]
 
 
+def test_a_gate_with_fewer_bins_than_the_scene_names_refuses_the_start(tmp_path, sim):
+    """A scene bin the gate does not have was found by the first piece sorted there: a fault
+    latched mid-job (the piece to reject, the line stopped until someone read the config). The
+    start now asks the gate its bins (STATUS) and refuses, naming the fabrics and the bins."""
+    from vs2t_edge.sim.fake_devices import FakeGate
+    from vs2t_edge.runtime.journal import read_records
+
+    gate = SerialGate(sim.device_path, timeout_s=0.5, retries=2, heartbeat_period_s=0.05)
+    gate.connect()
+    try:
+        assert gate.status().n_bins == sim.firmware.n_bins  # what the firmware's STATUS says
+    finally:
+        gate.disconnect()
+    small = FakeGate(n_bins=3)  # bins 0..2; the grey world's wool goes to bin 3
+    fault_file = tmp_path / "state" / "FAULT"  # where the old start ended: a fault at wool's sort
+    code, arm, cfg = _daemon_in_process(tmp_path, small, ["denim", "wool"],
+                                        stop_when=lambda: len(small.sorted) >= 2 or fault_file.exists())
+    assert code == 2 and arm.press_count == 0 and small.sorted == []
+    recs = read_records(cfg.journal)
+    assert [r["type"] for r in recs] == ["start_failed"]
+    assert "bins 0..2" in recs[0]["reason"] and "wool (bin 3)" in recs[0]["reason"]
+    fine = FakeGate(n_bins=4)
+    code, arm, cfg = _daemon_in_process(tmp_path, fine, ["denim", "wool"], stop_when=lambda: len(fine.sorted) >= 2)
+    assert code == 0 and fine.sorted == [1, 3]
+
+
 # --- the fault matrix's noise row must catch a parser that loses frames ---------------------------
 
 def _lossy_check_frame(buf):
