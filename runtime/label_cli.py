@@ -25,6 +25,7 @@ import sys
 from collections import deque
 from dataclasses import replace
 
+from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
 from vs2t_edge.runtime.feedback import append_label, read_labels
@@ -123,14 +124,19 @@ def run(args) -> int:
 def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
     """(the piece's id, '; the cell had decided ...') for a decided piece ``item_id`` of the config's
     journal, or the last decided one for ``item_id`` None; ('' when the journal cannot be read: said
-    on stderr); None (refused, said) when the journal has no such piece."""
+    on stderr); None (refused, said) when the journal has no such piece, or the piece was decided
+    under another bundle than the config's (the service would not use its label)."""
     last, found, begun = None, None, None
+    # the bundle (its start record's seal) the session that decided each piece ran
+    session_seal = last_seal = found_seal = None
     try:
         for rec in iter_records(cfg.journal):
-            if rec.get("type") == "pre_sort" and rec.get("item_id") is not None:
-                last, begun = rec, None
+            if rec.get("type") == "start":
+                session_seal = rec.get(SEAL_KEY)
+            elif rec.get("type") == "pre_sort" and rec.get("item_id") is not None:
+                last, begun, last_seal = rec, None, session_seal
                 if rec.get("item_id") == item_id:
-                    found = rec
+                    found, found_seal = rec, session_seal
             elif rec.get("type") == "item" and rec.get("item_id") is not None:
                 begun = rec  # a piece the cell began after the last decided one
     except OSError as exc:
@@ -151,16 +157,32 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
               + f"); name the piece: `vs2t-edge label {cfg.path} ITEM_ID FABRIC` (`--list` shows the pieces in "
               "the reject bin)", file=sys.stderr)
         return None
-    found = last if item_id is None else found
+    found, found_seal = (last, last_seal) if item_id is None else (found, found_seal)
     if found is None:
         print(f"label: {cfg.journal} has no decided piece" + (f" {item_id!r}" if item_id is not None else "")
               + (f" (the last decided is {last['item_id']})" if last else " (no piece decided yet)")
               + f"; `vs2t-edge label {cfg.path} --list` shows the pieces in the reject bin"
               + ("; a recorded piece takes --recording OUT" if str(item_id).startswith("rec") else ""), file=sys.stderr)
         return None
+    if (other := _another_bundle(cfg, found_seal)):
+        print(f"label: piece {found['item_id']} was decided under another bundle than {cfg.bundle} ({other}); its "
+              "presses are in that model's space, so the service would not use the label - label pieces decided "
+              "under the bundle it runs", file=sys.stderr)
+        return None
     label = found.get("label", "?")
     return str(found["item_id"]), ("; the cell had decided " + ("the reject bin" if label == UNKNOWN else label)
                                    + f" after {found.get('presses', '?')} press(es)")
+
+
+def _another_bundle(cfg, seal: str | None) -> str:
+    """'' unless ``seal`` (a journal session's bundle) and the config's bundle are known and differ."""
+    try:
+        current = read_manifest(cfg.bundle).get(SEAL_KEY)
+    except BundleError:
+        return ""  # the service refuses an unreadable bundle itself; nothing to compare here
+    if not (isinstance(seal, str) and isinstance(current, str)) or seal == current:
+        return ""
+    return f"seal {seal[:12]}, the config's bundle {current[:12]}"
 
 
 def rejected_pieces(cfg, n: int) -> list[str]:

@@ -470,6 +470,31 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("piece-000004 labelled wool")
 
 
+def test_the_label_verb_refuses_a_piece_decided_under_another_bundle(tmp_path, capsys):
+    """The service learns only from pieces decided under the bundle it runs (their projections are
+    that model's); a label of a piece decided under another was accepted here and refused there,
+    said only in the journal - the operator believed the cell had learned."""
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(journal="state/journal.jsonl", evidence={"operator_labels": "labels.jsonl"}))
+    (tmp_path / "bundle").mkdir()
+    from vs2t_edge.runtime.bundle import FORMAT, READ_VERSIONS
+
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": FORMAT, "format_version": max(READ_VERSIONS),
+                                                                   "manifest_sha256": "b" * 64}))
+    (tmp_path / "state").mkdir()
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        j.append({"type": "start", "manifest_sha256": "a" * 64})
+        j.append({"type": "pre_sort", "item_id": "piece-000001", "label": UNKNOWN, "presses": 5})
+        j.append({"type": "start", "manifest_sha256": "b" * 64})
+        j.append({"type": "pre_sort", "item_id": "piece-000002", "label": UNKNOWN, "presses": 5})
+    assert main(["label", str(cfg), "piece-000001", "wool"]) == 2
+    err = capsys.readouterr().err
+    assert "piece-000001 was decided under another bundle" in err and "seal aaaaaaaaaaaa" in err
+    assert not (tmp_path / "labels.jsonl").exists()  # nothing written
+    assert main(["label", str(cfg), "piece-000002", "wool"]) == 0  # this bundle's piece
+    assert main(["label", str(cfg), "--last", "wool"]) == 0
+
+
 def _recorded_with_labels(tmp_path, operator):
     """A session of 3 pieces recorded with operator labels (``operator(cfg, result)`` after each
     piece), the wool piece's presses every time: (replay folder, ReplayFile, the model class)."""
