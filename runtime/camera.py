@@ -122,6 +122,7 @@ class CameraBase:
 # --- live UVC camera ----------------------------------------------------------------------
 
 # A UVC open takes well under a second; one that hangs in the driver is ended past this.
+V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
 UVC_OPEN_TIMEOUT_S = 5.0
 
 
@@ -221,6 +222,12 @@ class UVCCamera(CameraBase):
         if self.buffer_size is not None:
             cap.set(cv2.CAP_PROP_BUFFERSIZE, float(self.buffer_size))
             applied["buffersize"] = cap.get(cv2.CAP_PROP_BUFFERSIZE) or None  # 0: backend ignores it
+            # frames dropped before each read: every buffer the driver may hold, plus one. A driver
+            # that ignores the buffer size keeps its default queue, and the 2 dropped then left a
+            # frame taken before the press (or of the last piece's press) to be read as this one's
+            queue = applied["buffersize"]
+            queue = int(queue) if queue is not None and queue >= 1 else V4L2_DEFAULT_BUFFERS
+            applied["flush_frames"] = max(self.flush_frames, queue + 1)
         if self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG")))
@@ -247,8 +254,10 @@ class UVCCamera(CameraBase):
         box: dict = {}
         cap = self._cap
 
+        flush = int(self.settings_applied.get("flush_frames") or self.flush_frames)
+
         def read() -> None:
-            for _ in range(self.flush_frames):
+            for _ in range(flush):
                 cap.grab()
             ok, image = cap.read()
             box["image"] = image if ok else None

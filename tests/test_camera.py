@@ -70,7 +70,7 @@ def test_replay_loops(video):
 def test_uvc_camera_through_videocapture_on_a_path(video):
     # A file path exercises the same cv2.VideoCapture read path a /dev/video path does (a file
     # ignores size, fps, exposure and buffer settings: those are tested with _RecordingCapture).
-    with UVCCamera(str(video), flush_frames=0, read_timeout_s=2.0) as cam:
+    with UVCCamera(str(video), flush_frames=0, buffer_size=None, read_timeout_s=2.0) as cam:
         first = cam.grab()
         assert np.abs(first.image.astype(int) - _pattern(0)).mean() < 4.0
         for _ in range(9):
@@ -81,7 +81,7 @@ def test_uvc_camera_through_videocapture_on_a_path(video):
 
 
 def test_uvc_flush_drops_buffered_frames(video):
-    with UVCCamera(str(video), flush_frames=2) as cam:
+    with UVCCamera(str(video), flush_frames=2, buffer_size=None) as cam:  # a file has no driver queue
         image = cam.grab().image
     assert np.abs(image.astype(int) - _pattern(2)).mean() < 4.0  # frames 0 and 1 were stale
 
@@ -152,12 +152,35 @@ def test_uvc_settings_reach_the_driver_and_what_it_accepted_is_read_back(recordi
         props = [prop for prop, _ in cap.sets]
         assert props.index(cv2.CAP_PROP_AUTO_EXPOSURE) < props.index(cv2.CAP_PROP_EXPOSURE)
         assert cam.settings_applied == {"width": 320.0, "height": 240.0, "fps": 30.0, "exposure": 160.0,
-                                        "buffersize": 1.0}
+                                        "buffersize": 1.0, "flush_frames": 3}
         image = cam.grab().image
         assert image.shape == (240, 320, 3)
         assert (cap.grabs, cap.reads) == (3, 1)  # the buffered frames were dropped before the read
         cam.grab()
         assert (cap.grabs, cap.reads) == (6, 2)
+
+
+def test_a_driver_that_ignores_the_buffer_size_has_its_whole_queue_dropped(recording_capture):
+    """Asked for one buffer, a driver that keeps its default queue (V4L2: 4) held frames taken
+    before the press - the gel in the air, or the last piece's imprint - and the 2 frames dropped
+    before each read left them to be read as this press (or as the next piece's no-contact
+    reference). Every buffer it may hold is dropped then, plus one."""
+    class Deaf(_RecordingCapture):
+        def set(self, prop, value):
+            return False if prop == cv2.CAP_PROP_BUFFERSIZE else super().set(prop, value)
+
+        def get(self, prop):
+            return 0.0 if prop == cv2.CAP_PROP_BUFFERSIZE else super().get(prop)
+
+    cv2.VideoCapture = Deaf  # the fixture's monkeypatch puts the real one back
+    with UVCCamera(0) as cam:
+        cap = recording_capture[-1]
+        assert (cam.settings_applied["buffersize"], cam.settings_applied["flush_frames"]) == (None, 5)
+        cam.grab()
+        assert (cap.grabs, cap.reads) == (5, 1)
+    with UVCCamera(0, flush_frames=7) as cam:  # more asked for: more dropped
+        cam.grab()
+        assert (recording_capture[-1].grabs, cam.settings_applied["flush_frames"]) == (7, 7)
 
 
 def test_uvc_without_settings_leaves_the_driver_alone_but_the_buffer(recording_capture):
