@@ -122,8 +122,8 @@ class CameraBase:
 # --- live UVC camera ----------------------------------------------------------------------
 
 # A UVC open takes well under a second; one that hangs in the driver is ended past this.
-V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
 UVC_OPEN_TIMEOUT_S = 5.0
+V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
 
 
 def is_compressed(image: object) -> bool:
