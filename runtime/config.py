@@ -418,17 +418,20 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         for key, problem in watchdog_problems(bounds, v["watchdog"]["wait_item_timeout_s"]):
             chk.err(key, f"{key}: {problem}")
     if not chk.problems:  # the paths are paths only when every key is valid
-        _state_files_apart(chk, v, ev)
+        journal = v["journal"]
+        fault_file = v["fault_file"] or journal.with_name("FAULT")
+        _state_files_apart(chk, {"journal": journal, "fault_file": fault_file,
+                                 "evidence.operator_labels": ev["operator_labels"],
+                                 "beta_override_file": v["beta_override_file"]}, default_fault_file=v["fault_file"] is None)
     if chk.problems:
         raise ConfigError(path, chk.problems)
-    journal = v["journal"]
     return CellConfig(
         path=path, bundle=v["bundle"], beta_override=v["beta_override"],
         beta_override_file=v["beta_override_file"], threads=v["threads"], camera=cam,
         arm_kind=arm_sec["kind"], arm=arm_cfg, gate=gate, reject_bin=reject_bin, fabrics=tuple(fabrics),
         confidence=ev["confidence"], max_presses=ev["max_presses"], grid_order=ev["grid_order"],
         grid_points=grid_points, journal=journal,
-        fault_file=v["fault_file"] or journal.with_name("FAULT"),
+        fault_file=fault_file,
         item_timeout_s=v["watchdog"]["item_timeout_s"],
         wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
@@ -436,13 +439,11 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     )
 
 
-def _state_files_apart(chk: "_Checker", v: dict, ev: dict) -> None:
-    """The journal, the fault file, the labels file and the beta override file are four files: the
-    fault latch writes and deletes its file whole, so a fault file that is the journal would replace
-    every decision record with the fault's text (and clearing the fault would delete the journal)."""
-    journal = v["journal"]
-    files = {"journal": journal, "fault_file": v["fault_file"] or journal.with_name("FAULT"),
-             "evidence.operator_labels": ev["operator_labels"], "beta_override_file": v["beta_override_file"]}
+def _state_files_apart(chk: _Checker, files: dict[str, Path | None], default_fault_file: bool) -> None:
+    """The journal, the fault file, the labels file and the beta override file (``files``, by key;
+    None: not used) are four files: the fault latch writes and deletes its file whole, so a fault
+    file that is the journal would replace every decision record with the fault's text (and
+    clearing the fault would delete the journal)."""
     seen: dict[str, str] = {}
     for key, p in files.items():
         if p is None:
@@ -450,7 +451,7 @@ def _state_files_apart(chk: "_Checker", v: dict, ev: dict) -> None:
         where = os.path.normpath(os.path.abspath(p))
         if where in seen:
             default = " (the fault file's default: FAULT beside the journal)" if key == "fault_file" and \
-                v["fault_file"] is None else ""
+                default_fault_file else ""
             chk.err(key, f"{key}: {p} is also the {seen[where]}{default}; each needs a file of its own - a fault "
                          "latch writes and deletes its file whole, and the journal must keep every record")
         else:

@@ -512,12 +512,12 @@ class OperatorFeedback:
                 # every label the operator gave, applied in its session or not, judged again by this
                 # job: a retraction or correction given while its fabric was out of the job (so not
                 # applied then) must still withdraw the label when the fabric is back
-                if rec.get("item_id") is None:
-                    pass  # a line that was no label (unreadable): nothing to apply
-                elif rec.get("retract"):
-                    self._retract(str(rec["item_id"]), rebuild=False)
-                elif isinstance(rec.get("fabric"), str):
-                    self._apply(str(rec["item_id"]), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
+                # (a line that was no label, unreadable, has no item_id: nothing to apply)
+                item = rec.get("item_id")
+                if item is not None and rec.get("retract"):
+                    self._retract(str(item), rebuild=False)
+                elif item is not None and isinstance(rec.get("fabric"), str):
+                    self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)

@@ -81,23 +81,21 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     if wrong:
         raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
                          "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
-    if len(cfg.fabrics) == 1 and getattr(model, "scene_model", None) is None:
-        # restricted to one class the posterior is 1 on every press; only the scene model's
-        # off-scene rules (runtime/evidence.py) can send a piece to the reject bin
-        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} has "
-                         "no scene model (decision.npz), so nothing could refuse a piece: every piece on the line "
-                         "would be sorted into that fabric's bin. Export the bundle with its scene model, or list "
-                         "the other fabrics the line carries")
     scene_model = getattr(model, "scene_model", None)
-    if len(cfg.fabrics) == 1 and scene_model is not None and not (
-            math.isfinite(float(scene_model.open_threshold)) or math.isfinite(float(scene_model.known_margin))):
-        # the same with a scene model whose off-scene rules are both off (a choice training's search
-        # can make for scenes of several fabrics, where the posterior itself can refuse a piece)
-        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and the scene model of bundle "
-                         f"{cfg.bundle} has both off-scene rules off (open_threshold and known_margin infinite), so "
-                         "nothing could refuse a piece: every piece on the line would be sorted into that fabric's "
-                         "bin. List the other fabrics the line carries, or deploy a bundle whose training chose an "
-                         "off-scene rule")
+    if len(cfg.fabrics) == 1:
+        # restricted to one class the posterior is 1 on every press; only the scene model's
+        # off-scene rules (runtime/evidence.py) can send a piece to the reject bin - and training's
+        # search may turn both off (a choice for scenes of several fabrics, whose posterior can refuse)
+        if scene_model is None:
+            why, fix = "has no scene model (decision.npz)", "Export the bundle with its scene model"
+        elif not (math.isfinite(float(scene_model.open_threshold)) or math.isfinite(float(scene_model.known_margin))):
+            why = "has a scene model with both off-scene rules off (open_threshold and known_margin infinite)"
+            fix = "Deploy a bundle whose training chose an off-scene rule"
+        else:
+            return
+        raise ValueError(f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} {why}, "
+                         "so nothing could refuse a piece: every piece on the line would be sorted into that fabric's "
+                         f"bin. {fix}, or list the other fabrics the line carries")
 
 
 def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:
