@@ -12,7 +12,10 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   scale (``decode_jpeg``: libjpeg skips most of the work), handing ``Frame(reduced_by=n)``. A
   backend that still hands decoded frames (other backends, a camera without MJPEG) is the
   fallback: its full frames go to the model as they are, which reduces them with the very
-  function training used (``settings_applied["mjpeg_undecoded"]`` says which).
+  function training used (``settings_applied["mjpeg_undecoded"]`` says which). With
+  ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
+  raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
+  loss; ``settings_applied["pixel_format"]`` is what the driver runs).
 * :class:`ReplayCamera` - recorded frames (a video file, an image folder or a glob), same
   interface; loops or ends with ``CameraError(kind="ended")``.
 
@@ -44,8 +47,10 @@ import numpy as np
 from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
 from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, InputRefused, read_image_file
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS, FrameError, check_frame, decode_jpeg, reduced_hw
+from vs2t_edge.runtime.yuyv import BYTES_PER_PIXEL, decode_yuyv
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+PIXEL_FORMATS = ("mjpeg", "yuyv")  # what a UVC camera is asked to stream (devices.camera.pixel_format)
 FROZEN_AFTER = 2  # identical consecutive frames that are a frozen camera: the first repeat
 
 
@@ -127,7 +132,7 @@ V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_
 
 
 def is_compressed(image: object) -> bool:
-    """A backend's undecoded MJPEG frame: one row (or a flat run) of uint8 bytes, not HxWx3."""
+    """A backend's undecoded frame (MJPEG, or raw YUYV): one row (or a flat run) of uint8 bytes, not HxWx3."""
     return (isinstance(image, np.ndarray) and image.dtype == np.uint8
             and (image.ndim == 1 or (image.ndim == 2 and 1 in image.shape)))
 
@@ -139,12 +144,16 @@ class UVCCamera(CameraBase):
                  fps: float | None = None, exposure: float | None = None, read_timeout_s: float = 1.0,
                  frozen_after: int = FROZEN_AFTER, flush_frames: int = 2, buffer_size: int | None = 1,
                  expected_hw: tuple[int, int] | None = None, api_preference: int = cv2.CAP_ANY,
-                 open_timeout_s: float = UVC_OPEN_TIMEOUT_S, decode_scale: int = 1) -> None:
+                 open_timeout_s: float = UVC_OPEN_TIMEOUT_S, decode_scale: int = 1,
+                 pixel_format: str = "mjpeg") -> None:
         if read_timeout_s <= 0 or open_timeout_s <= 0:
             raise ValueError("read_timeout_s and open_timeout_s must be positive")
         if decode_scale not in REDUCE_FACTORS:
             raise ValueError(f"decode_scale must be one of {REDUCE_FACTORS} (1/n JPEG decode), got {decode_scale!r}")
+        if pixel_format not in PIXEL_FORMATS:
+            raise ValueError(f"pixel_format must be one of {PIXEL_FORMATS}, got {pixel_format!r}")
         self.decode_scale = decode_scale  # > 1: MJPEG taken undecoded and decoded at 1/decode_scale
+        self.pixel_format = pixel_format  # yuyv: raw frames, made BGR (at 1/decode_scale) here
         if flush_frames < 0:
             raise ValueError("flush_frames must be >= 0")
         if buffer_size is not None and buffer_size < 1:
@@ -160,7 +169,7 @@ class UVCCamera(CameraBase):
         # bounds that to one frame, which flush_frames then drops.
         self.buffer_size = buffer_size
         self.api_preference = api_preference
-        self.settings_applied: dict[str, float | None] = {}
+        self.settings_applied: dict[str, object] = {}
         self._guard = FrameGuard(self.name, expected_hw, frozen_after)
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
@@ -201,14 +210,14 @@ class UVCCamera(CameraBase):
         # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
         # to the last one before it is the same hung buffer, not a fresh start
 
-    def _open(self) -> tuple[object, dict[str, float | None]]:
+    def _open(self) -> tuple[object, dict[str, object]]:
         cap = cv2.VideoCapture(self.device, self.api_preference)
         if not cap.isOpened():
             cap.release()
             raise CameraError(f"{self.name}: cannot open (unplugged, wrong index/path or busy)",
                               device=self.name, kind="unplugged")
         req = self.requested
-        applied: dict[str, float | None] = {}
+        applied: dict[str, object] = {}
         for key, prop in (("width", cv2.CAP_PROP_FRAME_WIDTH), ("height", cv2.CAP_PROP_FRAME_HEIGHT),
                           ("fps", cv2.CAP_PROP_FPS)):
             if req[key] is not None:
@@ -228,7 +237,13 @@ class UVCCamera(CameraBase):
             queue = applied["buffersize"]
             queue = int(queue) if queue is not None and queue >= 1 else V4L2_DEFAULT_BUFFERS
             applied["flush_frames"] = max(self.flush_frames, queue + 1)
-        if self.decode_scale > 1:
+        if self.pixel_format == "yuyv":
+            # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py); what the driver
+            # runs is read back: a camera without YUYV at this size keeps its own format
+            cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"YUYV")))
+            applied["pixel_format"] = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+            applied["yuyv_raw"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
+        elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG")))
             applied["mjpeg_undecoded"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0)
@@ -277,6 +292,8 @@ class UVCCamera(CameraBase):
         if image is None:
             raise CameraError(f"{self.name}: no frame (unplugged or stream ended)", device=self.name,
                               kind="unplugged")
+        if self.pixel_format == "yuyv" and is_compressed(image):
+            return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale)
         if self.decode_scale > 1 and is_compressed(image):
             decoded = decode_jpeg(image, self.decode_scale)
             if decoded is None:
@@ -286,6 +303,29 @@ class UVCCamera(CameraBase):
                 raise err
             return self._guard.admit(decoded, reduced_by=self.decode_scale)
         return self._guard.admit(image)  # decoded by the backend: a full frame (the fallback)
+
+    def _from_yuyv(self, raw: np.ndarray) -> np.ndarray:
+        """A raw YUYV frame at the size the driver runs (else the configured one) -> BGR at
+        1/decode_scale; a buffer of another length is a corrupt frame, named with both sizes."""
+        applied = self.settings_applied
+        hw = (applied.get("height"), applied.get("width"))
+        if not all(hw):
+            hw = self._guard.expected_hw or (None, None)
+        image = decode_yuyv(raw, hw, self.decode_scale) if all(hw) else None
+        if image is None:
+            size = f"{int(hw[1])}x{int(hw[0])}" if all(hw) else "an unknown size (no width/height read back or configured)"
+            err = CameraError(f"{self.name} frame {self._guard.index}: {raw.size} bytes, not a YUYV frame of {size} "
+                              f"({BYTES_PER_PIXEL} bytes a pixel; a truncated frame, or the driver runs another format)",
+                              device=self.name, kind="corrupt")
+            err.reason = "yuyv"
+            raise err
+        return image
+
+
+def _fourcc_text(code: float) -> str | None:
+    """A FOURCC read back from the driver as its four letters (None when the backend says 0)."""
+    n = int(code or 0)
+    return "".join(chr((n >> (8 * i)) & 0xFF) for i in range(4)) if n else None
 
 
 # --- replay -------------------------------------------------------------------------------
@@ -411,7 +451,8 @@ def camera_from_config(cam: dict, decode_scale: int = 1):
         return UVCCamera(int(dev) if str(dev).isdigit() else dev, width=cam["width_px"], height=cam["height_px"],
                          fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"],
                          flush_frames=cam["flush_frames"], frozen_after=cam["frozen_after"],
-                         expected_hw=(cam["height_px"], cam["width_px"]), decode_scale=decode_scale)
+                         expected_hw=(cam["height_px"], cam["width_px"]), decode_scale=decode_scale,
+                         pixel_format=cam.get("pixel_format", "mjpeg"))
     if cam["kind"] == "replay":
         return ReplayCamera(cam["path"], frozen_after=cam["frozen_after"])
     raise ValueError(f"devices.camera.kind = {cam['kind']!r}: built by the simulated cell, not from a config")

@@ -67,6 +67,9 @@ _SCHEMA: dict[str, Any] = {
             "width_px": _leaf("int", 640, (16, 4096), "uvc: frame width"),
             "height_px": _leaf("int", 480, (16, 4096), "uvc: frame height"),
             "fps": _leaf("float", 30.0, (1.0, 240.0), "uvc: frame rate asked for"),
+            # runtime/camera.py PIXEL_FORMATS (a literal here: importing the camera loads cv2)
+            "pixel_format": _leaf("str", "mjpeg", ("mjpeg", "yuyv"),
+                                  "uvc: mjpeg (compressed, decoded per press) or yuyv (uncompressed 4:2:2)"),
             # V4L2's exposure_time_absolute, in its units of 100 us (1 = 0.1 ms .. 10000 = 1 s);
             # absent = the camera's auto exposure. A GelSight's LEDs are constant, so a fixed
             # exposure keeps frames comparable with the no-contact reference across a shift.

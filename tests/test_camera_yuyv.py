@@ -1,0 +1,138 @@
+"""The UVC camera's uncompressed path (devices.camera.pixel_format: yuyv): raw YUYV 4:2:2 bytes made
+BGR at the bundle's scale by the cell, the driver's own format read back, bad buffers refused by
+name; and the conversion itself against OpenCV's, against the lossless frame, and against JPEG."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from test_camera import _RecordingCapture
+from vs2t_edge.runtime.camera import PIXEL_FORMATS, UVCCamera, camera_from_config
+from vs2t_edge.runtime.config import _SCHEMA
+from vs2t_edge.runtime.devices import CameraError
+from vs2t_edge.runtime.preprocess import FrameError, reduce_frame, through_camera_jpeg
+from vs2t_edge.runtime.yuyv import decode_yuyv, through_camera_yuyv, yuyv_bytes
+
+YUYV = float(cv2.VideoWriter_fourcc(*"YUYV"))
+
+
+def _texture(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
+    """A GelSight-like frame: a coloured smooth field with fine grain (what JPEG smears)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    base = np.stack([110 + 30 * np.sin(xx / 40), 120 + 25 * np.cos(yy / 35), 100 + 20 * np.sin((xx + yy) / 50)], -1)
+    grain = cv2.GaussianBlur(rng.normal(0, 12, (h, w, 1)).astype(np.float32), (3, 3), 0)[..., None]
+    return np.clip(base + grain, 0, 255).astype(np.uint8)
+
+
+class _YuyvCapture(_RecordingCapture):
+    """A V4L2 capture that takes a FOURCC only if it offers it (``formats``) and, with
+    CAP_PROP_CONVERT_RGB = 0, hands YUYV frames raw as one row of bytes, as OpenCV's V4L2 backend
+    does; ``payload`` replaces the next frame's bytes."""
+
+    formats = ("MJPG", "YUYV")
+    payload = None
+
+    def set(self, prop, value):
+        if prop == cv2.CAP_PROP_FOURCC and "".join(chr((int(value) >> 8 * i) & 0xFF) for i in range(4)) not in self.formats:
+            return False
+        return super().set(prop, value)
+
+    def get(self, prop):
+        default = {cv2.CAP_PROP_CONVERT_RGB: 1.0, cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter_fourcc(*"MJPG"))}
+        return self.props.get(prop, default.get(prop, 0.0))
+
+    def read(self):
+        self.reads += 1
+        h, w = int(self.props[cv2.CAP_PROP_FRAME_HEIGHT]), int(self.props[cv2.CAP_PROP_FRAME_WIDTH])
+        frame = _texture(h, w, self.reads)
+        if self.props.get(cv2.CAP_PROP_CONVERT_RGB, 1.0) != 0:
+            return True, frame  # the backend converts: a full BGR frame
+        raw = type(self).payload if type(self).payload is not None else yuyv_bytes(frame).reshape(1, -1)
+        return True, raw.copy()
+
+
+@pytest.fixture
+def yuyv_capture(monkeypatch):
+    _RecordingCapture.instances = []
+    _YuyvCapture.formats, _YuyvCapture.payload = ("MJPG", "YUYV"), None
+    monkeypatch.setattr(cv2, "VideoCapture", _YuyvCapture)
+    return _RecordingCapture.instances
+
+
+def test_yuyv_conversion_inverts_opencvs_and_keeps_the_texture_jpeg_loses():
+    frame = _texture()
+    raw = yuyv_bytes(frame)
+    assert raw.shape == (480, 640, 2) and 16 <= raw[..., 0].min() and raw[..., 0].max() <= 235  # video range
+    back = through_camera_yuyv(frame)
+    assert np.array_equal(back, cv2.cvtColor(raw, cv2.COLOR_YUV2BGR_YUYV))  # the cell's conversion is OpenCV's
+    err = back.astype(np.float32) - frame
+    assert abs(float(err.mean())) < 0.3 and float(np.abs(err).mean()) < 2.0  # no colour shift, rounding only
+    # the texture (luma detail) survives where JPEG q95 blurs it: compare high-pass energy kept
+    def detail(x):
+        g = cv2.cvtColor(x, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        return g - cv2.GaussianBlur(g, (0, 0), 1.0)
+    ref = detail(frame)
+    kept_yuyv = float(np.corrcoef(ref.ravel(), detail(back).ravel())[0, 1])
+    kept_jpeg = float(np.corrcoef(ref.ravel(), detail(through_camera_jpeg(frame, 95)).ravel())[0, 1])
+    assert kept_yuyv > 0.97 and kept_yuyv > kept_jpeg + 0.03  # 0.98 against 0.92 here
+    # at 1/2: the box average training reduces its own frames with, applied to the converted frame
+    assert np.array_equal(through_camera_yuyv(frame, 2), reduce_frame(back, 2))
+
+
+def test_yuyv_refuses_what_is_not_a_yuyv_frame_of_that_size():
+    raw = yuyv_bytes(_texture(8, 8))
+    assert decode_yuyv(raw, (8, 8)).shape == (8, 8, 3)
+    assert decode_yuyv(raw.reshape(1, -1)[:, :-2], (8, 8)) is None  # truncated
+    assert decode_yuyv(raw, (8, 6)) is None and decode_yuyv(raw.astype(np.uint16), (8, 8)) is None
+    with pytest.raises(FrameError, match="odd"):
+        yuyv_bytes(_texture(8, 7))
+
+
+def test_uvc_asks_for_yuyv_and_makes_it_bgr_at_the_bundles_scale(yuyv_capture):
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2, pixel_format="yuyv") as cam:
+        cap = yuyv_capture[0]
+        assert (cv2.CAP_PROP_FOURCC, YUYV) in cap.sets and (cv2.CAP_PROP_CONVERT_RGB, 0.0) in cap.sets
+        assert cam.settings_applied["pixel_format"] == "YUYV" and cam.settings_applied["yuyv_raw"] is True
+        frame = cam.grab()
+        assert frame.image.shape == (240, 320, 3) and frame.reduced_by == 2
+        want = reduce_frame(cv2.cvtColor(yuyv_bytes(_texture(480, 640, cap.reads)), cv2.COLOR_YUV2BGR_YUYV), 2)
+        assert np.array_equal(frame.image, want)
+        _YuyvCapture.payload = yuyv_bytes(_texture()).reshape(1, -1)[:, :-640]  # a frame cut short
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.kind == "corrupt" and exc.value.reason == "yuyv"
+        assert "613760 bytes, not a YUYV frame of 640x480" in str(exc.value)
+        black = np.empty((480, 640, 2), np.uint8)
+        black[..., 0], black[..., 1] = 16, 128  # video-range black: luma 16, no colour
+        _YuyvCapture.payload = black.reshape(1, -1)
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+        assert exc.value.reason == "black"  # the frame guard still judges the converted frame
+
+
+def test_uvc_yuyv_at_full_size_for_a_float_path_bundle(yuyv_capture):
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), pixel_format="yuyv") as cam:
+        frame = cam.grab()
+    assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1
+
+
+def test_uvc_without_yuyv_says_what_it_runs_and_hands_what_it_gets(yuyv_capture):
+    _YuyvCapture.formats = ("MJPG",)  # a camera that streams MJPEG only: the backend decodes it
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2, pixel_format="yuyv") as cam:
+        assert cam.settings_applied["pixel_format"] == "MJPG"
+        cam._cap.props[cv2.CAP_PROP_CONVERT_RGB] = 1.0  # this backend converts whatever it was told
+        frame = cam.grab()
+    assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1  # full frames: the model reduces them
+
+
+def test_pixel_format_is_a_config_key_the_camera_takes():
+    leaf = _SCHEMA["devices"]["camera"]["pixel_format"]
+    assert tuple(leaf["bounds"]) == PIXEL_FORMATS and leaf["default"] == "mjpeg"
+    cam = {"kind": "uvc", "device": "0", "width_px": 640, "height_px": 480, "fps": 30.0, "exposure": None,
+           "timeout_s": 1.0, "flush_frames": 2, "frozen_after": 2, "pixel_format": "yuyv"}
+    assert camera_from_config(cam).pixel_format == "yuyv"
+    with pytest.raises(ValueError, match="pixel_format"):
+        UVCCamera(0, pixel_format="h264")
