@@ -76,9 +76,12 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     line = Line()
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
-        # through the JPEG, the no-contact frame is decoded reduced like the frames and prepared at that scale
-        ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame")
-        x = np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}") for i in idx])
+        if q == YUYV:
+            ref, x = _through_yuyv(fab, idx, spec)
+        else:
+            # through the JPEG, the no-contact frame is decoded reduced like the frames and prepared at that scale
+            ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame")
+            x = np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}") for i in idx])
         for a in range(0, len(x), 32):
             o = model.forward(x[a:a + 32])
             lp.append(model.log_posterior(o))
@@ -92,6 +95,22 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
             "label": np.concatenate(lab), "feature": np.concatenate(feat)}
 
 
+YUYV = "yuyv"  # press_outputs' frames through an uncompressed YUYV camera instead of a JPEG quality
+
+
+def _through_yuyv(fab, idx: list[int], spec):
+    """A fabric's no-contact frame and presses as a UVC camera streaming YUYV hands them to the
+    cell (runtime/yuyv.py, at the bundle's camera scale): (prepared reference, (n, 3, S, S) inputs)."""
+    from vs2t_edge.runtime.preprocess import camera_scale, prepare_reference, preprocess_tactile
+    from vs2t_edge.runtime.yuyv import through_camera_yuyv
+
+    scale = camera_scale(spec)
+    ref = prepare_reference(through_camera_yuyv(fab.load_reference(), scale, f"{fab.id} reference frame"), spec, scale)
+    x = np.stack([preprocess_tactile(through_camera_yuyv(fab.load_press(i), scale, f"{fab.id} press {i}"), ref, spec,
+                                     scale) for i in idx])
+    return ref, x
+
+
 def through_jpeg(frame: np.ndarray, quality: int, scale: int = 1) -> np.ndarray:
     """``frame`` as a camera streaming MJPEG at ``quality`` hands it: the runtime's
     ``through_camera_jpeg`` (encoded, then decoded at 1/``scale`` by the cell's own decode)."""
@@ -100,15 +119,19 @@ def through_jpeg(frame: np.ndarray, quality: int, scale: int = 1) -> np.ndarray:
     return through_camera_jpeg(frame, quality, scale)
 
 
-def accuracy_frames(model, jpeg_quality: int, through_jpeg: bool, lossless: bool = False) -> tuple[int | None, str]:
-    """(quality the held-out frames go through, or None for lossless; what the report says):
-    ``--accuracy-through-jpeg``'s ``jpeg_quality`` when asked; lossless when asked
-    (``--accuracy-lossless``); else the bundle's own camera JPEG (manifest ``camera_jpeg``: trained
-    on frames through it) when it records one; else lossless."""
-    if through_jpeg and lossless:
-        raise ValueError("frames through JPEG or lossless: not both")
+def accuracy_frames(model, jpeg_quality: int, through_jpeg: bool, lossless: bool = False,
+                    through_yuyv: bool = False) -> tuple[int | str | None, str]:
+    """(quality the held-out frames go through, ``YUYV``, or None for lossless; what the report says):
+    ``--accuracy-through-jpeg``'s ``jpeg_quality`` when asked; YUYV when asked
+    (``--accuracy-through-yuyv``); lossless when asked (``--accuracy-lossless``); else the bundle's
+    own camera JPEG (manifest ``camera_jpeg``: trained on frames through it) when it records one;
+    else lossless."""
+    if through_jpeg + lossless + through_yuyv > 1:
+        raise ValueError("frames through JPEG, through YUYV or lossless: one of them")
     if lossless:
         return None, "lossless (the dataset's PNG)"
+    if through_yuyv:
+        return YUYV, "through YUYV 4:2:2 (BT.601 video range), made BGR at the bundle's scale"
     if through_jpeg:
         return int(jpeg_quality), f"through JPEG q={int(jpeg_quality)}, decoded at the bundle's scale"
     own = int(getattr(model, "camera_jpeg", 0) or 0)

@@ -27,11 +27,17 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--no-accuracy", action="store_true", help="speed only")
     parser.add_argument("--jpeg-quality", type=int, default=95,
                         help="JPEG quality of the camera's MJPEG frames the press is timed on (default 95)")
+    parser.add_argument("--camera-format", default="mjpeg", choices=("mjpeg", "yuyv"),
+                        help="what the camera streams, for the press timing: mjpeg (at --jpeg-quality; the default) or "
+                             "yuyv (uncompressed 4:2:2, devices.camera.pixel_format yuyv)")
     frames = parser.add_mutually_exclusive_group()
     frames.add_argument("--accuracy-through-jpeg", action="store_true",
                         help="score accuracy on frames passed through that JPEG, decoded at each bundle's scale as "
                              "the camera hands them (default: a bundle trained through the camera's JPEG, manifest "
                              "camera_jpeg, reads frames through its own; any other the dataset's lossless frames)")
+    frames.add_argument("--accuracy-through-yuyv", action="store_true",
+                        help="score accuracy on frames passed through an uncompressed YUYV camera (4:2:2 chroma, "
+                             "video range), made BGR at each bundle's scale as the camera hands them")
     frames.add_argument("--accuracy-lossless", action="store_true",
                         help="score every bundle on the dataset's lossless frames, even one trained through the "
                              "camera's JPEG")
@@ -92,7 +98,8 @@ def run(args) -> int:
                            budget_s=args.budget_s, n_items=args.items, cap=args.max_eval_presses,
                            accuracy_on=not args.no_accuracy, arm=arm, jpeg_quality=args.jpeg_quality,
                            accuracy_through_jpeg=args.accuracy_through_jpeg, accuracy_lossless=args.accuracy_lossless,
-                           pairs=pairs)
+                           pairs=pairs, camera_format=args.camera_format,
+                           accuracy_through_yuyv=args.accuracy_through_yuyv)
     except (BundleError, FrameError, FileNotFoundError, RuntimeError) as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 1

@@ -48,8 +48,8 @@ import numpy as np
 
 # the accuracy half lives in runtime/bench_accuracy.py; its names stay importable from here
 from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. stay importable from here
-    JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, decode_scale, press_stages,
-    split_press_graph)
+    CAMERA_FORMATS, JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, camera_payload,
+    decode_payload, decode_scale, press_stages, split_press_graph, stages_of)
 from vs2t_edge.bench.verdict import (  # noqa: F401 - the verdict's names stay importable from here
     CELL_MEASURES, MIN_INT8_SPEEDUP, TARGET_CELL_MS, TARGET_CELL_P99_MS, TARGET_INT8_POINTS, TARGET_OF_LIMIT,
     compare_pairs, cost_points, recommend, targets)
@@ -162,7 +162,7 @@ def cell_evidence(model) -> tuple[Callable[[], Any], int]:
 
 
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
-                 n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY) -> dict:
+                 n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY, camera_format: str = "mjpeg") -> dict:
     """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
 
     Per thread count: the trunk alone (``latency``) and the whole press (``press``: MJPEG decode +
@@ -172,15 +172,18 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     out of the graph, and the tail's share of the press's one call (``in_graph_ms``) is counted in
     ``outside``.
     ``overhead_ms`` / ``overhead_p99_ms`` are the stage medians / p99 at the largest thread count;
-    PNG decode (what replays and the bench pay, not the camera) is timed apart."""
+    PNG decode (what replays and the bench pay, not the camera) is timed apart. ``camera_format``
+    yuyv: the camera streams uncompressed YUYV (runtime/yuyv.py) instead of MJPEG at ``jpeg_quality``."""
     import cv2
 
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
-    from vs2t_edge.runtime.preprocess import decode_jpeg
 
     _import_runtime()
-    out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": jpeg_quality}
+    out: dict[str, Any] = {"latency": {}, "press": {}, "overhead_ms": {}, "jpeg_quality": jpeg_quality,
+                           "camera_format": camera_format}
+    all_stages = stages_of(camera_format)
+    outside_stages = tuple(k for k in all_stages if k != "trunk")
     raw_png: list[bytes] = []
     jpegs: list[bytes] = []
     ref = None
@@ -201,18 +204,12 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
             for i in _spread(list(range(len(fab.presses))), n_frames):
                 raw_png.append(fab.presses[i].path.read_bytes())
             for b in raw_png:  # encoded once: the camera's work, not the cell's
-                ok, enc = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-                if not ok:
-                    raise RuntimeError(f"{bundle}: could not JPEG-encode a press frame")
-                jpegs.append(enc.tobytes())
-            ok, ref_jpeg = cv2.imencode(".jpg", ref, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-            if not ok:
-                raise RuntimeError(f"{bundle}: could not JPEG-encode the no-contact frame")
+                jpegs.append(camera_payload(cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
+                                            camera_format, jpeg_quality))
             # as the cell's camera hands them: decoded at the bundle's scale, the reference too
             scale, sensor_hw = decode_scale(model), list(ref.shape[:2])
-            frames = [decode_jpeg(b, scale) for b in jpegs]
-            ref = decode_jpeg(ref_jpeg.tobytes(), scale)
+            frames = [decode_payload(b, scale) for b in jpegs]
+            ref = decode_payload(camera_payload(ref, camera_format, jpeg_quality), scale)
         model.set_reference(ref, scale)
         checks = CameraChecks(ref)
         xs = [model.preprocess(f, scale) for f in frames]
@@ -225,7 +222,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         out["latency"][str(t)] = {"p50_ms": _pct(times, 50), "p99_ms": _pct(times, 99), "runs": n}
         runs[t] = (xs, n)
         # the whole press, as the cell runs it with t threads
-        stages = {k: [] for k in (*STAGES, "press")}
+        stages = {k: [] for k in (*all_stages, "press")}
         png: list[float] = []
         new_item, item_presses = cell_evidence(model)
         ev = new_item()
@@ -267,7 +264,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         outside = press - trunk + in_graph[t]  # fused: minus the one call, plus its tail's share
         out["press"][str(t)].update(outside_p50_ms=_pct(outside, 50), outside_p99_ms=_pct(outside, 99))
     tmax = str(max(threads_list))
-    out["overhead_ms"] = {k: _pct(stages[k], 50) for k in OUTSIDE_STAGES}
+    out["overhead_ms"] = {k: _pct(stages[k], 50) for k in outside_stages}
     out["overhead_ms"]["heads" if model.fused else "in_graph"] = math.nan  # the stage the format does not have
     if model.fused:
         out["overhead_ms"]["in_graph"] = in_graph[max(threads_list)]
@@ -277,7 +274,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     # what the target is judged on: everything per press outside the trunk, decode included (the
     # median of (press - its trunk), measured end to end, not a sum of stage medians)
     out["overhead_ms"]["cell"] = out["press"][tmax]["outside_p50_ms"]
-    out["overhead_p99_ms"] = {k: _pct(stages[k], 99) for k in OUTSIDE_STAGES}
+    out["overhead_p99_ms"] = {k: _pct(stages[k], 99) for k in outside_stages}
     out["overhead_p99_ms"]["decode_png"] = _pct(png, 99)
     out["overhead_p99_ms"]["cell"] = out["press"][tmax]["outside_p99_ms"]
     out["frame_hw"] = sensor_hw  # the camera's frames; decoded at 1/decode_scale
@@ -342,6 +339,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
               threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 0,
               accuracy_on: bool = True, arm=None, jpeg_quality: int = JPEG_QUALITY, accuracy_through_jpeg: bool = False,
               accuracy_lossless: bool = False, pairs: Sequence[tuple[str, str]] = (),
+              camera_format: str = "mjpeg", accuracy_through_yuyv: bool = False,
               log: Callable[[str], None] = _log) -> dict:
     """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute.
     ``jpeg_quality``: what the camera's MJPEG frames are encoded at (timing); with
@@ -350,7 +348,8 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     ``camera_jpeg``) is scored through its own, the others on the dataset's lossless frames
     (``accuracy_lossless``: every bundle on the lossless frames). ``pairs``: (A, B) variant names
     whose difference B - A is paired on the same presses and items (bench/paired.py), as every
-    int8 bundle is with its fp32 twin."""
+    int8 bundle is with its fp32 twin. ``camera_format`` yuyv: the press is timed on uncompressed
+    YUYV frames (runtime/yuyv.py) instead of MJPEG; ``accuracy_through_yuyv`` scores through them."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -367,7 +366,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
         row = describe(b)
         log(f"[{i + 1}/{len(bundles)}] {b.name}: speed ({row['arch']} {row['precision']} {row['size_px']} px)")
         args = ["--worker", str(b), "--threads", ",".join(map(str, threads)), "--budget", str(budget_s),
-                "--jpeg-quality", str(jpeg_quality)]
+                "--jpeg-quality", str(jpeg_quality), "--camera-format", camera_format]
         if dataset:
             args += ["--dataset", dataset]
         row.update(_run_worker(args))
@@ -384,7 +383,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
             ds_root = _dataset_of(model.manifest, dataset)
             if ds_root is not None and "data" in model.manifest.get("provenance", {}):
                 quality, row["accuracy_frames"] = accuracy_frames(model, jpeg_quality, accuracy_through_jpeg,
-                                                                  accuracy_lossless)
+                                                                  accuracy_lossless, accuracy_through_yuyv)
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
                 outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality)
@@ -398,6 +397,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
               "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "jpeg_quality": jpeg_quality,
+              "camera_format": camera_format,
               "accuracy_frames": frames_said(rows, jpeg_quality, accuracy_through_jpeg)}
     result["pairs"] = [{"a": a, "b": b, "paired": paired(views[a], views[b], n_items=n_items)}
                        for a, b in pairs if a in views and b in views]
@@ -475,13 +475,14 @@ def _main(argv: list[str]) -> int:
     p.add_argument("--threads", default="1,2")
     p.add_argument("--budget", type=float, default=4.0)
     p.add_argument("--jpeg-quality", type=int, default=JPEG_QUALITY)
+    p.add_argument("--camera-format", default="mjpeg", choices=CAMERA_FORMATS)
     p.add_argument("--dataset")
     a = p.parse_args(argv)
     if a.baseline:
         print(json.dumps(baseline_worker()))
     else:
         print(json.dumps(speed_worker(a.worker, a.dataset, [int(t) for t in a.threads.split(",")], a.budget,
-                                      jpeg_quality=a.jpeg_quality)))
+                                      jpeg_quality=a.jpeg_quality, camera_format=a.camera_format)))
     return 0
 
 

@@ -12,6 +12,45 @@ import numpy as np
 JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC camera's MJPEG stream
 STAGES = ("decode_mjpeg", "camera_checks", "preprocess", "trunk", "heads", "router", "decision", "evidence")
 OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
+# what the camera streams (devices.camera.pixel_format) and the stage its frame's decode is timed as
+CAMERA_FORMATS = ("mjpeg", "yuyv")
+DECODE_STAGE = {"mjpeg": "decode_mjpeg", "yuyv": "decode_yuyv"}
+DECODE_LABEL = {"decode_mjpeg": "MJPEG decode", "decode_yuyv": "YUYV to BGR"}
+
+
+def stages_of(camera_format: str) -> tuple[str, ...]:
+    """``STAGES`` with the decode of ``camera_format``'s frames first."""
+    return (DECODE_STAGE[camera_format], *STAGES[1:])
+
+
+def decode_key(overhead: dict) -> str | None:
+    """The decode stage a result's stage medians hold (None: a bench.json from before decode was timed)."""
+    return next((k for k in DECODE_LABEL if k in overhead), None)
+
+
+def camera_payload(frame: np.ndarray, camera_format: str, jpeg_quality: int = JPEG_QUALITY):
+    """A lossless frame as the camera sends it: JPEG bytes at ``jpeg_quality``, or YUYV (HxWx2)."""
+    import cv2
+
+    if camera_format == "yuyv":
+        from vs2t_edge.runtime.yuyv import yuyv_bytes
+
+        return yuyv_bytes(frame)
+    ok, enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    if not ok:
+        raise RuntimeError("could not JPEG-encode a frame")
+    return enc.tobytes()
+
+
+def decode_payload(payload, scale: int) -> np.ndarray | None:
+    """The cell camera's decode of ``camera_payload``'s output at 1/``scale``."""
+    if isinstance(payload, np.ndarray) and payload.ndim == 3:
+        from vs2t_edge.runtime.yuyv import decode_yuyv
+
+        return decode_yuyv(payload, payload.shape[:2], scale)
+    from vs2t_edge.runtime.preprocess import decode_jpeg
+
+    return decode_jpeg(payload, scale)
 
 
 def decode_scale(model) -> int:
@@ -35,18 +74,18 @@ class CameraChecks:
         self.contact.read(image, self.reference)
 
 
-def press_stages(model, jpeg: bytes, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
-    """One press as the cell pays for it, in ms per stage: decode the camera's MJPEG frame (a UVC
-    GelSight streams MJPEG; the camera decodes it with libjpeg, at 1/reduce scale for a bundle on the
-    reduced path: ``decode_scale``), the camera's frame checks (``checks``), preprocess, trunk,
+def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
+    """One press as the cell pays for it, in ms per stage: decode the camera's frame (a UVC
+    GelSight streams MJPEG by default; the camera decodes it with libjpeg, at 1/reduce scale for a
+    bundle on the reduced path: ``decode_scale``; a YUYV frame - ``camera_payload`` - is made BGR
+    and reduced instead), the camera's frame checks (``checks``), preprocess, trunk,
     heads, router, decision (TactileModel.score_press) and the evidence update. For a fused bundle
     (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
     0 (``speed_worker`` measures what the graph's tail costs apart)."""
-    from vs2t_edge.runtime.preprocess import decode_jpeg
-
     scale = decode_scale(model)
+    yuyv = isinstance(jpeg, np.ndarray) and jpeg.ndim == 3
     t0 = time.perf_counter()
-    frame = decode_jpeg(jpeg, scale)
+    frame = decode_payload(jpeg, scale)
     t1 = time.perf_counter()
     if checks is not None:
         checks(frame)
@@ -56,7 +95,7 @@ def press_stages(model, jpeg: bytes, evidence, checks: CameraChecks | None = Non
     t2 = time.perf_counter()
     evidence.add(s)
     t3 = time.perf_counter()
-    return {"decode_mjpeg": 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
+    return {DECODE_STAGE["yuyv" if yuyv else "mjpeg"]: 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
             "trunk": tm["trunk_ms"], "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
             "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
 

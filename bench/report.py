@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from vs2t_edge.bench.press_timing import DECODE_LABEL, DECODE_STAGE, decode_key
 from vs2t_edge.bench.measure import (JPEG_QUALITY, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, BIN_SCENES, BIN_MAX_PRESSES, ITEM_PRESSES, targets)
 from vs2t_edge.runtime.files import portable
 
@@ -119,6 +120,11 @@ def _recommendation_lines(result: dict) -> list[str]:
         f"{r['recommended']} ({r['why']})" for r in recs)] if recs else []
 
 
+def _decode_label(result: dict) -> str:
+    """What the run's decode stage is called: the camera's format (``--camera-format``)."""
+    return DECODE_LABEL[DECODE_STAGE.get(result.get("camera_format", "mjpeg"), "decode_mjpeg")]
+
+
 def render_markdown(result: dict) -> str:
     m, pk = result["machine"], result["peak"]
     lines = ["# Speed for accuracy: the bench", "",
@@ -127,7 +133,7 @@ def render_markdown(result: dict) -> str:
              f"{'' if m['load_avg_at_start'][0] < 0.5 else ': the machine was busy, latencies are pessimistic'}"
              f"{'; at the end, with the bench itself, ' + ', '.join(f'{v:.2f}' for v in m['load_avg_at_end']) if 'load_avg_at_end' in m else ''}), onnxruntime "
              f"{m['onnxruntime']}, {result['seconds']:.0f} s. Latencies are medians (p50) and p99 of the trunk alone "
-             "at batch 1, and of the whole press (*press*: MJPEG decode to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
+             f"at batch 1, and of the whole press (*press*: {_decode_label(result)} to evidence update, end to end); ratios below are from this one run. `vs2t-edge bench` wrote this file, bench.json and pareto.png.",
              "", f"Instruction sets: {_isa_text(m)}; onnxruntime build: {m.get('onnxruntime_build') or '?'} "
              f"({', '.join(m.get('onnxruntime_providers', [])) or '?'}).",
              *_recommendation_lines(result),
@@ -151,8 +157,12 @@ def render_markdown(result: dict) -> str:
                  arm_times_line(result), ""]
                 if render_bins(result) else []),
               "Columns: *p50/p99 1t/2t* = trunk alone, ms, batch 1, 1 or 2 onnxruntime threads; *press p50/p99* = "
-              "the whole press as the cell pays it, ms: decode of the camera's frame (a UVC GelSight streams MJPEG: the "
-              f"press frame encoded once as JPEG q={result.get('jpeg_quality', JPEG_QUALITY)}, cv2.imdecode timed) + preprocess + trunk + heads + "
+              "the whole press as the cell pays it, ms: decode of the camera's frame (" + (
+                  "a UVC GelSight asked for uncompressed YUYV 4:2:2, devices.camera.pixel_format yuyv: the press frame "
+                  "converted once to YUYV, its conversion to BGR at the bundle's scale timed"
+                  if result.get("camera_format") == "yuyv" else
+                  "a UVC GelSight streams MJPEG: the press frame encoded once as JPEG "
+                  f"q={result.get('jpeg_quality', JPEG_QUALITY)}, cv2.imdecode timed") + ") + preprocess + trunk + heads + "
               "router + decision + evidence update, timed end to end per press; *outside trunk* = median over presses of "
               "(press - its own trunk run) at 2 threads, decode included: what the target (p50 <= 1 ms, p99 < 2 ms) is judged on (medians do "
               "not add: *press* p50 can exceed trunk p50 + outside p50, since a trunk run between other work wakes "
@@ -168,7 +178,7 @@ def render_markdown(result: dict) -> str:
               "counted wrong).", "", "## Outside the trunk, per press (ms)", "",
               "Stage medians at 2 threads; *outside p50 / p99* = median / 99th percentile over presses of (press - its "
               "trunk run), decode included, at 1 and 2 threads (stage medians do not add up to it exactly). "
-              "*MJPEG decode* at 1/reduce scale for a bundle on the reduced pixel path (runtime/preprocess.py); "
+              f"*{_decode_label(result)}* at 1/reduce scale for a bundle on the reduced pixel path (runtime/preprocess.py); "
               "*frame checks* = the camera's frame guard and the press-frame contact check a UVC cell runs. "
               "*heads* = the second onnxruntime call of a two-graph bundle (format 1); *in graph* = what the heads and "
               "projections cost inside a fused bundle's one call (format 2; format 3's press graph of a scene decision "
@@ -178,7 +188,7 @@ def render_markdown(result: dict) -> str:
               "pays), added to its *outside* values, whose trunk is that cut-out trunk. "
               "*PNG decode* is what replays and the bench pay to read a recorded frame, not the camera: not in the totals.",
               "",
-              "| variant | frame px | MJPEG decode | frame checks | preprocess | heads | in graph | router | decision "
+              f"| variant | frame px | {_decode_label(result)} | frame checks | preprocess | heads | in graph | router | decision "
               "| evidence "
               "| outside p50 1t | outside p99 1t | outside p50 2t | outside p99 2t | PNG decode (replays) |",
               "|" + "---|" * 15]
@@ -187,8 +197,8 @@ def render_markdown(result: dict) -> str:
         hw = r.get("frame_hw")
         scale = f" (decoded at 1/{r['decode_scale']})" if r.get("decode_scale", 1) != 1 else ""
         lines.append(f"| {r['name']} | {f'{hw[1]}x{hw[0]}{scale}' if hw else '–'} | " + " | ".join(
-            [_f(o.get(k), "{:.3f}") for k in ("decode_mjpeg", "camera_checks", "preprocess", "heads", "in_graph",
-                                              "router", "decision", "evidence")]
+            [_f(o.get(k), "{:.3f}") for k in (decode_key(o) or "decode_mjpeg", "camera_checks", "preprocess", "heads",
+                                              "in_graph", "router", "decision", "evidence")]
             + [_f(pr.get(t, {}).get(q), "{:.3f}") for t in ("1", "2") for q in ("outside_p50_ms", "outside_p99_ms")]
             + [_f(o.get("decode_png", o.get("decode")), "{:.3f}")]) + " |")
     tg = targets(result)

@@ -467,3 +467,73 @@ def test_scene_press_accuracy_is_the_scene_models_argmax_per_class():
     got = scene_press_accuracy(model, {"feature": feature, "label": np.array([0, 1, 1, 2, 2])})
     assert got["acc_t"] == pytest.approx(75.0)  # a 100 %, b 50 %: its press by v goes to u, v not competing
     assert got["acc_u"] == 0.0 and got["H"] == 0.0 and got["zsl"] == 100.0
+
+
+def test_yuyv_camera_is_timed_as_its_own_decode_and_judged_on_its_frames(bench_result, monkeypatch):
+    """``--camera-format yuyv``: the press's first stage is the YUYV conversion (under the same
+    1 ms-per-reading clock as the MJPEG test), the speed worker keys its stage medians by it, and
+    the verdict and the page name the frames the target was met on (the issue's is MJPEG)."""
+    import time as _time
+
+    import numpy as np
+
+    from vs2t_edge.bench import measure as bench, report as bench_report
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.evidence import Evidence
+    from vs2t_edge.runtime.inference import TactileModel
+
+    result, _ = bench_result
+    model = TactileModel.load(result["variants"][0]["bundle"], threads=1)
+    fab = load_dataset(model.manifest["provenance"]["data"]["dataset"]).by_id(model.touched[0])
+    model.set_reference(fab.load_reference())
+    payload = bench.camera_payload(fab.load_press(0), "yuyv")
+    assert payload.shape == (*fab.load_press(0).shape[:2], 2)
+    ev = Evidence(model.classes)
+    reads = []
+    monkeypatch.setattr(_time, "perf_counter", lambda: reads.append(None) or len(reads) * 1e-3)
+    st = bench.press_stages(model, payload, ev)
+    monkeypatch.undo()
+    assert st["decode_yuyv"] == pytest.approx(1.0) and "decode_mjpeg" not in st and ev.presses == 1
+    assert st["press"] == pytest.approx(len(reads) - 1)
+    out = bench.speed_worker(result["variants"][0]["bundle"], None, [1], 0.05, n_frames=4, camera_format="yuyv")
+    assert out["camera_format"] == "yuyv" and out["overhead_ms"]["decode_yuyv"] > 0
+    assert "decode_mjpeg" not in out["overhead_ms"] and np.isfinite(out["overhead_ms"]["cell"])
+    fake = json.loads(json.dumps(result))
+    fake["camera_format"] = "yuyv"
+    v = fake["variants"][0]
+    v["overhead_ms"]["decode_yuyv"] = v["overhead_ms"].pop("decode_mjpeg")
+    (row,) = [t for t in bench.targets(fake) if t["variant"] == v["name"] and "outside" in t["target"]]
+    assert "YUYV to BGR" in row["measured"] and "on uncompressed YUYV frames" in row["target"]
+    page = bench_report.render_markdown(fake)
+    assert "| YUYV to BGR |" in page and "YUYV 4:2:2" in page
+
+
+def test_accuracy_through_yuyv_reads_the_frames_the_camera_would_hand(bench_result):
+    """``--accuracy-through-yuyv``: the held-out presses go through YUYV at the bundle's scale (not
+    the lossless frames, not a JPEG), and the choice is exclusive with the other two."""
+    import numpy as np
+
+    from vs2t_edge.bench import accuracy as acc
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+
+    result, _ = bench_result
+    model = TactileModel.load(result["variants"][0]["bundle"], threads=1)
+    ds = load_dataset(model.manifest["provenance"]["data"]["dataset"])
+    frames, said = acc.accuracy_frames(model, 95, False, False, True)
+    assert frames == acc.YUYV and "YUYV" in said
+    with pytest.raises(ValueError, match="one of them"):
+        acc.accuracy_frames(model, 95, True, False, True)
+    from vs2t_edge.runtime.preprocess import camera_scale, prepare_reference, preprocess_tactile
+    from vs2t_edge.runtime.yuyv import through_camera_yuyv
+
+    presses = {model.classes[0]: [3, 5]}
+    yuyv = acc.press_outputs(model, ds, presses, log=lambda m: None, jpeg_quality=acc.YUYV)
+    lossless = acc.press_outputs(model, ds, presses, log=lambda m: None)
+    assert not np.array_equal(yuyv["feature"], lossless["feature"])  # 4:2:2 chroma, video-range rounding
+    # by hand: each frame through YUYV at the camera's scale, against its reference made the same way
+    fab, spec = ds.by_id(model.classes[0]), model.preprocess_spec
+    scale = camera_scale(spec)
+    ref = prepare_reference(through_camera_yuyv(fab.load_reference(), scale), spec, scale)
+    x = np.stack([preprocess_tactile(through_camera_yuyv(fab.load_press(i), scale), ref, spec, scale) for i in (3, 5)])
+    assert np.allclose(yuyv["feature"], np.asarray(model.forward(x).feature, np.float32), atol=1e-5)
