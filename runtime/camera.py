@@ -15,7 +15,8 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   function training used (``settings_applied["mjpeg_undecoded"]`` says which). With
   ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
   raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
-  loss; ``settings_applied["pixel_format"]`` is what the driver runs).
+  loss; ``settings_applied["pixel_format"]`` is what the driver runs); a camera that runs another
+  format then is refused at connect, in words, rather than scored on frames it was not set up for.
 * :class:`ReplayCamera` - recorded frames (a video file, an image folder or a glob), same
   interface; loops or ends with ``CameraError(kind="ended")``.
 
@@ -241,7 +242,16 @@ class UVCCamera(CameraBase):
             # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py); what the driver
             # runs is read back: a camera without YUYV at this size keeps its own format
             cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"YUYV")))
-            applied["pixel_format"] = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+            applied["pixel_format"] = runs = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+            if runs not in (None, "YUYV"):  # None: the backend does not say; the frames' size will
+                cap.release()
+                size = "x".join(str(int(v)) if v else "?" for v in (applied.get("width"), applied.get("height")))
+                err = CameraError(f"{self.name}: devices.camera.pixel_format is yuyv, but the camera runs {runs} at "
+                                  f"{size} (it does not offer YUYV there): "
+                                  "set pixel_format: mjpeg, or a size it streams uncompressed",
+                                  device=self.name, kind="corrupt")
+                err.reason = "pixel_format"
+                raise err
             applied["yuyv_raw"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)

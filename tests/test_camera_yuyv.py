@@ -119,11 +119,18 @@ def test_uvc_yuyv_at_full_size_for_a_float_path_bundle(yuyv_capture):
     assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1
 
 
-def test_uvc_without_yuyv_says_what_it_runs_and_hands_what_it_gets(yuyv_capture):
-    _YuyvCapture.formats = ("MJPG",)  # a camera that streams MJPEG only: the backend decodes it
+def test_uvc_without_yuyv_is_refused_at_connect_naming_what_it_runs(yuyv_capture):
+    _YuyvCapture.formats = ("MJPG",)  # a camera that streams MJPEG only at this size
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2, pixel_format="yuyv")
+    with pytest.raises(CameraError) as exc:
+        cam.connect()
+    assert exc.value.reason == "pixel_format" and "runs MJPG at 640x480" in str(exc.value)
+    assert "pixel_format: mjpeg" in str(exc.value)  # what to change, in words
+
+
+def test_uvc_yuyv_from_a_backend_that_converts_itself_is_a_full_frame(yuyv_capture):
     with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2, pixel_format="yuyv") as cam:
-        assert cam.settings_applied["pixel_format"] == "MJPG"
-        cam._cap.props[cv2.CAP_PROP_CONVERT_RGB] = 1.0  # this backend converts whatever it was told
+        cam._cap.props[cv2.CAP_PROP_CONVERT_RGB] = 1.0  # a backend that converts whatever it was told
         frame = cam.grab()
     assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1  # full frames: the model reduces them
 
