@@ -5,7 +5,9 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
 
 * :class:`UVCCamera` - the sensor as a UVC camera through ``cv2.VideoCapture`` (device index or
   path); resolution, fps and exposure set where the driver accepts them (what it accepted is
-  read back into ``settings_applied``); a bounded read; stale buffered frames flushed. For a
+  read back into ``settings_applied``); a bounded read; stale buffered frames flushed, and where the
+  driver stamps its frames with their capture time (V4L2), any frame taken before the grab was
+  asked read past (``stale_dropped``) or refused (reason ``stale``). For a
   bundle on the reduced pixel path (``preprocess.reduce`` n >= 2, runtime/preprocess.py) it asks
   the driver for the MJPEG stream undecoded (``CAP_PROP_FOURCC`` MJPG, ``CAP_PROP_CONVERT_RGB`` 0;
   OpenCV's V4L2 backend honours it and hands the JPEG bytes) and decodes each frame itself at 1/n
@@ -77,8 +79,10 @@ class FrameGuard:
         err.reason = exc.reason  # the precise check that failed (black, size, shape, dtype, ...)
         return err
 
-    def admit(self, image: object, where: str = "", reduced_by: int = 1) -> Frame:
-        """``reduced_by``: the camera decoded the frame at 1/n scale (its size is checked at that scale)."""
+    def admit(self, image: object, where: str = "", reduced_by: int = 1, taken_s: float | None = None) -> Frame:
+        """``reduced_by``: the camera decoded the frame at 1/n scale (its size is checked at that scale).
+        ``taken_s``: the driver's capture time (monotonic s) when it gives one; else the frame is
+        stamped when admitted."""
         hw = self.expected_hw if self.expected_hw is None or reduced_by == 1 else reduced_hw(self.expected_hw, reduced_by)
         try:
             image = check_frame(image, hw, name=f"{self.name} frame {self.index}{where}")
@@ -93,7 +97,8 @@ class FrameGuard:
         else:
             self._repeats = 1
         self._last = image
-        frame = Frame(image=image, timestamp_s=time.monotonic(), index=self.index, reduced_by=reduced_by)
+        frame = Frame(image=image, timestamp_s=time.monotonic() if taken_s is None else taken_s, index=self.index,
+                      reduced_by=reduced_by)
         self.index += 1
         return frame
 
@@ -130,6 +135,21 @@ class CameraBase:
 # A UVC open takes well under a second; one that hangs in the driver is ended past this.
 UVC_OPEN_TIMEOUT_S = 5.0
 V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
+MAX_STALE_DROPS = 10  # frames read past the flush while the driver's capture time is before the grab (OpenCV's V4L2 queue max)
+# A capture time further than this from the monotonic clock is not V4L2's monotonic buffer time
+# (another backend, a file's position, 0 before the first frame): the blind flush alone then
+CAPTURE_CLOCK_SLACK_MS = 10_000.0
+
+
+def _capture_ms(cap, now_ms: float) -> float | None:
+    """The last read frame's capture time on the monotonic clock, ms (OpenCV's V4L2 backend hands
+    the buffer's timestamp as CAP_PROP_POS_MSEC; uvcvideo stamps with CLOCK_MONOTONIC), or None
+    when the backend gives nothing that reads as one."""
+    try:
+        t = float(cap.get(cv2.CAP_PROP_POS_MSEC))
+    except Exception:  # noqa: BLE001 - a capture time is extra evidence; its absence never fails a read
+        return None
+    return t if t > 0 and abs(t - now_ms) < CAPTURE_CLOCK_SLACK_MS else None
 
 
 def is_compressed(image: object) -> bool:
@@ -175,6 +195,8 @@ class UVCCamera(CameraBase):
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
         self._stuck: list = []  # captures abandoned with a read inside the driver
+        self.stale_dropped = 0  # frames read past the flush because the driver's capture time predated the grab
+        self._taken_s: float | None = None  # the last frame's capture time, when the driver gives one
 
     def connect(self) -> None:
         """Open the device and apply the settings, in a thread bounded by ``open_timeout_s``: a
@@ -280,12 +302,20 @@ class UVCCamera(CameraBase):
         cap = self._cap
 
         flush = int(self.settings_applied.get("flush_frames") or self.flush_frames)
+        asked_ms = 1e3 * time.monotonic()  # the press has settled: a frame taken before now is stale
 
         def read() -> None:
             for _ in range(flush):
                 cap.grab()
             ok, image = cap.read()
-            box["image"] = image if ok else None
+            taken = _capture_ms(cap, asked_ms)
+            # the driver's own capture times, where it gives them: frames it still held from before
+            # the grab was asked are dropped, whatever its queue (the blind flush above is the floor)
+            dropped = 0
+            while ok and taken is not None and taken < asked_ms and dropped < MAX_STALE_DROPS:
+                ok, image = cap.read()
+                taken, dropped = _capture_ms(cap, asked_ms), dropped + 1
+            box.update(image=image if ok else None, taken_ms=taken, dropped=dropped)
 
         self._reader = threading.Thread(target=read, daemon=True, name="uvc-read")
         self._reader.start()
@@ -293,6 +323,15 @@ class UVCCamera(CameraBase):
         if self._reader.is_alive():
             raise CameraError(f"{self.name}: no frame within {self.read_timeout_s} s", device=self.name,
                               kind="timeout")
+        self.stale_dropped += box.get("dropped", 0)
+        taken = box.get("taken_ms")
+        if box.get("image") is not None and taken is not None and taken < asked_ms:
+            err = CameraError(f"{self.name}: {MAX_STALE_DROPS} more frames read after the flush, and the driver still "
+                              f"hands one taken {asked_ms - taken:.0f} ms before the grab was asked (its capture "
+                              "time): a stale queue, never scored as this press", device=self.name, kind="timeout")
+            err.reason = "stale"
+            raise err
+        self._taken_s = None if taken is None else taken / 1e3
         return box.get("image")
 
     def grab(self) -> Frame:
@@ -302,8 +341,9 @@ class UVCCamera(CameraBase):
         if image is None:
             raise CameraError(f"{self.name}: no frame (unplugged or stream ended)", device=self.name,
                               kind="unplugged")
+        taken = self._taken_s  # the driver's capture time (None: it gives none; the check's time then)
         if self.pixel_format == "yuyv" and is_compressed(image):
-            return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale)
+            return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale, taken_s=taken)
         if self.decode_scale > 1 and is_compressed(image):
             decoded = decode_jpeg(image, self.decode_scale)
             if decoded is None:
@@ -311,8 +351,8 @@ class UVCCamera(CameraBase):
                                   "a JPEG (a truncated MJPEG frame?)", device=self.name, kind="corrupt")
                 err.reason = "jpeg"
                 raise err
-            return self._guard.admit(decoded, reduced_by=self.decode_scale)
-        return self._guard.admit(image)  # decoded by the backend: a full frame (the fallback)
+            return self._guard.admit(decoded, reduced_by=self.decode_scale, taken_s=taken)
+        return self._guard.admit(image, taken_s=taken)  # decoded by the backend: a full frame (the fallback)
 
     def _from_yuyv(self, raw: np.ndarray) -> np.ndarray:
         """A raw YUYV frame at the size the driver runs (else the configured one) -> BGR at
