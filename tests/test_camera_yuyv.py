@@ -143,3 +143,29 @@ def test_pixel_format_is_a_config_key_the_camera_takes():
     assert camera_from_config(cam).pixel_format == "yuyv"
     with pytest.raises(ValueError, match="pixel_format"):
         UVCCamera(0, pixel_format="h264")
+
+
+@pytest.mark.hardware(needs="the real sensor (VS2T_CAMERA, default 0)")
+def test_live_gelsight_streams_yuyv_with_capture_times():
+    """On the real sensor: asked for YUYV at 640x480, it either runs it - frames of that size, made
+    BGR by the cell, stamped with capture times no older than the grab - or is refused at connect
+    naming what it runs (then this camera cannot take `pixel_format: yuyv`, and the test says so)."""
+    import os
+    import time
+
+    device = os.environ.get("VS2T_CAMERA", "0")
+    cam = UVCCamera(int(device) if device.isdigit() else device, width=640, height=480, read_timeout_s=2.0,
+                    expected_hw=(480, 640), pixel_format="yuyv")
+    try:
+        cam.connect()
+    except CameraError as exc:
+        if getattr(exc, "reason", None) == "pixel_format":
+            pytest.skip(f"this camera does not run YUYV at 640x480: {exc}")
+        raise
+    try:
+        asked = time.monotonic()
+        frame = cam.grab()
+    finally:
+        cam.disconnect()
+    assert frame.image.shape == (480, 640, 3) and cam.settings_applied["pixel_format"] == "YUYV"
+    assert frame.timestamp_s >= asked - 0.001 and frame.timestamp_s <= time.monotonic()
