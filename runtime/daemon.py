@@ -88,6 +88,16 @@ def job_check_lines(cfg: CellConfig, model, evidence_factory) -> list[str]:
         return [f"job check skipped: {exc}"]
 
 
+def camera_runs(camera) -> dict:
+    """What a live camera's driver accepted (``UVCCamera.settings_applied``: pixel format, size,
+    rate, exposure, queue, frames flushed), as JSON values for the start record; {} for cameras
+    that say nothing (replay, simulated)."""
+    applied = getattr(camera, "settings_applied", None)
+    if not isinstance(applied, dict):
+        return {}
+    return {str(k): v for k, v in applied.items() if v is None or isinstance(v, (bool, int, float, str))}
+
+
 def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None, items=None,
                evidence_factory=None, notifier=None, stop_event: threading.Event | None = None,
                on_item=None, max_items: int | None = None, stop_when=None, install_signals: bool = True,
@@ -199,9 +209,12 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                       items=items, evidence_factory=evidence_factory, stop_event=stop_event, on_item=on_item, log=log)
     try:
         seal = bundle_seal(model)  # which bundle, not only which folder: a swapped bundle is auditable
+        runs = camera_runs(camera)  # what the driver accepted (format, size, rate, queue, flush)
         journal.append({"type": "start", "t": time.time(), "config": str(cfg.path), "bundle": str(cfg.bundle),
-                        **({SEAL_KEY: seal} if seal else {}),
+                        **({SEAL_KEY: seal} if seal else {}), **({"camera": runs} if runs else {}),
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
+        if runs:
+            log("camera runs: " + ", ".join(f"{k} {v}" for k, v in runs.items()))
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
             "folder, then start again")

@@ -386,3 +386,37 @@ def test_a_damaged_real_bundle_never_sends_ready_and_exits_2(tmp_path, damage):
     assert code == 2, err
     assert words in err and not any(m.startswith("READY=1") for m in msgs)
     assert not any("probe check passed" in m for m in msgs)
+
+
+def test_the_start_record_says_what_the_camera_runs(tmp_path):
+    """A UVC camera's accepted settings (pixel format, size, queue, flush) are journaled in the start
+    record and logged, so a cell asked for YUYV can be seen running it; a camera that says nothing
+    (simulated, replayed) leaves the key out."""
+    from cell_fakes import FakeModel, ScriptedCamera
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.notify import Notifier
+    from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+
+    for says in (True, False):
+        folder = tmp_path / str(says)
+        folder.mkdir()
+        cfg_path = folder / "cell.yaml"
+        cfg_path.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
+                                           evidence={"confidence": 0.95, "max_presses": 4,
+                                                     "without_scene_model": "allow"}))
+        cfg = load_config(cfg_path)
+        arm, gate, logged = FakeArm(config=cfg.arm), FakeGate(), []
+        camera = ScriptedCamera(arm, [50])
+        if says:
+            camera.settings_applied = {"width": 640.0, "height": 480.0, "pixel_format": "YUYV", "yuyv_raw": True,
+                                       "flush_frames": 2, "exposure": None}
+        code = run_daemon(cfg, model=FakeModel({50: "denim"}, cfg.scene_classes), camera=camera, arm=arm, gate=gate,
+                          notifier=Notifier(""), max_items=1, install_signals=False, log=logged.append)
+        assert code == 0, logged
+        start = next(r for r in read_records(cfg.journal) if r["type"] == "start")
+        if says:
+            assert start["camera"] == camera.settings_applied
+            assert any("camera runs:" in line and "pixel_format YUYV" in line for line in logged), logged
+        else:
+            assert "camera" not in start and not any("camera runs" in line for line in logged)
