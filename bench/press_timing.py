@@ -65,7 +65,8 @@ class CameraChecks:
     frame (on by default for a UVC camera, docs/cell.md)."""
 
     def __init__(self, reference_image: np.ndarray) -> None:
-        from vs2t_edge.runtime.camera import ContactCheck, FrameGuard
+        from vs2t_edge.runtime.camera import FrameGuard
+        from vs2t_edge.runtime.contact import ContactCheck
 
         self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
 

@@ -123,7 +123,7 @@ class Cell(FaultLatch):
         # the model is looked up per press: a caller may swap cell.model between items
         self.scorer = PressScorer(lambda image, **reduced: self.model.score_press(image, **reduced),
                                   scene.overlap_scoring)
-        # runtime/camera.py ContactCheck (or anything with its read()): each press frame against
+        # runtime/contact.py ContactCheck (or anything with its read()): each press frame against
         # the item's no-contact reference. None = not checked (see _require_contact).
         self.contact_check = contact_check
         self._reference_image = None

@@ -83,7 +83,7 @@ _SCHEMA: dict[str, Any] = {
             "frozen_after": _leaf("int", 2, (2, 100),
                                   "identical consecutive frames that are a frozen-camera fault (2: the first repeat)"),
             "path": _leaf("optpath", None, None, "replay: replay file; sim: dataset folder"),
-            # Is the gel really pressed? (runtime/camera.py ContactCheck against the item's no-contact
+            # Is the gel really pressed? (runtime/contact.py ContactCheck against the item's no-contact
             # frame.) auto = on for a live sensor, off for replay and simulated frames, whose rendered
             # imprints are fainter than a real GelSight's (docs/cell.md, "Contact check").
             "contact_check": _leaf("str", "auto", ("auto", "on", "off"),

@@ -25,7 +25,8 @@ from typing import Any, Callable
 
 from vs2t_edge.runtime.arm_isolated import IsolatedURArm
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
-from vs2t_edge.runtime.camera import ContactCheck, UVCCamera, camera_from_config
+from vs2t_edge.runtime.camera import UVCCamera, camera_from_config
+from vs2t_edge.runtime.contact import ContactCheck
 from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator

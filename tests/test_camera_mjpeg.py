@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from test_camera import _RecordingCapture
-from vs2t_edge.runtime.camera import ContactCheck, UVCCamera
+from vs2t_edge.runtime.camera import UVCCamera
+from vs2t_edge.runtime.contact import ContactCheck
 from vs2t_edge.runtime.devices import CameraError
 
 

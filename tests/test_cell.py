@@ -442,7 +442,7 @@ def test_press_frame_identical_to_the_reference_is_retried_then_latches_no_conta
     """The gel never touched the piece: each press frame is the no-contact reference again. The
     press is retried once (journalled like any retry), then a fault naming 'no contact' latches;
     such a frame is never scored."""
-    from vs2t_edge.runtime.camera import ContactCheck
+    from vs2t_edge.runtime.contact import ContactCheck
 
     cell, arm, cam, gate, journal = make_cell(tmp_path, [REFERENCE, REFERENCE, 50, 50],
                                               contact_check=ContactCheck())
@@ -458,7 +458,7 @@ def test_press_frame_identical_to_the_reference_is_retried_then_latches_no_conta
 
 
 def test_no_contact_once_is_retried_and_the_piece_sorted(tmp_path):
-    from vs2t_edge.runtime.camera import ContactCheck
+    from vs2t_edge.runtime.contact import ContactCheck
 
     cell, arm, cam, gate, journal = make_cell(tmp_path, [REFERENCE, 60, 60], contact_check=ContactCheck())
     results = cell.run(max_items=1)
