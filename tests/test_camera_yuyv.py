@@ -169,3 +169,39 @@ def test_live_gelsight_streams_yuyv_with_capture_times():
         cam.disconnect()
     assert frame.image.shape == (480, 640, 3) and cam.settings_applied["pixel_format"] == "YUYV"
     assert frame.timestamp_s >= asked - 0.001 and frame.timestamp_s <= time.monotonic()
+
+
+@pytest.mark.parametrize("reduce", [0, 2])
+def test_a_yuyv_camera_hands_the_model_what_training_read(yuyv_capture, reduce):
+    """Train/serve parity: a press and its no-contact frame through the UVC camera on YUYV (at the
+    bundle's scale) give the network input that training computes from the lossless frames, up to
+    the format's chroma and rounding - on the float path (full frames) and the reduced path (the
+    camera's box average standing in for training's own)."""
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, prepare_reference, preprocess_tactile
+
+    spec = TactilePreprocess(size=128, reduce=reduce)
+    scale = max(1, reduce)
+    lossless_ref, lossless_press = _texture(480, 640, 1), _texture(480, 640, 1)
+    lossless_press[200:300, 250:400] = np.clip(lossless_press[200:300, 250:400].astype(int) + 40, 0, 255)  # an imprint
+    frames = iter([lossless_ref, lossless_press])
+
+    def read(self):  # the driver's frames: this test's lossless pair, sent as YUYV
+        self.reads += 1
+        return True, yuyv_bytes(next(frames)).reshape(1, -1)
+
+    _YuyvCapture.read = read
+    try:
+        with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=scale, pixel_format="yuyv") as cam:
+            ref, press = cam.grab(), cam.grab()
+    finally:
+        del _YuyvCapture.read
+    assert ref.reduced_by == press.reduced_by == scale
+    served = preprocess_tactile(press.image, prepare_reference(ref.image, spec, scale), spec, scale)
+    trained = preprocess_tactile(lossless_press, lossless_ref, spec)
+    err = np.abs(served - trained) * 255 * 0.08  # back in grey levels of the difference image
+    assert served.shape == trained.shape == (3, 128, 128)
+    # the format's error sits in both frames alike and mostly cancels in their difference (0.01-0.02
+    # levels mean, at most 2 here); a wrong range (full instead of video) would scale it by 14 %
+    assert float(err.mean()) < 0.1 and float(err.max()) < 3.0
+    imprint = trained[:, 55:75, 60:90].mean()  # the imprint keeps its size
+    assert abs(served[:, 55:75, 60:90].mean() - imprint) < 0.03 * abs(imprint)
