@@ -134,7 +134,8 @@ class CameraBase:
 # A UVC open takes well under a second; one that hangs in the driver is ended past this.
 UVC_OPEN_TIMEOUT_S = 5.0
 V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
-MAX_STALE_DROPS = 10  # frames read past the flush while the driver's capture time is before the grab (OpenCV's V4L2 queue max)
+# frames read past the flush while the driver's capture time is before the grab (OpenCV's V4L2 queue max)
+MAX_STALE_DROPS = 10
 # A capture time further than this from the monotonic clock is not V4L2's monotonic buffer time
 # (another backend, a file's position, 0 before the first frame): the blind flush alone then
 CAPTURE_CLOCK_SLACK_MS = 10_000.0
@@ -261,7 +262,7 @@ class UVCCamera(CameraBase):
             applied["flush_frames"] = max(self.flush_frames, queue + 1)
         if self.pixel_format == "yuyv":
             # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py); what the driver
-            # runs is read back: a camera without YUYV at this size keeps its own format
+            # runs is read back, and a camera that keeps another format at this size is refused
             cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"YUYV")))
             applied["pixel_format"] = runs = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
             if runs not in (None, "YUYV"):  # None: the backend does not say; the frames' size will
