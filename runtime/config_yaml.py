@@ -20,6 +20,7 @@ class ConfigError(ValueError):
         super().__init__(f"config {self.path}: {len(self.problems)} problem(s)\n{body}")
 
 
+_NULL_TAG = "tag:yaml.org,2002:null"
 _MAX_NODES = 5000  # a cell config has a few hundred; aliases must not expand without bound (each
 # scalar costs a ~90 us serialize + safe_load round trip: 20000 made an alias bomb take 1.8 s)
 
@@ -44,6 +45,10 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
         return out
     if isinstance(node, yaml.SequenceNode):
         return [_to_python(v, f"{key}[{i}]", lines, budget) for i, v in enumerate(node.value)]
+    if node.tag == _NULL_TAG:
+        # `key:` with nothing after it, `key: null`, `key: ~`: YAML's null, what safe_load gives;
+        # serialized alone, an empty scalar is an empty document, which does not load back
+        return None
     try:
         return yaml.safe_load(yaml.serialize(node))
     except (yaml.YAMLError, ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:

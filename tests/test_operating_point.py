@@ -216,6 +216,9 @@ def test_confidence_null_is_no_written_confidence(tmp_path):
     assert cfg.confidence == 0.9 and not op.config_sets_confidence(cfg)
     assert op.scene_model_settings(cfg, _SCENE)[0] == 0.97
     assert op.config_sets_confidence(_cfg(tmp_path, "evidence: {confidence: 0.9}\n"))
+    # written with nothing after the colon (block style) it is the same null, not a YAML error
+    empty = _cfg(tmp_path, "evidence:\n  confidence:\n")
+    assert empty.confidence == 0.9 and not op.config_sets_confidence(empty)
 
 
 def _run_daemon_on(cfg):
