@@ -136,20 +136,21 @@ UVC_OPEN_TIMEOUT_S = 5.0
 V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
 # frames read past the flush while the driver's capture time is before the grab (OpenCV's V4L2 queue max)
 MAX_STALE_DROPS = 10
-# A capture time further than this from the monotonic clock is not V4L2's monotonic buffer time
-# (another backend, a file's position, 0 before the first frame): the blind flush alone then
+# A driver whose frame times once fall this close to the monotonic clock stamps with it (OpenCV's
+# V4L2 backend: the buffer's timestamp, CLOCK_MONOTONIC for uvcvideo); from then on every frame it
+# hands must carry a time after the grab was asked - one from minutes ago most of all (a queue that
+# kept the frames taken just after the last grab while the cell stood). Times that never come close
+# (another backend, a file's position, 0 before the first frame) leave the blind flush alone.
 CAPTURE_CLOCK_SLACK_MS = 10_000.0
 
 
-def _capture_ms(cap, now_ms: float) -> float | None:
-    """The last read frame's capture time on the monotonic clock, ms (OpenCV's V4L2 backend hands
-    the buffer's timestamp as CAP_PROP_POS_MSEC; uvcvideo stamps with CLOCK_MONOTONIC), or None
-    when the backend gives nothing that reads as one."""
+def _pos_ms(cap) -> float | None:
+    """CAP_PROP_POS_MSEC of the last frame read, when the backend gives a positive number."""
     try:
         t = float(cap.get(cv2.CAP_PROP_POS_MSEC))
-    except Exception:  # noqa: BLE001 - a capture time is extra evidence; its absence never fails a read
+    except Exception:  # noqa: BLE001 - a capture time is extra evidence; asking for it never fails a read
         return None
-    return t if t > 0 and abs(t - now_ms) < CAPTURE_CLOCK_SLACK_MS else None
+    return t if t > 0 and t == t and t != float("inf") else None
 
 
 def is_compressed(image: object) -> bool:
@@ -196,6 +197,8 @@ class UVCCamera(CameraBase):
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
         self._stuck: list = []  # captures abandoned with a read inside the driver
         self.stale_dropped = 0  # frames read past the flush because the driver's capture time predated the grab
+        # the driver has shown it stamps frames with the monotonic clock (kept across a reopen: the same driver)
+        self._stamped = False
         self._taken_s: float | None = None  # the last frame's capture time, when the driver gives one
 
     def connect(self) -> None:
@@ -241,10 +244,16 @@ class UVCCamera(CameraBase):
                               device=self.name, kind="unplugged")
         req = self.requested
         applied: dict[str, object] = {}
-        for key, prop in (("width", cv2.CAP_PROP_FRAME_WIDTH), ("height", cv2.CAP_PROP_FRAME_HEIGHT),
-                          ("fps", cv2.CAP_PROP_FPS)):
+        # the format before the size: V4L2 sizes and rates are per format, and a format set after
+        # them may change them (what the driver runs is read back once all are set, below)
+        fourcc = "YUYV" if self.pixel_format == "yuyv" else "MJPG" if self.decode_scale > 1 else None
+        if fourcc:
+            cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*fourcc)))
+        sizes = (("width", cv2.CAP_PROP_FRAME_WIDTH), ("height", cv2.CAP_PROP_FRAME_HEIGHT), ("fps", cv2.CAP_PROP_FPS))
+        for key, prop in sizes:
             if req[key] is not None:
                 cap.set(prop, float(req[key]))
+        for key, prop in sizes:
             applied[key] = cap.get(prop) or None  # what the driver actually runs at
         if req["exposure"] is not None:
             # V4L2 convention: auto-exposure 1 = manual, 3 = aperture priority (auto).
@@ -263,7 +272,6 @@ class UVCCamera(CameraBase):
         if self.pixel_format == "yuyv":
             # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py); what the driver
             # runs is read back, and a camera that keeps another format at this size is refused
-            cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"YUYV")))
             applied["pixel_format"] = runs = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
             if runs not in (None, "YUYV"):  # None: the backend does not say; the frames' size will
                 cap.release()
@@ -277,7 +285,6 @@ class UVCCamera(CameraBase):
             applied["yuyv_raw"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
-            cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG")))
             applied["mjpeg_undecoded"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0)
                                               and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
         return cap, applied
@@ -304,17 +311,30 @@ class UVCCamera(CameraBase):
         flush = int(self.settings_applied.get("flush_frames") or self.flush_frames)
         asked_ms = 1e3 * time.monotonic()  # the press has settled: a frame taken before now is stale
 
+        def taken_ms() -> float | None:
+            t = _pos_ms(cap)
+            if t is not None and abs(t - asked_ms) < CAPTURE_CLOCK_SLACK_MS:
+                self._stamped = True  # the driver stamps with the monotonic clock (module constant's note)
+            return t
+
         def read() -> None:
+            try:
+                _read()
+            except Exception as exc:  # noqa: BLE001 - said by grab(), not lost in a thread's traceback
+                box["error"] = exc
+
+        def _read() -> None:
             for _ in range(flush):
                 cap.grab()
             ok, image = cap.read()
-            taken = _capture_ms(cap, asked_ms)
-            # the driver's own capture times, where it gives them: frames it still held from before
-            # the grab was asked are dropped, whatever its queue (the blind flush above is the floor)
+            taken = taken_ms()
+            # the driver's own capture times, once it has shown it gives them: frames it still held
+            # from before the grab was asked, or handed without a time, are read past, whatever its
+            # queue (the blind flush above is the floor)
             dropped = 0
-            while ok and taken is not None and taken < asked_ms and dropped < MAX_STALE_DROPS:
+            while ok and self._stamped and (taken is None or taken < asked_ms) and dropped < MAX_STALE_DROPS:
                 ok, image = cap.read()
-                taken, dropped = _capture_ms(cap, asked_ms), dropped + 1
+                taken, dropped = taken_ms(), dropped + 1
             box.update(image=image if ok else None, taken_ms=taken, dropped=dropped)
 
         self._reader = threading.Thread(target=read, daemon=True, name="uvc-read")
@@ -323,12 +343,17 @@ class UVCCamera(CameraBase):
         if self._reader.is_alive():
             raise CameraError(f"{self.name}: no frame within {self.read_timeout_s} s", device=self.name,
                               kind="timeout")
+        if "error" in box:  # the backend raised inside the read (cv2.error, ...): as a lost frame, named
+            raise CameraError(f"{self.name}: the driver's read failed: {box['error']!r}", device=self.name,
+                              kind="unplugged")
         self.stale_dropped += box.get("dropped", 0)
         taken = box.get("taken_ms")
-        if box.get("image") is not None and taken is not None and taken < asked_ms:
+        if box.get("image") is not None and self._stamped and (taken is None or taken < asked_ms):
+            what = ("one without a capture time" if taken is None else
+                    f"one taken {asked_ms - taken:.0f} ms before the grab was asked (its capture time)")
             err = CameraError(f"{self.name}: {MAX_STALE_DROPS} more frames read after the flush, and the driver still "
-                              f"hands one taken {asked_ms - taken:.0f} ms before the grab was asked (its capture "
-                              "time): a stale queue, never scored as this press", device=self.name, kind="timeout")
+                              f"hands {what}: a stale queue, never scored as this press", device=self.name,
+                              kind="timeout")
             err.reason = "stale"
             raise err
         self._taken_s = None if taken is None else taken / 1e3

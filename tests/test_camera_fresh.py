@@ -18,7 +18,8 @@ from vs2t_edge.runtime.devices import CameraError
 class _TimedCapture(_RecordingCapture):
     """A V4L2 capture whose frames carry capture times (CAP_PROP_POS_MSEC, monotonic ms): the first
     ``held`` frames read after each grab request are old ones the driver kept (taken ``age_ms``
-    before now), the rest are taken now. ``clock`` = "monotonic" or "file" (a file's position)."""
+    before now; ``rearm(..., untimed=True)``: handed with no time), the rest are taken now.
+    ``clock`` = "monotonic" or "file" (a file's position)."""
 
     held, age_ms, clock = 0, 500.0, "monotonic"
 
@@ -38,21 +39,26 @@ class _TimedCapture(_RecordingCapture):
 
     def _stamp(self):
         now = 1e3 * time.monotonic()
+        self._last_untimed = False
         if self._pending > 0:
             self._pending -= 1
             self._last_ms = now - type(self).age_ms
+            self._last_untimed = getattr(self, "_untimed", False)
         else:
             self._last_ms = now + 1.0
         if type(self).clock == "file":
             self._last_ms = 33.3 * self.reads
 
+    def rearm(self, n, age_ms=None, untimed=False):
+        self._pending = n
+        if age_ms is not None:
+            type(self).age_ms = age_ms
+        self._untimed = untimed
+
     def get(self, prop):
         if prop == cv2.CAP_PROP_POS_MSEC:
-            return self._last_ms
+            return 0.0 if getattr(self, "_last_untimed", False) else self._last_ms  # 0: a buffer without a time
         return super().get(prop)
-
-    def rearm(self, n):
-        self._pending = n
 
 
 @pytest.fixture
@@ -91,3 +97,41 @@ def test_times_that_are_not_the_monotonic_clock_leave_the_blind_flush(timed):
         frame = cam.grab()
         assert cam.stale_dropped == 0 and timed[0].reads == 1  # the flush only
         assert frame.timestamp_s >= before  # stamped when admitted
+
+
+def test_a_queue_kept_from_minutes_ago_is_read_past_too(timed):
+    """The case the check is for: the cell stood, and the driver's queue kept the frames taken just
+    after the last grab. However old, once the driver has shown it stamps with the monotonic clock,
+    a frame taken before the grab is never this press."""
+    with UVCCamera(0, flush_frames=2, buffer_size=1) as cam:
+        cam.grab()  # a fresh frame: the driver's times are the monotonic clock
+        timed[0].rearm(5, age_ms=15_000.0)  # held since 15 s ago
+        asked = time.monotonic()
+        frame = cam.grab()
+    assert cam.stale_dropped == 3 and frame.timestamp_s >= asked
+
+
+def test_a_stale_buffer_without_a_time_is_read_past_once_the_driver_stamps(timed):
+    with UVCCamera(0, flush_frames=2, buffer_size=1) as cam:
+        cam.grab()
+        timed[0].rearm(5, untimed=True)  # five old buffers, handed with POS_MSEC 0: the flush takes 2
+        asked = time.monotonic()
+        frame = cam.grab()
+        assert cam.stale_dropped == 3 and frame.timestamp_s >= asked
+        timed[0].rearm(MAX_STALE_DROPS + 5, untimed=True)
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+    assert exc.value.reason == "stale" and "without a capture time" in str(exc.value)
+
+
+def test_an_error_inside_the_drivers_read_is_named(timed, monkeypatch):
+    """A backend raising inside read() (cv2.error on a bad buffer) used to end the read thread with
+    a traceback on stderr and a grab that said "no frame (unplugged or stream ended)"."""
+    def broken(self):
+        raise cv2.error("VIDIOC_DQBUF: No such device")
+
+    with UVCCamera(0, flush_frames=0, buffer_size=None) as cam:
+        monkeypatch.setattr(_TimedCapture, "read", broken)
+        with pytest.raises(CameraError) as exc:
+            cam.grab()
+    assert exc.value.kind == "unplugged" and "VIDIOC_DQBUF" in str(exc.value)

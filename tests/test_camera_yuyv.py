@@ -205,3 +205,23 @@ def test_a_yuyv_camera_hands_the_model_what_training_read(yuyv_capture, reduce):
     assert float(err.mean()) < 0.1 and float(err.max()) < 3.0
     imprint = trained[:, 55:75, 60:90].mean()  # the imprint keeps its size
     assert abs(served[:, 55:75, 60:90].mean() - imprint) < 0.03 * abs(imprint)
+
+
+def test_the_format_is_set_before_the_size_so_the_size_read_back_is_the_one_streamed(yuyv_capture, monkeypatch):
+    """V4L2 sizes are per format: a driver that falls back to 320x240 when switched to YUYV, and
+    takes 640x480 when asked after. Set after the size (as before), the format left the driver at
+    320x240 while 640x480 was read back, and every frame failed as a truncated buffer."""
+    real_set = _YuyvCapture.set
+
+    def set_(self, prop, value):
+        ok = real_set(self, prop, value)
+        if prop == cv2.CAP_PROP_FOURCC and ok:
+            self.props[cv2.CAP_PROP_FRAME_WIDTH], self.props[cv2.CAP_PROP_FRAME_HEIGHT] = 320.0, 240.0
+        return ok
+
+    monkeypatch.setattr(_YuyvCapture, "set", set_)
+    with UVCCamera(0, width=640, height=480, flush_frames=0, expected_hw=(480, 640), pixel_format="yuyv") as cam:
+        props = [prop for prop, _ in yuyv_capture[0].sets]
+        assert props.index(cv2.CAP_PROP_FOURCC) < props.index(cv2.CAP_PROP_FRAME_WIDTH)
+        assert (cam.settings_applied["width"], cam.settings_applied["height"]) == (640.0, 480.0)
+        assert cam.grab().image.shape == (480, 640, 3)
