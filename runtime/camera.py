@@ -367,7 +367,7 @@ class UVCCamera(CameraBase):
             raise CameraError(f"{self.name}: no frame (unplugged or stream ended)", device=self.name,
                               kind="unplugged")
         taken = self._taken_s  # the driver's capture time (None: it gives none; the check's time then)
-        if self.pixel_format == "yuyv" and is_compressed(image):
+        if self.pixel_format == "yuyv" and (is_compressed(image) or _two_channel(image)):
             return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale, taken_s=taken)
         if self.decode_scale > 1 and is_compressed(image):
             decoded = decode_jpeg(image, self.decode_scale)
@@ -395,6 +395,11 @@ class UVCCamera(CameraBase):
             err.reason = "yuyv"
             raise err
         return image
+
+
+def _two_channel(image: object) -> bool:
+    """A backend's raw YUYV frame already shaped HxWx2 (not OpenCV's V4L2 backend, which hands one row)."""
+    return isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 2
 
 
 def _fourcc_text(code: float) -> str | None:

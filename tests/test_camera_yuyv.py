@@ -172,7 +172,7 @@ def test_live_gelsight_streams_yuyv_with_capture_times():
 
 
 @pytest.mark.parametrize("reduce", [0, 2])
-def test_a_yuyv_camera_hands_the_model_what_training_read(yuyv_capture, reduce):
+def test_a_yuyv_camera_hands_the_model_what_training_read(yuyv_capture, reduce, monkeypatch):
     """Train/serve parity: a press and its no-contact frame through the UVC camera on YUYV (at the
     bundle's scale) give the network input that training computes from the lossless frames, up to
     the format's chroma and rounding - on the float path (full frames) and the reduced path (the
@@ -189,12 +189,9 @@ def test_a_yuyv_camera_hands_the_model_what_training_read(yuyv_capture, reduce):
         self.reads += 1
         return True, yuyv_bytes(next(frames)).reshape(1, -1)
 
-    _YuyvCapture.read = read
-    try:
-        with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=scale, pixel_format="yuyv") as cam:
-            ref, press = cam.grab(), cam.grab()
-    finally:
-        del _YuyvCapture.read
+    monkeypatch.setattr(_YuyvCapture, "read", read)
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=scale, pixel_format="yuyv") as cam:
+        ref, press = cam.grab(), cam.grab()
     assert ref.reduced_by == press.reduced_by == scale
     served = preprocess_tactile(press.image, prepare_reference(ref.image, spec, scale), spec, scale)
     trained = preprocess_tactile(lossless_press, lossless_ref, spec)
@@ -225,3 +222,11 @@ def test_the_format_is_set_before_the_size_so_the_size_read_back_is_the_one_stre
         assert props.index(cv2.CAP_PROP_FOURCC) < props.index(cv2.CAP_PROP_FRAME_WIDTH)
         assert (cam.settings_applied["width"], cam.settings_applied["height"]) == (640.0, 480.0)
         assert cam.grab().image.shape == (480, 640, 3)
+
+
+def test_a_backend_handing_yuyv_shaped_hxwx2_is_converted_too(yuyv_capture):
+    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2, pixel_format="yuyv") as cam:
+        _YuyvCapture.payload = yuyv_bytes(_texture())  # (480, 640, 2), not one row
+        frame = cam.grab()
+    assert frame.image.shape == (240, 320, 3) and frame.reduced_by == 2
+    assert np.array_equal(frame.image, through_camera_yuyv(_texture(), 2))
