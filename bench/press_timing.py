@@ -42,9 +42,14 @@ def camera_payload(frame: np.ndarray, camera_format: str, jpeg_quality: int = JP
     return enc.tobytes()
 
 
+def _is_yuyv(payload) -> bool:
+    """``camera_payload``'s YUYV frame (HxWx2), not JPEG bytes."""
+    return isinstance(payload, np.ndarray) and payload.ndim == 3
+
+
 def decode_payload(payload, scale: int) -> np.ndarray | None:
     """The cell camera's decode of ``camera_payload``'s output at 1/``scale``."""
-    if isinstance(payload, np.ndarray) and payload.ndim == 3:
+    if _is_yuyv(payload):
         from vs2t_edge.runtime.yuyv import decode_yuyv
 
         return decode_yuyv(payload, payload.shape[:2], scale)
@@ -84,7 +89,7 @@ def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None) -> d
     (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
     0 (``speed_worker`` measures what the graph's tail costs apart)."""
     scale = decode_scale(model)
-    yuyv = isinstance(jpeg, np.ndarray) and jpeg.ndim == 3
+    stage = DECODE_STAGE["yuyv" if _is_yuyv(jpeg) else "mjpeg"]
     t0 = time.perf_counter()
     frame = decode_payload(jpeg, scale)
     t1 = time.perf_counter()
@@ -96,7 +101,7 @@ def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None) -> d
     t2 = time.perf_counter()
     evidence.add(s)
     t3 = time.perf_counter()
-    return {DECODE_STAGE["yuyv" if yuyv else "mjpeg"]: 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
+    return {stage: 1e3 * (t1 - t0), "camera_checks": 1e3 * (t1c - t1), "preprocess": tm["preprocess_ms"],
             "trunk": tm["trunk_ms"], "heads": tm["heads_ms"], "router": tm["router_ms"], "decision": tm["decision_ms"],
             "evidence": 1e3 * (t3 - t2), "press": 1e3 * (t3 - t0)}
 
