@@ -1,4 +1,4 @@
-"""Uncompressed UVC frames: YUYV 4:2:2, the format every UVC camera offers besides MJPEG.
+"""Uncompressed UVC frames: YUYV 4:2:2, which most UVC cameras offer besides MJPEG.
 
 An MJPEG frame costs the cell its JPEG decode on every press (0.6-0.9 ms for a 640x480 frame at
 q95 on the bench's 2-core CPU, entropy decoding being the floor even at 1/8 scale) and loses the
