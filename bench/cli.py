@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from vs2t_edge.bench.press_timing import CAMERA_FORMATS
+
 
 def add_arguments(parser, verb: str) -> None:
     parser.add_argument("bundles", nargs="+", help="bundle folders, one per variant")
@@ -27,7 +29,7 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--no-accuracy", action="store_true", help="speed only")
     parser.add_argument("--jpeg-quality", type=int, default=95,
                         help="JPEG quality of the camera's MJPEG frames the press is timed on (default 95)")
-    parser.add_argument("--camera-format", default="mjpeg", choices=("mjpeg", "yuyv"),
+    parser.add_argument("--camera-format", default="mjpeg", choices=CAMERA_FORMATS,
                         help="what the camera streams, for the press timing: mjpeg (at --jpeg-quality; the default) or "
                              "yuyv (uncompressed 4:2:2, devices.camera.pixel_format yuyv)")
     frames = parser.add_mutually_exclusive_group()

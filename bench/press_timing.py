@@ -13,8 +13,8 @@ JPEG_QUALITY = 95  # what the press frames are re-encoded at to stand for a UVC 
 STAGES = ("decode_mjpeg", "camera_checks", "preprocess", "trunk", "heads", "router", "decision", "evidence")
 OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
 # what the camera streams (devices.camera.pixel_format) and the stage its frame's decode is timed as
-CAMERA_FORMATS = ("mjpeg", "yuyv")
 DECODE_STAGE = {"mjpeg": "decode_mjpeg", "yuyv": "decode_yuyv"}
+CAMERA_FORMATS = tuple(DECODE_STAGE)  # runtime/camera.py PIXEL_FORMATS (tests/test_bench.py holds them equal)
 DECODE_LABEL = {"decode_mjpeg": "MJPEG decode", "decode_yuyv": "YUYV to BGR"}
 
 

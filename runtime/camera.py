@@ -39,6 +39,7 @@ runtime/contact.py's.
 from __future__ import annotations
 
 import glob as globmod
+import math
 import threading
 import time
 from pathlib import Path
@@ -150,7 +151,7 @@ def _pos_ms(cap) -> float | None:
         t = float(cap.get(cv2.CAP_PROP_POS_MSEC))
     except Exception:  # noqa: BLE001 - a capture time is extra evidence; asking for it never fails a read
         return None
-    return t if t > 0 and t == t and t != float("inf") else None
+    return t if t > 0 and math.isfinite(t) else None
 
 
 def is_compressed(image: object) -> bool:
@@ -199,7 +200,6 @@ class UVCCamera(CameraBase):
         self.stale_dropped = 0  # frames read past the flush because the driver's capture time predated the grab
         # the driver has shown it stamps frames with the monotonic clock (kept across a reopen: the same driver)
         self._stamped = False
-        self._taken_s: float | None = None  # the last frame's capture time, when the driver gives one
 
     def connect(self) -> None:
         """Open the device and apply the settings, in a thread bounded by ``open_timeout_s``: a
@@ -282,11 +282,10 @@ class UVCCamera(CameraBase):
                                   device=self.name, kind="corrupt")
                 err.reason = "pixel_format"
                 raise err
-            applied["yuyv_raw"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
+            applied["yuyv_raw"] = _raw_frames(cap)
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
-            applied["mjpeg_undecoded"] = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0)
-                                              and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
+            applied["mjpeg_undecoded"] = _raw_frames(cap)
         return cap, applied
 
     def disconnect(self) -> None:
@@ -301,7 +300,9 @@ class UVCCamera(CameraBase):
         self._cap = None
         self._reader = None
 
-    def _read_bounded(self) -> np.ndarray | None:
+    def _read_bounded(self) -> tuple[np.ndarray | None, float | None]:
+        """(the frame read after the flush, or None; its capture time in monotonic s, or None when
+        the driver gives none)."""
         if self._reader is not None and self._reader.is_alive():
             raise CameraError(f"{self.name}: the previous read is still stuck in the driver",
                               device=self.name, kind="timeout")
@@ -316,6 +317,9 @@ class UVCCamera(CameraBase):
             if t is not None and abs(t - asked_ms) < CAPTURE_CLOCK_SLACK_MS:
                 self._stamped = True  # the driver stamps with the monotonic clock (module constant's note)
             return t
+
+        def stale(t: float | None) -> bool:  # taken before the grab was asked, or without a time
+            return self._stamped and (t is None or t < asked_ms)
 
         def read() -> None:
             try:
@@ -332,7 +336,7 @@ class UVCCamera(CameraBase):
             # from before the grab was asked, or handed without a time, are read past, whatever its
             # queue (the blind flush above is the floor)
             dropped = 0
-            while ok and self._stamped and (taken is None or taken < asked_ms) and dropped < MAX_STALE_DROPS:
+            while ok and stale(taken) and dropped < MAX_STALE_DROPS:
                 ok, image = cap.read()
                 taken, dropped = taken_ms(), dropped + 1
             box.update(image=image if ok else None, taken_ms=taken, dropped=dropped)
@@ -348,7 +352,7 @@ class UVCCamera(CameraBase):
                               kind="unplugged")
         self.stale_dropped += box.get("dropped", 0)
         taken = box.get("taken_ms")
-        if box.get("image") is not None and self._stamped and (taken is None or taken < asked_ms):
+        if box.get("image") is not None and stale(taken):
             what = ("one without a capture time" if taken is None else
                     f"one taken {asked_ms - taken:.0f} ms before the grab was asked (its capture time)")
             err = CameraError(f"{self.name}: {MAX_STALE_DROPS} more frames read after the flush, and the driver still "
@@ -356,17 +360,15 @@ class UVCCamera(CameraBase):
                               kind="timeout")
             err.reason = "stale"
             raise err
-        self._taken_s = None if taken is None else taken / 1e3
-        return box.get("image")
+        return box.get("image"), None if taken is None else taken / 1e3
 
     def grab(self) -> Frame:
         if self._cap is None:
             raise NotConnectedError(f"{self.name} used before connect()", device=self.name)
-        image = self._read_bounded()
+        image, taken = self._read_bounded()  # taken: the driver's capture time, or None (stamped when checked)
         if image is None:
             raise CameraError(f"{self.name}: no frame (unplugged or stream ended)", device=self.name,
                               kind="unplugged")
-        taken = self._taken_s  # the driver's capture time (None: it gives none; the check's time then)
         if self.pixel_format == "yuyv" and (is_compressed(image) or _two_channel(image)):
             return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale, taken_s=taken)
         if self.decode_scale > 1 and is_compressed(image):
@@ -395,6 +397,11 @@ class UVCCamera(CameraBase):
             err.reason = "yuyv"
             raise err
         return image
+
+
+def _raw_frames(cap) -> bool:
+    """Ask the backend for its frames as the driver hands them (CAP_PROP_CONVERT_RGB 0); did it take it?"""
+    return bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
 
 
 def _two_channel(image: object) -> bool:

@@ -537,3 +537,10 @@ def test_accuracy_through_yuyv_reads_the_frames_the_camera_would_hand(bench_resu
     ref = prepare_reference(through_camera_yuyv(fab.load_reference(), scale), spec, scale)
     x = np.stack([preprocess_tactile(through_camera_yuyv(fab.load_press(i), scale), ref, spec, scale) for i in (3, 5)])
     assert np.allclose(yuyv["feature"], np.asarray(model.forward(x).feature, np.float32), atol=1e-5)
+
+
+def test_the_benchs_camera_formats_are_the_cameras():
+    from vs2t_edge.bench.press_timing import CAMERA_FORMATS
+    from vs2t_edge.runtime.camera import PIXEL_FORMATS
+
+    assert CAMERA_FORMATS == PIXEL_FORMATS
