@@ -37,7 +37,8 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--trunk-precision", choices=("fp32", "int8"), default="fp32",
                         help="int8 = static QDQ quantisation calibrated on touched presses (default fp32)")
     parser.add_argument("--size", type=int, default=None,
-                        help="input side in px (default: the run's); other sizes trade accuracy for speed")
+                        help="input side in px (default: the run's); other sizes trade accuracy for speed. Refused for a "
+                             "run with a scene model (fitted at the trained size) unless --router drops it")
     parser.add_argument("--calibration-frames", type=int, default=None,
                         help="touched training presses for int8 ranges, parity and the probe, the same number "
                              f"from each touched fabric (default {FP32_CALIBRATION_FRAMES}, int8 "

@@ -341,7 +341,7 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
         raise BundleError(root, f"{router_file.name}: router '{router.name}' models {r_classes} touched classes, "
                                 f"the manifest's classes.touched names {len(touched)}")
 
-    scene_model = _load_scene_model(root, manifest, touched + untouched, dim)
+    scene_model = _load_scene_model(root, manifest, touched + untouched, dim, spec.size)
 
     probe_in = _inside(root, _need(manifest, root, "probe", "input"), "probe.input")
     probe_exp = _inside(root, _need(manifest, root, "probe", "expected"), "probe.expected")
@@ -379,10 +379,19 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
                   descriptor=descriptor, probe_frames=frames, camera_jpeg=camera_jpeg)
 
 
-def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int):
-    """The optional scene decision model (runtime/scene_model.py); None when the manifest has none."""
+def _load_scene_model(root: Path, manifest: dict, classes: tuple[str, ...], dim: int, size: int):
+    """The optional scene decision model (runtime/scene_model.py); None when the manifest has none.
+    Refused when the trunk runs at another input size than the run was trained at: the scene
+    model and its operating point were fitted on that size's features (docs/bundle.md)."""
     if "decision" not in manifest:
         return None
+    trained = (manifest.get("provenance") or {}).get("trained_size_px")
+    if isinstance(trained, int) and not isinstance(trained, bool) and trained != size:
+        raise BundleError(root, f"the trunk takes {size} px input (manifest.json 'preprocess.size'), but the run was "
+                                f"trained at {trained} px (provenance.trained_size_px), and its scene model "
+                                "(decision.npz) and operating point were fitted on features of that size: they would "
+                                "decide on other features (on the paper run at 96 px: mis-sorts 0.9 -> 3.8 %). "
+                                "Export the run at its own size, or train at the size you want")
     from vs2t_edge.runtime.scene_model import KIND, SceneModel, SceneModelError
 
     kind = _need(manifest, root, "decision", "kind")

@@ -329,3 +329,31 @@ def test_bundle_from_a_real_tiny_training_run_passes_runtime_verification(tmp_pa
         assert all(np.isfinite(v) for v in s.log_posterior.values())
         # format 3: the press ran no router; the heads' graph still gives one off the press path
         assert m["format_version"] == 3 and s.novelty is None and np.isfinite(model.press_novelty(fab.load_press(0)))
+
+
+def test_size_other_than_trained_is_refused_with_a_scene_model(tiny_run, tmp_path, capsys):
+    """The scene model and its operating point were fitted on features of the trained size: a
+    bundle at another size would decide with them on other features (the paper run at 96 px:
+    mis-sorts 0.9 -> 3.8 %). Export refuses it, and a bundle made so before is refused at load."""
+    import json
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.bundle import BundleError, load_bundle
+
+    run, _ = tiny_run
+    with pytest.raises(ex.ExportError, match="trained at 64 px.*scene model"):
+        fr.export_run(run, tmp_path / "b32", size=32)
+    assert not (tmp_path / "b32").exists()
+    assert main(["export", str(run), "--out", str(tmp_path / "b32"), "--size", "32"]) == 2
+    assert "scene model" in capsys.readouterr().err
+    # its own size is fine, said or not
+    fr.export_run(run, tmp_path / "b64", size=64, calibration_frames=8)
+    assert load_bundle(tmp_path / "b64").scene_model is not None
+    # a bundle whose manifest says it was trained at another size than its trunk takes: refused at load
+    m = json.loads((tmp_path / "b64" / "manifest.json").read_text())
+    m["provenance"]["trained_size_px"] = 128
+    from vs2t_edge.runtime.bundle import seal_manifest
+
+    (tmp_path / "b64" / "manifest.json").write_text(json.dumps(seal_manifest(m)))
+    with pytest.raises(BundleError, match="trained at 128 px"):
+        load_bundle(tmp_path / "b64")
