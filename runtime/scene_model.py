@@ -186,12 +186,19 @@ class SceneModel:
 
     def for_labels(self) -> "SceneModel | None":
         """The offset-rule model operator labels update (runtime/feedback.py): this one when its
-        rule is the offset rule, a sum-rule model with its stored offset setting, else None."""
+        rule is the offset rule, a sum-rule model with its stored offset setting, else None.
+
+        The stored setting never drops the bundle's own off-scene distance rule: its open
+        threshold is the stricter of the two (the same units in both rules: the mean over presses of
+        the nearest scene class's squared distance). Else a first label, even of a stranger, would
+        hand the job's classes to a rule that refuses nothing the bundle's rule refused."""
         if self.item_rule == "offset":
             return self
         if self.labels_rule is None:
             return None
-        return replace(self, item_rule="offset", labels_rule=None, **self.labels_rule)
+        rule = dict(self.labels_rule)
+        rule["open_threshold"] = min(float(rule.get("open_threshold", math.inf)), float(self.open_threshold))
+        return replace(self, item_rule="offset", labels_rule=None, **rule)
 
     def subset(self, classes) -> "SceneModel":
         """The same model over ``classes`` only (bundle classes, in the given order)."""

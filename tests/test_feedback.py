@@ -618,3 +618,46 @@ def test_a_sum_rule_model_carries_an_offset_setting_for_labels_and_decides_by_it
     assert taught.zero_shot.inner.item_model is None  # the guard asks the bundle's own rule
     with pytest.raises(SceneModelError, match="carries no offset setting"):
         OperatorFeedback(_model(item_rule="sum"), CLASSES, tmp_path / "l.jsonl", make)
+
+
+def test_a_label_never_hands_the_job_to_a_rule_without_the_bundles_off_scene_rules():
+    """A sum-rule bundle's labels rule (its stored offset setting) may have both off-scene rules
+    off, a choice training may make. A first label - even one stranger's - switched the job to it,
+    and touched classes were trusted to it alone: a piece zero-shot refused went to a fabric's bin
+    (found by an audit, reproduced). The labels rule keeps the bundle's distance rule, and touched
+    classes stay guarded where it lacks the bundle's known-class rule."""
+    import math
+
+    from vs2t_edge.runtime.operating_point import scene_model_rule
+
+    off = {"press_var": 1.0, "offset_var_touched": 0.1, "offset_var_untouched": 20.0, "item_temperature": 1.0,
+           "item_bias": 0.0, "known_margin": math.inf, "open_threshold": math.inf, "confidence": 0.9,
+           "untouched_confidence": 0.9}
+    scene = ["denim", "silk"]  # wool, known to the bundle, is left out of the job
+
+    def make(m, classes):
+        c, o = scene_model_rule(m)
+        return Evidence(classes, c, 4, **o)
+
+    def piece(deployed, ev, z):
+        z = np.asarray(z, float)
+        lp, d2 = deployed.log_posterior_projected(z[None])
+        p = so.Press(dict(zip(deployed.classes, lp[0].tolist())), dict(zip(deployed.classes, d2[0].tolist())), z)
+        for _ in range(4):
+            if (d := ev.add(p)) is not None:
+                return d
+        return ev.decide()
+
+    strangers = {"felt": [(np.array([5.0, -40.0]), 4)]}  # one stranger label, far from this piece
+    for rule, z in (({"open_threshold": 20.0}, (-10.0, 0.0)),  # a piece like no fabric of the bundle
+                    ({"known_margin": 0.0}, (-1.0, 12.0))):  # a piece of wool, which the job leaves out
+        deployed = SceneModel.from_params(_model(item_rule="sum", labels_rule=off, **rule).to_params())
+        before = piece(deployed, item_evidence(deployed, deployed.for_labels(), scene, {}, {}, make), z)
+        assert before.label == UNKNOWN and before.stopped_by == "off_scene"
+        adapted = adapt(deployed.for_labels(), {}, strangers)
+        after = piece(deployed, item_evidence(deployed, adapted, scene, {}, strangers, make), z)
+        assert after.label == UNKNOWN, (rule, after)  # was "denim", confident
+    # the distance rule is carried into the labels rule (same units in both rules); a stricter one stays
+    assert _model(item_rule="sum", labels_rule=off, open_threshold=20.0).for_labels().open_threshold == 20.0
+    assert _model(item_rule="sum", labels_rule={**off, "open_threshold": 5.0},
+                  open_threshold=20.0).for_labels().open_threshold == 5.0

@@ -209,6 +209,46 @@ def test_a_one_fabric_scene_needs_an_off_scene_rule_of_the_scene_model(tmp_path)
     check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # two fabrics: the posterior can reject
 
 
+def test_a_one_fabric_scene_with_labels_needs_an_off_scene_rule_after_a_label_too(tmp_path, capsys):
+    """With operator labels, a sum-rule bundle's first label switches the job to its stored offset
+    setting; when that setting keeps no off-scene rule, a taught lone fabric would take every piece
+    on the line. The start refuses the job with labels, and starts it without them."""
+    import math
+
+    from vs2t_edge.runtime.scene_model import SceneModel
+    from vs2t_edge.runtime.wiring import check_scene_against_bundle
+
+    off = {"press_var": 1.0, "offset_var_touched": 0.1, "offset_var_untouched": 20.0, "item_temperature": 1.0,
+           "item_bias": 0.0, "known_margin": math.inf, "open_threshold": math.inf, "confidence": 0.9,
+           "untouched_confidence": 0.9}
+    means = np.array([[0.0, 0, 0], [8, 0, 0], [0, 8, 0]])
+    sm = SceneModel(("f00", "f02", "f03"), frozenset({"f03"}), np.zeros(6), np.eye(6)[:, :3], means,
+                    known_margin=0.0, confidence=0.99, untouched_confidence=0.99, labels_rule=off)
+    model = SimpleNamespace(touched=["f00", "f02"], untouched=["f03"], scene_model=sm,
+                            manifest={"provenance": {"trained": True}})
+    one = BUNDLE_CFG.replace(", {name: f02, kind: touched, bin: 2}", "")
+    (tmp_path / "c.yaml").write_text(one)
+    check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # zero-shot: its margin refuses
+    (tmp_path / "c.yaml").write_text(one + "evidence: {operator_labels: labels.jsonl}\n")
+    cfg = load_config(tmp_path / "c.yaml")
+    with pytest.raises(ValueError, match=r"one fabric \(f00\).*after an operator label.*without evidence.operator_labels"):
+        check_scene_against_bundle(cfg, model)
+    # validate-config --check-bundle says it before the start, from the decision file alone
+    from vs2t_edge.cli import main
+
+    (tmp_path / "bundle").mkdir()
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "decision": {"file": "decision.npz"}}))
+    np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
+    assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 2
+    assert "after an operator label" in capsys.readouterr().err
+    (tmp_path / "c.yaml").write_text(one)
+    assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 0
+    check_scene_against_bundle(cfg, SimpleNamespace(**{**vars(model), "scene_model": SceneModel(
+        sm.classes, sm.untouched, sm.center, sm.basis, sm.means, known_margin=0.0, confidence=0.99,
+        untouched_confidence=0.99, labels_rule={**off, "known_margin": 0.0})}))  # a labels rule that refuses
+
+
 def test_confidence_null_is_no_written_confidence(tmp_path):
     """``evidence.confidence: null`` loads as the default 0.9; counted as written, it replaced the
     scene model's fitted touched confidence (0.97 here) with 0.9: a bolder cell nobody chose."""
