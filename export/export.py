@@ -285,6 +285,13 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             checks["int8_vs_fp32_on_calibration"] = {"frames": int(len(calibration)), "feature_rel": _rel(f8, f32),
                                                      "feature_cosine_min": float(np.min(cos)),
                                                      "cls_t_top1_agreement": float(np.mean(top32 == top8))}
+            if scene_model is not None:
+                val = [x for x in (touched_heldout, validation) if x is not None and len(x)]
+                if val:
+                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(
+                        scene_model, np.concatenate(val), rb.open_session(fp32, threads), rb.open_session(trunk_file, threads))
+                    log("int8 against fp32, the scene model's per-press decision on {presses} validation presses: "
+                        "{argmax_agreement:.1%} the same class".format(**checks["int8_scene_decision_on_validation"]))
         else:
             shutil.copyfile(fp32, trunk_file)
         fp32.unlink()
@@ -377,7 +384,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             **({"decision": {"kind": str(scene_model["kind"]), "file": "decision.npz",
                              "rule": "per press: softmax over the scene's classes of -d2/(2 T) + b [untouched] "
                                      "(runtime/scene_model.py); per item: weighted evidence, off-scene checks, "
-                                     "confidence per kind (runtime/evidence.py); fitted on validation fabrics"}}
+                                     "confidence per kind (runtime/evidence.py); fitted on validation fabrics"
+                                     + ("; fitted on the fp32 trunk's features and applied to the int8 trunk's "
+                                        "(checks.int8_scene_decision_on_validation)" if trunk_precision == "int8" else "")}}
                if scene_model is not None else {}),
             "beta": float(beta),
             "operating_point": operating_point,
@@ -396,6 +405,27 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
         manifest = seal_verify_and_place(manifest, tmp, out, threads)
     log(f"bundle written to {out} and verified")
     return manifest
+
+
+def _int8_scene_check(scene_model: dict, x: np.ndarray, sess32, sess8) -> dict:
+    """The scene model (fitted on the fp32 trunk's features) on the int8 trunk's: per press, how
+    often its most likely class over every class it knows is the same, and how far the projection
+    moves against the spread of a press around its class mean - on validation presses only (touched
+    fabrics' held-out presses and the validation fabrics'; never an untouched fabric's)."""
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    sm = SceneModel.from_params(scene_model)
+    (f32,) = _run_batches(sess32, x)
+    (f8,) = _run_batches(sess8, x)
+    z32, z8 = sm.project(f32), sm.project(f8)
+    lp32, d32 = sm.log_posterior_projected(z32)
+    lp8, _ = sm.log_posterior_projected(z8)
+    shift = np.sum((z8 - z32) ** 2, axis=1)
+    return {"presses": int(len(x)), "argmax_agreement": float(np.mean(lp32.argmax(1) == lp8.argmax(1))),
+            "projection_shift_sq_median": float(np.median(shift)), "projection_shift_sq_max": float(np.max(shift)),
+            "nearest_class_sq_median_fp32": float(np.median(d32.min(1))),
+            "note": "squared distances in the scene model's whitened space; a press sits about "
+                    "nearest_class_sq_median_fp32 from its nearest class mean"}
 
 
 def fuse_press_graph(trunk_file: Path, heads_file: Path, cls_t: nn.Module, cls_u: nn.Module, router: nv.Router,

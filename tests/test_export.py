@@ -85,6 +85,13 @@ def test_export_run_fp32_and_int8_verify(tiny_run, tmp_path):
             ops = {n.op_type for n in onnx.load(str(out / "trunk.onnx")).graph.node}
             assert {"QuantizeLinear", "DequantizeLinear"} <= ops and "ConvInteger" not in ops
             assert m["checks"]["int8_vs_fp32_on_calibration"]["cls_t_top1_agreement"] >= 0.9
+            # the scene model was fitted on fp32 features: export says so and checks it on int8's,
+            # on validation presses only (touched held-out and validation fabrics')
+            sc = m["checks"]["int8_scene_decision_on_validation"]
+            assert sc["presses"] > 0 and 0.5 <= sc["argmax_agreement"] <= 1.0
+            assert sc["projection_shift_sq_median"] >= 0.0 and "int8" in m["decision"]["rule"]
+        else:
+            assert "int8_scene_decision_on_validation" not in m["checks"] and "int8" not in m["decision"]["rule"]
 
 
 def test_press_partition_is_the_trainers(tiny_run):
