@@ -114,6 +114,10 @@ _SCHEMA: dict[str, Any] = {
     "evidence": {
         "confidence": _leaf("float", 0.9, (0.5, 0.99999), "stop pressing once the posterior reaches this"),
         "max_presses": _leaf("int", 5, (1, N_GRID_X * N_GRID_Y), "press limit per item"),
+        # runtime/operating_point.py: the knob that prices mis-sorts against untouched right-bin
+        "untouched_confidence": _leaf("optfloat", None, (0.5, 0.99999),
+                                      "a bundle with a scene model: the posterior that sorts a piece into an "
+                                      "untouched fabric's bin (default: the model's, chosen in training)"),
         "grid_order": _leaf("str", "spread", GRID_ORDERS, "spread (far-apart points first), rows, or list"),
         "grid_points": _leaf("list", None, None, "grid_order list: press indices 0..224 (row-major 15x15)"),
         # runtime/wiring.py evidence_factory_for: without decision.npz nothing refuses an off-scene piece
@@ -174,6 +178,7 @@ class CellConfig:
     overlap_scoring: bool = True
     without_scene_model: str = "refuse"  # evidence.without_scene_model: "allow" is the written opt-in
     operator_labels: Path | None = None  # evidence.operator_labels (runtime/feedback.py)
+    untouched_confidence: float | None = None  # evidence.untouched_confidence (runtime/operating_point.py)
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -438,7 +443,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         item_timeout_s=v["watchdog"]["item_timeout_s"],
         wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
-        operator_labels=ev["operator_labels"], raw=data if isinstance(data, dict) else {},
+        operator_labels=ev["operator_labels"], untouched_confidence=ev["untouched_confidence"], raw=data if isinstance(data, dict) else {},
     )
 
 

@@ -15,8 +15,10 @@ Two parts:
 * **the item rule** of a bundle that carries a scene model (``decision.npz``,
   runtime/scene_model.py): press weight, off-scene threshold and margin, and the confidence that
   sorts, per kind, all chosen in training for the mis-sort target. The config's
-  ``evidence.confidence``, when written, overrides the touched confidence; ``evidence.max_presses``
-  is the config's. A bundle without a scene model uses the config's confidence alone.
+  ``evidence.confidence``, when written, overrides the touched confidence, and
+  ``evidence.untouched_confidence`` the untouched one (the knob that trades untouched pieces in
+  their bin for fewer mis-sorts; training's report prices both); ``evidence.max_presses`` is the
+  config's. A bundle without a scene model uses the config's confidence alone.
 
 ``runtime/wiring.py`` (the model's beta and the item evidence of run, record, replay and the
 demo), ``runtime/calibrate.py`` (the override file) and ``runtime/sorting.py`` (the simulated
@@ -172,25 +174,36 @@ def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
 
 
 def confidence_override_note(cfg, scene_model) -> str:
-    """What the config's written ``evidence.confidence`` does to a scene model's operating point,
-    in words for the start log and ``validate-config --check-bundle``; '' when the config writes
-    none (the model's own confidence decides) or there is no scene model."""
-    if scene_model is None or not config_sets_confidence(cfg):
+    """What the config's written ``evidence.confidence`` and ``evidence.untouched_confidence`` do to
+    a scene model's operating point, in words for the start log and ``validate-config
+    --check-bundle``; '' when the config writes neither (the model's own confidences decide), they
+    equal the model's, or there is no scene model."""
+    if scene_model is None:
         return ""
-    ours, theirs = float(cfg.confidence), float(scene_model.confidence)
-    if ours == theirs:
+    said = []
+    for key, kind, ours, model_key in (
+            ("confidence", "touched", float(cfg.confidence) if config_sets_confidence(cfg) else None, "confidence"),
+            ("untouched_confidence", "untouched", getattr(cfg, "untouched_confidence", None), "untouched_confidence")):
+        if ours is None or float(ours) == (theirs := float(getattr(scene_model, model_key))):
+            continue
+        effect = ("bolder: expect more pieces in wrong bins" if ours < theirs
+                  else "more cautious: expect more pieces in the reject bin")
+        said.append(f"evidence.{key} {float(ours):g} overrides the {kind} confidence {theirs:g} that training chose "
+                    f"on validation for the scene model's mis-sort target ({effect})")
+    if not said:
         return ""
-    effect = ("bolder: expect more pieces in wrong bins" if ours < theirs
-              else "more cautious: expect more pieces in the reject bin")
-    return (f"{cfg.path}: evidence.confidence {ours:g} overrides the touched confidence {theirs:g} that training "
-            f"chose on validation for the scene model's mis-sort target ({effect}); remove the key to sort at the "
-            "model's own operating point")
+    return f"{cfg.path}: " + "; ".join(said) + "; remove the key to sort at the model's own operating point"
 
 
 def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
-    they adapted, runtime/feedback.py): its rule, the config's written confidence over its own."""
+    they adapted, runtime/feedback.py): its rule, the config's written confidences over its own
+    (``evidence.confidence`` for touched classes, ``evidence.untouched_confidence`` for untouched
+    ones)."""
     confidence, opts = scene_model_rule(scene_model)
+    untouched = getattr(cfg, "untouched_confidence", None)
+    if untouched is not None:
+        opts = {**opts, "class_confidence": {c: float(untouched) for c in opts["class_confidence"]}}
     return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 

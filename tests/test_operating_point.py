@@ -328,6 +328,32 @@ def test_a_written_confidence_says_how_it_moves_the_operating_point(tmp_path):
     assert op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.9}\n"), None) == ""
 
 
+def test_the_untouched_confidence_is_the_operators_knob_too(tmp_path):
+    """``evidence.untouched_confidence`` sets the posterior that sorts into an untouched class (the
+    knob that trades untouched pieces in their bin for fewer mis-sorts; training's report prices it):
+    every untouched class of the scene model's rule, and of a model labels adapted, takes it; the
+    touched confidence stays the model's; the start log says which way it moves."""
+    scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
+                            known_margin=0.0, untouched=frozenset({"wool", "felt"}), item_rule="sum",
+                            refuse_early=False)
+    cfg = _cfg(tmp_path, "evidence: {untouched_confidence: 0.99}\n")
+    assert cfg.untouched_confidence == 0.99 and _cfg(tmp_path).untouched_confidence is None
+    confidence, opts = op.evidence_settings(cfg, SimpleNamespace(scene_model=scene))
+    assert confidence == 0.97 and opts["class_confidence"] == {"wool": 0.99, "felt": 0.99}
+    assert op.scene_model_settings(cfg, scene)[1]["class_confidence"] == {"wool": 0.99, "felt": 0.99}
+    assert op.evidence_settings(_cfg(tmp_path), SimpleNamespace(scene_model=scene))[1]["class_confidence"] == \
+        {"wool": 0.9, "felt": 0.9}
+    note = op.confidence_override_note(cfg, scene)
+    assert "evidence.untouched_confidence 0.99 overrides the untouched confidence 0.9" in note and "reject bin" in note
+    both = op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.9, untouched_confidence: 0.5}\n"),
+                                       scene)
+    assert both.count("overrides") == 2 and "wrong bins" in both
+    from vs2t_edge.runtime.config import ConfigError
+
+    with pytest.raises(ConfigError, match="evidence.untouched_confidence"):
+        _cfg(tmp_path, "evidence: {untouched_confidence: 1.5}\n")
+
+
 def test_validate_config_warns_when_the_config_overrides_the_models_confidence(tmp_path, capsys):
     import numpy as np
     from feedback_fakes import scene_model
