@@ -354,6 +354,41 @@ def scene_evidence(model, max_presses: int = 5) -> Callable[[Scene], Evidence]:
     return make
 
 
+# The operator's knobs (the cell config's evidence.confidence, evidence.untouched_confidence and
+# evidence.max_presses; runtime/operating_point.py) and the values ``knob_prices`` moves each to
+KNOB_GRID = {"confidence": (0.5, 0.7, 0.8, 0.9, 0.95, 0.99),
+             "untouched_confidence": (0.5, 0.7, 0.8, 0.9, 0.95, 0.99),
+             "max_presses": (1, 2, 3, 5, 9)}
+
+
+def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]], *, max_presses: int = 5,
+                items_per_fabric: int = 4, seed: int = 0, grid: dict | None = None) -> list[dict]:
+    """The same jobs decided with one operator knob moved at a time, the others at the scene
+    model's operating point (its own confidences, ``max_presses``): per setting, right / mis-sort /
+    reject of all pieces and per kind, presses per piece, and the coverage (share of pieces sorted
+    into a fabric's bin) and mis-sort rate a risk-coverage plot marks. A price list for the person
+    who runs the cell, measured on the jobs it is given; choosing stays on validation (training)."""
+    from dataclasses import replace
+
+    def run(m, mp: int) -> dict:
+        s = summarise(simulate_scenes(scenes, presses, scene_evidence(m, mp), items_per_fabric=items_per_fabric,
+                                      max_presses=mp, seed=seed))
+        a, off = s["all"], s["by_kind"].get("off-scene", {RIGHT: 0.0, "n": 0})
+        in_reject_bin = a[REJECT] + off[RIGHT] * off["n"] / a["n"]  # rejected scene pieces and refused strangers
+        return {"right": a[RIGHT], "mis-sort": a[MIS_SORT], "reject": a[REJECT], "presses": a["presses"],
+                "coverage": 1.0 - in_reject_bin, "by_kind": {k: {o: r[o] for o in OUTCOMES} for k, r in s["by_kind"].items()}}
+
+    rows = [{"knob": "operating point", "value": None, **run(model, max_presses)}]
+    own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
+           "max_presses": max_presses}
+    for knob, values in (grid or KNOB_GRID).items():
+        for v in values:
+            m = model if knob == "max_presses" else replace(model, **{knob: float(v)})
+            rows.append({"knob": knob, "value": v, "own": v == own[knob],
+                         **run(m, int(v) if knob == "max_presses" else max_presses)})
+    return rows
+
+
 def plain_evidence(confidence: float, max_presses: int = 5) -> Callable[[Scene], Evidence]:
     """The evidence of a bundle without a scene model: one confidence, log posteriors summed as if
     presses were independent, no off-scene rule but the scene restriction (the baseline)."""
@@ -366,4 +401,5 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
            "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
-           "log_softmax", "Press", "scene_model_presses", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict"]
+           "log_softmax", "Press", "scene_model_presses", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict",
+           "KNOB_GRID", "knob_prices"]

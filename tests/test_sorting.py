@@ -192,3 +192,34 @@ def test_arm_times_read_the_arm_bench_json_and_refuse_what_is_not_one():
         so.ArmTimes.from_bench({"press_s": {"median": 1.0}}, "arm.json")
     with pytest.raises(ValueError, match="finite"):
         so.ArmTimes.from_bench({**good, "press_s": {"median": float("nan")}})
+
+
+def test_the_operators_knobs_are_priced_on_the_same_jobs():
+    """``knob_prices``: the operating point's row is the jobs' own summary; one knob moved at a time
+    on the same pieces and presses; asking more of untouched classes sorts fewer untouched pieces
+    and mis-sorts no more of them on a world whose syntheses lie off the real means."""
+    from dataclasses import replace
+
+    centres, x, y, rng = _blobs(seed=3)
+    touched, untouched = ["t0", "t1", "t2"], ["u0", "u1"]
+    # the generator's error: each synthesis half way towards a touched fabric; a soft posterior
+    synth = np.concatenate([centres[3 + k] + (centres[k] - centres[3 + k]) / 2 + rng.normal(0, 0.5, (80, 20))
+                            for k in range(2)])
+    m = SceneModel.fit(x[y < 3], y[y < 3], touched, synth, np.repeat([0, 1], 80), untouched, k=8)
+    m = replace(m, confidence=0.9, untouched_confidence=0.7, evidence_weight=0.5, temperature=10.0)
+    names = touched + untouched
+    presses = {f: so.scene_model_presses(m, x[y == i]) for i, f in enumerate(names)}
+    scenes = so.draw_scenes(touched, untouched, (), 6, n_touched=2, n_untouched=2, n_off=1, seed=0)
+    rows = so.knob_prices(m, scenes, presses, max_presses=5, seed=7)
+    assert len(rows) == 1 + sum(len(v) for v in so.KNOB_GRID.values())
+    own = so.summarise(so.simulate_scenes(scenes, presses, so.scene_evidence(m, 5), max_presses=5, seed=7))
+    assert rows[0]["knob"] == "operating point" and rows[0]["right"] == own["all"]["right"]
+    assert rows[0]["mis-sort"] == own["all"]["mis-sort"] and rows[0]["presses"] == own["all"]["presses"]
+    by = {(r["knob"], r["value"]): r for r in rows}
+    assert by[("confidence", 0.9)]["own"] and by[("confidence", 0.9)]["right"] == rows[0]["right"]
+    assert not by[("confidence", 0.5)]["own"]
+    assert by[("max_presses", 1)]["presses"] == 1.0 and by[("max_presses", 5)]["right"] == rows[0]["right"]
+    lo, hi = by[("untouched_confidence", 0.5)], by[("untouched_confidence", 0.99)]
+    assert hi["by_kind"]["untouched"]["reject"] > lo["by_kind"]["untouched"]["reject"]
+    assert hi["by_kind"]["untouched"]["mis-sort"] <= lo["by_kind"]["untouched"]["mis-sort"]
+    assert 0.0 <= hi["coverage"] < lo["coverage"] <= 1.0

@@ -220,6 +220,8 @@ def render(m: dict) -> str:
                          f"{v['mean_diff']:+.1f} ± {v['se']:.1f} ({v['wins']}/{v['n']}) |")
         lines.append("")
     lines += scene_lines(m.get("splits", []))
+    if "risk_coverage" in m.get("figures", {}):
+        lines += ["![risk-coverage](figures/risk_coverage.png)", ""]
     if "figures" in m:
         lines += ["Figures (split 0): `figures/confusion.png` (multimodal / visual / semantic), "
                   "`figures/pca_real_vs_synth.png`, `figures/class_cosine.png`, `figures/threshold_curve.png`.", "",
@@ -276,6 +278,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
                + "; ".join(" ".join(f"{name} {100 * r['right']:.1f} / {100 * r['mis_sort']:.1f}"
                                     for name, r in d["validation"]["item_rules"].items()) for d in sd)]
               if all("item_rules" in d["validation"] for d in sd) else []),
+            *knob_lines(sd),
             *job_check_lines(sd),
             *stranger_lines(sd),
             *label_lines(sd),
@@ -285,6 +288,74 @@ def scene_lines(splits: list[dict]) -> list[str]:
                 f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
+
+
+KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
+             "max_presses": "evidence.max_presses"}
+
+
+def knob_lines(sd: list[dict]) -> list[str]:
+    """The operator's knobs priced on the same test jobs (runtime/sorting.py ``knob_prices``): one
+    row per setting, mean ± std over splits; the operating point first."""
+    if not sd or not all("knobs" in d["test"] for d in sd):
+        return []
+    rows = list(zip(*(d["test"]["knobs"] for d in sd)))  # the same settings in the same order per split
+    out = ["", "### What the operator's knobs cost (the same test jobs)", "",
+           "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
+           "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
+           "on validation. *own*: the value the operating point has in every split. Mean ± std over "
+           f"{len(sd)} split(s), %. Plot: `figures/risk_coverage.png`.", "",
+           "| knob | value | right bin | mis-sort | reject | untouched right | untouched mis-sort | presses |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for per_split in rows:
+        r0 = per_split[0]
+        name = KNOB_KEYS.get(r0["knob"], r0["knob"])
+        value = "" if r0["value"] is None else f"{r0['value']:g}" + (" (own)" if all(r.get("own") for r in per_split) else "")
+        u = [r["by_kind"].get("untouched", {}) for r in per_split]
+        out.append(f"| {name} | {value} | {_ms([r['right'] for r in per_split])} | "
+                   f"{_ms([r['mis-sort'] for r in per_split])} | {_ms([r['reject'] for r in per_split])} | "
+                   f"{_ms([x.get('right') for x in u])} | {_ms([x.get('mis-sort') for x in u])} | "
+                   f"{np.mean([r['presses'] for r in per_split]):.2f} |")
+    return out + [""]
+
+
+def risk_coverage_figure(sd: list[dict], path: Path) -> None:
+    """Per split, the test jobs' risk-coverage curve (mis-sorted share of all pieces against the
+    share sorted into a fabric's bin, as the confidence needed moves) and where the operating point
+    and the confidence knobs put the jobs; the mis-sort target as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not sd:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(7, 5))
+    cmap = plt.get_cmap("tab10")
+    marks = {"confidence": "^", "untouched_confidence": "s"}
+    for i, d in enumerate(sd):
+        t, colour = d["test"], cmap(i % 10)
+        rc = t["risk_coverage"]
+        ax.plot(100 * np.asarray(rc["coverage"]), 100 * np.asarray(rc["mis_sort"]), color=colour, lw=1,
+                label=f"split {i}: confidence needed moves")
+        for r in t.get("knobs", []):
+            if r["knob"] == "operating point":
+                ax.plot(100 * r["coverage"], 100 * r["mis-sort"], "o", color=colour, ms=8, mec="k",
+                        label="operating point" if i == 0 else None)
+            elif r["knob"] in marks:
+                ax.plot(100 * r["coverage"], 100 * r["mis-sort"], marks[r["knob"]], color=colour, ms=4, alpha=0.7,
+                        label=(KNOB_KEYS[r["knob"]] if i == 0 and r is next(x for x in t["knobs"] if x["knob"] == r["knob"])
+                               else None))
+    target = 100 * sd[0]["validation"]["target_mis_sort"]
+    ax.axhline(target, color="k", ls="--", lw=0.8, label=f"mis-sort target {target:g} %")
+    ax.set_xlabel("pieces sorted into a fabric's bin, % (the rest: reject bin)")
+    ax.set_ylabel("pieces mis-sorted (wrong bin), % of all pieces")
+    ax.set_title("risk-coverage on the test jobs, per split")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
 
 
 def job_check_lines(sd: list[dict]) -> list[str]:

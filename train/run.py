@@ -481,6 +481,10 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
         from vs2t_edge.train import report as rp
 
         metrics["figures"] = rp.figures(first, out_dir / "figures", router=router, budget=budget)
+        sd = [r["scene_decision"] for r in results if "scene_decision" in r]
+        if sd:  # every split's test jobs: the risk-coverage curve and the operator's knobs on it
+            rp.risk_coverage_figure(sd, out_dir / "figures" / "risk_coverage.png")
+            metrics["figures"]["risk_coverage"] = "figures/risk_coverage.png"
     metrics["timing_s"]["total"] = round(time.time() - t_start, 1)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, default=_json_default))
     from vs2t_edge.train import report as rp
