@@ -60,8 +60,9 @@ DECISION_TYPES = ("pre_sort", "final", "fault", "fault_cleared", "frame_skipped"
 # decisions at any depth and never compared. ``speculative_presses`` too: whether a score came in
 # before the gel was up is a race of the machine (runtime/press_pipeline.py), the decision is not.
 # ``speculative_error``: that speculative press's device error (a sequential replay never makes it).
+# ``stale_frames_read_past``: the live camera driver's queue (a replay camera has none).
 TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "speculative_presses",
-                         "speculative_error"})
+                         "speculative_error", "stale_frames_read_past"})
 
 
 def without_timing(x: Any) -> Any:

@@ -597,3 +597,26 @@ def test_piece_ids_go_on_across_daemon_restarts_on_one_journal(tmp_path):
                           install_signals=False, log=lambda m: None) == 0
     ids = [r["item_id"] for r in read_records(tmp_path / "j.jsonl") if r.get("type") == "final"]
     assert ids == ["piece-000001", "piece-000002", "piece-000003", "piece-000004"]
+
+
+def test_frames_the_camera_read_past_as_stale_are_journaled_with_the_piece(tmp_path):
+    """A UVC camera reads past frames its driver took before the grab (runtime/camera.py
+    ``stale_dropped``); the piece's pre_sort record says how many, so a camera whose queue runs
+    deep shows in the journal, not only as a fault once it gives up."""
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60, 60, 60, 60, 60, 60])
+    cam.stale_dropped = 0
+    grab, grabs = cam.grab, []
+
+    def grab_reading_past():
+        cam.stale_dropped += 2
+        grabs.append(1)
+        return grab()
+
+    cam.grab = grab_reading_past
+    cell.run(max_items=1)
+    (pre,) = [r for r in read_records(journal.path) if r["type"] == "pre_sort"]
+    assert grabs and pre["stale_frames_read_past"] == 2 * len(grabs)
+    cell, arm, cam, gate, journal = make_cell(tmp_path / "fresh", [60, 60, 60])  # a camera that read past none
+    cell.run(max_items=1)
+    (pre,) = [r for r in read_records(journal.path) if r["type"] == "pre_sort"]
+    assert "stale_frames_read_past" not in pre
