@@ -21,7 +21,7 @@ temperature that minimises a posterior's negative log likelihood. Numpy only.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
@@ -368,7 +368,6 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     reject of all pieces and per kind, presses per piece, and the coverage (share of pieces sorted
     into a fabric's bin) and mis-sort rate a risk-coverage plot marks. A price list for the person
     who runs the cell, measured on the jobs it is given; choosing stays on validation (training)."""
-    from dataclasses import replace
 
     def run(m, mp: int) -> dict:
         s = summarise(simulate_scenes(scenes, presses, scene_evidence(m, mp), items_per_fabric=items_per_fabric,
