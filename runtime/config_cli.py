@@ -47,7 +47,7 @@ def run(args) -> int:
                 print(f"config {cfg.path}: {problem}", file=sys.stderr)
                 return 2
         if not read[1]:
-            from vs2t_edge.runtime.wiring import one_fabric_problem
+            from vs2t_edge.runtime.operating_point import one_fabric_problem
 
             if problem := one_fabric_problem(cfg, read[0]):  # refused at start too (runtime/wiring.py)
                 print(problem, file=sys.stderr)

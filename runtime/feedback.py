@@ -28,9 +28,9 @@ no fabric of the job, to the reject bin.
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,
-never bolder elsewhere. Touched classes are not guarded: their means were real already (unless
-the labels' rule - a sum-rule bundle's stored offset setting - has no known-class rule where the
-bundle's own has one; its distance rule is kept by ``SceneModel.for_labels``). Nor is a
+never bolder elsewhere. Touched classes are not guarded: their means were real already (and the
+rule labels switch to keeps every off-scene rule the bundle's own has, ``SceneModel.for_labels``:
+a sum-rule bundle's stored offset setting may have had none). Nor is a
 taught class - unless an untouched fabric of the job that no label taught may feel like it
 (``confusable``): the generator put the two syntheses closer than its own error (within the 99 %
 region of the offset model's N(m, s_u I)), so it could not tell the two fabrics apart, and the
@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -259,12 +258,7 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     untaught = [c for c in scene if c in deployed.untouched and c not in labelled_taught]
     # taught, yet guarded: an untaught fabric of the job the generator could not tell from it
     near = confusable(deployed, adapted.offset_var_untouched, labelled_taught, untaught)
-    trusted = [c for c in learned if c not in near]
-    if math.isfinite(adapted.known_margin) or not math.isfinite(deployed.known_margin):
-        # touched means are real already: trusted, unless the rule labels switch to (a sum-rule
-        # bundle's stored offset setting) dropped the bundle's known-class rule - then a touched
-        # class would take pieces of known fabrics the job leaves out that zero-shot refused
-        trusted += [c for c in scene if c not in deployed.untouched]
+    trusted = [c for c in learned if c not in near] + [c for c in scene if c not in deployed.untouched]
     return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted, near)
 
 

@@ -207,6 +207,32 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 
+def refuses_off_scene(scene_model) -> bool:
+    """The scene model's item rule has an off-scene rule on (a finite threshold or margin)."""
+    return math.isfinite(float(scene_model.open_threshold)) or math.isfinite(float(scene_model.known_margin))
+
+
+def one_fabric_problem(cfg, scene_model) -> str:
+    """Why a one-fabric scene cannot start with this bundle's scene model ('' when it can, or the
+    scene has more fabrics). Restricted to one class the posterior is 1 on every press; only the
+    scene model's off-scene rules (runtime/evidence.py) can send a piece to the reject bin - and
+    training's search may turn both off (a choice for scenes of several fabrics, whose posterior can
+    refuse). The rule operator labels switch to keeps them (``SceneModel.for_labels``). The start
+    refuses the job (runtime/wiring.py), and ``validate-config --check-bundle`` says so before it."""
+    if len(cfg.fabrics) != 1:
+        return ""
+    if scene_model is None:
+        why, fix = "has no scene model (decision.npz)", "Export the bundle with its scene model"
+    elif not refuses_off_scene(scene_model):
+        why = "has a scene model with both off-scene rules off (open_threshold and known_margin infinite)"
+        fix = "Deploy a bundle whose training chose an off-scene rule"
+    else:
+        return ""
+    return (f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} {why}, so nothing "
+            f"could refuse a piece: every piece on the line would be sorted into that fabric's bin. {fix}, or list "
+            "the other fabrics the line carries")
+
+
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
            "write_beta_override", "scene_model_rule", "config_sets_confidence", "confidence_override_note",
-           "evidence_settings", "scene_model_settings"]
+           "evidence_settings", "scene_model_settings", "refuses_off_scene", "one_fabric_problem"]

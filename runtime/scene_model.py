@@ -188,16 +188,20 @@ class SceneModel:
         """The offset-rule model operator labels update (runtime/feedback.py): this one when its
         rule is the offset rule, a sum-rule model with its stored offset setting, else None.
 
-        The stored setting never drops the bundle's own off-scene distance rule: its open
+        The stored setting never drops an off-scene rule the bundle's own rule has. Its open
         threshold is the stricter of the two (the same units in both rules: the mean over presses of
-        the nearest scene class's squared distance). Else a first label, even of a stranger, would
-        hand the job's classes to a rule that refuses nothing the bundle's rule refused."""
+        the nearest scene class's squared distance). Where it has no known-class rule and the bundle's
+        has one, it takes margin 0 - a known fabric the job leaves out that leads refuses the piece -
+        since the two rules' margins are in different units. Else a first label, even of a stranger,
+        would hand the job's classes to a rule that refuses nothing the bundle's rule refused."""
         if self.item_rule == "offset":
             return self
         if self.labels_rule is None:
             return None
         rule = dict(self.labels_rule)
         rule["open_threshold"] = min(float(rule.get("open_threshold", math.inf)), float(self.open_threshold))
+        if not math.isfinite(float(rule.get("known_margin", math.inf))) and math.isfinite(float(self.known_margin)):
+            rule["known_margin"] = 0.0
         return replace(self, item_rule="offset", labels_rule=None, **rule)
 
     def subset(self, classes) -> "SceneModel":

@@ -19,7 +19,6 @@ in; a config's simulated gate or fake arm and gate (a dry run) are looked up by 
 
 from __future__ import annotations
 
-import math
 import threading
 from typing import Any, Callable
 
@@ -35,7 +34,7 @@ from vs2t_edge.runtime.feedback import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
-from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, scene_model_settings
+from vs2t_edge.runtime.operating_point import evidence_settings, one_fabric_problem, resolve_beta, scene_model_settings
 
 
 class SceneModelMissing(ValueError):
@@ -53,11 +52,6 @@ def load_model(cfg: CellConfig) -> TactileModel:
         raise BundleError(cfg.bundle, "the bundle was replaced while it was being loaded; start again")
     check_scene_against_bundle(cfg, model)
     return model
-
-
-def _refuses_off_scene(scene_model) -> bool:
-    """The scene model's item rule has an off-scene rule on (a finite threshold or margin)."""
-    return math.isfinite(float(scene_model.open_threshold)) or math.isfinite(float(scene_model.known_margin))
 
 
 def check_scene_against_bundle(cfg: CellConfig, model) -> None:
@@ -90,34 +84,6 @@ def check_scene_against_bundle(cfg: CellConfig, model) -> None:
     problem = one_fabric_problem(cfg, getattr(model, "scene_model", None))
     if problem:
         raise ValueError(problem)
-
-
-def one_fabric_problem(cfg: CellConfig, scene_model) -> str:
-    """Why a one-fabric scene cannot start with this bundle's scene model ('' when it can, or the
-    scene has more fabrics). Restricted to one class the posterior is 1 on every press; only the
-    scene model's off-scene rules (runtime/evidence.py) can send a piece to the reject bin - and
-    training's search may turn both off (a choice for scenes of several fabrics, whose posterior can
-    refuse). With operator labels, the rule a first label switches to (a sum-rule bundle's stored
-    offset setting, ``SceneModel.for_labels``) must refuse too. ``validate-config --check-bundle``
-    says it before the start."""
-    if len(cfg.fabrics) != 1:
-        return ""
-    labels_rule = scene_model.for_labels() if scene_model is not None and getattr(cfg, "operator_labels", None) else None
-    if scene_model is None:
-        why, fix = "has no scene model (decision.npz)", "Export the bundle with its scene model"
-    elif not _refuses_off_scene(scene_model):
-        why = "has a scene model with both off-scene rules off (open_threshold and known_margin infinite)"
-        fix = "Deploy a bundle whose training chose an off-scene rule"
-    elif labels_rule is not None and not _refuses_off_scene(labels_rule):
-        why = ("has a scene model whose rule after an operator label (its stored offset setting) has both "
-               "off-scene rules off (open_threshold and known_margin infinite)")
-        fix = ("Run this job without evidence.operator_labels, or deploy a bundle whose training chose an off-scene "
-               "rule for labels too")
-    else:
-        return ""
-    return (f"{cfg.path}: the scene has one fabric ({cfg.fabrics[0].name}) and bundle {cfg.bundle} {why}, so nothing "
-            f"could refuse a piece: every piece on the line would be sorted into that fabric's bin. {fix}, or list "
-            "the other fabrics the line carries")
 
 
 def evidence_factory_for(cfg: CellConfig, model: Any = None) -> Callable[[], Evidence]:
@@ -223,5 +189,5 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
                 on_item=on_item, log=log, contact_check=contact_check_for(cfg))
 
 
-__all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "one_fabric_problem", "evidence_factory_for", "contact_check_for",
+__all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
            "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]

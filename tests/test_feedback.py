@@ -657,6 +657,18 @@ def test_a_label_never_hands_the_job_to_a_rule_without_the_bundles_off_scene_rul
         adapted = adapt(deployed.for_labels(), {}, strangers)
         after = piece(deployed, item_evidence(deployed, adapted, scene, {}, strangers, make), z)
         assert after.label == UNKNOWN, (rule, after)  # was "denim", confident
+    # a taught untouched class is trusted to the labels' rule: it too must refuse a known fabric the
+    # job leaves out (a review found wool taking a piece of linen zero-shot refused)
+    deployed = SceneModel.from_params(_model(item_rule="sum", labels_rule=off, known_margin=0.0,
+                                             temperature=3.0).to_params())
+    wool_job = ["denim", "wool"]  # silk, known to the bundle, left out
+    silk_piece = (9.0, 1.0)
+    before = piece(deployed, item_evidence(deployed, deployed.for_labels(), wool_job, {}, {}, make), silk_piece)
+    assert before.label == UNKNOWN
+    labelled = {"wool": [(np.array([1.0, 9.0]), 4)]}
+    adapted = adapt(deployed.for_labels(), labelled)
+    after = piece(deployed, item_evidence(deployed, adapted, wool_job, labelled, {}, make), silk_piece)
+    assert after.label == UNKNOWN, after
     # the distance rule is carried into the labels rule (same units in both rules); a stricter one stays
     assert _model(item_rule="sum", labels_rule=off, open_threshold=20.0).for_labels().open_threshold == 20.0
     assert _model(item_rule="sum", labels_rule={**off, "open_threshold": 5.0},

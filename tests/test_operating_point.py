@@ -209,12 +209,15 @@ def test_a_one_fabric_scene_needs_an_off_scene_rule_of_the_scene_model(tmp_path)
     check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # two fabrics: the posterior can reject
 
 
-def test_a_one_fabric_scene_with_labels_needs_an_off_scene_rule_after_a_label_too(tmp_path, capsys):
-    """With operator labels, a sum-rule bundle's first label switches the job to its stored offset
-    setting; when that setting keeps no off-scene rule, a taught lone fabric would take every piece
-    on the line. The start refuses the job with labels, and starts it without them."""
+def test_a_one_fabric_scene_is_refused_before_the_start_and_labels_keep_its_off_scene_rule(tmp_path, capsys):
+    """`validate-config --check-bundle` says what the start refuses - a one-fabric scene whose scene
+    model refuses nothing - from the decision file alone. With operator labels, the rule a first
+    label switches to (a sum-rule bundle's stored offset setting) may have had both off-scene rules
+    off: it keeps the bundle's (``SceneModel.for_labels``), so a one-fabric job with labels never
+    turns into one that sorts every piece into its bin."""
     import math
 
+    from vs2t_edge.cli import main
     from vs2t_edge.runtime.scene_model import SceneModel
     from vs2t_edge.runtime.wiring import check_scene_against_bundle
 
@@ -227,26 +230,20 @@ def test_a_one_fabric_scene_with_labels_needs_an_off_scene_rule_after_a_label_to
     model = SimpleNamespace(touched=["f00", "f02"], untouched=["f03"], scene_model=sm,
                             manifest={"provenance": {"trained": True}})
     one = BUNDLE_CFG.replace(", {name: f02, kind: touched, bin: 2}", "")
-    (tmp_path / "c.yaml").write_text(one)
-    check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # zero-shot: its margin refuses
     (tmp_path / "c.yaml").write_text(one + "evidence: {operator_labels: labels.jsonl}\n")
-    cfg = load_config(tmp_path / "c.yaml")
-    with pytest.raises(ValueError, match=r"one fabric \(f00\).*after an operator label.*without evidence.operator_labels"):
-        check_scene_against_bundle(cfg, model)
-    # validate-config --check-bundle says it before the start, from the decision file alone
-    from vs2t_edge.cli import main
-
+    check_scene_against_bundle(load_config(tmp_path / "c.yaml"), model)  # its margin refuses, and labels keep it
+    assert sm.for_labels().known_margin == 0.0 and sm.for_labels().open_threshold == math.inf
     (tmp_path / "bundle").mkdir()
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
                                                                    "decision": {"file": "decision.npz"}}))
     np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
-    assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 2
-    assert "after an operator label" in capsys.readouterr().err
-    (tmp_path / "c.yaml").write_text(one)
     assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 0
-    check_scene_against_bundle(cfg, SimpleNamespace(**{**vars(model), "scene_model": SceneModel(
-        sm.classes, sm.untouched, sm.center, sm.basis, sm.means, known_margin=0.0, confidence=0.99,
-        untouched_confidence=0.99, labels_rule={**off, "known_margin": 0.0})}))  # a labels rule that refuses
+    capsys.readouterr()
+    np.savez(tmp_path / "bundle" / "decision.npz", **SceneModel(
+        sm.classes, sm.untouched, sm.center, sm.basis, sm.means, confidence=0.99, untouched_confidence=0.99).to_params())
+    (tmp_path / "c.yaml").write_text(one)  # both rules off: what the start refuses, said before it
+    assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 2
+    assert "one fabric (f00)" in capsys.readouterr().err
 
 
 def test_confidence_null_is_no_written_confidence(tmp_path):
