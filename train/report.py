@@ -221,7 +221,8 @@ def render(m: dict) -> str:
         lines.append("")
     lines += scene_lines(m.get("splits", []))
     if "risk_coverage" in m.get("figures", {}):
-        lines += ["![risk-coverage](figures/risk_coverage.png)", ""]
+        lines += ["Risk-coverage per split, with the operating point and the knobs above on it "
+                  "(`figures/risk_coverage.png`):", "", "![risk-coverage](figures/risk_coverage.png)", ""]
     if "figures" in m:
         lines += ["Figures (split 0): `figures/confusion.png` (multimodal / visual / semantic), "
                   "`figures/pca_real_vs_synth.png`, `figures/class_cosine.png`, `figures/threshold_curve.png`.", "",
@@ -304,7 +305,7 @@ def knob_lines(sd: list[dict]) -> list[str]:
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
            "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
            "on validation. *own*: the value the operating point has in every split. Mean ± std over "
-           f"{len(sd)} split(s), %. Plot: `figures/risk_coverage.png`.", "",
+           f"{len(sd)} split(s), %.", "",
            "| knob | value | right bin | mis-sort | reject | untouched right | untouched mis-sort | presses |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for per_split in rows:
