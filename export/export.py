@@ -276,8 +276,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
 
             quant = quantize_trunk_static(fp32, trunk_file, calibration, method=calibration_method,
                                           float_convs=float_convs, log=log, **(quant_options or {}))
-            (f32,) = _run_batches(rb.open_session(fp32, threads), calibration)
-            (f8,) = _run_batches(rb.open_session(trunk_file, threads), calibration)
+            sess32, sess8 = rb.open_session(fp32, threads), rb.open_session(trunk_file, threads)
+            (f32,) = _run_batches(sess32, calibration)
+            (f8,) = _run_batches(sess8, calibration)
             sess_h = rb.open_session(tmp / "heads.onnx", threads)
             top32 = np.argmax(sess_h.run(None, {"feature": f32})[0], axis=1)
             top8 = np.argmax(sess_h.run(None, {"feature": f8})[0], axis=1)
@@ -288,8 +289,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             if scene_model is not None:
                 val = [x for x in (touched_heldout, validation) if x is not None and len(x)]
                 if val:
-                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(
-                        scene_model, np.concatenate(val), rb.open_session(fp32, threads), rb.open_session(trunk_file, threads))
+                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(scene_model, np.concatenate(val),
+                                                                                    sess32, sess8)
                     log("int8 against fp32, the scene model's per-press decision on {presses} validation presses: "
                         "{argmax_agreement:.1%} the same class".format(**checks["int8_scene_decision_on_validation"]))
         else:

@@ -335,6 +335,14 @@ def risk_coverage_figure(sd: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 5))
     cmap = plt.get_cmap("tab10")
     marks = {"confidence": "^", "untouched_confidence": "s"}
+    named: set[str] = set()
+
+    def once(name: str) -> str | None:  # each kind of mark in the legend once
+        if name in named:
+            return None
+        named.add(name)
+        return name
+
     for i, d in enumerate(sd):
         t, colour = d["test"], cmap(i % 10)
         rc = t["risk_coverage"]
@@ -343,11 +351,10 @@ def risk_coverage_figure(sd: list[dict], path: Path) -> None:
         for r in t.get("knobs", []):
             if r["knob"] == "operating point":
                 ax.plot(100 * r["coverage"], 100 * r["mis-sort"], "o", color=colour, ms=8, mec="k",
-                        label="operating point" if i == 0 else None)
+                        label=once("operating point"))
             elif r["knob"] in marks:
                 ax.plot(100 * r["coverage"], 100 * r["mis-sort"], marks[r["knob"]], color=colour, ms=4, alpha=0.7,
-                        label=(KNOB_KEYS[r["knob"]] if i == 0 and r is next(x for x in t["knobs"] if x["knob"] == r["knob"])
-                               else None))
+                        label=once(KNOB_KEYS[r["knob"]]))
     target = 100 * sd[0]["validation"]["target_mis_sort"]
     ax.axhline(target, color="k", ls="--", lw=0.8, label=f"mis-sort target {target:g} %")
     ax.set_xlabel("pieces sorted into a fabric's bin, % (the rest: reject bin)")
