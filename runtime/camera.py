@@ -323,23 +323,20 @@ class UVCCamera(CameraBase):
 
         def read() -> None:
             try:
-                _read()
+                for _ in range(flush):
+                    cap.grab()
+                ok, image = cap.read()
+                taken = taken_ms()
+                # the driver's own capture times, once it has shown it gives them: frames it still held
+                # from before the grab was asked, or handed without a time, are read past, whatever its
+                # queue (the blind flush above is the floor)
+                dropped = 0
+                while ok and stale(taken) and dropped < MAX_STALE_DROPS:
+                    ok, image = cap.read()
+                    taken, dropped = taken_ms(), dropped + 1
+                box.update(image=image if ok else None, taken_ms=taken, dropped=dropped)
             except Exception as exc:  # noqa: BLE001 - said by grab(), not lost in a thread's traceback
                 box["error"] = exc
-
-        def _read() -> None:
-            for _ in range(flush):
-                cap.grab()
-            ok, image = cap.read()
-            taken = taken_ms()
-            # the driver's own capture times, once it has shown it gives them: frames it still held
-            # from before the grab was asked, or handed without a time, are read past, whatever its
-            # queue (the blind flush above is the floor)
-            dropped = 0
-            while ok and stale(taken) and dropped < MAX_STALE_DROPS:
-                ok, image = cap.read()
-                taken, dropped = taken_ms(), dropped + 1
-            box.update(image=image if ok else None, taken_ms=taken, dropped=dropped)
 
         self._reader = threading.Thread(target=read, daemon=True, name="uvc-read")
         self._reader.start()

@@ -362,29 +362,38 @@ KNOB_GRID = {"confidence": (0.5, 0.7, 0.8, 0.9, 0.95, 0.99),
 
 
 def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]], *, max_presses: int = 5,
-                items_per_fabric: int = 4, seed: int = 0, grid: dict | None = None) -> list[dict]:
+                items_per_fabric: int = 4, seed: int = 0, grid: dict | None = None,
+                records: Sequence[ItemRecord] | None = None) -> list[dict]:
     """The same jobs decided with one operator knob moved at a time, the others at the scene
     model's operating point (its own confidences, ``max_presses``): per setting, right / mis-sort /
     reject of all pieces and per kind, presses per piece, and the coverage (share of pieces sorted
     into a fabric's bin) and mis-sort rate a risk-coverage plot marks. A price list for the person
-    who runs the cell, measured on the jobs it is given; choosing stays on validation (training)."""
+    who runs the cell, measured on the jobs it is given; choosing stays on validation (training).
+    ``records``: the jobs' item records at the operating point when the caller decided them already
+    (training's report); a knob at the operating point's own value is that row, not decided again."""
 
-    def run(m, mp: int) -> dict:
-        s = summarise(simulate_scenes(scenes, presses, scene_evidence(m, mp), items_per_fabric=items_per_fabric,
-                                      max_presses=mp, seed=seed))
+    def price(recs: Sequence[ItemRecord]) -> dict:
+        s = summarise(recs)
         a, off = s["all"], s["by_kind"].get("off-scene", {RIGHT: 0.0, "n": 0})
         in_reject_bin = a[REJECT] + off[RIGHT] * off["n"] / a["n"]  # rejected scene pieces and refused strangers
         return {"right": a[RIGHT], "mis-sort": a[MIS_SORT], "reject": a[REJECT], "presses": a["presses"],
                 "coverage": 1.0 - in_reject_bin, "by_kind": {k: {o: r[o] for o in OUTCOMES} for k, r in s["by_kind"].items()}}
 
-    rows = [{"knob": "operating point", "value": None, **run(model, max_presses)}]
+    def run(m, mp: int) -> dict:
+        return price(simulate_scenes(scenes, presses, scene_evidence(m, mp), items_per_fabric=items_per_fabric,
+                                     max_presses=mp, seed=seed))
+
+    base = price(records) if records is not None else run(model, max_presses)
+    rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
            "max_presses": max_presses}
     for knob, values in (grid or KNOB_GRID).items():
         for v in values:
+            if v == own[knob]:
+                rows.append({"knob": knob, "value": v, "own": True, **base})
+                continue
             m = model if knob == "max_presses" else replace(model, **{knob: float(v)})
-            rows.append({"knob": knob, "value": v, "own": v == own[knob],
-                         **run(m, int(v) if knob == "max_presses" else max_presses)})
+            rows.append({"knob": knob, "value": v, "own": False, **run(m, int(v) if knob == "max_presses" else max_presses)})
     return rows
 
 

@@ -278,7 +278,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
                             "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
     # the operator's knobs on the same jobs, one at a time (a price list; the choice was validation's)
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
-                                  seed=seed + 1)
+                                  seed=seed + 1, records=recs)
     in_scene = [r for r in recs if r.kind != "off-scene"]
     out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
                                                     [r.candidate == r.truth for r in in_scene])
