@@ -218,17 +218,27 @@ class Cell(FaultLatch):
         self.log(f"camera reopened for {why}")
         return None
 
-    def _lift_gel(self, after: str, failures: type[Exception] = DeviceError) -> None:
+    def _lift_gel(self, after: str, failures: type[Exception] = DeviceError) -> bool:
         """Before latching a fault that is not a safety stop, lift the sensor off the piece: left
         at depth after 'force never reached', the tool sits where the fabric will be put back (the
         operator's fix then drives it into the piece and the controller protective-stops). A
         safety stop is never moved out of; a failing retract (``failures``: a device error, or
-        any Exception after an internal fault) is logged and left for the operator."""
+        any Exception after an internal fault) is logged and left for the operator. Whether the
+        gel is up."""
         try:
             with self.notifier.bounded_wait(self.scene.bounds.lift_s if self.scene.bounds else None):
                 self.arm.retract()
         except failures as lift_exc:
             self.log(f"could not lift the sensor after {after}: {lift_exc}")
+            return False
+        return True
+
+    def lift_or_fault(self, exc: Exception) -> None:
+        """Lift the gel after ``exc`` failed a press whose piece a late score decided meanwhile
+        (runtime/press_pipeline.py); a gel that will not lift latches a fault - the piece to the
+        reject bin, as sequentially - rather than the gate moving with the gel on the piece."""
+        if not self._lift_gel(getattr(exc, "kind", type(exc).__name__)):
+            raise CellFault(f"could not lift the sensor after a failed press ({exc})", "repeated_failure") from exc
 
     def _step(self, what: str, fn: Callable[[], Any], t0: float,
               on_retryable: Callable[[DeviceError], None] | None = None) -> Any:
@@ -439,7 +449,11 @@ class Cell(FaultLatch):
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, "aborted", tally.presses, 0.0,
                                 "stop", tally.skipped, tally.latencies, self.clock() - t0)
         except JournalError:
-            raise  # Cell.run latches it; the item stays open in the journal (see the module doc)
+            # Cell.run latches it; the item stays open in the journal (see the module doc). The gel
+            # first, as before any other fault: a write that failed between a failed press and its
+            # retry would leave the tool at depth on the piece
+            self._lift_gel("a journal write failed", Exception)
+            raise
         except Exception as exc:  # noqa: BLE001 - no rule for it: latch like any other fault
             # The gate may have executed a SORT that was sent before the exception: the record says
             # the outcome is unknown instead of claiming reject. An item already finalised (the

@@ -204,7 +204,7 @@ class PressLoop:
             return  # as sequentially: this press was needed, its retry follows
         cell = self.cell
         if not isinstance(exc, CameraError):  # a failed grab has already been lifted by the press itself
-            cell._lift_gel(getattr(exc, "kind", type(exc).__name__))
+            cell.lift_or_fault(exc)  # the gate never moves under a gel that is down
         self.tally.speculative += 1
         self.tally.speculative_error = f"{type(exc).__name__}: {exc}"
         cell.log(f"item {self.number}: a speculative press failed ({exc}); a late score had decided the piece, "

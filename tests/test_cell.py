@@ -620,3 +620,25 @@ def test_frames_the_camera_read_past_as_stale_are_journaled_with_the_piece(tmp_p
     cell.run(max_items=1)
     (pre,) = [r for r in read_records(journal.path) if r["type"] == "pre_sort"]
     assert "stale_frames_read_past" not in pre
+
+
+def test_a_journal_write_failing_between_a_failed_press_and_its_retry_lifts_the_gel_first(tmp_path, monkeypatch):
+    """'Force never reached' leaves the tool at depth; the retry's record cannot be written (disk
+    full): the fault latches as any journal failure does, but with the gel lifted first, as every
+    other fault after a failed press (Cell._lift_gel)."""
+    from vs2t_edge.runtime.journal import JournalWriteError
+
+    arm = FakeArm()
+    arm.fail_next = ["force_not_reached"]
+    cell, arm, _, gate, journal = make_cell(tmp_path, [60] * 4, arm=arm)
+    real_append = journal.append
+
+    def append(rec):
+        if rec.get("type") == "retry":
+            raise JournalWriteError("writing a retry record failed (No space left on device)", 28, True)
+        return real_append(rec)
+    monkeypatch.setattr(journal, "append", append)
+    cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    assert cell.fault and "journal write failed" in cell.fault and gate.sorted == []
+    after = arm.calls[arm.calls.index("press"):]
+    assert after[:2] == ["press", "retract"], after  # lifted before the latch stopped the arm

@@ -17,6 +17,7 @@ import pytest
 
 from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
 from vs2t_edge.runtime.cell import Cell, SceneSpec
+from vs2t_edge.runtime.devices import ArmConnectionError
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, read_records
 from vs2t_edge.runtime.notify import Notifier
@@ -383,3 +384,63 @@ def test_overlapped_and_sequential_journals_agree_under_camera_errors_and_bad_fr
         assert bool(on.fault) == bool(off.fault), where
         p_off, p_on = off.arm.calls.count("press"), on.arm.calls.count("press")
         assert p_off <= p_on <= p_off + 1, where
+
+
+class _StuckLiftArm(TimedArm):
+    """The lift after press ``stuck_at`` fails, and so does the next one (the link stays down a few
+    ms); it tracks whether the gel is down and what it was when the gate sorted."""
+
+    stuck_at = 3
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.down, self.presses, self.failing = False, 0, 0
+
+    def press(self):
+        result = super().press()
+        self.presses += 1
+        self.down = True
+        if self.presses == self.stuck_at:
+            self.failing = 2
+        return result
+
+    def retract(self):
+        self.calls.append("retract")
+        if self.failing:
+            self.failing -= 1
+            raise ArmConnectionError("link lost during retract", device="arm", kind="connection_lost")
+        self.down = False
+
+
+class _GelGate(FakeGate):
+    def __init__(self, arm):
+        super().__init__()
+        self.arm, self.gel_at_sort = arm, []
+
+    def sort(self, bin_):
+        self.gel_at_sort.append("down" if self.arm.down else "up")
+        return super().sort(bin_)
+
+
+def test_a_speculative_press_whose_gel_will_not_lift_latches_a_fault_and_the_gate_never_moves_under_it(tmp_path):
+    # score 2 decides silk, held until the arm has made press 3 (speculative); press 3's lift fails
+    # twice. Sequentially press 3 is never made; overlapped, the gate must not sort with the gel down.
+    cell = make(tmp_path, [60, 60, 60, 60], overlap=True)
+    arm = _StuckLiftArm()
+    arm.connect()
+    cell.arm, cell.gate = arm, _GelGate(arm)
+    cell.gate.connect()
+    cell.camera = ScriptedCamera(arm, [60, 60, 60, 60])
+    cell.camera.connect()
+
+    def hold(call):
+        if call == 2:
+            deadline = time.monotonic() + 5
+            while arm.presses < 3 and time.monotonic() < deadline:
+                time.sleep(0.001)
+            time.sleep(0.01)
+    cell.model = SlowModel(0.0, on_score=hold)
+    results, _ = timed_run(cell)
+    assert "down" not in cell.gate.gel_at_sort
+    assert cell.fault and "could not lift" in cell.fault
+    assert (results[0].label, results[0].bin, results[0].outcome) == ("unknown", 0, "rejected_fault")
