@@ -382,6 +382,8 @@ class Cell(FaultLatch):
             z_mean = self.evidence_factory.journal_z_mean(evidence) if learns else None
             if z_mean is not None:  # what a later label reads (live and after a restart alike)
                 pre["scene_z_mean"] = z_mean
+                if (n_mean := self.evidence_factory.journal_z_presses(evidence)) is not None:
+                    pre["scene_z_presses"] = n_mean  # outlier presses left out of the mean (runtime/evidence.py)
             if (read_past := getattr(self.camera, "stale_dropped", 0) - stale_before) > 0:
                 pre["stale_frames_read_past"] = read_past  # taken before a grab: a camera whose queue runs deep
             if tally.speculative:  # the arm pressed on while a late score decided (press_pipeline.py)

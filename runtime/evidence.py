@@ -24,6 +24,11 @@ at ``confidence`` (and by ``known_margin`` over the scene's best), goes to the r
 press instead of at the press limit: more presses would only risk it becoming confident for a job
 fabric. Off unless set (the scene model's operating point sets it when validation keeps it).
 ``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
+``outlier_model`` (a scene model with a finite ``outlier_ratio``): a press it calls an outlier -
+farther from every class than that many spreads, ``SceneModel.press_is_outlier`` - counts as a
+press (it took the arm's time and one of ``max_presses``) but is no evidence: nothing is added, and
+the offset rule's mean leaves it out. A piece none of whose presses was evidence is decisive for
+no class: at the limit it goes to the reject bin (``stopped_by`` "off_scene": like no fabric known).
 
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
 summed log posteriors by the model's item scores of the presses' mean projection
@@ -61,7 +66,8 @@ class Evidence:
     def __init__(self, scene_classes, confidence: float = 0.95, max_presses: int = 9,
                  min_presses: int = 1, unknown_floor: float | None = None, *, weight: float = 1.0,
                  open_threshold: float = math.inf, known_margin: float = math.inf,
-                 class_confidence: dict[str, float] | None = None, item_model=None, refuse_early: bool = False):
+                 class_confidence: dict[str, float] | None = None, item_model=None, refuse_early: bool = False,
+                 outlier_model=None):
         self.classes = list(dict.fromkeys(scene_classes))
         if not self.classes:
             raise ValueError("Evidence: the scene has no classes")
@@ -89,6 +95,8 @@ class Evidence:
         self._floor_given = unknown_floor is not None
         self._acc = np.zeros(len(self.classes), dtype=np.float64)
         self.presses = 0
+        self.outliers = 0  # presses ``outlier_model`` called no evidence (module doc)
+        self.outlier_model = outlier_model
         self.item_model = item_model
         if item_model is not None:
             missing = [c for c in self.classes if c not in item_model.classes]
@@ -102,9 +110,31 @@ class Evidence:
     def _posterior(self) -> np.ndarray:
         return self._acc - _logsumexp(self._acc)
 
+    @property
+    def used_presses(self) -> int:
+        """The presses that were evidence (``presses`` less the outliers)."""
+        return self.presses - self.outliers
+
+    def _skip_outlier(self, d2: np.ndarray | None) -> bool:
+        """Count the press as an outlier when ``outlier_model`` calls ``d2`` (its squared distances
+        to that model's classes) one; False (count nothing) otherwise."""
+        if self.outlier_model is None or d2 is None or not self.outlier_model.press_is_outlier(d2):
+            return False
+        self.presses += 1
+        self.outliers += 1
+        return True
+
+    def _sum_rule_d2(self, score) -> np.ndarray | None:
+        d2 = getattr(score, "sq_distance", None)
+        if self.outlier_model is None or not d2:
+            return None
+        return np.array([float(d2.get(c, math.inf)) for c in self.outlier_model.classes])
+
     def add(self, score) -> ItemDecision | None:
         if self.item_model is not None:
             return self._add_projected(score)
+        if self._skip_outlier(self._sum_rule_d2(score)):
+            return self._check(final=False)
         lp = score.log_posterior
         missing = [c for c in self.classes if c not in lp]
         if missing:
@@ -151,10 +181,13 @@ class Evidence:
         if z.shape != self._z_sum.shape or not np.all(np.isfinite(z)):
             raise ValueError(f"Evidence: press projection of shape {z.shape} (finite: {bool(np.all(np.isfinite(z)))}), "
                              f"expected ({self._z_sum.shape[0]},) finite")
+        if self.outlier_model is not None and self._skip_outlier(self.outlier_model.sq_distances_projected(z[None, :])[0]):
+            return self._check(final=False)
         self._add_open(score, z)
         self._z_sum += z
         self.presses += 1
-        scores = self.item_model.item_log_lik(self._z_sum / self.presses, self.presses)
+        n = self.used_presses
+        scores = self.item_model.item_log_lik(self._z_sum / n, n)
         self._acc = scores[self._rows]
         if math.isfinite(self.known_margin):
             self._inside = self._acc
@@ -163,10 +196,10 @@ class Evidence:
 
     @property
     def z_mean(self) -> np.ndarray | None:
-        """The mean projection of the presses so far (the offset rule's), else None."""
-        if self.item_model is None or not self.presses:
+        """The mean projection of the presses so far that were evidence (the offset rule's), else None."""
+        if self.item_model is None or not self.used_presses:
             return None
-        return self._z_sum / self.presses
+        return self._z_sum / self.used_presses
 
     def decide(self) -> ItemDecision:
         return self._check(final=True)
@@ -199,7 +232,7 @@ class Evidence:
         """Whether the presses can pick a bin at all: at least ``min_presses`` of them, and a
         leading class ahead of every other (a tie - a two-fabric scene at confidence 0.5 - would
         otherwise sort to whichever fabric the scene lists first)."""
-        return self.presses >= self.min_presses and int(np.sum(post == post[i])) == 1
+        return self.used_presses >= self.min_presses and int(np.sum(post == post[i])) == 1
 
     def _check(self, final: bool) -> ItemDecision | None:
         post = self._posterior()
@@ -210,7 +243,7 @@ class Evidence:
         if self.known_outsider():  # a fabric the job leaves out, surely: refused now (refuse_early)
             return self._make(post, "off_scene")
         if final or self.presses >= self.max_presses:
-            return self._make(post, "off_scene" if self.off_scene() else "press_limit")
+            return self._make(post, "off_scene" if self.off_scene() or not self.used_presses else "press_limit")
         return None
 
     def _make(self, post: np.ndarray, stopped_by: str) -> ItemDecision:

@@ -190,6 +190,10 @@ class GuardedEvidence:
         return self.adapted.presses
 
     @property
+    def used_presses(self) -> int:
+        return self.adapted.used_presses
+
+    @property
     def z_mean(self):
         return self.adapted.z_mean
 
@@ -224,15 +228,22 @@ class TrackedEvidence:
         return self.inner.presses
 
     @property
+    def used_presses(self) -> int:
+        return self.inner.used_presses
+
+    @property
     def z_mean(self):
-        return self._z_sum / self.inner.presses if self.inner.presses else None
+        return self._z_sum / self.inner.used_presses if self.inner.used_presses else None
 
     def add(self, score):
         z = getattr(score, "scene_z", None)
         if z is None:
             raise ValueError("operator labels need the press's projection (scene_z), and this press score has none")
-        self._z_sum = self._z_sum + np.asarray(z, np.float64).reshape(-1)
-        return self.inner.add(score)
+        outliers = self.inner.outliers
+        decision = self.inner.add(score)
+        if self.inner.outliers == outliers:  # an outlier press is no part of the piece's mean
+            self._z_sum = self._z_sum + np.asarray(z, np.float64).reshape(-1)
+        return decision
 
     def decide(self):
         return self.inner.decide()
@@ -364,8 +375,15 @@ class OperatorFeedback:
         z = getattr(evidence, "z_mean", None)
         return None if z is None else [round(float(v), JOURNAL_DECIMALS) for v in np.asarray(z).reshape(-1)]
 
+    @staticmethod
+    def journal_z_presses(evidence: Any) -> int | None:
+        """How many presses the piece's press mean averages when outlier presses were left out of
+        it (its ``pre_sort`` record's ``scene_z_presses``), None when it averages all its presses."""
+        used, presses = getattr(evidence, "used_presses", None), getattr(evidence, "presses", 0)
+        return None if used is None or used == presses else int(used)
+
     def remember(self, item_id: str, evidence: Any) -> None:
-        z, n = self.journal_z_mean(evidence), getattr(evidence, "presses", 0)
+        z, n = self.journal_z_mean(evidence), getattr(evidence, "used_presses", getattr(evidence, "presses", 0))
         if z is not None and n:
             self.pieces[str(item_id)] = (z, int(n))
 
@@ -506,8 +524,8 @@ class OperatorFeedback:
             elif not current:
                 continue
             elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
-                    and rec.get("item_id") is not None and isinstance(rec.get("presses"), int) and rec["presses"] >= 1:
-                self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec["presses"])
+                    and rec.get("item_id") is not None and _press_count(rec.get("scene_z_presses", rec.get("presses"))):
+                self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec.get("scene_z_presses", rec["presses"]))
             elif kind == "label" and rec.get("file") == str(self.path) and rec.get("reread") is True:
                 self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
             elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
@@ -525,6 +543,11 @@ class OperatorFeedback:
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
                 self._prefix = (n, sha) if known else None
         self._relearn()  # once, not once per label
+
+
+def _press_count(n: Any) -> bool:
+    """Whether a journal's press count is one a press mean can average (an int, at least 1)."""
+    return isinstance(n, int) and not isinstance(n, bool) and n >= 1
 
 
 def _projection(z: Any, k: int) -> bool:

@@ -145,14 +145,15 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     """(touched confidence, the other keyword arguments of ``runtime.evidence.Evidence``) of a
     scene model's operating point, as training chose it for the mis-sort target: press weight,
     off-scene threshold and margin, the confidence per kind (every untouched class at the
-    untouched one), and for the offset item rule the model itself (its item scores replace the
+    untouched one), the outlier-press rule when it has one, and for the offset item rule the model itself (its item scores replace the
     weighted sum). Its temperature and untouched bias act inside the model's posterior
     (runtime/scene_model.py) and have no override."""
     m = scene_model
     return m.confidence, {"weight": m.evidence_weight, "open_threshold": m.open_threshold,
                           "known_margin": m.known_margin,
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
-                          "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early}
+                          "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
+                          "outlier_model": m if math.isfinite(m.outlier_ratio) else None}
 
 
 def config_sets_confidence(cfg) -> bool:

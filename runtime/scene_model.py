@@ -47,6 +47,13 @@ Per item there are two rules (``item_rule``), both chosen on validation fabrics:
   (``item_log_lik``): evidence for a synthesised class stops growing once the presses have pinned
   the piece's mean down to the generator's error, where the sum rule grows it with every press.
 
+A press farther from every class than ``outlier_ratio`` times that class's expected spread
+(``press_spread``: k (s_c + press_var), the offset model's variance of one press around its class
+mean) is no evidence for any class (``press_is_outlier``; runtime/evidence.py): a press on a knot,
+a pulled thread or a fold of the piece lands far from every fabric, and averaged into the piece's
+mean it would carry the piece to whichever class is broadest - a synthesised one. Chosen on
+validation (train/decision.py), off (inf) in files written before it.
+
 Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
 scored on the cell.
 """
@@ -109,6 +116,9 @@ class SceneModel:
     # a piece that surely is a known fabric the job leaves out goes to the reject bin at that press,
     # not at the press limit (runtime/evidence.py refuse_early); chosen on validation, off in older files
     refuse_early: bool = False
+    # a press farther than this from every class, in units of the class's ``press_spread``, is no
+    # evidence (module doc); chosen on validation, off (inf) in older files
+    outlier_ratio: float = math.inf
 
     @property
     def dim(self) -> int:
@@ -144,6 +154,24 @@ class SceneModel:
             return np.array(self.class_offset_var, np.float64)
         is_u = np.array([c in self.untouched for c in self.classes])
         return np.where(is_u, self.offset_var_untouched, self.offset_var_touched).astype(np.float64)
+
+    def press_spread(self) -> np.ndarray:
+        """(C,) a press's expected squared distance to its own class mean under the offset item
+        rule, k (s_c + press_var); a sum-rule model reads its stored offset setting (``labels_rule``),
+        one without any reads press variance 1 (the whitened within-class scatter)."""
+        m = self if self.item_rule == "offset" or self.labels_rule is None else self.for_labels()
+        return m.k * (m.offset_vars() + m.press_var)
+
+    def press_is_outlier(self, sq_distances: np.ndarray) -> bool:
+        """Whether a press with these squared distances (C,) to the model's classes lies farther
+        than ``outlier_ratio`` spreads from every one of them (module doc); False when it is off."""
+        if not math.isfinite(self.outlier_ratio):
+            return False
+        cache = self.__dict__.setdefault("_cast_cache", {})
+        if "spread" not in cache:
+            cache["spread"] = self.press_spread()
+        d2 = np.asarray(sq_distances, np.float64).reshape(-1)
+        return bool(np.min(d2 / cache["spread"]) > self.outlier_ratio)
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
@@ -260,7 +288,8 @@ class SceneModel:
                 **{key: float(getattr(self, key)) for key in OFFSET_KEYS},
                 **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()},
                 **({"known_only": np.array(self.known_only)} if self.known_only else {}),
-                **({"refuse_early": np.array(True)} if self.refuse_early else {})}
+                **({"refuse_early": np.array(True)} if self.refuse_early else {}),
+                **({"outlier_ratio": float(self.outlier_ratio)} if math.isfinite(self.outlier_ratio) else {})}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -309,9 +338,12 @@ class SceneModel:
         refuse_early = np.asarray(params.get("refuse_early", False)).reshape(())
         if refuse_early.dtype != bool:
             raise SceneModelError(f"scene model refuse_early is {refuse_early.dtype}, not a boolean")
+        outlier_ratio = scalar("outlier_ratio") if "outlier_ratio" in params else math.inf
+        if not outlier_ratio > 0:
+            raise SceneModelError(f"scene model outlier_ratio {outlier_ratio} must be positive (inf: off)")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
                     temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only,
-                    refuse_early=bool(refuse_early))
+                    refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio)
         # a file written before the offset rule has none of its keys: the sum rule, as it was
         rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
         if rule not in ITEM_RULES:

@@ -336,9 +336,10 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             # in the reject bin the operator says what it was; an untouched fabric's or a stranger's
             # label teaches the cell (a touched fabric's mean is its training presses')
             rejected = rec.label not in scene.classes
-            if labels and rejected and (fabric in model.untouched or fabric not in scene.classes):
+            # (a piece whose every press was an outlier has no mean to teach: runtime/evidence.py)
+            if labels and rejected and ev.z_mean is not None and (fabric in model.untouched or fabric not in scene.classes):
                 (labelled if fabric in scene.classes else strangers).setdefault(fabric, []).append(
-                    (ev.z_mean, ev.presses))
+                    (ev.z_mean, ev.used_presses))
                 shown.setdefault(fabric, set()).update(order[:ev.presses])
                 current = adapt(base, labelled, strangers)
     return records
@@ -370,7 +371,8 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     into a fabric's bin) and mis-sort rate a risk-coverage plot marks. A price list for the person
     who runs the cell, measured on the jobs it is given; choosing stays on validation (training).
     ``records``: the jobs' item records at the operating point when the caller decided them already
-    (training's report); a knob at the operating point's own value is that row, not decided again."""
+    (training's report); a knob at the operating point's own value is that row, not decided again.
+    ``grid`` may also move the scene model's ``outlier_ratio`` (training's choice, no config key)."""
 
     def price(recs: Sequence[ItemRecord]) -> dict:
         s = summarise(recs)
@@ -386,7 +388,7 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     base = price(records) if records is not None else run(model, max_presses)
     rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
-           "max_presses": max_presses}
+           "max_presses": max_presses, "outlier_ratio": float(model.outlier_ratio)}
     for knob, values in (grid or KNOB_GRID).items():
         for v in values:
             if v == own[knob]:

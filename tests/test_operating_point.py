@@ -4,6 +4,7 @@ comes from (the config's number, the file it names, the default file, the bundle
 from __future__ import annotations
 
 import json
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -56,12 +57,15 @@ def test_the_override_keeps_its_history_and_a_bad_file_is_named(tmp_path):
 
 def test_the_scene_models_item_rule_unless_the_config_writes_a_confidence(tmp_path):
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
-                            known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
+                            known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
+                            outlier_ratio=math.inf)
     model = SimpleNamespace(scene_model=scene)
     confidence, opts = op.evidence_settings(_cfg(tmp_path), model)
     assert confidence == 0.97 and opts == {"weight": 0.25, "open_threshold": 40.0, "known_margin": 0.0,
                                            "class_confidence": {"wool": 0.9}, "item_model": None,
-                                           "refuse_early": True}
+                                           "refuse_early": True, "outlier_model": None}
+    ruled = SimpleNamespace(**{**vars(scene), "outlier_ratio": 20.0})
+    assert op.evidence_settings(_cfg(tmp_path), SimpleNamespace(scene_model=ruled))[1]["outlier_model"] is ruled
     offset = SimpleNamespace(**{**vars(scene), "item_rule": "offset"})
     assert op.evidence_settings(_cfg(tmp_path), SimpleNamespace(scene_model=offset))[1]["item_model"] is offset
     confidence, opts = op.evidence_settings(_cfg(tmp_path, "evidence: {confidence: 0.8}\n"), model)
@@ -78,7 +82,8 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     from vs2t_edge.runtime.wiring import evidence_factory_for
 
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
-                            known_margin=1.5, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
+                            known_margin=1.5, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
+                            outlier_ratio=math.inf)
     (tmp_path / "c.yaml").write_text(CFG.replace("{name: denim, kind: touched, bin: 1}",
                                                  "{name: denim, kind: touched, bin: 1}, {name: wool, kind: untouched, "
                                                  "bin: 2}"))
@@ -88,7 +93,7 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     for ev in (cell, jobs):
         assert (ev.confidence, ev.weight, ev.open_threshold, ev.known_margin) == (0.97, 0.25, 40.0, 1.5)
         assert dict(zip(ev.classes, ev._needed.tolist())) == {"denim": 0.97, "wool": 0.9}
-        assert ev.item_model is None and ev.refuse_early
+        assert ev.item_model is None and ev.refuse_early and ev.outlier_model is None
 
 
 # --- an override file and the bundle it was calibrated for -------------------------------------
@@ -312,7 +317,8 @@ def test_the_shipped_config_sorts_at_the_scene_models_own_confidence():
 
 
 _SCENE = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
-                         known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True)
+                         known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
+                         outlier_ratio=math.inf)
 
 
 def test_a_written_confidence_says_how_it_moves_the_operating_point(tmp_path):
@@ -332,7 +338,7 @@ def test_the_untouched_confidence_is_the_operators_knob_too(tmp_path):
     touched confidence stays the model's; the start log says which way it moves."""
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
                             known_margin=0.0, untouched=frozenset({"wool", "felt"}), item_rule="sum",
-                            refuse_early=False)
+                            refuse_early=False, outlier_ratio=math.inf)
     cfg = _cfg(tmp_path, "evidence: {untouched_confidence: 0.99}\n")
     assert cfg.untouched_confidence == 0.99 and _cfg(tmp_path).untouched_confidence is None
     confidence, opts = op.evidence_settings(cfg, SimpleNamespace(scene_model=scene))

@@ -49,6 +49,9 @@ BIASES = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
 WEIGHTS = (1.0, 0.5, 0.25)
 MARGINS = (0.0, 2.0, math.inf)
 CONFIDENCES = (0.5, 0.7, 0.9, 0.97, 0.99, 0.999)
+# outlier-press rule candidates (runtime/scene_model.py ``outlier_ratio``; inf: off), tried on the
+# chosen item rule; the first of the best scores is kept, so a tie leaves it off
+OUTLIER_RATIOS = (math.inf, 50.0, 20.0, 10.0, 5.0, 3.0)
 # open-set threshold candidates: quantiles of the squared distance of in-scene validation presses
 # to their own class (1.0: no threshold)
 OPEN_QUANTILES = (0.8, 0.9, 0.95, 0.99, 1.0)
@@ -96,6 +99,27 @@ def _offset_candidate(vm: SceneModel, rows: dict[str, np.ndarray], scenes, own_d
                                        lambda summary: _score(summary, target))
     cand = replace(vm, item_rule="offset", **setting)
     return cand, so.summarise(so.simulate_scenes(scenes, press_tables(cand, rows), evidence_for(cand), seed=seed))
+
+
+def _outlier_rule(chosen: SceneModel, cand_off: SceneModel, rows: dict[str, np.ndarray], scenes, seed: int,
+                  target: float) -> tuple[SceneModel, dict, list[dict]]:
+    """The chosen item rule with the outlier-press ratio (``OUTLIER_RATIOS``) that scores best on
+    the same validation jobs (the mis-sort target first, then pieces in the right bin): (model,
+    its validation summary, one row per ratio tried). A sum-rule model measures a press's spread
+    with the offset candidate's setting, which it keeps for operator labels."""
+    probe = chosen if chosen.item_rule == "offset" else \
+        replace(chosen, labels_rule={key: float(getattr(cand_off, key)) for key in LABELS_KEYS})
+    tables = press_tables(probe, rows)
+    tried = []
+    for ratio in OUTLIER_RATIOS:
+        cand = replace(chosen, outlier_ratio=ratio)
+        summary = so.summarise(so.simulate_scenes(scenes, tables, evidence_for(replace(probe, outlier_ratio=ratio)),
+                                                  seed=seed))
+        tried.append((_score(summary, target), cand, summary))
+    _, best, summary = max(tried, key=lambda t: t[0])
+    rows_out = [{"outlier_ratio": c.outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
+                 "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for _, c, s in tried]
+    return best, summary, rows_out
 
 
 def _score(summary: dict, target: float) -> tuple:
@@ -176,6 +200,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     cand_off, summary_off = _offset_candidate(vm, rows, scenes, own_d2, seed, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
+    chosen, val_summary, outlier_rows = _outlier_rule(chosen, cand_off, rows, scenes, seed, target_mis_sort)
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
@@ -188,16 +213,18 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     report = {"chosen": {"k": chosen.k, "temperature": chosen.temperature, "untouched_bias": chosen.untouched_bias,
                          "item_rule": chosen.item_rule, **rule, "known_margin": chosen.known_margin,
                          "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
-                         "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early},
+                         "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early,
+                         "outlier_ratio": chosen.outlier_ratio},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
               "target_mis_sort": target_mis_sort,
               "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
               "item_rules": {name: {"right": r[2]["all"]["right"], "mis_sort": r[2]["all"]["mis-sort"],
                                     "reject": r[2]["all"]["reject"], "presses": r[2]["all"]["presses"]}
                              for name, r in by_rule.items()},
-              "tried": tried_rows}
+              "tried": tried_rows, "outlier_ratios": outlier_rows}
     log(f"scene decision chosen on validation: k={chosen.k}, item rule {chosen.item_rule}, "
         f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "
+        f"outlier presses {'kept' if math.isinf(chosen.outlier_ratio) else f'beyond {chosen.outlier_ratio:g} spreads left out'}, "
         f"confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
         f"right {val_summary['all']['right']:.1%}, mis-sort {val_summary['all']['mis-sort']:.1%}, "
         f"reject {val_summary['all']['reject']:.1%} (sum rule {summary_sum['all']['right']:.1%} / "
@@ -277,8 +304,9 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["risk_coverage"] = {"area": rc["area"], "coverage": rc["coverage"][::max(1, len(rc["coverage"]) // 50)],
                             "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
     # the operator's knobs on the same jobs, one at a time (a price list; the choice was validation's)
+    # (and the outlier-press rule, training's choice, priced beside them)
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
-                                  seed=seed + 1, records=recs)
+                                  seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS})
     in_scene = [r for r in recs if r.kind != "off-scene"]
     out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
                                                     [r.candidate == r.truth for r in in_scene])

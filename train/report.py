@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -286,13 +287,22 @@ def scene_lines(splits: list[dict]) -> list[str]:
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
                 f"margin {c['known_margin']:g}{', refuse early' if c.get('refuse_early') else ''}, "
+                f"{_outlier_text(c.get('outlier_ratio'))}"
                 f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
 
 
+def _outlier_text(ratio) -> str:
+    """The outlier-press rule of a chosen setting, for the report ('' for runs before it)."""
+    if ratio is None:
+        return ""
+    return "outlier presses kept, " if not math.isfinite(float(ratio)) else \
+        f"presses beyond {float(ratio):g} spreads no evidence, "
+
+
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
-             "max_presses": "evidence.max_presses"}
+             "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)"}
 
 
 def knob_lines(sd: list[dict]) -> list[str]:
@@ -304,7 +314,8 @@ def knob_lines(sd: list[dict]) -> list[str]:
     out = ["", "### What the operator's knobs cost (the same test jobs)", "",
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
            "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
-           "on validation. *own*: the value the operating point has in every split. Mean ± std over "
+           "on validation, and so was the outlier ratio (inf: every press is evidence), priced here beside them. "
+           "*own*: the value the operating point has in every split. Mean ± std over "
            f"{len(sd)} split(s), %.", "",
            "| knob | value | right bin | mis-sort | reject | untouched right | untouched mis-sort | presses |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
