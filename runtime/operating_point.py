@@ -177,10 +177,14 @@ def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
 def confidence_override_note(cfg, scene_model) -> str:
     """What the config's written ``evidence.confidence`` and ``evidence.untouched_confidence`` do to
     a scene model's operating point, in words for the start log and ``validate-config
-    --check-bundle``; '' when the config writes neither (the model's own confidences decide), they
-    equal the model's, or there is no scene model."""
+    --check-bundle``; '' when the config writes neither (the model's own confidences decide) or they
+    equal the model's. Without a scene model only ``evidence.confidence`` acts, and a written
+    ``evidence.untouched_confidence`` is said to do nothing."""
     if scene_model is None:
-        return ""
+        untouched = getattr(cfg, "untouched_confidence", None)
+        return "" if untouched is None else (
+            f"{cfg.path}: evidence.untouched_confidence {float(untouched):g} does nothing: the bundle has no scene "
+            "model, and its router's posterior sorts every class at evidence.confidence")
     said = []
     for key, kind, ours, model_key in (
             ("confidence", "touched", float(cfg.confidence) if config_sets_confidence(cfg) else None, "confidence"),

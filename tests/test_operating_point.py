@@ -351,6 +351,9 @@ def test_the_untouched_confidence_is_the_operators_knob_too(tmp_path):
     both = op.confidence_override_note(_cfg(tmp_path, "evidence: {confidence: 0.9, untouched_confidence: 0.5}\n"),
                                        scene)
     assert both.count("overrides") == 2 and "wrong bins" in both
+    # a bundle without a scene model has no untouched confidence: the key is said to do nothing
+    assert "untouched_confidence 0.99 does nothing" in op.confidence_override_note(cfg, None)
+    assert op.confidence_override_note(_cfg(tmp_path), None) == ""
     from vs2t_edge.runtime.config import ConfigError
 
     with pytest.raises(ConfigError, match="evidence.untouched_confidence"):
