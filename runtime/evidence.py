@@ -27,8 +27,9 @@ fabric. Off unless set (the scene model's operating point sets it when validatio
 ``outlier_model`` (a scene model with a finite ``outlier_ratio``): a press it calls an outlier -
 farther from every class than that many spreads, ``SceneModel.press_is_outlier`` - counts as a
 press (it took the arm's time and one of ``max_presses``) but is no evidence: nothing is added, and
-the offset rule's mean leaves it out. A piece none of whose presses was evidence is decisive for
-no class: at the limit it goes to the reject bin (``stopped_by`` "off_scene": like no fabric known).
+the offset rule's mean leaves it out; the open-set rule still reads it (far from every fabric is
+what a stranger's presses are). A piece none of whose presses was evidence is decisive for no
+class: at the limit it goes to the reject bin (``stopped_by`` "off_scene": like no fabric known).
 
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
 summed log posteriors by the model's item scores of the presses' mean projection
@@ -105,6 +106,7 @@ class Evidence:
             self._rows = np.array([item_model.classes.index(c) for c in self.classes])
             self._others = np.setdiff1d(np.arange(len(item_model.classes)), self._rows)
             self._z_sum = np.zeros(item_model.k, dtype=np.float64)
+            self._z_all = np.zeros(item_model.k, dtype=np.float64)  # outlier presses too (``z_mean``)
         self._open_rows: np.ndarray | None = None  # item-model rows of the scene classes the open-set rule reads
 
     def _posterior(self) -> np.ndarray:
@@ -134,6 +136,7 @@ class Evidence:
         if self.item_model is not None:
             return self._add_projected(score)
         if self._skip_outlier(self._sum_rule_d2(score)):
+            self._add_open(score)  # far from every fabric: evidence of a stranger all the same
             return self._check(final=False)
         lp = score.log_posterior
         missing = [c for c in self.classes if c not in lp]
@@ -181,9 +184,10 @@ class Evidence:
         if z.shape != self._z_sum.shape or not np.all(np.isfinite(z)):
             raise ValueError(f"Evidence: press projection of shape {z.shape} (finite: {bool(np.all(np.isfinite(z)))}), "
                              f"expected ({self._z_sum.shape[0]},) finite")
+        self._z_all += z
+        self._add_open(score, z)  # an outlier press too: far from every fabric is evidence of a stranger
         if self.outlier_model is not None and self._skip_outlier(self.outlier_model.sq_distances_projected(z[None, :])[0]):
             return self._check(final=False)
-        self._add_open(score, z)
         self._z_sum += z
         self.presses += 1
         n = self.used_presses
@@ -196,10 +200,18 @@ class Evidence:
 
     @property
     def z_mean(self) -> np.ndarray | None:
-        """The mean projection of the presses so far that were evidence (the offset rule's), else None."""
-        if self.item_model is None or not self.used_presses:
+        """The mean projection of the presses that were evidence (the offset rule's), of every
+        press when none was (what an operator's label of the piece teaches: a fabric whose every
+        press lies far from every class is the one a label must be able to teach); None without
+        presses or an item model. ``mean_presses`` says how many it averages."""
+        if self.item_model is None or not self.presses:
             return None
-        return self._z_sum / self.used_presses
+        return self._z_sum / self.used_presses if self.used_presses else self._z_all / self.presses
+
+    @property
+    def mean_presses(self) -> int:
+        """How many presses ``z_mean`` averages."""
+        return self.used_presses or self.presses
 
     def decide(self) -> ItemDecision:
         return self._check(final=True)

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -190,8 +191,8 @@ class GuardedEvidence:
         return self.adapted.presses
 
     @property
-    def used_presses(self) -> int:
-        return self.adapted.used_presses
+    def mean_presses(self) -> int:
+        return self.adapted.mean_presses
 
     @property
     def z_mean(self):
@@ -221,28 +222,33 @@ class TrackedEvidence:
     label of the piece reads (the offset rule's evidence keeps it itself)."""
 
     def __init__(self, inner: Evidence, k: int) -> None:
-        self.inner, self._z_sum = inner, np.zeros(k)
+        self.inner, self._z_sum, self._z_all = inner, np.zeros(k), np.zeros(k)
 
     @property
     def presses(self) -> int:
         return self.inner.presses
 
     @property
-    def used_presses(self) -> int:
-        return self.inner.used_presses
+    def mean_presses(self) -> int:
+        return self.inner.used_presses or self.inner.presses
 
     @property
     def z_mean(self):
-        return self._z_sum / self.inner.used_presses if self.inner.used_presses else None
+        """As ``Evidence.z_mean``: the presses that were evidence, every press when none was."""
+        if not self.inner.presses:
+            return None
+        return self._z_sum / self.inner.used_presses if self.inner.used_presses else self._z_all / self.inner.presses
 
     def add(self, score):
         z = getattr(score, "scene_z", None)
         if z is None:
             raise ValueError("operator labels need the press's projection (scene_z), and this press score has none")
+        z = np.asarray(z, np.float64).reshape(-1)
         outliers = self.inner.outliers
         decision = self.inner.add(score)
+        self._z_all = self._z_all + z
         if self.inner.outliers == outliers:  # an outlier press is no part of the piece's mean
-            self._z_sum = self._z_sum + np.asarray(z, np.float64).reshape(-1)
+            self._z_sum = self._z_sum + z
         return decision
 
     def decide(self):
@@ -270,7 +276,11 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     # taught, yet guarded: an untaught fabric of the job the generator could not tell from it
     near = confusable(deployed, adapted.offset_var_untouched, labelled_taught, untaught)
     trusted = [c for c in learned if c not in near] + [c for c in scene if c not in deployed.untouched]
-    return GuardedEvidence(make_evidence(adapted, [*scene, *taught]), zero_shot, trusted, near)
+    # the adapted evidence keeps every press: a learned mean's spread is narrower than the bundle's,
+    # so its outlier test would drop presses the zero-shot evidence keeps, and a class it trusts
+    # would be decided on fewer presses than validation ever priced (runtime/scene_model.py outlier_ratio)
+    adapted_all = adapted if math.isinf(adapted.outlier_ratio) else replace(adapted, outlier_ratio=math.inf)
+    return GuardedEvidence(make_evidence(adapted_all, [*scene, *taught]), zero_shot, trusted, near)
 
 
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
@@ -379,11 +389,11 @@ class OperatorFeedback:
     def journal_z_presses(evidence: Any) -> int | None:
         """How many presses the piece's press mean averages when outlier presses were left out of
         it (its ``pre_sort`` record's ``scene_z_presses``), None when it averages all its presses."""
-        used, presses = getattr(evidence, "used_presses", None), getattr(evidence, "presses", 0)
-        return None if used is None or used == presses else int(used)
+        n, presses = getattr(evidence, "mean_presses", None), getattr(evidence, "presses", 0)
+        return None if n is None or n == presses else int(n)
 
     def remember(self, item_id: str, evidence: Any) -> None:
-        z, n = self.journal_z_mean(evidence), getattr(evidence, "used_presses", getattr(evidence, "presses", 0))
+        z, n = self.journal_z_mean(evidence), getattr(evidence, "mean_presses", getattr(evidence, "presses", 0))
         if z is not None and n:
             self.pieces[str(item_id)] = (z, int(n))
 

@@ -338,9 +338,14 @@ class SceneModel:
         refuse_early = np.asarray(params.get("refuse_early", False)).reshape(())
         if refuse_early.dtype != bool:
             raise SceneModelError(f"scene model refuse_early is {refuse_early.dtype}, not a boolean")
-        outlier_ratio = scalar("outlier_ratio") if "outlier_ratio" in params else math.inf
-        if not outlier_ratio > 0:
-            raise SceneModelError(f"scene model outlier_ratio {outlier_ratio} must be positive (inf: off)")
+        outlier_ratio = math.inf
+        if "outlier_ratio" in params:
+            raw = np.asarray(params["outlier_ratio"])
+            if raw.shape != () or raw.dtype.kind not in "fiu":
+                raise SceneModelError(f"scene model outlier_ratio is {raw.dtype} of shape {raw.shape}, not a number")
+            outlier_ratio = float(raw)
+            if not outlier_ratio >= 1:  # below 1 a press at its class's own spread would be no evidence
+                raise SceneModelError(f"scene model outlier_ratio {outlier_ratio} must be at least 1 (inf: off)")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
                     temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only,
                     refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio)

@@ -336,10 +336,9 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             # in the reject bin the operator says what it was; an untouched fabric's or a stranger's
             # label teaches the cell (a touched fabric's mean is its training presses')
             rejected = rec.label not in scene.classes
-            # (a piece whose every press was an outlier has no mean to teach: runtime/evidence.py)
-            if labels and rejected and ev.z_mean is not None and (fabric in model.untouched or fabric not in scene.classes):
+            if labels and rejected and (fabric in model.untouched or fabric not in scene.classes):
                 (labelled if fabric in scene.classes else strangers).setdefault(fabric, []).append(
-                    (ev.z_mean, ev.used_presses))
+                    (ev.z_mean, ev.mean_presses))
                 shown.setdefault(fabric, set()).update(order[:ev.presses])
                 current = adapt(base, labelled, strangers)
     return records

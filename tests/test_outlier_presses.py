@@ -60,8 +60,20 @@ def test_a_knot_press_no_longer_carries_a_denim_piece_into_the_synthesised_class
 
 def test_a_piece_whose_every_press_is_an_outlier_goes_to_the_reject_bin_as_off_scene():
     ev = _evidence(_model(outlier_ratio=20.0), max_presses=3)
-    d = _piece(ev, [KNOT, (400.0, 0.0), (0.0, -500.0)])
-    assert (d.label, d.stopped_by, d.presses, ev.used_presses, ev.z_mean) == (UNKNOWN, "off_scene", 3, 0, None)
+    far = [KNOT, (400.0, 0.0), (0.0, -500.0)]
+    d = _piece(ev, far)
+    assert (d.label, d.stopped_by, d.presses, ev.used_presses) == (UNKNOWN, "off_scene", 3, 0)
+    # what a label of it would teach: every press's mean (no press was evidence)
+    assert ev.mean_presses == 3 and np.allclose(ev.z_mean, np.mean(far, axis=0))
+
+
+def test_outlier_presses_still_count_for_the_open_set_rule():
+    """A stranger's far presses are left out of its class evidence, not out of the evidence that it
+    is like no fabric: found by a review, where its two presses near denim sorted it into denim's bin."""
+    stranger = [(0.0, -40.0), (40.0, 0.0), (-40.0, 0.0), (0.6, 0.4), (0.4, 0.6)]
+    for ratio in (math.inf, 20.0, 3.0):
+        d = _piece(_evidence(_model(outlier_ratio=ratio, open_threshold=12.0)), stranger)
+        assert (d.label, d.stopped_by) == (UNKNOWN, "off_scene"), ratio
 
 
 def test_a_one_fabric_scene_is_not_decided_by_outlier_presses_alone():
@@ -101,7 +113,7 @@ def test_the_ratio_is_stored_with_the_model_and_an_older_file_has_it_off():
     assert SceneModel.from_params(m.to_params()).outlier_ratio == 12.5
     params = _model().to_params()
     assert "outlier_ratio" not in params and math.isinf(SceneModel.from_params(params).outlier_ratio)
-    for bad in (0.0, -3.0, float("nan")):
+    for bad in (0.0, -3.0, 0.5, 1e-300, float("nan"), True, "20", np.array(["7"]), np.array([[3.0]])):
         with pytest.raises(SceneModelError, match="outlier_ratio"):
             SceneModel.from_params({**params, "outlier_ratio": bad})
 
@@ -119,10 +131,10 @@ def test_press_spread_is_the_offset_models_and_a_sum_models_stored_setting():
 PIECE_Z = (8.123456789, 2.987654321)
 
 
-def _feedback(tmp_path, model) -> OperatorFeedback:
+def _feedback(tmp_path, model, presses=3) -> OperatorFeedback:
     """Operator labels whose evidence has the model's outlier rule, as the cell's wiring builds it."""
     return OperatorFeedback(model, CLASSES, tmp_path / "labels.jsonl",
-                            lambda m, classes: Evidence(classes, 0.95, 3, item_model=m, outlier_model=m))
+                            lambda m, classes: Evidence(classes, 0.95, presses, item_model=m, outlier_model=m))
 
 
 class _KnotFirst(PieceModel):
@@ -187,3 +199,43 @@ def test_training_keeps_the_rule_off_unless_validation_jobs_gain_from_it(knots):
         assert summary["all"]["mis-sort"] < off["mis_sort"] or summary["all"]["right"] > off["right"]
     else:
         assert math.isinf(chosen.outlier_ratio)  # nothing to gain: off
+
+
+def test_after_labels_the_adapted_evidence_keeps_every_press():
+    """A learned mean's spread is narrower than the bundle's, so the adapted model's outlier test
+    would drop presses the zero-shot evidence keeps, and the classes it trusts (touched ones) would
+    be decided on presses validation never priced: a review found strangers sorted into denim so."""
+    from vs2t_edge.runtime.feedback import adapt, item_evidence
+
+    deployed = labels_model(open_threshold=20.0, confidence=0.9, untouched_confidence=0.9, outlier_ratio=5.0)
+    wool = [(np.array([8.0, 2.0]), 4), (np.array([8.0, 2.0]), 4)]
+    adapted = adapt(deployed.for_labels(), {"wool": wool})
+    z = np.array([[0.0, 9.0]])
+    assert adapted.press_is_outlier(adapted.sq_distances_projected(z)[0])  # the narrower learned spread
+    assert not deployed.press_is_outlier(deployed.sq_distances_projected(z)[0])
+
+    def make(m, classes):
+        confidence, opts = scene_model_rule(m)
+        return Evidence(classes, confidence, 3, **opts)
+    ev = item_evidence(deployed, adapted, CLASSES, {"wool": wool}, {}, make)
+    assert ev.adapted.outlier_model is None and ev.zero_shot.outlier_model is deployed
+    presses = so.scene_model_presses(deployed, np.array([(10.0, 13.0), (3.0, -1.0), (10.0, -1.0)]))
+    d = next((d for p in presses if (d := ev.add(p)) is not None), None) or ev.decide()
+    assert d.label == UNKNOWN  # the review's stranger: rejected, as with the rule off
+
+
+def test_a_fabric_whose_every_press_is_an_outlier_can_still_be_taught_by_a_label(tmp_path):
+    """Its first piece goes to the reject bin (no press was evidence); the label teaches the mean
+    of all its presses, and its later pieces go to its bin."""
+    from vs2t_edge.runtime.feedback import append_label
+
+    class _Far(PieceModel):
+        z = (8.0, 2.0)  # 3.05 spreads from denim and silk, 3.6 from wool's synthesis: all beyond ratio 3
+    model = labels_model(outlier_ratio=3.0)
+    live = _feedback(tmp_path, model, presses=4)
+    cell, gate, journal = labelled_cell(tmp_path, live, [80] * 16, _Far())
+    first = cell.run(max_items=1)[0]
+    assert first.label == UNKNOWN
+    append_label(tmp_path / "labels.jsonl", first.item.id, "wool")
+    results = cell.run(max_items=4)  # three more pieces (the cell's results keep the first too)
+    assert "wool" in live.labelled and [r.label for r in results][-3:] == ["wool"] * 3
