@@ -40,18 +40,20 @@ def run(args) -> int:
                   file=sys.stderr)
             return 2
     if args.check_bundle:
-        read = read_scene_model(cfg)  # once, for both checks below
+        read = read_scene_model(cfg)  # once, for the checks below
+        if read[1]:  # the bundle's load refuses it too (runtime/bundle.py): said here, not as "no scene model"
+            print(f"config {cfg.path}: {read[1]}", file=sys.stderr)
+            return 2
         if cfg.operator_labels is not None:
             problem = operator_labels_problem(cfg, read)  # what `run` refuses at start (runtime/wiring.py), said before it
             if problem:
                 print(f"config {cfg.path}: {problem}", file=sys.stderr)
                 return 2
-        if not read[1]:
-            from vs2t_edge.runtime.operating_point import one_fabric_problem
+        from vs2t_edge.runtime.operating_point import one_fabric_problem
 
-            if problem := one_fabric_problem(cfg, read[0]):  # refused at start too (runtime/wiring.py)
-                print(problem, file=sys.stderr)
-                return 2
+        if problem := one_fabric_problem(cfg, read[0]):  # refused at start too (runtime/wiring.py)
+            print(problem, file=sys.stderr)
+            return 2
         # said at the start too (runtime/daemon.py); a warning, not a refusal
         from vs2t_edge.runtime.operating_point import confidence_override_note
 

@@ -143,6 +143,12 @@ def test_validate_config_check_bundle_refuses_a_bundle_without_scene_model(tmp_p
     assert main(["validate-config", str(path)]) == 0  # without --check-bundle the bundle is not read
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
                                                                    "decision": {"file": "decision.npz"}}))
+    assert main(["validate-config", str(path), "--check-bundle"]) == 2  # listed, not there: the load refuses it
+    assert "decision.npz unreadable" in capsys.readouterr().err
+    import numpy as np
+    from feedback_fakes import scene_model
+
+    np.savez(tmp_path / "bundle" / "decision.npz", **scene_model().to_params())
     assert main(["validate-config", str(path), "--check-bundle"]) == 0
 
 

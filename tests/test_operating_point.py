@@ -382,6 +382,13 @@ def test_validate_config_warns_when_the_config_overrides_the_models_confidence(t
     assert main(["validate-config", str(cfg), "--check-bundle"]) == 0
     out = capsys.readouterr()
     assert "warning" not in out.err and "confidence the scene model's" in out.out
+    # a decision file the bundle's load would refuse is said so, not taken for "no scene model"
+    np.savez(tmp_path / "bundle" / "decision.npz", **{**scene_model().to_params(), "outlier_ratio": 0.5})
+    cfg.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "touched", 2), ("wool", "untouched", 3)),
+                                  evidence={"untouched_confidence": 0.99}))
+    assert main(["validate-config", str(cfg), "--check-bundle"]) == 2
+    out = capsys.readouterr()
+    assert "decision.npz unreadable" in out.err and "outlier_ratio" in out.err and "does nothing" not in out.err
 
 
 def test_the_service_says_at_start_that_its_config_overrides_the_models_confidence(tmp_path):
