@@ -24,8 +24,9 @@ at ``confidence`` (and by ``known_margin`` over the scene's best), goes to the r
 press instead of at the press limit: more presses would only risk it becoming confident for a job
 fabric. Off unless set (the scene model's operating point sets it when validation keeps it).
 ``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
-``outlier_model`` (a scene model with a finite ``outlier_ratio``): a press it calls an outlier -
-farther from every class than that many spreads, ``SceneModel.press_is_outlier`` - counts as a
+``outlier_model`` (a scene model with a finite ``outlier_ratio``, or anything with its
+``is_outlier_press``): a press it calls an outlier - farther from every class than that many
+spreads, ``SceneModel.press_is_outlier`` - counts as a
 press (it took the arm's time and one of ``max_presses``) but is no evidence: nothing is added, and
 the offset rule's mean leaves it out; the open-set rule still reads it (far from every fabric is
 what a stranger's presses are). A piece none of whose presses was evidence is decisive for no
@@ -117,25 +118,20 @@ class Evidence:
         """The presses that were evidence (``presses`` less the outliers)."""
         return self.presses - self.outliers
 
-    def _skip_outlier(self, d2: np.ndarray | None) -> bool:
-        """Count the press as an outlier when ``outlier_model`` calls ``d2`` (its squared distances
-        to that model's classes) one; False (count nothing) otherwise."""
-        if self.outlier_model is None or d2 is None or not self.outlier_model.press_is_outlier(d2):
+    def _skip_outlier(self, score, z: np.ndarray | None = None) -> bool:
+        """Count the press as an outlier when ``outlier_model`` calls it one (from its projection
+        ``z`` when given, else its squared distances); False (count nothing) otherwise."""
+        if self.outlier_model is None or not self.outlier_model.is_outlier_press(
+                z, None if z is not None else getattr(score, "sq_distance", None)):
             return False
         self.presses += 1
         self.outliers += 1
         return True
 
-    def _sum_rule_d2(self, score) -> np.ndarray | None:
-        d2 = getattr(score, "sq_distance", None)
-        if self.outlier_model is None or not d2:
-            return None
-        return np.array([float(d2.get(c, math.inf)) for c in self.outlier_model.classes])
-
     def add(self, score) -> ItemDecision | None:
         if self.item_model is not None:
             return self._add_projected(score)
-        if self._skip_outlier(self._sum_rule_d2(score)):
+        if self._skip_outlier(score):
             self._add_open(score)  # far from every fabric: evidence of a stranger all the same
             return self._check(final=False)
         lp = score.log_posterior
@@ -186,7 +182,7 @@ class Evidence:
                              f"expected ({self._z_sum.shape[0]},) finite")
         self._z_all += z
         self._add_open(score, z)  # an outlier press too: far from every fabric is evidence of a stranger
-        if self.outlier_model is not None and self._skip_outlier(self.outlier_model.sq_distances_projected(z[None, :])[0]):
+        if self._skip_outlier(score, z):
             return self._check(final=False)
         self._z_sum += z
         self.presses += 1

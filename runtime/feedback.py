@@ -276,11 +276,26 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     # taught, yet guarded: an untaught fabric of the job the generator could not tell from it
     near = confusable(deployed, adapted.offset_var_untouched, labelled_taught, untaught)
     trusted = [c for c in learned if c not in near] + [c for c in scene if c not in deployed.untouched]
-    # the adapted evidence keeps every press: a learned mean's spread is narrower than the bundle's,
-    # so its outlier test would drop presses the zero-shot evidence keeps, and a class it trusts
-    # would be decided on fewer presses than validation ever priced (runtime/scene_model.py outlier_ratio)
-    adapted_all = adapted if math.isinf(adapted.outlier_ratio) else replace(adapted, outlier_ratio=math.inf)
-    return GuardedEvidence(make_evidence(adapted_all, [*scene, *taught]), zero_shot, trusted, near)
+    adapted_ev = make_evidence(adapted, [*scene, *taught])
+    if math.isfinite(deployed.outlier_ratio):
+        adapted_ev.outlier_model = FarFromBoth(deployed, adapted)
+    return GuardedEvidence(adapted_ev, zero_shot, trusted, near)
+
+
+class FarFromBoth:
+    """The outlier-press test of the adapted evidence (runtime/scene_model.py ``outlier_ratio``): a
+    press is an outlier only when it lies far from every class of the bundle's model and from every
+    class of the adapted one at the bundle's spreads. A learned mean's own spread is narrower, and
+    with it the adapted evidence would drop presses the zero-shot evidence keeps, deciding the
+    classes it trusts on presses validation never priced; yet a knot press stays no evidence, and a
+    fabric whose presses all lay far from the bundle's classes is evidence once a label taught it."""
+
+    def __init__(self, deployed: SceneModel, adapted: SceneModel) -> None:
+        self.deployed = deployed
+        self.adapted = replace(adapted, class_offset_var=None, outlier_ratio=deployed.outlier_ratio)
+
+    def is_outlier_press(self, z=None, sq_distance=None) -> bool:
+        return self.deployed.is_outlier_press(z, sq_distance) and self.adapted.is_outlier_press(z, sq_distance)
 
 
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:

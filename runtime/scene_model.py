@@ -173,6 +173,17 @@ class SceneModel:
         d2 = np.asarray(sq_distances, np.float64).reshape(-1)
         return bool(np.min(d2 / cache["spread"]) > self.outlier_ratio)
 
+    def is_outlier_press(self, z: np.ndarray | None = None, sq_distance: Mapping[str, float] | None = None) -> bool:
+        """``press_is_outlier`` of a press given by its projection ``z`` (k,) or, without one, its
+        squared distances by class name (a class it lacks counts as infinitely far)."""
+        if not math.isfinite(self.outlier_ratio):
+            return False
+        if z is not None:
+            return self.press_is_outlier(self.sq_distances_projected(np.asarray(z, np.float64).reshape(1, -1))[0])
+        if not sq_distance:
+            return False
+        return self.press_is_outlier(np.array([float(sq_distance.get(c, math.inf)) for c in self.classes]))
+
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
         return self.sq_distances_projected(self.project(features, dtype))
