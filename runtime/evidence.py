@@ -26,7 +26,7 @@ fabric. Off unless set (the scene model's operating point sets it when validatio
 ``class_confidence`` sets the posterior needed per class where it differs from ``confidence``.
 ``outlier_model`` (a scene model with a finite ``outlier_ratio``, or anything with its
 ``is_outlier_press``, runtime/feedback.py ``FarFromBoth``): a press it calls an outlier - farther
-from every class than that many spreads, ``SceneModel.press_is_outlier`` - counts as a press (it
+from every class than that many spreads, ``SceneModel.is_outlier_press`` - counts as a press (it
 took the arm's time and one of ``max_presses``) but is no evidence: nothing is added, and the
 offset rule's mean leaves it out; the open-set rule still reads it (far from every fabric is what
 a stranger's presses are). A piece none of whose presses was evidence is decisive for no

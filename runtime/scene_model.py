@@ -49,7 +49,7 @@ Per item there are two rules (``item_rule``), both chosen on validation fabrics:
 
 A press farther from every class than ``outlier_ratio`` times that class's expected spread
 (``press_spread``: k (s_c + press_var), the offset model's variance of one press around its class
-mean) is no evidence for any class (``press_is_outlier``; runtime/evidence.py): a press on a knot,
+mean) is no evidence for any class (``is_outlier_press``; runtime/evidence.py): a press on a knot,
 a pulled thread or a fold of the piece lands far from every fabric, and averaged into the piece's
 mean it would carry the piece to whichever class is broadest - a synthesised one. Chosen on
 validation (train/decision.py), off (inf) in files written before it.
@@ -162,27 +162,22 @@ class SceneModel:
         m = self if self.item_rule == "offset" or self.labels_rule is None else self.for_labels()
         return m.k * (m.offset_vars() + m.press_var)
 
-    def press_is_outlier(self, sq_distances: np.ndarray) -> bool:
-        """Whether a press with these squared distances (C,) to the model's classes lies farther
-        than ``outlier_ratio`` spreads from every one of them (module doc); False when it is off."""
+    def is_outlier_press(self, z: np.ndarray | None = None, sq_distance: Mapping[str, float] | None = None) -> bool:
+        """Whether a press lies farther than ``outlier_ratio`` spreads (``press_spread``) from every
+        class (module doc), given by its projection ``z`` (k,) or, without one, its squared
+        distances by class name (a class it lacks counts as infinitely far); False when it is off."""
         if not math.isfinite(self.outlier_ratio):
+            return False
+        if z is not None:
+            d2 = self.sq_distances_projected(np.asarray(z, np.float64).reshape(1, -1))[0]
+        elif sq_distance:
+            d2 = np.array([float(sq_distance.get(c, math.inf)) for c in self.classes])
+        else:
             return False
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "spread" not in cache:
             cache["spread"] = self.press_spread()
-        d2 = np.asarray(sq_distances, np.float64).reshape(-1)
         return bool(np.min(d2 / cache["spread"]) > self.outlier_ratio)
-
-    def is_outlier_press(self, z: np.ndarray | None = None, sq_distance: Mapping[str, float] | None = None) -> bool:
-        """``press_is_outlier`` of a press given by its projection ``z`` (k,) or, without one, its
-        squared distances by class name (a class it lacks counts as infinitely far)."""
-        if not math.isfinite(self.outlier_ratio):
-            return False
-        if z is not None:
-            return self.press_is_outlier(self.sq_distances_projected(np.asarray(z, np.float64).reshape(1, -1))[0])
-        if not sq_distance:
-            return False
-        return self.press_is_outlier(np.array([float(sq_distance.get(c, math.inf)) for c in self.classes]))
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""

@@ -191,7 +191,9 @@ def _validation_rows(knots: bool) -> dict:
 def test_training_keeps_the_rule_off_unless_validation_jobs_gain_from_it(knots):
     m = replace(labels_model(), classes=CLASSES, confidence=0.9, untouched_confidence=0.9)
     scenes = so.draw_scenes(["denim", "silk"], ["wool"], (), 6, n_touched=2, n_untouched=1, seed=1)
-    chosen, summary, tried = dc._outlier_rule(m, m, _validation_rows(knots), scenes, seed=1, target=0.01)
+    rows = _validation_rows(knots)
+    off = so.summarise(so.simulate_scenes(scenes, dc.press_tables(m, rows), dc.evidence_for(m), seed=1))
+    chosen, summary, tried = dc._outlier_rule(m, off, m, rows, scenes, seed=1, target=0.01)
     assert [r["outlier_ratio"] for r in tried] == list(dc.OUTLIER_RATIOS)
     if knots:
         assert math.isfinite(chosen.outlier_ratio)

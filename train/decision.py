@@ -101,20 +101,22 @@ def _offset_candidate(vm: SceneModel, rows: dict[str, np.ndarray], scenes, own_d
     return cand, so.summarise(so.simulate_scenes(scenes, press_tables(cand, rows), evidence_for(cand), seed=seed))
 
 
-def _outlier_rule(chosen: SceneModel, cand_off: SceneModel, rows: dict[str, np.ndarray], scenes, seed: int,
-                  target: float) -> tuple[SceneModel, dict, list[dict]]:
+def _outlier_rule(chosen: SceneModel, summary_off: dict, cand_off: SceneModel, rows: dict[str, np.ndarray], scenes,
+                  seed: int, target: float) -> tuple[SceneModel, dict, list[dict]]:
     """The chosen item rule with the outlier-press ratio (``OUTLIER_RATIOS``) that scores best on
     the same validation jobs (the mis-sort target first, then pieces in the right bin): (model,
-    its validation summary, one row per ratio tried). A sum-rule model measures a press's spread
-    with the offset candidate's setting, which it keeps for operator labels."""
+    its validation summary, one row per ratio tried). ``summary_off``: the chosen rule's own
+    summary on those jobs (the ratio off, the first candidate), not decided again. A sum-rule
+    model measures a press's spread with the offset candidate's setting, which it keeps for
+    operator labels."""
     probe = chosen if chosen.item_rule == "offset" else \
         replace(chosen, labels_rule={key: float(getattr(cand_off, key)) for key in LABELS_KEYS})
     tables = press_tables(probe, rows)
     tried = []
     for ratio in OUTLIER_RATIOS:
         cand = replace(chosen, outlier_ratio=ratio)
-        summary = so.summarise(so.simulate_scenes(scenes, tables, evidence_for(replace(probe, outlier_ratio=ratio)),
-                                                  seed=seed))
+        summary = summary_off if math.isinf(ratio) else so.summarise(
+            so.simulate_scenes(scenes, tables, evidence_for(replace(probe, outlier_ratio=ratio)), seed=seed))
         tried.append((_score(summary, target), cand, summary))
     _, best, summary = max(tried, key=lambda t: t[0])
     rows_out = [{"outlier_ratio": c.outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
@@ -200,7 +202,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     cand_off, summary_off = _offset_candidate(vm, rows, scenes, own_d2, seed, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
-    chosen, val_summary, outlier_rows = _outlier_rule(chosen, cand_off, rows, scenes, seed, target_mis_sort)
+    chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, rows, scenes, seed, target_mis_sort)
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
