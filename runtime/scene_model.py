@@ -74,6 +74,14 @@ ITEM_RULES = ("sum", "offset")
 OFFSET_KEYS = ("press_var", "offset_var_touched", "offset_var_untouched", "item_temperature", "item_bias")
 # the offset rule's whole operating point, stored as "labels_<key>" by a sum-rule model (``labels_rule``)
 LABELS_KEYS = OFFSET_KEYS + ("known_margin", "open_threshold", "confidence", "untouched_confidence")
+# every key ``to_params`` can write: a file with any other is refused (``from_params``). Rules were
+# added as optional keys (known_only, refuse_early, outlier_ratio); a runtime that skipped a key it
+# does not know would sort with the rule left out - a piece on a knot into a wrong bin - so a
+# bundle from a newer training is refused by name until the runtime is updated.
+PARAMS_KEYS = frozenset(("kind", "params_version", "classes", "untouched", "center", "basis", "means", "temperature",
+                         "untouched_bias", "evidence_weight", "open_threshold", "known_margin", "confidence",
+                         "untouched_confidence", "item_rule", "known_only", "refuse_early", "outlier_ratio")
+                        + OFFSET_KEYS + tuple(f"labels_{key}" for key in LABELS_KEYS))
 
 
 class SceneModelError(ValueError):
@@ -312,6 +320,11 @@ class SceneModel:
         if int(scalar("params_version")) != PARAMS_VERSION:
             raise SceneModelError(f"scene model parameters version {params['params_version']}, "
                                   f"this runtime reads {PARAMS_VERSION}")
+        unknown = sorted(str(key) for key in params if key not in PARAMS_KEYS)
+        if unknown:
+            raise SceneModelError(f"scene model parameters carry {', '.join(map(repr, unknown))}, which this runtime "
+                                  "does not know: a rule of a newer training that it would leave out of every "
+                                  "decision. Update the runtime, or export the bundle with the runtime's version")
         for key in ("classes", "untouched", "center", "basis", "means"):
             if key not in params:
                 raise SceneModelError(f"scene model parameters lack '{key}'")
@@ -380,4 +393,5 @@ def _check_offset(offset: Mapping[str, float], prefix: str) -> None:
                               f"{ {k: offset[k] for k in OFFSET_KEYS} }")
 
 
-__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION", "ITEM_RULES", "OFFSET_KEYS", "LABELS_KEYS"]
+__all__ = ["SceneModel", "SceneModelError", "KIND", "PARAMS_VERSION", "PARAMS_KEYS", "ITEM_RULES", "OFFSET_KEYS",
+           "LABELS_KEYS"]

@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
+from vs2t_edge.runtime.scene_model import LABELS_KEYS, PARAMS_KEYS, SceneModel, SceneModelError
 
 SCENE = ("a", "b")
 
@@ -109,6 +110,19 @@ def test_scene_model_parameters_are_checked():
         SceneModel.from_params({k: v for k, v in p.items() if k != "basis"})
     with pytest.raises(SceneModelError):
         m.log_posterior(np.zeros((1, 19)))
+
+
+def test_a_scene_model_key_this_runtime_does_not_know_is_refused_by_name():
+    # a newer training's rule as a key this runtime would skip: sorting without it could put a
+    # piece in a wrong bin, so the file is refused, naming the key
+    centres, x, y, _ = _blobs()
+    m = SceneModel.fit(x[y < 3], y[y < 3], ["a", "b", "c"], x[y == 3], np.zeros(60, int), ["d"], k=4)
+    full = replace(m, known_only=(), refuse_early=True, outlier_ratio=20.0,
+                   labels_rule={key: 1.0 for key in LABELS_KEYS}).to_params()
+    assert set(full) <= PARAMS_KEYS  # every key the writer writes is one the reader knows
+    assert SceneModel.from_params(full).outlier_ratio == 20.0
+    with pytest.raises(SceneModelError, match="'crease_rule', which this runtime does not know"):
+        SceneModel.from_params({**full, "crease_rule": np.array(3.0)})
 
 
 class _P:
