@@ -257,14 +257,9 @@ def verify_hashes(root: Path, manifest: dict) -> None:
                                     f"{digest[:12]!r}... (file changed or corrupted)")
 
 
-def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
-    """Read and statically verify a bundle (no graph is run here). Raises BundleError."""
-    from vs2t_edge.runtime import novelty as nv
-
-    root = Path(root)
-    manifest = read_manifest(root)
-    verify_seal(root, manifest)
-    verify_hashes(root, manifest)
+def manifest_classes(root: Path, manifest: dict) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The manifest's (touched, untouched) class names, checked: names, at least one touched, each
+    once. Raises BundleError."""
     touched = _names(_need(manifest, root, "classes", "touched"), root, "classes.touched")
     untouched = _names(_need(manifest, root, "classes", "untouched"), root, "classes.untouched")
     if not touched:
@@ -273,6 +268,18 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
     dup = sorted(c for c, n in counts.items() if n > 1)
     if dup:
         raise BundleError(root, f"class name(s) {dup[:10]} appear more than once in 'classes'")
+    return touched, untouched
+
+
+def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
+    """Read and statically verify a bundle (no graph is run here). Raises BundleError."""
+    from vs2t_edge.runtime import novelty as nv
+
+    root = Path(root)
+    manifest = read_manifest(root)
+    verify_seal(root, manifest)
+    verify_hashes(root, manifest)
+    touched, untouched = manifest_classes(root, manifest)
     pre = _need(manifest, root, "preprocess")
     if not isinstance(pre, dict):
         raise BundleError(root, "manifest.json 'preprocess' must be an object")
@@ -558,5 +565,5 @@ def _check_press_outputs(bundle: Bundle, key: str, g: dict) -> None:
 
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "READ_VERSIONS", "is_fused", "MIN_OPSET", "MAX_OPSET", "ORT_FLOOR_OPSET", "onnxruntime_max_opset", "SEAL_KEY", "Bundle", "BundleError", "load_bundle",
-           "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
+           "manifest_classes", "read_manifest", "graph_keys", "is_descriptor", "manifest_digest", "seal_manifest", "verify_seal", "verify_hashes", "read_onnx_opsets",
            "sha256_file", "session_options", "open_session", "check_session_shapes"]

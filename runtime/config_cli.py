@@ -44,16 +44,14 @@ def run(args) -> int:
         if read[1]:  # the bundle's load refuses it too (runtime/bundle.py): said here, not as "no scene model"
             print(f"config {cfg.path}: {read[1]}", file=sys.stderr)
             return 2
+        if problem := scene_problem(cfg, read[0]):  # what `run` refuses at start (runtime/wiring.py), said before it
+            print(problem if problem.startswith(str(cfg.path)) else f"config {cfg.path}: {problem}", file=sys.stderr)
+            return 2
         if cfg.operator_labels is not None:
             problem = operator_labels_problem(cfg, read)  # what `run` refuses at start (runtime/wiring.py), said before it
             if problem:
                 print(f"config {cfg.path}: {problem}", file=sys.stderr)
                 return 2
-        from vs2t_edge.runtime.operating_point import one_fabric_problem
-
-        if problem := one_fabric_problem(cfg, read[0]):  # refused at start too (runtime/wiring.py)
-            print(problem, file=sys.stderr)
-            return 2
         # said at the start too (runtime/daemon.py); a warning, not a refusal
         from vs2t_edge.runtime.operating_point import confidence_override_note
 
@@ -71,6 +69,20 @@ def run(args) -> int:
           f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "
           f"{confidence}, max {cfg.max_presses} presses")
     return 0
+
+
+def scene_problem(cfg, scene_model) -> str:
+    """Why the start would refuse the job's fabrics with the bundle (runtime/operating_point.py
+    ``scene_bundle_problem``), from its manifest and scene model alone; '' when it would not."""
+    from vs2t_edge.runtime.bundle import BundleError, manifest_classes, read_manifest
+    from vs2t_edge.runtime.operating_point import scene_bundle_problem
+
+    try:
+        manifest = read_manifest(cfg.bundle)
+        touched, untouched = manifest_classes(cfg.bundle, manifest)
+    except BundleError as exc:
+        return str(exc)
+    return scene_bundle_problem(cfg, touched, untouched, manifest, scene_model)
 
 
 def read_scene_model(cfg) -> tuple[Any, str]:

@@ -238,6 +238,40 @@ def one_fabric_problem(cfg, scene_model) -> str:
             "the other fabrics the line carries")
 
 
+def scene_bundle_problem(cfg, touched, untouched, manifest, scene_model) -> str:
+    """Why the job's fabrics cannot be sorted with a bundle of these classes, manifest and scene
+    model ('' when they can). Every scene fabric is a class of the bundle, of the kind the scene
+    says: a fabric the scene calls touched that the bundle only knows zero-shot (or the reverse) is
+    a wrong config or a wrong bundle, and the cell would sort it with the wrong expectation. A
+    one-fabric scene needs an off-scene rule (``one_fabric_problem``). The start refuses the job
+    (runtime/wiring.py, on the loaded bundle); `validate-config --check-bundle` asks the same of the
+    bundle's files (runtime/config_cli.py), so the unit's ExecStartPre stops what `run` would."""
+    touched, untouched = list(touched), list(untouched)
+    provenance = (manifest or {}).get("provenance") or {}
+    if provenance.get("trained") is False:
+        # `export --random-trunk`: the shapes and cost of a trained bundle, with real fabric names,
+        # and decisions that mean nothing (on the paper world 17 of 21 pieces into wrong bins)
+        return (f"bundle {cfg.bundle} was never trained (manifest provenance.trained: false, operating "
+                f"point {(manifest or {}).get('operating_point', '?')!r}): a latency bundle for "
+                "`vs2t-edge bench`, not one to sort with; deploy a bundle exported from a training run")
+    missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
+    refuse_only = [f for f in missing if f in getattr(scene_model, "known_only", ())]
+    if refuse_only:
+        return (f"scene fabric(s) {refuse_only} are known to bundle {cfg.bundle} only to refuse their "
+                "pieces (fabrics its training run held out to choose with: no classifier has them); "
+                "train a run that touches them to sort them")
+    if missing:
+        return (f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
+                f"(touched: {touched}, untouched: {untouched})")
+    wrong = [f"{f.name} (scene: {f.kind}, bundle: {'touched' if f.name in touched else 'untouched'})"
+             for f in cfg.fabrics if (f.name in touched) != (f.kind == "touched")]
+    if wrong:
+        return (f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
+                "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
+    return one_fabric_problem(cfg, scene_model)
+
+
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
            "write_beta_override", "scene_model_rule", "config_sets_confidence", "confidence_override_note",
-           "evidence_settings", "scene_model_settings", "refuses_off_scene", "one_fabric_problem"]
+           "evidence_settings", "scene_model_settings", "refuses_off_scene", "one_fabric_problem",
+           "scene_bundle_problem"]

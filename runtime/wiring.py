@@ -34,7 +34,7 @@ from vs2t_edge.runtime.feedback import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
-from vs2t_edge.runtime.operating_point import evidence_settings, one_fabric_problem, resolve_beta, scene_model_settings
+from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, scene_bundle_problem, scene_model_settings
 
 
 class SceneModelMissing(ValueError):
@@ -55,33 +55,11 @@ def load_model(cfg: CellConfig) -> TactileModel:
 
 
 def check_scene_against_bundle(cfg: CellConfig, model) -> None:
-    """Every scene fabric is a class of the bundle, of the kind the scene says: a fabric the
-    scene calls touched that the bundle only knows zero-shot (or the reverse) is a wrong
-    config or a wrong bundle, and the cell would sort it with the wrong expectation. A one-fabric
-    scene needs the bundle's scene model: without its off-scene rules no piece could be refused."""
-    provenance = (getattr(model, "manifest", None) or {}).get("provenance") or {}
-    if provenance.get("trained") is False:
-        # `export --random-trunk`: the shapes and cost of a trained bundle, with real fabric names,
-        # and decisions that mean nothing (on the paper world 17 of 21 pieces into wrong bins)
-        raise ValueError(f"bundle {cfg.bundle} was never trained (manifest provenance.trained: false, operating "
-                         f"point {(model.manifest or {}).get('operating_point', '?')!r}): a latency bundle for "
-                         "`vs2t-edge bench`, not one to sort with; deploy a bundle exported from a training run")
-    touched, untouched = list(model.touched), list(model.untouched)
-    missing = [f.name for f in cfg.fabrics if f.name not in touched + untouched]
-    refuse_only = [f for f in missing if f in getattr(getattr(model, "scene_model", None), "known_only", ())]
-    if refuse_only:
-        raise ValueError(f"scene fabric(s) {refuse_only} are known to bundle {cfg.bundle} only to refuse their "
-                         "pieces (fabrics its training run held out to choose with: no classifier has them); "
-                         "train a run that touches them to sort them")
-    if missing:
-        raise ValueError(f"scene fabric(s) {missing} are not classes of bundle {cfg.bundle} "
-                         f"(touched: {touched}, untouched: {untouched})")
-    wrong = [f"{f.name} (scene: {f.kind}, bundle: {'touched' if f.name in touched else 'untouched'})"
-             for f in cfg.fabrics if (f.name in touched) != (f.kind == "touched")]
-    if wrong:
-        raise ValueError(f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
-                         "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
-    problem = one_fabric_problem(cfg, getattr(model, "scene_model", None))
+    """Raise ValueError when the job's fabrics cannot be sorted with this loaded bundle
+    (runtime/operating_point.py ``scene_bundle_problem``, which `validate-config --check-bundle`
+    asks of the bundle's files before the start)."""
+    problem = scene_bundle_problem(cfg, model.touched, model.untouched, getattr(model, "manifest", None) or {},
+                                   getattr(model, "scene_model", None))
     if problem:
         raise ValueError(problem)
 

@@ -21,6 +21,7 @@ from vs2t_edge.runtime.scene_model import SceneModel
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 
 CLASSES = ("denim", "silk", "wool")  # wool untouched: its mean (0, 10) is the generator's
+MANIFEST_CLASSES = {"touched": ["denim", "silk"], "untouched": ["wool"]}  # a bundle manifest's "classes" of them
 BINS = {"denim": 1, "silk": 2, "wool": 3}
 
 

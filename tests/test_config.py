@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import textwrap
 
 import pytest
@@ -148,8 +149,58 @@ def test_validate_config_check_bundle_refuses_a_bundle_without_scene_model(tmp_p
     import numpy as np
     from feedback_fakes import scene_model
 
-    np.savez(tmp_path / "bundle" / "decision.npz", **scene_model().to_params())
+    sm = scene_model(untouched=frozenset({"silk"}))  # GOOD's kinds: denim touched, silk untouched
+    np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({
+        "format": "vs2t-bundle", "format_version": 2, "classes": {"touched": ["denim", "wool"], "untouched": ["silk"]},
+        "decision": {"file": "decision.npz"}}))
     assert main(["validate-config", str(path), "--check-bundle"]) == 0
+
+
+def test_validate_config_check_bundle_refuses_every_job_the_start_refuses(tmp_path, capsys):
+    """The unit's ExecStartPre (`validate-config --check-bundle`) passed jobs that `run` then
+    refused at start: a fabric the bundle lacks or spells otherwise, one it knows only to refuse,
+    a kind the bundle disagrees with, an untrained bundle. Each is now said before the start, from
+    the bundle's files, by the same function the start asks (runtime/operating_point.py)."""
+    import json
+    from types import SimpleNamespace
+
+    import numpy as np
+    from feedback_fakes import scene_model
+
+    from vs2t_edge.runtime.wiring import check_scene_against_bundle
+
+    (tmp_path / "bundle").mkdir()
+    sm = scene_model(untouched=frozenset({"silk"}), known_only=("wool",))
+    np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
+    classes = {"touched": ["denim"], "untouched": ["silk"]}
+    cases = [("denim", "touched", {}, None),
+             ("Denim", "touched", {}, "scene fabric(s) ['Denim'] are not classes of bundle"),
+             ("linen", "touched", {}, "scene fabric(s) ['linen'] are not classes of bundle"),
+             ("wool", "touched", {}, "known to bundle"),
+             ("denim", "untouched", {}, "scene fabric kind disagrees with bundle"),
+             ("denim", "touched", {"provenance": {"trained": False}}, "was never trained")]
+    for name, kind, extra, refusal in cases:
+        (tmp_path / "bundle" / "manifest.json").write_text(json.dumps(
+            {"format": "vs2t-bundle", "format_version": 2, "classes": classes, "decision": {"file": "decision.npz"},
+             **extra}))
+        path = write(tmp_path, GOOD.replace("{name: denim, kind: touched, bin: 1}",
+                                            f"{{name: {name}, kind: {kind}, bin: 1}}"))
+        code = main(["validate-config", str(path), "--check-bundle"])
+        err = capsys.readouterr().err
+        assert code == (0 if refusal is None else 2), (name, kind, extra, err)
+        loaded = SimpleNamespace(touched=classes["touched"], untouched=classes["untouched"], scene_model=sm,
+                                 manifest=extra)
+        if refusal is None:
+            check_scene_against_bundle(load_config(path), loaded)
+            continue
+        assert refusal in err, err
+        with pytest.raises(ValueError, match=re.escape(refusal)):
+            check_scene_against_bundle(load_config(path), loaded)  # what the start says, word for word
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps(
+        {"format": "vs2t-bundle", "format_version": 2, "classes": {"touched": "denim"}, "decision": {"file": "decision.npz"}}))
+    assert main(["validate-config", str(write(tmp_path, GOOD)), "--check-bundle"]) == 2
+    assert "'classes.touched' must be a list of class names" in capsys.readouterr().err
 
 
 def test_docs_reference_lists_every_key():

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from cell_fakes import ScriptedCamera
-from feedback_fakes import (BINS, CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback,
-                            scene_model)
+from feedback_fakes import (BINS, CLASSES, MANIFEST_CLASSES, ListJournal, PieceModel, labelled_cell, labels_config,
+                            operator_feedback, scene_model)
 from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
@@ -572,6 +572,7 @@ def test_the_bench_prices_operator_labels_beside_the_zero_shot_decision():
 def test_validate_config_says_before_the_start_that_labels_need_the_offset_rule(tmp_path, capsys):
     (tmp_path / "bundle").mkdir()
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "classes": MANIFEST_CLASSES,
                                                                    "decision": {"file": "decision.npz"}}))
     cfg = tmp_path / "cell.yaml"
     cfg.write_text(fake_cell_yaml(evidence={"operator_labels": "labels.jsonl"}))

@@ -240,6 +240,8 @@ def test_a_one_fabric_scene_is_refused_before_the_start_and_labels_keep_its_off_
     assert sm.for_labels().known_margin == 0.0 and sm.for_labels().open_threshold == math.inf
     (tmp_path / "bundle").mkdir()
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "classes": {"touched": ["f00", "f02"],
+                                                                               "untouched": ["f03"]},
                                                                    "decision": {"file": "decision.npz"}}))
     np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
     assert main(["validate-config", str(tmp_path / "c.yaml"), "--check-bundle"]) == 0
@@ -362,13 +364,14 @@ def test_the_untouched_confidence_is_the_operators_knob_too(tmp_path):
 
 def test_validate_config_warns_when_the_config_overrides_the_models_confidence(tmp_path, capsys):
     import numpy as np
-    from feedback_fakes import scene_model
+    from feedback_fakes import MANIFEST_CLASSES, scene_model
 
     from vs2t_edge.cli import main
     from vs2t_edge.sim.scene import fake_cell_yaml
 
     (tmp_path / "bundle").mkdir()
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps({"format": "vs2t-bundle", "format_version": 2,
+                                                                   "classes": MANIFEST_CLASSES,
                                                                    "decision": {"file": "decision.npz"}}))
     np.savez(tmp_path / "bundle" / "decision.npz", **scene_model(confidence=0.99).to_params())
     cfg = tmp_path / "cell.yaml"
