@@ -415,11 +415,15 @@ class OperatorFeedback:
     def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
         """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
         else why not. A piece's earlier label is replaced (``item_labels``), never added to; by a
-        touched fabric's (which teaches nothing) it is withdrawn."""
+        touched fabric's (which teaches nothing) it is withdrawn; so it is by a label this job cannot
+        apply - the piece's latest label says what it was, so the earlier one is wrong whatever job
+        reads it (a restart into another job judges each journalled label again, ``restore``)."""
         if off_scene and fabric in self.scene:
-            return f"{fabric!r} is a fabric of this job, not an off-scene one"
+            return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild,
+                                          f"{fabric!r} is a fabric of this job, not an off-scene one")
         if not off_scene and fabric not in self.scene:
-            return f"{fabric!r} is not a fabric of this job (an off-scene piece is labelled with off_scene)"
+            return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild, f"{fabric!r} is not a fabric of "
+                                          "this job (an off-scene piece is labelled with off_scene)")
         if not off_scene and fabric not in self.base.untouched:
             if item_id in self.item_labels:  # a correction: the piece was this touched fabric, its label is withdrawn
                 return self._retract(item_id, rebuild)
@@ -432,6 +436,16 @@ class OperatorFeedback:
         if rebuild:
             self._relearn()
         return ""
+
+    def _withdraw_earlier(self, item_id: str, label: tuple[str, bool], rebuild: bool, why: str) -> str:
+        """``why`` (the label is not applied), after withdrawing the piece's earlier, different
+        label: left in force it would teach its class the presses of a piece the operator has
+        since called something else - the next pieces of that fabric into the wrong bin."""
+        earlier = self.item_labels.get(item_id)
+        if earlier is None or earlier == label:
+            return why
+        self._retract(item_id, rebuild)
+        return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"
 
     def _retract(self, item_id: str, rebuild: bool = True) -> str:
         """'' when the piece's label was withdrawn, else why not."""
@@ -506,6 +520,8 @@ class OperatorFeedback:
                 entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
                              applied=not why, **({"why": why} if why else {}),
                              **({"replaces": before[0]} if before and not why else {}),
+                             **({"withdrew": before[0]} if before and why and rec["item_id"] not in self.item_labels
+                                else {}),
                              **({"guarded_while_untaught": twins} if twins else {}))
             try:
                 out.append(journal.append(entry))

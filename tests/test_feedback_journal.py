@@ -278,3 +278,67 @@ def test_a_retraction_or_correction_given_while_its_fabric_was_out_of_the_job_ho
     third = session(["denim", "silk", "wool"])
     assert third.item_labels == {} and third.poll(journal) == []
     assert np.allclose(third.model.means, scene_model().means)  # wool's mean is its synthesis again
+
+
+def test_a_correction_this_job_cannot_apply_still_withdraws_the_earlier_label(tmp_path):
+    """A piece P of linen is labelled wool by mistake, then corrected to linen, in a job that can
+    apply the correction. A restart into a job that cannot (linen left out of it: a plain label of
+    a fabric outside the job; or, the other way round, an off-scene label of a fabric the new job
+    lists) refused the correction and applied the wool label again: wool's mean on linen's presses,
+    the next linen piece into wool's bin. The latest label counts: the earlier one is withdrawn
+    wherever the correction cannot be applied, live and at a restart."""
+    from dataclasses import replace
+
+    base = replace(scene_model(), classes=("denim", "silk", "wool", "linen"), untouched=frozenset({"wool", "linen"}),
+                   means=np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
+    linen = np.array([9.0, 9.0])
+    make = lambda m, classes: Evidence(classes, 0.95, 4, item_model=m)  # noqa: E731
+
+    def decide(ev):
+        for _ in range(4):
+            if (d := ev.add(so.Press({}, None, linen))) is not None:
+                return d
+        return ev.decide()
+
+    def run(name, first_job, correction_off_scene, second_job):
+        labels, journal = tmp_path / f"{name}.jsonl", ListJournal()
+
+        def session(scene):
+            journal.append({"type": "start", "manifest_sha256": "SEAL"})
+            fb = OperatorFeedback(base, scene, labels, make)
+            fb.restore(list(journal.records), "SEAL")
+            return fb
+
+        first = session(first_job)
+        ev = first()
+        decide(ev)
+        journal.append({"type": "pre_sort", "item_id": "P", "presses": ev.presses,
+                        "scene_z_mean": first.journal_z_mean(ev)})
+        first.remember("P", ev)
+        append_label(labels, "P", "wool")
+        append_label(labels, "P", "linen", off_scene=correction_off_scene)
+        assert [(r["applied"], r.get("replaces")) for r in first.poll(journal)] == [(True, None), (True, "wool")]
+        return first, session(second_job)
+
+    # a plain correction, then a job without linen
+    first, second = run("plain", ["denim", "silk", "wool", "linen"], False, ["denim", "silk", "wool"])
+    assert first.item_labels == {"P": ("linen", False)}
+    assert second.item_labels == {}  # not wool again
+    assert np.allclose(second.model.means[:3], base.means[:3])  # wool's mean is its synthesis
+    # an off-scene correction in a job without linen, then a job with it
+    first, second = run("off", ["denim", "silk", "wool"], True, ["denim", "silk", "wool", "linen"])
+    assert first.item_labels == {"P": ("linen", True)}
+    assert second.item_labels == {} and np.allclose(second.model.means, base.means)
+    assert decide(second()).label != "wool"  # the next linen piece is not sorted into wool's bin
+
+    # live: a label of a fabric outside the job withdraws the piece's wool label, said in the journal
+    labels, journal = tmp_path / "live.jsonl", ListJournal()
+    fb = OperatorFeedback(base, ["denim", "silk", "wool"], labels, make)
+    ev = fb()
+    decide(ev)
+    fb.remember("P", ev)
+    append_label(labels, "P", "wool")
+    append_label(labels, "P", "linen")
+    wool, refused = fb.poll(journal)
+    assert wool["applied"] and not refused["applied"] and refused["withdrew"] == "wool"
+    assert "earlier label 'wool' is withdrawn" in refused["why"] and fb.item_labels == {}
