@@ -28,7 +28,7 @@ from dataclasses import replace
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.feedback import append_label, read_labels
+from vs2t_edge.runtime.labels import append_label, read_labels
 from vs2t_edge.runtime.journal import iter_records
 
 

@@ -38,7 +38,7 @@ from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.daemon import bundle_seal, run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
-from vs2t_edge.runtime.feedback import append_label
+from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier

@@ -30,7 +30,7 @@ from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback
+from vs2t_edge.runtime.labels import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed

@@ -36,7 +36,7 @@ import numpy as np
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
-from vs2t_edge.runtime.feedback import append_label
+from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
 from vs2t_edge.runtime.wiring import SceneModelMissing, require_scene_model

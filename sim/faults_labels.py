@@ -63,7 +63,7 @@ def labels_file_faults(w: Path):
     otherwise, denim and silk pieces to their own bins throughout; each unreadable state is journaled
     once; a service restarted on the journal rebuilds the same learned model."""
     from vs2t_edge.runtime.evidence import Evidence
-    from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
+    from vs2t_edge.runtime.labels import OperatorFeedback, append_label
     from vs2t_edge.runtime.journal import iter_records
     from vs2t_edge.sim.fault_rig import _at, _check, _loop_row
 

@@ -12,7 +12,7 @@ from cell_fakes import ScriptedCamera
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.cell import Cell, SceneSpec
 from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback
+from vs2t_edge.runtime.labels import OperatorFeedback
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal
 from vs2t_edge.runtime.notify import Notifier

@@ -17,10 +17,10 @@ from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.feedback import (GuardedEvidence, OperatorFeedback, adapt, append_label, confusable,
-                                        item_evidence, read_labels)
+from vs2t_edge.runtime.feedback import GuardedEvidence, adapt, confusable, item_evidence
 from vs2t_edge.runtime.items import ContinuousFeed
 from vs2t_edge.runtime.journal import Journal, iter_records, read_records
+from vs2t_edge.runtime.labels import OperatorFeedback, append_label, read_labels
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 from vs2t_edge.sim.scene import fake_cell_yaml

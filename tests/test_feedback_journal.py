@@ -13,7 +13,7 @@ from cell_fakes import ScriptedCamera
 from feedback_fakes import CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback, scene_model
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback, append_label
+from vs2t_edge.runtime.labels import OperatorFeedback, append_label
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 

@@ -14,7 +14,7 @@ from feedback_fakes import CLASSES, PieceModel, labelled_cell
 from feedback_fakes import scene_model as labels_model
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.feedback import OperatorFeedback
+from vs2t_edge.runtime.labels import OperatorFeedback
 from vs2t_edge.runtime.journal import iter_records
 from vs2t_edge.runtime.operating_point import scene_model_rule
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
@@ -240,7 +240,7 @@ def test_after_labels_a_press_is_an_outlier_only_when_far_from_both_models():
 def test_a_fabric_whose_every_press_is_an_outlier_can_still_be_taught_by_a_label(tmp_path):
     """Its first piece goes to the reject bin (no press was evidence); the label teaches the mean
     of all its presses, and its later pieces go to its bin."""
-    from vs2t_edge.runtime.feedback import append_label
+    from vs2t_edge.runtime.labels import append_label
 
     class _Far(PieceModel):
         z = (8.0, 2.0)  # 3.05 spreads from denim and silk, 3.6 from wool's synthesis: all beyond ratio 3

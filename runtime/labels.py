@@ -1,0 +1,338 @@
+"""Operator labels as the cell reads, journals and restores them; what they teach is runtime/feedback.py.
+
+The operator's labels are a JSON-lines file, one ``{"item_id": ..., "fabric": ...}`` a line,
+appended with an fsync (``append_label``). A piece has at most one label that counts, its latest: a
+second line for the same piece replaces the first (a correction; the same label again changes
+nothing, so a piece is never counted twice), and ``{"item_id": ..., "retract": true}`` withdraws it -
+a wrong label would otherwise pull its fabric's mean towards another fabric for the rest of the job,
+and a restart, which rebuilds from the journal, would keep it. The cell reads new lines before each item
+(``OperatorFeedback.poll``) and journals what it did with each (``{"type": "label", ...}``,
+applied or not and why) before it presses the next piece; each decided item's pre_sort record
+carries its presses' mean projection (``scene_z_mean``), so a restarted service rebuilds the same
+state from the journal (``restore``) and reads on from the first line it has not journaled.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import numpy as np
+
+from vs2t_edge.runtime.bundle import SEAL_KEY
+from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.feedback import adapt, confusable, item_evidence
+from vs2t_edge.runtime.files import InputRefused, read_regular_file
+from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
+
+JOURNAL_DECIMALS = 5  # of a pre_sort record's scene_z_mean, what live and restarted cells learn from
+
+MAX_LABEL_LINE_BYTES = 4096
+MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; a new file per job (at a new path) long before
+
+
+def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
+    """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
+    ``fabric`` names a piece that is none of the job's fabrics (any name the operator uses);
+    ``fabric`` None: withdraw the piece's label (module doc)."""
+    if fabric is None:
+        rec: dict = {"item_id": str(item_id), "retract": True}
+    else:
+        rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {})}
+    line = (json.dumps(rec, sort_keys=True) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o640)
+    try:
+        os.write(fd, line)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return rec
+
+
+def read_labels(path: Path | str, start: int = 0) -> list[tuple[int, dict | str]]:
+    """(line number from 1, label or the reason it is unusable) for every whole line from line
+    ``start`` + 1 on; a last line without its newline is being written and is left for later."""
+    try:  # a regular file under a cap: a FIFO put there must not hang the cell (InputRefused, an error)
+        data = read_regular_file(path, MAX_LABELS_FILE_BYTES, "labels file")
+    except FileNotFoundError:
+        return []
+    return [(k, rec) for k, rec, _ in _parse_labels(data, start)[1]]
+
+
+def _parse_labels(data: bytes, start: int = 0) -> tuple[int, list[tuple[int, dict | str, int]]]:
+    """(the byte offset where line ``start`` + 1 begins, ``read_labels``'s lines of ``data`` from
+    it, each with the byte offset just past its newline)."""
+    lines = data.split(b"\n")[:-1]  # the part after the last newline is not a whole line yet
+    begin = end = sum(len(raw) + 1 for raw in lines[:start])
+    out: list[tuple[int, dict | str, int]] = []
+    for k, raw in enumerate(lines[start:], start + 1):
+        end += len(raw) + 1
+        out.append((k, _parse_label(raw), end))
+    return begin, out
+
+
+def _parse_label(raw: bytes) -> dict | str:
+    if not raw.strip():
+        return "an empty line"
+    if len(raw) > MAX_LABEL_LINE_BYTES:
+        return f"a line of {len(raw)} bytes (at most {MAX_LABEL_LINE_BYTES})"
+    try:
+        rec = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        return f"not JSON ({exc})"
+    retract = isinstance(rec, dict) and rec.get("retract") is True and "fabric" not in rec \
+        and "off_scene" not in rec and isinstance(rec.get("item_id"), str)
+    if not retract and (not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str)
+                        or not isinstance(rec.get("fabric"), str) or "retract" in rec
+                        or not isinstance(rec.get("off_scene", False), bool)):
+        return ('not {"item_id": "...", "fabric": "..."[, "off_scene": true]} '
+                'nor {"item_id": "...", "retract": true}')
+    return rec
+
+
+_EMPTY_SHA256 = hashlib.sha256(b"").hexdigest()
+
+
+class OperatorFeedback:
+    """The cell's item rule with operator labels (module doc): an evidence factory the cell calls per
+    item, which it also tells each decided item (``remember``) and lets read new labels (``poll``).
+    ``model``: the bundle's scene model (its own rule decides until a label teaches something; a
+    sum-rule model's stored offset setting is what labels update, ``SceneModel.for_labels``);
+    ``make_evidence(model, classes)``: the item evidence over ``classes`` (the scene's, then the
+    learned strangers', whose decisions go to the reject bin) at ``model``'s operating point."""
+
+    def __init__(self, model: SceneModel, scene_classes: Iterable[str], labels_path: Path | str,
+                 make_evidence: Callable[[SceneModel, list[str]], Evidence]) -> None:
+        base = model.for_labels()
+        if base is None:
+            raise SceneModelError("operator labels need the scene model's offset item rule, and this sum-rule model "
+                                  "carries no offset setting (a bundle exported before it did: re-export it)")
+        self.deployed, self.base = model, base  # the zero-shot rule, and the offset-rule model labels update
+        self.scene = list(scene_classes)
+        self.path = Path(labels_path)
+        self.make_evidence = make_evidence
+        self.pieces: dict[str, tuple[list[float], int]] = {}  # item id -> (press mean, presses)
+        self.item_labels: dict[str, tuple[str, bool]] = {}  # item id -> its label that counts (fabric, off-scene)
+        self.labelled: dict[str, list[tuple[np.ndarray, int]]] = {}
+        self.strangers: dict[str, list[tuple[np.ndarray, int]]] = {}
+        self.lines_read = 0
+        self.model = base
+        self._unreadable = ""  # the last unreadable-file error journaled (said once, not per piece)
+        self._seen: tuple | None = None  # the labels file's (device, inode, size, mtime) when last read
+        # (bytes, SHA-256) of the file through line lines_read; None: unknown (a journal older than them)
+        self._prefix: tuple[int, str] | None = (0, _EMPTY_SHA256)
+
+    def __call__(self):
+        return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
+
+    @staticmethod
+    def journal_z_mean(evidence: Any) -> list[float] | None:
+        """The piece's press mean as its ``pre_sort`` record keeps it (``scene_z_mean``, 5 decimals),
+        None when the evidence has none. The live cell learns from exactly these numbers
+        (``remember``), as a restart does from the journal: the same state either way."""
+        z = getattr(evidence, "z_mean", None)
+        return None if z is None else [round(float(v), JOURNAL_DECIMALS) for v in np.asarray(z).reshape(-1)]
+
+    @staticmethod
+    def journal_z_presses(evidence: Any) -> int | None:
+        """How many presses the piece's press mean averages when outlier presses were left out of
+        it (its ``pre_sort`` record's ``scene_z_presses``), None when it averages all its presses."""
+        n, presses = getattr(evidence, "mean_presses", None), getattr(evidence, "presses", 0)
+        return None if n is None or n == presses else int(n)
+
+    def remember(self, item_id: str, evidence: Any) -> None:
+        z, n = self.journal_z_mean(evidence), getattr(evidence, "mean_presses", getattr(evidence, "presses", 0))
+        if z is not None and n:
+            self.pieces[str(item_id)] = (z, int(n))
+
+    def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
+        """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
+        else why not. A piece's earlier label is replaced (``item_labels``), never added to; by a
+        touched fabric's (which teaches nothing) it is withdrawn; so it is by a label this job cannot
+        apply - the piece's latest label says what it was, so the earlier one is wrong whatever job
+        reads it (a restart into another job judges each journalled label again, ``restore``)."""
+        if off_scene and fabric in self.scene:
+            return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild,
+                                          f"{fabric!r} is a fabric of this job, not an off-scene one")
+        if not off_scene and fabric not in self.scene:
+            return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild, f"{fabric!r} is not a fabric of "
+                                          "this job (an off-scene piece is labelled with off_scene)")
+        if not off_scene and fabric not in self.base.untouched:
+            if item_id in self.item_labels:  # a correction: the piece was this touched fabric, its label is withdrawn
+                return self._retract(item_id, rebuild)
+            return f"{fabric!r} is a touched fabric: its mean comes from training presses"
+        if item_id not in self.pieces:
+            return f"no decided item {item_id!r} with presses in this journal"
+        if self.item_labels.get(item_id) == (fabric, off_scene):
+            return f"{item_id!r} is labelled {fabric!r} already (a piece counts once)"
+        self.item_labels[item_id] = (fabric, off_scene)
+        if rebuild:
+            self._relearn()
+        return ""
+
+    def _withdraw_earlier(self, item_id: str, label: tuple[str, bool], rebuild: bool, why: str) -> str:
+        """``why`` (the label is not applied), after withdrawing the piece's earlier, different
+        label: left in force it would teach its class the presses of a piece the operator has
+        since called something else - the next pieces of that fabric into the wrong bin."""
+        earlier = self.item_labels.get(item_id)
+        if earlier is None or earlier == label:
+            return why
+        self._retract(item_id, rebuild)
+        return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"
+
+    def _retract(self, item_id: str, rebuild: bool = True) -> str:
+        """'' when the piece's label was withdrawn, else why not."""
+        if item_id not in self.item_labels:
+            return f"{item_id!r} has no applied label to retract"
+        del self.item_labels[item_id]
+        if rebuild:
+            self._relearn()
+        return ""
+
+    def _relearn(self) -> None:
+        """The labelled pieces per class from each piece's label that counts, in the order labelled,
+        and the model they teach."""
+        self.labelled, self.strangers = {}, {}
+        for item_id, (fabric, off_scene) in self.item_labels.items():
+            z, n = self.pieces[item_id]
+            (self.strangers if off_scene else self.labelled).setdefault(fabric, []).append((np.asarray(z), n))
+        self.model = adapt(self.base, self.labelled, self.strangers)
+
+    def poll(self, journal) -> list[dict]:
+        """Read labels written since the last poll, apply them, journal each; the records written.
+        A labels file that cannot be read (permissions, a folder in its place) stops no piece: the
+        cell sorts on with what it learned, and the journal says so once per distinct error. A file
+        that no longer begins with the lines read before (a new file in its place, truncated, edited)
+        is read again from its first line, said in the journal: none of its lines is skipped, and a
+        label already in force changes nothing when read again."""
+        try:
+            st = os.stat(self.path)
+            seen = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+            if seen == self._seen:  # nothing written since the last read: no re-read per piece
+                return []
+            data = read_regular_file(self.path, MAX_LABELS_FILE_BYTES, "labels file")
+        except FileNotFoundError:
+            return []
+        except (OSError, InputRefused) as exc:
+            said = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            why = f"labels file {self.path} unreadable ({said}); sorting on without new labels"
+            if why == self._unreadable:
+                return []
+            out = [journal.append({"type": "label", "file": str(self.path), "applied": False, "why": why})]
+            self._unreadable = why  # said once it is in the journal
+            return out
+        self._unreadable = ""
+        out = []
+        if not self._begins_with_lines_read(data):
+            why = (f"labels file {self.path} no longer begins with the {self.lines_read} line(s) read before (a new "
+                   "file in its place, truncated or edited): read again from line 1. The labels in force stay (one "
+                   "read again changes nothing); a line taken out withdraws nothing: `vs2t-edge label --retract` does")
+            out.append(journal.append({"type": "label", "file": str(self.path), "applied": False, "reread": True,
+                                       "why": why}))
+            self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)
+        start, lines = _parse_labels(data, self.lines_read)
+        digest = hashlib.sha256(data[:start])
+        for line, rec, end in lines:
+            digest.update(data[start:end])
+            start = end
+            entry: dict[str, Any] = {"type": "label", "line": line, "file": str(self.path),
+                                     "file_bytes": end, "file_sha256": digest.hexdigest()}
+            before_line = dict(self.item_labels)  # what a label that cannot be journaled must leave
+            if isinstance(rec, str):
+                entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
+            elif rec.get("retract"):
+                before = self.item_labels.get(rec["item_id"])
+                why = self._retract(rec["item_id"])
+                entry.update(item_id=rec["item_id"], retract=True, applied=not why, **({"why": why} if why else {}),
+                             **({"withdrew": before[0]} if before and not why else {}))
+            else:
+                off = bool(rec.get("off_scene", False))
+                before = self.item_labels.get(rec["item_id"])
+                why = self._apply(rec["item_id"], rec["fabric"], off)
+                twins = [] if why or off else self.twins_of(rec["fabric"])
+                entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
+                             applied=not why, **({"why": why} if why else {}),
+                             **({"replaces": before[0]} if before and not why else {}),
+                             **({"withdrew": before[0]} if before and why and rec["item_id"] not in self.item_labels
+                                else {}),
+                             **({"guarded_while_untaught": twins} if twins else {}))
+            try:
+                out.append(journal.append(entry))
+            except BaseException:
+                # not in the journal, so not in the state: a restart could not rebuild it. The line
+                # is read again at the next poll (lines_read, _seen not moved past it).
+                if self.item_labels != before_line:
+                    self.item_labels = before_line
+                    self._relearn()
+                raise
+            self.lines_read, self._prefix = line, (end, entry["file_sha256"])
+        self._seen = seen  # a line still being written grows the file, so it is read when whole
+        return out
+
+    def twins_of(self, fabric: str) -> list[str]:
+        """The job's untaught untouched fabrics that keep ``fabric``'s label guarded (``confusable``):
+        its pieces go to the reject bin unless zero-shot agrees, until one of each is labelled."""
+        untaught = [c for c in self.scene if c in self.deployed.untouched and c not in self.labelled]
+        return confusable(self.deployed, self.base.offset_var_untouched, [fabric], untaught).get(fabric, [])
+
+    def _begins_with_lines_read(self, data: bytes) -> bool:
+        """Whether ``data`` still begins with the lines read so far, byte for byte (their length and
+        SHA-256, journaled with each line; a journal written before they were: at least as many lines)."""
+        if self._prefix is None:
+            return data.count(b"\n") >= self.lines_read
+        n, sha = self._prefix
+        return len(data) >= n and hashlib.sha256(data[:n]).hexdigest() == sha
+
+    def restore(self, records: Iterable[Mapping[str, Any]], seal: str | None) -> None:
+        """The state a restarted service resumes from: decided items' press means (pre_sort
+        records' ``scene_z_mean``), the labels already journaled, applied again in their order -
+        each judged by this job, whether its own session applied it or not (a label is what a piece
+        was, whatever job it was given in).
+        Records of sessions run on another bundle (their start record's ``seal``) are skipped:
+        their projections are in another model's space."""
+        current = True  # records before the first start record: this journal's own
+        for rec in records:
+            kind = rec.get("type")
+            if kind == "start":
+                current = rec.get(SEAL_KEY) == seal
+            elif not current:
+                continue
+            elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
+                    and rec.get("item_id") is not None and _press_count(rec.get("scene_z_presses", rec.get("presses"))):
+                self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec.get("scene_z_presses", rec["presses"]))
+            elif kind == "label" and rec.get("file") == str(self.path) and rec.get("reread") is True:
+                self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
+            elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
+                # every label the operator gave, applied in its session or not, judged again by this
+                # job: a retraction or correction given while its fabric was out of the job (so not
+                # applied then) must still withdraw the label when the fabric is back
+                # (a line that was no label, unreadable, has no item_id: nothing to apply)
+                item = rec.get("item_id")
+                if item is not None and rec.get("retract"):
+                    self._retract(str(item), rebuild=False)
+                elif item is not None and isinstance(rec.get("fabric"), str):
+                    self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
+                n, sha = rec.get("file_bytes"), rec.get("file_sha256")
+                self.lines_read = rec["line"]
+                known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
+                self._prefix = (n, sha) if known else None
+        self._relearn()  # once, not once per label
+
+
+def _press_count(n: Any) -> bool:
+    """Whether a journal's press count is one a press mean can average (an int, at least 1)."""
+    return isinstance(n, int) and not isinstance(n, bool) and n >= 1
+
+
+def _projection(z: Any, k: int) -> bool:
+    """Whether a journal's ``scene_z_mean`` is one this model can learn from (a hand-edited or
+    damaged record is skipped at restore, not a crash at start)."""
+    return isinstance(z, list) and len(z) == k and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
+
+
+__all__ = ["append_label", "read_labels", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+           "MAX_LABELS_FILE_BYTES"]
