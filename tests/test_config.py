@@ -198,7 +198,8 @@ def test_validate_config_check_bundle_refuses_every_job_the_start_refuses(tmp_pa
         with pytest.raises(ValueError, match=re.escape(refusal)):
             check_scene_against_bundle(load_config(path), loaded)  # what the start says, word for word
     (tmp_path / "bundle" / "manifest.json").write_text(json.dumps(
-        {"format": "vs2t-bundle", "format_version": 2, "classes": {"touched": "denim"}, "decision": {"file": "decision.npz"}}))
+        {"format": "vs2t-bundle", "format_version": 2, "classes": {"touched": "denim"},
+         "decision": {"file": "decision.npz"}}))
     assert main(["validate-config", str(write(tmp_path, GOOD)), "--check-bundle"]) == 2
     assert "'classes.touched' must be a list of class names" in capsys.readouterr().err
 

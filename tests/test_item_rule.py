@@ -173,3 +173,41 @@ def test_the_decision_search_keeps_the_better_item_rule_on_validation_fabrics():
     assert model.classes == tuple(touched + untouched)  # deployed with the untouched fabrics' means
     again = SceneModel.from_params(model.to_params())
     assert again.item_rule == model.item_rule
+
+
+def test_the_mis_sort_target_is_what_the_validation_search_keeps_under():
+    """``train --mis-sort-target``: none at all, or 2 % that buys pieces in their bin, on a world
+    whose validation jobs cannot have both (the search is greedy: no monotone law is claimed)."""
+    rng = np.random.default_rng(11)
+    n_t, n_v, n_u, per, d = 8, 4, 3, 30, 16
+    centres = rng.normal(0, 3.0, (n_t + n_v + n_u, d))
+    presses = [c + rng.normal(0, 1, (per, d)) for c in centres]
+
+    def synth(rows):  # the generator: each fabric's mean off by its own error
+        x = np.concatenate([centres[i] + 1.5 * rng.normal(0, 1, d) + rng.normal(0, 1, (40, d)) for i in rows])
+        return x, np.repeat(np.arange(len(rows)), 40)
+
+    args = (np.concatenate([p[:20] for p in presses[:n_t]]), np.repeat(np.arange(n_t), 20),
+            [f"t{j}" for j in range(n_t)],
+            (np.concatenate([p[20:25] for p in presses[:n_t]]), np.repeat(np.arange(n_t), 5)),
+            [f"v{j}" for j in range(n_v)], (np.concatenate(presses[n_t:n_t + n_v]), np.repeat(np.arange(n_v), per)),
+            synth(range(n_t, n_t + n_v)), [f"u{j}" for j in range(n_u)], synth(range(n_t + n_v, n_t + n_v + n_u)))
+    (strict, s_rep), (loose, l_rep) = (dc.fit_scene_decision(*args, seed=2, target_mis_sort=t) for t in (0.0001, 0.02))
+    s_val, l_val = s_rep["validation"]["all"], l_rep["validation"]["all"]
+    assert (s_rep["target_mis_sort"], l_rep["target_mis_sort"]) == (0.0001, 0.02)
+    assert s_val["mis-sort"] == 0.0 and 0.0 < l_val["mis-sort"] <= 0.02 and l_val["right"] > s_val["right"]
+
+
+def test_train_refuses_a_mis_sort_target_that_is_no_percentage(tmp_path, capsys):
+    from test_bundle_fixtures import tiny_world
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.train.run import train
+
+    for bad in ("0", "100", "-1"):
+        assert main(["train", str(tiny_world()), "--profile", "tiny", "--out", str(tmp_path / "r"),
+                     "--mis-sort-target", bad]) == 2
+        assert "--mis-sort-target" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(ValueError, match="mis_sort_target 1.5"):
+        train(tiny_world(), tmp_path / "r", "tiny", mis_sort_target=1.5)

@@ -276,6 +276,13 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     assert "Job check (runtime/job_check.py: before each job" in report
     if "operator_labels" in sd:  # an offset-rule model also prices teaching only what the check flags
         assert "With labels and a teach piece only of the untouched fabrics the job check flags" in report
+    # each mis-sort target a whole operating point chosen on validation, priced on the same test jobs;
+    # the run's own (1 %) is the operating point's row
+    targets = [r for r in sd["knobs"] if r["knob"] == "mis_sort_target"]
+    assert [r["value"] for r in targets] == [0.5, 1.0, 2.0] and [r["own"] for r in targets] == [False, True, False]
+    outcomes = ("right", "mis-sort", "reject")
+    assert {k: targets[1][k] for k in outcomes} == {k: sd["knobs"][0][k] for k in outcomes}
+    assert "| mis-sort target, % (`train --mis-sort-target`" in report and "| 1 (own) |" in report
     # a test miss of the mis-sort target is said where the user looks: the report and the printout
     missed = a["mis-sort"] > split["scene_decision"]["validation"]["target_mis_sort"]
     assert f"on the test jobs above in {0 if missed else 1} of 1" in report

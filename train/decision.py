@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Mapping
 
 import numpy as np
 
@@ -52,6 +53,8 @@ CONFIDENCES = (0.5, 0.7, 0.9, 0.97, 0.99, 0.999)
 # outlier-press rule candidates (runtime/scene_model.py ``outlier_ratio``; inf: off), tried on the
 # chosen item rule; the first of the best scores is kept, so a tie leaves it off
 OUTLIER_RATIOS = (math.inf, 50.0, 20.0, 10.0, 5.0, 3.0)
+# the mis-sort targets training's report prices beside the one it chose for (``train --mis-sort-target``)
+MIS_SORT_TARGETS = (0.005, 0.01, 0.02)
 # open-set threshold candidates: quantiles of the squared distance of in-scene validation presses
 # to their own class (1.0: no threshold)
 OPEN_QUANTILES = (0.8, 0.9, 0.95, 0.99, 1.0)
@@ -290,12 +293,15 @@ def stranger_jobs(models: dict[str, SceneModel], touched: list[str], touched_tes
 def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
                     untouched: list[str], untouched_presses: tuple[np.ndarray, np.ndarray], *,
                     off_pool: dict[str, np.ndarray] | None = None, n_scenes: int = N_SCENES, seed: int = 0,
-                    items_per_fabric: int = 4) -> dict:
+                    items_per_fabric: int = 4, targets: Mapping[float, SceneModel] | None = None) -> dict:
     """Item-level numbers on scenes of the split's test fabrics (module doc), the risk-coverage
-    curve and the per-press and per-item calibration error."""
+    curve and the per-press and per-item calibration error. ``targets``: mis-sort target -> the
+    model validation chose for it (``model`` itself at its own), priced on the same jobs beside the
+    operator's knobs."""
     xt, yt = touched_test
     xu, yu = untouched_presses
-    tables = press_tables(model, _test_rows(touched, touched_test, untouched, untouched_presses, off_pool))
+    rows = _test_rows(touched, touched_test, untouched, untouched_presses, off_pool)
+    tables = press_tables(model, rows)
     n_u = min(3, len(untouched))
     scenes = so.draw_scenes(touched, untouched, tuple(off_pool or ()), n_scenes, n_untouched=n_u, seed=seed + 1)
     recs = so.simulate_scenes(scenes, tables, evidence_for(model), seed=seed + 1, items_per_fabric=items_per_fabric)
@@ -309,6 +315,11 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     # (and the outlier-press rule, training's choice, priced beside them)
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
                                   seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS})
+    for target, m in sorted((targets or {}).items()):  # each a whole operating point validation chose for it
+        own = m is model
+        row = out["knobs"][0] if own else so.knob_prices(m, scenes, press_tables(m, rows), max_presses=MAX_PRESSES,
+                                                          items_per_fabric=items_per_fabric, seed=seed + 1, grid={})[0]
+        out["knobs"].append({**row, "knob": "mis_sort_target", "value": 100 * float(target), "own": own})
     in_scene = [r for r in recs if r.kind != "off-scene"]
     out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
                                                     [r.candidate == r.truth for r in in_scene])
@@ -394,4 +405,4 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     return out
 
 
-__all__ = ["fit_scene_decision", "with_known", "stranger_jobs", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]
+__all__ = ["MIS_SORT_TARGETS", "fit_scene_decision", "with_known", "stranger_jobs", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

@@ -302,7 +302,9 @@ def _outlier_text(ratio) -> str:
 
 
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
-             "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)"}
+             "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)",
+             "mis_sort_target": "mis-sort target, % (`train --mis-sort-target`: the whole operating point chosen on "
+                                "validation for it)"}
 
 
 def knob_lines(sd: list[dict]) -> list[str]:
@@ -314,7 +316,8 @@ def knob_lines(sd: list[dict]) -> list[str]:
     out = ["", "### What the operator's knobs cost (the same test jobs)", "",
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
            "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
-           "on validation, and so was the outlier ratio (inf: every press is evidence), priced here beside them. "
+           "on validation, and so was the outlier ratio (inf: every press is evidence), priced here beside them, "
+           "as is the mis-sort target the validation search chose for (each target a whole operating point). "
            "*own*: the value the operating point has in every split. Mean ± std over "
            f"{len(sd)} split(s), %.", "",
            "| knob | value | right bin | mis-sort | reject | untouched right | untouched mis-sort | presses |",

@@ -78,6 +78,9 @@ class Profile:
     # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
     # cell has touched (docs/results/scene_decision_paper.md, "More touched fabrics").
     touched: int | None = None
+    # the share of pieces in a wrong bin the scene decision's search on validation jobs must keep
+    # under (train/decision.py); the report prices decision.MIS_SORT_TARGETS beside it
+    mis_sort_target: float = 0.01
 
 
 REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
@@ -212,13 +215,14 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     for name, m in fitted.items():
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
-    scene_model, result["scene_decision"] = scene_decision(fitted["VS2T-ZSL"], views, split, budget)
+    scene_model, result["scene_decision"] = scene_decision(fitted["VS2T-ZSL"], views, split, budget,
+                                                           prof.mis_sort_target)
     result["seconds"] = round(time.time() - t0, 1)
     return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk,
             "scene_model": scene_model}
 
 
-def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget) -> tuple:
+def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget, target: float = 0.01) -> tuple:
     """The scene decision of one split (train/decision.py): chosen on its validation fabrics, scored
     on scenes of its test fabrics, beside today's route (CLS_t / CLS_u by the paper's Gaussian
     router at its validation beta) on the same scenes. The test jobs' off-scene pieces are fabrics
@@ -227,23 +231,31 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     fabric no step has read - a stranger's rejection is measured on validation only. The deployed
     model knows the validation fabrics only to refuse them (``decision.with_known``); the same test
     jobs with their later presses among the off-scene pieces price that (``pressed_strangers``:
-    the model without and with them - pressed fabrics as strangers, not never-seen ones)."""
+    the model without and with them - pressed fabrics as strangers, not never-seen ones). The
+    operating point is chosen for at most ``target`` mis-sorted pieces on validation; each of
+    ``decision.MIS_SORT_TARGETS`` is chosen the same way and priced on the same test jobs."""
     from vs2t_edge.train import decision as dc
 
     synth_u = method.synthesise(views.train, budget, split.seed)
     synth_v = method.synthesise(views.val, budget, split.seed)
     x_tv, _, y_tv = views.touched_val
     x_vp, _, y_vp = views.val_presses
-    model, chosen = dc.fit_scene_decision(
-        views.train.x_t, views.train.y, list(split.touched), (x_tv, y_tv), list(split.validation), (x_vp, y_vp),
-        synth_v, list(split.untouched), synth_u, seed=split.seed, log=_log)
+
+    def fit(t: float, log=lambda m: None):
+        return dc.fit_scene_decision(
+            views.train.x_t, views.train.y, list(split.touched), (x_tv, y_tv), list(split.validation), (x_vp, y_vp),
+            synth_v, list(split.untouched), synth_u, target_mis_sort=t, seed=split.seed, log=log)
+
+    model, chosen = fit(target, _log)
     x_tt, _, y_tt = views.touched_test
     x_up, _, y_up = views.test_presses
     # the deployed model knows the validation fabrics too, only to refuse them (decision.with_known)
     unaware = model
     model, later = dc.with_known(model, x_vp, y_vp, list(split.validation))
+    targets = {t: model if t == target else dc.with_known(fit(t)[0], x_vp, y_vp, list(split.validation))[0]
+               for t in sorted({*dc.MIS_SORT_TARGETS, target})}
     test = dc.evaluate_scenes(model, list(split.touched), (x_tt, y_tt), list(split.untouched), (x_up, y_up),
-                              off_pool=None, seed=split.seed)
+                              off_pool=None, seed=split.seed, targets=targets)
     a = test["all"]
     _log(f"scene decision, test scenes: right {a['right']:.1%}, mis-sort {a['mis-sort']:.1%}, reject {a['reject']:.1%}, "
          f"{a['presses']:.1f} presses per item")
@@ -382,8 +394,10 @@ def orderings(s: dict) -> dict:
 def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | None = None, trunk_arch: str | None = None,
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
-          preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None) -> dict:
+          preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
+          mis_sort_target: float | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
+    ``mis_sort_target``: the scene decision's target share of mis-sorted pieces (``Profile.mis_sort_target``).
     ``touched``: train each split on this many of its touched fabrics (``Profile.touched``).
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
@@ -391,20 +405,23 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched)
+                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched, mis_sort_target)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
            max_presses: int | None = None, tactile_feature: str | None = None,
-           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None) -> dict:
+           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
+           mis_sort_target: float | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
                                               ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg),
-                                              ("touched", touched))
+                                              ("touched", touched), ("mis_sort_target", mis_sort_target))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
+    if not 0.0 < prof.mis_sort_target < 1.0:
+        raise ValueError(f"mis_sort_target {prof.mis_sort_target!r}: a share of pieces above 0 and below 1")
     if prof.touched is not None:
         from vs2t_edge.runtime.dataset import load_dataset
 
