@@ -9,7 +9,7 @@ their labels (none yet, waiting for the service, applied, or why not).
 
 The label is appended, durably, to the file the cell config names (``evidence.operator_labels``);
 the running service reads it before its next piece and re-estimates that untouched fabric's mean
-from the piece's presses (runtime/feedback.py), journaling whether it applied it and why not.
+from the piece's presses (runtime/labels.py), journaling whether it applied it and why not.
 Checked here first: the config turns the mode on, FABRIC is a fabric of its scene (or, with
 ``--off-scene``, is not: a stranger the cell then learns to refuse), and the config's journal has
 a decided piece ITEM_ID (a typo would otherwise only show as a refusal in the journal); what the

@@ -174,11 +174,12 @@ class OperatorFeedback:
         return ""
 
     def _withdraw_earlier(self, item_id: str, label: tuple[str, bool], rebuild: bool, why: str) -> str:
-        """``why`` (the label is not applied), after withdrawing the piece's earlier, different
-        label: left in force it would teach its class the presses of a piece the operator has
+        """``why`` (the label is not applied), after withdrawing the piece's earlier label of another
+        fabric (the same fabric labelled in two jobs - off-scene in one, a job fabric in the other -
+        stays): left in force it would teach its class the presses of a piece the operator has
         since called something else - the next pieces of that fabric into the wrong bin."""
         earlier = self.item_labels.get(item_id)
-        if earlier is None or earlier == label:
+        if earlier is None or earlier[0] == label[0]:  # the same fabric, named as this job or another needs
             return why
         self._retract(item_id, rebuild)
         return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"

@@ -220,7 +220,7 @@ class ReplayGate(_ReplayBase):
 class ReplayItems:
     """The recorded pieces in order; with ``labels`` (the replay's labels file), the operator
     labels the session read before a piece are written there as that piece is handed out, so the
-    cell reads them at the same point (runtime/feedback.py)."""
+    cell reads them at the same point (runtime/labels.py)."""
 
     def __init__(self, queues: _Queues, labels: Path | None = None) -> None:
         self.q = queues

@@ -83,7 +83,7 @@ def decisions_of(records: list[dict]) -> list[dict]:
 
 
 def labels_of(records: list[dict]) -> list[dict]:
-    """The operator labels a session read (runtime/feedback.py), each with the item it was read
+    """The operator labels a session read (runtime/labels.py), each with the item it was read
     before: a replay hands them to the cell at the same points, so its decisions can match."""
     out, before = [], None
     for r in records:

@@ -388,7 +388,7 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
            "max_presses": max_presses, "outlier_ratio": float(model.outlier_ratio)}
-    for knob, values in (grid or KNOB_GRID).items():
+    for knob, values in (KNOB_GRID if grid is None else grid).items():
         for v in values:
             if v == own[knob]:
                 rows.append({"knob": knob, "value": v, "own": True, **base})

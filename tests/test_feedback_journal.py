@@ -342,3 +342,38 @@ def test_a_correction_this_job_cannot_apply_still_withdraws_the_earlier_label(tm
     wool, refused = fb.poll(journal)
     assert wool["applied"] and not refused["applied"] and refused["withdrew"] == "wool"
     assert "earlier label 'wool' is withdrawn" in refused["why"] and fb.item_labels == {}
+
+
+def test_the_same_fabric_labelled_in_two_jobs_keeps_its_label_at_a_restart(tmp_path):
+    """Piece P labelled linen with --off-scene in a job without linen, and linen in one that lists
+    it (what `vs2t-edge label` asks for in each): the same fabric, so neither line withdraws the
+    other at a restart - only a label of another fabric does."""
+    from dataclasses import replace
+
+    base = replace(scene_model(), classes=("denim", "silk", "wool", "linen"), untouched=frozenset({"wool", "linen"}),
+                   means=np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
+    make = lambda m, classes: Evidence(classes, 0.95, 4, item_model=m)  # noqa: E731
+    without, with_linen = ["denim", "silk", "wool"], ["denim", "silk", "wool", "linen"]
+    labels, journal = tmp_path / "labels.jsonl", ListJournal()
+
+    def session(scene):
+        journal.append({"type": "start", "manifest_sha256": "SEAL"})
+        fb = OperatorFeedback(base, scene, labels, make)
+        fb.restore(list(journal.records), "SEAL")
+        return fb
+
+    first = session(without)
+    ev = first()
+    for _ in range(4):
+        if ev.add(so.Press({}, None, np.array([9.0, 9.0]))) is not None:
+            break
+    journal.append({"type": "pre_sort", "item_id": "P", "presses": ev.presses, "scene_z_mean": first.journal_z_mean(ev)})
+    first.remember("P", ev)
+    append_label(labels, "P", "linen", off_scene=True)
+    assert [r["applied"] for r in first.poll(journal)] == [True]
+    second = session(with_linen)
+    append_label(labels, "P", "linen")
+    assert [r["applied"] for r in second.poll(journal)] == [True]
+    assert second.item_labels == {"P": ("linen", False)}
+    assert session(without).item_labels == {"P": ("linen", True)}
+    assert session(with_linen).item_labels == {"P": ("linen", False)}

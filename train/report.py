@@ -250,7 +250,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
            "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
            "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
            "Operating point chosen on the validation fabrics only, for at most "
-           f"{100 * sd[0]['validation']['target_mis_sort']:.0f} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
+           f"{100 * sd[0]['validation']['target_mis_sort']:g} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
            "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
     kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
     for kind in kinds:

@@ -278,7 +278,7 @@ def test_target_warning(mis_sort: float, target: float, n_validation: int) -> st
     the generator's errors on the test ones."""
     if not mis_sort > target:
         return None
-    return (f"WARNING: the test jobs mis-sorted {mis_sort:.1%} of their pieces, above the {target:.0%} target "
+    return (f"WARNING: the test jobs mis-sorted {mis_sort:.1%} of their pieces, above the {100 * target:g}% target "
             f"that the {n_validation} validation fabrics chose the operating point for: expect that share in wrong "
             "bins on fabrics like these (more validation or touched fabrics, or operator labels, docs/cell.md)")
 
