@@ -280,6 +280,38 @@ def test_a_retraction_or_correction_given_while_its_fabric_was_out_of_the_job_ho
     assert np.allclose(third.model.means, scene_model().means)  # wool's mean is its synthesis again
 
 
+
+def _four_fabrics():
+    """The fakes' scene model with a second untouched fabric, linen, at (10, 10)."""
+    from dataclasses import replace
+
+    return replace(scene_model(), classes=("denim", "silk", "wool", "linen"), untouched=frozenset({"wool", "linen"}),
+                   means=np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
+
+
+def _labels_session(base, scene, labels, journal):
+    """A service start on ``scene``: its start record, then the state restored from the journal."""
+    journal.append({"type": "start", "manifest_sha256": "SEAL"})
+    fb = OperatorFeedback(base, scene, labels, lambda m, classes: Evidence(classes, 0.95, 4, item_model=m))
+    fb.restore(list(journal.records), "SEAL")
+    return fb
+
+
+def _decide_linen(ev):
+    for _ in range(4):
+        if (d := ev.add(so.Press({}, None, np.array([9.0, 9.0])))) is not None:
+            return d
+    return ev.decide()
+
+
+def _linen_piece(fb, journal, item="P"):
+    """A linen piece decided by ``fb``'s evidence, journalled and remembered as the cell does."""
+    ev = fb()
+    _decide_linen(ev)
+    journal.append({"type": "pre_sort", "item_id": item, "presses": ev.presses, "scene_z_mean": fb.journal_z_mean(ev)})
+    fb.remember(item, ev)
+
+
 def test_a_correction_this_job_cannot_apply_still_withdraws_the_earlier_label(tmp_path):
     """A piece P of linen is labelled wool by mistake, then corrected to linen, in a job that can
     apply the correction. A restart into a job that cannot (linen left out of it: a plain label of
@@ -287,38 +319,16 @@ def test_a_correction_this_job_cannot_apply_still_withdraws_the_earlier_label(tm
     lists) refused the correction and applied the wool label again: wool's mean on linen's presses,
     the next linen piece into wool's bin. The latest label counts: the earlier one is withdrawn
     wherever the correction cannot be applied, live and at a restart."""
-    from dataclasses import replace
-
-    base = replace(scene_model(), classes=("denim", "silk", "wool", "linen"), untouched=frozenset({"wool", "linen"}),
-                   means=np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
-    linen = np.array([9.0, 9.0])
-    make = lambda m, classes: Evidence(classes, 0.95, 4, item_model=m)  # noqa: E731
-
-    def decide(ev):
-        for _ in range(4):
-            if (d := ev.add(so.Press({}, None, linen))) is not None:
-                return d
-        return ev.decide()
+    base = _four_fabrics()
 
     def run(name, first_job, correction_off_scene, second_job):
         labels, journal = tmp_path / f"{name}.jsonl", ListJournal()
-
-        def session(scene):
-            journal.append({"type": "start", "manifest_sha256": "SEAL"})
-            fb = OperatorFeedback(base, scene, labels, make)
-            fb.restore(list(journal.records), "SEAL")
-            return fb
-
-        first = session(first_job)
-        ev = first()
-        decide(ev)
-        journal.append({"type": "pre_sort", "item_id": "P", "presses": ev.presses,
-                        "scene_z_mean": first.journal_z_mean(ev)})
-        first.remember("P", ev)
+        first = _labels_session(base, first_job, labels, journal)
+        _linen_piece(first, journal)
         append_label(labels, "P", "wool")
         append_label(labels, "P", "linen", off_scene=correction_off_scene)
         assert [(r["applied"], r.get("replaces")) for r in first.poll(journal)] == [(True, None), (True, "wool")]
-        return first, session(second_job)
+        return first, _labels_session(base, second_job, labels, journal)
 
     # a plain correction, then a job without linen
     first, second = run("plain", ["denim", "silk", "wool", "linen"], False, ["denim", "silk", "wool"])
@@ -329,14 +339,12 @@ def test_a_correction_this_job_cannot_apply_still_withdraws_the_earlier_label(tm
     first, second = run("off", ["denim", "silk", "wool"], True, ["denim", "silk", "wool", "linen"])
     assert first.item_labels == {"P": ("linen", True)}
     assert second.item_labels == {} and np.allclose(second.model.means, base.means)
-    assert decide(second()).label != "wool"  # the next linen piece is not sorted into wool's bin
+    assert _decide_linen(second()).label != "wool"  # the next linen piece is not sorted into wool's bin
 
     # live: a label of a fabric outside the job withdraws the piece's wool label, said in the journal
     labels, journal = tmp_path / "live.jsonl", ListJournal()
-    fb = OperatorFeedback(base, ["denim", "silk", "wool"], labels, make)
-    ev = fb()
-    decide(ev)
-    fb.remember("P", ev)
+    fb = _labels_session(base, ["denim", "silk", "wool"], labels, journal)
+    _linen_piece(fb, journal)
     append_label(labels, "P", "wool")
     append_label(labels, "P", "linen")
     wool, refused = fb.poll(journal)
@@ -348,32 +356,16 @@ def test_the_same_fabric_labelled_in_two_jobs_keeps_its_label_at_a_restart(tmp_p
     """Piece P labelled linen with --off-scene in a job without linen, and linen in one that lists
     it (what `vs2t-edge label` asks for in each): the same fabric, so neither line withdraws the
     other at a restart - only a label of another fabric does."""
-    from dataclasses import replace
-
-    base = replace(scene_model(), classes=("denim", "silk", "wool", "linen"), untouched=frozenset({"wool", "linen"}),
-                   means=np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]]))
-    make = lambda m, classes: Evidence(classes, 0.95, 4, item_model=m)  # noqa: E731
+    base = _four_fabrics()
     without, with_linen = ["denim", "silk", "wool"], ["denim", "silk", "wool", "linen"]
     labels, journal = tmp_path / "labels.jsonl", ListJournal()
-
-    def session(scene):
-        journal.append({"type": "start", "manifest_sha256": "SEAL"})
-        fb = OperatorFeedback(base, scene, labels, make)
-        fb.restore(list(journal.records), "SEAL")
-        return fb
-
-    first = session(without)
-    ev = first()
-    for _ in range(4):
-        if ev.add(so.Press({}, None, np.array([9.0, 9.0]))) is not None:
-            break
-    journal.append({"type": "pre_sort", "item_id": "P", "presses": ev.presses, "scene_z_mean": first.journal_z_mean(ev)})
-    first.remember("P", ev)
+    first = _labels_session(base, without, labels, journal)
+    _linen_piece(first, journal)
     append_label(labels, "P", "linen", off_scene=True)
     assert [r["applied"] for r in first.poll(journal)] == [True]
-    second = session(with_linen)
+    second = _labels_session(base, with_linen, labels, journal)
     append_label(labels, "P", "linen")
     assert [r["applied"] for r in second.poll(journal)] == [True]
     assert second.item_labels == {"P": ("linen", False)}
-    assert session(without).item_labels == {"P": ("linen", True)}
-    assert session(with_linen).item_labels == {"P": ("linen", False)}
+    assert _labels_session(base, without, labels, journal).item_labels == {"P": ("linen", True)}
+    assert _labels_session(base, with_linen, labels, journal).item_labels == {"P": ("linen", False)}
