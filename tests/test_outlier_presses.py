@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -193,7 +194,8 @@ def test_training_keeps_the_rule_off_unless_validation_jobs_gain_from_it(knots):
     scenes = so.draw_scenes(["denim", "silk"], ["wool"], (), 6, n_touched=2, n_untouched=1, seed=1)
     rows = _validation_rows(knots)
     off = so.summarise(so.simulate_scenes(scenes, dc.press_tables(m, rows), dc.evidence_for(m), seed=1))
-    chosen, summary, tried = dc._outlier_rule(m, off, m, rows, scenes, seed=1, target=0.01)
+    jobs = [SimpleNamespace(rows=rows, scenes=scenes, seed=1)]  # one validation world's jobs
+    (chosen,), summary, tried = dc._outlier_rule([m], off, [m], jobs, target=0.01)
     assert [r["outlier_ratio"] for r in tried] == list(dc.OUTLIER_RATIOS)
     if knots:
         assert math.isfinite(chosen.outlier_ratio)

@@ -36,7 +36,7 @@ posterior and squared distances) that both use.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
@@ -73,12 +73,13 @@ def _balanced_nll(scores: np.ndarray, labels: np.ndarray) -> float:
     return float(np.mean([per[labels == c].mean() for c in np.unique(labels)]))
 
 
-def _fit_t_b(d2: np.ndarray, labels: np.ndarray, is_u: np.ndarray) -> tuple[float, float, float]:
-    """(temperature, untouched bias, balanced NLL) by a scan over both."""
+def _fit_t_b(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[float, float, float]:
+    """(temperature, untouched bias, balanced NLL) by a scan over both; ``parts``: one (squared
+    distances, labels, untouched mask) per validation world, their NLLs averaged."""
     best = (math.inf, 1.0, 0.0)
     for b in BIASES:
         for t in np.geomspace(0.05, 200.0, 33):
-            nll = _balanced_nll(-0.5 * d2 / t + b * is_u, labels)
+            nll = float(np.mean([_balanced_nll(-0.5 * d2 / t + b * is_u, labels) for d2, labels, is_u in parts]))
             if nll < best[0]:
                 best = (nll, float(t), float(b))
     return best[1], best[2], best[0]
@@ -89,40 +90,112 @@ def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES):
     return so.scene_evidence(model, max_presses)
 
 
-def _offset_candidate(vm: SceneModel, rows: dict[str, np.ndarray], scenes, own_d2: np.ndarray, seed: int,
-                      target: float) -> tuple[SceneModel, dict]:
+@dataclass(frozen=True)
+class ValidationWorld:
+    """What one set of validation jobs is drawn from: ``touched`` fabrics, whose training presses
+    (``train_x``, ``train_y`` indexing ``touched``) fit the class means and whose validation presses
+    (``touched_val``: x, index into ``touched``) are the touched pieces; and ``val_fabrics`` playing
+    the untouched part, their presses (``val_presses``: x, index into ``val_fabrics``) the pieces and
+    their means the generator's samples (``synth_val``: x, index into ``val_fabrics``) from a
+    generator that never read their tactile data. The split's own (its validation fabrics), or a
+    fold of its touched fabrics held out of a generator trained on the others (train/folds.py)."""
+
+    train_x: np.ndarray
+    train_y: np.ndarray
+    touched: list
+    touched_val: tuple
+    val_fabrics: list
+    val_presses: tuple
+    synth_val: tuple
+
+
+WORLD_SEED_STEP = 7919  # world j's jobs are drawn with seed + j * this (world 0's with the seed itself)
+
+
+@dataclass(frozen=True)
+class _Jobs:
+    """A world's validation jobs and what the choice reads of them."""
+
+    world: ValidationWorld
+    val_in: list  # validation fabrics with a synthesised mean (one more, when there are three, plays a stranger)
+    rows: dict  # fabric -> its presses the jobs' pieces are drawn from
+    labels: np.ndarray  # class index (validation model's order) of each row of ``x_known``
+    x_known: np.ndarray  # in-scene validation presses: touched fabrics' and the validation fabrics' with a mean
+    synth_keep: np.ndarray  # the generator's samples of ``val_in``
+    scenes: list
+    seed: int
+
+    @classmethod
+    def of(cls, world: ValidationWorld, seed: int) -> "_Jobs":
+        touched, val_fabrics = list(world.touched), list(world.val_fabrics)
+        xv_t, yv_t = world.touched_val
+        xv_u, yv_u = world.val_presses
+        # One validation fabric (when there are three or more) plays a fabric the cell has never seen:
+        # the validation model gets no synthesised mean for it, so the open-set threshold is chosen
+        # against a real stranger instead of only accepting a share of the known ones.
+        n_in = len(val_fabrics) - 1 if len(val_fabrics) >= 3 else len(val_fabrics)
+        val_in, strangers = val_fabrics[:n_in], val_fabrics[n_in:]
+        rows = {touched[c]: xv_t[yv_t == c] for c in range(len(touched))}
+        rows.update({val_fabrics[c]: xv_u[yv_u == c] for c in range(len(val_fabrics))})
+        keep = yv_u < n_in
+        scenes = so.draw_scenes(touched, val_in, tuple(strangers), N_SCENES, n_untouched=min(3, len(val_in)), seed=seed)
+        return cls(world, val_in, rows, np.concatenate([yv_t, len(touched) + yv_u[keep]]),
+                   np.concatenate([xv_t, xv_u[keep]]), world.synth_val[1] < n_in, scenes, seed)
+
+    def model(self, k: int) -> SceneModel:
+        w = self.world
+        return SceneModel.fit(w.train_x, w.train_y, list(w.touched), w.synth_val[0][self.synth_keep],
+                              w.synth_val[1][self.synth_keep], self.val_in, k=k)
+
+
+def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | None = None) -> dict:
+    """The summary of every world's validation jobs decided by its model (``tables``: each world's
+    press tables, when the caller has them)."""
+    recs = []
+    for w, (m, j) in enumerate(zip(models, jobs)):
+        recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows), evidence_for(m), seed=j.seed)
+    return so.summarise(recs)
+
+
+def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], own_d2: list[np.ndarray],
+                      target: float) -> tuple[list[SceneModel], dict]:
     """The offset item rule (runtime/scene_model.py) searched on the same validation jobs as the
-    sum rule (train/item_search.py, vectorised), and its summary from the cell's own evidence."""
-    projections = {f: vm.project(x) for f, x in rows.items()}
-    prepared = ns.Prepared.of(ns.draw_items(scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=seed), vm)
-    thresholds = {q: float(np.quantile(own_d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
+    sum rule (train/item_search.py, vectorised), one model per world, and their summary from the
+    cell's own evidence."""
+    worlds = []
+    for vm, j, d2 in zip(vms, jobs, own_d2):
+        projections = {f: vm.project(x) for f, x in j.rows.items()}
+        prepared = ns.Prepared.of(ns.draw_items(j.scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=j.seed), vm)
+        thresholds = {q: float(np.quantile(d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
+        # each world's own variance estimates: a fold's generator saw fewer fabrics than the deployed
+        # one, so its syntheses' offset is its own, not the deployed model's (the search chooses scales)
+        worlds.append(ns.World(prepared, ns.offset_estimates(vm, projections), thresholds))
     base = {"press_var_scale": 1.0, "touched_scale": 1.0, "item_bias": 0.0, "known_margin": 0.0, "open_quantile": 1.0,
             "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
-    setting, _ = ns.search_offset_rule(prepared, ns.offset_estimates(vm, projections), base, thresholds, CONFIDENCES,
-                                       lambda summary: _score(summary, target))
-    cand = replace(vm, item_rule="offset", **setting)
-    return cand, so.summarise(so.simulate_scenes(scenes, press_tables(cand, rows), evidence_for(cand), seed=seed))
+    point, _ = ns.search_offset_rule(worlds, base, CONFIDENCES, lambda summary: _score(summary, target))
+    cands = [replace(vm, item_rule="offset", **ns.offset_setting(point, w)) for vm, w in zip(vms, worlds)]
+    return cands, _simulate(cands, jobs)
 
 
-def _outlier_rule(chosen: SceneModel, summary_off: dict, cand_off: SceneModel, rows: dict[str, np.ndarray], scenes,
-                  seed: int, target: float) -> tuple[SceneModel, dict, list[dict]]:
-    """The chosen item rule with the outlier-press ratio (``OUTLIER_RATIOS``) that scores best on
-    the same validation jobs (the mis-sort target first, then pieces in the right bin): (model,
-    its validation summary, one row per ratio tried). ``summary_off``: the chosen rule's own
-    summary on those jobs (the ratio off, the first candidate), not decided again. A sum-rule
-    model measures a press's spread with the offset candidate's setting, which it keeps for
-    operator labels."""
-    probe = chosen if chosen.item_rule == "offset" else \
-        replace(chosen, labels_rule={key: float(getattr(cand_off, key)) for key in LABELS_KEYS})
-    tables = press_tables(probe, rows)
+def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[SceneModel], jobs: list[_Jobs],
+                  target: float) -> tuple[list[SceneModel], dict, list[dict]]:
+    """The chosen item rule (one model per world) with the outlier-press ratio (``OUTLIER_RATIOS``)
+    that scores best on the same validation jobs (the mis-sort target first, then pieces in the
+    right bin): (models, their validation summary, one row per ratio tried). ``summary_off``: the
+    chosen rule's own summary on those jobs (the ratio off, the first candidate), not decided
+    again. A sum-rule model measures a press's spread with the offset candidate's setting, which it
+    keeps for operator labels."""
+    probes = [m if m.item_rule == "offset" else replace(m, labels_rule={key: float(getattr(c, key)) for key in LABELS_KEYS})
+              for m, c in zip(chosen, cand_off)]
+    tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
     tried = []
     for ratio in OUTLIER_RATIOS:
-        cand = replace(chosen, outlier_ratio=ratio)
-        summary = summary_off if math.isinf(ratio) else so.summarise(
-            so.simulate_scenes(scenes, tables, evidence_for(replace(probe, outlier_ratio=ratio)), seed=seed))
-        tried.append((_score(summary, target), cand, summary))
+        cands = [replace(m, outlier_ratio=ratio) for m in chosen]
+        summary = summary_off if math.isinf(ratio) else _simulate(
+            [replace(p, outlier_ratio=ratio) for p in probes], jobs, tables)
+        tried.append((_score(summary, target), cands, summary))
     _, best, summary = max(tried, key=lambda t: t[0])
-    rows_out = [{"outlier_ratio": c.outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
+    rows_out = [{"outlier_ratio": c[0].outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                  "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for _, c, s in tried]
     return best, summary, rows_out
 
@@ -136,39 +209,32 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                        touched_val: tuple[np.ndarray, np.ndarray], val_fabrics: list[str],
                        val_presses: tuple[np.ndarray, np.ndarray], synth_val: tuple[np.ndarray, np.ndarray],
                        untouched: list[str], synth_u: tuple[np.ndarray, np.ndarray], *,
-                       target_mis_sort: float = 0.01, seed: int = 0, log=lambda m: None) -> tuple[SceneModel, dict]:
+                       target_mis_sort: float = 0.01, seed: int = 0, folds: list[ValidationWorld] = (),
+                       log=lambda m: None) -> tuple[SceneModel, dict]:
     """The deployed scene model and what its choice was based on (validation only, module doc).
 
     ``touched_val``: touched fabrics' validation presses (x, index into ``touched``);
     ``val_presses``: the validation fabrics' presses (x, index into ``val_fabrics``); ``synth_*``:
-    the generator's samples (x, class index) for the validation and the untouched fabrics."""
-    xv_t, yv_t = touched_val
-    xv_u, yv_u = val_presses
-    # One validation fabric (when there are three or more) plays a fabric the cell has never seen:
-    # the validation model gets no synthesised mean for it, so the open-set threshold is chosen
-    # against a real stranger instead of only accepting a share of the known ones.
-    n_in = len(val_fabrics) - 1 if len(val_fabrics) >= 3 else len(val_fabrics)
-    val_in, strangers = list(val_fabrics[:n_in]), list(val_fabrics[n_in:])
-    rows = {touched[c]: xv_t[yv_t == c] for c in range(len(touched))}
-    rows.update({val_fabrics[c]: xv_u[yv_u == c] for c in range(len(val_fabrics))})
-    keep = yv_u < n_in
-    labels = np.concatenate([yv_t, len(touched) + yv_u[keep]])
-    x_known = np.concatenate([xv_t, xv_u[keep]])
-    synth_keep = synth_val[1] < n_in
-    scenes = so.draw_scenes(touched, val_in, tuple(strangers), N_SCENES, n_untouched=min(3, len(val_in)), seed=seed)
+    the generator's samples (x, class index) for the validation and the untouched fabrics.
+    ``folds``: more validation worlds (``ValidationWorld``: touched fabrics held out of a generator
+    trained on the others, train/folds.py); every choice is made on all worlds' jobs together, and
+    the deployed model takes its scalars from the split's own world."""
+    worlds = [ValidationWorld(train_x, train_y, list(touched), touched_val, list(val_fabrics), val_presses, synth_val),
+              *folds]
+    jobs = [_Jobs.of(w, seed + WORLD_SEED_STEP * i) for i, w in enumerate(worlds)]
     # the subspace by validation NLL after temperature scaling (the item rule below is cheap to
     # search for one k, not for each)
     fits = []
     for k in K_CHOICES:
-        vm = SceneModel.fit(train_x, train_y, touched, synth_val[0][synth_keep], synth_val[1][synth_keep], val_in, k=k)
-        d2 = vm.sq_distances(x_known)
-        is_u = np.array([c in vm.untouched for c in vm.classes], np.float64)
-        nll0 = _balanced_nll(-0.5 * d2, labels)
-        t, b, nll = _fit_t_b(d2, labels, is_u)
+        vms = [j.model(k) for j in jobs]
+        parts = [(vm.sq_distances(j.x_known), j.labels, np.array([c in vm.untouched for c in vm.classes], np.float64))
+                 for vm, j in zip(vms, jobs)]
+        nll0 = float(np.mean([_balanced_nll(-0.5 * d2, labels) for d2, labels, _ in parts]))
+        t, b, nll = _fit_t_b(parts)
         log(f"scene decision k={k}: temperature {t:.3g}, untouched bias {b:g}, validation NLL {nll0:.2f} -> {nll:.2f}")
-        fits.append((nll, k, nll0, t, b, vm, d2[np.arange(len(labels)), labels]))
-    nll, k, nll0, t, b, vm, own_d2 = min(fits, key=lambda f: f[0])
-    vm = replace(vm, temperature=t, untouched_bias=b)
+        fits.append((nll, k, nll0, t, b, vms, [d2[np.arange(len(labels)), labels] for d2, labels, _ in parts]))
+    nll, k, nll0, t, b, vms, own_d2 = min(fits, key=lambda f: f[0])
+    vms = [replace(vm, temperature=t, untouched_bias=b) for vm in vms]
     # The item rule by coordinate search (each knob over its values with the others held, three
     # rounds): a full grid of the six knobs would cost thousands of simulated scene sets.
     grid = {"untouched_bias": sorted({0.0, b / 2, b}), "open_quantile": OPEN_QUANTILES, "evidence_weight": WEIGHTS,
@@ -176,7 +242,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
             "refuse_early": (True, False)}  # True first: fewer presses where validation cannot tell them apart
     point = {"untouched_bias": b, "open_quantile": 1.0, "evidence_weight": 0.5, "known_margin": 2.0,
              "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
-    tables_by_bias: dict[float, dict] = {}
+    tables_by_bias: dict[float, list[dict]] = {}
     tried: dict[tuple, tuple] = {}
 
     def trial(p: dict) -> tuple:
@@ -184,14 +250,15 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
         if key not in tried:
             bias = p["untouched_bias"]
             if bias not in tables_by_bias:
-                tables_by_bias[bias] = press_tables(replace(vm, untouched_bias=bias), rows)
+                tables_by_bias[bias] = [press_tables(replace(vm, untouched_bias=bias), j.rows) for vm, j in zip(vms, jobs)]
             q = p["open_quantile"]
-            cand = replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
-                           known_margin=p["known_margin"], confidence=p["confidence"],
-                           untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
-                           open_threshold=float(np.quantile(own_d2, q)) if q < 1 else math.inf)
-            s = so.summarise(so.simulate_scenes(scenes, tables_by_bias[bias], evidence_for(cand), seed=seed))
-            tried[key] = (_score(s, target_mis_sort), cand, s)
+            cands = [replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
+                             known_margin=p["known_margin"], confidence=p["confidence"],
+                             untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
+                             open_threshold=float(np.quantile(d2, q)) if q < 1 else math.inf)
+                     for vm, d2 in zip(vms, own_d2)]
+            s = _simulate(cands, jobs, tables_by_bias[bias])
+            tried[key] = (_score(s, target_mis_sort), cands, s)
         return tried[key]
 
     for _ in range(3):
@@ -202,10 +269,12 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
     # the same score (the mis-sort target first, then pieces in the right bin) is kept
     score_sum, cand_sum, summary_sum = trial(point)
-    cand_off, summary_off = _offset_candidate(vm, rows, scenes, own_d2, seed, target_mis_sort)
+    cand_off, summary_off = _offset_candidate(vms, jobs, own_d2, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
-    chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, rows, scenes, seed, target_mis_sort)
+    chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
+    own_world = _simulate(chosen[:1], jobs[:1]) if len(jobs) > 1 else val_summary
+    chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
@@ -221,13 +290,16 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                          "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early,
                          "outlier_ratio": chosen.outlier_ratio},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
+              "validation_worlds": [{"touched": len(w.touched), "validation_fabrics": len(w.val_fabrics)} for w in worlds],
+              "validation_own_world": own_world,
               "target_mis_sort": target_mis_sort,
               "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
               "item_rules": {name: {"right": r[2]["all"]["right"], "mis_sort": r[2]["all"]["mis-sort"],
                                     "reject": r[2]["all"]["reject"], "presses": r[2]["all"]["presses"]}
                              for name, r in by_rule.items()},
               "tried": tried_rows, "outlier_ratios": outlier_rows}
-    log(f"scene decision chosen on validation: k={chosen.k}, item rule {chosen.item_rule}, "
+    log(f"scene decision chosen on validation ({len(worlds)} world(s), "
+        f"{sum(len(w.val_fabrics) for w in worlds)} validation fabrics): k={chosen.k}, item rule {chosen.item_rule}, "
         f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "
         f"outlier presses {'kept' if math.isinf(chosen.outlier_ratio) else f'beyond {chosen.outlier_ratio:g} spreads left out'}, "
         f"confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
@@ -293,11 +365,12 @@ def stranger_jobs(models: dict[str, SceneModel], touched: list[str], touched_tes
 def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[np.ndarray, np.ndarray],
                     untouched: list[str], untouched_presses: tuple[np.ndarray, np.ndarray], *,
                     off_pool: dict[str, np.ndarray] | None = None, n_scenes: int = N_SCENES, seed: int = 0,
-                    items_per_fabric: int = 4, targets: Mapping[float, SceneModel] | None = None) -> dict:
+                    items_per_fabric: int = 4, targets: Mapping[float, SceneModel] | None = None,
+                    folds: Mapping[int, SceneModel] | None = None) -> dict:
     """Item-level numbers on scenes of the split's test fabrics (module doc), the risk-coverage
     curve and the per-press and per-item calibration error. ``targets``: mis-sort target -> the
     model validation chose for it (``model`` itself at its own), priced on the same jobs beside the
-    operator's knobs."""
+    operator's knobs; ``folds``: the same for the number of validation folds (train/folds.py)."""
     xt, yt = touched_test
     xu, yu = untouched_presses
     rows = _test_rows(touched, touched_test, untouched, untouched_presses, off_pool)
@@ -315,11 +388,13 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     # (and the outlier-press rule, training's choice, priced beside them)
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
                                   seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS})
-    for target, m in sorted((targets or {}).items()):  # each a whole operating point validation chose for it
+    choices = [("mis_sort_target", 100 * float(t), m) for t, m in sorted((targets or {}).items())] + \
+        [("validation_folds", float(n), m) for n, m in sorted((folds or {}).items())]
+    for knob, value, m in choices:  # each a whole operating point validation chose for it
         own = m is model
         row = out["knobs"][0] if own else so.knob_prices(m, scenes, press_tables(m, rows), max_presses=MAX_PRESSES,
                                                           items_per_fabric=items_per_fabric, seed=seed + 1, grid={})[0]
-        out["knobs"].append({**row, "knob": "mis_sort_target", "value": 100 * float(target), "own": own})
+        out["knobs"].append({**row, "knob": knob, "value": value, "own": own})
     in_scene = [r for r in recs if r.kind != "off-scene"]
     out["item_ece"] = so.expected_calibration_error([r.confidence for r in in_scene],
                                                     [r.candidate == r.truth for r in in_scene])
@@ -405,4 +480,4 @@ def operator_label_jobs(model: SceneModel, tables: dict, scenes, *, seed: int = 
     return out
 
 
-__all__ = ["MIS_SORT_TARGETS", "fit_scene_decision", "with_known", "stranger_jobs", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]
+__all__ = ["MIS_SORT_TARGETS", "ValidationWorld", "fit_scene_decision", "with_known", "stranger_jobs", "evaluate_scenes", "scene_checks", "job_check_outcomes", "operator_label_jobs", "press_tables", "evidence_for", "K_CHOICES"]

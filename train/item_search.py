@@ -161,18 +161,17 @@ def offset_rule(p: Prepared, *, press_var: float, offset_var_touched: float, off
     return decide(p, scores, scores, **rule)
 
 
-def summary(p: Prepared, outcome: np.ndarray, presses: np.ndarray) -> dict:
-    """``runtime.sorting.summarise``'s numbers (all items and per kind)."""
+def summary(p: Prepared | Sequence[Prepared], outcome: np.ndarray, presses: np.ndarray) -> dict:
+    """``runtime.sorting.summarise``'s numbers (all items and per kind). ``p`` may be several
+    worlds' items whose outcomes and presses are concatenated in that order."""
+    kinds = p.items.kind if isinstance(p, Prepared) else np.concatenate([q.items.kind for q in p])
+
     def rates(mask):
         n = int(mask.sum())
         out = {o: float(np.mean(outcome[mask] == o)) if n else math.nan for o in so.OUTCOMES}
         return {**out, "n": n, "presses": float(np.mean(presses[mask])) if n else math.nan}
-    kinds = p.items.kind
     return {"all": rates(np.ones(len(outcome), bool)),
             "by_kind": {k: rates(kinds == k) for k in so.KINDS if np.any(kinds == k)}}
-
-
-
 
 
 # ------------------------------------------------------------------ the offset rule's search
@@ -211,30 +210,46 @@ def offset_estimates(model, projections: dict[str, np.ndarray]) -> dict[str, flo
     return {"press_var": press_var, "offset_var_touched": offset(False), "offset_var_untouched": offset(True)}
 
 
-def search_offset_rule(prepared: Prepared, estimates: dict[str, float], base: dict, open_thresholds: dict,
-                       confidences: Sequence[float], score) -> tuple[dict, dict]:
-    """(the best setting of the offset rule on ``prepared``'s validation items, its summary):
-    coordinate search from each of ``OFFSET_STARTS`` over ``OFFSET_GRID``, the open-set quantile
-    (``open_thresholds``: quantile -> threshold) and both confidences; ``score(summary)`` ranks
-    (the mis-sort target first, then pieces in the right bin); ``base`` is the starting point of
-    the knobs no start sets."""
-    grid = {**OFFSET_GRID, "open_quantile": tuple(open_thresholds), "confidence": tuple(confidences),
+@dataclass(frozen=True)
+class World:
+    """One world's validation items for the offset rule's search: its ``Prepared`` items, its
+    ``offset_estimates`` and its open-set thresholds (quantile -> threshold)."""
+
+    prepared: Prepared
+    estimates: dict
+    open_thresholds: dict
+
+
+def offset_setting(q: dict, world: World) -> dict:
+    """The offset rule's absolute setting in ``world`` of a point ``q`` of the search (scales of
+    the world's own variance estimates, an open-set quantile)."""
+    est = world.estimates
+    return {"press_var": est["press_var"] * q["press_var_scale"],
+            "offset_var_touched": est["offset_var_touched"] * q["touched_scale"],
+            "offset_var_untouched": est["offset_var_untouched"] * q["untouched_scale"],
+            "item_temperature": q["item_temperature"], "item_bias": q["item_bias"],
+            "known_margin": q["known_margin"], "open_threshold": world.open_thresholds[q["open_quantile"]],
+            "confidence": q["confidence"], "untouched_confidence": q["untouched_confidence"],
+            "refuse_early": q["refuse_early"]}
+
+
+def search_offset_rule(worlds: Sequence[World], base: dict, confidences: Sequence[float], score) -> tuple[dict, dict]:
+    """(the best point of the offset rule's search on the worlds' validation items together, its
+    summary over all of them): coordinate search from each of ``OFFSET_STARTS`` over
+    ``OFFSET_GRID``, the open-set quantile and both confidences; ``offset_setting`` makes a point a
+    world's setting. ``score(summary)`` ranks (the mis-sort target first, then pieces in the right
+    bin); ``base`` is the starting point of the knobs no start sets. Every world must have the
+    same open-set quantiles."""
+    grid = {**OFFSET_GRID, "open_quantile": tuple(worlds[0].open_thresholds), "confidence": tuple(confidences),
             "untouched_confidence": tuple(confidences) + (0.9999,)}
     tried: dict[tuple, tuple] = {}
-
-    def setting(q: dict) -> dict:
-        return {"press_var": estimates["press_var"] * q["press_var_scale"],
-                "offset_var_touched": estimates["offset_var_touched"] * q["touched_scale"],
-                "offset_var_untouched": estimates["offset_var_untouched"] * q["untouched_scale"],
-                "item_temperature": q["item_temperature"], "item_bias": q["item_bias"],
-                "known_margin": q["known_margin"], "open_threshold": open_thresholds[q["open_quantile"]],
-                "confidence": q["confidence"], "untouched_confidence": q["untouched_confidence"],
-                "refuse_early": q["refuse_early"]}
 
     def trial(q: dict) -> tuple:
         key = tuple(sorted(q.items()))
         if key not in tried:
-            s = summary(prepared, *offset_rule(prepared, **setting(q)))
+            parts = [offset_rule(w.prepared, **offset_setting(q, w)) for w in worlds]
+            s = summary([w.prepared for w in worlds], np.concatenate([o for o, _ in parts]),
+                        np.concatenate([n for _, n in parts]))
             tried[key] = (score(s), s)
         return tried[key]
 
@@ -246,7 +261,7 @@ def search_offset_rule(prepared: Prepared, estimates: dict[str, float], base: di
                 q[knob] = max(values, key=lambda v: trial({**q, knob: v})[0])
         if best is None or trial(q)[0] > trial(best)[0]:
             best = dict(q)
-    return setting(best), trial(best)[1]
+    return best, trial(best)[1]
 
 __all__ = ["Items", "draw_items", "Prepared", "decide", "sum_rule", "offset_rule", "summary", "offset_estimates",
-           "search_offset_rule", "OFFSET_GRID", "OFFSET_STARTS"]
+           "World", "offset_setting", "search_offset_rule", "OFFSET_GRID", "OFFSET_STARTS"]
