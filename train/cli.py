@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -46,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                         help="the share of pieces in a wrong bin, in percent, that the scene decision's search on "
                              "validation jobs must keep under (default 1); the report prices 0.5, 1 and 2 on the same "
                              "test jobs (docs/training.md)")
+    parser.add_argument("--validation-folds", type=int, metavar="N",
+                        help="more validation fabrics for the scene decision: split each split's touched fabrics "
+                             "into N folds, hold each out of a generator trained on the others, and choose the "
+                             "operating point on those jobs too (0: the validation fabrics alone; paper profile 4, "
+                             "others 0; each fold costs one generator training per split; docs/training.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,6 +68,13 @@ def run(args: argparse.Namespace) -> int:
     from vs2t_edge.train.run import touched_problem
 
     problem = touched_problem(n_fabrics, args.touched, args.dataset)
+    if problem is None:
+        from vs2t_edge.train.run import PROFILES, folds_problem
+
+        prof = replace(PROFILES[args.profile], touched=args.touched)
+        if args.validation_folds is not None:
+            prof = replace(prof, validation_folds=args.validation_folds)
+        problem = folds_problem(n_fabrics, prof, args.dataset)
     if problem:
         print(f"vs2t-edge train: {problem}", file=sys.stderr)
         return 2
@@ -91,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
               seed=args.seed, figures=not args.no_figures, visual_tail=args.visual_tail,
               max_presses=args.max_presses, tactile_feature=args.tactile_feature,
               preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg, touched=args.touched,
-              mis_sort_target=None if args.mis_sort_target is None else args.mis_sort_target / 100)
+              mis_sort_target=None if args.mis_sort_target is None else args.mis_sort_target / 100,
+              validation_folds=args.validation_folds)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

@@ -261,8 +261,9 @@ def scene_lines(splits: list[dict]) -> list[str]:
     val = [d["validation"]["validation"]["all"] for d in sd]
     kept = [d["test"]["all"]["mis-sort"] <= d["validation"]["target_mis_sort"] for d in sd]
     out += ["", f"Validation (what chose the operating point): right {_ms([v['right'] for v in val])}, mis-sort "
-                f"{_ms([v['mis-sort'] for v in val])}, reject {_ms([v['reject'] for v in val])}; the mis-sort target "
-                f"was met on validation in {sum(d['validation']['meets_target_on_validation'] for d in sd)} of "
+                f"{_ms([v['mis-sort'] for v in val])}, reject {_ms([v['reject'] for v in val])}; " + _worlds_text(sd)
+                + f"the mis-sort target was met on validation in "
+                f"{sum(d['validation']['meets_target_on_validation'] for d in sd)} of "
                 f"{len(sd)} split(s); on the test jobs above in {sum(kept)} of {len(sd)}"
                 + ("" if all(kept) else
                    " (**missed**: a split's test fabrics put that share of pieces in wrong bins, which its "
@@ -293,6 +294,19 @@ def scene_lines(splits: list[dict]) -> list[str]:
     return out
 
 
+def _worlds_text(sd: list[dict]) -> str:
+    """How many fabrics the validation jobs were drawn from, when folds of touched fabrics joined the
+    validation fabrics (train/folds.py; '' without them)."""
+    worlds = [d["validation"].get("validation_worlds", []) for d in sd]
+    if all(len(w) <= 1 for w in worlds):
+        return ""
+    own = [d["validation"]["validation_own_world"]["all"] for d in sd]
+    return (f"drawn from {np.mean([sum(x['validation_fabrics'] for x in w) for w in worlds]):g} validation fabrics per "
+            f"split on average ({worlds[0][0]['validation_fabrics']} validation fabrics and {len(worlds[0]) - 1} folds of "
+            f"touched fabrics, each held out of its own generator; on the validation fabrics' jobs alone: right "
+            f"{_ms([v['right'] for v in own])}, mis-sort {_ms([v['mis-sort'] for v in own])}); ")
+
+
 def _outlier_text(ratio) -> str:
     """The outlier-press rule of a chosen setting, for the report ('' for runs before it)."""
     if ratio is None:
@@ -304,7 +318,9 @@ def _outlier_text(ratio) -> str:
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
              "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)",
              "mis_sort_target": "mis-sort target, % (`train --mis-sort-target`: the whole operating point chosen on "
-                                "validation for it)"}
+                                "validation for it)",
+             "validation_folds": "validation folds (`train --validation-folds`: the whole operating point chosen "
+                                 "with that many folds of touched fabrics beside the validation fabrics)"}
 
 
 def knob_lines(sd: list[dict]) -> list[str]:

@@ -81,6 +81,9 @@ class Profile:
     # the share of pieces in a wrong bin the scene decision's search on validation jobs must keep
     # under (train/decision.py); the report prices decision.MIS_SORT_TARGETS beside it
     mis_sort_target: float = 0.01
+    # the scene decision's validation worlds beyond the split's own validation fabrics: folds of the
+    # touched fabrics, each held out of a generator trained on the others (train/folds.py); 0: none
+    validation_folds: int = 0
 
 
 REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
@@ -108,7 +111,7 @@ PROFILES = {
     # paper: 50 fabrics x 225 presses; features from 45 presses per fabric (9 of every 45 grid
     # points would be the same cost) so extraction fits the CPU budget; see docs/training.md
     "paper": Profile("paper", size_px=128, splits=5, max_presses=45, ft_epochs=2, ft_max_rows=2000, steps=400,
-                     cls_steps=200, n_synth_per_class=150, visual_tail="finetuned"),
+                     cls_steps=200, n_synth_per_class=150, visual_tail="finetuned", validation_folds=4),
 }
 
 
@@ -124,6 +127,17 @@ def touched_problem(n_fabrics: int, touched: int | None, dataset: Path | str) ->
     if touched is None or 2 <= touched <= most:
         return None
     return f"--touched {touched}: a split of {dataset}'s {n_fabrics} fabrics has {most} touched ones; give 2 to {most}"
+
+
+def folds_problem(n_fabrics: int, prof: Profile, dataset: Path | str) -> str | None:
+    """What is wrong with ``prof.validation_folds`` for a split of ``dataset``'s ``n_fabrics``, or None:
+    each fold holds out at least 2 of a split's touched fabrics (train/folds.py)."""
+    n = prof.validation_folds
+    touched = prof.touched or n_fabrics - 2 * n_holdout(n_fabrics)
+    if n == 0 or 2 <= n <= touched // 2:
+        return None
+    return (f"--validation-folds {n}: a split of {dataset}'s {n_fabrics} fabrics trains on {touched} touched ones; "
+            f"give 0 (none) or 2 to {touched // 2} (at least 2 held out per fold)")
 
 
 def _log(msg: str) -> None:
@@ -216,13 +230,14 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
     scene_model, result["scene_decision"] = scene_decision(fitted["VS2T-ZSL"], views, split, budget,
-                                                           prof.mis_sort_target)
+                                                           prof.mis_sort_target, prof.validation_folds)
     result["seconds"] = round(time.time() - t0, 1)
     return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk,
             "scene_model": scene_model}
 
 
-def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget, target: float = 0.01) -> tuple:
+def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget, target: float = 0.01,
+                   n_folds: int = 0) -> tuple:
     """The scene decision of one split (train/decision.py): chosen on its validation fabrics, scored
     on scenes of its test fabrics, beside today's route (CLS_t / CLS_u by the paper's Gaussian
     router at its validation beta) on the same scenes. The test jobs' off-scene pieces are fabrics
@@ -233,18 +248,23 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     jobs with their later presses among the off-scene pieces price that (``pressed_strangers``:
     the model without and with them - pressed fabrics as strangers, not never-seen ones). The
     operating point is chosen for at most ``target`` mis-sorted pieces on validation; each of
-    ``decision.MIS_SORT_TARGETS`` is chosen the same way and priced on the same test jobs."""
+    ``decision.MIS_SORT_TARGETS`` is chosen the same way and priced on the same test jobs.
+    ``n_folds``: validation worlds from folds of the touched fabrics beside the validation fabrics
+    (train/folds.py), made once and used by every target's choice."""
     from vs2t_edge.train import decision as dc
+    from vs2t_edge.train.folds import fold_worlds
 
     synth_u = method.synthesise(views.train, budget, split.seed)
     synth_v = method.synthesise(views.val, budget, split.seed)
     x_tv, _, y_tv = views.touched_val
     x_vp, _, y_vp = views.val_presses
+    folds = fold_worlds(method, views.train, views.touched_val, budget, n_folds=n_folds, seed=split.seed,
+                        log=_log) if n_folds else []
 
-    def fit(t: float, log=lambda m: None):
+    def fit(t: float, log=lambda m: None, folds=folds):
         return dc.fit_scene_decision(
             views.train.x_t, views.train.y, list(split.touched), (x_tv, y_tv), list(split.validation), (x_vp, y_vp),
-            synth_v, list(split.untouched), synth_u, target_mis_sort=t, seed=split.seed, log=log)
+            synth_v, list(split.untouched), synth_u, target_mis_sort=t, seed=split.seed, folds=folds, log=log)
 
     model, chosen = fit(target, _log)
     x_tt, _, y_tt = views.touched_test
@@ -254,8 +274,11 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     model, later = dc.with_known(model, x_vp, y_vp, list(split.validation))
     targets = {t: model if t == target else dc.with_known(fit(t)[0], x_vp, y_vp, list(split.validation))[0]
                for t in sorted({*dc.MIS_SORT_TARGETS, target})}
+    # with folds, the operating point the validation fabrics alone choose, priced beside it
+    by_folds = {n_folds: model, 0: dc.with_known(fit(target, folds=[])[0], x_vp, y_vp, list(split.validation))[0]} \
+        if folds else None
     test = dc.evaluate_scenes(model, list(split.touched), (x_tt, y_tt), list(split.untouched), (x_up, y_up),
-                              off_pool=None, seed=split.seed, targets=targets)
+                              off_pool=None, seed=split.seed, targets=targets, folds=by_folds)
     a = test["all"]
     _log(f"scene decision, test scenes: right {a['right']:.1%}, mis-sort {a['mis-sort']:.1%}, reject {a['reject']:.1%}, "
          f"{a['presses']:.1f} presses per item")
@@ -263,7 +286,8 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
         test["pressed_strangers"] = dc.stranger_jobs({"unaware": unaware, "knowing": model}, list(split.touched),
                                                      (x_tt, y_tt), list(split.untouched), (x_up, y_up), later,
                                                      seed=split.seed)
-    warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"], len(split.validation))
+    warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"],
+                                  sum(w["validation_fabrics"] for w in chosen["validation_worlds"]))
     if warning:
         _log(warning)
     chosen = {k: v for k, v in chosen.items() if k != "tried"}
@@ -395,9 +419,10 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
-          mis_sort_target: float | None = None) -> dict:
+          mis_sort_target: float | None = None, validation_folds: int | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
     ``mis_sort_target``: the scene decision's target share of mis-sorted pieces (``Profile.mis_sort_target``).
+    ``validation_folds``: the scene decision's folds of touched fabrics (``Profile.validation_folds``).
     ``touched``: train each split on this many of its touched fabrics (``Profile.touched``).
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
@@ -405,27 +430,30 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
-                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched, mis_sort_target)
+                      max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched, mis_sort_target,
+                      validation_folds)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
            max_presses: int | None = None, tactile_feature: str | None = None,
            preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
-           mis_sort_target: float | None = None) -> dict:
+           mis_sort_target: float | None = None, validation_folds: int | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
                                               ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg),
-                                              ("touched", touched), ("mis_sort_target", mis_sort_target))
+                                              ("touched", touched), ("mis_sort_target", mis_sort_target),
+                                              ("validation_folds", validation_folds))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
     if not 0.0 < prof.mis_sort_target < 1.0:
         raise ValueError(f"mis_sort_target {prof.mis_sort_target!r}: a share of pieces above 0 and below 1")
-    if prof.touched is not None:
+    if prof.touched is not None or prof.validation_folds:
         from vs2t_edge.runtime.dataset import load_dataset
 
-        problem = touched_problem(len(load_dataset(dataset).fabrics), prof.touched, dataset)
+        n_fabrics = len(load_dataset(dataset).fabrics)
+        problem = touched_problem(n_fabrics, prof.touched, dataset) or folds_problem(n_fabrics, prof, dataset)
         if problem:
             raise ValueError(problem)
     check_camera_jpeg(prof.camera_jpeg)

@@ -1,0 +1,147 @@
+"""More validation fabrics for the scene decision (train/folds.py): folds of the touched fabrics,
+each held out of a generator trained on the others, play validation fabrics beside the split's own."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from vs2t_edge.train import decision as dc
+from vs2t_edge.train.baselines import ZSLData
+from vs2t_edge.train.folds import fold_assignment, fold_data
+
+N_T, TRAIN, VAL = 9, 6, 2  # touched fabrics; training and validation presses of each
+
+
+def _split_data() -> tuple[ZSLData, tuple]:
+    """Touched training and validation presses whose features say which fabric and press they are
+    (column 0: fabric, column 1: press number; tests stop at the validation presses: the test
+    presses are never handed over)."""
+    rows = [(f, p) for f in range(N_T) for p in range(TRAIN)]
+    x = np.array([[f, p, 0.0] for f, p in rows])
+    train = ZSLData(x_t=x, x_v=x + 100, y=np.array([f for f, _ in rows]), attr_t=np.arange(N_T)[:, None] * np.ones((1, 4)),
+                    attr_u=np.zeros((0, 4)), v_u=np.zeros((0, 3)), v_u_class=np.zeros(0, int),
+                    names_t=[f"t{f}" for f in range(N_T)])
+    val = [(f, p) for f in range(N_T) for p in range(TRAIN, TRAIN + VAL)]
+    xv = np.array([[f, p, 0.0] for f, p in val])
+    return train, (xv, xv + 100, np.array([f for f, _ in val]))
+
+
+def test_every_touched_fabric_is_held_out_once():
+    parts = fold_assignment(N_T, 3, seed=5)
+    assert sorted(np.concatenate(parts).tolist()) == list(range(N_T)) and all(len(p) == 3 for p in parts)
+    assert [p.tolist() for p in parts] == [p.tolist() for p in fold_assignment(N_T, 3, seed=5)]  # drawn from the seed
+    assert [p.tolist() for p in parts] != [p.tolist() for p in fold_assignment(N_T, 3, seed=6)]
+    for bad in (1, 5):  # one fold holds out everything; five cannot hold 2 each
+        with pytest.raises(ValueError, match="validation folds"):
+            fold_assignment(N_T, bad, seed=5)
+
+
+def test_a_fold_generator_never_reads_its_held_out_fabrics_touch():
+    train, touched_val = _split_data()
+    held = np.array([1, 4, 7])
+    data, (x, y), keep = fold_data(train, touched_val, held)
+    assert keep.tolist() == [0, 2, 3, 5, 6, 8]
+    # the generator's tactile rows: only kept fabrics, relabelled 0..5 in their order
+    assert set(data.x_t[:, 0].astype(int)) == set(keep.tolist())
+    assert np.array_equal(keep[data.y], data.x_t[:, 0].astype(int))
+    assert data.names_t == [f"t{f}" for f in keep] and data.names_u == ["t1", "t4", "t7"]
+    assert np.array_equal(data.attr_u[:, 0], held)
+    # the held fabrics play validation fabrics: their training then validation presses, in press order
+    for j, f in enumerate(held):
+        mine = x[y == j]
+        assert mine[:, 0].tolist() == [f] * (TRAIN + VAL) and mine[:, 1].tolist() == list(range(TRAIN + VAL))
+    # their camera crops are the generator's conditions, the same presses as the pieces
+    assert np.array_equal(data.v_u, x + 100) and np.array_equal(data.v_u_class, y)
+
+
+def _world(rng, n_t: int, n_v: int, misnamed: int = 0, per: int = 30, d: int = 16):
+    """A validation world whose generator synthesises each validation fabric's mean near its
+    presses, except the first ``misnamed``, whose means it puts on the next fabric's presses."""
+    centres = rng.normal(0, 3.0, (n_t + n_v, d))
+    presses = [c + rng.normal(0, 1, (per, d)) for c in centres]
+    at = [n_t + ((j + 1) % n_v if j < misnamed else j) for j in range(n_v)]
+    synth = np.concatenate([centres[at[j]] + 0.3 * rng.normal(0, 1, d) + rng.normal(0, 1, (40, d))
+                            for j in range(n_v)]), np.repeat(np.arange(n_v), 40)
+    return dc.ValidationWorld(np.concatenate([p[:20] for p in presses[:n_t]]), np.repeat(np.arange(n_t), 20),
+                              [f"t{j}" for j in range(n_t)],
+                              (np.concatenate([p[20:25] for p in presses[:n_t]]), np.repeat(np.arange(n_t), 5)),
+                              [f"v{j}" for j in range(n_v)],
+                              (np.concatenate(presses[n_t:]), np.repeat(np.arange(n_v), per)), synth)
+
+
+def _on(model, world: dc.ValidationWorld, seed: int) -> dict:
+    """``model``'s operating point on ``world``'s validation jobs (its means, the same scalars)."""
+    jobs = dc._Jobs.of(world, seed)
+    vm = jobs.model(model.k)
+    cand = replace(model, classes=vm.classes, untouched=vm.untouched, center=vm.center, basis=vm.basis, means=vm.means)
+    return dc._simulate([cand], [jobs])["all"]
+
+
+def test_the_operating_point_is_chosen_on_every_worlds_jobs():
+    """Four validation fabrics the generator names well say untouched pieces are safe to sort; a
+    fold of touched fabrics of which it names some as others says they are not. Chosen on both,
+    the operating point keeps the fold's misnamed fabrics out of wrong bins, which the point the
+    validation fabrics alone choose puts there."""
+    rng = np.random.default_rng(3)
+    own, fold = _world(rng, 8, 4), _world(rng, 8, 9, misnamed=4)
+    untouched = ["u0", "u1"]
+    synth_u = rng.normal(0, 3.0, (80, 16)), np.repeat(np.arange(2), 40)
+    args = (own.train_x, own.train_y, own.touched, own.touched_val, own.val_fabrics, own.val_presses, own.synth_val,
+            untouched, synth_u)
+    alone, rep_alone = dc.fit_scene_decision(*args, seed=2)
+    both, rep_both = dc.fit_scene_decision(*args, seed=2, folds=[fold])
+    assert [w["validation_fabrics"] for w in rep_both["validation_worlds"]] == [4, 9]
+    assert rep_alone["validation_own_world"] == rep_alone["validation"]
+    pooled, own_jobs = rep_both["validation"], rep_both["validation_own_world"]
+    assert pooled["all"]["n"] == 2 * own_jobs["all"]["n"] == 2 * rep_alone["validation"]["all"]["n"]  # both worlds' jobs
+    assert pooled["all"]["mis-sort"] <= 0.01 and pooled["by_kind"]["untouched"]["reject"] > 0.3
+    # the validation fabrics alone chose a sum rule: its scalars (the open-set threshold in the same
+    # whitened units) on the fold's jobs are what that choice does there - misnamed fabrics into wrong bins
+    assert alone.item_rule == "sum"
+    assert _on(alone, fold, 2 + dc.WORLD_SEED_STEP)["mis-sort"] > 0.05
+    assert both.classes == tuple(own.touched + untouched)  # deployed on the split's own touched means
+
+
+@pytest.fixture(scope="module")
+def tiny_world():
+    from test_bundle_fixtures import tiny_world as shared_tiny_world
+
+    return shared_tiny_world()
+
+
+def test_train_refuses_folds_a_split_cannot_give(tmp_path, tiny_world, capsys):
+    from vs2t_edge.cli import main
+    from vs2t_edge.train import run as tr
+
+    for bad in ("1", "4", "-2"):  # the tiny world's splits train on 6 touched fabrics: 2 or 3 folds
+        assert main(["train", str(tiny_world), "--profile", "tiny", "--validation-folds", bad,
+                     "--out", str(tmp_path / "no")]) == 2
+        assert "give 0 (none) or 2 to 3" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--validation-folds 4"):
+        tr.train(tiny_world, tmp_path / "no", profile="tiny", validation_folds=4)
+    assert not (tmp_path / "no").exists()
+
+
+def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeypatch, capsys):
+    from vs2t_edge.train import run as tr
+
+    monkeypatch.setitem(tr.PROFILES, "tiny", replace(tr.PROFILES["tiny"], steps=20, cls_steps=20,
+                                                     n_synth_per_class=20, ft_epochs=1))
+    m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, validation_folds=3)
+    chosen = m["splits"][0]["scene_decision"]["validation"]
+    # the split's own 2 validation fabrics, then 3 folds of its 6 touched fabrics, 2 held out each
+    assert chosen["validation_worlds"] == [{"touched": 6, "validation_fabrics": 2}] + \
+        [{"touched": 4, "validation_fabrics": 2}] * 3
+    assert m["profile"]["validation_folds"] == 3
+    err = capsys.readouterr().err
+    assert "validation fold 3/3: generator on 4 touched fabrics, 2 held out" in err
+    assert "(4 world(s), 8 validation fabrics)" in err
+    # the operating point the validation fabrics alone choose is priced beside it, on the same test jobs
+    rows = {r["value"]: r for r in m["splits"][0]["scene_decision"]["test"]["knobs"] if r["knob"] == "validation_folds"}
+    assert set(rows) == {0.0, 3.0} and rows[3.0]["own"] and not rows[0.0]["own"]
+    assert rows[3.0]["right"] == m["splits"][0]["scene_decision"]["test"]["all"]["right"]
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "| validation folds (`train --validation-folds`" in report and "| 3 (own) |" in report
+    assert "8 validation fabrics per split on average (2 validation fabrics and 3 folds" in report
