@@ -41,8 +41,8 @@ def test_every_touched_fabric_is_held_out_once():
 def test_a_fold_generator_never_reads_its_held_out_fabrics_touch():
     train, touched_val = _split_data()
     held = np.array([1, 4, 7])
-    data, (x, y), keep = fold_data(train, touched_val, held)
-    assert keep.tolist() == [0, 2, 3, 5, 6, 8]
+    data, (x, y), (xk, yk) = fold_data(train, touched_val, held)
+    keep = np.array([0, 2, 3, 5, 6, 8])
     # the generator's tactile rows: only kept fabrics, relabelled 0..5 in their order
     assert set(data.x_t[:, 0].astype(int)) == set(keep.tolist())
     assert np.array_equal(keep[data.y], data.x_t[:, 0].astype(int))
@@ -54,6 +54,9 @@ def test_a_fold_generator_never_reads_its_held_out_fabrics_touch():
         assert mine[:, 0].tolist() == [f] * (TRAIN + VAL) and mine[:, 1].tolist() == list(range(TRAIN + VAL))
     # their camera crops are the generator's conditions, the same presses as the pieces
     assert np.array_equal(data.v_u, x + 100) and np.array_equal(data.v_u_class, y)
+    # the kept fabrics' validation presses are the fold's touched pieces, relabelled as the generator's
+    assert np.array_equal(keep[yk], xk[:, 0].astype(int)) and set(xk[:, 1].astype(int)) == {TRAIN, TRAIN + 1}
+    assert len(xk) == len(keep) * VAL
 
 
 def _world(rng, n_t: int, n_v: int, misnamed: int = 0, per: int = 30, d: int = 16):
@@ -93,7 +96,7 @@ def test_the_operating_point_is_chosen_on_every_worlds_jobs():
     alone, rep_alone = dc.fit_scene_decision(*args, seed=2)
     both, rep_both = dc.fit_scene_decision(*args, seed=2, folds=[fold])
     assert [w["validation_fabrics"] for w in rep_both["validation_worlds"]] == [4, 9]
-    assert rep_alone["validation_own_world"] == rep_alone["validation"]
+    assert "validation_own_world" not in rep_alone  # without folds the validation jobs are the own ones
     pooled, own_jobs = rep_both["validation"], rep_both["validation_own_world"]
     assert pooled["all"]["n"] == 2 * own_jobs["all"]["n"] == 2 * rep_alone["validation"]["all"]["n"]  # both worlds' jobs
     assert pooled["all"]["mis-sort"] <= 0.01 and pooled["by_kind"]["untouched"]["reject"] > 0.3
@@ -124,6 +127,18 @@ def test_train_refuses_folds_a_split_cannot_give(tmp_path, tiny_world, capsys):
     assert not (tmp_path / "no").exists()
 
 
+def test_a_profiles_own_folds_shrink_to_what_a_split_can_give():
+    """The paper profile's 4 folds are no request: with ``--touched 5`` a split makes 2 folds, with 3
+    none; a world of 20 fabrics (14 touched) keeps 4. A count given on the command line is refused."""
+    from vs2t_edge.train.run import PROFILES, folds_problem, profile_folds
+
+    paper = PROFILES["paper"]
+    assert paper.validation_folds == 4 and profile_folds(50, paper) == 4
+    assert [profile_folds(50, replace(paper, touched=t)) for t in (3, 5, 7, 8)] == [0, 2, 3, 4]
+    assert profile_folds(20, paper) == 4 and profile_folds(10, paper) == 3
+    assert "give 0 (none) or 2 to 2" in folds_problem(50, replace(paper, touched=5), "DS")
+
+
 def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeypatch, capsys):
     from vs2t_edge.train import run as tr
 
@@ -144,4 +159,4 @@ def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeyp
     assert rows[3.0]["right"] == m["splits"][0]["scene_decision"]["test"]["all"]["right"]
     report = (tmp_path / "run" / "report.md").read_text()
     assert "| validation folds (`train --validation-folds`" in report and "| 3 (own) |" in report
-    assert "8 validation fabrics per split on average (2 validation fabrics and 3 folds" in report
+    assert "8 validation fabrics per split on average (the split's 2 validation fabrics and 3 folds" in report

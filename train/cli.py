@@ -68,13 +68,11 @@ def run(args: argparse.Namespace) -> int:
     from vs2t_edge.train.run import touched_problem
 
     problem = touched_problem(n_fabrics, args.touched, args.dataset)
-    if problem is None:
+    if problem is None and args.validation_folds is not None:  # a profile's own folds shrink to fit instead
         from vs2t_edge.train.run import PROFILES, folds_problem
 
-        prof = replace(PROFILES[args.profile], touched=args.touched)
-        if args.validation_folds is not None:
-            prof = replace(prof, validation_folds=args.validation_folds)
-        problem = folds_problem(n_fabrics, prof, args.dataset)
+        problem = folds_problem(n_fabrics, replace(PROFILES[args.profile], touched=args.touched,
+                                                   validation_folds=args.validation_folds), args.dataset)
     if problem:
         print(f"vs2t-edge train: {problem}", file=sys.stderr)
         return 2

@@ -5,7 +5,10 @@ Per split (``fit_scene_decision``):
 1. a *validation model*: the touched fabrics' real training presses, and the validation fabrics
    playing the untouched part (their means synthesised by the generator from camera and
    attributes, as the untouched fabrics' will be) - so every choice below is made on fabrics whose
-   tactile data no training step saw, and never on the split's untouched (test) fabrics;
+   tactile data the generator never read, and never on the split's untouched (test) fabrics. With
+   ``folds`` (train/folds.py) there are more such *worlds*: folds of the touched fabrics, each held
+   out of a generator trained on the others, playing validation fabrics; every choice below is
+   then made on all worlds' jobs together;
 2. for each subspace size ``k``: temperature and untouched bias by the class-balanced negative log
    likelihood of the touched fabrics' validation presses and the validation fabrics' presses
    (temperature scaling with a calibrated-stacking bias); the ``k`` with the lowest one is kept;
@@ -273,12 +276,14 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
-    own_world = _simulate(chosen[:1], jobs[:1]) if len(jobs) > 1 else val_summary
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
     labels_rule = None if chosen.item_rule == "offset" else {key: float(getattr(cand_off, key)) for key in LABELS_KEYS}
+    # with folds, what the choice does on the split's own validation jobs alone (the rule as the
+    # outlier search priced it: a sum-rule model's press spread is its labels rule's)
+    own_world = _simulate([replace(chosen, labels_rule=labels_rule)], jobs[:1]) if folds else None
     deployed = replace(chosen, classes=deployed.classes, untouched=deployed.untouched, center=deployed.center,
                        basis=deployed.basis, means=deployed.means, labels_rule=labels_rule,
                        info={**deployed.info, "target_mis_sort": target_mis_sort})
@@ -291,7 +296,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                          "outlier_ratio": chosen.outlier_ratio},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
               "validation_worlds": [{"touched": len(w.touched), "validation_fabrics": len(w.val_fabrics)} for w in worlds],
-              "validation_own_world": own_world,
+              **({"validation_own_world": own_world} if own_world else {}),
               "target_mis_sort": target_mis_sort,
               "meets_target_on_validation": bool(val_summary["all"]["mis-sort"] <= target_mis_sort),
               "item_rules": {name: {"right": r[2]["all"]["right"], "mis_sort": r[2]["all"]["mis-sort"],

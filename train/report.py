@@ -249,7 +249,9 @@ def scene_lines(splits: list[dict]) -> list[str]:
            "test presses), off-scene pieces of the fabrics the model knows that a scene leaves out (the "
            "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
            "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
-           "Operating point chosen on the validation fabrics only, for at most "
+           "Operating point chosen on the validation fabrics only"
+           + (" and folds of touched fabrics, each held out of its own generator" if any(
+               len(d["validation"].get("validation_worlds", [])) > 1 for d in sd) else "") + ", for at most "
            f"{100 * sd[0]['validation']['target_mis_sort']:g} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
            "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
     kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
@@ -267,7 +269,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
                 f"{len(sd)} split(s); on the test jobs above in {sum(kept)} of {len(sd)}"
                 + ("" if all(kept) else
                    " (**missed**: a split's test fabrics put that share of pieces in wrong bins, which its "
-                   "validation fabrics did not show)") + ".",
+                   "validation jobs did not show)") + ".",
             f"Calibration: per-press expected calibration error {_ms([d['test']['press_ece']['before'] for d in sd])} "
             f"before, {_ms([d['test']['press_ece']['after'] for d in sd])} after temperature and bias (fitted on "
             f"validation); per item {_ms([d['test']['item_ece'] for d in sd])}. Area under the risk-coverage curve "
@@ -300,11 +302,12 @@ def _worlds_text(sd: list[dict]) -> str:
     worlds = [d["validation"].get("validation_worlds", []) for d in sd]
     if all(len(w) <= 1 for w in worlds):
         return ""
-    own = [d["validation"]["validation_own_world"]["all"] for d in sd]
+    own = [d["validation"]["validation_own_world"]["all"] for d in sd if "validation_own_world" in d["validation"]]
+    alone = (f"; on the validation fabrics' jobs alone: right {_ms([v['right'] for v in own])}, mis-sort "
+             f"{_ms([v['mis-sort'] for v in own])}, reject {_ms([v['reject'] for v in own])}") if own else ""
     return (f"drawn from {np.mean([sum(x['validation_fabrics'] for x in w) for w in worlds]):g} validation fabrics per "
-            f"split on average ({worlds[0][0]['validation_fabrics']} validation fabrics and {len(worlds[0]) - 1} folds of "
-            f"touched fabrics, each held out of its own generator; on the validation fabrics' jobs alone: right "
-            f"{_ms([v['right'] for v in own])}, mis-sort {_ms([v['mis-sort'] for v in own])}); ")
+            f"split on average (the split's {worlds[0][0]['validation_fabrics']} validation fabrics and {len(worlds[0]) - 1} "
+            f"folds of touched fabrics, each held out of its own generator{alone}); ")
 
 
 def _outlier_text(ratio) -> str:

@@ -27,6 +27,7 @@ from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
 from vs2t_edge.train.baselines import flush_denormals, predict_logits, train_classifier
+from vs2t_edge.train.folds import folds_fit
 from vs2t_edge.train.splits import fewer_touched
 from vs2t_edge.train.trunks import build_trunk
 
@@ -129,15 +130,26 @@ def touched_problem(n_fabrics: int, touched: int | None, dataset: Path | str) ->
     return f"--touched {touched}: a split of {dataset}'s {n_fabrics} fabrics has {most} touched ones; give 2 to {most}"
 
 
+def split_touched(n_fabrics: int, prof: Profile) -> int:
+    """How many touched fabrics each split of a world of ``n_fabrics`` trains on."""
+    return prof.touched or n_fabrics - 2 * n_holdout(n_fabrics)
+
+
 def folds_problem(n_fabrics: int, prof: Profile, dataset: Path | str) -> str | None:
-    """What is wrong with ``prof.validation_folds`` for a split of ``dataset``'s ``n_fabrics``, or None:
-    each fold holds out at least 2 of a split's touched fabrics (train/folds.py)."""
-    n = prof.validation_folds
-    touched = prof.touched or n_fabrics - 2 * n_holdout(n_fabrics)
-    if n == 0 or 2 <= n <= touched // 2:
+    """What is wrong with ``prof.validation_folds`` for a split of ``dataset``'s ``n_fabrics``, or None
+    (train/folds.py ``folds_fit``)."""
+    n, touched = prof.validation_folds, split_touched(n_fabrics, prof)
+    if n == 0 or folds_fit(n, touched):
         return None
     return (f"--validation-folds {n}: a split of {dataset}'s {n_fabrics} fabrics trains on {touched} touched ones; "
             f"give 0 (none) or 2 to {touched // 2} (at least 2 held out per fold)")
+
+
+def profile_folds(n_fabrics: int, prof: Profile) -> int:
+    """The profile's own number of validation folds, shrunk to what a split can give (0 when it
+    can give none): a profile default is no request to refuse a world or a ``--touched`` for."""
+    n, touched = prof.validation_folds, split_touched(n_fabrics, prof)
+    return n if n == 0 or folds_fit(n, touched) else (touched // 2 if touched >= 4 else 0)
 
 
 def _log(msg: str) -> None:
@@ -286,15 +298,14 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
         test["pressed_strangers"] = dc.stranger_jobs({"unaware": unaware, "knowing": model}, list(split.touched),
                                                      (x_tt, y_tt), list(split.untouched), (x_up, y_up), later,
                                                      seed=split.seed)
-    warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"],
-                                  sum(w["validation_fabrics"] for w in chosen["validation_worlds"]))
+    warning = test_target_warning(a["mis-sort"], chosen["target_mis_sort"], len(split.validation), n_folds)
     if warning:
         _log(warning)
     chosen = {k: v for k, v in chosen.items() if k != "tried"}
     return model, {"validation": chosen, "test": test}
 
 
-def test_target_warning(mis_sort: float, target: float, n_validation: int) -> str | None:
+def test_target_warning(mis_sort: float, target: float, n_validation: int, n_folds: int = 0) -> str | None:
     """What training says when its test jobs put more pieces in wrong bins than the target that
     validation chose the operating point for (None when they do not). A report, not a choice:
     nothing is re-chosen on test fabrics. On the demo's world drawn with seed 1, validation met the
@@ -302,8 +313,9 @@ def test_target_warning(mis_sort: float, target: float, n_validation: int) -> st
     the generator's errors on the test ones."""
     if not mis_sort > target:
         return None
+    chose = f"the {n_validation} validation fabrics" + (f" and {n_folds} folds of touched fabrics" if n_folds else "")
     return (f"WARNING: the test jobs mis-sorted {mis_sort:.1%} of their pieces, above the {100 * target:g}% target "
-            f"that the {n_validation} validation fabrics chose the operating point for: expect that share in wrong "
+            f"that {chose} chose the operating point for: expect that share in wrong "
             "bins on fabrics like these (more validation or touched fabrics, or operator labels, docs/cell.md)")
 
 
@@ -453,9 +465,15 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
         from vs2t_edge.runtime.dataset import load_dataset
 
         n_fabrics = len(load_dataset(dataset).fabrics)
-        problem = touched_problem(n_fabrics, prof.touched, dataset) or folds_problem(n_fabrics, prof, dataset)
+        problem = touched_problem(n_fabrics, prof.touched, dataset) or (
+            folds_problem(n_fabrics, prof, dataset) if validation_folds is not None else None)
         if problem:
             raise ValueError(problem)
+        if validation_folds is None and profile_folds(n_fabrics, prof) != prof.validation_folds:
+            n = profile_folds(n_fabrics, prof)
+            _log(f"validation folds: {n} instead of the {prof.name} profile's {prof.validation_folds}: a split of "
+                 f"{dataset} trains on {split_touched(n_fabrics, prof)} touched fabrics, and a fold holds out at least 2")
+            prof = replace(prof, validation_folds=n)
     check_camera_jpeg(prof.camera_jpeg)
     if prof.tactile_feature not in TACTILE_FEATURES:
         raise ValueError(f"tactile_feature {prof.tactile_feature!r}: choose one of {', '.join(TACTILE_FEATURES)}")

@@ -138,18 +138,30 @@ class VS2TZSL(_GenerativeZSL):
         self.G = Generator(self.latent + d_c, d_t, h)
         self.D = Discriminator(d_t)
 
+    @classmethod
+    def unregistered(cls) -> "VS2TZSL":
+        """A method not in ``instances`` (an ensemble's member, a validation fold's generator):
+        only what a run fits as its method is one."""
+        method = object.__new__(cls)
+        method.name, method.history = cls.variant.name, []
+        return method
+
     def fit(self, data: ZSLData, budget: Budget, seed: int, steps: int | None = None) -> "VS2TZSL":
+        self.fit_generators(data, budget, seed, steps)
+        self._fit_cls_u(data, budget, seed)
+        return self
+
+    def fit_generators(self, data: ZSLData, budget: Budget, seed: int, steps: int | None = None) -> "VS2TZSL":
+        """The generator (``budget.ensemble`` of them, pooled by ``synthesise``), without CLS_u."""
         n = int(getattr(budget, "ensemble", 1))
         if n < 1:
             raise ValueError(f"VS2TBudget.ensemble {n}: need at least 1 generator")
         self._fit_generator(data, budget, seed, steps)
         self.members = [self]
         for j in range(1, n):
-            member = object.__new__(type(self))  # not in ``instances``: only the ensemble is a fitted method
-            member.name, member.history = self.name, []
+            member = self.unregistered()
             member._fit_generator(data, budget, seed + ENSEMBLE_SEED_STEP * j, steps)
             self.members.append(member)
-        self._fit_cls_u(data, budget, seed)
         return self
 
     def synthesise(self, data: ZSLData, budget: Budget, seed: int) -> tuple[np.ndarray, np.ndarray]:
