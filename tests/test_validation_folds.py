@@ -160,3 +160,42 @@ def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeyp
     report = (tmp_path / "run" / "report.md").read_text()
     assert "| validation folds (`train --validation-folds`" in report and "| 3 (own) |" in report
     assert "8 validation fabrics per split on average (the split's 2 validation fabrics and 3 folds" in report
+
+
+def test_the_own_worlds_summary_is_the_deployed_rule_on_its_jobs(monkeypatch):
+    """With folds the report says what the choice does on the split's own validation jobs: the
+    deployed rule there, a sum rule's outlier presses judged by its labels rule's press spread as
+    the search judged them (the first version priced it without, and reported another rule)."""
+    monkeypatch.setattr(dc, "OUTLIER_RATIOS", (3.0, 1.5))  # so that the chosen sum rule leaves presses out
+    rng = np.random.default_rng(3)
+    own, fold = _world(rng, 8, 4), _world(rng, 8, 5)
+    synth_u = rng.normal(0, 3.0, (80, 16)), np.repeat(np.arange(2), 40)
+    model, rep = dc.fit_scene_decision(own.train_x, own.train_y, own.touched, own.touched_val, own.val_fabrics,
+                                       own.val_presses, own.synth_val, ["u0", "u1"], synth_u, seed=2, folds=[fold])
+    assert model.item_rule == "sum" and model.outlier_ratio == 3.0 and model.labels_rule
+    assert rep["validation_own_world"]["all"] == pytest.approx(_on(model, own, 2))
+
+
+def test_a_folds_generator_is_the_methods_kind_ensemble_and_all():
+    import torch
+
+    from vs2t_edge.train import vs2t
+    from vs2t_edge.train.folds import fold_worlds
+
+    rng = np.random.default_rng(0)
+    n_t, d = 6, 8
+    x = rng.normal(size=(n_t * 12, d)).astype(np.float32)
+    train = ZSLData(x_t=x, x_v=x[::-1].copy(), y=np.repeat(np.arange(n_t), 12),
+                    attr_t=rng.integers(0, 2, (n_t, 4)).astype(float), attr_u=np.ones((2, 4)),
+                    v_u=rng.normal(size=(10, d)).astype(np.float32), v_u_class=np.repeat(np.arange(2), 5),
+                    names_t=[f"t{i}" for i in range(n_t)], names_u=["u0", "u1"])
+    touched_val = (x[:18] + 0.1, x[:18] - 0.1, np.repeat(np.arange(n_t), 3))
+    budget = vs2t.VS2TBudget(steps=2, batch=8, cls_steps=2, n_synth_per_class=5, hidden=16, latent=4, ensemble=3)
+    cls = vs2t.variant_class("VS2T-ZSL")
+    torch.manual_seed(0)
+    method = cls().fit(train, budget, seed=1000)
+    before = len(cls.instances)
+    worlds = fold_worlds(method, train, touched_val, budget, n_folds=2, seed=1000)
+    assert len(cls.instances) == before  # the split's fitted method stays the one the run keeps
+    for w in worlds:  # three members' samples per held-out fabric, as the split's own syntheses pool
+        assert np.bincount(w.synth_val[1]).tolist() == [3 * budget.n_synth_per_class] * len(w.val_fabrics)

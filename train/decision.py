@@ -1,4 +1,4 @@
-"""The scene decision, fitted and calibrated on validation fabrics only (runtime/scene_model.py).
+"""The scene decision, fitted and calibrated on validation jobs only (runtime/scene_model.py).
 
 Per split (``fit_scene_decision``):
 

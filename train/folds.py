@@ -5,8 +5,8 @@ The scene decision (train/decision.py) chooses its operating point on validation
 untouched part is played by fabrics the generator never read: the split's few validation fabrics
 (5 of 50 on the paper-sized world). Five fabrics are too few. One split's five looked easy to the
 generator (validation ZSL 94 %, test 40 %) and chose a caution that left half of its touched test
-pieces in the reject bin; another's looked hard (33 %, test 75 %) and chose too little, so its test
-jobs mis-sorted 2.8 %. ``fold_worlds`` adds worlds of the same kind from the touched fabrics
+pieces in the reject bin; two others met 1 % mis-sorts on validation and mis-sorted 1.5 and 2.8 %
+of their test jobs' pieces. ``fold_worlds`` adds worlds of the same kind from the touched fabrics
 themselves: split them into ``n_folds`` folds; for each, train the generator (the split's own
 method and budget) on the other touched fabrics' training presses, synthesise the held-out fold's
 fabrics from their camera crops and attributes, and let them play validation fabrics - their

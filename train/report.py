@@ -249,9 +249,9 @@ def scene_lines(splits: list[dict]) -> list[str]:
            "test presses), off-scene pieces of the fabrics the model knows that a scene leaves out (the "
            "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
            "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
-           "Operating point chosen on the validation fabrics only"
-           + (" and folds of touched fabrics, each held out of its own generator" if any(
-               len(d["validation"].get("validation_worlds", [])) > 1 for d in sd) else "") + ", for at most "
+           "Operating point chosen on validation jobs only (of the validation fabrics"
+           + (", and of folds of touched fabrics, each held out of its own generator" if any(
+               len(d["validation"].get("validation_worlds", [])) > 1 for d in sd) else "") + "), for at most "
            f"{100 * sd[0]['validation']['target_mis_sort']:g} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
            "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
     kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
@@ -299,8 +299,8 @@ def scene_lines(splits: list[dict]) -> list[str]:
 def _worlds_text(sd: list[dict]) -> str:
     """How many fabrics the validation jobs were drawn from, when folds of touched fabrics joined the
     validation fabrics (train/folds.py; '' without them)."""
-    worlds = [d["validation"].get("validation_worlds", []) for d in sd]
-    if all(len(w) <= 1 for w in worlds):
+    worlds = [w for w in (d["validation"].get("validation_worlds", []) for d in sd) if len(w) > 1]
+    if not worlds:
         return ""
     own = [d["validation"]["validation_own_world"]["all"] for d in sd if "validation_own_world" in d["validation"]]
     alone = (f"; on the validation fabrics' jobs alone: right {_ms([v['right'] for v in own])}, mis-sort "
