@@ -25,6 +25,7 @@ said where the numbers are (docs/results/scene_decision_paper.md).
 from __future__ import annotations
 
 import time
+
 import numpy as np
 
 from vs2t_edge.train.baselines import ZSLData
