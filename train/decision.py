@@ -160,16 +160,21 @@ def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | 
     return so.summarise(recs)
 
 
-def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], own_d2: list[np.ndarray],
+def _open_thresholds(own_d2: np.ndarray) -> dict[float, float]:
+    """Open-set threshold candidates: each of ``OPEN_QUANTILES`` of the in-scene validation presses'
+    squared distances to their own class (1.0: no threshold)."""
+    return {q: float(np.quantile(own_d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
+
+
+def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], open_thresholds: list[dict],
                       target: float) -> tuple[list[SceneModel], dict]:
     """The offset item rule (runtime/scene_model.py) searched on the same validation jobs as the
-    sum rule (train/item_search.py, vectorised), one model per world, and their summary from the
-    cell's own evidence."""
+    sum rule (train/item_search.py, vectorised), one model per world (``open_thresholds``: each
+    world's ``_open_thresholds``), and their summary from the cell's own evidence."""
     worlds = []
-    for vm, j, d2 in zip(vms, jobs, own_d2):
+    for vm, j, thresholds in zip(vms, jobs, open_thresholds):
         projections = {f: vm.project(x) for f, x in j.rows.items()}
         prepared = ns.Prepared.of(ns.draw_items(j.scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=j.seed), vm)
-        thresholds = {q: float(np.quantile(d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
         # each world's own variance estimates: a fold's generator saw fewer fabrics than the deployed
         # one, so its syntheses' offset is its own, not the deployed model's (the search chooses scales)
         worlds.append(ns.World(prepared, ns.offset_estimates(vm, projections), thresholds))
@@ -238,6 +243,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
         fits.append((nll, k, nll0, t, b, vms, [d2[np.arange(len(labels)), labels] for d2, labels, _ in parts]))
     nll, k, nll0, t, b, vms, own_d2 = min(fits, key=lambda f: f[0])
     vms = [replace(vm, temperature=t, untouched_bias=b) for vm in vms]
+    open_thresholds = [_open_thresholds(d2) for d2 in own_d2]  # per world, once for both item rules' searches
     # The item rule by coordinate search (each knob over its values with the others held, three
     # rounds): a full grid of the six knobs would cost thousands of simulated scene sets.
     grid = {"untouched_bias": sorted({0.0, b / 2, b}), "open_quantile": OPEN_QUANTILES, "evidence_weight": WEIGHTS,
@@ -258,8 +264,8 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
             cands = [replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
                              known_margin=p["known_margin"], confidence=p["confidence"],
                              untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
-                             open_threshold=float(np.quantile(d2, q)) if q < 1 else math.inf)
-                     for vm, d2 in zip(vms, own_d2)]
+                             open_threshold=thresholds[q])
+                     for vm, thresholds in zip(vms, open_thresholds)]
             s = _simulate(cands, jobs, tables_by_bias[bias])
             tried[key] = (_score(s, target_mis_sort), cands, s)
         return tried[key]
@@ -272,7 +278,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
     # the same score (the mis-sort target first, then pieces in the right bin) is kept
     score_sum, cand_sum, summary_sum = trial(point)
-    cand_off, summary_off = _offset_candidate(vms, jobs, own_d2, target_mis_sort)
+    cand_off, summary_off = _offset_candidate(vms, jobs, open_thresholds, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)

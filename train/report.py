@@ -250,8 +250,8 @@ def scene_lines(splits: list[dict]) -> list[str]:
            "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
            "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
            "Operating point chosen on validation jobs only (of the validation fabrics"
-           + (", and of folds of touched fabrics, each held out of its own generator" if any(
-               len(d["validation"].get("validation_worlds", [])) > 1 for d in sd) else "") + "), for at most "
+           + (", and of folds of touched fabrics, each held out of its own generator" if _fold_worlds(sd) else "")
+           + "), for at most "
            f"{100 * sd[0]['validation']['target_mis_sort']:g} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
            "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
     kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
@@ -296,10 +296,15 @@ def scene_lines(splits: list[dict]) -> list[str]:
     return out
 
 
+def _fold_worlds(sd: list[dict]) -> list[list[dict]]:
+    """The validation worlds of each split whose choice had folds of touched fabrics (train/folds.py)."""
+    return [w for w in (d["validation"].get("validation_worlds", []) for d in sd) if len(w) > 1]
+
+
 def _worlds_text(sd: list[dict]) -> str:
     """How many fabrics the validation jobs were drawn from, when folds of touched fabrics joined the
     validation fabrics (train/folds.py; '' without them)."""
-    worlds = [w for w in (d["validation"].get("validation_worlds", []) for d in sd) if len(w) > 1]
+    worlds = _fold_worlds(sd)
     if not worlds:
         return ""
     own = [d["validation"]["validation_own_world"]["all"] for d in sd if "validation_own_world" in d["validation"]]
