@@ -262,15 +262,19 @@ class SceneModel:
     @classmethod
     def fit(cls, touched_x: np.ndarray, touched_y: np.ndarray, touched: list[str],
             untouched_x: np.ndarray, untouched_y: np.ndarray, untouched: list[str], *, k: int = 64,
-            shrinkage: float = 0.1) -> "SceneModel":
+            shrinkage: float = 0.1, axes: np.ndarray | None = None) -> "SceneModel":
         """Subspace, shared covariance and touched means from real touched training presses
-        (``touched_y`` indexes ``touched``); untouched means from synthesised features."""
+        (``touched_y`` indexes ``touched``); untouched means from synthesised features. ``axes``:
+        the principal axes of these presses (``principal_axes``), when the caller fits several
+        ``k`` on them - one SVD serves them all."""
         x = np.asarray(touched_x, np.float64)
         y = np.asarray(touched_y)
         if x.ndim != 2 or len(x) != len(y) or len(x) < 2:
             raise SceneModelError(f"scene model: need (N, D) touched features with N labels, got {x.shape}")
         center = x.mean(axis=0)
-        _, _, vt = np.linalg.svd(x - center, full_matrices=False)
+        vt = cls.principal_axes(x) if axes is None else axes
+        if vt.ndim != 2 or vt.shape[1] != x.shape[1]:
+            raise SceneModelError(f"scene model: principal axes of shape {vt.shape} for features of {x.shape[1]}")
         k = int(min(k, vt.shape[0]))
         proj = vt[:k].T
         z = (x - center) @ proj
@@ -288,6 +292,13 @@ class SceneModel:
             np.zeros((0, k))
         return cls(tuple(touched) + tuple(untouched), frozenset(untouched), center, basis,
                    np.concatenate([means_t @ white, means_u]), info={"k": k, "shrinkage": float(shrinkage)})
+
+    @staticmethod
+    def principal_axes(touched_x: np.ndarray) -> np.ndarray:
+        """(min(N, D), D) the principal axes of the touched training presses, largest first: what
+        ``fit`` projects onto (its ``axes``)."""
+        x = np.asarray(touched_x, np.float64)
+        return np.linalg.svd(x - x.mean(axis=0), full_matrices=False)[2]
 
     # ------------------------------------------------------------------ (de)serialisation
 

@@ -98,6 +98,19 @@ def test_scene_model_classifies_touched_real_and_untouched_synthesised_classes()
     assert np.allclose(again.log_posterior(x)[0], lp)
 
 
+def test_one_svd_serves_every_subspace_size():
+    centres, x, y, rng = _blobs()
+    tx, ty = x[y < 3], y[y < 3]
+    synth, sy = x[y == 3], np.zeros(int(np.sum(y == 3)), int)
+    axes = SceneModel.principal_axes(tx)
+    for k in (2, 4, 8):
+        plain = SceneModel.fit(tx, ty, ["a", "b", "c"], synth, sy, ["d"], k=k)
+        shared = SceneModel.fit(tx, ty, ["a", "b", "c"], synth, sy, ["d"], k=k, axes=axes)
+        assert np.array_equal(plain.basis, shared.basis) and np.array_equal(plain.means, shared.means)
+    with pytest.raises(SceneModelError, match="principal axes"):
+        SceneModel.fit(tx, ty, ["a", "b", "c"], synth, sy, ["d"], k=4, axes=axes[:, :5])
+
+
 def test_scene_model_parameters_are_checked():
     centres, x, y, _ = _blobs()
     m = SceneModel.fit(x[y < 3], y[y < 3], ["a", "b", "c"], x[y == 3], np.zeros(60, int), ["d"], k=4)

@@ -14,15 +14,15 @@ Per split (``fit_scene_decision``):
    (temperature scaling with a calibrated-stacking bias); the ``k`` with the lowest one is kept;
 3. the item rule - evidence weight, known-class margin, whether a piece surely of a known fabric
    the job leaves out is refused at once (``refuse_early``, runtime/evidence.py) and the confidence
-   that sorts - by
-   simulating scenes of validation fabrics (``runtime.sorting.simulate_scenes``: the cell's own
-   ``Evidence`` on held-out presses): the most pieces in the right bin among the settings whose
-   mis-sort rate meets ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set
-   threshold is a quantile (``OPEN_QUANTILES``) of the in-scene validation presses' distances to
-   their own class; then the same for the offset item rule (runtime/scene_model.py: a piece's
-   presses share an offset from their class mean, larger for a synthesised class) over its own
-   knobs, searched on the same jobs by the vectorised simulation of train/item_search.py; the item
-   rule that scores better is kept (a tie keeps the sum rule);
+   that sorts - by simulating scenes of validation fabrics (the vectorised simulation of
+   train/item_search.py, which decides every item as the cell's own ``Evidence`` does in
+   ``runtime.sorting.simulate_scenes``; each rule's chosen point is decided once more by the cell's
+   own evidence): the most pieces in the right bin among the settings whose mis-sort rate meets
+   ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set threshold is a quantile
+   (``OPEN_QUANTILES``) of the in-scene validation presses' distances to their own class; then the
+   same for the offset item rule (runtime/scene_model.py: a piece's presses share an offset from
+   their class mean, larger for a synthesised class) over its own knobs, on the same jobs; the
+   item rule that scores better is kept (a tie keeps the sum rule);
 4. the deployed model: the same ``k`` and scalars, with the untouched fabrics' synthesised means,
    and knowing the validation fabrics only to refuse them (``with_known``: their training presses'
    real means; runtime/scene_model.py ``known_only``) - they were pressed, and a line that meets a
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Mapping
 
 import numpy as np
@@ -145,10 +146,15 @@ class _Jobs:
         return cls(world, val_in, rows, np.concatenate([yv_t, len(touched) + yv_u[keep]]),
                    np.concatenate([xv_t, xv_u[keep]]), world.synth_val[1] < n_in, scenes, seed)
 
+    @cached_property
+    def axes(self) -> np.ndarray:
+        """The principal axes of the world's touched training presses (one SVD for every ``k``)."""
+        return SceneModel.principal_axes(self.world.train_x)
+
     def model(self, k: int) -> SceneModel:
         w = self.world
         return SceneModel.fit(w.train_x, w.train_y, list(w.touched), w.synth_val[0][self.synth_keep],
-                              w.synth_val[1][self.synth_keep], self.val_in, k=k)
+                              w.synth_val[1][self.synth_keep], self.val_in, k=k, axes=self.axes)
 
 
 def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | None = None) -> dict:
@@ -166,18 +172,26 @@ def _open_thresholds(own_d2: np.ndarray) -> dict[float, float]:
     return {q: float(np.quantile(own_d2, q)) if q < 1 else math.inf for q in OPEN_QUANTILES}
 
 
-def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], open_thresholds: list[dict],
-                      target: float) -> tuple[list[SceneModel], dict]:
+def _prepare(vm: SceneModel, jobs: _Jobs) -> tuple[dict, ns.Prepared]:
+    """(each fabric's validation presses projected into ``vm``'s space, the items of the world's
+    jobs prepared for the vectorised search, train/item_search.py): what both item rules' searches
+    read. The items are the ones ``_simulate`` feeds the cell's evidence (same scenes and seed)."""
+    projections = {f: vm.project(x) for f, x in jobs.rows.items()}
+    items = ns.draw_items(jobs.scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=jobs.seed)
+    return projections, ns.Prepared.of(items, vm)
+
+
+def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], prepared: list[tuple[dict, ns.Prepared]],
+                      open_thresholds: list[dict], target: float) -> tuple[list[SceneModel], dict]:
     """The offset item rule (runtime/scene_model.py) searched on the same validation jobs as the
-    sum rule (train/item_search.py, vectorised), one model per world (``open_thresholds``: each
-    world's ``_open_thresholds``), and their summary from the cell's own evidence."""
+    sum rule (train/item_search.py, vectorised), one model per world (``prepared``: each world's
+    ``_prepare``; ``open_thresholds``: its ``_open_thresholds``), and their summary from the cell's
+    own evidence."""
     worlds = []
-    for vm, j, thresholds in zip(vms, jobs, open_thresholds):
-        projections = {f: vm.project(x) for f, x in j.rows.items()}
-        prepared = ns.Prepared.of(ns.draw_items(j.scenes, projections, vm.classes, max_presses=MAX_PRESSES, seed=j.seed), vm)
+    for vm, (projections, items), thresholds in zip(vms, prepared, open_thresholds):
         # each world's own variance estimates: a fold's generator saw fewer fabrics than the deployed
         # one, so its syntheses' offset is its own, not the deployed model's (the search chooses scales)
-        worlds.append(ns.World(prepared, ns.offset_estimates(vm, projections), thresholds))
+        worlds.append(ns.World(items, ns.offset_estimates(vm, projections), thresholds))
     base = {"press_var_scale": 1.0, "touched_scale": 1.0, "item_bias": 0.0, "known_margin": 0.0, "open_quantile": 1.0,
             "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
     point, _ = ns.search_offset_rule(worlds, base, CONFIDENCES, lambda summary: _score(summary, target))
@@ -251,22 +265,24 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
             "refuse_early": (True, False)}  # True first: fewer presses where validation cannot tell them apart
     point = {"untouched_bias": b, "open_quantile": 1.0, "evidence_weight": 0.5, "known_margin": 2.0,
              "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
-    tables_by_bias: dict[float, list[dict]] = {}
+    prepared = [_prepare(vm, j) for vm, j in zip(vms, jobs)]
+    items = [p for _, p in prepared]
     tried: dict[tuple, tuple] = {}
 
     def trial(p: dict) -> tuple:
+        # vectorised: the same outcomes as the cell's evidence on these jobs (train/item_search.py)
         key = tuple(sorted(p.items()))
         if key not in tried:
-            bias = p["untouched_bias"]
-            if bias not in tables_by_bias:
-                tables_by_bias[bias] = [press_tables(replace(vm, untouched_bias=bias), j.rows) for vm, j in zip(vms, jobs)]
-            q = p["open_quantile"]
-            cands = [replace(vm, untouched_bias=bias, evidence_weight=p["evidence_weight"],
+            cands = [replace(vm, untouched_bias=p["untouched_bias"], evidence_weight=p["evidence_weight"],
                              known_margin=p["known_margin"], confidence=p["confidence"],
                              untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
-                             open_threshold=thresholds[q])
+                             open_threshold=thresholds[p["open_quantile"]])
                      for vm, thresholds in zip(vms, open_thresholds)]
-            s = _simulate(cands, jobs, tables_by_bias[bias])
+            parts = [ns.sum_rule(it, temperature=c.temperature, untouched_bias=c.untouched_bias, weight=c.evidence_weight,
+                                 confidence=c.confidence, untouched_confidence=c.untouched_confidence,
+                                 known_margin=c.known_margin, open_threshold=c.open_threshold, refuse_early=c.refuse_early)
+                     for c, it in zip(cands, items)]
+            s = ns.summary(items, np.concatenate([o for o, _ in parts]), np.concatenate([n for _, n in parts]))
             tried[key] = (_score(s, target_mis_sort), cands, s)
         return tried[key]
 
@@ -277,13 +293,16 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                    "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, _, s) in tried.items()]
     # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
     # the same score (the mis-sort target first, then pieces in the right bin) is kept
-    score_sum, cand_sum, summary_sum = trial(point)
-    cand_off, summary_off = _offset_candidate(vms, jobs, open_thresholds, target_mis_sort)
+    _, cand_sum, _ = trial(point)
+    summary_sum = _simulate(cand_sum, jobs)  # the cell's own evidence decides the sum rule's point
+    score_sum = _score(summary_sum, target_mis_sort)
+    cand_off, summary_off = _offset_candidate(vms, jobs, prepared, open_thresholds, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
-    deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k)
+    # the split's own world's touched presses are the deployed model's: its principal axes serve
+    deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
     labels_rule = None if chosen.item_rule == "offset" else {key: float(getattr(cand_off, key)) for key in LABELS_KEYS}
