@@ -175,6 +175,27 @@ def test_the_decision_search_keeps_the_better_item_rule_on_validation_fabrics():
     assert again.item_rule == model.item_rule
 
 
+def test_among_settings_that_sort_the_same_pieces_right_the_search_keeps_the_fewest_mis_sorts():
+    """Where a class's pieces are never right on validation (a feature the generator cannot
+    synthesise: the demo world with ``--tactile-feature shading_markers``), every confidence for it
+    puts the same pieces in their bins, and the search's ``max`` kept the first - the lowest, which
+    lets its pieces into wrong bins. ``fewer_mis_sorts`` keeps the one with the fewest; pieces in
+    their bins still come first."""
+    mis = {0.5: 0.008, 0.7: 0.004, 0.9: 0.004, 0.9999: 0.0}
+
+    def rank(q, bonus=0.0):
+        right = 0.6 - (0.05 if q["confidence"] == 0.5 else 0.0) + (bonus if q["untouched_confidence"] == 0.5 else 0.0)
+        s = {"all": {"right": right, "mis-sort": mis[q["untouched_confidence"]]}}
+        return dc._score(s, 0.01), s
+
+    grid = {"untouched_confidence": tuple(mis), "confidence": (0.5, 0.9)}
+    start = {"untouched_confidence": 0.5, "confidence": 0.9}
+    assert max(grid["untouched_confidence"], key=lambda v: rank({**start, "untouched_confidence": v})[0]) == 0.5
+    assert ns.fewer_mis_sorts(start, grid, rank) == {"untouched_confidence": 0.9999, "confidence": 0.9}
+    # one more piece in its bin at the lowest confidence, within the target: that still wins
+    assert ns.fewer_mis_sorts(start, grid, lambda q: rank(q, 0.001))["untouched_confidence"] == 0.5
+
+
 def test_the_mis_sort_target_is_what_the_validation_search_keeps_under():
     """``train --mis-sort-target``: none at all, or 2 % that buys pieces in their bin, on a world
     whose validation jobs cannot have both (the search is greedy: no monotone law is claimed)."""

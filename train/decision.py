@@ -18,7 +18,9 @@ Per split (``fit_scene_decision``):
    train/item_search.py, which decides every item as the cell's own ``Evidence`` does in
    ``runtime.sorting.simulate_scenes``; each rule's chosen point is decided once more by the cell's
    own evidence): the most pieces in the right bin among the settings whose mis-sort rate meets
-   ``target_mis_sort`` (the fewest mis-sorts when none does); the open-set threshold is a quantile
+   ``target_mis_sort`` (the fewest mis-sorts when none does), and of settings that put as many
+   pieces in their bins, the one with the fewest mis-sorts (``ns.fewer_mis_sorts``; the same for
+   the offset rule and the outlier ratio); the open-set threshold is a quantile
    (``OPEN_QUANTILES``) of the in-scene validation presses' distances to their own class; then the
    same for the offset item rule (runtime/scene_model.py: a piece's presses share an offset from
    their class mean, larger for a synthesised class) over its own knobs, on the same jobs; the
@@ -216,13 +218,15 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
         summary = summary_off if math.isinf(ratio) else _simulate(
             [replace(p, outlier_ratio=ratio) for p in probes], jobs, tables)
         tried.append((_score(summary, target), cands, summary))
-    _, best, summary = max(tried, key=lambda t: t[0])
+    _, best, summary = max(tried, key=lambda t: (t[0], -t[2]["all"]["mis-sort"]))  # then fewer mis-sorts
     rows_out = [{"outlier_ratio": c[0].outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                  "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for _, c, s in tried]
     return best, summary, rows_out
 
 
 def _score(summary: dict, target: float) -> tuple:
+    """How a setting ranks on validation jobs: the mis-sort target met first, then pieces in the
+    right bin (the searches then polish with ``ns.fewer_mis_sorts``)."""
     a = summary["all"]
     return (a["mis-sort"] <= target, a["right"] - (0 if a["mis-sort"] <= target else 10 * a["mis-sort"]))
 
@@ -289,6 +293,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     for _ in range(3):
         for knob, values in grid.items():
             point[knob] = max(values, key=lambda v: trial({**point, knob: v})[0])
+    point = ns.fewer_mis_sorts(point, grid, lambda q: trial(q)[::2])
     tried_rows = [{**dict(key), "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                    "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, _, s) in tried.items()]
     # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
