@@ -137,8 +137,6 @@ def test_a_profiles_own_folds_shrink_to_what_a_split_can_give():
     assert [profile_folds(50, replace(paper, touched=t)) for t in (3, 5, 7, 8)] == [0, 2, 3, 4]
     assert profile_folds(20, paper) == 4 and profile_folds(10, paper) == 3
     assert "give 0 (none) or 2 to 2" in folds_problem(50, replace(paper, touched=5), "DS")
-    # the small profile (the demo's) keeps 4 on the demo's world of 24 fabrics (16 touched); the tiny one has none
-    assert profile_folds(24, PROFILES["small"]) == 4 and PROFILES["tiny"].validation_folds == 0
 
 
 def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeypatch, capsys):

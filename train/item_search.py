@@ -174,23 +174,18 @@ def summary(p: Prepared | Sequence[Prepared], outcome: np.ndarray, presses: np.n
             "by_kind": {k: rates(kinds == k) for k in so.KINDS if np.any(kinds == k)}}
 
 
-# knobs whose higher values sort fewer pieces: where validation cannot tell values apart, the higher
-STRICTER_HIGH = ("confidence", "untouched_confidence")
-
-
 def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     """One more pass over ``grid`` from a searched ``point`` (``rank(point)`` -> (the search's score,
     the summary)): each knob moves to the value that scores best, and among values that score the
-    same - the target met, the same pieces in their bins - to the one with the fewest mis-sorts;
-    where even those are equal, a confidence (``STRICTER_HIGH``) to its highest such value. The
-    search's own ``max`` keeps the first of equal values, which for a confidence is the lowest:
+    same - the target met, the same pieces in their bins - to the one with the fewest mis-sorts.
+    The search's own ``max`` keeps the first of equal values, which for a confidence is the lowest:
     where a class's pieces are never right on validation (a feature the generator cannot
     synthesise), every confidence ties and the lowest lets its pieces into wrong bins."""
     point = dict(point)
     for knob, values in grid.items():
         def key(v, knob=knob):
             score, summary = rank({**point, knob: v})
-            return score, -summary["all"]["mis-sort"], v if knob in STRICTER_HIGH else 0.0
+            return score, -summary["all"]["mis-sort"]
         point[knob] = max(values, key=key)
     return point
 
