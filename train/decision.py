@@ -57,7 +57,7 @@ WEIGHTS = (1.0, 0.5, 0.25)
 MARGINS = (0.0, 2.0, math.inf)
 CONFIDENCES = (0.5, 0.7, 0.9, 0.97, 0.99, 0.999)
 # outlier-press rule candidates (runtime/scene_model.py ``outlier_ratio``; inf: off), tried on the
-# chosen item rule; the first of the best scores is kept, so a tie leaves it off
+# chosen item rule; of the best scores the fewest mis-sorts, and the first of those, so a full tie leaves it off
 OUTLIER_RATIOS = (math.inf, 50.0, 20.0, 10.0, 5.0, 3.0)
 # the mis-sort targets training's report prices beside the one it chose for (``train --mis-sort-target``)
 MIS_SORT_TARGETS = (0.005, 0.01, 0.02)
