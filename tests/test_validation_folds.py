@@ -2,11 +2,13 @@
 each held out of a generator trained on the others, play validation fabrics beside the split's own."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from vs2t_edge.runtime.scene_model import SceneModel
 from vs2t_edge.train import decision as dc
 from vs2t_edge.train.baselines import ZSLData
 from vs2t_edge.train.folds import fold_assignment, fold_data
@@ -199,3 +201,46 @@ def test_a_folds_generator_is_the_methods_kind_ensemble_and_all():
     assert len(cls.instances) == before  # the split's fitted method stays the one the run keeps
     for w in worlds:  # three members' samples per held-out fabric, as the split's own syntheses pool
         assert np.bincount(w.synth_val[1]).tolist() == [3 * budget.n_synth_per_class] * len(w.val_fabrics)
+
+
+def test_both_item_rules_searches_break_ties_towards_fewer_mis_sorts(monkeypatch):
+    """``item_search.fewer_mis_sorts`` after the sum rule's search and after the offset rule's: on a
+    world where each search meets its score at more than one setting, each rule's point mis-sorts
+    fewer validation pieces than the one the search alone keeps, at a score no lower."""
+    from vs2t_edge.train import item_search as ns
+
+    rng = np.random.default_rng(4)
+    own, fold = _world(rng, 8, 4), _world(rng, 8, 9, misnamed=4)
+    synth_u = rng.normal(0, 3.0, (80, 16)), np.repeat(np.arange(2), 40)
+    args = (own.train_x, own.train_y, own.touched, own.touched_val, own.val_fabrics, own.val_presses, own.synth_val,
+            ["u0", "u1"], synth_u)
+    _, with_pass = dc.fit_scene_decision(*args, seed=2, folds=[fold])
+    monkeypatch.setattr(ns, "fewer_mis_sorts", lambda point, grid, rank: dict(point))
+    _, without = dc.fit_scene_decision(*args, seed=2, folds=[fold])
+    for rule in ("sum", "offset"):
+        a, b = with_pass["item_rules"][rule], without["item_rules"][rule]
+        assert a["mis_sort"] < b["mis_sort"], (rule, a, b)
+        score = {name: dc._score({"all": {"mis-sort": r["mis_sort"], "right": r["right"]}}, 0.01)
+                 for name, r in (("with", a), ("without", b))}
+        assert score["with"] >= score["without"], (rule, a, b)
+
+
+def test_the_outlier_ratio_breaks_ties_towards_fewer_mis_sorts(monkeypatch):
+    """Of the outlier ratios that sort as many validation pieces right, the one with the fewest
+    mis-sorts (the first of those: a full tie leaves the rule off)."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(0, 1, (60, 8))
+    model = replace(SceneModel.fit(x, np.repeat(np.arange(3), 20), ["a", "b", "c"], x[:20], np.zeros(20, int), ["u"],
+                                   k=4), item_rule="offset")
+    by_ratio = {50.0: 0.004, 20.0: 0.004}  # mis-sorts; every other ratio 0.008, all at 70 % right
+
+    def summary(ratio):
+        return {"all": {"right": 0.7, "mis-sort": by_ratio.get(ratio, 0.008), "reject": 0.3 - by_ratio.get(ratio, 0.008),
+                        "presses": 3.0}}
+    monkeypatch.setattr(dc, "press_tables", lambda m, rows: None)
+    monkeypatch.setattr(dc, "_simulate", lambda models, jobs, tables=None: summary(models[0].outlier_ratio))
+    jobs = [type("Jobs", (), {"rows": {}})()]
+    best, _, rows = dc._outlier_rule([model], summary(math.inf), [model], jobs, 0.01)
+    assert best[0].outlier_ratio == 50.0 and len(rows) == len(dc.OUTLIER_RATIOS)
+    by_ratio.clear()  # a full tie: the rule stays off
+    assert math.isinf(dc._outlier_rule([model], summary(math.inf), [model], jobs, 0.01)[0][0].outlier_ratio)

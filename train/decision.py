@@ -164,7 +164,8 @@ def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | 
     press tables, when the caller has them)."""
     recs = []
     for w, (m, j) in enumerate(zip(models, jobs)):
-        recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows), evidence_for(m), seed=j.seed)
+        recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows), evidence_for(m), seed=j.seed,
+                                   max_presses=MAX_PRESSES)  # as ``_prepare`` draws them
     return so.summarise(recs)
 
 
@@ -205,7 +206,7 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
                   target: float) -> tuple[list[SceneModel], dict, list[dict]]:
     """The chosen item rule (one model per world) with the outlier-press ratio (``OUTLIER_RATIOS``)
     that scores best on the same validation jobs (the mis-sort target first, then pieces in the
-    right bin): (models, their validation summary, one row per ratio tried). ``summary_off``: the
+    right bin, then the fewest mis-sorts): (models, their validation summary, one row per ratio tried). ``summary_off``: the
     chosen rule's own summary on those jobs (the ratio off, the first candidate), not decided
     again. A sum-rule model measures a press's spread with the offset candidate's setting, which it
     keeps for operator labels."""
@@ -266,7 +267,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     # rounds): a full grid of the six knobs would cost thousands of simulated scene sets.
     grid = {"untouched_bias": sorted({0.0, b / 2, b}), "open_quantile": OPEN_QUANTILES, "evidence_weight": WEIGHTS,
             "known_margin": MARGINS, "confidence": CONFIDENCES, "untouched_confidence": CONFIDENCES,
-            "refuse_early": (True, False)}  # True first: fewer presses where validation cannot tell them apart
+            "refuse_early": (True, False)}  # True first: fewer presses where validation cannot tell them apart at all
     point = {"untouched_bias": b, "open_quantile": 1.0, "evidence_weight": 0.5, "known_margin": 2.0,
              "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
     prepared = [_prepare(vm, j) for vm, j in zip(vms, jobs)]

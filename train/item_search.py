@@ -10,7 +10,7 @@ the off-scene rules (mean over presses of the smallest squared distance to a sce
 ``known_margin``); the first step that is confident and not off-scene sorts, and with
 ``refuse_early`` the first step where a known class the job leaves out leads every class at the
 confidence refuses; else the reject bin at the last press.
-tests/test_item_search.py holds the two equal, outcome for outcome, for both item rules.
+tests/test_item_rule.py holds the two equal, outcome for outcome, for both item rules.
 
 Two item rules (runtime/scene_model.py): ``sum`` (per-press log posteriors restricted to the
 scene, summed with a weight) and ``offset`` (item scores of the presses' mean, a per-piece offset
@@ -180,7 +180,9 @@ def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     same - the target met, the same pieces in their bins - to the one with the fewest mis-sorts.
     The search's own ``max`` keeps the first of equal values, which for a confidence is the lowest:
     where a class's pieces are never right on validation (a feature the generator cannot
-    synthesise), every confidence ties and the lowest lets its pieces into wrong bins."""
+    synthesise), every confidence ties and the lowest lets its pieces into wrong bins. One more
+    full coordinate pass: it never lowers the score (the point's own value is in the grid), may
+    raise it, and may buy fewer mis-sorts with more presses."""
     point = dict(point)
     for knob, values in grid.items():
         def key(v, knob=knob):
@@ -200,7 +202,7 @@ OFFSET_GRID = {
     "untouched_scale": MULTIPLIERS,
     "item_bias": (-4.0, -2.0, -1.0, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
     "known_margin": (0.0, 2.0, 8.0, math.inf),
-    "refuse_early": (True, False),  # True first: fewer presses where validation cannot tell them apart
+    "refuse_early": (True, False),  # True first: fewer presses where validation cannot tell them apart at all
 }
 # the coordinate search is local: it starts from each of these (item temperature x untouched scale)
 OFFSET_STARTS = tuple((t, u) for t in (8.0, 32.0, 128.0) for u in (0.125, 0.5, 2.0))
