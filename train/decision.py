@@ -57,7 +57,8 @@ WEIGHTS = (1.0, 0.5, 0.25)
 MARGINS = (0.0, 2.0, math.inf)
 CONFIDENCES = (0.5, 0.7, 0.9, 0.97, 0.99, 0.999)
 # outlier-press rule candidates (runtime/scene_model.py ``outlier_ratio``; inf: off), tried on the
-# chosen item rule; of the best scores the fewest mis-sorts, and the first of those, so a full tie leaves it off
+# chosen item rule; of the best scores the fewest mis-sorts, and the first of those (a full tie leaves
+# it off)
 OUTLIER_RATIOS = (math.inf, 50.0, 20.0, 10.0, 5.0, 3.0)
 # the mis-sort targets training's report prices beside the one it chose for (``train --mis-sort-target``)
 MIS_SORT_TARGETS = (0.005, 0.01, 0.02)
@@ -206,10 +207,10 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
                   target: float) -> tuple[list[SceneModel], dict, list[dict]]:
     """The chosen item rule (one model per world) with the outlier-press ratio (``OUTLIER_RATIOS``)
     that scores best on the same validation jobs (the mis-sort target first, then pieces in the
-    right bin, then the fewest mis-sorts): (models, their validation summary, one row per ratio tried). ``summary_off``: the
-    chosen rule's own summary on those jobs (the ratio off, the first candidate), not decided
-    again. A sum-rule model measures a press's spread with the offset candidate's setting, which it
-    keeps for operator labels."""
+    right bin, then the fewest mis-sorts): (models, their validation summary, one row per ratio
+    tried). ``summary_off``: the chosen rule's own summary on those jobs (the ratio off, the first
+    candidate), not decided again. A sum-rule model measures a press's spread with the offset
+    candidate's setting, which it keeps for operator labels."""
     probes = [m if m.item_rule == "offset" else replace(m, labels_rule={key: float(getattr(c, key)) for key in LABELS_KEYS})
               for m, c in zip(chosen, cand_off)]
     tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
