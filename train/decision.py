@@ -220,7 +220,7 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
         summary = summary_off if math.isinf(ratio) else _simulate(
             [replace(p, outlier_ratio=ratio) for p in probes], jobs, tables)
         tried.append((_score(summary, target), cands, summary))
-    _, best, summary = max(tried, key=lambda t: (t[0], -t[2]["all"]["mis-sort"]))  # then fewer mis-sorts
+    _, best, summary = max(tried, key=lambda t: ns.fewer_first(t[0], t[2]))
     rows_out = [{"outlier_ratio": c[0].outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                  "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for _, c, s in tried]
     return best, summary, rows_out
@@ -275,32 +275,37 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     items = [p for _, p in prepared]
     tried: dict[tuple, tuple] = {}
 
+    def candidates(p: dict) -> list[SceneModel]:
+        """Each world's validation model at the sum rule's point ``p``."""
+        return [replace(vm, untouched_bias=p["untouched_bias"], evidence_weight=p["evidence_weight"],
+                        known_margin=p["known_margin"], confidence=p["confidence"],
+                        untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
+                        open_threshold=thresholds[p["open_quantile"]])
+                for vm, thresholds in zip(vms, open_thresholds)]
+
     def trial(p: dict) -> tuple:
-        # vectorised: the same outcomes as the cell's evidence on these jobs (train/item_search.py)
+        """(score, summary) of the sum rule at ``p``, vectorised: the same outcomes as the cell's
+        evidence on these jobs (train/item_search.py)."""
         key = tuple(sorted(p.items()))
         if key not in tried:
-            cands = [replace(vm, untouched_bias=p["untouched_bias"], evidence_weight=p["evidence_weight"],
-                             known_margin=p["known_margin"], confidence=p["confidence"],
-                             untouched_confidence=p["untouched_confidence"], refuse_early=p["refuse_early"],
-                             open_threshold=thresholds[p["open_quantile"]])
-                     for vm, thresholds in zip(vms, open_thresholds)]
-            parts = [ns.sum_rule(it, temperature=c.temperature, untouched_bias=c.untouched_bias, weight=c.evidence_weight,
-                                 confidence=c.confidence, untouched_confidence=c.untouched_confidence,
-                                 known_margin=c.known_margin, open_threshold=c.open_threshold, refuse_early=c.refuse_early)
-                     for c, it in zip(cands, items)]
+            parts = [ns.sum_rule(it, temperature=vm.temperature, untouched_bias=p["untouched_bias"],
+                                 weight=p["evidence_weight"], confidence=p["confidence"],
+                                 untouched_confidence=p["untouched_confidence"], known_margin=p["known_margin"],
+                                 open_threshold=thresholds[p["open_quantile"]], refuse_early=p["refuse_early"])
+                     for vm, thresholds, it in zip(vms, open_thresholds, items)]
             s = ns.summary(items, np.concatenate([o for o, _ in parts]), np.concatenate([n for _, n in parts]))
-            tried[key] = (_score(s, target_mis_sort), cands, s)
+            tried[key] = (_score(s, target_mis_sort), s)
         return tried[key]
 
     for _ in range(3):
         for knob, values in grid.items():
             point[knob] = max(values, key=lambda v: trial({**point, knob: v})[0])
-    point = ns.fewer_mis_sorts(point, grid, lambda q: trial(q)[::2])
+    point = ns.fewer_mis_sorts(point, grid, trial)
     tried_rows = [{**dict(key), "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
-                   "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, _, s) in tried.items()]
+                   "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for key, (_, s) in tried.items()]
     # the two item rules (runtime/scene_model.py) on the same validation jobs; the better one by
     # the same score (the mis-sort target first, then pieces in the right bin) is kept
-    _, cand_sum, _ = trial(point)
+    cand_sum = candidates(point)
     summary_sum = _simulate(cand_sum, jobs)  # the cell's own evidence decides the sum rule's point
     score_sum = _score(summary_sum, target_mis_sort)
     cand_off, summary_off = _offset_candidate(vms, jobs, prepared, open_thresholds, target_mis_sort)

@@ -174,6 +174,11 @@ def summary(p: Prepared | Sequence[Prepared], outcome: np.ndarray, presses: np.n
             "by_kind": {k: rates(kinds == k) for k in so.KINDS if np.any(kinds == k)}}
 
 
+def fewer_first(score: tuple, summary: dict) -> tuple:
+    """A search's ``score`` with ties broken towards fewer mis-sorts (``summary``'s)."""
+    return score, -summary["all"]["mis-sort"]
+
+
 def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     """One more pass over ``grid`` from a searched ``point`` (``rank(point)`` -> (the search's score,
     the summary)): each knob moves to the value that scores best, and among values that score the
@@ -185,10 +190,7 @@ def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     raise it, and may buy fewer mis-sorts with more presses."""
     point = dict(point)
     for knob, values in grid.items():
-        def key(v, knob=knob):
-            score, summary = rank({**point, knob: v})
-            return score, -summary["all"]["mis-sort"]
-        point[knob] = max(values, key=key)
+        point[knob] = max(values, key=lambda v, knob=knob: fewer_first(*rank({**point, knob: v})))
     return point
 
 
@@ -283,4 +285,5 @@ def search_offset_rule(worlds: Sequence[World], base: dict, confidences: Sequenc
     return best, trial(best)[1]
 
 __all__ = ["Items", "draw_items", "Prepared", "decide", "sum_rule", "offset_rule", "summary", "offset_estimates",
-           "World", "offset_setting", "search_offset_rule", "fewer_mis_sorts", "OFFSET_GRID", "OFFSET_STARTS"]
+           "World", "offset_setting", "search_offset_rule", "fewer_first", "fewer_mis_sorts", "OFFSET_GRID",
+           "OFFSET_STARTS"]
