@@ -4,6 +4,7 @@ scalars a tag cannot build) become a ``ConfigError``, never a crash or a hang.""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,10 @@ class ConfigError(ValueError):
 
 
 _NULL_TAG = "tag:yaml.org,2002:null"
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+# YAML 1.1 (PyYAML) reads a plain 010 as octal 8 and 1:30 as base-60 90: a person means 10 and
+# something else; refused, so a bin, a press limit or a time is never silently another number
+_SURPRISING_NUMBER = re.compile(r"[-+]?0[0-7_]+|[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+(?:\.[0-9_]*)?")
 _MAX_NODES = 5000  # a cell config has a few hundred; aliases must not expand without bound (each
 # scalar costs a ~90 us serialize + safe_load round trip: 20000 made an alias bomb take 1.8 s)
 
@@ -49,6 +54,10 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
         # `key:` with nothing after it, `key: null`, `key: ~`: YAML's null, what safe_load gives;
         # serialized alone, an empty scalar is an empty document, which does not load back
         return None
+    if node.tag in _NUMBER_TAGS and node.style is None and _SURPRISING_NUMBER.fullmatch(node.value):
+        value = yaml.safe_load(yaml.serialize(node))
+        if ":" in node.value or value != int(node.value.replace("_", ""), 10):  # 07 is 7 either way
+            raise _SurprisingNumber(node.start_mark.line + 1, key or "the document", node.value, value)
     try:
         return yaml.safe_load(yaml.serialize(node))
     except (yaml.YAMLError, ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
@@ -78,12 +87,22 @@ def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
         line, key, tag, exc = bad.args
         raise ConfigError(path, [f"{path}:{line}: {key}: not valid YAML for tag {tag} "
                                  f"({type(exc).__name__}: {str(exc)[:200]})"]) from None
+    except _SurprisingNumber as bad:
+        line, key, text, value = bad.args
+        meant = (f"a leading 0 makes it octal; write {int(text.replace('_', ''), 10)} if that is meant, or {value}"
+                 if ":" not in text else f"a colon makes it base 60; write {value} if that is meant")
+        raise ConfigError(path, [f"{path}:{line}: {key}: {text} reads as {value} in YAML ({meant}; quoted, "
+                                 "it is text)"]) from None
     except yaml.YAMLError as exc:
         raise ConfigError(path, [f"{path}: not valid YAML ({str(exc)[:200]})"]) from None
 
 
 class _TooBig(Exception):
     pass
+
+
+class _SurprisingNumber(Exception):
+    """(line, key, the text as written, what YAML 1.1 makes of it) of an octal or base-60 number."""
 
 
 class _BadScalar(Exception):
