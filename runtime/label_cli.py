@@ -100,6 +100,11 @@ def run(args) -> int:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
         return 2
     in_scene = args.fabric in cfg.scene_classes
+    if not in_scene and (alike := _same_name(args.fabric, cfg.scene_classes)) is not None:
+        # 'WOOL' for wool: as a stranger, wool's own presses would teach the cell to reject wool
+        print(f"label: {args.fabric!r} is not a fabric of the scene in {cfg.path}, but {alike!r} is (names are "
+              f"exact): label it {alike}", file=sys.stderr)
+        return 2
     if in_scene == args.off_scene:
         print(f"label: {args.fabric!r} is {'a' if in_scene else 'not a'} fabric of the scene in {cfg.path} "
               f"({', '.join(cfg.scene_classes)})"
@@ -119,6 +124,14 @@ def run(args) -> int:
             "touched": f" ({args.fabric} is touched: recorded, its mean stays the training one)"}[kind]
     print(f"{args.item_id} labelled {args.fabric} in {cfg.operator_labels}{note}{decided}")
     return 0
+
+
+def _same_name(fabric: str, scene_classes) -> str | None:
+    """The scene's fabric ``fabric`` names but for case, spaces, '-' and '_', or None."""
+    def key(name: str) -> str:
+        return "".join(c for c in name.casefold() if c not in " -_")
+
+    return next((c for c in scene_classes if key(c) == key(fabric)), None)
 
 
 def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:

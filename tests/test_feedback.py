@@ -405,6 +405,9 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert "'linen' is not a fabric of the scene" in capsys.readouterr().err
     assert main(["label", str(cfg), "piece-000001", "wool", "--off-scene"]) == 2
     assert "drop --off-scene" in capsys.readouterr().err
+    for typed in (["WOOL", "--off-scene"], ["Wool"]):  # wool's presses must not teach a stranger
+        assert main(["label", str(cfg), "piece-000001", *typed]) == 2
+        assert f"'{typed[0]}' is not a fabric of the scene in {cfg}, but 'wool' is" in capsys.readouterr().err
     assert main(["label", str(cfg), "piece-000001", "wool"]) == 2  # no journal yet: no decided piece to label
     assert "has no decided piece 'piece-000001' (no piece decided yet)" in capsys.readouterr().err
     (tmp_path / "state").mkdir()
