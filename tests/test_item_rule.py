@@ -194,6 +194,9 @@ def test_among_settings_that_sort_the_same_pieces_right_the_search_keeps_the_few
     assert ns.fewer_mis_sorts(start, grid, rank) == {"untouched_confidence": 0.9999, "confidence": 0.9}
     # one more piece in its bin at the lowest confidence, within the target: that still wins
     assert ns.fewer_mis_sorts(start, grid, lambda q: rank(q, 0.001))["untouched_confidence"] == 0.5
+    # where validation cannot tell the confidences apart at all, the highest (it sorts the fewest)
+    mis.update({0.7: 0.008, 0.9: 0.008, 0.9999: 0.008})
+    assert ns.fewer_mis_sorts(start, grid, rank)["untouched_confidence"] == 0.9999
 
 
 def test_the_mis_sort_target_is_what_the_validation_search_keeps_under():

@@ -179,18 +179,27 @@ def fewer_first(score: tuple, summary: dict) -> tuple:
     return score, -summary["all"]["mis-sort"]
 
 
+# knobs whose higher values sort fewer pieces: where validation cannot tell values apart, the higher
+STRICTER_HIGH = ("confidence", "untouched_confidence")
+
+
 def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     """One more pass over ``grid`` from a searched ``point`` (``rank(point)`` -> (the search's score,
     the summary)): each knob moves to the value that scores best, and among values that score the
-    same - the target met, the same pieces in their bins - to the one with the fewest mis-sorts.
+    same - the target met, the same pieces in their bins - to the one with the fewest mis-sorts;
+    where even those are equal, a confidence (``STRICTER_HIGH``) to its highest such value.
     The search's own ``max`` keeps the first of equal values, which for a confidence is the lowest:
     where a class's pieces are never right on validation (a feature the generator cannot
-    synthesise), every confidence ties and the lowest lets its pieces into wrong bins. One more
-    full coordinate pass: it never lowers the score (the point's own value is in the grid), may
-    raise it, and may buy fewer mis-sorts with more presses."""
+    synthesise), every confidence ties and the lowest lets its pieces into wrong bins. (A class
+    operator labels taught sorts at the touched confidence, runtime/feedback.py: a high untouched
+    one does not send taught pieces to reject.) One more full coordinate pass: it never lowers the
+    score (the point's own value is in the grid), may raise it, and may buy fewer mis-sorts with
+    more presses."""
     point = dict(point)
     for knob, values in grid.items():
-        point[knob] = max(values, key=lambda v, knob=knob: fewer_first(*rank({**point, knob: v})))
+        def key(v, knob=knob):
+            return (*fewer_first(*rank({**point, knob: v})), v if knob in STRICTER_HIGH else 0.0)
+        point[knob] = max(values, key=key)
     return point
 
 
