@@ -110,11 +110,12 @@ class Evidence:
             self._z_all = np.zeros(item_model.k, dtype=np.float64)  # outlier presses too (``z_mean``)
         self._open_rows: np.ndarray | None = None  # item-model rows of the scene classes the open-set rule reads
 
-    def sort_like_touched(self, classes) -> None:
-        """From now on ``classes`` of the scene sort at the touched ``confidence``: operator labels
-        made their means real presses, like a touched fabric's (runtime/feedback.py)."""
+    def need_at_most_touched(self, classes) -> None:
+        """From now on ``classes`` of the scene need at most the touched ``confidence``: operator
+        labels made their means real presses, like a touched fabric's (runtime/feedback.py)."""
         for c in classes:
-            self._needed[self.classes.index(c)] = self.confidence
+            i = self.classes.index(c)
+            self._needed[i] = min(self._needed[i], self.confidence)
 
     def _posterior(self) -> np.ndarray:
         return self._acc - _logsumexp(self._acc)

@@ -26,9 +26,10 @@ calls off-scene (none of the job's fabrics) teaches a stranger: a class ``off-sc
 labelled pieces' mean (no prior: nothing synthesised it), decided like any class and sent, being
 no fabric of the job, to the reject bin.
 
-A taught class sorts at the touched confidence (``evidence.confidence``), no longer at the
-untouched one: that one prices how far the generator's syntheses may be off, which a mean made of
-real presses no longer is, and where validation cannot price it training holds it near 1.
+A taught class needs at most the touched confidence (``evidence.confidence``) and at most the
+untouched one: its mean is real presses, known as well as a touched fabric's and better than a
+synthesis. (Held at the untouched one alone, it went to reject where validation could not price
+that one and training held it near 1.)
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,
@@ -263,10 +264,11 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     near = confusable(deployed, adapted.offset_var_untouched, labelled_taught, untaught)
     trusted = [c for c in learned if c not in near] + [c for c in scene if c not in deployed.untouched]
     adapted_ev = make_evidence(adapted, [*scene, *taught])
-    # a taught mean is real presses, as a touched one is: it sorts at the touched confidence. The
-    # untouched confidence prices the generator's syntheses, and where validation cannot price it
-    # the search holds it high (train/item_search.py), which would send taught pieces to reject
-    adapted_ev.sort_like_touched([c for c in labelled_taught if c in scene and c not in near])
+    # a taught mean is real presses, as a touched one is, and no worse than a synthesis: it needs
+    # at most the touched confidence, and at most the untouched one. Where validation cannot price
+    # the untouched one the search holds it high (train/item_search.py), which would send taught
+    # pieces to reject; where it priced it low, taught pieces sort there too
+    adapted_ev.need_at_most_touched([c for c in labelled_taught if c in scene and c not in near])
     if math.isfinite(deployed.outlier_ratio):
         adapted_ev.outlier_model = FarFromBoth(deployed, adapted)
     return GuardedEvidence(adapted_ev, zero_shot, trusted, near)
