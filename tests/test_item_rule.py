@@ -183,12 +183,13 @@ def test_among_settings_that_sort_the_same_pieces_right_the_search_keeps_the_few
     their bins still come first."""
     mis = {0.5: 0.008, 0.7: 0.004, 0.9: 0.004, 0.9999: 0.0}
 
-    untouched_right = [0.0]
+    untouched_right, right_at = [0.0], {}
 
     def rank(q, bonus=0.0):
         right = 0.6 - (0.05 if q["confidence"] == 0.5 else 0.0) + (bonus if q["untouched_confidence"] == 0.5 else 0.0)
         s = {"all": {"right": right, "mis-sort": mis[q["untouched_confidence"]]},
-             "by_kind": {"touched": {"right": 0.9}, "untouched": {"right": untouched_right[0]}}}
+             "by_kind": {"touched": {"right": 0.9},
+                         "untouched": {"right": right_at.get(q["untouched_confidence"], untouched_right[0])}}}
         return dc._score(s, 0.01), s
 
     grid = {"untouched_confidence": tuple(mis), "confidence": (0.5, 0.9)}
@@ -202,6 +203,8 @@ def test_among_settings_that_sort_the_same_pieces_right_the_search_keeps_the_few
     mis.update({0.7: 0.008, 0.9: 0.008, 0.9999: 0.008})
     assert ns.fewer_mis_sorts(start, grid, rank)["untouched_confidence"] == 0.9999
     untouched_right[0] = 0.3
+    assert ns.fewer_mis_sorts(start, grid, rank)["untouched_confidence"] == 0.5
+    right_at.update({0.5: 0.0, 0.7: 0.0})  # right at some of the tied values is enough to keep the first
     assert ns.fewer_mis_sorts(start, grid, rank)["untouched_confidence"] == 0.5
     # the touched confidence: touched pieces were right, so a full tie keeps the first
     assert ns.fewer_mis_sorts({**start, "confidence": 0.5}, {"confidence": (0.5, 0.9)},

@@ -179,18 +179,9 @@ def fewer_first(score: tuple, summary: dict) -> tuple:
     return score, -summary["all"]["mis-sort"]
 
 
-# confidences, by the kind of piece each sorts: where validation cannot tell two values apart and
-# sorted no piece of that kind right at either, it holds the higher (module doc of fewer_mis_sorts)
+# confidences, by the kind of piece each sorts: where validation cannot tell values apart and
+# sorted no piece of that kind right at any of them, the search holds the highest (fewer_mis_sorts)
 STRICTER_HIGH = {"confidence": "touched", "untouched_confidence": "untouched"}
-
-
-def _full_tie(knob: str, value: float, summary: dict) -> float:
-    """The last tie-break of ``fewer_mis_sorts``: a confidence whose kind of piece validation never
-    sorted right, the higher; any other knob none (``max`` keeps the first of the grid)."""
-    kind = STRICTER_HIGH.get(knob)
-    if kind is not None and not summary["by_kind"].get(kind, {}).get(so.RIGHT, 0.0) > 0:
-        return float(value)
-    return 0.0
 
 
 def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
@@ -200,19 +191,25 @@ def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     The search's own ``max`` keeps the first of equal values, which for a confidence is the lowest:
     where a class's pieces are never right on validation (a feature the generator cannot
     synthesise), every confidence ties and the lowest lets its pieces into wrong bins. Where even
-    the mis-sorts tie, the first value of the grid is kept, except for a confidence whose kind of piece
-    (``STRICTER_HIGH``) validation sorted none right at either: there it has no evidence that
-    sorting them is worth any risk, and the higher sorts fewer. (Where validation did sort some
-    right, the higher cost the demo world's test jobs 4.7 points of right bin for no fewer
-    mis-sorts, 2026-11-28.) A class operator labels taught sorts at the touched confidence
-    (runtime/feedback.py). One more full coordinate pass: it never lowers the score (the point's own
-    value is in the grid), may raise it, and may buy fewer mis-sorts with more presses."""
+    the mis-sorts tie, the first of the tied values in the grid is kept, except for a confidence
+    whose kind of piece (``STRICTER_HIGH``) validation sorted right at none of them: there it has
+    no evidence that sorting those pieces is worth any risk, and the highest sorts fewest. (That
+    costs where test is kinder than validation: the demo world's CNN split kept 0.9999 for 0.9 and
+    its test jobs lost 4.7 points of right bin at the same mis-sorts, 2026-11-28.) A class operator
+    labels taught needs at most the touched confidence (runtime/feedback.py). One more full
+    coordinate pass: it never lowers the score (the point's own value is in the grid), may raise it,
+    and may buy fewer mis-sorts with more presses."""
     point = dict(point)
     for knob, values in grid.items():
-        def key(v, knob=knob):
-            score, summ = rank({**point, knob: v})
-            return (*fewer_first(score, summ), _full_tie(knob, v, summ))
-        point[knob] = max(values, key=key)
+        ranked = [(fewer_first(*ranked_v), v, ranked_v[1]) for v in values
+                  for ranked_v in (rank({**point, knob: v}),)]
+        best = max(range(len(ranked)), key=lambda i: ranked[i][0])  # the first of the best, as max keeps
+        tied = [r for r in ranked if r[0] == ranked[best][0]] or [ranked[best]]
+        kind = STRICTER_HIGH.get(knob)
+        if kind is not None and not any(summ["by_kind"].get(kind, {}).get(so.RIGHT, 0.0) > 0 for *_, summ in tied):
+            point[knob] = max(v for _, v, _ in tied)
+        else:
+            point[knob] = ranked[best][1]
     return point
 
 
