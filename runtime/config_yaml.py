@@ -91,8 +91,8 @@ def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
         line, key, text, value = bad.args
         meant = (f"a leading 0 makes it octal; write {int(text.replace('_', ''), 10)} if that is meant, or {value}"
                  if ":" not in text else f"a colon makes it base 60; write {value} if that is meant")
-        raise ConfigError(path, [f"{path}:{line}: {key}: {text} reads as {value} in YAML ({meant}; quoted, "
-                                 "it is text)"]) from None
+        raise ConfigError(path, [f"{path}:{line}: {key}: {text} reads as {value} in YAML ({meant}; quote it "
+                                 "only where text is meant)"]) from None
     except yaml.YAMLError as exc:
         raise ConfigError(path, [f"{path}: not valid YAML ({str(exc)[:200]})"]) from None
 
