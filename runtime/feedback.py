@@ -29,7 +29,8 @@ no fabric of the job, to the reject bin.
 A taught class needs at most the touched confidence (``evidence.confidence``) and at most the
 untouched one: its mean is real presses, known as well as a touched fabric's and better than a
 synthesis. (Held at the untouched one alone, it went to reject where validation could not price
-that one and training held it near 1.)
+that one and training held it near 1.) Not so a taught class still guarded as a twin (below),
+which keeps the untouched one, nor a learned stranger, whose pieces go to the reject bin anyway.
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,

@@ -265,6 +265,10 @@ def test_a_taught_class_needs_at_most_the_touched_confidence_and_at_most_the_unt
     low = lambda model, classes: Evidence(classes, 0.9, 4, item_model=model,  # noqa: E731
                                           class_confidence={"a": 0.6, "b": 0.6})
     assert item_evidence(m, adapted, ["tw", "a", "b"], ["a"], [], low).adapted._needed.tolist() == [0.9, 0.6, 0.6]
+    # a taught class guarded as the twin of an untaught one keeps the untouched confidence
+    twin = replace(m, means=np.array([[0.0, -10.0], [0.0, 10.0], [10.0, 10.0]]))
+    near = item_evidence(twin, adapt(twin, {"a": [(np.array([0.0, 6.0]), 4)] * 3}), ["tw", "a", "b"], ["a"], [], make)
+    assert near.confusable_with == {"a": ["b"]} and near.adapted._needed.tolist() == [0.9, 0.9999, 0.9999]
 
 
 def test_a_taught_class_is_guarded_while_an_untaught_twin_of_it_is_in_the_job(tmp_path):
