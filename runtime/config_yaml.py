@@ -56,8 +56,9 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
         return None
     if node.tag in _NUMBER_TAGS and node.style is None and _SURPRISING_NUMBER.fullmatch(node.value):
         value = yaml.safe_load(yaml.serialize(node))
-        if ":" in node.value or value != int(node.value.replace("_", ""), 10):  # 07 is 7 either way
-            raise _SurprisingNumber(node.start_mark.line + 1, key or "the document", node.value, value)
+        decimal = None if ":" in node.value else int(node.value.replace("_", ""), 10)
+        if value != decimal:  # 07 is 7 either way
+            raise _SurprisingNumber(node.start_mark.line + 1, key or "the document", node.value, value, decimal)
     try:
         return yaml.safe_load(yaml.serialize(node))
     except (yaml.YAMLError, ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
@@ -88,9 +89,9 @@ def parse_yaml_with_lines(text: str, path: Path) -> tuple[Any, dict[str, int]]:
         raise ConfigError(path, [f"{path}:{line}: {key}: not valid YAML for tag {tag} "
                                  f"({type(exc).__name__}: {str(exc)[:200]})"]) from None
     except _SurprisingNumber as bad:
-        line, key, text, value = bad.args
-        meant = (f"a leading 0 makes it octal; write {int(text.replace('_', ''), 10)} if that is meant, or {value}"
-                 if ":" not in text else f"a colon makes it base 60; write {value} if that is meant")
+        line, key, text, value, decimal = bad.args
+        meant = (f"a colon makes it base 60; write {value} if that is meant" if decimal is None
+                 else f"a leading 0 makes it octal; write {decimal} if that is meant, or {value}")
         raise ConfigError(path, [f"{path}:{line}: {key}: {text} reads as {value} in YAML ({meant}; quote it "
                                  "only where text is meant)"]) from None
     except yaml.YAMLError as exc:
@@ -102,7 +103,8 @@ class _TooBig(Exception):
 
 
 class _SurprisingNumber(Exception):
-    """(line, key, the text as written, what YAML 1.1 makes of it) of an octal or base-60 number."""
+    """(line, key, the text as written, what YAML 1.1 makes of it, its decimal reading or None for
+    base 60) of an octal or base-60 number."""
 
 
 class _BadScalar(Exception):

@@ -201,16 +201,19 @@ def fewer_mis_sorts(point: dict, grid: dict, rank) -> dict:
     and may buy fewer mis-sorts with more presses."""
     point = dict(point)
     for knob, values in grid.items():
-        ranked = [(fewer_first(*ranked_v), v, ranked_v[1]) for v in values
-                  for ranked_v in (rank({**point, knob: v}),)]
-        best = max(range(len(ranked)), key=lambda i: ranked[i][0])  # the first of the best, as max keeps
-        tied = [r for r in ranked if r[0] == ranked[best][0]] or [ranked[best]]
-        kind = STRICTER_HIGH.get(knob)
-        if kind is not None and not any(summ["by_kind"].get(kind, {}).get(so.RIGHT, 0.0) > 0 for *_, summ in tied):
-            point[knob] = max(v for _, v, _ in tied)
-        else:
-            point[knob] = ranked[best][1]
+        ranked = [(v, *rank({**point, knob: v})) for v in values]  # (value, score, summary)
+        keys = [fewer_first(score, summ) for _, score, summ in ranked]
+        best = max(keys)
+        tied = [(v, summ) for (v, _, summ), key in zip(ranked, keys) if key == best]  # grid order: [0] is max's
+        point[knob] = max(v for v, _ in tied) if _unpriced(knob, [summ for _, summ in tied]) else tied[0][0]
     return point
+
+
+def _unpriced(knob: str, summaries: list[dict]) -> bool:
+    """Whether ``knob`` is a confidence (``STRICTER_HIGH``) whose kind of piece validation sorted
+    right in none of ``summaries``."""
+    kind = STRICTER_HIGH.get(knob)
+    return kind is not None and not any(s["by_kind"].get(kind, {}).get(so.RIGHT, 0.0) > 0 for s in summaries)
 
 
 # ------------------------------------------------------------------ the offset rule's search
