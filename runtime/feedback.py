@@ -16,7 +16,11 @@ is mu plus the piece's own offset plus press noise, zbar_j ~ N(mu, (s_t + v / n_
     mean       mu_post = (m / s_u + sum_j zbar_j / (s_t + v / n_j)) / P,
 
 and a new piece's mean zbar ~ N(mu_post, (1 / P + s_t + v / n) I): the class's offset variance
-becomes 1 / P + s_t (``SceneModel.class_offset_var``). s_u, s_t and v are the bundle's
+becomes 1 / P + s_t (``SceneModel.class_offset_var``), and it is scored without the untouched
+bias (``SceneModel.taught``): validation fitted that bias to price a synthesised mean against real
+ones, and this mean is real presses now. (Kept, it let a touched fabric the job leaves out - a felt
+of another colour - explain the demo's taught felt's pieces better than their own taught mean, and
+refuse all of them.) s_u, s_t and v are the bundle's
 (``offset_var_untouched``, ``offset_var_touched``, ``press_var``), chosen on validation fabrics in
 training; so it needs an offset-rule setting: the bundle's own, or for a sum-rule bundle the offset
 setting training searched on the same validation jobs (``SceneModel.for_labels``; the bundle's own
@@ -99,6 +103,7 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
     is_u = np.array([c in model.untouched for c in model.classes])
     var = model.offset_vars()  # a fresh array: rows of labelled classes are replaced below
     s_u, s_t = model.offset_var_untouched, model.offset_var_touched
+    taught = set(model.taught)
     for fabric, pieces in labelled.items():
         if fabric not in model.classes:
             raise SceneModelError(f"operator labels: the scene model has no class {fabric!r}")
@@ -109,6 +114,7 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
         precision += 1.0 / s_u  # the synthesis is the prior: mu ~ N(m, s_u I)
         means[c] = (weighted + means[c] / s_u) / precision
         var[c] = 1.0 / precision + s_t
+        taught.add(fabric)
     names, rows, extra_var = [], [], []
     for name, pieces in (strangers or {}).items():
         if not pieces:
@@ -120,7 +126,8 @@ def adapt(model: SceneModel, labelled: Mapping[str, Sequence[tuple[np.ndarray, i
     if names:
         means = np.concatenate([means, np.stack(rows)])
         var = np.concatenate([var, extra_var])
-    return replace(model, classes=tuple(model.classes) + tuple(names), means=means, class_offset_var=var)
+    return replace(model, classes=tuple(model.classes) + tuple(names), means=means, class_offset_var=var,
+                   taught=frozenset(taught))
 
 
 CONFUSABLE_Z = 2.326  # the 99 % quantile of the standard normal: ``confusable``'s region

@@ -11,11 +11,12 @@ generator's samples - the generator never saw an untouched fabric's tactile data
 
 Per press the model gives, for every bundle class c, the squared distance d2_c and the score
 
-    s_c = -d2_c / (2 T) + b [c untouched]
+    s_c = -d2_c / (2 T) + b [c synthesised]
 
 ``T`` (temperature) and ``b`` (the untouched bias of calibrated stacking, Chao et al. 2016:
 synthesised means sit off the real ones, so untouched classes need a head start) are fitted on
-validation fabrics only (train/decision.py). A scene's classifier is the softmax of s over the
+validation fabrics only (train/decision.py). [c synthesised]: c is untouched and no operator label
+re-estimated its mean (``taught``, runtime/feedback.py). A scene's classifier is the softmax of s over the
 scene's classes: restricting the model to a scene is picking rows, no retraining, no torch.
 
 Off-scene pieces are told by two numbers that ``runtime.evidence.Evidence`` accumulates over an
@@ -41,7 +42,7 @@ Per item there are two rules (``item_rule``), both chosen on validation fabrics:
   so the mean of n presses zbar ~ N(mu_c, (s_c + press_var / n) I) and the item's score of class c
   is
 
-      L_c = (-||zbar - mu_c||^2 / (2 v_c) - k/2 log v_c) / item_temperature + item_bias [c untouched],
+      L_c = (-||zbar - mu_c||^2 / (2 v_c) - k/2 log v_c) / item_temperature + item_bias [c synthesised],
       v_c = s_c + press_var / n
 
   (``item_log_lik``): evidence for a synthesised class stops growing once the presses have pinned
@@ -114,6 +115,9 @@ class SceneModel:
     # per class, the offset variance that replaces the two above (runtime/feedback.py: an untouched
     # class whose mean operator-labelled pieces re-estimated); None = the two. Cell state, not stored.
     class_offset_var: np.ndarray | None = field(default=None, repr=False)
+    # untouched classes whose means operator labels re-estimated (runtime/feedback.py): real presses
+    # now, scored as a touched class is - without the biases that price a synthesis. Cell state, not stored.
+    taught: frozenset[str] = frozenset()
     # a sum-rule model's offset setting for operator labels (runtime/feedback.py needs the offset
     # rule): the offset candidate training searched on the same validation jobs (LABELS_KEYS); None
     # for an offset-rule model (its own setting serves) and for files written before it
@@ -150,7 +154,8 @@ class SceneModel:
         untouched class, offset variance of the offset item rule)."""
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "consts" not in cache:
-            is_u = np.array([c in self.untouched for c in self.classes], dtype=np.float64)
+            # the biases price a synthesised mean: a taught class's is real presses (``taught``)
+            is_u = np.array([c in self.untouched and c not in self.taught for c in self.classes], dtype=np.float64)
             cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * is_u,
                                is_u, self.offset_vars())
         return cache["consts"]
