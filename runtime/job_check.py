@@ -28,12 +28,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.sorting import Press
+from vs2t_edge.runtime.sorting import REASONS, Press
 
 
-# the evidence's reasons (runtime/evidence.py ``stopped_by``), as the check says them
-STOPPED = {"press_limit": "never confident within the press limit", "off_scene": "refused as off-scene",
-           "confident": "confident", "unlabelled_guard": "the zero-shot guard"}
 
 
 @dataclass(frozen=True)
@@ -57,7 +54,7 @@ class FabricCheck:
         where = "its bin" if self.sorts else "the reject bin" if self.label == UNKNOWN else f"{self.label}'s bin"
         if self.sorts:
             return f"{self.fabric} ({self.kind}): its own picture goes to {where} (confidence {self.confidence:.2f})"
-        why = STOPPED.get(self.stopped_by, self.stopped_by)
+        why = REASONS.get(self.stopped_by, self.stopped_by)
         rival = f"{self.rival}, " + ("in this job" if self.rival_in_job else
                                      "a fabric the cell knows only to refuse, pressed in training and in no classifier"
                                      if self.rival_refuse_only else "a fabric the cell knows that this job leaves out")

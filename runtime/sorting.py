@@ -32,6 +32,11 @@ from vs2t_edge.runtime.operating_point import scene_model_rule
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
 OUTCOMES = (RIGHT, MIS_SORT, REJECT)
 KINDS = ("touched", "untouched", "off-scene")
+# why a piece went to the reject bin (runtime/evidence.py ``stopped_by`` and the cell's own), in words
+REASONS = {"press_limit": "never confident within the press limit", "off_scene": "refused as off-scene",
+           "confident": "confident", "unlabelled_guard": "the zero-shot guard",
+           "confusable_guard": "the guard of an untaught twin", "no_usable_frames": "no usable frames",
+           "camera_reopened": "the camera reopened", "fault": "a fault", "stop": "the service stopped"}
 
 
 def outcome(truth: str, label: str, scene: Iterable[str], sorted_: bool = True) -> str:
@@ -76,12 +81,19 @@ def _rates(records: Sequence[ItemRecord]) -> dict:
     return out
 
 
+def _refused(records: Sequence[ItemRecord]) -> float:
+    return sum(r.off_scene for r in records) / len(records) if records else math.nan
+
+
 def summarise(records: Sequence[ItemRecord], seconds_per_press: float | None = None,
               seconds_per_item: float = 0.0) -> dict:
     """Rates of right / mis-sort / reject over all items and per kind, presses per item, and items
     per minute when the arm's time per press (and per item: reference frame, gate) is given."""
     out = {"all": _rates(records), "by_kind": {k: _rates([r for r in records if r.kind == k]) for k in KINDS
                                                if any(r.kind == k for r in records)}}
+    # the share of pieces the off-scene rules sent to the reject bin (of the rest there: not confident)
+    out["off_scene_rule"] = {"all": _refused(records),
+                             "by_kind": {k: _refused([r for r in records if r.kind == k]) for k in out["by_kind"]}}
     if seconds_per_press is not None and records:
         per_item = seconds_per_item + seconds_per_press * out["all"]["presses"]
         out["items_per_min"] = 60.0 / per_item if per_item > 0 else math.inf

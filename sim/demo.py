@@ -177,12 +177,16 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
             return
         kind = kinds.get(truth, "off-scene")
         o = so.outcome(truth, r.label, scene_names, sorted_=r.outcome == "sorted")
-        records.append(so.ItemRecord(truth, kind, r.label, float(r.confidence), int(r.presses), o))
+        records.append(so.ItemRecord(truth, kind, r.label, float(r.confidence), int(r.presses), o,
+                                     off_scene=r.stopped_by == "off_scene"))
         rows.append({"item": r.item.id, "truth": truth, "kind": kind, "label": r.label, "bin": r.bin,
-                     "outcome": r.outcome, "result": o, "presses": r.presses, "confidence": float(r.confidence)})
+                     "outcome": r.outcome, "result": o, "presses": r.presses, "confidence": float(r.confidence),
+                     "stopped_by": r.stopped_by})
         lat = sum(r.latency_ms) / len(r.latency_ms) if r.latency_ms else float("nan")
         said = "reject" if r.label not in scene_names else f"{r.label} {names_of.get(r.label, '')}"
         mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
+        if r.label not in scene_names:  # the reject bin: say why ("conf" is the leading job fabric's)
+            mark += f": {so.REASONS.get(r.stopped_by, r.stopped_by)}"
         if r.outcome != "sorted":
             mark += f" ({r.outcome})"
         elif operator_labels and r.label not in scene_names:  # a person at the reject bin says what it was
@@ -280,8 +284,10 @@ def report_lines(summary: dict) -> str:
     lines = [f"{a['n']} pieces: {a['right']:.1%} in the right bin, {a['mis-sort']:.1%} MIS-SORTED (wrong bin), "
              f"{a['reject']:.1%} rejected (reject bin, a person looks)"]
     for kind, r in summary["by_kind"].items():
+        refused = round(summary["off_scene_rule"]["by_kind"][kind] * r["n"])
         lines.append(f"  {kind:9s} {r['n']:3d} pieces: right {r['right']:6.1%}  mis-sorted {r['mis-sort']:6.1%}  "
-                     f"rejected {r['reject']:6.1%}  ({r['presses']:.1f} presses each)")
+                     f"rejected {r['reject']:6.1%}  ({r['presses']:.1f} presses each; "
+                     f"{refused} to the reject bin by the off-scene rules)")
     lines.append(f"presses per piece {a['presses']:.2f}; {summary['items_per_min']:.1f} pieces per minute with the "
                  f"simulated arm in real time ({summary['item_s_median']:.1f} s per piece); model latency median "
                  f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press")

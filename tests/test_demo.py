@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.journal import read_records
 
 HERE = Path(__file__).parent
@@ -130,7 +131,19 @@ def test_printed_and_written_totals_match_the_journal(demo_run):
     assert m and float(m.group(1)) == pytest.approx(summary["all"]["presses"], abs=0.005)
     per_item = [line for line in out.splitlines() if re.match(r"\S+\s+\S+ .*-> .* bin \d+ ", line)]
     assert len(per_item) == N_ITEMS
-    assert all(line.rstrip().split()[-1] in ("right", "rejected", "MIS-SORTED") or "(" in line for line in per_item)
+    assert all(line.rstrip().split()[-1] in ("right", "rejected", "MIS-SORTED") or ":" in line or "(" in line
+               for line in per_item)
+    # a piece in the reject bin says why, as the journal has it; the totals count the off-scene rules' pieces
+    why = {r["item_id"]: r["stopped_by"] for r in read_records(work / "journal.jsonl") if r["type"] == "pre_sort"}
+    for line, f in zip(per_item, finals):
+        in_reject = f["label"] not in kinds
+        said = so.REASONS.get(why.get(f["item_id"], ""), why.get(f["item_id"], ""))
+        assert (f": {said}" in line) == in_reject, line
+    for kind, r in summary["by_kind"].items():
+        mine = [f for f in finals if kinds.get(truth[f["item_id"]], "off-scene") == kind]
+        by_rule = sum(why.get(f["item_id"]) == "off_scene" and f["label"] not in kinds for f in mine)
+        assert round(summary["off_scene_rule"]["by_kind"][kind] * r["n"]) == by_rule
+        assert re.search(rf"{kind}\s+{r['n']} pieces: .*; {by_rule} to the reject bin by the off-scene rules", out)
     assert all(1 <= f["presses"] <= 3 for f in finals if f["outcome"] == "sorted")  # --max-presses 3
 
 

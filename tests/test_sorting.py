@@ -42,6 +42,12 @@ def test_summary_rates_per_kind_and_items_per_minute():
     assert s["by_kind"]["touched"]["mis-sort"] == 0.5 and s["by_kind"]["off-scene"]["right"] == 1.0
     assert s["all"]["presses"] == 2.5
     assert s["items_per_min"] == pytest.approx(60 / (3.0 + 1.5 * 2.5))
+    # why the reject bin holds its pieces: the off-scene rules' share, apart from the not confident
+    recs += [_rec("a", "touched", "a", 0.99, off=True), _rec("b", "touched", UNKNOWN, 0.4)]
+    s = so.summarise(recs)
+    assert s["by_kind"]["touched"]["reject"] == 0.5 and s["off_scene_rule"]["by_kind"]["touched"] == 0.25
+    assert s["off_scene_rule"]["by_kind"]["off-scene"] == 1.0 and s["off_scene_rule"]["all"] == pytest.approx(2 / 6)
+    assert s["off_scene_rule"]["by_kind"]["untouched"] == 0.0
 
 
 def test_risk_coverage_on_a_hand_made_case():
