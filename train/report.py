@@ -237,6 +237,14 @@ def _ms(values) -> str:
     return f"{v.mean():.1f} ± {v.std():.1f}" if v.size else "-"
 
 
+def _refused_share(summary: dict, kind: str) -> float:
+    """The share of ``kind``'s pieces the off-scene rules sent to the reject bin (runtime/sorting.py
+    ``summarise``); NaN for metrics written before it."""
+    rule = summary.get("off_scene_rule") or {}
+    share = rule.get("all") if kind == "all" else (rule.get("by_kind") or {}).get(kind)
+    return math.nan if share is None else float(share)
+
+
 def scene_lines(splits: list[dict]) -> list[str]:
     """Per item, as a sorting line counts (runtime/sorting.py): the scene decision on scenes of each
     split's test fabrics, mean ± std over splits."""
@@ -253,13 +261,15 @@ def scene_lines(splits: list[dict]) -> list[str]:
            + (", and of folds of touched fabrics, each held out of its own generator" if _fold_worlds(sd) else "")
            + "), for at most "
            f"{100 * sd[0]['validation']['target_mis_sort']:g} % mis-sorts. Mean ± std over {len(sd)} split(s), %.", "",
-           "| pieces | right bin | mis-sort | reject | presses |", "| --- | --- | --- | --- | --- |"]
+           "| pieces | right bin | mis-sort | reject | to the reject bin by the off-scene rules | presses |",
+           "| --- | --- | --- | --- | --- | --- |"]
     kinds = ["all"] + [k for k in ("touched", "untouched", "off-scene") if k in sd[0]["test"]["by_kind"]]
     for kind in kinds:
         rs = [d["test"]["all"] if kind == "all" else d["test"]["by_kind"].get(kind, {}) for d in sd]
         pr = np.mean([r.get("presses", np.nan) for r in rs])
+        refused = [_refused_share(d["test"], kind) for d in sd]
         out.append(f"| {kind} | {_ms([r.get('right') for r in rs])} | {_ms([r.get('mis-sort') for r in rs])} | "
-                   f"{_ms([r.get('reject') for r in rs])} | {pr:.2f} |")
+                   f"{_ms([r.get('reject') for r in rs])} | {_ms(refused)} | {pr:.2f} |")
     val = [d["validation"]["validation"]["all"] for d in sd]
     kept = [d["test"]["all"]["mis-sort"] <= d["validation"]["target_mis_sort"] for d in sd]
     out += ["", f"Validation (what chose the operating point): right {_ms([v['right'] for v in val])}, mis-sort "
