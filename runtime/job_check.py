@@ -31,8 +31,6 @@ from vs2t_edge.runtime.evidence import UNKNOWN
 from vs2t_edge.runtime.sorting import REASONS, Press
 
 
-
-
 @dataclass(frozen=True)
 class FabricCheck:
     fabric: str
