@@ -116,7 +116,7 @@ class SceneModel:
     # class whose mean operator-labelled pieces re-estimated); None = the two. Cell state, not stored.
     class_offset_var: np.ndarray | None = field(default=None, repr=False)
     # untouched classes whose means operator labels re-estimated (runtime/feedback.py): real presses
-    # now, scored as a touched class is - without the biases that price a synthesis. Cell state, not stored.
+    # now, scored without the biases that price a synthesis. Cell state, not stored.
     taught: frozenset[str] = frozenset()
     # a sum-rule model's offset setting for operator labels (runtime/feedback.py needs the offset
     # rule): the offset candidate training searched on the same validation jobs (LABELS_KEYS); None
