@@ -91,7 +91,8 @@ def summarise(records: Sequence[ItemRecord], seconds_per_press: float | None = N
     per minute when the arm's time per press (and per item: reference frame, gate) is given."""
     out = {"all": _rates(records), "by_kind": {k: _rates([r for r in records if r.kind == k]) for k in KINDS
                                                if any(r.kind == k for r in records)}}
-    # the share of pieces the off-scene rules sent to the reject bin (of the rest there: not confident)
+    # the share of pieces the off-scene rules sent to the reject bin (the rest there: not confident, a
+    # labels' guard, a stranger the operator taught, or a fault)
     out["off_scene_rule"] = {"all": _refused(records),
                              "by_kind": {k: _refused([r for r in records if r.kind == k]) for k in out["by_kind"]}}
     if seconds_per_press is not None and records:

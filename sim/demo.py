@@ -186,7 +186,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         said = "reject" if r.label not in scene_names else f"{r.label} {names_of.get(r.label, '')}"
         mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
         if r.label not in scene_names:  # the reject bin: say why ("conf" is the leading job fabric's)
-            mark += f": {so.REASONS.get(r.stopped_by, r.stopped_by)}"
+            why = "a stranger the operator taught" if r.label.startswith("off-scene:") else r.stopped_by
+            mark += f": {so.REASONS.get(why, why)}"
         if r.outcome != "sorted":
             mark += f" ({r.outcome})"
         elif operator_labels and r.label not in scene_names:  # a person at the reject bin says what it was
