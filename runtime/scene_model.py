@@ -150,14 +150,14 @@ class SceneModel:
         return ((x.astype(dtype, copy=False) - center) @ basis).astype(np.float64)
 
     def _consts(self) -> tuple[np.ndarray, ...]:
-        """Per class, computed once: (means^T, squared norms of the means, untouched bias, 1.0 for an
-        untouched class, offset variance of the offset item rule)."""
+        """Per class, computed once: (means^T, squared norms of the means, untouched bias, 1.0 for a
+        synthesised class - untouched and not ``taught`` -, offset variance of the offset item rule)."""
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "consts" not in cache:
             # the biases price a synthesised mean: a taught class's is real presses (``taught``)
-            is_u = np.array([c in self.untouched and c not in self.taught for c in self.classes], dtype=np.float64)
-            cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * is_u,
-                               is_u, self.offset_vars())
+            synth = np.array([c in self.untouched and c not in self.taught for c in self.classes], dtype=np.float64)
+            cache["consts"] = (self.means.T, np.sum(self.means * self.means, axis=1), self.untouched_bias * synth,
+                               synth, self.offset_vars())
         return cache["consts"]
 
     def offset_vars(self) -> np.ndarray:
@@ -226,10 +226,10 @@ class SceneModel:
         if n < 1:
             raise SceneModelError(f"scene model: an item of {n} presses has no score")
         z = np.asarray(z_mean, np.float64).reshape(-1)
-        means_t, means_sq, _, is_u, offset_var = self._consts()
+        means_t, means_sq, _, synth, offset_var = self._consts()
         d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
         v = offset_var + self.press_var / n
-        return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * is_u
+        return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * synth
 
     def for_labels(self) -> "SceneModel | None":
         """The offset-rule model operator labels update (runtime/feedback.py): this one when its

@@ -36,6 +36,7 @@ import numpy as np
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
+from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
@@ -176,9 +177,9 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 f"{'es' if r.presses != 1 else ''}, the cell said {r.label}; operator: {truth}) - not counted")
             return
         kind = kinds.get(truth, "off-scene")
-        o = so.outcome(truth, r.label, scene_names, sorted_=r.outcome == "sorted")
-        records.append(so.ItemRecord(truth, kind, r.label, float(r.confidence), int(r.presses), o,
-                                     off_scene=r.stopped_by == "off_scene"))
+        rec = so.record(truth, kind, r, tuple(scene_names), sorted_=r.outcome == "sorted")
+        records.append(rec)
+        o = rec.outcome
         rows.append({"item": r.item.id, "truth": truth, "kind": kind, "label": r.label, "bin": r.bin,
                      "outcome": r.outcome, "result": o, "presses": r.presses, "confidence": float(r.confidence),
                      "stopped_by": r.stopped_by})
@@ -186,7 +187,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         said = "reject" if r.label not in scene_names else f"{r.label} {names_of.get(r.label, '')}"
         mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
         if r.label not in scene_names:  # the reject bin: say why ("conf" is the leading job fabric's)
-            why = "a stranger the operator taught" if r.label.startswith("off-scene:") else r.stopped_by
+            why = "a stranger the operator taught" if r.label.startswith(OFF_SCENE_PREFIX) else r.stopped_by
             mark += f": {so.REASONS.get(why, why)}"
         if r.outcome != "sorted":
             mark += f" ({r.outcome})"
