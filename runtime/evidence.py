@@ -18,7 +18,10 @@ Off-scene checks (off unless set; the scene model sets both):
 - ``known_margin``: a bundle class outside the scene whose summed (weighted) log posterior beats
   the leading scene class's by more than it means the piece is a fabric the cell knows that this
   job does not list.
-Either makes the item "unknown" (``stopped_by`` "off_scene"), confident or not.
+- under the offset rule (``item_model`` below) with a finite ``likeness_ratio``: the presses'
+  mean lies farther from the leading scene class than that many times what the class's own pieces
+  lie at (``SceneModel.item_ratios``): the piece leads a class it does not feel like.
+Any of them makes the item "unknown" (``stopped_by`` "off_scene"), confident or not.
 ``refuse_early``: a piece whose leading class over every known class is one the job leaves out,
 at ``confidence`` (and by ``known_margin`` over the scene's best), goes to the reject bin at that
 press instead of at the press limit: more presses would only risk it becoming confident for a job
@@ -109,6 +112,7 @@ class Evidence:
             self._z_sum = np.zeros(item_model.k, dtype=np.float64)
             self._z_all = np.zeros(item_model.k, dtype=np.float64)  # outlier presses too (``z_mean``)
         self._open_rows: np.ndarray | None = None  # item-model rows of the scene classes the open-set rule reads
+        self._likeness: np.ndarray | None = None  # the scene classes' ``item_ratios`` when the rule is on
 
     def need_at_most_touched(self, classes) -> None:
         """From now on ``classes`` of the scene need at most the touched ``confidence``: operator
@@ -196,6 +200,8 @@ class Evidence:
         n = self.used_presses
         scores = self.item_model.item_log_lik(self._z_sum / n, n)
         self._acc = scores[self._rows]
+        if math.isfinite(getattr(self.item_model, "likeness_ratio", math.inf)):
+            self._likeness = self.item_model.item_ratios(self._z_sum / n, n)[self._rows]
         if math.isfinite(self.known_margin):
             self._inside = self._acc
             self._outside = {self.item_model.classes[i]: float(scores[i]) for i in self._others}
@@ -226,6 +232,8 @@ class Evidence:
     def off_scene(self) -> bool:
         """Whether the presses so far say the piece is none of the scene's fabrics (module doc)."""
         if self._open_n and self._open_sum / self._open_n > self.open_threshold:
+            return True
+        if self._likeness is not None and self._likeness[int(np.argmax(self._acc))] > self.item_model.likeness_ratio:
             return True
         if self._outside:
             best_in = float(np.max(self._inside))

@@ -55,6 +55,16 @@ a pulled thread or a fold of the piece lands far from every fabric, and averaged
 mean it would carry the piece to whichever class is broadest - a synthesised one. Chosen on
 validation (train/decision.py), off (inf) in files written before it.
 
+Under the offset rule a piece goes into a class's bin only when it feels like that class: the mean
+of its n presses must lie within ``likeness_ratio`` times the squared distance the offset model
+expects of the class's own pieces, k (s_c + press_var / n) (``item_ratios``; runtime/evidence.py
+``off_scene``). A piece of a fabric no class describes well - an untouched fabric whose synthesis
+is far off, nearer some touched fabric of the job than its own synthesis - can still lead a
+touched class by a wide posterior, since the posterior only compares classes; this asks whether
+the leader itself could have made the presses. For a touched class the expected distance is
+small, so the rule is tight there; a synthesised class's offset variance makes it loose. Chosen
+on validation with the offset rule's other knobs, off (inf) in files written before it.
+
 Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
 scored on the cell.
 """
@@ -76,12 +86,13 @@ OFFSET_KEYS = ("press_var", "offset_var_touched", "offset_var_untouched", "item_
 # the offset rule's whole operating point, stored as "labels_<key>" by a sum-rule model (``labels_rule``)
 LABELS_KEYS = OFFSET_KEYS + ("known_margin", "open_threshold", "confidence", "untouched_confidence")
 # every key ``to_params`` can write: a file with any other is refused (``from_params``). Rules were
-# added as optional keys (known_only, refuse_early, outlier_ratio); a runtime that skipped a key it
+# added as optional keys (known_only, refuse_early, outlier_ratio, likeness_ratio); a runtime that skipped a key it
 # does not know would sort with the rule left out - a piece on a knot into a wrong bin - so a
 # bundle from a newer training is refused by name until the runtime is updated.
 PARAMS_KEYS = frozenset(("kind", "params_version", "classes", "untouched", "center", "basis", "means", "temperature",
                          "untouched_bias", "evidence_weight", "open_threshold", "known_margin", "confidence",
-                         "untouched_confidence", "item_rule", "known_only", "refuse_early", "outlier_ratio")
+                         "untouched_confidence", "item_rule", "known_only", "refuse_early", "outlier_ratio",
+                         "likeness_ratio")
                         + OFFSET_KEYS + tuple(f"labels_{key}" for key in LABELS_KEYS))
 
 
@@ -131,6 +142,9 @@ class SceneModel:
     # a press farther than this from every class, in units of the class's ``press_spread``, is no
     # evidence (module doc); chosen on validation, off (inf) in older files
     outlier_ratio: float = math.inf
+    # the offset rule sorts a piece into a class's bin only within this many times the squared
+    # distance of the class's own pieces (module doc); chosen on validation, off (inf) in older files
+    likeness_ratio: float = math.inf
 
     @property
     def dim(self) -> int:
@@ -231,6 +245,17 @@ class SceneModel:
         v = offset_var + self.press_var / n
         return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * synth
 
+    def item_ratios(self, z_mean: np.ndarray, n: int) -> np.ndarray:
+        """(C,) the squared distance of a piece's mean of ``n`` presses to each class mean over what
+        the offset rule expects of that class's own pieces, k (s_c + press_var / n): about 1 for a
+        piece of the class (``likeness_ratio``, module doc)."""
+        if n < 1:
+            raise SceneModelError(f"scene model: an item of {n} presses has no score")
+        z = np.asarray(z_mean, np.float64).reshape(-1)
+        means_t, means_sq, _, _, offset_var = self._consts()
+        d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
+        return d2 / (self.k * (offset_var + self.press_var / n))
+
     def for_labels(self) -> "SceneModel | None":
         """The offset-rule model operator labels update (runtime/feedback.py): this one when its
         rule is the offset rule, a sum-rule model with its stored offset setting, else None.
@@ -319,7 +344,8 @@ class SceneModel:
                 **{f"labels_{key}": float(v) for key, v in (self.labels_rule or {}).items()},
                 **({"known_only": np.array(self.known_only)} if self.known_only else {}),
                 **({"refuse_early": np.array(True)} if self.refuse_early else {}),
-                **({"outlier_ratio": float(self.outlier_ratio)} if math.isfinite(self.outlier_ratio) else {})}
+                **({"outlier_ratio": float(self.outlier_ratio)} if math.isfinite(self.outlier_ratio) else {}),
+                **({"likeness_ratio": float(self.likeness_ratio)} if math.isfinite(self.likeness_ratio) else {})}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -373,17 +399,11 @@ class SceneModel:
         refuse_early = np.asarray(params.get("refuse_early", False)).reshape(())
         if refuse_early.dtype != bool:
             raise SceneModelError(f"scene model refuse_early is {refuse_early.dtype}, not a boolean")
-        outlier_ratio = math.inf
-        if "outlier_ratio" in params:
-            raw = np.asarray(params["outlier_ratio"])
-            if raw.shape != () or raw.dtype.kind not in "fiu":
-                raise SceneModelError(f"scene model outlier_ratio is {raw.dtype} of shape {raw.shape}, not a number")
-            outlier_ratio = float(raw)
-            if not outlier_ratio >= 1:  # below 1 a press at its class's own spread would be no evidence
-                raise SceneModelError(f"scene model outlier_ratio {outlier_ratio} must be at least 1 (inf: off)")
+        # below 1 a press (a piece) at its class's own spread would be no evidence (refused)
+        outlier_ratio, likeness_ratio = _ratio(params, "outlier_ratio"), _ratio(params, "likeness_ratio")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
                     temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only,
-                    refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio)
+                    refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio, likeness_ratio=likeness_ratio)
         # a file written before the offset rule has none of its keys: the sum rule, as it was
         rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
         if rule not in ITEM_RULES:
@@ -400,6 +420,18 @@ class SceneModel:
         offset = {key: scalar(key) for key in OFFSET_KEYS}
         _check_offset(offset, "")
         return replace(model, item_rule=rule, **offset)
+
+
+def _ratio(params: Mapping[str, Any], key: str) -> float:
+    """An optional ratio of the parameters (inf, off, when absent): a number of at least 1."""
+    if key not in params:
+        return math.inf
+    raw = np.asarray(params[key])
+    if raw.shape != () or raw.dtype.kind not in "fiu":
+        raise SceneModelError(f"scene model {key} is {raw.dtype} of shape {raw.shape}, not a number")
+    if not float(raw) >= 1:
+        raise SceneModelError(f"scene model {key} {float(raw)} must be at least 1 (inf: off)")
+    return float(raw)
 
 
 def _check_offset(offset: Mapping[str, float], prefix: str) -> None:

@@ -384,7 +384,8 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     who runs the cell, measured on the jobs it is given; choosing stays on validation (training).
     ``records``: the jobs' item records at the operating point when the caller decided them already
     (training's report); a knob at the operating point's own value is that row, not decided again.
-    ``grid`` may also move the scene model's ``outlier_ratio`` (training's choice, no config key)."""
+    ``grid`` may also move the scene model's ``outlier_ratio`` and ``likeness_ratio`` (training's
+    choices, no config key)."""
 
     def price(recs: Sequence[ItemRecord]) -> dict:
         s = summarise(recs)
@@ -400,7 +401,8 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
     base = price(records) if records is not None else run(model, max_presses)
     rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
-           "max_presses": max_presses, "outlier_ratio": float(model.outlier_ratio)}
+           "max_presses": max_presses, "outlier_ratio": float(model.outlier_ratio),
+           "likeness_ratio": float(model.likeness_ratio)}
     for knob, values in (KNOB_GRID if grid is None else grid).items():
         for v in values:
             if v == own[knob]:

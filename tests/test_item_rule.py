@@ -113,7 +113,7 @@ def test_the_evidence_runs_the_offset_rule_on_the_presses_projection():
         Evidence(["nope"], 0.9, 5, item_model=m)
 
 
-@pytest.mark.parametrize("rule", ["sum", "offset"])
+@pytest.mark.parametrize("rule", ["sum", "offset", "offset, likeness asked"])
 def test_the_vectorised_search_decides_every_item_as_the_cells_evidence(rule):
     model, held, touched, untouched, strangers = _world(seed=3)
     scenes = so.draw_scenes(touched, untouched, tuple(strangers), 6, n_touched=3, n_untouched=2, n_off=2, seed=5)
@@ -130,9 +130,10 @@ def test_the_vectorised_search_decides_every_item_as_the_cells_evidence(rule):
             cand = replace(model, temperature=2.0, untouched_bias=0.5, evidence_weight=0.5, **common)
             fast = ns.sum_rule(prepared, temperature=2.0, untouched_bias=0.5, weight=0.5, **common)
         else:
-            cand = _offset(model, **common)
+            likeness = 1.5 if "likeness" in rule else math.inf
+            cand = replace(_offset(model, **common), likeness_ratio=likeness)
             fast = ns.offset_rule(prepared, press_var=1.2, offset_var_touched=0.05, offset_var_untouched=0.6,
-                                  item_temperature=4.0, item_bias=0.5, **common)
+                                  item_temperature=4.0, item_bias=0.5, likeness_ratio=likeness, **common)
         tables = {f: so.scene_model_presses(cand, x) for f, x in held.items()}  # the press posterior is cand's
         recs = so.simulate_scenes(scenes, tables, so.scene_evidence(cand), seed=7)
         assert [r.outcome for r in recs] == fast[0].tolist(), (conf, margin, thr, early)

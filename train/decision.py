@@ -197,7 +197,7 @@ def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], prepared: list[t
         # one, so its syntheses' offset is its own, not the deployed model's (the search chooses scales)
         worlds.append(ns.World(items, ns.offset_estimates(vm, projections), thresholds))
     base = {"press_var_scale": 1.0, "touched_scale": 1.0, "item_bias": 0.0, "known_margin": 0.0, "open_quantile": 1.0,
-            "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True}
+            "confidence": 0.9, "untouched_confidence": 0.9, "refuse_early": True, "likeness_ratio": math.inf}
     point, _ = ns.search_offset_rule(worlds, base, CONFIDENCES, lambda summary: _score(summary, target))
     cands = [replace(vm, item_rule="offset", **ns.offset_setting(point, w)) for vm, w in zip(vms, worlds)]
     return cands, _simulate(cands, jobs)
@@ -330,7 +330,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                          "item_rule": chosen.item_rule, **rule, "known_margin": chosen.known_margin,
                          "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
                          "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early,
-                         "outlier_ratio": chosen.outlier_ratio},
+                         "outlier_ratio": chosen.outlier_ratio, "likeness_ratio": chosen.likeness_ratio},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
               "validation_worlds": [{"touched": len(w.touched), "validation_fabrics": len(w.val_fabrics)} for w in worlds],
               **({"validation_own_world": own_world} if own_world else {}),
@@ -344,6 +344,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
         f"{sum(len(w.val_fabrics) for w in worlds)} validation fabrics): k={chosen.k}, item rule {chosen.item_rule}, "
         f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "
         f"outlier presses {'kept' if math.isinf(chosen.outlier_ratio) else f'beyond {chosen.outlier_ratio:g} spreads left out'}, "
+        f"likeness {'not asked' if math.isinf(chosen.likeness_ratio) else f'within {chosen.likeness_ratio:g} times'}, "
         f"confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
         f"right {val_summary['all']['right']:.1%}, mis-sort {val_summary['all']['mis-sort']:.1%}, "
         f"reject {val_summary['all']['reject']:.1%} (sum rule {summary_sum['all']['right']:.1%} / "
@@ -427,9 +428,11 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["risk_coverage"] = {"area": rc["area"], "coverage": rc["coverage"][::max(1, len(rc["coverage"]) // 50)],
                             "mis_sort": rc["mis_sort"][::max(1, len(rc["mis_sort"]) // 50)]}
     # the operator's knobs on the same jobs, one at a time (a price list; the choice was validation's)
-    # (and the outlier-press rule, training's choice, priced beside them)
+    # (and the outlier-press and likeness rules, training's choices, priced beside them; the likeness
+    # rule acts under the offset item rule only: a sum-rule model's rows repeat the operating point)
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
-                                  seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS})
+                                  seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS,
+                                        "likeness_ratio": ns.OFFSET_GRID["likeness_ratio"]})
     choices = [("mis_sort_target", 100 * float(t), m) for t, m in sorted((targets or {}).items())] + \
         [("validation_folds", float(n), m) for n, m in sorted((folds or {}).items())]
     for knob, value, m in choices:  # each a whole operating point validation chose for it

@@ -7,9 +7,10 @@ the same items as ``runtime.sorting.simulate_scenes`` draws (same seed, same pre
 as ``Evidence`` decides them - per press step: the scene posterior, the confidence its leader needs,
 the off-scene rules (mean over presses of the smallest squared distance to a scene class against
 ``open_threshold``; the best class outside the scene against the best inside plus
-``known_margin``); the first step that is confident and not off-scene sorts, and with
-``refuse_early`` the first step where a known class the job leaves out leads every class at the
-confidence refuses; else the reject bin at the last press.
+``known_margin``; under the offset rule, the leader farther from the presses' mean than
+``likeness_ratio`` times what its own pieces lie at); the first step that is confident and not
+off-scene sorts, and with ``refuse_early`` the first step where a known class the job leaves out
+leads every class at the confidence refuses; else the reject bin at the last press.
 tests/test_item_rule.py holds the two equal, outcome for outcome, for both item rules.
 
 Two item rules (runtime/scene_model.py): ``sum`` (per-press log posteriors restricted to the
@@ -106,10 +107,12 @@ class Prepared:
 
 
 def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: float, untouched_confidence: float,
-           known_margin: float, open_threshold: float, refuse_early: bool = False) -> tuple[np.ndarray, np.ndarray]:
+           known_margin: float, open_threshold: float, refuse_early: bool = False,
+           unlike: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(outcome per item - "right" / "mis-sort" / "reject" -, presses per item), as ``Evidence``
     decides: ``scores`` (N, M, C) the item's class scores after each press (their softmax over the
-    scene is the posterior), ``known`` (N, M, C) what the known-class rule compares."""
+    scene is the posterior), ``known`` (N, M, C) what the known-class rule compares, ``unlike``
+    (N, M, C) bool: the piece does not feel like the class (the offset rule's ``likeness_ratio``)."""
     items = p.items
     scene = items.scene[:, None, :]
     s = np.where(scene, scores, -np.inf)
@@ -128,6 +131,8 @@ def decide(p: Prepared, scores: np.ndarray, known: np.ndarray, *, confidence: fl
             early = off & (np.exp(outside - _lse(known)) >= confidence)
     if math.isfinite(open_threshold):
         off |= p.open_stat > open_threshold
+    if unlike is not None:
+        off |= np.take_along_axis(unlike, lead[..., None], -1)[..., 0]
     go = (np.exp(top[..., 0]) >= needed) & decisive & ~off & items.valid
     stop = (go | early) & items.valid
     stopped = stop.any(axis=1)
@@ -154,11 +159,13 @@ def sum_rule(p: Prepared, *, temperature: float, untouched_bias: float, weight: 
 
 
 def offset_rule(p: Prepared, *, press_var: float, offset_var_touched: float, offset_var_untouched: float,
-                item_temperature: float, item_bias: float, **rule) -> tuple:
-    """The offset rule (runtime/scene_model.py, ``SceneModel.item_log_lik``) after each press."""
+                item_temperature: float, item_bias: float, likeness_ratio: float = math.inf, **rule) -> tuple:
+    """The offset rule (runtime/scene_model.py, ``SceneModel.item_log_lik`` and ``item_ratios``)
+    after each press."""
     v = np.where(p.is_u > 0, offset_var_untouched, offset_var_touched) + press_var / p.count[..., None]
     scores = (-0.5 * p.d2_mean / v - 0.5 * p.k * np.log(v)) / item_temperature + item_bias * p.is_u
-    return decide(p, scores, scores, **rule)
+    unlike = p.d2_mean / (p.k * v) > likeness_ratio if math.isfinite(likeness_ratio) else None
+    return decide(p, scores, scores, unlike=unlike, **rule)
 
 
 def summary(p: Prepared | Sequence[Prepared], outcome: np.ndarray, presses: np.ndarray) -> dict:
@@ -227,6 +234,7 @@ OFFSET_GRID = {
     "item_bias": (-4.0, -2.0, -1.0, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
     "known_margin": (0.0, 2.0, 8.0, math.inf),
     "refuse_early": (True, False),  # True first: fewer presses where validation cannot tell them apart at all
+    "likeness_ratio": (math.inf, 8.0, 4.0, 3.0, 2.0, 1.5),  # inf first: a tie leaves the rule off
 }
 # the coordinate search is local: it starts from each of these (item temperature x untouched scale)
 OFFSET_STARTS = tuple((t, u) for t in (8.0, 32.0, 128.0) for u in (0.125, 0.5, 2.0))
@@ -272,7 +280,7 @@ def offset_setting(q: dict, world: World) -> dict:
             "item_temperature": q["item_temperature"], "item_bias": q["item_bias"],
             "known_margin": q["known_margin"], "open_threshold": world.open_thresholds[q["open_quantile"]],
             "confidence": q["confidence"], "untouched_confidence": q["untouched_confidence"],
-            "refuse_early": q["refuse_early"]}
+            "refuse_early": q["refuse_early"], "likeness_ratio": q.get("likeness_ratio", math.inf)}
 
 
 def search_offset_rule(worlds: Sequence[World], base: dict, confidences: Sequence[float], score) -> tuple[dict, dict]:

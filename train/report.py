@@ -300,7 +300,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
             "", "Chosen per split: " + "; ".join(
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
                 f"margin {c['known_margin']:g}{', refuse early' if c.get('refuse_early') else ''}, "
-                f"{_outlier_text(c.get('outlier_ratio'))}"
+                f"{_outlier_text(c.get('outlier_ratio'))}{_likeness_text(c.get('likeness_ratio'))}"
                 f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
@@ -333,8 +333,17 @@ def _outlier_text(ratio) -> str:
         f"presses beyond {float(ratio):g} spreads no evidence, "
 
 
+def _likeness_text(ratio) -> str:
+    """The likeness rule of a chosen setting, for the report ('' for runs before it)."""
+    if ratio is None:
+        return ""
+    return "likeness not asked, " if not math.isfinite(float(ratio)) else \
+        f"sorted only within {float(ratio):g} times a class's own distance, "
+
+
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
              "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)",
+             "likeness_ratio": "likeness ratio (training's choice, offset rule only, no config key)",
              "mis_sort_target": "mis-sort target, % (`train --mis-sort-target`: the whole operating point chosen on "
                                 "validation for it)",
              "validation_folds": "validation folds (`train --validation-folds`: the whole operating point chosen "
@@ -350,7 +359,8 @@ def knob_lines(sd: list[dict]) -> list[str]:
     out = ["", "### What the operator's knobs cost (the same test jobs)", "",
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
            "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
-           "on validation, and so was the outlier ratio (inf: every press is evidence), priced here beside them, "
+           "on validation, and so were the outlier ratio (inf: every press is evidence) and the likeness ratio "
+           "(inf: not asked), priced here beside them, "
            "as is the mis-sort target the validation search chose for (each target a whole operating point). "
            "*own*: the value the operating point has in every split. Mean ± std over "
            f"{len(sd)} split(s), %.", "",
