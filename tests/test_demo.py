@@ -153,3 +153,25 @@ def test_a_piece_line_says_press_for_one_and_presses_for_more(demo_run):
     said = re.findall(r" bin \d+\s+(\d+) (press(?:es)?)\b", out)
     assert len(said) == N_ITEMS and any(n == "1" for n, _ in said), out
     assert all((word == "press") == (n == "1") for n, word in said), said
+
+
+def test_the_totals_count_the_pieces_the_off_scene_rules_refused():
+    """The demo's own world may refuse no piece by the off-scene rules (its fixture bundle has no
+    scene model): the count is checked here on hand-made records, one rule-refused piece of each kind
+    and other rejects beside them that the rules did not send."""
+    from vs2t_edge.sim.demo import report_lines
+    scene = ["silk", "wool"]
+
+    def rec(truth, kind, label, stopped_by):
+        return so.record(truth, kind, type("D", (), {"label": label, "confidence": 0.5, "presses": 3,
+                                                       "stopped_by": stopped_by, "log_posterior": {}})(), scene)
+    recs = [rec("silk", "touched", "silk", "confident"), rec("silk", "touched", "unknown", "off_scene"),
+            rec("silk", "touched", "unknown", "press_limit"), rec("wool", "untouched", "unknown", "press_limit"),
+            rec("felt", "off-scene", "unknown", "off_scene"), rec("felt", "off-scene", "unknown", "off_scene"),
+            rec("felt", "off-scene", "unknown", "press_limit")]
+    summary = {**so.summarise(recs), "items_per_min": 20.0, "item_s_median": 3.0, "latency_ms_median": 5.0,
+               "latency_ms_p95": 7.0}
+    out = report_lines(summary)
+    assert re.search(r"touched\s+3 pieces: right\s+33.3%.*; 1 to the reject bin by the off-scene rules", out), out
+    assert re.search(r"untouched\s+1 pieces: .*; 0 to the reject bin by the off-scene rules", out), out
+    assert re.search(r"off-scene\s+3 pieces: right\s+100.0%.*; 2 to the reject bin by the off-scene rules", out), out
