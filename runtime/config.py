@@ -114,6 +114,10 @@ _SCHEMA: dict[str, Any] = {
     "evidence": {
         "confidence": _leaf("float", 0.9, (0.5, 0.99999), "stop pressing once the posterior reaches this"),
         "max_presses": _leaf("int", 5, (1, N_GRID_X * N_GRID_Y), "press limit per item"),
+        # runtime/evidence.py: past max_presses, while a touched fabric of the job leads, unrefused
+        "extra_presses": _leaf("int", 0, (0, N_GRID_X * N_GRID_Y), "a bundle with a scene model: presses past "
+                                                                   "max_presses for a piece a touched fabric leads, "
+                                                                   "not yet confident, refused by no off-scene rule"),
         # runtime/operating_point.py: the knob that prices mis-sorts against untouched right-bin
         "untouched_confidence": _leaf("optfloat", None, (0.5, 0.99999),
                                       "a bundle with a scene model: the posterior that sorts a piece into an "
@@ -179,6 +183,7 @@ class CellConfig:
     without_scene_model: str = "refuse"  # evidence.without_scene_model: "allow" is the written opt-in
     operator_labels: Path | None = None  # evidence.operator_labels (runtime/feedback.py)
     untouched_confidence: float | None = None  # evidence.untouched_confidence (runtime/operating_point.py)
+    extra_presses: int = 0  # evidence.extra_presses (runtime/evidence.py)
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -411,6 +416,9 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     if ev["max_presses"] > len(grid_points):
         chk.err("evidence.max_presses", f"evidence.max_presses = {ev['max_presses']}: more than the "
                                         f"{len(grid_points)} grid points listed")
+    elif ev["max_presses"] + ev["extra_presses"] > len(grid_points):
+        chk.err("evidence.extra_presses", f"evidence.extra_presses = {ev['extra_presses']}: with max_presses "
+                                          f"{ev['max_presses']}, more presses than the {len(grid_points)} grid points listed")
 
     cam, gate = v["devices"]["camera"], v["devices"]["gate"]
     if cam["kind"] in ("replay", "sim") and cam["path"] is None:
@@ -443,7 +451,8 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         item_timeout_s=v["watchdog"]["item_timeout_s"],
         wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
-        operator_labels=ev["operator_labels"], untouched_confidence=ev["untouched_confidence"], raw=data if isinstance(data, dict) else {},
+        operator_labels=ev["operator_labels"], untouched_confidence=ev["untouched_confidence"],
+        extra_presses=ev["extra_presses"], raw=data if isinstance(data, dict) else {},
     )
 
 

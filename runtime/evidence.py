@@ -35,6 +35,14 @@ offset rule's mean leaves it out; the open-set rule still reads it (far from eve
 a stranger's presses are). A piece none of whose presses was evidence is decisive for no
 class: at the limit it goes to the reject bin (``stopped_by`` "off_scene": like no fabric known).
 
+``extra_presses`` (0: off): a piece that at ``max_presses`` is not confident, is led by one of
+``extend_classes`` (the scene model's touched classes: real means, whose evidence keeps growing
+with presses where a synthesised class's saturates) and is refused by no off-scene rule takes up
+to that many presses more, and is decided as soon as it is confident or refused or the leader
+changes kind (``press_limit``: the most presses an item may take; ``at_limit``: whether it has
+taken all it may). On the paper world's test jobs the touched pieces left unconfident at 5
+presses are nearly all led by their own fabric (docs/results/scene_decision_paper.md).
+
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
 summed log posteriors by the model's item scores of the presses' mean projection
 (``PressScore.scene_z``; ``SceneModel.item_log_lik``): the scene posterior is their softmax over
@@ -72,7 +80,7 @@ class Evidence:
                  min_presses: int = 1, unknown_floor: float | None = None, *, weight: float = 1.0,
                  open_threshold: float = math.inf, known_margin: float = math.inf,
                  class_confidence: dict[str, float] | None = None, item_model=None, refuse_early: bool = False,
-                 outlier_model=None):
+                 outlier_model=None, extra_presses: int = 0, extend_classes=()):
         self.classes = list(dict.fromkeys(scene_classes))
         if not self.classes:
             raise ValueError("Evidence: the scene has no classes")
@@ -84,7 +92,11 @@ class Evidence:
             raise ValueError(f"Evidence: weight = {weight} must be in (0, 1]")
         if math.isnan(open_threshold) or math.isnan(known_margin):
             raise ValueError("Evidence: open_threshold and known_margin must not be NaN")
+        if extra_presses < 0:
+            raise ValueError(f"Evidence: extra_presses = {extra_presses} must be at least 0")
         self.confidence, self.max_presses, self.min_presses = confidence, max_presses, min_presses
+        self.extra_presses = int(extra_presses)
+        self._extend = np.array([c in set(extend_classes) for c in self.classes])  # leaders that earn extra presses
         self.weight, self.open_threshold, self.known_margin = weight, open_threshold, known_margin
         self.refuse_early = bool(refuse_early)
         # the posterior that sorts into a class when it differs from ``confidence`` (the scene model
@@ -257,6 +269,26 @@ class Evidence:
         otherwise sort to whichever fabric the scene lists first)."""
         return self.used_presses >= self.min_presses and int(np.sum(post == post[i])) == 1
 
+    @property
+    def press_limit(self) -> int:
+        """The most presses an item may take: ``max_presses``, and ``extra_presses`` more for a
+        piece that earns them (module doc)."""
+        return self.max_presses + self.extra_presses
+
+    def _extending(self, post: np.ndarray, i: int) -> bool:
+        """Whether a piece at or past ``max_presses`` presses on: extra presses left, a leader of
+        ``extend_classes`` ahead of every other class, and no off-scene rule refusing it."""
+        return (self.presses < self.press_limit and bool(self._extend[i]) and bool(self.used_presses)
+                and self._decisive(post, i) and not self.off_scene())
+
+    def at_limit(self) -> bool:
+        """Whether the item has taken every press it may (``max_presses``, or more while it earns
+        ``extra_presses``)."""
+        if self.presses < self.max_presses:
+            return False
+        post = self._posterior()
+        return not self._extending(post, int(np.argmax(post)))
+
     def _check(self, final: bool) -> ItemDecision | None:
         post = self._posterior()
         i = int(np.argmax(post))
@@ -265,7 +297,7 @@ class Evidence:
             return self._make(post, "confident")
         if self.known_outsider():  # a fabric the job leaves out, surely: refused now (refuse_early)
             return self._make(post, "off_scene")
-        if final or self.presses >= self.max_presses:
+        if final or (self.presses >= self.max_presses and not self._extending(post, i)):
             return self._make(post, "off_scene" if self.off_scene() or not self.used_presses else "press_limit")
         return None
 

@@ -186,6 +186,10 @@ class GuardedEvidence:
         return self.adapted.presses
 
     @property
+    def press_limit(self) -> int:
+        return self.adapted.press_limit
+
+    @property
     def mean_presses(self) -> int:
         return self.adapted.mean_presses
 
@@ -199,7 +203,7 @@ class GuardedEvidence:
         z = self.zero_shot.decide() if final or d.stopped_by != "confident" else self.zero_shot.peek()
         if z is not None and z.label == d.label:
             return d
-        if final or self.adapted.presses >= self.adapted.max_presses:
+        if final or self.adapted.at_limit():
             why = "confusable_guard" if d.label in self.confusable_with else "unlabelled_guard"
             return ItemDecision(UNKNOWN, d.confidence, d.presses, d.log_posterior, why)
         return None  # press on: the zero-shot evidence may yet agree
@@ -222,6 +226,10 @@ class TrackedEvidence:
     @property
     def presses(self) -> int:
         return self.inner.presses
+
+    @property
+    def press_limit(self) -> int:
+        return self.inner.press_limit
 
     @property
     def mean_presses(self) -> int:

@@ -145,15 +145,18 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     """(touched confidence, the other keyword arguments of ``runtime.evidence.Evidence``) of a
     scene model's operating point, as training chose it for the mis-sort target: press weight,
     off-scene threshold and margin, the confidence per kind (every untouched class at the
-    untouched one), the outlier-press rule when it has one, and for the offset item rule the model itself (its item scores replace the
-    weighted sum). Its temperature and untouched bias act inside the model's posterior
-    (runtime/scene_model.py) and have no override."""
+    untouched one), the outlier-press rule when it has one, the classes that earn extra presses
+    (its touched ones: real means; ``evidence.extra_presses``, runtime/evidence.py), and for the
+    offset item rule the model itself (its item scores replace the weighted sum). Its temperature
+    and untouched bias act inside the model's posterior (runtime/scene_model.py) and have no
+    override."""
     m = scene_model
     return m.confidence, {"weight": m.evidence_weight, "open_threshold": m.open_threshold,
                           "known_margin": m.known_margin,
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
                           "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
-                          "outlier_model": m if math.isfinite(m.outlier_ratio) else None}
+                          "outlier_model": m if math.isfinite(m.outlier_ratio) else None,
+                          "extend_classes": tuple(c for c in m.classes if c not in m.untouched and c not in m.known_only)}
 
 
 def config_sets_confidence(cfg) -> bool:
@@ -204,11 +207,12 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
     they adapted, runtime/feedback.py): its rule, the config's written confidences over its own
     (``evidence.confidence`` for touched classes, ``evidence.untouched_confidence`` for untouched
-    ones)."""
+    ones), and the config's ``evidence.extra_presses``."""
     confidence, opts = scene_model_rule(scene_model)
     untouched = getattr(cfg, "untouched_confidence", None)
     if untouched is not None:
         opts = {**opts, "class_confidence": {c: float(untouched) for c in opts["class_confidence"]}}
+    opts = {**opts, "extra_presses": int(getattr(cfg, "extra_presses", 0) or 0)}
     return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 

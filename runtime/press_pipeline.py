@@ -159,7 +159,9 @@ class PressLoop:
                 decision = self._fold_pending()  # whether k may be pressed depends on it
                 if decision is not None:
                     return decision
-            if tally.presses >= scene.max_presses:
+            # the evidence's own limit: extra presses past max_presses for a piece that earns them
+            # (runtime/evidence.py); it decides at max_presses a piece that does not
+            if tally.presses >= getattr(self.evidence, "press_limit", scene.max_presses):
                 break
             if tally.skipped >= 2 * scene.max_presses:
                 break  # the camera keeps giving bad frames: decide on what we have
@@ -212,7 +214,9 @@ class PressLoop:
         raise _DecidedMeanwhile(decision)
 
     def _limit_near(self) -> bool:
-        """Could the pending score make the next press one too many?"""
+        """Could the pending score make the next press one too many? (From ``max_presses`` on, an
+        evidence that may press on past it decides that from the pending score: it is folded in
+        first, so extra presses are sequential.)"""
         scene, tally = self.cell.scene, self.tally
         return tally.presses + 1 >= scene.max_presses or tally.skipped + 1 >= 2 * scene.max_presses
 

@@ -357,21 +357,25 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
     return records
 
 
-def scene_evidence(model, max_presses: int = 5) -> Callable[[Scene], Evidence]:
+def scene_evidence(model, max_presses: int = 5, extra_presses: int = 0) -> Callable[[Scene], Evidence]:
     """The evidence the cell builds for a scene from a scene model's operating point
-    (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules)."""
+    (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules),
+    with the config's ``evidence.extra_presses`` (runtime/evidence.py; feed such an evidence
+    ``max_presses + extra_presses`` presses)."""
     confidence, opts = scene_model_rule(model)
 
     def make(scene: Scene) -> Evidence:
-        return Evidence(scene.classes, confidence, max_presses, **opts)
+        return Evidence(scene.classes, confidence, max_presses, **opts, extra_presses=extra_presses)
     return make
 
 
-# The operator's knobs (the cell config's evidence.confidence, evidence.untouched_confidence and
-# evidence.max_presses; runtime/operating_point.py) and the values ``knob_prices`` moves each to
+# The operator's knobs (the cell config's evidence.confidence, evidence.untouched_confidence,
+# evidence.max_presses and evidence.extra_presses; runtime/operating_point.py) and the values
+# ``knob_prices`` moves each to
 KNOB_GRID = {"confidence": (0.5, 0.7, 0.8, 0.9, 0.95, 0.99),
              "untouched_confidence": (0.5, 0.7, 0.8, 0.9, 0.95, 0.99),
-             "max_presses": (1, 2, 3, 5, 9)}
+             "max_presses": (1, 2, 3, 5, 9),
+             "extra_presses": (0, 2, 4, 8)}
 
 
 def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]], *, max_presses: int = 5,
@@ -394,22 +398,25 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
         return {"right": a[RIGHT], "mis-sort": a[MIS_SORT], "reject": a[REJECT], "presses": a["presses"],
                 "coverage": 1.0 - in_reject_bin, "by_kind": {k: {o: r[o] for o in OUTCOMES} for k, r in s["by_kind"].items()}}
 
-    def run(m, mp: int) -> dict:
-        return price(simulate_scenes(scenes, presses, scene_evidence(m, mp), items_per_fabric=items_per_fabric,
-                                     max_presses=mp, seed=seed))
+    def run(m, mp: int, extra: int = 0) -> dict:
+        return price(simulate_scenes(scenes, presses, scene_evidence(m, mp, extra), items_per_fabric=items_per_fabric,
+                                     max_presses=mp + extra, seed=seed))
 
     base = price(records) if records is not None else run(model, max_presses)
     rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
-           "max_presses": max_presses, "outlier_ratio": float(model.outlier_ratio),
+           "max_presses": max_presses, "extra_presses": 0, "outlier_ratio": float(model.outlier_ratio),
            "likeness_ratio": float(model.likeness_ratio)}
     for knob, values in (KNOB_GRID if grid is None else grid).items():
         for v in values:
             if v == own[knob]:
                 rows.append({"knob": knob, "value": v, "own": True, **base})
                 continue
-            m = model if knob == "max_presses" else replace(model, **{knob: float(v)})
-            rows.append({"knob": knob, "value": v, "own": False, **run(m, int(v) if knob == "max_presses" else max_presses)})
+            if knob in ("max_presses", "extra_presses"):
+                row = run(model, int(v), 0) if knob == "max_presses" else run(model, max_presses, int(v))
+            else:
+                row = run(replace(model, **{knob: float(v)}), max_presses)
+            rows.append({"knob": knob, "value": v, "own": False, **row})
     return rows
 
 

@@ -140,7 +140,8 @@ def held_out_presses(ds, bundle_touched: list[str]) -> dict[str, list[int]]:
 def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, seed: int, arm_kind: str,
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
-                without_scene_model: str | None = None, operator_labels: bool = False, teach: bool = False) -> dict:
+                without_scene_model: str | None = None, operator_labels: bool = False, teach: bool = False,
+                extra_presses: int = 0) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
     require_scene_model(model, bundle, without_scene_model,
@@ -206,6 +207,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                                  threads=threads)
         if confidence is None:  # the bundle's operating point decides (runtime/operating_point.py)
             del data["evidence"]["confidence"]
+        if extra_presses:
+            data["evidence"]["extra_presses"] = extra_presses
         data["cell"] = {"overlap_scoring": overlap_scoring}
         if without_scene_model:
             data["evidence"]["without_scene_model"] = without_scene_model
@@ -320,6 +323,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--gate", choices=("pty", "fake"), default="pty",
                         help="pty: gate host driver against the MCU simulator (default)")
     parser.add_argument("--max-presses", type=int, default=5)
+    parser.add_argument("--extra-presses", type=int, default=0,
+                        help="evidence.extra_presses: presses past --max-presses for a piece a touched fabric leads, "
+                             "not yet confident and refused by no off-scene rule (default 0: off)")
     parser.add_argument("--confidence", type=float, default=None,
                         help="posterior that sorts a piece (default: the bundle's operating point, chosen on "
                              "validation fabrics for at most 1 %% mis-sorts)")
@@ -374,7 +380,8 @@ def run(args) -> int:
                               threads=args.threads, record=Path(args.record) if args.record else None,
                               fault_at=fault_at, log=log, overlap_scoring=args.overlap_scoring == "on",
                               without_scene_model=args.without_scene_model,
-                              operator_labels=args.operator_labels == "on", teach=args.teach == "on")
+                              operator_labels=args.operator_labels == "on", teach=args.teach == "on",
+                              extra_presses=args.extra_presses)
     except SceneModelMissing as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 2

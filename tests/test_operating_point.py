@@ -58,12 +58,15 @@ def test_the_override_keeps_its_history_and_a_bad_file_is_named(tmp_path):
 def test_the_scene_models_item_rule_unless_the_config_writes_a_confidence(tmp_path):
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
                             known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
-                            outlier_ratio=math.inf)
+                            outlier_ratio=math.inf, classes=("denim", "wool", "felt"), known_only=("felt",))
     model = SimpleNamespace(scene_model=scene)
     confidence, opts = op.evidence_settings(_cfg(tmp_path), model)
+    # extra presses (the config's, 0 by default) only ever for a touched class a job can list
     assert confidence == 0.97 and opts == {"weight": 0.25, "open_threshold": 40.0, "known_margin": 0.0,
                                            "class_confidence": {"wool": 0.9}, "item_model": None,
-                                           "refuse_early": True, "outlier_model": None}
+                                           "refuse_early": True, "outlier_model": None,
+                                           "extend_classes": ("denim",), "extra_presses": 0}
+    assert op.evidence_settings(_cfg(tmp_path, "evidence: {extra_presses: 3}\n"), model)[1]["extra_presses"] == 3
     ruled = SimpleNamespace(**{**vars(scene), "outlier_ratio": 20.0})
     assert op.evidence_settings(_cfg(tmp_path), SimpleNamespace(scene_model=ruled))[1]["outlier_model"] is ruled
     offset = SimpleNamespace(**{**vars(scene), "item_rule": "offset"})
@@ -83,7 +86,7 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
 
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
                             known_margin=1.5, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
-                            outlier_ratio=math.inf)
+                            outlier_ratio=math.inf, classes=("denim", "wool"), known_only=())
     (tmp_path / "c.yaml").write_text(CFG.replace("{name: denim, kind: touched, bin: 1}",
                                                  "{name: denim, kind: touched, bin: 1}, {name: wool, kind: untouched, "
                                                  "bin: 2}"))
@@ -92,6 +95,7 @@ def test_the_cell_and_the_simulated_jobs_build_the_scene_models_item_rule_alike(
     jobs = scene_evidence(scene, cfg.max_presses)(Scene(("denim",), ("wool",), ()))
     for ev in (cell, jobs):
         assert (ev.confidence, ev.weight, ev.open_threshold, ev.known_margin) == (0.97, 0.25, 40.0, 1.5)
+        assert ev.extra_presses == 0 and ev._extend.tolist() == [True, False]
         assert dict(zip(ev.classes, ev._needed.tolist())) == {"denim": 0.97, "wool": 0.9}
         assert ev.item_model is None and ev.refuse_early and ev.outlier_model is None
 
@@ -320,7 +324,7 @@ def test_the_shipped_config_sorts_at_the_scene_models_own_confidence():
 
 _SCENE = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
                          known_margin=0.0, untouched=frozenset({"wool"}), item_rule="sum", refuse_early=True,
-                         outlier_ratio=math.inf)
+                         outlier_ratio=math.inf, classes=("denim", "wool"), known_only=())
 
 
 def test_a_written_confidence_says_how_it_moves_the_operating_point(tmp_path):
@@ -340,7 +344,7 @@ def test_the_untouched_confidence_is_the_operators_knob_too(tmp_path):
     touched confidence stays the model's; the start log says which way it moves."""
     scene = SimpleNamespace(confidence=0.97, untouched_confidence=0.9, evidence_weight=0.25, open_threshold=40.0,
                             known_margin=0.0, untouched=frozenset({"wool", "felt"}), item_rule="sum",
-                            refuse_early=False, outlier_ratio=math.inf)
+                            refuse_early=False, outlier_ratio=math.inf, classes=("denim", "wool", "felt"), known_only=())
     cfg = _cfg(tmp_path, "evidence: {untouched_confidence: 0.99}\n")
     assert cfg.untouched_confidence == 0.99 and _cfg(tmp_path).untouched_confidence is None
     confidence, opts = op.evidence_settings(cfg, SimpleNamespace(scene_model=scene))

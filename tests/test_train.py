@@ -289,6 +289,14 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     outcomes = ("right", "mis-sort", "reject")
     assert {k: targets[1][k] for k in outcomes} == {k: sd["knobs"][0][k] for k in outcomes}
     assert "| mis-sort target, % (`train --mis-sort-target`" in report and "| 1 (own) |" in report
+    # the operator's extra presses: the operating point has none; on test jobs and on validation jobs
+    extra = [r for r in sd["knobs"] if r["knob"] == "extra_presses"]
+    assert [r["value"] for r in extra] == [0, 2, 4, 8] and extra[0]["own"]
+    assert all(r["presses"] >= extra[0]["presses"] for r in extra)  # it only ever adds presses
+    val_extra = split["scene_decision"]["validation"]["extra_presses"]
+    assert [r["extra_presses"] for r in val_extra] == [2, 4, 8]
+    assert "| evidence.extra_presses (past max_presses" in report
+    assert "Validation jobs with `evidence.extra_presses`" in report
     # a test miss of the mis-sort target is said where the user looks: the report and the printout
     missed = a["mis-sort"] > split["scene_decision"]["validation"]["target_mis_sort"]
     assert f"on the test jobs above in {0 if missed else 1} of 1" in report

@@ -67,6 +67,9 @@ MIS_SORT_TARGETS = (0.005, 0.01, 0.02)
 OPEN_QUANTILES = (0.8, 0.9, 0.95, 0.99, 1.0)
 N_SCENES = 12
 MAX_PRESSES = 5
+# the operator's extra presses (runtime/evidence.py) the validation jobs are decided with beside the
+# operating point (training's report; the choice is made at none)
+EXTRA_PRESSES = (2, 4, 8)
 
 
 def press_tables(model: SceneModel, rows: dict[str, np.ndarray]) -> dict[str, list[so.Press]]:
@@ -92,9 +95,10 @@ def _fit_t_b(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[fl
     return best[1], best[2], best[0]
 
 
-def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES):
-    """The evidence the cell builds for a scene from the model's operating point."""
-    return so.scene_evidence(model, max_presses)
+def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES, extra_presses: int = 0):
+    """The evidence the cell builds for a scene from the model's operating point (and the config's
+    ``evidence.extra_presses``)."""
+    return so.scene_evidence(model, max_presses, extra_presses)
 
 
 @dataclass(frozen=True)
@@ -160,13 +164,15 @@ class _Jobs:
                               w.synth_val[1][self.synth_keep], self.val_in, k=k, axes=self.axes)
 
 
-def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | None = None) -> dict:
+def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | None = None,
+              extra_presses: int = 0) -> dict:
     """The summary of every world's validation jobs decided by its model (``tables``: each world's
-    press tables, when the caller has them)."""
+    press tables, when the caller has them; ``extra_presses``: the config's, runtime/evidence.py)."""
     recs = []
     for w, (m, j) in enumerate(zip(models, jobs)):
-        recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows), evidence_for(m), seed=j.seed,
-                                   max_presses=MAX_PRESSES)  # as ``_prepare`` draws them
+        recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows),
+                                   evidence_for(m, MAX_PRESSES, extra_presses), seed=j.seed,
+                                   max_presses=MAX_PRESSES + extra_presses)  # as ``_prepare`` draws them
     return so.summarise(recs)
 
 
@@ -312,6 +318,11 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
+    # the operator's extra presses (evidence.extra_presses, no choice of training's) on the same
+    # validation jobs: what the knob does on fabrics the test jobs never saw
+    extra_rows = [{"extra_presses": n, **{key: s["all"][o] for key, o in (("right", "right"), ("mis_sort", "mis-sort"),
+                                                                          ("reject", "reject"), ("presses", "presses"))}}
+                  for n, s in ((n, _simulate(chosen, jobs, extra_presses=n)) for n in EXTRA_PRESSES)]
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     # the split's own world's touched presses are the deployed model's: its principal axes serve
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)
@@ -339,7 +350,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
               "item_rules": {name: {"right": r[2]["all"]["right"], "mis_sort": r[2]["all"]["mis-sort"],
                                     "reject": r[2]["all"]["reject"], "presses": r[2]["all"]["presses"]}
                              for name, r in by_rule.items()},
-              "tried": tried_rows, "outlier_ratios": outlier_rows}
+              "tried": tried_rows, "outlier_ratios": outlier_rows, "extra_presses": extra_rows}
     log(f"scene decision chosen on validation ({len(worlds)} world(s), "
         f"{sum(len(w.val_fabrics) for w in worlds)} validation fabrics): k={chosen.k}, item rule {chosen.item_rule}, "
         f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "

@@ -280,6 +280,7 @@ def scene_lines(splits: list[dict]) -> list[str]:
                 + ("" if all(kept) else
                    " (**missed**: a split's test fabrics put that share of pieces in wrong bins, which its "
                    "validation jobs did not show)") + ".",
+            *_extra_validation_lines(sd),
             f"Calibration: per-press expected calibration error {_ms([d['test']['press_ece']['before'] for d in sd])} "
             f"before, {_ms([d['test']['press_ece']['after'] for d in sd])} after temperature and bias (fitted on "
             f"validation); per item {_ms([d['test']['item_ece'] for d in sd])}. Area under the risk-coverage curve "
@@ -304,6 +305,19 @@ def scene_lines(splits: list[dict]) -> list[str]:
                 f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
+
+
+def _extra_validation_lines(sd: list[dict]) -> list[str]:
+    """The operator's extra presses (evidence.extra_presses) on the validation jobs, beside the knob
+    table's test prices ([] for runs before them)."""
+    if not sd or not all(d["validation"].get("extra_presses") for d in sd):
+        return []
+    rows = zip(*(d["validation"]["extra_presses"] for d in sd))
+    return ["Validation jobs with `evidence.extra_presses` (the choice is made without; a touched fabric's "
+            "validation pieces can only press as often as it has validation presses): "
+            + "; ".join(f"{r[0]['extra_presses']}: right {_ms([x['right'] for x in r])}, mis-sort "
+                        f"{_ms([x['mis_sort'] for x in r])}, {np.mean([x['presses'] for x in r]):.2f} presses"
+                        for r in rows) + "."]
 
 
 def _fold_worlds(sd: list[dict]) -> list[list[dict]]:
@@ -342,7 +356,9 @@ def _likeness_text(ratio) -> str:
 
 
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
-             "max_presses": "evidence.max_presses", "outlier_ratio": "outlier ratio (training's choice, no config key)",
+             "max_presses": "evidence.max_presses",
+             "extra_presses": "evidence.extra_presses (past max_presses while a touched fabric leads, unrefused)",
+             "outlier_ratio": "outlier ratio (training's choice, no config key)",
              "likeness_ratio": "likeness ratio (training's choice, offset rule only, no config key)",
              "mis_sort_target": "mis-sort target, % (`train --mis-sort-target`: the whole operating point chosen on "
                                 "validation for it)",

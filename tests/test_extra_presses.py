@@ -1,0 +1,126 @@
+"""Extra presses (runtime/evidence.py ``extra_presses``, the cell config's evidence.extra_presses):
+a piece a touched fabric leads at the press limit, not yet confident and refused by no off-scene
+rule, presses on; any other piece is decided at the limit as before. The cell's press loop lets
+the evidence take them, the config checks them against the grid, and training's report prices them."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from feedback_fakes import PieceModel, labelled_cell
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+from vs2t_edge.runtime.journal import iter_records
+from vs2t_edge.runtime.operating_point import scene_model_rule
+from vs2t_edge.runtime.scene_model import SceneModel
+
+CLASSES = ("denim", "silk", "wool")
+NEAR_DENIM = (0.4, 0.0)  # between denim and silk, nearer denim: surer with every press, slowly
+
+
+def _model(**kw) -> SceneModel:
+    """denim (0, 0) and silk (1, 0) touched and close together; wool untouched, far off."""
+    return SceneModel(CLASSES, frozenset({"wool"}), np.zeros(2), np.eye(2),
+                      np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 10.0]]), item_rule="offset", press_var=1.0,
+                      offset_var_touched=0.1, offset_var_untouched=20.0, item_temperature=1.0, **kw)
+
+
+def _evidence(scene=CLASSES, extra=3, model=None, **kw):
+    m = model or _model()
+    conf, opts = scene_model_rule(m)
+    opts.update(kw)
+    return Evidence(list(scene), 0.6, 4, **{**opts, "extra_presses": extra})
+
+
+def _run(ev, z, n=12):
+    for _ in range(n):
+        d = ev.add(so.Press({}, None, np.asarray(z, float)))
+        if d is not None:
+            return d
+    return ev.decide()
+
+
+def test_a_piece_a_touched_fabric_leads_presses_on_until_it_is_confident():
+    # denim's posterior at 4 presses of this point is 0.57, at 7 it passes 0.6
+    without = _run(_evidence(extra=0), NEAR_DENIM)
+    assert (without.label, without.presses, without.stopped_by) == (UNKNOWN, 4, "press_limit")
+    ev = _evidence(extra=3)
+    assert ev.press_limit == 7
+    d = _run(ev, NEAR_DENIM)
+    assert (d.label, d.presses, d.stopped_by) == ("denim", 7, "confident") and d.confidence >= 0.6
+    # two extra presses are not enough: decided at the new limit, to the reject bin
+    short = _run(_evidence(extra=2), NEAR_DENIM)
+    assert (short.label, short.presses, short.stopped_by) == (UNKNOWN, 6, "press_limit")
+
+
+def test_a_piece_an_untouched_fabric_leads_or_a_rule_refuses_is_decided_at_the_limit():
+    # wool leads, never confident at its own confidence: no extra presses (its synthesis's evidence saturates)
+    untouched = _evidence(class_confidence={"wool": 1.0})
+    d = _run(untouched, (0.0, 5.0))
+    assert (d.label, d.presses) == (UNKNOWN, 4) and untouched.at_limit()
+    # a job that leaves silk out: a piece silk explains better is refused, at the limit, not later
+    refused = _evidence(scene=("denim", "wool"), known_margin=0.0)
+    d = _run(refused, (0.9, 0.0))
+    assert (d.label, d.presses, d.stopped_by) == (UNKNOWN, 4, "off_scene")
+    # while it presses on, the evidence says so; at the last extra press it is at its limit
+    ev = _evidence(extra=2)
+    for _ in range(4):
+        assert ev.add(so.Press({}, None, np.asarray(NEAR_DENIM))) is None
+    assert not ev.at_limit()
+    ev.add(so.Press({}, None, np.asarray(NEAR_DENIM)))
+    ev.add(so.Press({}, None, np.asarray(NEAR_DENIM)))
+    assert ev.at_limit()
+    with pytest.raises(ValueError, match="extra_presses"):
+        _evidence(extra=-1)
+
+
+class _NearDenim(PieceModel):
+    z = NEAR_DENIM
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+@pytest.mark.parametrize("extra, presses, label", [(0, 4, UNKNOWN), (3, 7, "denim")])
+def test_the_cell_presses_past_max_presses_for_a_piece_that_earns_it(tmp_path, extra, presses, label, overlap):
+    m = _model()
+    make = lambda: _evidence(model=m, extra=extra)  # noqa: E731
+    cell, _, journal = labelled_cell(tmp_path, make, [120] * 12, _NearDenim())
+    cell.scene = replace(cell.scene, overlap_scoring=overlap)
+    result = cell.run(max_items=1)[0]
+    assert (result.presses, result.label) == (presses, label)
+    journal.close()
+    pre = [r for r in iter_records(tmp_path / "journal.jsonl") if r["type"] == "pre_sort"]
+    assert pre[0]["presses"] == presses and len(pre[0]["scores"]) == presses
+    assert not pre[0].get("speculative_presses")  # past max_presses the loop waits for each score
+    assert result.bin == (1 if label == "denim" else 0)  # feedback_fakes.BINS: denim's bin 1, reject 0
+
+
+def test_the_config_refuses_more_presses_than_the_grid_has(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(fake_cell_yaml(evidence={"max_presses": 5, "extra_presses": 4}))
+    assert load_config(path).extra_presses == 4
+    path.write_text(fake_cell_yaml(evidence={"grid_order": "list", "grid_points": [0, 1, 2, 3, 4, 5],
+                                             "max_presses": 5, "extra_presses": 4}))
+    with pytest.raises(ConfigError, match="evidence.extra_presses = 4: with max_presses 5, more presses than the 6"):
+        load_config(path)
+
+
+def test_the_knob_table_prices_extra_presses_on_the_same_jobs():
+    m = _model(confidence=0.6, untouched_confidence=0.6)
+    rng = np.random.default_rng(0)
+    presses = {c: so.scene_model_presses(m, np.asarray(NEAR_DENIM if c == "denim" else m.means[i])
+                                         + 0.05 * rng.normal(size=(12, 2)))
+               for i, c in enumerate(CLASSES)}
+    scenes = [so.Scene(("denim", "silk"), ("wool",), ())]
+    rows = so.knob_prices(m, scenes, presses, max_presses=4, items_per_fabric=3, seed=1,
+                          grid={"extra_presses": (0, 3)})
+    base, none, three = rows
+    assert none["own"] and none["right"] == base["right"]
+    assert three["right"] > base["right"] and three["presses"] > base["presses"]
+    assert math.isclose(three["by_kind"]["touched"]["right"], 1.0)
