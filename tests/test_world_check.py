@@ -1,5 +1,5 @@
 """train/world_check.py: how close anyone could get to an untouched fabric's touch in a synthetic
-world (docs/results/scene_decision_paper.md, "World or model")."""
+world (docs/results/zero_shot_limits_paper.md, "World or model")."""
 from __future__ import annotations
 
 from dataclasses import replace

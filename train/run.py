@@ -77,7 +77,7 @@ class Profile:
     camera_jpeg: int = 0
     # per split, train on only this many of its touched fabrics (``splits.fewer_touched``: a nested
     # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
-    # cell has touched (docs/results/scene_decision_paper.md, "More touched fabrics").
+    # cell has touched (docs/results/zero_shot_limits_paper.md, "More touched fabrics").
     touched: int | None = None
     # the share of pieces in a wrong bin the scene decision's search on validation jobs must keep
     # under (train/decision.py); the report prices decision.MIS_SORT_TARGETS beside it
