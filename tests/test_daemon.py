@@ -297,6 +297,19 @@ def test_scene_kind_that_disagrees_with_the_bundle_is_refused(tmp_path, fabric, 
         load_model(load_config(tmp_path / "bad.yaml"))
     assert f"{fabric} (scene: {declared}, bundle: {bundle_kind})" in str(err.value)
     assert "bad.yaml" in str(err.value)
+    # a bundle the caller loaded (replay, recording, the demo) is checked at the start alike
+    from cell_fakes import ScriptedCamera
+    from vs2t_edge.runtime.daemon import run_daemon
+    from vs2t_edge.runtime.notify import Notifier
+    from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+
+    bad = load_config(tmp_path / "bad.yaml")
+    arm, gate, logged = FakeArm(config=bad.arm), FakeGate(), []
+    code = run_daemon(bad, model=load_model(load_config(tmp_path / "good.yaml")), camera=ScriptedCamera(arm, [50]),
+                      arm=arm, gate=gate, notifier=Notifier(""), max_items=1, install_signals=False,
+                      log=logged.append)
+    assert code == 2 and gate.sorted == [] and not arm.connected
+    assert any(f"{fabric} (scene: {declared}, bundle: {bundle_kind})" in line for line in logged), logged
 
 
 def _run_real_bundle(tmp_path, bundle, *, until_ready: bool):
