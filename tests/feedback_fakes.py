@@ -1,4 +1,4 @@
-"""Shared by the operator-label tests (tests/test_feedback.py, tests/test_feedback_journal.py): a
+"""Shared by the operator-label tests (tests/test_feedback.py, test_label_file.py, test_feedback_journal.py): a
 three-class scene model whose untouched class is 'wool', a model whose every pressed frame is one
 point of its space, a journal in a list, and a cell that learns from labels."""
 
@@ -30,6 +30,19 @@ def scene_model(**kw) -> SceneModel:
                    item_rule="offset", press_var=1.0, offset_var_touched=0.1, offset_var_untouched=20.0,
                    item_temperature=3.0)
     return replace(m, **kw)
+
+
+WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and the synthesis
+
+
+def decide_piece(model, z, n=4):
+    """(decision, evidence) of a piece whose ``n`` presses all land at ``z``, scene ``CLASSES``."""
+    ev = Evidence(list(CLASSES), 0.95, n, item_model=model)
+    for _ in range(n):
+        d = ev.add(so.Press({}, None, np.asarray(z, float)))
+        if d is not None:
+            return d, ev
+    return ev.decide(), ev
 
 
 class ListJournal:

@@ -10,7 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from feedback_fakes import CLASSES, MANIFEST_CLASSES, ListJournal, operator_feedback, scene_model
+from feedback_fakes import (CLASSES, MANIFEST_CLASSES, WOOL_PIECE, ListJournal, decide_piece, operator_feedback,
+                            scene_model)
 from vs2t_edge.cli import main
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
@@ -19,23 +20,7 @@ from vs2t_edge.runtime.labels import OperatorFeedback, append_label
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 from vs2t_edge.sim.scene import fake_cell_yaml
 
-WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and the synthesis
-
-
-_model = scene_model
-
-
-def _evidence(model, max_presses=4):
-    return Evidence(list(CLASSES), 0.95, max_presses, item_model=model)
-
-
-def _decide(model, z, n=4):
-    ev = _evidence(model, n)
-    for _ in range(n):
-        d = ev.add(so.Press({}, None, np.asarray(z, float)))
-        if d is not None:
-            return d, ev
-    return ev.decide(), ev
+_model, _decide = scene_model, decide_piece
 
 
 def test_a_label_moves_the_synthesised_mean_by_the_offset_models_own_weights():

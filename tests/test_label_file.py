@@ -10,10 +10,9 @@ import os
 import numpy as np
 
 from cell_fakes import ScriptedCamera
-from feedback_fakes import (BINS, CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback,
-                            scene_model)
+from feedback_fakes import (BINS, CLASSES, WOOL_PIECE, ListJournal, PieceModel, decide_piece, labelled_cell,
+                            labels_config, operator_feedback, scene_model)
 from vs2t_edge.cli import main
-from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
 from vs2t_edge.runtime.items import ContinuousFeed
@@ -22,23 +21,7 @@ from vs2t_edge.runtime.labels import append_label, read_labels
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 from vs2t_edge.sim.scene import fake_cell_yaml
 
-WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and the synthesis
-
-
-_model = scene_model
-
-
-def _evidence(model, max_presses=4):
-    return Evidence(list(CLASSES), 0.95, max_presses, item_model=model)
-
-
-def _decide(model, z, n=4):
-    ev = _evidence(model, n)
-    for _ in range(n):
-        d = ev.add(so.Press({}, None, np.asarray(z, float)))
-        if d is not None:
-            return d, ev
-    return ev.decide(), ev
+_model, _decide = scene_model, decide_piece
 
 
 _Journal, _feedback = ListJournal, operator_feedback
