@@ -96,7 +96,8 @@ class Evidence:
             raise ValueError(f"Evidence: extra_presses = {extra_presses} must be at least 0")
         self.confidence, self.max_presses, self.min_presses = confidence, max_presses, min_presses
         self.extra_presses = int(extra_presses)
-        self._extend = np.array([c in set(extend_classes) for c in self.classes])  # leaders that earn extra presses
+        extend = set(extend_classes)
+        self._extend = np.array([c in extend for c in self.classes])  # leaders that earn extra presses
         self.weight, self.open_threshold, self.known_margin = weight, open_threshold, known_margin
         self.refuse_early = bool(refuse_early)
         # the posterior that sorts into a class when it differs from ``confidence`` (the scene model

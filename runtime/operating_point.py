@@ -156,7 +156,18 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
                           "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
                           "outlier_model": m if math.isfinite(m.outlier_ratio) else None,
-                          "extend_classes": tuple(c for c in m.classes if c not in m.untouched and c not in m.known_only)}
+                          "extend_classes": touched_classes(m)}
+
+
+def touched_classes(scene_model) -> tuple[str, ...]:
+    """The scene model's touched classes a job can list: not untouched, not known only to refuse
+    (``known_only``), not a stranger operator labels taught (runtime/feedback.py): the classes whose
+    pieces earn ``evidence.extra_presses`` (runtime/evidence.py)."""
+    from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX  # feedback builds on this module's callers
+
+    m = scene_model
+    return tuple(c for c in m.classes
+                 if c not in m.untouched and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
 
 
 def config_sets_confidence(cfg) -> bool:

@@ -6,6 +6,7 @@ the evidence take them, the config checks them against the grid, and training's 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -82,12 +83,20 @@ class _NearDenim(PieceModel):
     z = NEAR_DENIM
 
 
+class _SlowNearDenim(_NearDenim):
+    """Scores after the arm has moved on: with overlapped scoring a score is late at every press."""
+
+    def score_press(self, frame):
+        time.sleep(0.03)
+        return super().score_press(frame)
+
+
 @pytest.mark.parametrize("overlap", [False, True])
 @pytest.mark.parametrize("extra, presses, label", [(0, 4, UNKNOWN), (3, 7, "denim")])
 def test_the_cell_presses_past_max_presses_for_a_piece_that_earns_it(tmp_path, extra, presses, label, overlap):
     m = _model()
     make = lambda: _evidence(model=m, extra=extra)  # noqa: E731
-    cell, _, journal = labelled_cell(tmp_path, make, [120] * 12, _NearDenim())
+    cell, _, journal = labelled_cell(tmp_path, make, [120] * 12, _SlowNearDenim() if overlap else _NearDenim())
     cell.scene = replace(cell.scene, overlap_scoring=overlap)
     result = cell.run(max_items=1)[0]
     assert (result.presses, result.label) == (presses, label)
@@ -124,3 +133,25 @@ def test_the_knob_table_prices_extra_presses_on_the_same_jobs():
     assert none["own"] and none["right"] == base["right"]
     assert three["right"] > base["right"] and three["presses"] > base["presses"]
     assert math.isclose(three["by_kind"]["touched"]["right"], 1.0)
+
+
+def test_labels_keep_extra_presses_for_touched_leaders_only():
+    """With operator labels the guarded evidence takes its limit from the adapted one, and a
+    stranger the operator taught (a real mean, yet no fabric of the job) earns no extra presses."""
+    from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX, GuardedEvidence, TrackedEvidence, adapt
+
+    m = _model()
+    adapted = adapt(m, {}, strangers={"terry": [(np.array([0.0, 4.0]), 4)]})
+    stranger = OFF_SCENE_PREFIX + "terry"
+    conf, opts = scene_model_rule(adapted)
+    assert opts["extend_classes"] == ("denim", "silk")
+    # never confident for the stranger: led by it at the limit, the piece is decided there
+    need = {**opts["class_confidence"], stranger: 1.0}
+    ev = Evidence([*CLASSES, stranger], 0.6, 4, **{**opts, "class_confidence": need, "extra_presses": 3})
+    d = _run(ev, (0.0, 4.0))
+    assert d.label == UNKNOWN and d.presses == 4 and max(d.log_posterior, key=d.log_posterior.get) == stranger
+    guarded = GuardedEvidence(_evidence(extra=3), _evidence(extra=3), trusted=("denim", "silk"))
+    assert guarded.press_limit == 7
+    d = _run(guarded, NEAR_DENIM)
+    assert (d.label, d.presses) == ("denim", 7)
+    assert TrackedEvidence(_evidence(extra=2), 2).press_limit == 6

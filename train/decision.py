@@ -320,9 +320,12 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
     # the operator's extra presses (evidence.extra_presses, no choice of training's) on the same
     # validation jobs: what the knob does on fabrics the test jobs never saw
+    # (a sum-rule model as the outlier search priced it: its press spread is its labels rule's)
+    as_priced = [m if m.item_rule == "offset" else replace(m, labels_rule={key: float(getattr(c, key)) for key in LABELS_KEYS})
+                 for m, c in zip(chosen, cand_off)]
     extra_rows = [{"extra_presses": n, **{key: s["all"][o] for key, o in (("right", "right"), ("mis_sort", "mis-sort"),
                                                                           ("reject", "reject"), ("presses", "presses"))}}
-                  for n, s in ((n, _simulate(chosen, jobs, extra_presses=n)) for n in EXTRA_PRESSES)]
+                  for n, s in ((n, _simulate(as_priced, jobs, extra_presses=n)) for n in EXTRA_PRESSES)]
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     # the split's own world's touched presses are the deployed model's: its principal axes serve
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)

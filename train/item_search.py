@@ -234,7 +234,7 @@ OFFSET_GRID = {
     "item_bias": (-4.0, -2.0, -1.0, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
     "known_margin": (0.0, 2.0, 8.0, math.inf),
     "refuse_early": (True, False),  # True first: fewer presses where validation cannot tell them apart at all
-    "likeness_ratio": (math.inf, 8.0, 4.0, 3.0, 2.0, 1.5),  # inf first: a tie leaves the rule off
+    "likeness_ratio": (math.inf, 8.0, 4.0, 3.0, 2.0, 1.5),  # inf first: a full tie leaves the rule off
 }
 # the coordinate search is local: it starts from each of these (item temperature x untouched scale)
 OFFSET_STARTS = tuple((t, u) for t in (8.0, 32.0, 128.0) for u in (0.125, 0.5, 2.0))
