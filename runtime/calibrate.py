@@ -337,7 +337,7 @@ def run(args) -> int:
         print(f"calibrate-threshold: bundle {bundle} decides every piece with its scene model (decision.npz); beta, "
               "the router's threshold, moves no piece there, so calibrating it would change nothing the cell sorts. "
               "The scene model's operating point (its confidences and off-scene rules) was chosen in training on "
-              "validation fabrics (docs/training.md). Give --for-router to calibrate the router's beta anyway (the "
+              "validation fabrics (docs/decision.md). Give --for-router to calibrate the router's beta anyway (the "
               "bench's router columns read it)", file=sys.stderr)
         return 2
     if args.live_touched or args.live_validation:

@@ -3,7 +3,7 @@
 Zero-shot, an untouched fabric's class mean is the generator's synthesis from camera and
 attributes, off its real mean by the generator's error on that fabric - the same on every piece
 (runtime/scene_model.py, the offset item rule). That error, not the presses, is what keeps most
-untouched pieces out of their bin (docs/results/scene_decision_paper.md). A person already looks at
+untouched pieces out of their bin (docs/results/zero_shot_limits_paper.md). A person already looks at
 every piece in the reject bin; when they say what it was (``vs2t-edge label``), the piece's presses
 are real tactile data of that fabric, and the next pieces of it are scored against a mean that
 moves from the synthesis towards the fabric's real one.

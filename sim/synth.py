@@ -114,7 +114,7 @@ PROFILES: dict[str, SynthProfile] = {
     # A paper-like world three times as wide (another draw, not the paper world's 50 plus 100), at
     # the 45 presses a fabric the paper profile trains on
     # (a 9 x 5 sub-grid): how zero-shot grows with the fabrics a cell has touched
-    # (`vs2t-edge train DS --profile paper --touched N`, docs/results/scene_decision_paper.md).
+    # (`vs2t-edge train DS --profile paper --touched N`, docs/results/zero_shot_limits_paper.md).
     "wide": SynthProfile(n_fabrics=150, grid=(9, 5), frame_px=(640, 480), camera_px=1000),
 }
 

@@ -42,16 +42,16 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--touched", type=int, metavar="N",
                         help="train each split on only N of its touched fabrics (a nested draw with the split's "
                              "seed; the others take no part): what touching fewer fabrics costs zero-shot "
-                             "(default: all; docs/results/scene_decision_paper.md)")
+                             "(default: all; docs/results/zero_shot_limits_paper.md, \"More touched fabrics\")")
     parser.add_argument("--mis-sort-target", type=float, metavar="PCT",
                         help="the share of pieces in a wrong bin, in percent, that the scene decision's search on "
                              "validation jobs must keep under (default 1); the report prices 0.5, 1 and 2 on the same "
-                             "test jobs (docs/training.md)")
+                             "test jobs (docs/decision.md)")
     parser.add_argument("--validation-folds", type=int, metavar="N",
                         help="more validation fabrics for the scene decision: split each split's touched fabrics "
                              "into N folds, hold each out of a generator trained on the others, and choose the "
                              "operating point on those jobs too (0: the validation fabrics alone; paper profile 4, "
-                             "others 0; each fold costs one generator training per split; docs/training.md)")
+                             "others 0; each fold costs one generator training per split; docs/decision.md)")
 
 
 def run(args: argparse.Namespace) -> int:
