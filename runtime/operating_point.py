@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from vs2t_edge.runtime.bundle import SEAL_KEY
+from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, atomic_write, read_regular_file
 
 
@@ -163,8 +164,6 @@ def touched_classes(scene_model) -> tuple[str, ...]:
     """The scene model's touched classes a job can list: not untouched, not known only to refuse
     (``known_only``), not a stranger operator labels taught (runtime/feedback.py): the classes whose
     pieces earn ``evidence.extra_presses`` (runtime/evidence.py)."""
-    from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX  # feedback builds on this module's callers
-
     m = scene_model
     return tuple(c for c in m.classes
                  if c not in m.untouched and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
