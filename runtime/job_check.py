@@ -74,13 +74,14 @@ def picture_presses(model: Any, fabric: str, n: int) -> list[Press]:
 
 def check_job(model: Any, scene: Sequence[str], make_evidence: Callable[[], Any], max_presses: int) -> list[FabricCheck]:
     """One ``FabricCheck`` per fabric of ``scene``: the fabric's picture pressed ``max_presses``
-    times through a fresh evidence from ``make_evidence`` (the cell's own, for this job)."""
+    times through a fresh evidence from ``make_evidence`` (the cell's own, for this job), or as many
+    as that evidence may take (its ``press_limit``: the config's ``evidence.extra_presses``)."""
     out = []
     for fabric in scene:
         if fabric not in model.classes:
             raise ValueError(f"job check: the scene model has no class {fabric!r}")
-        presses = picture_presses(model, fabric, max_presses)
         ev = make_evidence()
+        presses = picture_presses(model, fabric, max(max_presses, int(getattr(ev, "press_limit", max_presses))))
         decision = None
         for press in presses:
             decision = ev.add(press)

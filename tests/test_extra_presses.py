@@ -155,3 +155,16 @@ def test_labels_keep_extra_presses_for_touched_leaders_only():
     d = _run(guarded, NEAR_DENIM)
     assert (d.label, d.presses) == ("denim", 7)
     assert TrackedEvidence(_evidence(extra=2), 2).press_limit == 6
+
+
+def test_the_job_check_presses_a_picture_as_often_as_the_cell_would():
+    """Before a job the cell presses each fabric's picture through its own evidence: with extra
+    presses, a touched fabric that sorts only past max_presses is no longer flagged."""
+    from vs2t_edge.runtime.job_check import check_job
+
+    m = _model()  # denim's own picture: 0.81 at 4 presses, 0.92 at 9 (silk is one unit away)
+    conf, opts = scene_model_rule(m)
+    checks = {extra: {c.fabric: c for c in check_job(m, CLASSES, lambda: Evidence(list(CLASSES), 0.9, 4, **{
+        **opts, "extra_presses": extra}), 4)} for extra in (0, 5)}
+    assert not checks[0]["denim"].sorts and checks[0]["denim"].label == UNKNOWN
+    assert checks[5]["denim"].sorts
