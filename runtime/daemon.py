@@ -115,22 +115,17 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
 
     notifier.status(f"loading bundle {cfg.bundle}")
     t0 = time.monotonic()
-    if model is None:
-        try:
+    try:
+        if model is None:
             model = load_model(cfg)
-        except Exception as exc:  # noqa: BLE001 - any bundle problem stops the start, in words
-            notifier.status(f"bundle refused: {exc}")
-            log(f"bundle {cfg.bundle} refused: {exc}")
-            return EXIT_USAGE
-    elif getattr(model, "manifest", None) is not None:
-        # a bundle loaded by the caller (replay, recording, the demo): the same check as load_model's -
-        # a scene fabric the bundle lacks, or of the other kind, is a wrong config or a wrong bundle
-        try:
+        elif getattr(model, "manifest", None) is not None:
+            # a bundle loaded by the caller (replay, recording, the demo): load_model's check of the
+            # scene - a fabric the bundle lacks, or of the other kind, is a wrong config or bundle
             wiring.check_scene_against_bundle(cfg, model)
-        except ValueError as exc:
-            notifier.status(f"bundle refused: {exc}")
-            log(f"bundle {cfg.bundle} refused: {exc}")
-            return EXIT_USAGE
+    except Exception as exc:  # noqa: BLE001 - any bundle problem stops the start, in words
+        notifier.status(f"bundle refused: {exc}")
+        log(f"bundle {cfg.bundle} refused: {exc}")
+        return EXIT_USAGE
     load_s = time.monotonic() - t0
     if evidence_factory is None:  # the config's item rule for this bundle (a caller may bring its own)
         try:

@@ -234,27 +234,28 @@ class SceneModel:
         m = s.max(axis=1, keepdims=True)
         return s - (m + np.log(np.exp(s - m).sum(axis=1, keepdims=True))), d2
 
-    def item_log_lik(self, z_mean: np.ndarray, n: int) -> np.ndarray:
-        """(C,) the offset rule's item scores L_c (module doc) of a piece whose ``n`` presses have
-        the mean projection ``z_mean`` (k,)."""
+    def _item_terms(self, z_mean: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(squared distance of a piece's mean of ``n`` presses to each class mean, the offset
+        rule's variance v_c = s_c + press_var / n, the synthesised-class mask), each (C,)."""
         if n < 1:
             raise SceneModelError(f"scene model: an item of {n} presses has no score")
         z = np.asarray(z_mean, np.float64).reshape(-1)
         means_t, means_sq, _, synth, offset_var = self._consts()
         d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
-        v = offset_var + self.press_var / n
+        return d2, offset_var + self.press_var / n, synth
+
+    def item_log_lik(self, z_mean: np.ndarray, n: int) -> np.ndarray:
+        """(C,) the offset rule's item scores L_c (module doc) of a piece whose ``n`` presses have
+        the mean projection ``z_mean`` (k,)."""
+        d2, v, synth = self._item_terms(z_mean, n)
         return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * synth
 
     def item_ratios(self, z_mean: np.ndarray, n: int) -> np.ndarray:
         """(C,) the squared distance of a piece's mean of ``n`` presses to each class mean over what
         the offset rule expects of that class's own pieces, k (s_c + press_var / n): about 1 for a
         piece of the class (``likeness_ratio``, module doc)."""
-        if n < 1:
-            raise SceneModelError(f"scene model: an item of {n} presses has no score")
-        z = np.asarray(z_mean, np.float64).reshape(-1)
-        means_t, means_sq, _, _, offset_var = self._consts()
-        d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
-        return d2 / (self.k * (offset_var + self.press_var / n))
+        d2, v, _ = self._item_terms(z_mean, n)
+        return d2 / (self.k * v)
 
     def for_labels(self) -> "SceneModel | None":
         """The offset-rule model operator labels update (runtime/feedback.py): this one when its

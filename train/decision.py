@@ -209,6 +209,17 @@ def _offset_candidate(vms: list[SceneModel], jobs: list[_Jobs], prepared: list[t
     return cands, _simulate(cands, jobs)
 
 
+def _labels_rule(cand_off: SceneModel) -> dict:
+    """The offset candidate's setting a sum-rule model keeps for operator labels (``labels_rule``)."""
+    return {key: float(getattr(cand_off, key)) for key in LABELS_KEYS}
+
+
+def _as_priced(chosen: list[SceneModel], cand_off: list[SceneModel]) -> list[SceneModel]:
+    """Each world's chosen model as the cell would decide with it: a sum-rule model carries the
+    offset candidate's setting, which its press spread (the outlier rule) reads."""
+    return [m if m.item_rule == "offset" else replace(m, labels_rule=_labels_rule(c)) for m, c in zip(chosen, cand_off)]
+
+
 def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[SceneModel], jobs: list[_Jobs],
                   target: float) -> tuple[list[SceneModel], dict, list[dict]]:
     """The chosen item rule (one model per world) with the outlier-press ratio (``OUTLIER_RATIOS``)
@@ -217,8 +228,7 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
     tried). ``summary_off``: the chosen rule's own summary on those jobs (the ratio off, the first
     candidate), not decided again. A sum-rule model measures a press's spread with the offset
     candidate's setting, which it keeps for operator labels."""
-    probes = [m if m.item_rule == "offset" else replace(m, labels_rule={key: float(getattr(c, key)) for key in LABELS_KEYS})
-              for m, c in zip(chosen, cand_off)]
+    probes = _as_priced(chosen, cand_off)
     tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
     tried = []
     for ratio in OUTLIER_RATIOS:
@@ -321,8 +331,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     # the operator's extra presses (evidence.extra_presses, no choice of training's) on the same
     # validation jobs: what the knob does on fabrics the test jobs never saw
     # (a sum-rule model as the outlier search priced it: its press spread is its labels rule's)
-    as_priced = [m if m.item_rule == "offset" else replace(m, labels_rule={key: float(getattr(c, key)) for key in LABELS_KEYS})
-                 for m, c in zip(chosen, cand_off)]
+    as_priced = _as_priced(chosen, cand_off)
     extra_rows = [{"extra_presses": n, **{key: s["all"][o] for key, o in (("right", "right"), ("mis_sort", "mis-sort"),
                                                                           ("reject", "reject"), ("presses", "presses"))}}
                   for n, s in ((n, _simulate(as_priced, jobs, extra_presses=n)) for n in EXTRA_PRESSES)]
@@ -331,7 +340,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)
     # a sum-rule model keeps the offset candidate's setting for operator labels (runtime/feedback.py
     # updates means only under the offset rule); it was searched on the same validation jobs
-    labels_rule = None if chosen.item_rule == "offset" else {key: float(getattr(cand_off, key)) for key in LABELS_KEYS}
+    labels_rule = None if chosen.item_rule == "offset" else _labels_rule(cand_off)
     # with folds, what the choice does on the split's own validation jobs alone (the rule as the
     # outlier search priced it: a sum-rule model's press spread is its labels rule's)
     own_world = _simulate([replace(chosen, labels_rule=labels_rule)], jobs[:1]) if folds else None
