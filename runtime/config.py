@@ -37,7 +37,7 @@ N_GRID_X = N_GRID_Y = GRID_N  # 15: the paper's 15 x 15 grid of press points on 
 
 # --- the schema --------------------------------------------------------------------------
 # A leaf is (type, default, bounds-or-choices, help). type: "float", "int", "str", "path",
-# "bool", "optfloat", "list". Nested dicts are sections. REQUIRED marks keys without default.
+# "bool", "optfloat", "optint", "list". Nested dicts are sections. REQUIRED marks keys without default.
 
 REQUIRED = object()
 
@@ -115,9 +115,10 @@ _SCHEMA: dict[str, Any] = {
         "confidence": _leaf("float", 0.9, (0.5, 0.99999), "stop pressing once the posterior reaches this"),
         "max_presses": _leaf("int", 5, (1, N_GRID_X * N_GRID_Y), "press limit per item"),
         # runtime/evidence.py: past max_presses, while a touched fabric of the job leads, unrefused
-        "extra_presses": _leaf("int", 0, (0, N_GRID_X * N_GRID_Y), "a bundle with a scene model: presses past "
-                                                                   "max_presses for a piece a touched fabric leads, "
-                                                                   "not yet confident, refused by no off-scene rule"),
+        "extra_presses": _leaf("optint", None, (0, N_GRID_X * N_GRID_Y),
+                               "a bundle with a scene model: presses past max_presses for a piece a touched fabric "
+                               "leads, not yet confident, refused by no off-scene rule (default: the model's, "
+                               "chosen in training)"),
         # runtime/operating_point.py: the knob that prices mis-sorts against untouched right-bin
         "untouched_confidence": _leaf("optfloat", None, (0.5, 0.99999),
                                       "a bundle with a scene model: the posterior that sorts a piece into an "
@@ -183,7 +184,7 @@ class CellConfig:
     without_scene_model: str = "refuse"  # evidence.without_scene_model: "allow" is the written opt-in
     operator_labels: Path | None = None  # evidence.operator_labels (runtime/feedback.py)
     untouched_confidence: float | None = None  # evidence.untouched_confidence (runtime/operating_point.py)
-    extra_presses: int = 0  # evidence.extra_presses (runtime/evidence.py)
+    extra_presses: int | None = None  # evidence.extra_presses; None: the scene model's (runtime/operating_point.py)
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -274,7 +275,7 @@ class _Checker:
                 self.err(key, f"{key} = {value!r}: must be a number")
                 return fallback
             value = float(value)
-        elif kind == "int":
+        elif kind in ("int", "optint"):
             if isinstance(value, bool) or not isinstance(value, int):
                 self.err(key, f"{key} = {value!r}: must be a whole number")
                 return fallback
@@ -298,7 +299,7 @@ class _Checker:
             if not isinstance(value, list):
                 self.err(key, f"{key}: must be a list")
                 return fallback
-        if bounds is not None and kind in ("float", "optfloat", "int"):
+        if bounds is not None and kind in ("float", "optfloat", "int", "optint"):
             lo, hi = bounds
             if not lo <= value <= hi:
                 why = f" ({spec['why']})" if spec.get("why") else ""
@@ -416,7 +417,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     if ev["max_presses"] > len(grid_points):
         chk.err("evidence.max_presses", f"evidence.max_presses = {ev['max_presses']}: more than the "
                                         f"{len(grid_points)} grid points listed")
-    elif ev["max_presses"] + ev["extra_presses"] > len(grid_points):
+    elif ev["extra_presses"] is not None and ev["max_presses"] + ev["extra_presses"] > len(grid_points):
         chk.err("evidence.extra_presses", f"evidence.extra_presses = {ev['extra_presses']}: with max_presses "
                                           f"{ev['max_presses']}, more presses than the {len(grid_points)} grid points listed")
 

@@ -68,8 +68,9 @@ def run(args) -> int:
     print(f"{cfg.path}: ok - camera {cfg.camera['kind']}, arm {cfg.arm_kind}, gate {cfg.gate['kind']}, "
           f"{len(cfg.fabrics)} fabrics [{fabrics}], reject bin {cfg.reject_bin}, "
           f"{confidence}, max {cfg.max_presses} presses"
-          + (f" (+{cfg.extra_presses} for a piece a touched fabric leads, with a scene model)"
-             if cfg.extra_presses else ""))
+          + (" (extra presses for a piece a touched fabric leads: the scene model's)" if cfg.extra_presses is None
+             else f" (+{cfg.extra_presses} for a piece a touched fabric leads, with a scene model)"
+             if cfg.extra_presses else " (no extra presses)"))
     return 0
 
 

@@ -75,7 +75,8 @@ def picture_presses(model: Any, fabric: str, n: int) -> list[Press]:
 def check_job(model: Any, scene: Sequence[str], make_evidence: Callable[[], Any], max_presses: int) -> list[FabricCheck]:
     """One ``FabricCheck`` per fabric of ``scene``: the fabric's picture pressed ``max_presses``
     times through a fresh evidence from ``make_evidence`` (the cell's own, for this job), or as many
-    as that evidence may take (its ``press_limit``: the config's ``evidence.extra_presses``)."""
+    as that evidence may take (its ``press_limit``: the scene model's extra presses, or the
+    config's ``evidence.extra_presses``)."""
     out = []
     for fabric in scene:
         if fabric not in model.classes:

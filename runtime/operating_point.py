@@ -146,9 +146,9 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     """(touched confidence, the other keyword arguments of ``runtime.evidence.Evidence``) of a
     scene model's operating point, as training chose it for the mis-sort target: press weight,
     off-scene threshold and margin, the confidence per kind (every untouched class at the
-    untouched one), the outlier-press rule when it has one, the classes that earn extra presses
-    (its touched ones: real means; ``evidence.extra_presses``, runtime/evidence.py), and for the
-    offset item rule the model itself (its item scores replace the weighted sum). Its temperature
+    untouched one), the outlier-press rule when it has one, the extra presses it chose and the
+    classes that earn them (its touched ones: real means; runtime/evidence.py), and for the offset
+    item rule the model itself (its item scores replace the weighted sum). Its temperature
     and untouched bias act inside the model's posterior (runtime/scene_model.py) and have no
     override."""
     m = scene_model
@@ -157,7 +157,7 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
                           "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
                           "outlier_model": m if math.isfinite(m.outlier_ratio) else None,
-                          "extend_classes": touched_classes(m)}
+                          "extra_presses": int(getattr(m, "extra_presses", 0)), "extend_classes": touched_classes(m)}
 
 
 def touched_classes(scene_model) -> tuple[str, ...]:
@@ -176,6 +176,16 @@ def config_sets_confidence(cfg) -> bool:
     return ((cfg.raw or {}).get("evidence") or {}).get("confidence") is not None
 
 
+def extra_presses_of(cfg, scene_model) -> int:
+    """The extra presses the cell's evidence takes: the config's ``evidence.extra_presses`` when
+    its file writes it (null or absent: not written), else the scene model's own (training's
+    choice on validation; 0 for a bundle without one)."""
+    ours = getattr(cfg, "extra_presses", None)
+    if ours is not None:
+        return int(ours)
+    return int(getattr(scene_model, "extra_presses", 0) or 0)
+
+
 def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
     """(confidence, keyword arguments of ``runtime.evidence.Evidence``) for ``cfg``'s scene with
     ``model``: the scene model's operating point when the bundle has one, the config's
@@ -188,10 +198,10 @@ def evidence_settings(cfg, model: Any = None) -> tuple[float, dict]:
 
 
 def confidence_override_note(cfg, scene_model) -> str:
-    """What the config's written ``evidence.confidence`` and ``evidence.untouched_confidence`` do to
-    a scene model's operating point, in words for the start log and ``validate-config
-    --check-bundle``; '' when the config writes neither (the model's own confidences decide) or they
-    equal the model's. Without a scene model only ``evidence.confidence`` acts, and a written
+    """What the config's written ``evidence.confidence``, ``evidence.untouched_confidence`` and
+    ``evidence.extra_presses`` do to a scene model's operating point, in words for the start log
+    and ``validate-config --check-bundle``; '' when the config writes none of them (the model's own
+    operating point decides) or they equal the model's. Without a scene model only ``evidence.confidence`` acts, and a written
     ``evidence.untouched_confidence`` is said to do nothing."""
     if scene_model is None:
         untouched = getattr(cfg, "untouched_confidence", None)
@@ -208,6 +218,12 @@ def confidence_override_note(cfg, scene_model) -> str:
                   else "more cautious: expect more pieces in the reject bin")
         said.append(f"evidence.{key} {float(ours):g} overrides the {kind} confidence {theirs:g} that training chose "
                     f"on validation for the scene model's mis-sort target ({effect})")
+    ours, theirs = getattr(cfg, "extra_presses", None), int(getattr(scene_model, "extra_presses", 0) or 0)
+    if ours is not None and int(ours) != theirs:
+        effect = ("more presses for touched pieces not yet confident, unpriced on validation" if ours > theirs
+                  else "expect more touched pieces in the reject bin")
+        said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
+                    f"validation ({effect})")
     if not said:
         return ""
     return f"{cfg.path}: " + "; ".join(said) + "; remove the key to sort at the model's own operating point"
@@ -217,12 +233,12 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
     they adapted, runtime/feedback.py): its rule, the config's written confidences over its own
     (``evidence.confidence`` for touched classes, ``evidence.untouched_confidence`` for untouched
-    ones), and the config's ``evidence.extra_presses``."""
+    ones), and the config's ``evidence.extra_presses`` over its own (``extra_presses_of``)."""
     confidence, opts = scene_model_rule(scene_model)
     untouched = getattr(cfg, "untouched_confidence", None)
     if untouched is not None:
         opts = {**opts, "class_confidence": {c: float(untouched) for c in opts["class_confidence"]}}
-    opts = {**opts, "extra_presses": int(getattr(cfg, "extra_presses", 0) or 0)}
+    opts = {**opts, "extra_presses": extra_presses_of(cfg, scene_model)}
     return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
 
 
@@ -286,6 +302,7 @@ def scene_bundle_problem(cfg, touched, untouched, manifest, scene_model) -> str:
 
 
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",
-           "write_beta_override", "scene_model_rule", "config_sets_confidence", "confidence_override_note",
+           "write_beta_override", "scene_model_rule", "config_sets_confidence", "extra_presses_of",
+           "confidence_override_note",
            "evidence_settings", "scene_model_settings", "refuses_off_scene", "one_fabric_problem",
            "scene_bundle_problem"]

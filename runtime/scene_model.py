@@ -65,6 +65,13 @@ the leader itself could have made the presses. For a touched class the expected 
 small, so the rule is tight there; a synthesised class's offset variance makes it loose. Chosen
 on validation with the offset rule's other knobs, off (inf) in files written before it.
 
+``extra_presses``: a piece that at the press limit is not confident, led by a touched class and
+refused by no off-scene rule takes up to that many presses more (runtime/evidence.py); a touched
+class's evidence keeps growing with presses where a synthesis's stops. Chosen on validation after
+the rest of the operating point (0, 2, 4 or 8: the most pieces in the right bin within the
+mis-sort target, the fewest presses among equals); the cell config's ``evidence.extra_presses``
+overrides it when written. 0 (off) in files written before it.
+
 Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
 scored on the cell.
 """
@@ -86,13 +93,13 @@ OFFSET_KEYS = ("press_var", "offset_var_touched", "offset_var_untouched", "item_
 # the offset rule's whole operating point, stored as "labels_<key>" by a sum-rule model (``labels_rule``)
 LABELS_KEYS = OFFSET_KEYS + ("known_margin", "open_threshold", "confidence", "untouched_confidence")
 # every key ``to_params`` can write: a file with any other is refused (``from_params``). Rules were
-# added as optional keys (known_only, refuse_early, outlier_ratio, likeness_ratio); a runtime that skipped a key it
-# does not know would sort with the rule left out - a piece on a knot into a wrong bin - so a
-# bundle from a newer training is refused by name until the runtime is updated.
+# added as optional keys (known_only, refuse_early, outlier_ratio, likeness_ratio, extra_presses); a
+# runtime that skipped a key it does not know would sort with the rule left out - a piece on a knot
+# into a wrong bin - so a bundle from a newer training is refused by name until the runtime is updated.
 PARAMS_KEYS = frozenset(("kind", "params_version", "classes", "untouched", "center", "basis", "means", "temperature",
                          "untouched_bias", "evidence_weight", "open_threshold", "known_margin", "confidence",
                          "untouched_confidence", "item_rule", "known_only", "refuse_early", "outlier_ratio",
-                         "likeness_ratio")
+                         "likeness_ratio", "extra_presses")
                         + OFFSET_KEYS + tuple(f"labels_{key}" for key in LABELS_KEYS))
 
 
@@ -145,6 +152,9 @@ class SceneModel:
     # the offset rule sorts a piece into a class's bin only within this many times the squared
     # distance of the class's own pieces (module doc); chosen on validation, off (inf) in older files
     likeness_ratio: float = math.inf
+    # presses past the press limit for a piece a touched class leads, unconfident and unrefused
+    # (module doc); chosen on validation, 0 (off) in older files
+    extra_presses: int = 0
 
     @property
     def dim(self) -> int:
@@ -346,7 +356,8 @@ class SceneModel:
                 **({"known_only": np.array(self.known_only)} if self.known_only else {}),
                 **({"refuse_early": np.array(True)} if self.refuse_early else {}),
                 **({"outlier_ratio": float(self.outlier_ratio)} if math.isfinite(self.outlier_ratio) else {}),
-                **({"likeness_ratio": float(self.likeness_ratio)} if math.isfinite(self.likeness_ratio) else {})}
+                **({"likeness_ratio": float(self.likeness_ratio)} if math.isfinite(self.likeness_ratio) else {}),
+                **({"extra_presses": np.array(int(self.extra_presses))} if self.extra_presses else {})}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "SceneModel":
@@ -404,7 +415,8 @@ class SceneModel:
         outlier_ratio, likeness_ratio = _ratio(params, "outlier_ratio"), _ratio(params, "likeness_ratio")
         model = cls(classes, frozenset(c for c, u in zip(classes, flags) if u), center, basis, means,
                     temperature, bias, weight, open_thr, margin, conf, conf_u, known_only=known_only,
-                    refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio, likeness_ratio=likeness_ratio)
+                    refuse_early=bool(refuse_early), outlier_ratio=outlier_ratio, likeness_ratio=likeness_ratio,
+                    extra_presses=_count(params, "extra_presses"))
         # a file written before the offset rule has none of its keys: the sum rule, as it was
         rule = str(np.asarray(params.get("item_rule", "sum")).reshape(()))
         if rule not in ITEM_RULES:
@@ -433,6 +445,21 @@ def _ratio(params: Mapping[str, Any], key: str) -> float:
     if not float(raw) >= 1:
         raise SceneModelError(f"scene model {key} {float(raw)} must be at least 1 (inf: off)")
     return float(raw)
+
+
+MAX_EXTRA_PRESSES = 64  # more than a grid's points: a file asking for more is not one training wrote
+
+
+def _count(params: Mapping[str, Any], key: str) -> int:
+    """An optional press count of the parameters (0 when absent): a whole number 0..MAX_EXTRA_PRESSES."""
+    if key not in params:
+        return 0
+    raw = np.asarray(params[key])
+    if raw.shape != () or raw.dtype.kind not in "iu":
+        raise SceneModelError(f"scene model {key} is {raw.dtype} of shape {raw.shape}, not a whole number")
+    if not 0 <= int(raw) <= MAX_EXTRA_PRESSES:
+        raise SceneModelError(f"scene model {key} {int(raw)} must be between 0 and {MAX_EXTRA_PRESSES}")
+    return int(raw)
 
 
 def _check_offset(offset: Mapping[str, float], prefix: str) -> None:

@@ -274,15 +274,17 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
                     max_presses: int = 5, seed: int = 0) -> list[ItemRecord]:
     """Items of every scene fabric and off-scene fabric, each a random order of that fabric's
     held-out ``presses`` fed to the cell's own evidence (``evidence_factory(scene)``) until it
-    decides or the presses (``max_presses``) run out."""
+    decides or the presses (``max_presses``, or the evidence's ``press_limit`` when that is more:
+    its extra presses) run out."""
     rng = np.random.default_rng(seed)
     records = []
     for scene in scenes:
         for fabric in scene.classes + scene.off_scene:
             pool = presses[fabric]
             for _ in range(items_per_fabric):
-                order = rng.permutation(len(pool))[:max_presses]
-                decision = _press_until_decided(evidence_factory(scene), pool, order)
+                ev = evidence_factory(scene)
+                order = rng.permutation(len(pool))[:max(max_presses, getattr(ev, "press_limit", 0))]
+                decision = _press_until_decided(ev, pool, order)
                 records.append(record(fabric, scene.kind(fabric), decision, scene.classes))
     return records
 
@@ -340,7 +342,9 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         for fabric in stream:
             pool = presses[fabric]
             perm = rng.permutation(len(pool))  # drawn alike with and without labels: the runs pair
-            order = [i for i in perm.tolist() if i not in shown.get(fabric, ())][:max_presses]
+            # (and the model's extra presses, runtime/evidence.py, for a piece that earns them)
+            limit = max_presses + int(getattr(model, "extra_presses", 0))
+            order = [i for i in perm.tolist() if i not in shown.get(fabric, ())][:limit]
             if not order:  # every press of the fabric taught this job already
                 continue
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
@@ -357,15 +361,18 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
     return records
 
 
-def scene_evidence(model, max_presses: int = 5, extra_presses: int = 0) -> Callable[[Scene], Evidence]:
+def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None) -> Callable[[Scene], Evidence]:
     """The evidence the cell builds for a scene from a scene model's operating point
-    (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules),
-    with the config's ``evidence.extra_presses`` (runtime/evidence.py; feed such an evidence
-    ``max_presses + extra_presses`` presses)."""
+    (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules,
+    its extra presses), ``extra_presses`` overriding the model's as the config's
+    ``evidence.extra_presses`` does (runtime/evidence.py; such an evidence may take up to
+    ``press_limit`` presses)."""
     confidence, opts = scene_model_rule(model)
+    if extra_presses is not None:
+        opts = {**opts, "extra_presses": int(extra_presses)}
 
     def make(scene: Scene) -> Evidence:
-        return Evidence(scene.classes, confidence, max_presses, **opts, extra_presses=extra_presses)
+        return Evidence(scene.classes, confidence, max_presses, **opts)
     return make
 
 
@@ -398,22 +405,22 @@ def knob_prices(model, scenes: Sequence[Scene], presses: dict[str, list[Press]],
         return {"right": a[RIGHT], "mis-sort": a[MIS_SORT], "reject": a[REJECT], "presses": a["presses"],
                 "coverage": 1.0 - in_reject_bin, "by_kind": {k: {o: r[o] for o in OUTCOMES} for k, r in s["by_kind"].items()}}
 
-    def run(m, mp: int, extra: int = 0) -> dict:
+    def run(m, mp: int, extra: int | None = None) -> dict:
         return price(simulate_scenes(scenes, presses, scene_evidence(m, mp, extra), items_per_fabric=items_per_fabric,
-                                     max_presses=mp + extra, seed=seed))
+                                     max_presses=mp, seed=seed))
 
     base = price(records) if records is not None else run(model, max_presses)
     rows = [{"knob": "operating point", "value": None, **base}]
     own = {"confidence": float(model.confidence), "untouched_confidence": float(model.untouched_confidence),
-           "max_presses": max_presses, "extra_presses": 0, "outlier_ratio": float(model.outlier_ratio),
-           "likeness_ratio": float(model.likeness_ratio)}
+           "max_presses": max_presses, "extra_presses": int(getattr(model, "extra_presses", 0)),
+           "outlier_ratio": float(model.outlier_ratio), "likeness_ratio": float(model.likeness_ratio)}
     for knob, values in (KNOB_GRID if grid is None else grid).items():
         for v in values:
             if v == own[knob]:
                 rows.append({"knob": knob, "value": v, "own": True, **base})
                 continue
             if knob in ("max_presses", "extra_presses"):
-                row = run(model, int(v), 0) if knob == "max_presses" else run(model, max_presses, int(v))
+                row = run(model, int(v)) if knob == "max_presses" else run(model, max_presses, int(v))
             else:
                 row = run(replace(model, **{knob: float(v)}), max_presses)
             rows.append({"knob": knob, "value": v, "own": False, **row})

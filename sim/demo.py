@@ -141,7 +141,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 gate_kind: str, max_presses: int, confidence: float | None, threads: int, record: Path | None,
                 fault_at: tuple[int, int] | None, log, overlap_scoring: bool = True,
                 without_scene_model: str | None = None, operator_labels: bool = False, teach: bool = False,
-                extra_presses: int = 0) -> dict:
+                extra_presses: int | None = None) -> dict:
     model = TactileModel.load(bundle, threads=threads, beta_override=None)
     # the daemon would refuse it too (runtime/wiring.py), after the simulated cell came up
     require_scene_model(model, bundle, without_scene_model,
@@ -207,7 +207,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                                  threads=threads)
         if confidence is None:  # the bundle's operating point decides (runtime/operating_point.py)
             del data["evidence"]["confidence"]
-        if extra_presses:
+        if extra_presses is not None:  # else the bundle's scene model's (runtime/operating_point.py)
             data["evidence"]["extra_presses"] = extra_presses
         data["cell"] = {"overlap_scoring": overlap_scoring}
         if without_scene_model:
@@ -323,9 +323,10 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--gate", choices=("pty", "fake"), default="pty",
                         help="pty: gate host driver against the MCU simulator (default)")
     parser.add_argument("--max-presses", type=int, default=5)
-    parser.add_argument("--extra-presses", type=int, default=0,
+    parser.add_argument("--extra-presses", type=int, default=None,
                         help="evidence.extra_presses: presses past --max-presses for a piece a touched fabric leads, "
-                             "not yet confident and refused by no off-scene rule (default 0: off)")
+                             "not yet confident and refused by no off-scene rule (default: the bundle's, chosen "
+                             "on validation; 0: off)")
     parser.add_argument("--confidence", type=float, default=None,
                         help="posterior that sorts a piece (default: the bundle's operating point, chosen on "
                              "validation fabrics for at most 1 %% mis-sorts)")

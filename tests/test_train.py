@@ -289,12 +289,17 @@ def test_tiny_profile_end_to_end(tmp_path, tiny_world, capsys):
     outcomes = ("right", "mis-sort", "reject")
     assert {k: targets[1][k] for k in outcomes} == {k: sd["knobs"][0][k] for k in outcomes}
     assert "| mis-sort target, % (`train --mis-sort-target`" in report and "| 1 (own) |" in report
-    # the operator's extra presses: the operating point has none; on test jobs and on validation jobs
-    extra = [r for r in sd["knobs"] if r["knob"] == "extra_presses"]
-    assert [r["value"] for r in extra] == [0, 2, 4, 8] and extra[0]["own"]
-    assert all(r["presses"] >= extra[0]["presses"] for r in extra)  # it only ever adds presses
+    # extra presses: chosen on validation jobs (one row per number tried, the choice flagged), the
+    # operating point's own row on the test jobs the knob table's
+    chosen_extra = split["scene_decision"]["validation"]["chosen"]["extra_presses"]
     val_extra = split["scene_decision"]["validation"]["extra_presses"]
-    assert [r["extra_presses"] for r in val_extra] == [2, 4, 8]
+    assert [r["extra_presses"] for r in val_extra] == [0, 2, 4, 8]
+    assert [r["extra_presses"] for r in val_extra if r["chosen"]] == [chosen_extra]
+    extra = [r for r in sd["knobs"] if r["knob"] == "extra_presses"]
+    assert [r["value"] for r in extra] == [0, 2, 4, 8]
+    assert [r["value"] for r in extra if r["own"]] == [chosen_extra]
+    presses = [r["presses"] for r in extra]
+    assert presses == sorted(presses)  # more extra presses only ever add presses
     assert "| evidence.extra_presses (past max_presses" in report
     assert "Validation jobs with `evidence.extra_presses`" in report
     # a test miss of the mis-sort target is said where the user looks: the report and the printout

@@ -67,8 +67,9 @@ MIS_SORT_TARGETS = (0.005, 0.01, 0.02)
 OPEN_QUANTILES = (0.8, 0.9, 0.95, 0.99, 1.0)
 N_SCENES = 12
 MAX_PRESSES = 5
-# the operator's extra presses (runtime/evidence.py) the validation jobs are decided with beside the
-# operating point (training's report; the choice is made at none)
+# extra presses (runtime/evidence.py) tried on the validation jobs once the rest of the operating point
+# is chosen (0 is that point itself): the most pieces in the right bin within the mis-sort target, and
+# of equals the fewest mis-sorts, then the fewest presses (the first)
 EXTRA_PRESSES = (2, 4, 8)
 
 
@@ -95,9 +96,9 @@ def _fit_t_b(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[fl
     return best[1], best[2], best[0]
 
 
-def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES, extra_presses: int = 0):
-    """The evidence the cell builds for a scene from the model's operating point (and the config's
-    ``evidence.extra_presses``)."""
+def evidence_for(model: SceneModel, max_presses: int = MAX_PRESSES, extra_presses: int | None = None):
+    """The evidence the cell builds for a scene from the model's operating point (``extra_presses``
+    overriding its own, as the config's ``evidence.extra_presses`` does)."""
     return so.scene_evidence(model, max_presses, extra_presses)
 
 
@@ -165,14 +166,15 @@ class _Jobs:
 
 
 def _simulate(models: list[SceneModel], jobs: list[_Jobs], tables: list[dict] | None = None,
-              extra_presses: int = 0) -> dict:
+              extra_presses: int | None = None) -> dict:
     """The summary of every world's validation jobs decided by its model (``tables``: each world's
-    press tables, when the caller has them; ``extra_presses``: the config's, runtime/evidence.py)."""
+    press tables, when the caller has them; ``extra_presses``: instead of the model's own,
+    runtime/evidence.py)."""
     recs = []
     for w, (m, j) in enumerate(zip(models, jobs)):
         recs += so.simulate_scenes(j.scenes, tables[w] if tables else press_tables(m, j.rows),
                                    evidence_for(m, MAX_PRESSES, extra_presses), seed=j.seed,
-                                   max_presses=MAX_PRESSES + extra_presses)  # as ``_prepare`` draws them
+                                   max_presses=MAX_PRESSES)  # as ``_prepare`` draws them (and more for extra presses)
     return so.summarise(recs)
 
 
@@ -240,6 +242,24 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
     rows_out = [{"outlier_ratio": c[0].outlier_ratio, "right": s["all"]["right"], "mis_sort": s["all"]["mis-sort"],
                  "reject": s["all"]["reject"], "presses": s["all"]["presses"]} for _, c, s in tried]
     return best, summary, rows_out
+
+
+def _extra_presses(chosen: list[SceneModel], summary0: dict, cand_off: list[SceneModel], jobs: list[_Jobs],
+                   target: float) -> tuple[list[SceneModel], dict, list[dict]]:
+    """The chosen operating point (one model per world) with the extra presses (0 and
+    ``EXTRA_PRESSES``, runtime/evidence.py) that score best on the same validation jobs - the
+    mis-sort target first, then pieces in the right bin, then the fewest mis-sorts; of full ties
+    the fewest presses: (models, their validation summary, one row per number tried).
+    ``summary0``: the point's own summary (0 extra presses), not decided again. The validation jobs
+    see extra presses only where a touched fabric has more validation presses than the press
+    limit (the paper profile extracts 90 presses a fabric for it: docs/training.md)."""
+    probes = _as_priced(chosen, cand_off)  # a sum-rule model as the outlier search priced it
+    tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
+    tried = [(0, summary0)] + [(n, _simulate(probes, jobs, tables, extra_presses=n)) for n in EXTRA_PRESSES]
+    n, summary = max(tried, key=lambda t: ns.fewer_first(_score(t[1], target), t[1]))  # the first of equals
+    rows = [{"extra_presses": m, "chosen": m == n, **{key: s["all"][o] for key, o in (
+        ("right", "right"), ("mis_sort", "mis-sort"), ("reject", "reject"), ("presses", "presses"))}} for m, s in tried]
+    return [replace(m, extra_presses=n) for m in chosen], summary, rows
 
 
 def _score(summary: dict, target: float) -> tuple:
@@ -328,13 +348,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
     chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
-    # the operator's extra presses (evidence.extra_presses, no choice of training's) on the same
-    # validation jobs: what the knob does on fabrics the test jobs never saw
-    # (a sum-rule model as the outlier search priced it: its press spread is its labels rule's)
-    as_priced = _as_priced(chosen, cand_off)
-    extra_rows = [{"extra_presses": n, **{key: s["all"][o] for key, o in (("right", "right"), ("mis_sort", "mis-sort"),
-                                                                          ("reject", "reject"), ("presses", "presses"))}}
-                  for n, s in ((n, _simulate(as_priced, jobs, extra_presses=n)) for n in EXTRA_PRESSES)]
+    chosen, val_summary, extra_rows = _extra_presses(chosen, val_summary, cand_off, jobs, target_mis_sort)
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     # the split's own world's touched presses are the deployed model's: its principal axes serve
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)
@@ -353,7 +367,8 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
                          "item_rule": chosen.item_rule, **rule, "known_margin": chosen.known_margin,
                          "confidence": chosen.confidence, "untouched_confidence": chosen.untouched_confidence,
                          "open_threshold": chosen.open_threshold, "refuse_early": chosen.refuse_early,
-                         "outlier_ratio": chosen.outlier_ratio, "likeness_ratio": chosen.likeness_ratio},
+                         "outlier_ratio": chosen.outlier_ratio, "likeness_ratio": chosen.likeness_ratio,
+                         "extra_presses": chosen.extra_presses},
               "validation": val_summary, "validation_nll": {"nll_before": nll0, "nll_after": nll, "k": k},
               "validation_worlds": [{"touched": len(w.touched), "validation_fabrics": len(w.val_fabrics)} for w in worlds],
               **({"validation_own_world": own_world} if own_world else {}),
@@ -368,6 +383,7 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
         f"margin {chosen.known_margin:g}{', refuse early' if chosen.refuse_early else ''}, "
         f"outlier presses {'kept' if math.isinf(chosen.outlier_ratio) else f'beyond {chosen.outlier_ratio:g} spreads left out'}, "
         f"likeness {'not asked' if math.isinf(chosen.likeness_ratio) else f'within {chosen.likeness_ratio:g} times'}, "
+        f"{chosen.extra_presses} extra presses, "
         f"confidence {chosen.confidence:g} (untouched {chosen.untouched_confidence:g}): "
         f"right {val_summary['all']['right']:.1%}, mis-sort {val_summary['all']['mis-sort']:.1%}, "
         f"reject {val_summary['all']['reject']:.1%} (sum rule {summary_sum['all']['right']:.1%} / "

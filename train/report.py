@@ -302,19 +302,23 @@ def scene_lines(splits: list[dict]) -> list[str]:
                 f"k {c['k']}, T {c['temperature']:.3g}, untouched bias {c['untouched_bias']:g}, {_item_rule_text(c)}, "
                 f"margin {c['known_margin']:g}{', refuse early' if c.get('refuse_early') else ''}, "
                 f"{_outlier_text(c.get('outlier_ratio'))}{_likeness_text(c.get('likeness_ratio'))}"
-                f"confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
+                f"{_extra_text(c.get('extra_presses'))}confidence {c['confidence']:g}/{c['untouched_confidence']:g}"
                 for c in (d["validation"]["chosen"] for d in sd)), ""]
     return out
 
 
 def _extra_validation_lines(sd: list[dict]) -> list[str]:
-    """The operator's extra presses (evidence.extra_presses) on the validation jobs, beside the knob
-    table's test prices ([] for runs before them)."""
+    """Extra presses (evidence.extra_presses) on the validation jobs, beside the knob table's test
+    prices, and how many each split chose ([] for runs before them; runs before the choice tried
+    2, 4 and 8 without choosing)."""
     if not sd or not all(d["validation"].get("extra_presses") for d in sd):
         return []
     rows = zip(*(d["validation"]["extra_presses"] for d in sd))
-    return ["Validation jobs with `evidence.extra_presses` (the choice is made without; a touched fabric's "
-            "validation pieces can only press as often as it has validation presses): "
+    chosen = [d["validation"]["chosen"].get("extra_presses") for d in sd]
+    said = ("the choice is made without" if None in chosen
+            else "chosen per split: " + " / ".join(str(n) for n in chosen))
+    return [f"Validation jobs with `evidence.extra_presses` ({said}; a touched fabric's validation pieces can "
+            "only press as often as it has validation presses): "
             + "; ".join(f"{r[0]['extra_presses']}: right {_ms([x['right'] for x in r])}, mis-sort "
                         f"{_ms([x['mis_sort'] for x in r])}, {np.mean([x['presses'] for x in r]):.2f} presses"
                         for r in rows) + "."]
@@ -353,6 +357,13 @@ def _likeness_text(ratio) -> str:
         return ""
     return "likeness not asked, " if not math.isfinite(float(ratio)) else \
         f"sorted only within {float(ratio):g} times a class's own distance, "
+
+
+def _extra_text(n) -> str:
+    """The extra presses of a chosen setting, for the report ('' for runs before the choice)."""
+    if n is None:
+        return ""
+    return "no extra presses, " if not n else f"up to {int(n)} extra presses, "
 
 
 KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidence": "evidence.untouched_confidence",
