@@ -168,3 +168,55 @@ def test_the_job_check_presses_a_picture_as_often_as_the_cell_would():
         **opts, "extra_presses": extra}), 4)} for extra in (0, 5)}
     assert not checks[0]["denim"].sorts and checks[0]["denim"].label == UNKNOWN
     assert checks[5]["denim"].sorts
+
+
+def test_the_scene_model_carries_trainings_choice_and_a_written_key_overrides_it(tmp_path):
+    """Training's choice travels in decision.npz (written only when not 0, so older files read as
+    0); the cell takes it unless its config writes evidence.extra_presses, and says so when it does."""
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.operating_point import confidence_override_note, scene_model_settings
+    from vs2t_edge.runtime.scene_model import SceneModelError
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    m = _model(extra_presses=3)
+    params = m.to_params()
+    assert SceneModel.from_params(params).extra_presses == 3
+    assert "extra_presses" not in _model().to_params() and SceneModel.from_params(_model().to_params()).extra_presses == 0
+    for bad in (np.array(-1), np.array(2.5), np.array(65), np.array([3])):
+        with pytest.raises(SceneModelError, match="extra_presses"):
+            SceneModel.from_params({**params, "extra_presses": bad})
+    path = tmp_path / "cell.yaml"
+    for written, limit in ((None, 7), (0, 4), (1, 5)):
+        path.write_text(fake_cell_yaml(evidence={"max_presses": 4, "extra_presses": written}))
+        cfg = load_config(path)
+        assert cfg.extra_presses == written
+        conf, opts = scene_model_settings(cfg, m)
+        assert Evidence(list(CLASSES), conf, 4, **opts).press_limit == limit
+        note = confidence_override_note(cfg, m)
+        assert (f"evidence.extra_presses {written} overrides the 3 extra presses" in note) == (written is not None)
+
+
+def test_training_chooses_the_extra_presses_validation_scores_best(monkeypatch):
+    """The mis-sort target first, then pieces in the right bin; of full ties the fewest presses."""
+    from vs2t_edge.train import decision as dc
+
+    def summary(right, mis):
+        return {"all": {"right": right, "mis-sort": mis, "reject": 1 - right - mis, "presses": 4.0}}
+
+    def choose(by_n):
+        monkeypatch.setattr(dc, "_simulate", lambda models, jobs, tables=None, extra_presses=None: by_n[extra_presses])
+        monkeypatch.setattr(dc, "press_tables", lambda model, rows: {})
+        jobs = [type("J", (), {"rows": {}})()]
+        models, s, rows = dc._extra_presses([_model()], by_n[0], [_model()], jobs, 0.01)
+        assert [r["extra_presses"] for r in rows] == [0, *dc.EXTRA_PRESSES]
+        assert [r["chosen"] for r in rows].count(True) == 1 and s is by_n[models[0].extra_presses]
+        return models[0].extra_presses
+
+    # 4 puts the most pieces right but breaks the target; 2 and 8 tie: the fewer presses
+    assert choose({0: summary(0.70, 0.005), 2: summary(0.72, 0.008), 4: summary(0.74, 0.012),
+                   8: summary(0.72, 0.008)}) == 2
+    # as many right, fewer mis-sorts
+    assert choose({0: summary(0.70, 0.005), 2: summary(0.70, 0.004), 4: summary(0.70, 0.006),
+                   8: summary(0.70, 0.004)}) == 2
+    # validation cannot tell them apart: none
+    assert choose({n: summary(0.70, 0.005) for n in (0, 2, 4, 8)}) == 0
