@@ -41,7 +41,7 @@ with presses where a synthesised class's saturates) and is refused by no off-sce
 to that many presses more, and is decided as soon as it is confident or refused or the leader
 changes kind (``press_limit``: the most presses an item may take; ``at_limit``: whether it has
 taken all it may). On the paper world's test jobs the touched pieces left unconfident at 5
-presses are nearly all led by their own fabric (docs/results/scene_decision_paper.md).
+presses are nearly all led by their own fabric (docs/results/scene_decision_rules_paper.md).
 
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
 summed log posteriors by the model's item scores of the presses' mean projection

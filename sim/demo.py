@@ -157,7 +157,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     names_of = {f.id: f.name for f in ds.fabrics}
     # Mostly the job's own fabrics, as on a line; each off-scene fabric as often as one scene fabric.
     items = item_stream(ds, touched + untouched + off_scene, n_items, seed=seed)
-    taught = teach_fabrics(model, touched + untouched, confidence, max_presses) if teach and operator_labels else []
+    taught = (teach_fabrics(model, touched + untouched, confidence, max_presses, extra_presses)
+              if teach and operator_labels else [])
     items = [SimItem(f"teach-{i + 1:02d}", f, f) for i, f in enumerate(taught)] + items
     fabrics = assign_bins(touched, untouched)
     journal = workdir / "journal.jsonl"
@@ -266,10 +267,12 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
     return summary
 
 
-def teach_fabrics(model, scene: list[str], confidence: float | None, max_presses: int) -> list[str]:
+def teach_fabrics(model, scene: list[str], confidence: float | None, max_presses: int,
+                  extra_presses: int | None = None) -> list[str]:
     """The untouched fabrics of the job that the job check (runtime/job_check.py) flags: the ones
     a line would start the job with a teach piece of (docs/cell.md). The evidence is the one the
-    demo's config gives the daemon (the bundle's operating point, or ``--confidence`` over it)."""
+    demo's config gives the daemon (the bundle's operating point, or ``--confidence`` and
+    ``--extra-presses`` over it)."""
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.job_check import check_job
     from vs2t_edge.runtime.operating_point import scene_model_rule
@@ -279,6 +282,8 @@ def teach_fabrics(model, scene: list[str], confidence: float | None, max_presses
         return []
     conf, opts = scene_model_rule(sm)
     conf = conf if confidence is None else confidence
+    if extra_presses is not None:
+        opts = {**opts, "extra_presses": extra_presses}
     checks = check_job(sm, scene, lambda: Evidence(scene, conf, max_presses, **opts), max_presses)
     return [c.fabric for c in checks if c.kind == "untouched" and not c.sorts]
 

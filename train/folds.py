@@ -19,7 +19,7 @@ profile, the fine-tuned visual tail, both trained with every touched fabric's la
 fabric's presses - and the camera crops its synthesis is conditioned on - are features the tails
 learnt to tell apart (a real untouched fabric's are not); and the feature scaling. Each fold's
 generator sees fewer fabrics than the deployed one (a quarter fewer with 4 folds). All of that is
-said where the numbers are (docs/results/scene_decision_paper.md).
+said where the numbers are (docs/results/scene_decision_rules_paper.md).
 """
 
 from __future__ import annotations

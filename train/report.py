@@ -256,7 +256,8 @@ def scene_lines(splits: list[dict]) -> list[str]:
            f"Scenes of 5 touched + 3 untouched TEST fabrics ({n_sc} per split; touched pieces show only their "
            "test presses), off-scene pieces of the fabrics the model knows that a scene leaves out (the "
            "validation fabrics chose the operating point, so they are no test stranger: a stranger's "
-           "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 presses. "
+           "rejection is measured on validation only); items decided by the cell's own evidence, at most 5 "
+           "presses (and the extra presses validation chose, for a piece a touched fabric leads). "
            "Operating point chosen on validation jobs only (of the validation fabrics"
            + (", and of folds of touched fabrics, each held out of its own generator" if _fold_worlds(sd) else "")
            + "), for at most "
@@ -385,7 +386,7 @@ def knob_lines(sd: list[dict]) -> list[str]:
     rows = list(zip(*(d["test"]["knobs"] for d in sd)))  # the same settings in the same order per split
     out = ["", "### What the operator's knobs cost (the same test jobs)", "",
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
-           "confidences, at most 5 presses). A price list, measured on the test jobs; the operating point was chosen "
+           "confidences, at most 5 presses and its extra presses). A price list, measured on the test jobs; the operating point was chosen "
            "on validation, and so were the outlier ratio (inf: every press is evidence) and the likeness ratio "
            "(inf: not asked), priced here beside them, "
            "as is the mis-sort target the validation search chose for (each target a whole operating point). "
