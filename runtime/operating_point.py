@@ -147,7 +147,7 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     scene model's operating point, as training chose it for the mis-sort target: press weight,
     off-scene threshold and margin, the confidence per kind (every untouched class at the
     untouched one), the outlier-press rule when it has one, the extra presses it chose and the
-    classes that earn them (its touched ones: real means; runtime/evidence.py), and for the offset
+    classes that earn them (``real_mean_classes``; runtime/evidence.py), and for the offset
     item rule the model itself (its item scores replace the weighted sum). Its temperature
     and untouched bias act inside the model's posterior (runtime/scene_model.py) and have no
     override."""
@@ -157,16 +157,18 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
                           "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
                           "outlier_model": m if math.isfinite(m.outlier_ratio) else None,
-                          "extra_presses": int(getattr(m, "extra_presses", 0)), "extend_classes": touched_classes(m)}
+                          "extra_presses": int(getattr(m, "extra_presses", 0)), "extend_classes": real_mean_classes(m)}
 
 
-def touched_classes(scene_model) -> tuple[str, ...]:
-    """The scene model's touched classes a job can list: not untouched, not known only to refuse
-    (``known_only``), not a stranger operator labels taught (runtime/feedback.py): the classes whose
-    pieces earn ``evidence.extra_presses`` (runtime/evidence.py)."""
+def real_mean_classes(scene_model) -> tuple[str, ...]:
+    """The scene model's classes a job can list whose means are real presses: its touched ones and
+    the untouched ones operator labels taught (``taught``, runtime/feedback.py) - not a synthesis,
+    not a fabric known only to refuse (``known_only``), not a stranger labels taught (no job
+    fabric). The classes whose pieces earn extra presses (runtime/evidence.py): a real mean's
+    evidence keeps growing with presses where a synthesis's stops."""
     m = scene_model
-    return tuple(c for c in m.classes
-                 if c not in m.untouched and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
+    return tuple(c for c in m.classes if (c not in m.untouched or c in m.taught)
+                 and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
 
 
 def config_sets_confidence(cfg) -> bool:
