@@ -167,7 +167,8 @@ def real_mean_classes(scene_model) -> tuple[str, ...]:
     fabric). The classes whose pieces earn extra presses (runtime/evidence.py): a real mean's
     evidence keeps growing with presses where a synthesis's stops."""
     m = scene_model
-    return tuple(c for c in m.classes if (c not in m.untouched or c in m.taught)
+    taught = getattr(m, "taught", frozenset())
+    return tuple(c for c in m.classes if (c not in m.untouched or c in taught)
                  and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
 
 
@@ -203,8 +204,9 @@ def confidence_override_note(cfg, scene_model) -> str:
     """What the config's written ``evidence.confidence``, ``evidence.untouched_confidence`` and
     ``evidence.extra_presses`` do to a scene model's operating point, in words for the start log
     and ``validate-config --check-bundle``; '' when the config writes none of them (the model's own
-    operating point decides) or they equal the model's. Without a scene model only ``evidence.confidence`` acts, and a written
-    ``evidence.untouched_confidence`` is said to do nothing."""
+    operating point decides) or they equal the model's. Without a scene model only
+    ``evidence.confidence`` acts, and a written ``evidence.untouched_confidence`` is said to do
+    nothing."""
     if scene_model is None:
         untouched = getattr(cfg, "untouched_confidence", None)
         return "" if untouched is None else (
@@ -222,7 +224,7 @@ def confidence_override_note(cfg, scene_model) -> str:
                     f"on validation for the scene model's mis-sort target ({effect})")
     ours, theirs = getattr(cfg, "extra_presses", None), int(getattr(scene_model, "extra_presses", 0) or 0)
     if ours is not None and int(ours) != theirs:
-        effect = ("more presses for touched pieces not yet confident, unpriced on validation" if ours > theirs
+        effect = ("more presses for unconfident pieces a real mean leads than validation priced" if ours > theirs
                   else "expect more touched pieces in the reject bin")
         said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
                     f"validation ({effect})")
