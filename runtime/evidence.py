@@ -36,13 +36,13 @@ a stranger's presses are). A piece none of whose presses was evidence is decisiv
 class: at the limit it goes to the reject bin (``stopped_by`` "off_scene": like no fabric known).
 
 ``extra_presses`` (0: off): a piece that at ``max_presses`` is not confident, is led by one of
-``extend_classes`` (the scene model's touched classes and the untouched ones operator labels
-taught: real means, whose evidence keeps growing with presses where a synthesised class's
-saturates; runtime/operating_point.py ``real_mean_classes``) and is refused by no off-scene rule
-takes up to that many presses more, and is decided as soon as it is confident or refused or the leader
-changes kind (``press_limit``: the most presses an item may take; ``at_limit``: whether it has
-taken all it may). On the paper world's test jobs the touched pieces left unconfident at 5
-presses are nearly all led by their own fabric (docs/results/scene_decision_rules_paper.md).
+``extend_classes`` (the scene model's touched classes: real means, whose evidence keeps growing
+with presses where a synthesised class's saturates; runtime/operating_point.py
+``touched_classes``) and is refused by no off-scene rule takes up to that many presses more, and
+is decided as soon as it is confident or refused or the leader changes kind (``press_limit``: the
+most presses an item may take; ``at_limit``: whether it has taken all it may). On the paper
+world's test jobs the touched pieces left unconfident at 5 presses are nearly all led by their
+own fabric (docs/results/scene_decision_rules_paper.md).
 
 ``item_model`` (a ``runtime.scene_model.SceneModel`` whose ``item_rule`` is "offset") replaces the
 summed log posteriors by the model's item scores of the presses' mean projection

@@ -147,7 +147,7 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
     scene model's operating point, as training chose it for the mis-sort target: press weight,
     off-scene threshold and margin, the confidence per kind (every untouched class at the
     untouched one), the outlier-press rule when it has one, the extra presses it chose and the
-    classes that earn them (``real_mean_classes``; runtime/evidence.py), and for the offset
+    classes that earn them (``touched_classes``; runtime/evidence.py), and for the offset
     item rule the model itself (its item scores replace the weighted sum). Its temperature
     and untouched bias act inside the model's posterior (runtime/scene_model.py) and have no
     override."""
@@ -157,19 +157,19 @@ def scene_model_rule(scene_model) -> tuple[float, dict]:
                           "class_confidence": {c: m.untouched_confidence for c in m.untouched},
                           "item_model": m if m.item_rule == "offset" else None, "refuse_early": m.refuse_early,
                           "outlier_model": m if math.isfinite(m.outlier_ratio) else None,
-                          "extra_presses": int(getattr(m, "extra_presses", 0)), "extend_classes": real_mean_classes(m)}
+                          "extra_presses": int(getattr(m, "extra_presses", 0)), "extend_classes": touched_classes(m)}
 
 
-def real_mean_classes(scene_model) -> tuple[str, ...]:
-    """The scene model's classes a job can list whose means are real presses: its touched ones and
-    the untouched ones operator labels taught (``taught``, runtime/feedback.py) - not a synthesis,
-    not a fabric known only to refuse (``known_only``), not a stranger labels taught (no job
-    fabric). The classes whose pieces earn extra presses (runtime/evidence.py): a real mean's
-    evidence keeps growing with presses where a synthesis's stops."""
+def touched_classes(scene_model) -> tuple[str, ...]:
+    """The scene model's touched classes a job can list: not untouched (a synthesis, or a mean
+    operator labels taught), not known only to refuse (``known_only``), not a stranger labels taught
+    (runtime/feedback.py). The classes whose pieces earn extra presses (runtime/evidence.py): their
+    evidence keeps growing with presses where a synthesis's stops. A taught untouched class's mean
+    is real presses too, but it earns none: on the paper world's label jobs that put pieces of an
+    untaught twin into its bin (docs/results/operator_labels_paper.md)."""
     m = scene_model
-    taught = getattr(m, "taught", frozenset())
-    return tuple(c for c in m.classes if (c not in m.untouched or c in taught)
-                 and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
+    return tuple(c for c in m.classes
+                 if c not in m.untouched and c not in m.known_only and not c.startswith(OFF_SCENE_PREFIX))
 
 
 def config_sets_confidence(cfg) -> bool:
@@ -224,7 +224,7 @@ def confidence_override_note(cfg, scene_model) -> str:
                     f"on validation for the scene model's mis-sort target ({effect})")
     ours, theirs = getattr(cfg, "extra_presses", None), int(getattr(scene_model, "extra_presses", 0) or 0)
     if ours is not None and int(ours) != theirs:
-        effect = ("more presses for unconfident pieces a real mean leads than validation priced" if ours > theirs
+        effect = ("more presses for unconfident pieces a touched fabric leads than validation priced" if ours > theirs
                   else "expect more touched pieces in the reject bin")
         said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
                     f"validation ({effect})")

@@ -65,13 +65,12 @@ the leader itself could have made the presses. For a touched class the expected 
 small, so the rule is tight there; a synthesised class's offset variance makes it loose. Chosen
 on validation with the offset rule's other knobs, off (inf) in files written before it.
 
-``extra_presses``: a piece that at the press limit is not confident, led by a touched class (or
-an untouched one operator labels taught) and refused by no off-scene rule takes up to that many
-presses more (runtime/evidence.py); a real mean's evidence keeps growing with presses where a
-synthesis's stops. Chosen on validation after the rest of the operating point (0, 2, 4 or 8: the
-most pieces in the right bin within the mis-sort target, the fewest presses among equals); the
-cell config's ``evidence.extra_presses`` overrides it when written. 0 (off) in files written
-before it.
+``extra_presses``: a piece that at the press limit is not confident, led by a touched class and
+refused by no off-scene rule takes up to that many presses more (runtime/evidence.py); a touched
+class's evidence keeps growing with presses where a synthesis's stops. Chosen on validation after
+the rest of the operating point (0, 2, 4 or 8: the most pieces in the right bin within the
+mis-sort target, the fewest presses among equals); the cell config's ``evidence.extra_presses``
+overrides it when written. 0 (off) in files written before it.
 
 Numpy only: fitted in training, stored in the bundle (``to_params`` / ``from_params``, an .npz),
 scored on the cell.
@@ -153,8 +152,8 @@ class SceneModel:
     # the offset rule sorts a piece into a class's bin only within this many times the squared
     # distance of the class's own pieces (module doc); chosen on validation, off (inf) in older files
     likeness_ratio: float = math.inf
-    # presses past the press limit for a piece a touched (or taught) class leads, unconfident and
-    # unrefused (module doc); chosen on validation, 0 (off) in older files
+    # presses past the press limit for a piece a touched class leads, unconfident and unrefused
+    # (module doc); chosen on validation, 0 (off) in older files
     extra_presses: int = 0
 
     @property
