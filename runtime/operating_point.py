@@ -205,13 +205,15 @@ def confidence_override_note(cfg, scene_model) -> str:
     ``evidence.extra_presses`` do to a scene model's operating point, in words for the start log
     and ``validate-config --check-bundle``; '' when the config writes none of them (the model's own
     operating point decides) or they equal the model's. Without a scene model only
-    ``evidence.confidence`` acts, and a written ``evidence.untouched_confidence`` is said to do
-    nothing."""
+    ``evidence.confidence`` acts, and a written ``evidence.untouched_confidence`` or
+    ``evidence.extra_presses`` is said to do nothing."""
     if scene_model is None:
-        untouched = getattr(cfg, "untouched_confidence", None)
-        return "" if untouched is None else (
-            f"{cfg.path}: evidence.untouched_confidence {float(untouched):g} does nothing: the bundle has no scene "
-            "model, and its router's posterior sorts every class at evidence.confidence")
+        idle = [f"evidence.{key} {value:g}" for key, value in (
+            ("untouched_confidence", getattr(cfg, "untouched_confidence", None)),
+            ("extra_presses", getattr(cfg, "extra_presses", None))) if value is not None]
+        return "" if not idle else (
+            f"{cfg.path}: {' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing: the bundle has no "
+            "scene model, and its router's posterior sorts every class at evidence.confidence within max_presses")
     said = []
     for key, kind, ours, model_key in (
             ("confidence", "touched", float(cfg.confidence) if config_sets_confidence(cfg) else None, "confidence"),

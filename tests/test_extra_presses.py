@@ -181,7 +181,8 @@ def test_the_scene_model_carries_trainings_choice_and_a_written_key_overrides_it
     m = _model(extra_presses=3)
     params = m.to_params()
     assert SceneModel.from_params(params).extra_presses == 3
-    assert "extra_presses" not in _model().to_params() and SceneModel.from_params(_model().to_params()).extra_presses == 0
+    assert "extra_presses" not in _model().to_params()
+    assert SceneModel.from_params(_model().to_params()).extra_presses == 0
     for bad in (np.array(-1), np.array(2.5), np.array(65), np.array([3])):
         with pytest.raises(SceneModelError, match="extra_presses"):
             SceneModel.from_params({**params, "extra_presses": bad})
@@ -244,3 +245,41 @@ def test_an_untouched_fabric_labels_taught_earns_no_extra_presses():
     d = piece(extra_presses=3, extend_classes=CLASSES)
     assert (d.label, d.presses, d.stopped_by) == ("wool", 7, "confident")
     assert piece(extra_presses=0).presses == 4
+
+
+def test_simulations_take_the_models_own_extra_presses():
+    """Training's test jobs, knob table and label jobs decide with the model's extra presses, as the
+    cell does: pieces are drawn long enough, the knob table's own row is the model's number, and its
+    max_presses rows keep it; an explicit number overrides it."""
+    m = _model(confidence=0.6, untouched_confidence=0.6, extra_presses=3)
+    assert so.scene_evidence(m, 4)(so.Scene(CLASSES, (), ())).press_limit == 7
+    assert so.scene_evidence(m, 4, 0)(so.Scene(CLASSES, (), ())).press_limit == 4
+    rng = np.random.default_rng(0)
+    presses = {c: so.scene_model_presses(m, np.asarray(NEAR_DENIM if c == "denim" else m.means[i])
+                                         + 0.05 * rng.normal(size=(12, 2)))
+               for i, c in enumerate(CLASSES)}
+    scenes = [so.Scene(("denim", "silk"), ("wool",), ())]
+    recs = so.simulate_scenes(scenes, presses, so.scene_evidence(m, 4), items_per_fabric=3, max_presses=4, seed=1)
+    denim = [r for r in recs if r.truth == "denim"]
+    assert all(4 < r.presses <= 7 and r.outcome == so.RIGHT for r in denim)  # past the 4 the caller named
+    rows = so.knob_prices(m, scenes, presses, max_presses=4, items_per_fabric=3, seed=1,
+                          grid={"extra_presses": (0, 3), "max_presses": (4, 5)})
+    base, none, three, four, five = rows
+    assert three["own"] and not none["own"] and three["right"] == base["right"]
+    assert none["by_kind"]["touched"]["right"] < base["by_kind"]["touched"]["right"]
+    assert four["own"] and five["presses"] >= base["presses"]  # 5 + 3 extra: no fewer presses
+    labelled = so.simulate_with_labels(scenes, presses, m, labels=False, items_per_fabric=3, max_presses=4, seed=1)
+    assert max(r.presses for r in labelled if r.truth == "denim") > 4
+
+
+def test_an_absent_key_is_the_models_number(tmp_path):
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.operating_point import extra_presses_of
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(fake_cell_yaml(evidence={"max_presses": 4}))
+    assert "extra_presses" not in path.read_text()
+    cfg = load_config(path)
+    assert cfg.extra_presses is None and extra_presses_of(cfg, _model(extra_presses=2)) == 2
+    assert extra_presses_of(cfg, None) == 0

@@ -386,9 +386,9 @@ def knob_lines(sd: list[dict]) -> list[str]:
     rows = list(zip(*(d["test"]["knobs"] for d in sd)))  # the same settings in the same order per split
     out = ["", "### What the operator's knobs cost (the same test jobs)", "",
            "One knob of the cell config moved at a time, the others at the operating point (the scene model's own "
-           "confidences, at most 5 presses and its extra presses). A price list, measured on the test jobs; the operating point was chosen "
-           "on validation, and so were the outlier ratio (inf: every press is evidence) and the likeness ratio "
-           "(inf: not asked), priced here beside them, "
+           "confidences, at most 5 presses and its extra presses). A price list, measured on the test jobs; the "
+           "operating point was chosen on validation, and so were the outlier ratio (inf: every press is evidence) "
+           "and the likeness ratio (inf: not asked), priced here beside them, "
            "as is the mis-sort target the validation search chose for (each target a whole operating point). "
            "*own*: the value the operating point has in every split. Mean ± std over "
            f"{len(sd)} split(s), %.", "",

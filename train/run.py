@@ -109,7 +109,7 @@ def tactile_spec(prof: Profile, dataset: Path) -> TactilePreprocess:
 PROFILES = {
     "tiny": Profile("tiny", trunk="tiny", size_px=64, ft_epochs=2, steps=150, cls_steps=100, n_synth_per_class=60),
     "small": Profile("small", size_px=128, steps=400, cls_steps=200, n_synth_per_class=150),
-    # paper: 50 fabrics x 225 presses; features from the first 90 presses per fabric so extraction
+    # paper: 50 fabrics x 225 presses; features from 90 evenly spaced presses per fabric so extraction
     # fits the CPU budget, and a touched fabric has 9 validation presses: a validation piece can
     # press past the cell's limit of 5, so validation can choose extra presses; see docs/training.md
     "paper": Profile("paper", size_px=128, splits=5, max_presses=90, ft_epochs=2, ft_max_rows=2000, steps=400,
