@@ -342,12 +342,11 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         for fabric in stream:
             pool = presses[fabric]
             perm = rng.permutation(len(pool))  # drawn alike with and without labels: the runs pair
-            # (and the model's extra presses, runtime/evidence.py, for a piece that earns them)
-            limit = max_presses + int(getattr(model, "extra_presses", 0))
-            order = [i for i in perm.tolist() if i not in shown.get(fabric, ())][:limit]
-            if not order:  # every press of the fabric taught this job already
+            unseen = [i for i in perm.tolist() if i not in shown.get(fabric, ())]
+            if not unseen:  # every press of the fabric taught this job already
                 continue
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
+            order = unseen[:max(max_presses, getattr(ev, "press_limit", 0))]  # as ``simulate_scenes`` draws
             rec = record(fabric, scene.kind(fabric), _press_until_decided(ev, pool, order), scene.classes)
             records.append(rec)
             # in the reject bin the operator says what it was; an untouched fabric's or a stranger's

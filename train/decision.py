@@ -223,15 +223,16 @@ def _as_priced(chosen: list[SceneModel], cand_off: list[SceneModel]) -> list[Sce
 
 
 def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[SceneModel], jobs: list[_Jobs],
-                  target: float) -> tuple[list[SceneModel], dict, list[dict]]:
+                  target: float, tables: list[dict] | None = None) -> tuple[list[SceneModel], dict, list[dict]]:
     """The chosen item rule (one model per world) with the outlier-press ratio (``OUTLIER_RATIOS``)
     that scores best on the same validation jobs (the mis-sort target first, then pieces in the
     right bin, then the fewest mis-sorts): (models, their validation summary, one row per ratio
     tried). ``summary_off``: the chosen rule's own summary on those jobs (the ratio off, the first
     candidate), not decided again. A sum-rule model measures a press's spread with the offset
-    candidate's setting, which it keeps for operator labels."""
+    candidate's setting, which it keeps for operator labels. ``tables``: each world's press tables
+    of the chosen models when the caller has them (``_validation_tables``)."""
     probes = _as_priced(chosen, cand_off)
-    tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
+    tables = tables if tables is not None else _validation_tables(chosen, jobs)
     tried = []
     for ratio in OUTLIER_RATIOS:
         cands = [replace(m, outlier_ratio=ratio) for m in chosen]
@@ -245,21 +246,29 @@ def _outlier_rule(chosen: list[SceneModel], summary_off: dict, cand_off: list[Sc
 
 
 def _extra_presses(chosen: list[SceneModel], summary0: dict, cand_off: list[SceneModel], jobs: list[_Jobs],
-                   target: float) -> tuple[list[SceneModel], dict, list[dict]]:
+                   target: float, tables: list[dict] | None = None) -> tuple[list[SceneModel], dict, list[dict]]:
     """The chosen operating point (one model per world) with the extra presses (0 and
     ``EXTRA_PRESSES``, runtime/evidence.py) that score best on the same validation jobs - the
     mis-sort target first, then pieces in the right bin, then the fewest mis-sorts; of full ties
     the fewest presses: (models, their validation summary, one row per number tried).
     ``summary0``: the point's own summary (0 extra presses), not decided again. The validation jobs
     see extra presses only where a touched fabric has more validation presses than the press
-    limit (the paper profile extracts 90 presses a fabric for it: docs/training.md)."""
+    limit (the paper profile extracts 90 presses a fabric for it: docs/training.md). ``tables``:
+    as ``_outlier_rule``'s."""
     probes = _as_priced(chosen, cand_off)  # a sum-rule model as the outlier search priced it
-    tables = [press_tables(p, j.rows) for p, j in zip(probes, jobs)]
+    tables = tables if tables is not None else _validation_tables(chosen, jobs)
     tried = [(0, summary0)] + [(n, _simulate(probes, jobs, tables, extra_presses=n)) for n in EXTRA_PRESSES]
     n, summary = max(tried, key=lambda t: ns.fewer_first(_score(t[1], target), t[1]))  # the first of equals
     rows = [{"extra_presses": m, "chosen": m == n, **{key: s["all"][o] for key, o in (
         ("right", "right"), ("mis_sort", "mis-sort"), ("reject", "reject"), ("presses", "presses"))}} for m, s in tried]
     return [replace(m, extra_presses=n) for m in chosen], summary, rows
+
+
+def _validation_tables(chosen: list[SceneModel], jobs: list[_Jobs]) -> list[dict]:
+    """Each world's validation presses as the chosen model scores them (``press_tables``), once for
+    the outlier and extra-press searches: their candidates differ in rules that read the table, not
+    in what it holds (projection, distances, posterior)."""
+    return [press_tables(m, j.rows) for m, j in zip(chosen, jobs)]
 
 
 def _score(summary: dict, target: float) -> tuple:
@@ -347,8 +356,9 @@ def fit_scene_decision(train_x: np.ndarray, train_y: np.ndarray, touched: list[s
     cand_off, summary_off = _offset_candidate(vms, jobs, prepared, open_thresholds, target_mis_sort)
     by_rule = {"sum": (score_sum, cand_sum, summary_sum), "offset": (_score(summary_off, target_mis_sort), cand_off, summary_off)}
     _, chosen, val_summary = max(by_rule.values(), key=lambda r: r[0])
-    chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort)
-    chosen, val_summary, extra_rows = _extra_presses(chosen, val_summary, cand_off, jobs, target_mis_sort)
+    tables = _validation_tables(chosen, jobs)
+    chosen, val_summary, outlier_rows = _outlier_rule(chosen, val_summary, cand_off, jobs, target_mis_sort, tables)
+    chosen, val_summary, extra_rows = _extra_presses(chosen, val_summary, cand_off, jobs, target_mis_sort, tables)
     chosen, cand_off = chosen[0], cand_off[0]  # the split's own world's: its touched means are the deployed model's
     # the split's own world's touched presses are the deployed model's: its principal axes serve
     deployed = SceneModel.fit(train_x, train_y, touched, synth_u[0], synth_u[1], untouched, k=chosen.k, axes=jobs[0].axes)
