@@ -55,11 +55,10 @@ class ContactCheck:
             raise ValueError(f"frame {frame.shape} and no-contact reference {reference.shape} differ in size")
         k = (self.window_px, self.window_px)
         if frame.dtype == np.uint8 and reference.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3:
-            b, g, r = cv2.split(cv2.absdiff(frame, reference))
             # uint16 sums while a window's can't overflow (255 * 16^2 < 2^16): the same integers in
             # half the bytes of float32, 0.08 ms less a press on a 320x240 frame after the trunk's run
             depth = cv2.CV_16U if 255 * self.window_px ** 2 < 2 ** 16 else cv2.CV_32F
-            return cv2.boxFilter(cv2.max(cv2.max(b, g), r), depth, k, normalize=False)
+            return cv2.boxFilter(_channel_max(cv2.absdiff(frame, reference)), depth, k, normalize=False)
         diff = np.abs(frame.astype(np.int32) - reference.astype(np.int32)).max(axis=2).astype(np.float32)
         return cv2.boxFilter(diff, cv2.CV_32F, k, normalize=False)
 
@@ -72,6 +71,19 @@ class ContactCheck:
 
     def is_pressed(self, frame: np.ndarray, reference: np.ndarray) -> bool:
         return self.read(frame, reference).pressed
+
+
+_THREE = np.ones((1, 3), np.uint8)
+
+
+def _channel_max(image: np.ndarray) -> np.ndarray:
+    """HxW uint8: the largest of each pixel's three channels (HxWx3 uint8, C-contiguous). The row
+    of interleaved channels, grown by a 1x3 window anchored at its left, holds at column 3x the
+    largest of pixel x's three bytes; INTER_NEAREST at a third of the width reads exactly columns
+    3x. Two OpenCV calls: half the time of splitting the planes and taking two maxima."""
+    h, w = image.shape[:2]
+    grown = cv2.dilate(image.reshape(h, w * 3), _THREE, anchor=(0, 0))
+    return cv2.resize(grown, (w, h), interpolation=cv2.INTER_NEAREST)
 
 
 def capture_reference(camera, n_frames: int = 5, check: ContactCheck | None = None) -> np.ndarray:

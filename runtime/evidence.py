@@ -107,6 +107,9 @@ class Evidence:
         if not np.all((self._needed > 0) & (self._needed <= 1)):
             raise ValueError(f"Evidence: class_confidence {class_confidence} must be in (0, 1]")
         self._outside: dict[str, float] = {}  # weighted sums of log posteriors of bundle classes outside the scene
+        # the offset rule's item scores of those classes, in item-model order (a dict of them per
+        # press was a fifth of the evidence's time a press); ``_outside_values`` reads either
+        self._outside_scores: np.ndarray | None = None
         self._inside = np.zeros(len(self.classes), dtype=np.float64)  # the same, unrenormalised, for scene classes
         self._open_sum, self._open_n = 0.0, 0
         # below this leading posterior the item is "unknown" even at the limit (default: confidence)
@@ -218,7 +221,7 @@ class Evidence:
             self._likeness = self.item_model.item_ratios(self._z_sum / n, n)[self._rows]
         if math.isfinite(self.known_margin):
             self._inside = self._acc
-            self._outside = {self.item_model.classes[i]: float(scores[i]) for i in self._others}
+            self._outside_scores = scores[self._others] if self._others.size else None
         return self._check(final=False)
 
     @property
@@ -249,20 +252,29 @@ class Evidence:
             return True
         if self._likeness is not None and self._likeness[int(np.argmax(self._acc))] > self.item_model.likeness_ratio:
             return True
-        if self._outside:
+        outside = self._outside_values()
+        if outside is not None:
             best_in = float(np.max(self._inside))
-            return max(self._outside.values()) > best_in + self.known_margin
+            return float(np.max(outside)) > best_in + self.known_margin
         return False
+
+    def _outside_values(self) -> np.ndarray | None:
+        """The scores of the bundle classes outside the scene (float64), or None before any or
+        without any: the offset rule's item scores, or the sum rule's summed log posteriors."""
+        if self._outside_scores is not None:
+            return self._outside_scores
+        return np.fromiter(self._outside.values(), np.float64, len(self._outside)) if self._outside else None
 
     def known_outsider(self) -> bool:
         """Whether a class the job leaves out leads every known class at ``confidence`` and beats
         the scene's best by ``known_margin`` (``refuse_early``; False when it is off)."""
-        if not (self.refuse_early and self._outside):
+        outside = self._outside_values() if self.refuse_early else None
+        if outside is None:
             return False
-        best_out = max(self._outside.values())
+        best_out = float(np.max(outside))
         if not best_out > float(np.max(self._inside)) + self.known_margin:
             return False
-        every = np.concatenate([np.asarray(self._inside, np.float64), np.fromiter(self._outside.values(), np.float64)])
+        every = np.concatenate([np.asarray(self._inside, np.float64), outside])
         return math.exp(best_out - _logsumexp(every)) >= self.confidence
 
     def _decisive(self, post: np.ndarray, i: int) -> bool:

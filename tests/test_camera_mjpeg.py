@@ -150,3 +150,17 @@ def test_contact_check_decides_a_tie_on_exact_window_sums():
     assert check.read(frame, reference).area_fraction == 0.0
     frame[10, 10, 2] = 113  # one level more in one pixel: the 25 windows holding it are over
     assert check.read(frame, reference).area_fraction == 25 / 400
+
+
+@pytest.mark.parametrize("hw", [(1, 1), (1, 7), (5, 1), (13, 17), (240, 320), (480, 640)])
+def test_channel_max_is_the_largest_channel_of_each_pixel(hw):
+    """The contact check's two-call channel maximum (dilate over the interleaved row, nearest
+    resize to every third column) is numpy's max over the channels, bit for bit, at every size -
+    widths of one pixel and odd ones included, where a wrong anchor or rounding would read a
+    neighbour's byte."""
+    from vs2t_edge.runtime.contact import _channel_max
+
+    rng = np.random.default_rng(hw[0] * 1000 + hw[1])
+    image = rng.integers(0, 256, (*hw, 3), dtype=np.uint8)
+    image[..., 2] = np.where(rng.random(hw) < 0.3, 255, image[..., 2])  # ties and the top value
+    assert np.array_equal(_channel_max(image), image.max(axis=2))
