@@ -62,11 +62,13 @@ def _spread(idx: list[int], k: int) -> list[int]:
 
 
 def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str], None] = _log,
-                  jpeg_quality: int | None = None) -> dict:
+                  jpeg_quality: int | None = None, scale: int | None = None) -> dict:
     """Per press: label (class index in model.classes), soft log posterior, novelty, logits_u.
     ``jpeg_quality``: each frame (and the no-contact frame) goes through the camera's JPEG at that
     quality and is decoded at the bundle's scale, as a UVC camera hands it (runtime.preprocess
-    ``camera_press``, what training with ``camera_jpeg`` reads); None: lossless frames."""
+    ``camera_press``, what training with ``camera_jpeg`` reads); None: lossless frames. ``scale``:
+    the camera's decode scale for those frames (bench/press_timing.py ``decode_scale``, the cell's
+    ``devices.camera.decode_scale``); None: the bundle's own (``camera_scale``)."""
     from vs2t_edge.runtime.novelty import log_softmax
     from vs2t_edge.runtime.preprocess import camera_press, camera_reference
 
@@ -77,11 +79,11 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     for j, (fid, idx) in enumerate(presses.items()):
         fab = ds.by_id(fid)
         if q == YUYV:
-            ref, x = _through_yuyv(fab, idx, spec)
+            ref, x = _through_yuyv(fab, idx, spec, scale)
         else:
             # through the JPEG, the no-contact frame is decoded reduced like the frames and prepared at that scale
-            ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame")
-            x = np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}") for i in idx])
+            ref = camera_reference(fab.load_reference(), spec, q, f"{fid} reference frame", scale)
+            x = np.stack([camera_press(fab.load_press(i), ref, spec, q, f"{fid} press {i}", scale) for i in idx])
         for a in range(0, len(x), 32):
             o = model.forward(x[a:a + 32])
             lp.append(model.log_posterior(o))
@@ -98,13 +100,13 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
 YUYV = "yuyv"  # press_outputs' frames through an uncompressed YUYV camera instead of a JPEG quality
 
 
-def _through_yuyv(fab, idx: list[int], spec):
+def _through_yuyv(fab, idx: list[int], spec, scale: int | None = None):
     """A fabric's no-contact frame and presses as a UVC camera streaming YUYV hands them to the
     cell (runtime/yuyv.py, at the bundle's camera scale): (prepared reference, (n, 3, S, S) inputs)."""
     from vs2t_edge.runtime.preprocess import camera_scale, prepare_reference, preprocess_tactile
     from vs2t_edge.runtime.yuyv import through_camera_yuyv
 
-    scale = camera_scale(spec)
+    scale = camera_scale(spec) if scale is None else scale
     ref = prepare_reference(through_camera_yuyv(fab.load_reference(), scale, f"{fab.id} reference frame"), spec, scale)
     x = np.stack([preprocess_tactile(through_camera_yuyv(fab.load_press(i), scale, f"{fab.id} press {i}"), ref, spec,
                                      scale) for i in idx])
@@ -131,9 +133,9 @@ def accuracy_frames(model, jpeg_quality: int, through_jpeg: bool, lossless: bool
     if lossless:
         return None, "lossless (the dataset's PNG)"
     if through_yuyv:
-        return YUYV, "through YUYV 4:2:2 (BT.601 video range), made BGR at the bundle's scale"
+        return YUYV, "through YUYV 4:2:2 (BT.601 video range), made BGR at the cell camera's scale"
     if through_jpeg:
-        return int(jpeg_quality), f"through JPEG q={int(jpeg_quality)}, decoded at the bundle's scale"
+        return int(jpeg_quality), f"through JPEG q={int(jpeg_quality)}, decoded at the cell camera's scale"
     own = int(getattr(model, "camera_jpeg", 0) or 0)
     if own:
         return own, f"through JPEG q={own} (the bundle's camera_jpeg: it trained on such frames), decoded at its scale"

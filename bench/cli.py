@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from vs2t_edge.bench.press_timing import CAMERA_FORMATS
+from vs2t_edge.bench.press_timing import CAMERA_FORMATS, DECODE_SCALES
 
 
 def add_arguments(parser, verb: str) -> None:
@@ -32,6 +32,9 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--camera-format", default="mjpeg", choices=CAMERA_FORMATS,
                         help="what the camera streams, for the press timing: mjpeg (at --jpeg-quality; the default) or "
                              "yuyv (uncompressed 4:2:2, devices.camera.pixel_format yuyv)")
+    parser.add_argument("--camera-decode", default="auto", choices=DECODE_SCALES,
+                        help="the scale the cell's camera decodes frames at (devices.camera.decode_scale): auto (the "
+                             "default: the reduced path's own; a float-path bundle's 640x480 frames at 1/2) or full")
     frames = parser.add_mutually_exclusive_group()
     frames.add_argument("--accuracy-through-jpeg", action="store_true",
                         help="score accuracy on frames passed through that JPEG, decoded at each bundle's scale as "
@@ -101,7 +104,7 @@ def run(args) -> int:
                            accuracy_on=not args.no_accuracy, arm=arm, jpeg_quality=args.jpeg_quality,
                            accuracy_through_jpeg=args.accuracy_through_jpeg, accuracy_lossless=args.accuracy_lossless,
                            pairs=pairs, camera_format=args.camera_format,
-                           accuracy_through_yuyv=args.accuracy_through_yuyv)
+                           accuracy_through_yuyv=args.accuracy_through_yuyv, camera_decode=args.camera_decode)
     except (BundleError, FrameError, FileNotFoundError, RuntimeError) as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 1

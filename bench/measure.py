@@ -48,7 +48,7 @@ import numpy as np
 
 # the accuracy half lives in runtime/bench_accuracy.py; its names stay importable from here
 from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. stay importable from here
-    CAMERA_FORMATS, JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, camera_payload,
+    CAMERA_FORMATS, DECODE_SCALES, JPEG_QUALITY, OUTSIDE_STAGES, STAGES, CameraChecks, _time_runs, _time_split, camera_payload,
     decode_payload, decode_scale, press_stages, split_press_graph, stages_of)
 from vs2t_edge.bench.verdict import (  # noqa: F401 - the verdict's names stay importable from here
     CELL_MEASURES, MIN_INT8_SPEEDUP, TARGET_CELL_MS, TARGET_CELL_P99_MS, TARGET_INT8_POINTS, TARGET_OF_LIMIT,
@@ -162,7 +162,8 @@ def cell_evidence(model) -> tuple[Callable[[], Any], int]:
 
 
 def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], budget_s: float,
-                 n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY, camera_format: str = "mjpeg") -> dict:
+                 n_frames: int = 16, jpeg_quality: int = JPEG_QUALITY, camera_format: str = "mjpeg",
+                 camera_decode: str = "auto") -> dict:
     """Runs in its own process (see module doc). Returns latencies, overheads and peak RSS.
 
     Per thread count: the trunk alone (``latency``) and the whole press (``press``: MJPEG decode +
@@ -173,7 +174,8 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
     ``outside``.
     ``overhead_ms`` / ``overhead_p99_ms`` are the stage medians / p99 at the largest thread count;
     PNG decode (what replays and the bench pay, not the camera) is timed apart. ``camera_format``
-    yuyv: the camera streams uncompressed YUYV (runtime/yuyv.py) instead of MJPEG at ``jpeg_quality``."""
+    yuyv: the camera streams uncompressed YUYV (runtime/yuyv.py) instead of MJPEG at ``jpeg_quality``;
+    ``camera_decode``: the cell's ``devices.camera.decode_scale`` (auto or full)."""
     import cv2
 
     from vs2t_edge.runtime.dataset import load_dataset
@@ -207,7 +209,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                 jpegs.append(camera_payload(cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
                                             camera_format, jpeg_quality))
             # as the cell's camera hands them: decoded at the bundle's scale, the reference too
-            scale, sensor_hw = decode_scale(model), list(ref.shape[:2])
+            scale, sensor_hw = decode_scale(model, ref.shape[:2], camera_decode), list(ref.shape[:2])
             frames = [decode_payload(b, scale) for b in jpegs]
             ref = decode_payload(camera_payload(ref, camera_format, jpeg_quality), scale)
         model.set_reference(ref, scale)
@@ -227,12 +229,12 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
         new_item, item_presses = cell_evidence(model)
         ev = new_item()
         for k in range(3):
-            press_stages(model, jpegs[k % len(jpegs)], ev, checks)
+            press_stages(model, jpegs[k % len(jpegs)], ev, checks, scale)
         n_press = int(min(400, max(60, 4 * len(jpegs), budget_s / max(est + 1e-3, 1e-4))))
         for k in range(n_press):
             if k % item_presses == 0:  # a new item at the press limit, as the cell's evidence would
                 ev = new_item()
-            for key, v in press_stages(model, jpegs[k % len(jpegs)], ev, checks).items():
+            for key, v in press_stages(model, jpegs[k % len(jpegs)], ev, checks, scale).items():
                 stages[key].append(v)
             t0 = time.perf_counter()  # beside each press (same process state), not in its total
             cv2.imdecode(np.frombuffer(raw_png[k % len(raw_png)], np.uint8), cv2.IMREAD_COLOR)
@@ -319,7 +321,9 @@ def frames_said(rows: list[dict], jpeg_quality: int, through_jpeg: bool) -> str:
     the same kind, else each variant's (a bundle trained through the camera's JPEG reads its own)."""
     said = {r["name"]: r["accuracy_frames"] for r in rows if "accuracy_frames" in r}
     if through_jpeg:
-        return f"through JPEG q={jpeg_quality}, decoded at each bundle's scale"
+        scales = sorted({r["decode_scale_accuracy"] for r in rows if "decode_scale_accuracy" in r})
+        at = ("/".join(f"1/{n}" for n in scales) + ": ") if scales else ""
+        return f"through JPEG q={jpeg_quality}, decoded at {at}the scale the cell's camera decodes each bundle's at"
     if len(set(said.values())) <= 1:
         return next(iter(said.values()), "lossless (the dataset's PNG)")
     return "per variant - " + "; ".join(f"{name}: {what}" for name, what in said.items())
@@ -339,7 +343,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
               threads: Sequence[int] = (1, 2), budget_s: float = 4.0, n_items: int = 100, cap: int = 0,
               accuracy_on: bool = True, arm=None, jpeg_quality: int = JPEG_QUALITY, accuracy_through_jpeg: bool = False,
               accuracy_lossless: bool = False, pairs: Sequence[tuple[str, str]] = (),
-              camera_format: str = "mjpeg", accuracy_through_yuyv: bool = False,
+              camera_format: str = "mjpeg", accuracy_through_yuyv: bool = False, camera_decode: str = "auto",
               log: Callable[[str], None] = _log) -> dict:
     """The bench (module doc). ``arm``: runtime.sorting.ArmTimes, for pieces per minute.
     ``jpeg_quality``: what the camera's MJPEG frames are encoded at (timing); with
@@ -349,7 +353,10 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     (``accuracy_lossless``: every bundle on the lossless frames). ``pairs``: (A, B) variant names
     whose difference B - A is paired on the same presses and items (bench/paired.py), as every
     int8 bundle is with its fp32 twin. ``camera_format`` yuyv: the press is timed on uncompressed
-    YUYV frames (runtime/yuyv.py) instead of MJPEG; ``accuracy_through_yuyv`` scores through them."""
+    YUYV frames (runtime/yuyv.py) instead of MJPEG; ``accuracy_through_yuyv`` scores through them.
+    ``camera_decode``: the cell's ``devices.camera.decode_scale`` - the scale the camera's frames are
+    decoded at, for the timing and for accuracy through the camera's JPEG or YUYV (auto: a
+    float-path bundle's frames at 1/2 of 640x480, runtime/wiring.py ``model_decode_scale``)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.inference import TactileModel
 
@@ -366,7 +373,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
         row = describe(b)
         log(f"[{i + 1}/{len(bundles)}] {b.name}: speed ({row['arch']} {row['precision']} {row['size_px']} px)")
         args = ["--worker", str(b), "--threads", ",".join(map(str, threads)), "--budget", str(budget_s),
-                "--jpeg-quality", str(jpeg_quality), "--camera-format", camera_format]
+                "--jpeg-quality", str(jpeg_quality), "--camera-format", camera_format, "--camera-decode", camera_decode]
         if dataset:
             args += ["--dataset", dataset]
         row.update(_run_worker(args))
@@ -386,7 +393,12 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                                                                   accuracy_lossless, accuracy_through_yuyv)
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
-                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality)
+                row["decode_scale_accuracy"] = decode_scale(model, ds.by_id(model.touched[0]).load_reference().shape[:2],
+                                                            camera_decode) if quality else 1
+                if quality:
+                    row["accuracy_frames"] += f" (1/{row['decode_scale_accuracy']})"
+                outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality,
+                                     scale=row["decode_scale_accuracy"])
                 row["accuracy"] = accuracy(model, outs, n_items=n_items)
                 views[row["name"]] = paired_view(model, outs)  # for the paired int8-fp32 comparison
                 if arm is not None:
@@ -397,7 +409,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     result = {"machine": machine, "peak": peak, "baseline_rss_mb": base["peak_rss_mb"], "variants": rows,
               "seconds": round(time.time() - t_start, 1), "arm_times": asdict(arm) if arm is not None else None,
               "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "jpeg_quality": jpeg_quality,
-              "camera_format": camera_format,
+              "camera_format": camera_format, "camera_decode": camera_decode,
               "accuracy_frames": frames_said(rows, jpeg_quality, accuracy_through_jpeg)}
     result["pairs"] = [{"a": a, "b": b, "paired": paired(views[a], views[b], n_items=n_items)}
                        for a, b in pairs if a in views and b in views]
@@ -476,13 +488,15 @@ def _main(argv: list[str]) -> int:
     p.add_argument("--budget", type=float, default=4.0)
     p.add_argument("--jpeg-quality", type=int, default=JPEG_QUALITY)
     p.add_argument("--camera-format", default="mjpeg", choices=CAMERA_FORMATS)
+    p.add_argument("--camera-decode", default="auto", choices=DECODE_SCALES)
     p.add_argument("--dataset")
     a = p.parse_args(argv)
     if a.baseline:
         print(json.dumps(baseline_worker()))
     else:
         print(json.dumps(speed_worker(a.worker, a.dataset, [int(t) for t in a.threads.split(",")], a.budget,
-                                      jpeg_quality=a.jpeg_quality, camera_format=a.camera_format)))
+                                      jpeg_quality=a.jpeg_quality, camera_format=a.camera_format,
+                                      camera_decode=a.camera_decode)))
     return 0
 
 

@@ -15,6 +15,8 @@ OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
 # what the camera streams (devices.camera.pixel_format) and the stage its frame's decode is timed as
 DECODE_STAGE = {"mjpeg": "decode_mjpeg", "yuyv": "decode_yuyv"}
 CAMERA_FORMATS = tuple(DECODE_STAGE)  # runtime/camera.py PIXEL_FORMATS (tests/test_bench.py holds them equal)
+# the cell's devices.camera.decode_scale settings: runtime/wiring.py DECODE_SCALES (tests/test_bench.py holds them equal)
+DECODE_SCALES = ("auto", "full")
 DECODE_LABEL = {"decode_mjpeg": "MJPEG decode", "decode_yuyv": "YUYV to BGR"}
 
 
@@ -58,10 +60,13 @@ def decode_payload(payload, scale: int) -> np.ndarray | None:
     return decode_jpeg(payload, scale)
 
 
-def decode_scale(model) -> int:
-    """The scale the cell's MJPEG camera decodes at for this bundle: 1/reduce on the reduced
-    path (runtime/preprocess.py), full size otherwise (runtime/camera.py UVCCamera)."""
-    return max(1, model.preprocess_spec.reduce) if model.descriptor is None else 1
+def decode_scale(model, frame_hw: tuple[int, int] | None = None, setting: str = "auto") -> int:
+    """The scale the cell's UVC camera decodes ``frame_hw`` frames at for this bundle with
+    ``devices.camera.decode_scale`` = ``setting`` (runtime/wiring.py ``model_decode_scale``: 1/reduce
+    on the reduced path; auto: a float-path bundle's too, 1/2 of 640x480 at 128 or 224 px)."""
+    from vs2t_edge.runtime.wiring import model_decode_scale
+
+    return model_decode_scale(model, frame_hw, setting)
 
 
 class CameraChecks:
@@ -80,15 +85,17 @@ class CameraChecks:
         self.contact.read(image, self.reference)
 
 
-def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None) -> dict[str, float]:
+def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None,
+                 scale: int | None = None) -> dict[str, float]:
     """One press as the cell pays for it, in ms per stage: decode the camera's frame (a UVC
     GelSight streams MJPEG by default; the camera decodes it with libjpeg, at 1/reduce scale for a
-    bundle on the reduced path: ``decode_scale``; a YUYV frame - ``camera_payload`` - is made BGR
+    bundle on the reduced path, and for a float-path one with decode_scale auto: ``scale``, from
+    ``decode_scale``; None: the bundle's own, without a frame size); a YUYV frame - ``camera_payload`` - is made BGR
     and reduced instead), the camera's frame checks (``checks``), preprocess, trunk,
     heads, router, decision (TactileModel.score_press) and the evidence update. For a fused bundle
     (format 2) "trunk" is the one onnxruntime call, heads and projections included, and "heads" is
     0 (``speed_worker`` measures what the graph's tail costs apart)."""
-    scale = decode_scale(model)
+    scale = decode_scale(model) if scale is None else scale
     stage = DECODE_STAGE["yuyv" if _is_yuyv(jpeg) else "mjpeg"]
     t0 = time.perf_counter()
     frame = decode_payload(jpeg, scale)

@@ -8,13 +8,17 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   read back into ``settings_applied``); a bounded read; stale buffered frames flushed, and where the
   driver stamps its frames with their capture time (V4L2), any frame taken before the grab was
   asked read past (``stale_dropped``) or refused (reason ``stale``). For a
-  bundle on the reduced pixel path (``preprocess.reduce`` n >= 2, runtime/preprocess.py) it asks
+  bundle on the reduced pixel path (``preprocess.reduce`` n >= 2, runtime/preprocess.py) - or a
+  float-path one the cell decodes reduced (below) - it asks
   the driver for the MJPEG stream undecoded (``CAP_PROP_FOURCC`` MJPG, ``CAP_PROP_CONVERT_RGB`` 0;
   OpenCV's V4L2 backend honours it and hands the JPEG bytes) and decodes each frame itself at 1/n
   scale (``decode_jpeg``: libjpeg skips most of the work), handing ``Frame(reduced_by=n)``. A
   backend that still hands decoded frames (other backends, a camera without MJPEG) is the
   fallback: its full frames go to the model as they are, which reduces them with the very
-  function training used (``settings_applied["mjpeg_undecoded"]`` says which). With
+  function training used (``settings_applied["mjpeg_undecoded"]`` says which). A float-path
+  bundle is decoded so too, at ``preprocess.float_path_scale`` (``devices.camera.decode_scale``
+  auto, the default: runtime/wiring.py ``model_decode_scale``), and takes the frames the fallback
+  hands at full size as they are. With
   ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
   raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
   loss; ``settings_applied["pixel_format"]`` is what the driver runs); a camera that runs another
@@ -201,6 +205,11 @@ class UVCCamera(CameraBase):
         # the driver has shown it stamps frames with the monotonic clock (kept across a reopen: the same driver)
         self._stamped = False
 
+    @property
+    def expected_hw(self) -> tuple[int, int] | None:
+        """The full frame size configured (height, width), or None: any size is taken."""
+        return self._guard.expected_hw
+
     def connect(self) -> None:
         """Open the device and apply the settings, in a thread bounded by ``open_timeout_s``: a
         driver that hangs in open or in a setting becomes a camera fault the cell can latch,
@@ -286,6 +295,7 @@ class UVCCamera(CameraBase):
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             applied["mjpeg_undecoded"] = _raw_frames(cap)
+        applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
         return cap, applied
 
     def disconnect(self) -> None:

@@ -168,7 +168,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     if camera is None or arm is None or gate is None:
         try:
             camera, arm, gate = build_live_devices(cfg)
-            match_camera(camera, model)  # a UVC camera decodes MJPEG at the bundle's scale
+            match_camera(camera, model, cfg.camera["decode_scale"])  # a UVC camera decodes at the bundle's scale
         except (ConfigError, ValueError) as exc:  # ValueError: a driver refusing its settings
             # (validation checks the drivers' constraints, so this is a gap to report, in words)
             log(str(exc) if isinstance(exc, ConfigError) else f"{cfg.path}: a device refused its settings: {exc}")

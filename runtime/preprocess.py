@@ -37,6 +37,11 @@ at q95, where the float path's full MJPEG decode already differs by 0.90 (the JP
 tests/test_preprocess.py bounds the ratio). ``auto_reduce`` picks the factor: the largest that
 leaves at least ``size`` pixels across the crop.
 
+A float-path bundle on a UVC camera (cell config ``devices.camera.decode_scale: auto``, the
+default) gets its frames decoded at ``float_path_scale`` - 1/2 of a 640x480 frame at 128 or 224 px -
+and runs the float path on them unchanged: the decoder's reduction stands in for the first part
+of the INTER_AREA decimation, and the frame's decode, checks and crop shrink fourfold.
+
 The camera's JPEG itself: a UVC camera's MJPEG frames are lossy where the dataset's are lossless
 (at q95 the float-path paper bundle lost 7.3 points of touched accuracy per press, a train/serve
 skew). ``through_camera_jpeg(frame, quality, scale)`` is that camera: encode at ``quality``,
@@ -225,9 +230,23 @@ def check_camera_jpeg(quality: object, what: str = "camera_jpeg") -> int:
 
 
 def camera_scale(spec: TactilePreprocess) -> int:
-    """The scale a UVC camera decodes its MJPEG at for this preprocessing: 1/reduce on the reduced
-    path, full size on the float path (runtime/camera.py)."""
+    """The scale a model's frames were trained at through the camera (``camera_jpeg``): 1/reduce on
+    the reduced path, full size on the float path. The cell's UVC camera decodes at it, or - a
+    float-path bundle trained on lossless frames - at ``float_path_scale`` (runtime/wiring.py)."""
     return max(1, spec.reduce)
+
+
+def float_path_scale(spec: TactilePreprocess, frame_hw: tuple[int, int]) -> int:
+    """The smallest scale a camera may decode ``frame_hw`` frames at for a float-path bundle: the
+    largest 1/n that leaves ``spec.size`` px across the crop (``auto_reduce``; 640x480 at 128 or
+    224 px: 2), where the decoder's own reduction - the JPEG's scaled inverse DCT, YUYV's box
+    average - stands in for the first part of the float path's INTER_AREA decimation. 1 for a
+    bundle that corrects a real GelSight's full frames. The float path then runs unchanged on the
+    smaller frame (``preprocess_tactile``); docs/cell.md ``devices.camera.decode_scale`` says what
+    it costs and buys."""
+    if spec.reduce or spec.inpaint_markers or spec.normalise_exposure:
+        return 1
+    return auto_reduce(frame_hw, spec.size, spec.crop_fraction)
 
 
 def through_camera_jpeg(frame: np.ndarray, quality: int, scale: int = 1, name: str = "frame") -> np.ndarray:
@@ -317,9 +336,12 @@ class PreparedReference:
 
 
 def _check_reduced_by(reduced_by: int, spec: TactilePreprocess) -> None:
-    if reduced_by != 1 and spec.reduce == 0:
-        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but the bundle's preprocessing takes full "
-                         "frames (no 'reduce')", "scale")
+    """The float path takes a frame the camera decoded reduced (``float_path_scale``) unless it
+    corrects a real GelSight's frames, whose marker and exposure steps were set at full size; the
+    reduced path checks its own factor (``_reduced_input``)."""
+    if reduced_by != 1 and spec.reduce == 0 and (spec.inpaint_markers or spec.normalise_exposure):
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but the bundle's preprocessing corrects a real "
+                         "GelSight's full frames (inpaint_markers / normalise_exposure)", "scale")
 
 
 def prepare_reference(reference: np.ndarray, spec: TactilePreprocess, reduced_by: int = 1) -> PreparedReference:
@@ -406,23 +428,25 @@ def camera_frame(frame: np.ndarray, camera_jpeg: int, scale: int = 1, name: str 
 
 
 def camera_reference(reference: np.ndarray, spec: TactilePreprocess, camera_jpeg: int = 0,
-                     name: str = "reference frame") -> PreparedReference:
+                     name: str = "reference frame", scale: int | None = None) -> PreparedReference:
     """A dataset's lossless no-contact frame prepared as the cell prepares its camera's: with
-    ``camera_jpeg`` Q > 0 through the camera's JPEG at Q, decoded at ``camera_scale(spec)``
+    ``camera_jpeg`` Q > 0 through the camera's JPEG at Q, decoded at ``scale`` (default
+    ``camera_scale(spec)``, training's; the bench passes the cell's: ``float_path_scale``)
     (``through_camera_jpeg``); 0: the lossless frame as it is (every run before the option)."""
     if not camera_jpeg:
         return prepare_reference(reference, spec)
-    scale = camera_scale(spec)
+    scale = camera_scale(spec) if scale is None else scale
     return prepare_reference(through_camera_jpeg(reference, camera_jpeg, scale, name), spec, scale)
 
 
 def camera_press(frame: np.ndarray, reference: PreparedReference | None, spec: TactilePreprocess,
-                 camera_jpeg: int = 0, name: str = "frame") -> np.ndarray:
+                 camera_jpeg: int = 0, name: str = "frame", scale: int | None = None) -> np.ndarray:
     """A dataset's lossless press frame -> (3, S, S) float32 as the cell scores its camera's frame
-    (``camera_reference``'s rule; ``reference`` from ``camera_reference`` with the same quality)."""
+    (``camera_reference``'s rule; ``reference`` from ``camera_reference`` with the same quality
+    and scale)."""
     if not camera_jpeg:
         return preprocess_tactile(frame, reference, spec)
-    scale = camera_scale(spec)
+    scale = camera_scale(spec) if scale is None else scale
     return preprocess_tactile(through_camera_jpeg(frame, camera_jpeg, scale, name), reference, spec, scale)
 
 

@@ -84,7 +84,7 @@ def _record(config: Path, out: Path, max_items: int, stop_event: threading.Event
     except Exception as exc:  # noqa: BLE001
         print(f"record: bundle {cfg.bundle} refused: {exc}", file=sys.stderr)
         return 2
-    wiring.match_camera(camera, model)  # a UVC camera decodes MJPEG at the bundle's scale
+    wiring.match_camera(camera, model, cfg.camera["decode_scale"])  # a UVC camera decodes at the bundle's scale
     # the item rule is the daemon's own (wiring.build_cell): what `run` would decide is recorded
     out = record_session(cfg, out, model=model, camera=camera, arm=arm, gate=gate,
                          items=recording_feed(max_items), log=lambda m: print(m, file=sys.stderr),

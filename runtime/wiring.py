@@ -34,6 +34,7 @@ from vs2t_edge.runtime.labels import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
+from vs2t_edge.runtime.preprocess import float_path_scale
 from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, scene_bundle_problem, scene_model_settings
 
 
@@ -110,20 +111,34 @@ def contact_check_for(cfg: CellConfig) -> ContactCheck | None:
     return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
 
 
-def model_decode_scale(model: Any) -> int:
-    """The scale a UVC camera decodes its MJPEG frames at for ``model``'s bundle: 1/reduce on the
-    reduced pixel path (runtime/preprocess.py), full size otherwise (and for any other model)."""
+DECODE_SCALES = ("auto", "full")  # devices.camera.decode_scale (runtime/config.py holds the literal)
+
+
+def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, setting: str = "auto") -> int:
+    """The scale a UVC camera decodes its frames at for ``model``'s bundle (``devices.camera.decode_scale``):
+
+    - ``full``: full size; a reduced-path bundle then reduces the frames itself, as in training;
+    - ``auto`` (the default): the reduced path's own 1/reduce; a float-path bundle trained on
+      lossless frames the largest 1/n that leaves its input size across the crop of ``frame_hw``
+      frames (runtime/preprocess.py ``float_path_scale``: 1/2 of 640x480 at 128 or 224 px); one
+      trained through the camera's JPEG (manifest ``camera_jpeg``) the scale it trained at; full
+      size without ``frame_hw``, for a descriptor bundle and for any other model."""
+    if setting not in DECODE_SCALES:
+        raise ValueError(f"decode_scale {setting!r}: one of {DECODE_SCALES}")
     spec = getattr(model, "preprocess_spec", None)
-    if getattr(model, "descriptor", None) is not None or spec is None:
+    if getattr(model, "descriptor", None) is not None or spec is None or setting == "full":
         return 1
-    return max(1, int(getattr(spec, "reduce", 0)))
+    if int(getattr(spec, "reduce", 0)) or int(getattr(model, "camera_jpeg", 0) or 0) or frame_hw is None:
+        return max(1, int(getattr(spec, "reduce", 0)))
+    return float_path_scale(spec, frame_hw)
 
 
-def match_camera(camera: Any, model: Any) -> None:
-    """Before connect: a UVC camera decodes its MJPEG frames at the scale ``model``'s bundle takes
-    (``model_decode_scale``); other cameras hand full frames, which the model reduces itself."""
+def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:
+    """Before connect: a UVC camera decodes its frames at the scale ``model_decode_scale`` gives
+    ``model``'s bundle for the camera's configured size; other cameras hand full frames, which the
+    model reduces itself (reduced path) or takes whole (float path)."""
     if isinstance(camera, UVCCamera):
-        camera.decode_scale = model_decode_scale(model)
+        camera.decode_scale = model_decode_scale(model, camera.expected_hw, setting)
 
 
 def build_live_devices(cfg: CellConfig):
@@ -168,4 +183,4 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
 
 
 __all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
-           "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]
+           "DECODE_SCALES", "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]

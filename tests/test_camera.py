@@ -147,7 +147,7 @@ def test_uvc_settings_reach_the_driver_and_what_it_accepted_is_read_back(recordi
         props = [prop for prop, _ in cap.sets]
         assert props.index(cv2.CAP_PROP_AUTO_EXPOSURE) < props.index(cv2.CAP_PROP_EXPOSURE)
         assert cam.settings_applied == {"width": 320.0, "height": 240.0, "fps": 30.0, "exposure": 160.0,
-                                        "buffersize": 1.0, "flush_frames": 3}
+                                        "buffersize": 1.0, "flush_frames": 3, "decode_scale": 1}
         image = cam.grab().image
         assert image.shape == (240, 320, 3)
         assert (cap.grabs, cap.reads) == (3, 1)  # the buffered frames were dropped before the read

@@ -51,7 +51,7 @@ def test_uvc_takes_mjpeg_undecoded_and_decodes_it_at_the_bundles_scale(mjpeg_cap
         cap = mjpeg_capture[0]
         assert (cv2.CAP_PROP_CONVERT_RGB, 0.0) in cap.sets
         assert (cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG"))) in cap.sets
-        assert cam.settings_applied["mjpeg_undecoded"] is True
+        assert cam.settings_applied["mjpeg_undecoded"] is True and cam.settings_applied["decode_scale"] == 2
         frame = cam.grab()
         # checked at the reduced size the configured 640x480 becomes
         assert frame.image.shape == (240, 320, 3) and frame.reduced_by == 2

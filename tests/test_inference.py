@@ -105,12 +105,22 @@ def test_a_bundle_on_the_reduced_path_scores_full_and_camera_reduced_frames_alik
     assert exc.value.reason == "scale"
 
 
-def test_a_float_path_bundle_keeps_its_manifest_and_refuses_reduced_frames(model):
-    from vs2t_edge.runtime.preprocess import reduce_frame
+def test_a_float_path_bundle_keeps_its_manifest_and_scores_frames_decoded_reduced(model):
+    """A float-path bundle takes the frames a camera decoded at 1/2 (``devices.camera.decode_scale``
+    auto) against a reference decoded the same way, and runs its float path on them unchanged; a
+    reduced frame against a full-size reference is refused by size."""
+    from vs2t_edge.runtime.preprocess import preprocess_tactile, reduce_frame
 
     assert "reduce" not in model.bundle.manifest["preprocess"] and model.preprocess_spec.reduce == 0
     _, raws, ref = world_frames()
     model.set_reference(ref)
     with pytest.raises(FrameError) as exc:
         model.score_press(reduce_frame(raws[1], 2), reduced_by=2)
-    assert exc.value.reason == "scale"
+    assert exc.value.reason == "size"
+    model.set_reference(reduce_frame(ref, 2), reduced_by=2)
+    x = model.preprocess(reduce_frame(raws[1], 2), reduced_by=2)
+    assert x.shape == (1, 3, model.preprocess_spec.size, model.preprocess_spec.size)
+    np.testing.assert_array_equal(x[0], preprocess_tactile(reduce_frame(raws[1], 2), reduce_frame(ref, 2),
+                                                           model.preprocess_spec))
+    s = model.score_press(reduce_frame(raws[1], 2), reduced_by=2)
+    assert all(np.isfinite(v) for v in s.log_posterior.values())

@@ -265,9 +265,12 @@ def test_reduced_frames_are_refused_by_name_where_they_do_not_belong():
     with pytest.raises(FrameError) as exc:  # the camera decoded at 1/4, the bundle takes 1/2
         preprocess_tactile(reduce_frame(frame, 4), prepare_reference(ref, reduced), reduced, reduced_by=4)
     assert exc.value.reason == "scale"
-    with pytest.raises(FrameError) as exc:  # a float-path bundle takes only full frames
-        preprocess_tactile(small, ref, TactilePreprocess(size=32), reduced_by=2)
+    with pytest.raises(FrameError) as exc:  # a float-path bundle correcting a real GelSight takes only full frames
+        preprocess_tactile(small, ref, TactilePreprocess(size=32, normalise_exposure=True), reduced_by=2)
     assert exc.value.reason == "scale"
+    with pytest.raises(FrameError) as exc:  # a reduced frame against a full-size reference: named by size
+        preprocess_tactile(small, ref, TactilePreprocess(size=32), reduced_by=2)
+    assert exc.value.reason == "size"
     with pytest.raises(FrameError, match="does not match the no-contact reference frame's 80x60") as exc:
         preprocess_tactile(reduce_frame(small, 2), prepare_reference(ref, reduced), reduced, reduced_by=2)
     for bad, reason in ((np.zeros_like(small), "black"), (np.full_like(small, 255), "white"),

@@ -1,0 +1,141 @@
+"""The scale a UVC camera decodes its frames at for a bundle (``devices.camera.decode_scale``):
+a float-path bundle's 640x480 frames at 1/2 by default, the reduced path's own scale, full size
+when asked or when the bundle trained through the camera's JPEG at full size."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from vs2t_edge.runtime.preprocess import (TactilePreprocess, decode_jpeg, float_path_scale, prepare_reference,
+                                          preprocess_tactile)
+from vs2t_edge.runtime.wiring import DECODE_SCALES, match_camera, model_decode_scale
+
+
+@pytest.mark.parametrize("hw,size,crop,scale", [
+    ((480, 640), 128, 1.0, 2), ((480, 640), 224, 1.0, 2), ((480, 640), 64, 1.0, 4), ((480, 640), 32, 1.0, 8),
+    ((240, 320), 128, 1.0, 1), ((480, 640), 128, 0.5, 1), ((480, 640), 240, 1.0, 2), ((480, 640), 241, 1.0, 1)])
+def test_float_path_scale_keeps_the_input_size_across_the_crop(hw, size, crop, scale):
+    spec = TactilePreprocess(size=size, crop_fraction=crop)
+    assert float_path_scale(spec, hw) == scale
+    assert min(hw) * crop / scale >= size or scale == 1
+
+
+def test_float_path_scale_is_full_size_for_a_real_gelsights_corrections_and_the_reduced_path():
+    assert float_path_scale(TactilePreprocess(size=128, inpaint_markers=True), (480, 640)) == 1
+    assert float_path_scale(TactilePreprocess(size=128, normalise_exposure=True), (480, 640)) == 1
+    assert float_path_scale(TactilePreprocess(size=128, reduce=2), (480, 640)) == 1  # its own: model_decode_scale
+
+
+def _model(spec, camera_jpeg=0, descriptor=None):
+    return SimpleNamespace(preprocess_spec=spec, camera_jpeg=camera_jpeg, descriptor=descriptor)
+
+
+def test_model_decode_scale_follows_the_setting_and_the_bundle():
+    hw = (480, 640)
+    floatp, reduced = TactilePreprocess(size=128), TactilePreprocess(size=128, reduce=2)
+    assert model_decode_scale(_model(floatp), hw) == 2  # auto: the float path's frames at 1/2
+    assert model_decode_scale(_model(floatp), hw, "full") == 1
+    assert model_decode_scale(_model(floatp), None) == 1  # no configured size: nothing to choose from
+    assert model_decode_scale(_model(floatp, camera_jpeg=95), hw) == 1  # trained through the JPEG at full size
+    assert model_decode_scale(_model(reduced), hw) == 2 and model_decode_scale(_model(reduced), None) == 2
+    assert model_decode_scale(_model(reduced), hw, "full") == 1  # the model reduces full frames itself
+    assert model_decode_scale(_model(floatp, descriptor=object()), hw) == 1
+    assert model_decode_scale(object(), hw) == 1
+    with pytest.raises(ValueError, match="decode_scale 'half'"):
+        model_decode_scale(_model(floatp), hw, "half")
+
+
+def test_match_camera_gives_a_uvc_camera_the_scale_for_its_configured_size():
+    from vs2t_edge.runtime.camera import UVCCamera
+
+    cam = UVCCamera(0, expected_hw=(480, 640))  # not connected: only its settings
+    match_camera(cam, _model(TactilePreprocess(size=128)))
+    assert cam.decode_scale == 2
+    match_camera(cam, _model(TactilePreprocess(size=128)), "full")
+    assert cam.decode_scale == 1
+    small = UVCCamera(0, expected_hw=(240, 320))
+    match_camera(small, _model(TactilePreprocess(size=128)))
+    assert small.decode_scale == 1
+
+
+def test_the_config_key_and_the_benchs_choices_are_the_cells():
+    from vs2t_edge.bench.press_timing import DECODE_SCALES as bench_scales
+    from vs2t_edge.runtime.config import _SCHEMA
+
+    leaf = _SCHEMA["devices"]["camera"]["decode_scale"]
+    assert bench_scales == DECODE_SCALES
+    assert "auto" in str(leaf) and "full" in str(leaf)
+
+
+def test_a_config_with_another_decode_scale_is_refused_by_key(tmp_path):
+    from vs2t_edge.runtime.config import ConfigError, load_config
+
+    (tmp_path / "b").mkdir()
+    path = tmp_path / "cell.yaml"
+    scene = "scene:\n  reject_bin: 0\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n"
+    path.write_text("bundle: b\ndevices:\n  camera:\n    decode_scale: half\n" + scene)
+    with pytest.raises(ConfigError, match="decode_scale"):
+        load_config(path)
+    path.write_text("bundle: b\n" + scene)
+    assert load_config(path).camera["decode_scale"] == "auto"
+
+
+def test_a_float_path_input_from_the_half_decode_is_as_close_to_training_as_the_full_decode():
+    """Training reads lossless frames; a UVC camera hands MJPEG. Decoded at 1/2 (the JPEG's scaled
+    inverse DCT standing in for the first half of the float path's INTER_AREA decimation) the
+    network input is no farther from training's than the full decode's: the rendered press at q95,
+    128 px 0.90 -> 0.83 grey levels mean (p99 3.8 -> 3.3); 224 px 1.10 -> 1.08 (4.6 -> 4.3)."""
+    from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
+
+    rng = np.random.default_rng(3)
+    sensor = GelSight()  # 640 x 480, markers, read noise
+    bg = background(sensor, 3)
+    ref = reference_frame(bg, sensor, rng)
+    yy, xx = np.mgrid[0:sensor.height_px, 0:sensor.width_px].astype(np.float32) * np.float32(sensor.mm_per_px)
+    weave = 0.04 * np.sin(2 * np.pi * xx / 0.6) * np.sin(2 * np.pi * yy / 0.6)  # a fabric's texture, mm
+    dome = 0.3 * np.exp(-((xx - 7.5) ** 2 + (yy - 5.6) ** 2) / 12.0)  # the press
+    frame = render_press((dome + weave * (dome > 0.05)).astype(np.float32), bg, sensor, rng)
+    jpeg = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for f in (frame, ref)]
+    for size in (128, 224):
+        spec = TactilePreprocess(size=size)
+        trained = preprocess_tactile(frame, ref, spec)
+
+        def gap(scale):
+            small = [decode_jpeg(j, scale) for j in jpeg]
+            served = preprocess_tactile(small[0], prepare_reference(small[1], spec, scale), spec, reduced_by=scale)
+            return np.abs(served - trained) * np.asarray(spec.std)[:, None, None] * 255  # grey levels
+
+        full, half = gap(1), gap(float_path_scale(spec, frame.shape[:2]))
+        assert full.mean() > 0.3  # the JPEG loss is there to compare with
+        assert half.mean() <= full.mean() and np.percentile(half, 99) <= np.percentile(full, 99)
+
+
+def test_the_bench_scores_a_float_path_bundle_on_frames_decoded_at_the_cells_scale(tmp_path):
+    """``press_outputs(scale=2)`` on a float-path bundle: the frames and the no-contact frame are
+    decoded at 1/2 as the cell's camera hands them with decode_scale auto, and score as the cell
+    scores such frames; without ``scale`` they are decoded at full size, as training's camera_jpeg."""
+    from test_bundle_fixtures import SIZE, make_bundle, world_frames
+
+    from vs2t_edge.bench import accuracy as acc
+    from vs2t_edge.runtime.inference import TactileModel
+
+    make_bundle(tmp_path / "b", "fp32", preprocess=TactilePreprocess(size=SIZE))
+    model = TactileModel.load(tmp_path / "b", threads=1)
+    _, raws, ref = world_frames()
+    fabric = SimpleNamespace(load_reference=lambda: ref, load_press=lambda i: raws[i])
+    ds = SimpleNamespace(by_id=lambda fid: fabric)
+    half = acc.press_outputs(model, ds, {model.classes[0]: [3, 5]}, log=lambda m: None, jpeg_quality=90, scale=2)
+    full = acc.press_outputs(model, ds, {model.classes[0]: [3, 5]}, log=lambda m: None, jpeg_quality=90)
+
+    def camera(frame, scale):
+        return decode_jpeg(cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes(), scale)
+    for out, scale in ((half, 2), (full, 1)):
+        model.set_reference(camera(ref, scale), reduced_by=scale)
+        expected = model.forward(np.concatenate([model.preprocess(camera(raws[i], scale), reduced_by=scale)
+                                                 for i in (3, 5)]))
+        np.testing.assert_allclose(out["feature"], expected.feature, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(half["feature"], full["feature"], atol=1e-4)
