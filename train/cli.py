@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--seed", type=int, help="split and training seed (default 0)")
     parser.add_argument("--max-presses", type=int, metavar="N",
                         help="presses per fabric to extract features from, in press order (0: all; profile "
-                             "default: all, 45 for paper)")
+                             "default: all, 90 for paper)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--visual-tail", choices=("frozen", "finetuned"),
                         help="fine-tune the visual trunk's tail on touched fabrics' camera crops per split, or keep "
