@@ -89,17 +89,9 @@ def test_a_float_path_input_from_the_half_decode_is_as_close_to_training_as_the_
     inverse DCT standing in for the first half of the float path's INTER_AREA decimation) the
     network input is no farther from training's than the full decode's: the rendered press at q95,
     128 px 0.90 -> 0.83 grey levels mean (p99 3.8 -> 3.3); 224 px 1.10 -> 1.08 (4.6 -> 4.3)."""
-    from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
+    from frame_fixtures import rendered_press_jpeg
 
-    rng = np.random.default_rng(3)
-    sensor = GelSight()  # 640 x 480, markers, read noise
-    bg = background(sensor, 3)
-    ref = reference_frame(bg, sensor, rng)
-    yy, xx = np.mgrid[0:sensor.height_px, 0:sensor.width_px].astype(np.float32) * np.float32(sensor.mm_per_px)
-    weave = 0.04 * np.sin(2 * np.pi * xx / 0.6) * np.sin(2 * np.pi * yy / 0.6)  # a fabric's texture, mm
-    dome = 0.3 * np.exp(-((xx - 7.5) ** 2 + (yy - 5.6) ** 2) / 12.0)  # the press
-    frame = render_press((dome + weave * (dome > 0.05)).astype(np.float32), bg, sensor, rng)
-    jpeg = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for f in (frame, ref)]
+    frame, ref, jpeg = rendered_press_jpeg()
     for size in (128, 224):
         spec = TactilePreprocess(size=size)
         trained = preprocess_tactile(frame, ref, spec)

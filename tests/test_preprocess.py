@@ -234,17 +234,9 @@ def test_the_mjpeg_cameras_scaled_decode_adds_little_to_the_gap_mjpeg_already_ma
     libjpeg's 1/2 decode where training box-averages: the gap may grow by at most half (demo world
     at 640x480, 18 presses: 0.90 -> 1.08 grey levels mean, p99 4.2 -> 4.3; this rendered press:
     0.90 -> 1.08, p99 3.8 -> 4.0)."""
-    from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
+    from frame_fixtures import rendered_press_jpeg
 
-    rng = np.random.default_rng(3)
-    sensor = GelSight()  # 640 x 480, markers, read noise
-    bg = background(sensor, 3)
-    ref = reference_frame(bg, sensor, rng)
-    yy, xx = np.mgrid[0:sensor.height_px, 0:sensor.width_px].astype(np.float32) * np.float32(sensor.mm_per_px)
-    weave = 0.04 * np.sin(2 * np.pi * xx / 0.6) * np.sin(2 * np.pi * yy / 0.6)  # a fabric's texture, mm
-    dome = 0.3 * np.exp(-((xx - 7.5) ** 2 + (yy - 5.6) ** 2) / 12.0)  # the press
-    frame = render_press((dome + weave * (dome > 0.05)).astype(np.float32), bg, sensor, rng)
-    jpeg = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for f in (frame, ref)]
+    frame, ref, jpeg = rendered_press_jpeg()
 
     def gap(spec, scale):
         small = [decode_jpeg(j, scale) for j in jpeg]
