@@ -54,7 +54,7 @@ from vs2t_edge.bench.verdict import (  # noqa: F401 - the verdict's names stay i
     CELL_MEASURES, MIN_INT8_SPEEDUP, TARGET_CELL_MS, TARGET_CELL_P99_MS, TARGET_INT8_POINTS, TARGET_OF_LIMIT,
     compare_pairs, cost_points, recommend, targets)
 from vs2t_edge.bench.accuracy import (  # noqa: F401
-    BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, _dataset_of, _spread, accuracy,
+    BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, YUYV, _dataset_of, _spread, accuracy,
     accuracy_frames, by_bins, eval_presses, pieces_per_minute, press_outputs)
 
 
@@ -209,7 +209,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
                 jpegs.append(camera_payload(cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
                                             camera_format, jpeg_quality))
             # as the cell's camera hands them: decoded at the bundle's scale, the reference too
-            scale, sensor_hw = decode_scale(model, ref.shape[:2], camera_decode), list(ref.shape[:2])
+            scale, sensor_hw = decode_scale(model, ref.shape[:2], camera_decode, camera_format), list(ref.shape[:2])
             frames = [decode_payload(b, scale) for b in jpegs]
             ref = decode_payload(camera_payload(ref, camera_format, jpeg_quality), scale)
         model.set_reference(ref, scale)
@@ -322,8 +322,8 @@ def frames_said(rows: list[dict], jpeg_quality: int, through_jpeg: bool) -> str:
     said = {r["name"]: r["accuracy_frames"] for r in rows if "accuracy_frames" in r}
     if through_jpeg:
         scales = sorted({r["decode_scale_accuracy"] for r in rows if "decode_scale_accuracy" in r})
-        at = ("/".join(f"1/{n}" for n in scales) + ": ") if scales else ""
-        return f"through JPEG q={jpeg_quality}, decoded at {at}the scale the cell's camera decodes each bundle's at"
+        at = (" (" + " or ".join(f"1/{n}" for n in scales) + ")") if scales else ""
+        return f"through JPEG q={jpeg_quality}, decoded at the scale the cell's camera decodes each bundle's{at}"
     if len(set(said.values())) <= 1:
         return next(iter(said.values()), "lossless (the dataset's PNG)")
     return "per variant - " + "; ".join(f"{name}: {what}" for name, what in said.items())
@@ -393,8 +393,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                                                                   accuracy_lossless, accuracy_through_yuyv)
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
-                row["decode_scale_accuracy"] = decode_scale(model, ds.by_id(model.touched[0]).load_reference().shape[:2],
-                                                            camera_decode) if quality else 1
+                row["decode_scale_accuracy"] = decode_scale(
+                    model, ds.by_id(model.touched[0]).load_reference().shape[:2], camera_decode,
+                    "yuyv" if quality == YUYV else "mjpeg") if quality else 1
                 if quality:
                     row["accuracy_frames"] += f" (1/{row['decode_scale_accuracy']})"
                 outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality,

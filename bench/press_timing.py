@@ -15,7 +15,7 @@ OUTSIDE_STAGES = tuple(k for k in STAGES if k != "trunk")
 # what the camera streams (devices.camera.pixel_format) and the stage its frame's decode is timed as
 DECODE_STAGE = {"mjpeg": "decode_mjpeg", "yuyv": "decode_yuyv"}
 CAMERA_FORMATS = tuple(DECODE_STAGE)  # runtime/camera.py PIXEL_FORMATS (tests/test_bench.py holds them equal)
-# the cell's devices.camera.decode_scale settings: runtime/wiring.py DECODE_SCALES (tests/test_bench.py holds them equal)
+# the cell's devices.camera.decode_scale settings: runtime/wiring.py DECODE_SCALES (tests/test_decode_scale.py holds them equal)
 DECODE_SCALES = ("auto", "full")
 DECODE_LABEL = {"decode_mjpeg": "MJPEG decode", "decode_yuyv": "YUYV to BGR"}
 
@@ -60,13 +60,14 @@ def decode_payload(payload, scale: int) -> np.ndarray | None:
     return decode_jpeg(payload, scale)
 
 
-def decode_scale(model, frame_hw: tuple[int, int] | None = None, setting: str = "auto") -> int:
+def decode_scale(model, frame_hw: tuple[int, int] | None = None, setting: str = "auto",
+                 camera_format: str = "mjpeg") -> int:
     """The scale the cell's UVC camera decodes ``frame_hw`` frames at for this bundle with
     ``devices.camera.decode_scale`` = ``setting`` (runtime/wiring.py ``model_decode_scale``: 1/reduce
     on the reduced path; auto: a float-path bundle's too, 1/2 of 640x480 at 128 or 224 px)."""
     from vs2t_edge.runtime.wiring import model_decode_scale
 
-    return model_decode_scale(model, frame_hw, setting)
+    return model_decode_scale(model, frame_hw, setting, camera_format)
 
 
 class CameraChecks:

@@ -73,8 +73,8 @@ _SCHEMA: dict[str, Any] = {
             # runtime/wiring.py DECODE_SCALES (a literal here, as above): the scale the camera decodes
             # its frames at for the bundle (docs/cell.md, "Decode scale")
             "decode_scale": _leaf("str", "auto", ("auto", "full"),
-                                  "uvc: auto (the smallest frame that keeps the model's input size across "
-                                  "its crop; float-path bundles too) or full"),
+                                  "uvc: auto (the reduced path's scale; a float-path bundle's MJPEG frames at the "
+                                  "smallest size that keeps its input size across the crop) or full"),
             # V4L2's exposure_time_absolute, in its units of 100 us (1 = 0.1 ms .. 10000 = 1 s);
             # absent = the camera's auto exposure. A GelSight's LEDs are constant, so a fixed
             # exposure keeps frames comparable with the no-contact reference across a shift.

@@ -258,8 +258,8 @@ class TactileModel:
 
     def set_reference(self, frame: np.ndarray, reduced_by: int = 1) -> None:
         """The session's no-contact frame; refused (FrameError) if it is no usable image.
-        ``reduced_by``: 1 for a full frame, the bundle's ``preprocess.reduce`` for a frame the
-        camera decoded at that reduced scale (runtime/preprocess.py, the reduced path)."""
+        ``reduced_by``: 1 for a full frame, else the scale the camera decoded it at - the bundle's
+        ``preprocess.reduce``, or a float-path bundle's ``float_path_scale`` (runtime/preprocess.py)."""
         # checked, cropped and resized once per item: each press then only subtracts it
         if self.descriptor is not None:  # its marker dots found once per item instead
             _full_frames_only(reduced_by)

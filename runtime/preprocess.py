@@ -29,7 +29,7 @@ bundle made before it keeps):
   scale -> CHW RGB, one multiply-subtract per channel.
 
 Training reads the dataset's lossless frames and reduces them with ``reduce_frame``; the
-simulated camera and replays hand full frames and the cell reduces them with the same function
+simulated camera and PNG replays hand full frames and the cell reduces them with the same function
 (bit-identical to training). A UVC camera in MJPEG mode hands ``decode_jpeg``'s frame instead: the
 scaled inverse DCT is not a box average bit for bit. Against training's lossless frames, the
 network input then differs by 1.08 grey levels on average on the synthetic 640x480 GelSight frames
@@ -38,9 +38,11 @@ tests/test_preprocess.py bounds the ratio). ``auto_reduce`` picks the factor: th
 leaves at least ``size`` pixels across the crop.
 
 A float-path bundle on a UVC camera (cell config ``devices.camera.decode_scale: auto``, the
-default) gets its frames decoded at ``float_path_scale`` - 1/2 of a 640x480 frame at 128 or 224 px -
-and runs the float path on them unchanged: the decoder's reduction stands in for the first part
-of the INTER_AREA decimation, and the frame's decode, checks and crop shrink fourfold.
+default) in MJPEG gets its frames decoded at ``float_path_scale`` - 1/2 of a 640x480 frame at 128
+or 224 px - and runs the float path on them unchanged: the decoder's reduction stands in for the
+first part of the INTER_AREA decimation, and the frame's decode, checks and crop shrink fourfold.
+A YUYV camera keeps a float-path bundle's frames whole (its uint8 box average would round what
+the float path averages in float: runtime/wiring.py ``model_decode_scale``).
 
 The camera's JPEG itself: a UVC camera's MJPEG frames are lossy where the dataset's are lossless
 (at q95 the float-path paper bundle lost 7.3 points of touched accuracy per press, a train/serve
@@ -335,19 +337,31 @@ class PreparedReference:
     spec: TactilePreprocess
 
 
-def _check_reduced_by(reduced_by: int, spec: TactilePreprocess) -> None:
-    """The float path takes a frame the camera decoded reduced (``float_path_scale``) unless it
-    corrects a real GelSight's frames, whose marker and exposure steps were set at full size; the
-    reduced path checks its own factor (``_reduced_input``)."""
-    if reduced_by != 1 and spec.reduce == 0 and (spec.inpaint_markers or spec.normalise_exposure):
+def _check_reduced_by(reduced_by: int, spec: TactilePreprocess, hw: tuple[int, int] | None = None) -> None:
+    """The float path takes a frame the camera decoded at 1/n (``float_path_scale``, n one of
+    REDUCE_FACTORS) while the crop keeps at least ``spec.size`` px across - it never upscales a
+    reduced frame (a recording made at 1/4 for another bundle is refused, not scored) - and not
+    for a bundle that corrects a real GelSight's frames, whose marker and exposure steps were set
+    at full size. The reduced path checks its own factor (``_reduced_input``)."""
+    if reduced_by == 1 or spec.reduce:
+        return
+    if reduced_by not in REDUCE_FACTORS:
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale; a camera decodes at 1/n, n one of "
+                         f"{REDUCE_FACTORS}", "scale")
+    if spec.inpaint_markers or spec.normalise_exposure:
         raise FrameError(f"frame: decoded at 1/{reduced_by} scale, but the bundle's preprocessing corrects a real "
                          "GelSight's full frames (inpaint_markers / normalise_exposure)", "scale")
+    if hw is not None and min(hw) * spec.crop_fraction < spec.size:
+        raise FrameError(f"frame: decoded at 1/{reduced_by} scale, {hw[1]}x{hw[0]}: fewer than the bundle's "
+                         f"{spec.size} px across its crop (a float-path bundle is not scored on upscaled frames)",
+                         "scale")
 
 
 def prepare_reference(reference: np.ndarray, spec: TactilePreprocess, reduced_by: int = 1) -> PreparedReference:
-    """``reduced_by``: 1 for a full frame, ``spec.reduce`` for one the camera decoded reduced."""
+    """``reduced_by``: 1 for a full frame, else the scale the camera decoded it at (as for
+    ``preprocess_tactile``)."""
     reference = check_frame(reference, name="reference frame")
-    _check_reduced_by(reduced_by, spec)
+    _check_reduced_by(reduced_by, spec, reference.shape[:2])
     if spec.reduce == 0:
         return PreparedReference(tuple(reference.shape[:2]), _crop_resize(reference, spec), spec)
     small = _reduced_input(reference, spec, reduced_by)
@@ -358,10 +372,10 @@ def preprocess_tactile(frame: np.ndarray, reference: np.ndarray | PreparedRefere
                        spec: TactilePreprocess, reduced_by: int = 1) -> np.ndarray:
     """One frame -> (3, size, size) float32, as the tactile trunk expects it. ``reference`` is the
     raw no-contact frame or, on the cell, its ``prepare_reference`` (same result, less work).
-    ``reduced_by``: 1 for a full frame; ``spec.reduce`` for a frame the camera decoded at that
-    reduced scale (``decode_jpeg``; the reduced path only)."""
+    ``reduced_by``: 1 for a full frame; the scale the camera decoded it at otherwise - the reduced
+    path's ``spec.reduce``, or on the float path ``float_path_scale``'s (``decode_jpeg``)."""
     frame = check_frame(frame)
-    _check_reduced_by(reduced_by, spec)
+    _check_reduced_by(reduced_by, spec, frame.shape[:2])
     if spec.reduce == 0:
         image, hw = _crop_resize(frame, spec), tuple(frame.shape[:2])
     else:

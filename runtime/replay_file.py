@@ -161,8 +161,9 @@ class ReplayFile:
             yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
 
     def frame_scale(self) -> int:
-        """The scale the recorded frames were decoded at: 1 (full frames), or n for a UVC camera on
-        a bundle's reduced pixel path (its grabs carry ``reduced_by``; docs/cell.md)."""
+        """The scale the recorded frames were decoded at: 1 (full frames), or n for a UVC camera that
+        decoded at 1/n for its bundle (the reduced pixel path, or a float-path bundle's
+        ``devices.camera.decode_scale``; its grabs carry ``reduced_by``; docs/cell.md)."""
         scales = [ev.get("reduced_by", 1) for ev in self.index["events"] if ev["dev"] == "camera" and ev.get("frame")]
         if any(type(s) is not int or s not in (1, 2, 4, 8) for s in scales) or len(set(scales)) > 1:
             raise ReplayError(f"{self.folder}: camera grabs decoded at scales {sorted(set(map(str, scales)))}; one "

@@ -114,22 +114,29 @@ def contact_check_for(cfg: CellConfig) -> ContactCheck | None:
 DECODE_SCALES = ("auto", "full")  # devices.camera.decode_scale (runtime/config.py holds the literal)
 
 
-def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, setting: str = "auto") -> int:
+def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, setting: str = "auto",
+                       pixel_format: str = "mjpeg") -> int:
     """The scale a UVC camera decodes its frames at for ``model``'s bundle (``devices.camera.decode_scale``):
 
-    - ``full``: full size; a reduced-path bundle then reduces the frames itself, as in training;
+    - ``full``: full size; a reduced-path bundle then reduces the frames itself with training's
+      box average;
     - ``auto`` (the default): the reduced path's own 1/reduce; a float-path bundle trained on
-      lossless frames the largest 1/n that leaves its input size across the crop of ``frame_hw``
-      frames (runtime/preprocess.py ``float_path_scale``: 1/2 of 640x480 at 128 or 224 px); one
-      trained through the camera's JPEG (manifest ``camera_jpeg``) the scale it trained at; full
-      size without ``frame_hw``, for a descriptor bundle and for any other model."""
+      lossless frames, from an MJPEG camera, the largest 1/n that leaves its input size across the
+      crop of ``frame_hw`` frames (runtime/preprocess.py ``float_path_scale``: 1/2 of 640x480 at
+      128 or 224 px); full size for a float-path bundle trained through the camera's JPEG
+      (manifest ``camera_jpeg``: it trained on full decodes), for one on a YUYV camera (its frames
+      reduced in uint8 lie farther from training's float average than whole ones: 0.43 against
+      0.30 grey levels at 128 px on a rendered press), without ``frame_hw``, for a descriptor
+      bundle and for any other model."""
     if setting not in DECODE_SCALES:
         raise ValueError(f"decode_scale {setting!r}: one of {DECODE_SCALES}")
     spec = getattr(model, "preprocess_spec", None)
     if getattr(model, "descriptor", None) is not None or spec is None or setting == "full":
         return 1
-    if int(getattr(spec, "reduce", 0)) or int(getattr(model, "camera_jpeg", 0) or 0) or frame_hw is None:
-        return max(1, int(getattr(spec, "reduce", 0)))
+    if int(getattr(spec, "reduce", 0)):
+        return int(spec.reduce)
+    if int(getattr(model, "camera_jpeg", 0) or 0) or frame_hw is None or pixel_format != "mjpeg":
+        return 1
     return float_path_scale(spec, frame_hw)
 
 
@@ -138,7 +145,7 @@ def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:
     ``model``'s bundle for the camera's configured size; other cameras hand full frames, which the
     model reduces itself (reduced path) or takes whole (float path)."""
     if isinstance(camera, UVCCamera):
-        camera.decode_scale = model_decode_scale(model, camera.expected_hw, setting)
+        camera.decode_scale = model_decode_scale(model, camera.expected_hw, setting, camera.pixel_format)
 
 
 def build_live_devices(cfg: CellConfig):

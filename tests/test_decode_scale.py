@@ -45,6 +45,9 @@ def test_model_decode_scale_follows_the_setting_and_the_bundle():
     assert model_decode_scale(_model(reduced), hw, "full") == 1  # the model reduces full frames itself
     assert model_decode_scale(_model(floatp, descriptor=object()), hw) == 1
     assert model_decode_scale(object(), hw) == 1
+    # a YUYV camera keeps a float-path bundle's frames whole; the reduced path keeps its own scale
+    assert model_decode_scale(_model(floatp), hw, "auto", "yuyv") == 1
+    assert model_decode_scale(_model(reduced), hw, "auto", "yuyv") == 2
     with pytest.raises(ValueError, match="decode_scale 'half'"):
         model_decode_scale(_model(floatp), hw, "half")
 
@@ -57,6 +60,9 @@ def test_match_camera_gives_a_uvc_camera_the_scale_for_its_configured_size():
     assert cam.decode_scale == 2
     match_camera(cam, _model(TactilePreprocess(size=128)), "full")
     assert cam.decode_scale == 1
+    yuyv = UVCCamera(0, expected_hw=(480, 640), pixel_format="yuyv")
+    match_camera(yuyv, _model(TactilePreprocess(size=128)))
+    assert yuyv.decode_scale == 1
     small = UVCCamera(0, expected_hw=(240, 320))
     match_camera(small, _model(TactilePreprocess(size=128)))
     assert small.decode_scale == 1
@@ -84,11 +90,12 @@ def test_a_config_with_another_decode_scale_is_refused_by_key(tmp_path):
     assert load_config(path).camera["decode_scale"] == "auto"
 
 
-def test_a_float_path_input_from_the_half_decode_is_as_close_to_training_as_the_full_decode():
+def test_a_float_path_input_from_the_half_decode_is_about_as_close_to_training_as_the_full_decode():
     """Training reads lossless frames; a UVC camera hands MJPEG. Decoded at 1/2 (the JPEG's scaled
     inverse DCT standing in for the first half of the float path's INTER_AREA decimation) the
-    network input is no farther from training's than the full decode's: the rendered press at q95,
-    128 px 0.90 -> 0.83 grey levels mean (p99 3.8 -> 3.3); 224 px 1.10 -> 1.08 (4.6 -> 4.3)."""
+    network input is about as far from training's as the full decode's: the rendered press at q95,
+    128 px 0.90 -> 0.83 grey levels mean (p99 3.8 -> 3.3); 224 px 1.10 -> 1.08 (4.6 -> 4.3); at q85
+    and q75 the half decode is about 1 % farther at 224 px. Bound: 5 % farther at most."""
     from frame_fixtures import rendered_press_jpeg
 
     frame, ref, jpeg = rendered_press_jpeg()
@@ -103,7 +110,7 @@ def test_a_float_path_input_from_the_half_decode_is_as_close_to_training_as_the_
 
         full, half = gap(1), gap(float_path_scale(spec, frame.shape[:2]))
         assert full.mean() > 0.3  # the JPEG loss is there to compare with
-        assert half.mean() <= full.mean() and np.percentile(half, 99) <= np.percentile(full, 99)
+        assert half.mean() <= 1.05 * full.mean() and np.percentile(half, 99) <= 1.05 * np.percentile(full, 99)
 
 
 def test_the_bench_scores_a_float_path_bundle_on_frames_decoded_at_the_cells_scale(tmp_path):
@@ -131,3 +138,23 @@ def test_the_bench_scores_a_float_path_bundle_on_frames_decoded_at_the_cells_sca
                                                  for i in (3, 5)]))
         np.testing.assert_allclose(out["feature"], expected.feature, rtol=1e-5, atol=1e-5)
     assert not np.allclose(half["feature"], full["feature"], atol=1e-4)
+
+
+@pytest.mark.parametrize("scale,reason", [(4, "scale"), (8, "scale"), (3, "scale")])
+def test_the_float_path_refuses_a_frame_it_would_have_to_upscale_or_no_camera_decodes(scale, reason):
+    """A 640x480 frame at 1/4 has 120 px across the crop, fewer than a 128 px bundle's input: a
+    recording made at 1/4 for another bundle is refused by name, never scored upscaled; 1/3 is no
+    scale a camera decodes at. At 1/2 (240 px) the same bundle takes it."""
+    from vs2t_edge.runtime.preprocess import FrameError
+
+    spec = TactilePreprocess(size=128)
+    rng = np.random.default_rng(0)
+    full = rng.integers(30, 220, (480, 640, 3), dtype=np.uint8)
+    small = cv2.resize(full, (640 // scale, 480 // scale), interpolation=cv2.INTER_AREA)
+    with pytest.raises(FrameError) as exc:
+        preprocess_tactile(small, None, TactilePreprocess(size=128, use_reference=False), reduced_by=scale)
+    assert exc.value.reason == reason and f"1/{scale}" in str(exc.value)
+    with pytest.raises(FrameError):
+        prepare_reference(small, spec, scale)
+    half = cv2.resize(full, (320, 240), interpolation=cv2.INTER_AREA)
+    assert preprocess_tactile(half, prepare_reference(half, spec, 2), spec, reduced_by=2).shape == (3, 128, 128)
