@@ -164,3 +164,32 @@ def test_channel_max_is_the_largest_channel_of_each_pixel(hw):
     image = rng.integers(0, 256, (*hw, 3), dtype=np.uint8)
     image[..., 2] = np.where(rng.random(hw) < 0.3, 255, image[..., 2])  # ties and the top value
     assert np.array_equal(_channel_max(image), image.max(axis=2))
+
+
+def test_a_float_path_bundle_scores_what_its_uvc_camera_decodes_reduced(mjpeg_capture, tmp_path):
+    """The cell's chain for a float-path bundle on an MJPEG camera with decode_scale auto:
+    match_camera gives the camera the bundle's float_path_scale, the camera hands frames decoded
+    at it (reference and press alike), the model takes them and scores the press; with `full`
+    the same camera hands full frames."""
+    from test_bundle_fixtures import SIZE, make_bundle
+
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, float_path_scale
+    from vs2t_edge.runtime.wiring import match_camera
+
+    make_bundle(tmp_path / "b", "fp32", preprocess=TactilePreprocess(size=SIZE))
+    model = TactileModel.load(tmp_path / "b", threads=1)
+    n = float_path_scale(model.preprocess_spec, (480, 640))
+    assert n > 1
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640))
+    match_camera(cam, model)
+    with cam:
+        ref, press = cam.grab(), cam.grab()
+    assert cam.decode_scale == n and ref.reduced_by == press.reduced_by == n
+    assert press.image.shape[:2] == (-(-480 // n), -(-640 // n))
+    model.set_reference(ref.image, reduced_by=ref.reduced_by)
+    score = model.score_press(press.image, reduced_by=press.reduced_by)
+    assert all(np.isfinite(v) for v in score.log_posterior.values())
+    match_camera(cam, model, "full")
+    with cam:
+        assert cam.grab().image.shape == (480, 640, 3)
