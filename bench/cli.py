@@ -34,7 +34,7 @@ def add_arguments(parser, verb: str) -> None:
                              "yuyv (uncompressed 4:2:2, devices.camera.pixel_format yuyv)")
     parser.add_argument("--camera-decode", default="auto", choices=DECODE_SCALES,
                         help="the scale the cell's camera decodes frames at (devices.camera.decode_scale): auto (the "
-                             "default: the reduced path's own; a float-path bundle's 640x480 frames at 1/2) or full")
+                             "default: the reduced path's own; a float-path bundle's 640x480 MJPEG frames at 1/2) or full")
     frames = parser.add_mutually_exclusive_group()
     frames.add_argument("--accuracy-through-jpeg", action="store_true",
                         help="score accuracy on frames passed through that JPEG, decoded at each bundle's scale as "

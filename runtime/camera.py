@@ -16,9 +16,9 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   backend that still hands decoded frames (other backends, a camera without MJPEG) is the
   fallback: its full frames go to the model as they are, which reduces them with the very
   function training used (``settings_applied["mjpeg_undecoded"]`` says which). A float-path
-  bundle is decoded so too, at ``preprocess.float_path_scale`` (``devices.camera.decode_scale``
-  auto, the default: runtime/wiring.py ``model_decode_scale``), and takes the frames the fallback
-  hands at full size as they are. With
+  bundle's MJPEG is decoded so too, at ``preprocess.float_path_scale`` (``devices.camera.decode_scale``
+  auto, the default: runtime/wiring.py ``model_decode_scale``; its YUYV frames stay whole), and it
+  takes the frames the fallback hands at full size as they are. With
   ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
   raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
   loss; ``settings_applied["pixel_format"]`` is what the driver runs); a camera that runs another

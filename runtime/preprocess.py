@@ -241,8 +241,9 @@ def camera_scale(spec: TactilePreprocess) -> int:
 def float_path_scale(spec: TactilePreprocess, frame_hw: tuple[int, int]) -> int:
     """The smallest scale a camera may decode ``frame_hw`` frames at for a float-path bundle: the
     largest 1/n that leaves ``spec.size`` px across the crop (``auto_reduce``; 640x480 at 128 or
-    224 px: 2), where the decoder's own reduction - the JPEG's scaled inverse DCT, YUYV's box
-    average - stands in for the first part of the float path's INTER_AREA decimation. 1 for a
+    224 px: 2), where the decoder's own reduction - the JPEG's scaled inverse DCT - stands in for
+    the first part of the float path's INTER_AREA decimation (runtime/wiring.py asks it of an
+    MJPEG camera only). 1 for a
     bundle that corrects a real GelSight's full frames. The float path then runs unchanged on the
     smaller frame (``preprocess_tactile``); docs/cell.md ``devices.camera.decode_scale`` says what
     it costs and buys."""
