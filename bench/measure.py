@@ -393,8 +393,9 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                                                                   accuracy_lossless, accuracy_through_yuyv)
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
+                geometry = ds.by_id(model.touched[0]).geometry  # the frame size, without reading a frame
                 row["decode_scale_accuracy"] = decode_scale(
-                    model, ds.by_id(model.touched[0]).load_reference().shape[:2], camera_decode,
+                    model, (geometry.frame_height_px, geometry.frame_width_px), camera_decode,
                     "yuyv" if quality == YUYV else "mjpeg") if quality else 1
                 if quality:
                     row["accuracy_frames"] += f" (1/{row['decode_scale_accuracy']})"

@@ -269,6 +269,12 @@ def draw_scenes(touched: Sequence[str], untouched: Sequence[str], off_pool: Sequ
     return out
 
 
+def _draw_limit(evidence, max_presses: int) -> int:
+    """How many of a fabric's presses a simulated piece may draw: ``max_presses``, or the
+    evidence's ``press_limit`` when that is more (its extra presses)."""
+    return max(max_presses, getattr(evidence, "press_limit", 0))
+
+
 def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
                     evidence_factory: Callable[[Scene], object], *, items_per_fabric: int = 4,
                     max_presses: int = 5, seed: int = 0) -> list[ItemRecord]:
@@ -283,7 +289,7 @@ def simulate_scenes(scenes: Sequence[Scene], presses: dict[str, list[Press]],
             pool = presses[fabric]
             for _ in range(items_per_fabric):
                 ev = evidence_factory(scene)
-                order = rng.permutation(len(pool))[:max(max_presses, getattr(ev, "press_limit", 0))]
+                order = rng.permutation(len(pool))[:_draw_limit(ev, max_presses)]
                 decision = _press_until_decided(ev, pool, order)
                 records.append(record(fabric, scene.kind(fabric), decision, scene.classes))
     return records
@@ -346,7 +352,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
             if not unseen:  # every press of the fabric taught this job already
                 continue
             ev = item_evidence(model, current, scene.classes, labelled, strangers, make)
-            order = unseen[:max(max_presses, getattr(ev, "press_limit", 0))]  # as ``simulate_scenes`` draws
+            order = unseen[:_draw_limit(ev, max_presses)]
             rec = record(fabric, scene.kind(fabric), _press_until_decided(ev, pool, order), scene.classes)
             records.append(rec)
             # in the reject bin the operator says what it was; an untouched fabric's or a stranger's

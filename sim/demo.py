@@ -30,6 +30,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -275,15 +276,15 @@ def teach_fabrics(model, scene: list[str], confidence: float | None, max_presses
     ``--extra-presses`` over it)."""
     from vs2t_edge.runtime.evidence import Evidence
     from vs2t_edge.runtime.job_check import check_job
-    from vs2t_edge.runtime.operating_point import scene_model_rule
+    from vs2t_edge.runtime.operating_point import scene_model_settings
 
     sm = getattr(model, "scene_model", None)
     if sm is None:
         return []
-    conf, opts = scene_model_rule(sm)
-    conf = conf if confidence is None else confidence
-    if extra_presses is not None:
-        opts = {**opts, "extra_presses": extra_presses}
+    # the config the demo writes for the daemon (``sort_stream``), through the daemon's own rule
+    written = SimpleNamespace(confidence=confidence, extra_presses=extra_presses, untouched_confidence=None,
+                              raw={"evidence": {"confidence": confidence}})
+    conf, opts = scene_model_settings(written, sm)
     checks = check_job(sm, scene, lambda: Evidence(scene, conf, max_presses, **opts), max_presses)
     return [c.fabric for c in checks if c.kind == "untouched" and not c.sorts]
 
