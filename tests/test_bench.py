@@ -52,6 +52,20 @@ def test_bench_writes_table_json_and_plot(bench_result):
     assert "## How each bundle was made (from its manifest)" in md
 
 
+def test_the_plot_takes_a_bench_timed_at_one_thread(bench_result, tmp_path):
+    """`bench --threads 1` has no 2-thread latency: the plot uses the one it has (it used to fail
+    after the table and JSON were written, with KeyError '2')."""
+    import copy
+
+    from vs2t_edge.bench.report import plot_pareto
+
+    result = copy.deepcopy(bench_result[0])
+    for r in result["variants"]:
+        del r["latency"]["2"]
+    plot_pareto(result, tmp_path / "pareto.png")
+    assert (tmp_path / "pareto.png").stat().st_size > 1000
+
+
 def test_bench_rewrite_keeps_the_hand_written_tail_and_records_provenance(bench_result, tmp_path):
     from vs2t_edge.bench import report as bench_report
 
