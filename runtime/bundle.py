@@ -289,6 +289,9 @@ def load_bundle(root: Path | str, beta_override: float | None = None) -> Bundle:
         raise BundleError(root, f"manifest.json 'preprocess': {exc}") from None
     _check_preprocess(spec, root)
     camera_jpeg = _int(manifest.get("camera_jpeg", 0), root, "camera_jpeg", 0, 100)
+    if spec.jpeg_scale > 1 and not camera_jpeg:
+        raise BundleError(root, f"manifest.json 'preprocess' has jpeg_scale {spec.jpeg_scale} (frames decoded from "
+                                "the camera's JPEG at that scale in training) but no 'camera_jpeg' quality")
     dim = _int(_need(manifest, root, "feature_dim"), root, "feature_dim", 1, 1 << 20)
     beta = _float(_need(manifest, root, "beta"), root, "beta", allow_inf=True)
     if beta_override is not None:

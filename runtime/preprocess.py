@@ -48,7 +48,10 @@ The camera's JPEG itself: a UVC camera's MJPEG frames are lossy where the datase
 (at q95 the float-path paper bundle lost 7.3 points of touched accuracy per press, a train/serve
 skew). ``through_camera_jpeg(frame, quality, scale)`` is that camera: encode at ``quality``,
 ``decode_jpeg`` at 1/scale. A run trained with ``camera_jpeg`` Q reads every press and no-contact
-frame through it (``camera_reference``, ``camera_press``), and so do its export and the bench.
+frame through it (``camera_reference``, ``camera_press``), and so do its export and the bench, at
+the scale its camera decodes at: 1/reduce on the reduced path; on the float path ``jpeg_scale``,
+since 2026-11-29 the ``float_path_scale`` of the dataset's frames (train --camera-decode auto;
+1 - full decodes - for the runs before it and with ``full``).
 """
 
 from __future__ import annotations
@@ -87,19 +90,31 @@ class TactilePreprocess:
     # The reduced uint8 path (module doc): 0 = the float path of every bundle before it; 1, 2, 4, 8 =
     # the frame reduced by that factor (the camera's scaled MJPEG decode), then uint8 crop + resize.
     reduce: int = 0
+    # The float path of a model trained through the camera's JPEG (train --camera-jpeg): the scale
+    # 1/n its training frames were decoded at, the one its camera decodes at (``camera_scale``).
+    # 1: full decodes (every bundle before it; a lossless-trained bundle takes any scale
+    # ``float_path_scale`` allows). The reduced path decodes at 1/reduce and keeps 1 here.
+    jpeg_scale: int = 1
 
     def __post_init__(self) -> None:
-        # the other fields are the bundle check's (runtime/bundle.py); this one picks a code path
+        # the other fields are the bundle check's (runtime/bundle.py); these two pick a code path
         if type(self.reduce) is not int or self.reduce not in (0, *REDUCE_FACTORS):
             raise ValueError(f"reduce = {self.reduce!r}: 0 (the float path) or one of {REDUCE_FACTORS}")
         if self.reduce and (self.inpaint_markers or self.normalise_exposure):
             raise ValueError("reduce >= 1 (the reduced uint8 path) has no inpaint_markers / normalise_exposure; "
                              "use reduce 0 for a real GelSight's corrections")
+        if type(self.jpeg_scale) is not int or self.jpeg_scale not in REDUCE_FACTORS:
+            raise ValueError(f"jpeg_scale = {self.jpeg_scale!r}: one of {REDUCE_FACTORS}")
+        if self.jpeg_scale > 1 and (self.reduce or self.inpaint_markers or self.normalise_exposure):
+            raise ValueError(f"jpeg_scale = {self.jpeg_scale} is the float path's: the reduced path decodes at "
+                             "1/reduce, and a real GelSight's corrections read full frames")
 
     def to_dict(self) -> dict:
         d = asdict(self)
         if d["reduce"] == 0:  # the float path's manifests stay byte for byte what they were
             del d["reduce"]
+        if d["jpeg_scale"] == 1:  # and so do those of every bundle trained on full decodes
+            del d["jpeg_scale"]
         return d
 
     @classmethod
@@ -233,9 +248,10 @@ def check_camera_jpeg(quality: object, what: str = "camera_jpeg") -> int:
 
 def camera_scale(spec: TactilePreprocess) -> int:
     """The scale a model's frames were trained at through the camera (``camera_jpeg``): 1/reduce on
-    the reduced path, full size on the float path. The cell's UVC camera decodes at it, or - a
-    float-path bundle trained on lossless frames - at ``float_path_scale`` (runtime/wiring.py)."""
-    return max(1, spec.reduce)
+    the reduced path, 1/``jpeg_scale`` on the float path (full size for runs before it). The cell's
+    UVC camera decodes at it, or - a float-path bundle trained on lossless frames - at
+    ``float_path_scale`` (runtime/wiring.py)."""
+    return spec.reduce or spec.jpeg_scale
 
 
 def float_path_scale(spec: TactilePreprocess, frame_hw: tuple[int, int]) -> int:

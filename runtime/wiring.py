@@ -34,7 +34,7 @@ from vs2t_edge.runtime.labels import OperatorFeedback
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
-from vs2t_edge.runtime.preprocess import float_path_scale
+from vs2t_edge.runtime.preprocess import camera_scale, float_path_scale
 from vs2t_edge.runtime.operating_point import evidence_settings, resolve_beta, scene_bundle_problem, scene_model_settings
 
 
@@ -123,8 +123,9 @@ def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, sett
     - ``auto`` (the default): the reduced path's own 1/reduce; a float-path bundle trained on
       lossless frames, from an MJPEG camera, the largest 1/n that leaves its input size across the
       crop of ``frame_hw`` frames (runtime/preprocess.py ``float_path_scale``: 1/2 of 640x480 at
-      128 or 224 px); full size for a float-path bundle trained through the camera's JPEG
-      (manifest ``camera_jpeg``: it trained on full decodes), for one on a YUYV camera (its frames
+      128 or 224 px); a float-path bundle trained through the camera's JPEG (manifest
+      ``camera_jpeg``), from an MJPEG camera, the scale it trained at (``camera_scale``: preprocess
+      ``jpeg_scale``, full size before 2026-11-29); full size for a float-path bundle on a YUYV camera (its frames
       reduced in uint8 lie farther from training's float average than whole ones: 0.43 against
       0.30 grey levels at 128 px on a rendered press), without ``frame_hw``, for a descriptor
       bundle and for any other model."""
@@ -135,8 +136,10 @@ def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, sett
         return 1
     if int(getattr(spec, "reduce", 0)):
         return int(spec.reduce)
-    if int(getattr(model, "camera_jpeg", 0) or 0) or frame_hw is None or pixel_format != "mjpeg":
+    if frame_hw is None or pixel_format != "mjpeg":
         return 1
+    if int(getattr(model, "camera_jpeg", 0) or 0):
+        return camera_scale(spec)
     return float_path_scale(spec, frame_hw)
 
 

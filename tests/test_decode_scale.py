@@ -1,6 +1,7 @@
 """The scale a UVC camera decodes its frames at for a bundle (``devices.camera.decode_scale``):
-a float-path bundle's 640x480 frames at 1/2 by default, the reduced path's own scale, full size
-when asked or when the bundle trained through the camera's JPEG at full size."""
+a float-path bundle's 640x480 frames at 1/2 by default, the reduced path's own scale, the scale a
+bundle trained through the camera's JPEG was decoded at (tests/test_camera_jpeg_scale.py), full
+size when asked."""
 
 from __future__ import annotations
 
@@ -41,6 +42,11 @@ def test_model_decode_scale_follows_the_setting_and_the_bundle():
     assert model_decode_scale(_model(floatp), hw, "full") == 1
     assert model_decode_scale(_model(floatp), None) == 1  # no configured size: nothing to choose from
     assert model_decode_scale(_model(floatp, camera_jpeg=95), hw) == 1  # trained through the JPEG at full size
+    at_half = TactilePreprocess(size=128, jpeg_scale=2)  # trained through the JPEG decoded at 1/2
+    assert model_decode_scale(_model(at_half, camera_jpeg=95), hw) == 2
+    assert model_decode_scale(_model(at_half, camera_jpeg=95), None) == 1
+    assert model_decode_scale(_model(at_half, camera_jpeg=95), hw, "full") == 1
+    assert model_decode_scale(_model(at_half, camera_jpeg=95), hw, "auto", "yuyv") == 1
     assert model_decode_scale(_model(reduced), hw) == 2 and model_decode_scale(_model(reduced), None) == 2
     assert model_decode_scale(_model(reduced), hw, "full") == 1  # the model reduces full frames itself
     assert model_decode_scale(_model(floatp, descriptor=object()), hw) == 1

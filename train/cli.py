@@ -1,5 +1,5 @@
 """`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]
-[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers] [--camera-jpeg Q]`."""
+[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers] [--camera-jpeg Q [--camera-decode auto|full]]`."""
 
 from __future__ import annotations
 
@@ -39,6 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                              "through a JPEG at Q, decoded at the bundle's scale, as a UVC camera hands them to the "
                              "cell; export and the bench then read the same way (0: the dataset's lossless frames; "
                              "profile default 0; docs/training.md)")
+    parser.add_argument("--camera-decode", choices=("auto", "full"),
+                        help="with --camera-jpeg on the float path, the scale its frames are decoded at: auto "
+                             "(default; the largest 1/n leaving the input size across the crop, 1/2 of 640x480 at "
+                             "128 px - what the cell's camera decodes such a bundle's frames at) or full (full "
+                             "decodes, as such runs were made before 2026-11-29; the camera then decodes full frames)")
     parser.add_argument("--touched", type=int, metavar="N",
                         help="train each split on only N of its touched fabrics (a nested draw with the split's "
                              "seed; the others take no part): what touching fewer fabrics costs zero-shot "
@@ -103,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
               max_presses=args.max_presses, tactile_feature=args.tactile_feature,
               preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg, touched=args.touched,
               mis_sort_target=None if args.mis_sort_target is None else args.mis_sort_target / 100,
-              validation_folds=args.validation_folds)
+              validation_folds=args.validation_folds, camera_decode=args.camera_decode)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

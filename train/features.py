@@ -148,9 +148,11 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
 
 
 def cache_key_extra(spec, camera_jpeg: int) -> dict:
-    """The feature cache's key beyond size, trunk, presses and dataset: the pixel path and the
-    camera's JPEG, each only when set (a float-path, lossless cache keeps its old key)."""
-    return {**({"reduce": spec.reduce} if spec.reduce else {}), **({"camera_jpeg": camera_jpeg} if camera_jpeg else {})}
+    """The feature cache's key beyond size, trunk, presses and dataset: the pixel path, the
+    camera's JPEG and the scale it is decoded at, each only when set (a float-path, lossless cache
+    keeps its old key, and a JPEG cache of full decodes its own)."""
+    return {**({"reduce": spec.reduce} if spec.reduce else {}), **({"camera_jpeg": camera_jpeg} if camera_jpeg else {}),
+            **({"jpeg_scale": spec.jpeg_scale} if spec.jpeg_scale > 1 else {})}
 
 
 def descriptor_table(dataset_root: Path, name: str, max_presses: int | None = None,

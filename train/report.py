@@ -172,8 +172,9 @@ def render(m: dict) -> str:
              f"{m['n_fabrics']} fabrics, {len(m['splits'])} seeded split(s) {n_t}/{n_v}/{n_u} "
              f"(touched/validation/untouched); trunk {prof['trunk']} at {prof['size_px']} px, visual tail "
              f"{prof.get('visual_tail', 'frozen')}; "
-             + (f"tactile frames through the camera's JPEG at q{prof['camera_jpeg']} (train, validation and test "
-                "alike); " if prof.get("camera_jpeg") else "")
+             + (f"tactile frames through the camera's JPEG at q{prof['camera_jpeg']}, decoded "
+                + ("at the scale the cell's camera decodes this bundle's frames at" if prof.get("camera_decode") == "auto"
+                   else "at full size") + " (train, validation and test alike); " if prof.get("camera_jpeg") else "")
              + f"total {m['timing_s'].get('total', 0):.0f} s (features {m['timing_s']['features']:.0f} s, splits "
              f"{', '.join(f'{x:.0f}' for x in m['timing_s']['splits'])} s) on 2 shared CPU cores.", "",
              "Mean ± std over splits, %, test presses (per-class mean accuracy); ZSL val = the same model's "

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime import novelty as nv
-from vs2t_edge.runtime.preprocess import TactilePreprocess, check_camera_jpeg
+from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_scale, check_camera_jpeg
 from vs2t_edge.train import compare as cmp
 from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
@@ -75,6 +75,11 @@ class Profile:
     # decoded at the bundle's scale, as a UVC camera hands them (runtime.preprocess.through_camera_jpeg;
     # docs/training.md "The camera's JPEG"). Export and the bench read the run's frames the same way.
     camera_jpeg: int = 0
+    # with ``camera_jpeg`` on the float path: the scale the camera's JPEG is decoded at, as the cell's
+    # devices.camera.decode_scale: "auto" = ``float_path_scale`` of the dataset's frames (1/2 of
+    # 640x480 at 128 or 224 px), what the cell's camera then decodes at; "full" = full decodes (every
+    # such run before 2026-11-29). The reduced path decodes at 1/reduce either way.
+    camera_decode: str = "auto"
     # per split, train on only this many of its touched fabrics (``splits.fewer_touched``: a nested
     # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
     # cell has touched (docs/results/zero_shot_limits_paper.md, "More touched fabrics").
@@ -88,22 +93,37 @@ class Profile:
 
 
 REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
+CAMERA_DECODES = ("auto", "full")
 
 
 def tactile_spec(prof: Profile, dataset: Path) -> TactilePreprocess:
     """The one preprocessing this run trains with and its bundle ships (the cell runs the same)."""
     if prof.preprocess_reduce not in REDUCE_CHOICES:
         raise ValueError(f"preprocess_reduce {prof.preprocess_reduce!r}: choose one of {', '.join(REDUCE_CHOICES)}")
-    if prof.preprocess_reduce == "off" or prof.tactile_feature != "cnn":  # a descriptor reads full frames
+    if prof.camera_decode not in CAMERA_DECODES:
+        raise ValueError(f"camera_decode {prof.camera_decode!r}: choose one of {', '.join(CAMERA_DECODES)}")
+    if prof.tactile_feature != "cnn":  # a descriptor reads full frames
         return TactilePreprocess(size=prof.size_px)
+    if prof.preprocess_reduce == "off":
+        if not prof.camera_jpeg or prof.camera_decode == "full":
+            return TactilePreprocess(size=prof.size_px)
+        from vs2t_edge.runtime.preprocess import float_path_scale
+
+        spec = TactilePreprocess(size=prof.size_px)  # trained on the frames the cell's camera decodes at auto
+        return TactilePreprocess(size=prof.size_px, jpeg_scale=float_path_scale(spec, _frame_hw(dataset)))
     if prof.preprocess_reduce == "auto":
-        from vs2t_edge.runtime.dataset import load_dataset
         from vs2t_edge.runtime.preprocess import auto_reduce
 
-        geo = load_dataset(dataset).fabrics[0].geometry
-        return TactilePreprocess(size=prof.size_px, reduce=auto_reduce((geo.frame_height_px, geo.frame_width_px),
-                                                                       prof.size_px))
+        return TactilePreprocess(size=prof.size_px, reduce=auto_reduce(_frame_hw(dataset), prof.size_px))
     return TactilePreprocess(size=prof.size_px, reduce=int(prof.preprocess_reduce))
+
+
+def _frame_hw(dataset: Path) -> tuple[int, int]:
+    """The tactile frames' size, from the dataset's geometry (no frame read)."""
+    from vs2t_edge.runtime.dataset import load_dataset
+
+    geo = load_dataset(dataset).fabrics[0].geometry
+    return geo.frame_height_px, geo.frame_width_px
 
 
 PROFILES = {
@@ -192,7 +212,8 @@ def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCa
         cache.save(path)
         cmp.FeatureTable(cache.x_t0, cache.x_v, cache.fabric, cache.fabric_ids, cache.attributes,
                          source=f"{dataset} (frozen {prof.trunk}, {prof.size_px} px"
-                                + (f", tactile frames through JPEG q{prof.camera_jpeg})" if prof.camera_jpeg else ")")).save(cache_dir / "feature_table.npz")
+                                + (f", tactile frames through JPEG q{prof.camera_jpeg} decoded at 1/{camera_scale(spec)})"
+                                   if prof.camera_jpeg else ")")).save(cache_dir / "feature_table.npz")
     else:
         _log(f"features: cached ({path})")
     return cache
@@ -432,7 +453,8 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
           weights: Path | None = None, seed: int | None = None, figures: bool = True,
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
-          mis_sort_target: float | None = None, validation_folds: int | None = None) -> dict:
+          mis_sort_target: float | None = None, validation_folds: int | None = None,
+          camera_decode: str | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
     ``mis_sort_target``: the scene decision's target share of mis-sorted pieces (``Profile.mis_sort_target``).
     ``validation_folds``: the scene decision's folds of touched fabrics (``Profile.validation_folds``).
@@ -440,24 +462,26 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     ``max_presses``: presses per fabric to extract (0: all; None: the profile's).
     ``preprocess_reduce``: the tactile pixel path (``Profile.preprocess_reduce``; None: the profile's).
     ``camera_jpeg``: the tactile camera's MJPEG quality (``Profile.camera_jpeg``; None: the profile's).
+    ``camera_decode``: the scale that JPEG is decoded at (``Profile.camera_decode``; None: the profile's).
     Denormal floats are flushed to zero while it runs, and only then (``baselines.flush_denormals``)."""
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
                       max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched, mis_sort_target,
-                      validation_folds)
+                      validation_folds, camera_decode)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
            weights: Path | None, seed: int | None, figures: bool, visual_tail: str | None,
            max_presses: int | None = None, tactile_feature: str | None = None,
            preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
-           mis_sort_target: float | None = None, validation_folds: int | None = None) -> dict:
+           mis_sort_target: float | None = None, validation_folds: int | None = None,
+           camera_decode: str | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
                                               ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg),
                                               ("touched", touched), ("mis_sort_target", mis_sort_target),
-                                              ("validation_folds", validation_folds))
+                                              ("validation_folds", validation_folds), ("camera_decode", camera_decode))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
     if not 0.0 < prof.mis_sort_target < 1.0:
