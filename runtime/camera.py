@@ -18,7 +18,9 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   function training used (``settings_applied["mjpeg_undecoded"]`` says which). A float-path
   bundle's MJPEG is decoded so too, at ``preprocess.float_path_scale`` (``devices.camera.decode_scale``
   auto, the default: runtime/wiring.py ``model_decode_scale``; its YUYV frames stay whole), and it
-  takes the frames the fallback hands at full size as they are. With
+  takes the frames the fallback hands at full size as they are. Taking the MJPEG undecoded, it
+  reads one frame at connect for the quality the camera streams at (``settings_applied
+  ["mjpeg_quality"]``, from its quantisation table: runtime/jpeg_quality.py). With
   ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
   raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
   loss; ``settings_applied["pixel_format"]`` is what the driver runs); a camera that runs another
@@ -53,6 +55,7 @@ import numpy as np
 
 from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
 from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, InputRefused, read_image_file
+from vs2t_edge.runtime.jpeg_quality import estimate_quality
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS, FrameError, check_frame, decode_jpeg, reduced_hw
 from vs2t_edge.runtime.yuyv import BYTES_PER_PIXEL, decode_yuyv
 
@@ -295,6 +298,8 @@ class UVCCamera(CameraBase):
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             applied["mjpeg_undecoded"] = _raw_frames(cap)
+            if applied["mjpeg_undecoded"]:  # what quality it streams at: said at start (runtime/jpeg_quality.py)
+                applied["mjpeg_quality"] = _stream_quality(cap)
         applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
         return cap, applied
 
@@ -409,6 +414,14 @@ class UVCCamera(CameraBase):
 def _raw_frames(cap) -> bool:
     """Ask the backend for its frames as the driver hands them (CAP_PROP_CONVERT_RGB 0); did it take it?"""
     return bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
+
+
+def _stream_quality(cap) -> int | None:
+    """The MJPEG quality of one frame read undecoded at connect, from its quantisation table
+    (``jpeg_quality.estimate_quality``); None when the read or the table fails."""
+    ok, raw = cap.read()
+    q = estimate_quality(raw) if ok and is_compressed(raw) else None
+    return q.quality if q is not None else None
 
 
 def _two_channel(image: object) -> bool:

@@ -46,6 +46,7 @@ from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config_or_say
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.files import read_regular_file
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
+from vs2t_edge.runtime.jpeg_quality import quality_note
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.operating_point import confidence_override_note
 from vs2t_edge.runtime import job_check, wiring
@@ -219,6 +220,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
         if runs:
             log("camera runs: " + ", ".join(f"{k} {v}" for k, v in runs.items()))
+            note = quality_note(runs.get("mjpeg_quality"), int(getattr(model, "camera_jpeg", 0) or 0))
+            if note:  # a bundle trained for other frames than its camera's: said, not refused
+                log(note)
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
             "folder, then start again")
