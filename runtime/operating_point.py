@@ -206,7 +206,8 @@ def confidence_override_note(cfg, scene_model) -> str:
     and ``validate-config --check-bundle``; '' when the config writes none of them (the model's own
     operating point decides) or they equal the model's. Without a scene model only
     ``evidence.confidence`` acts, and a written ``evidence.untouched_confidence`` or
-    ``evidence.extra_presses`` is said to do nothing."""
+    ``evidence.extra_presses`` is said to do nothing. Also said: a scene model's own extra presses
+    that a short ``evidence.grid_points`` list cuts (the cell stops a piece at its last point)."""
     if scene_model is None:
         idle = [f"evidence.{key} {value:g}" for key, value in (
             ("untouched_confidence", getattr(cfg, "untouched_confidence", None)),
@@ -230,9 +231,17 @@ def confidence_override_note(cfg, scene_model) -> str:
                   else "expect more touched pieces in the reject bin")
         said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
                     f"validation ({effect})")
+    points = len(getattr(cfg, "grid_points", ()) or ())
+    needed = int(getattr(cfg, "max_presses", 0)) + theirs
+    cut = ""
+    if ours is None and points and needed > points:  # a written key is held to the grid by the config check
+        cut = (f"the scene model's {theirs} extra presses need {needed} press points with evidence.max_presses "
+               f"{cfg.max_presses}, and evidence.grid_points lists {points}: a piece stops at {points} presses, "
+               "short of what validation priced (list more points, or write evidence.extra_presses)")
     if not said:
-        return ""
-    return f"{cfg.path}: " + "; ".join(said) + "; remove the key to sort at the model's own operating point"
+        return f"{cfg.path}: {cut}" if cut else ""
+    return (f"{cfg.path}: " + "; ".join(said) + "; remove the key to sort at the model's own operating point"
+            + (f"; {cut}" if cut else ""))
 
 
 def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:

@@ -197,6 +197,26 @@ def test_the_scene_model_carries_trainings_choice_and_a_written_key_overrides_it
         assert (f"evidence.extra_presses {written} overrides the 3 extra presses" in note) == (written is not None)
 
 
+def test_a_grid_too_short_for_the_models_extra_presses_is_said(tmp_path):
+    """A written evidence.extra_presses is held to the grid by the config check; the scene model's
+    own is only known with the bundle: the start log and validate-config --check-bundle say the cut."""
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.operating_point import confidence_override_note
+    from vs2t_edge.sim.scene import fake_cell_yaml
+
+    path = tmp_path / "cell.yaml"
+    for points, said in ((list(range(6)), True), (list(range(7)), False)):
+        path.write_text(fake_cell_yaml(evidence={"max_presses": 4, "grid_order": "list", "grid_points": points}))
+        note = confidence_override_note(load_config(path), _model(extra_presses=3))
+        assert ("need 7 press points" in note and "lists 6: a piece stops at 6 presses" in note) == said, note
+        assert "remove the key" not in note
+    assert confidence_override_note(load_config(path), _model()) == ""
+    path.write_text(fake_cell_yaml(evidence={"max_presses": 4, "grid_order": "list", "grid_points": list(range(6)),
+                                             "confidence": 0.5}))
+    both = confidence_override_note(load_config(path), _model(extra_presses=3))
+    assert "remove the key" in both and both.endswith("write evidence.extra_presses)")
+
+
 def test_training_chooses_the_extra_presses_validation_scores_best(monkeypatch):
     """The mis-sort target first, then pieces in the right bin; of full ties the fewest presses."""
     from vs2t_edge.train import decision as dc
