@@ -19,8 +19,8 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   bundle's MJPEG is decoded so too, at ``preprocess.float_path_scale`` (``devices.camera.decode_scale``
   auto, the default: runtime/wiring.py ``model_decode_scale``; its YUYV frames stay whole), and it
   takes the frames the fallback hands at full size as they are. Taking the MJPEG undecoded, it
-  reads one frame at connect for the quality the camera streams at (``settings_applied
-  ["mjpeg_quality"]``, from its quantisation table: runtime/jpeg_quality.py). With
+  reads the quality the camera streams at from the first good frame's quantisation table
+  (``settings_applied["mjpeg_quality"]``, told to ``on_stream_quality``: runtime/jpeg_quality.py). With
   ``pixel_format="yuyv"`` it asks for uncompressed YUYV 4:2:2 instead (``CAP_PROP_FOURCC`` YUYV,
   raw bytes) and makes each frame BGR at 1/n itself (runtime/yuyv.py: no JPEG to decode, no JPEG
   loss; ``settings_applied["pixel_format"]`` is what the driver runs); a camera that runs another
@@ -49,6 +49,7 @@ import math
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -200,6 +201,10 @@ class UVCCamera(CameraBase):
         self.buffer_size = buffer_size
         self.api_preference = api_preference
         self.settings_applied: dict[str, object] = {}
+        # told once per connect the MJPEG quality of the first frame a grab decodes (None: no table
+        # in it); the daemon says what it means for the bundle (runtime/jpeg_quality.py)
+        self.on_stream_quality: Callable[[int | None], None] | None = None
+        self._quality_read = False
         self._guard = FrameGuard(self.name, expected_hw, frozen_after)
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
@@ -245,6 +250,7 @@ class UVCCamera(CameraBase):
         if "error" in box:
             raise box["error"]
         self._cap, self.settings_applied = box["result"]
+        self._quality_read = False
         # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
         # to the last one before it is the same hung buffer, not a fresh start
 
@@ -298,8 +304,6 @@ class UVCCamera(CameraBase):
         elif self.decode_scale > 1:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             applied["mjpeg_undecoded"] = _raw_frames(cap)
-            if applied["mjpeg_undecoded"]:  # what quality it streams at: said at start (runtime/jpeg_quality.py)
-                applied["mjpeg_quality"] = _stream_quality(cap)
         applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
         return cap, applied
 
@@ -390,8 +394,23 @@ class UVCCamera(CameraBase):
                                   "a JPEG (a truncated MJPEG frame?)", device=self.name, kind="corrupt")
                 err.reason = "jpeg"
                 raise err
-            return self._guard.admit(decoded, reduced_by=self.decode_scale, taken_s=taken)
+            frame = self._guard.admit(decoded, reduced_by=self.decode_scale, taken_s=taken)
+            if not self._quality_read:
+                self._stream_quality(image)
+            return frame
         return self._guard.admit(image, taken_s=taken)  # decoded by the backend: a full frame (the fallback)
+
+    def _stream_quality(self, jpeg: np.ndarray) -> None:
+        """The MJPEG quality of the first good frame since connect, from its quantisation table, into
+        ``settings_applied["mjpeg_quality"]`` and told to ``on_stream_quality``: a header parse, no read."""
+        self._quality_read = True
+        q = estimate_quality(jpeg)
+        self.settings_applied["mjpeg_quality"] = q.quality if q is not None else None
+        if self.on_stream_quality is not None:
+            try:
+                self.on_stream_quality(self.settings_applied["mjpeg_quality"])
+            except Exception:  # noqa: BLE001 - a log line must not cost the press its frame
+                pass
 
     def _from_yuyv(self, raw: np.ndarray) -> np.ndarray:
         """A raw YUYV frame at the size the driver runs (else the configured one) -> BGR at
@@ -414,14 +433,6 @@ class UVCCamera(CameraBase):
 def _raw_frames(cap) -> bool:
     """Ask the backend for its frames as the driver hands them (CAP_PROP_CONVERT_RGB 0); did it take it?"""
     return bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0.0) and cap.get(cv2.CAP_PROP_CONVERT_RGB) == 0)
-
-
-def _stream_quality(cap) -> int | None:
-    """The MJPEG quality of one frame read undecoded at connect, from its quantisation table
-    (``jpeg_quality.estimate_quality``); None when the read or the table fails."""
-    ok, raw = cap.read()
-    q = estimate_quality(raw) if ok and is_compressed(raw) else None
-    return q.quality if q is not None else None
 
 
 def _two_channel(image: object) -> bool:

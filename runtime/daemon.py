@@ -99,6 +99,20 @@ def camera_runs(camera) -> dict:
     return {str(k): v for k, v in applied.items() if v is None or isinstance(v, (bool, int, float, str))}
 
 
+def stream_quality_teller(camera_jpeg: int, log: Callable[[str], None]) -> Callable[[int | None], None]:
+    """What a UVC camera calls with the MJPEG quality of its first frame (``on_stream_quality``):
+    the log says, once a service run, when the bundle was trained for other frames
+    (runtime/jpeg_quality.py ``quality_note``; said, never refused)."""
+    told = []
+
+    def tell(quality: int | None) -> None:
+        note = quality_note(quality, camera_jpeg)
+        if note and not told:
+            told.append(quality)
+            log(note)
+    return tell
+
+
 def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None, items=None,
                evidence_factory=None, notifier=None, stop_event: threading.Event | None = None,
                on_item=None, max_items: int | None = None, stop_when=None, install_signals: bool = True,
@@ -170,6 +184,9 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         try:
             camera, arm, gate = build_live_devices(cfg)
             match_camera(camera, model, cfg.camera["decode_scale"])  # a UVC camera decodes at the bundle's scale
+            note = wiring.decode_scale_note(model, cfg.camera["decode_scale"])
+            if note:
+                log(f"{cfg.path}: {note}")
         except (ConfigError, ValueError) as exc:  # ValueError: a driver refusing its settings
             # (validation checks the drivers' constraints, so this is a gap to report, in words)
             log(str(exc) if isinstance(exc, ConfigError) else f"{cfg.path}: a device refused its settings: {exc}")
@@ -220,9 +237,6 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
         if runs:
             log("camera runs: " + ", ".join(f"{k} {v}" for k, v in runs.items()))
-            note = quality_note(runs.get("mjpeg_quality"), int(getattr(model, "camera_jpeg", 0) or 0))
-            if note:  # a bundle trained for other frames than its camera's: said, not refused
-                log(note)
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
             "folder, then start again")
@@ -230,6 +244,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         _disconnect_all(camera, arm, gate)
         journal.close()
         return EXIT_USAGE
+    if hasattr(camera, "on_stream_quality"):  # a UVC camera taking MJPEG undecoded reads its quality from a frame
+        camera.on_stream_quality = stream_quality_teller(int(getattr(model, "camera_jpeg", 0) or 0), log)
     if hasattr(evidence_factory, "restore"):  # operator labels: the pieces and labels of this bundle so far
         evidence_factory.restore(iter_records(cfg.journal), seal)
     cell.recover()

@@ -67,57 +67,88 @@ def test_the_note_names_the_quality_to_train_with_and_is_silent_when_they_match(
     assert "through JPEG q95" in other and "--camera-jpeg 75" in other
 
 
-def test_the_uvc_camera_reads_the_quality_it_streams_at_when_it_takes_the_mjpeg_undecoded(monkeypatch):
+def test_the_uvc_camera_reads_the_quality_from_its_first_good_frame_and_tells_it_once(monkeypatch):
+    """A header parse of the first frame a grab decodes after connect, no extra read (a read at
+    connect would add to the bounded open); told once a connect, also when the frame has no table."""
     from test_camera import _RecordingCapture
     from test_camera_mjpeg import _MjpegCapture
 
     from vs2t_edge.runtime.camera import UVCCamera
 
     monkeypatch.setattr(cv2, "VideoCapture", _MjpegCapture)
-    for undecoded, scale, want in ((True, 2, 95), (False, 2, None), (True, 1, None)):
+    for undecoded, scale, want in ((True, 2, [95]), (False, 2, []), (True, 1, [])):
         _RecordingCapture.instances = []
         _MjpegCapture.undecoded, _MjpegCapture.payload = undecoded, None
-        with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=scale) as cam:
+        told: list = []
+        cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=scale)
+        cam.on_stream_quality = told.append
+        with cam:
+            assert "mjpeg_quality" not in cam.settings_applied  # nothing read at connect
             # the fake encodes at OpenCV's default quality, 95; a backend that decodes hands no table
-            assert cam.settings_applied.get("mjpeg_quality") == want
             assert cam.grab().image.shape[0] == 480 // (scale if undecoded else 1)
+            cam.grab()
+            assert cam.settings_applied.get("mjpeg_quality") == (want[0] if want else None) and told == want
+        if want:  # a reopen reads it again
+            with cam:
+                cam.grab()
+            assert told == want * 2
+    # a frame with no table the estimate can read: the quality is unknown, told as None
+    import vs2t_edge.runtime.camera as camera_module
+
+    monkeypatch.setattr(camera_module, "estimate_quality", lambda jpeg: None)
     _RecordingCapture.instances = []
     _MjpegCapture.undecoded = True
-    _MjpegCapture.payload = b"\x00" * 64  # no JPEG: the quality stays unknown, the connect goes on
-    with UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2) as cam:
-        assert cam.settings_applied["mjpeg_quality"] is None
-    _MjpegCapture.payload = None
+    told = []
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2)
+    cam.on_stream_quality = told.append
+    with cam:
+        cam.grab()
+        assert told == [None] and cam.settings_applied["mjpeg_quality"] is None
+    _RecordingCapture.instances = []
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640), decode_scale=2)
+    cam.on_stream_quality = lambda q: 1 / 0  # a teller that fails costs the press nothing
+    with cam:
+        assert cam.grab().reduced_by == 2
 
 
-def test_the_daemon_says_when_the_camera_streams_another_quality_than_the_bundle_trained_for(tmp_path):
+def test_the_daemon_says_once_when_the_camera_streams_another_quality_than_the_bundle_trained_for():
+    from vs2t_edge.runtime.daemon import stream_quality_teller
+
+    for streams, trained, said in ((80, 0, True), (95, 95, False), (80, 95, True), (None, 0, False)):
+        logged: list = []
+        tell = stream_quality_teller(trained, logged.append)
+        tell(streams)
+        tell(streams)  # a reopen tells it again; the log says it once
+        assert len(logged) == int(said), logged
+        if said:
+            assert "the camera streams MJPEG at about" in logged[0] and f"--camera-jpeg {streams}" in logged[0]
+
+
+def test_the_daemon_gives_a_uvc_camera_its_teller_and_others_none(tmp_path):
     from cell_fakes import FakeModel, ScriptedCamera
     from vs2t_edge.runtime.config import load_config
     from vs2t_edge.runtime.daemon import run_daemon
-    from vs2t_edge.runtime.journal import read_records
     from vs2t_edge.runtime.notify import Notifier
     from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
     from vs2t_edge.sim.scene import fake_cell_yaml
 
-    for streams, trained, said in ((80, 0, True), (95, 95, False), (80, 95, True)):
-        folder = tmp_path / f"{streams}_{trained}"
-        folder.mkdir()
-        cfg_path = folder / "cell.yaml"
-        cfg_path.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
-                                           evidence={"confidence": 0.95, "max_presses": 4,
-                                                     "without_scene_model": "allow"}))
-        cfg = load_config(cfg_path)
-        arm, gate, logged = FakeArm(config=cfg.arm), FakeGate(), []
-        camera = ScriptedCamera(arm, [50])
-        camera.settings_applied = {"width": 640.0, "height": 480.0, "mjpeg_undecoded": True, "decode_scale": 2,
-                                   "mjpeg_quality": streams}
-        model = FakeModel({50: "denim"}, cfg.scene_classes)
-        model.camera_jpeg = trained
-        code = run_daemon(cfg, model=model, camera=camera, arm=arm, gate=gate, notifier=Notifier(""), max_items=1,
-                          install_signals=False, log=logged.append)
-        assert code == 0, logged
-        start = next(r for r in read_records(cfg.journal) if r["type"] == "start")
-        assert start["camera"]["mjpeg_quality"] == streams
-        notes = [line for line in logged if "the camera streams MJPEG at about" in line]
-        assert bool(notes) == said, logged
-        if said:
-            assert f"--camera-jpeg {streams}" in notes[0]
+    class TellingCamera(ScriptedCamera):
+        on_stream_quality = None
+
+        def grab(self):
+            frame = super().grab()
+            if self.on_stream_quality is not None:
+                self.on_stream_quality(80)
+            return frame
+
+    cfg_path = tmp_path / "cell.yaml"
+    cfg_path.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), ("silk", "untouched", 2)), threads=1,
+                                       evidence={"confidence": 0.95, "max_presses": 4, "without_scene_model": "allow"}))
+    cfg = load_config(cfg_path)
+    arm, gate, logged = FakeArm(config=cfg.arm), FakeGate(), []
+    camera = TellingCamera(arm, [50])
+    code = run_daemon(cfg, model=FakeModel({50: "denim"}, cfg.scene_classes), camera=camera, arm=arm, gate=gate,
+                      notifier=Notifier(""), max_items=1, install_signals=False, log=logged.append)
+    assert code == 0, logged
+    notes = [line for line in logged if "the camera streams MJPEG at about q80" in line]
+    assert len(notes) == 1 and "trained on lossless frames" in notes[0], logged
