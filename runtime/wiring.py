@@ -125,7 +125,8 @@ def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, sett
       crop of ``frame_hw`` frames (runtime/preprocess.py ``float_path_scale``: 1/2 of 640x480 at
       128 or 224 px); a float-path bundle trained through the camera's JPEG (manifest
       ``camera_jpeg``), from an MJPEG camera, the scale it trained at (``camera_scale``: preprocess
-      ``jpeg_scale``, full size before 2026-11-29); full size for a float-path bundle on a YUYV camera (its frames
+      ``jpeg_scale``, full size before 2026-11-29), or a larger one where a smaller camera's frames
+      would leave fewer than its input size across the crop; full size for a float-path bundle on a YUYV camera (its frames
       reduced in uint8 lie farther from training's float average than whole ones: 0.43 against
       0.30 grey levels at 128 px on a rendered press), without ``frame_hw``, for a descriptor
       bundle and for any other model."""
@@ -138,9 +139,23 @@ def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, sett
         return int(spec.reduce)
     if frame_hw is None or pixel_format != "mjpeg":
         return 1
-    if int(getattr(model, "camera_jpeg", 0) or 0):
-        return camera_scale(spec)
+    if int(getattr(model, "camera_jpeg", 0) or 0):  # as it trained, where the camera's frames leave enough pixels
+        return min(camera_scale(spec), float_path_scale(spec, frame_hw))
     return float_path_scale(spec, frame_hw)
+
+
+def decode_scale_note(model: Any, setting: str) -> str:
+    """What the start log says when ``devices.camera.decode_scale: full`` hands full frames to a
+    bundle trained through the camera's JPEG decoded smaller (preprocess ``jpeg_scale``): they are
+    scored, but not as it trained. '' otherwise."""
+    spec = getattr(model, "preprocess_spec", None)
+    if setting != "full" or spec is None or not int(getattr(model, "camera_jpeg", 0) or 0) or spec.reduce:
+        return ""
+    if camera_scale(spec) == 1:
+        return ""
+    return (f"devices.camera.decode_scale full: this bundle trained on its camera's JPEG decoded at "
+            f"1/{camera_scale(spec)} (preprocess.jpeg_scale); full frames are scored on the float path, not as it "
+            "trained - remove the key (auto) to decode as it trained")
 
 
 def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:

@@ -47,6 +47,8 @@ def test_model_decode_scale_follows_the_setting_and_the_bundle():
     assert model_decode_scale(_model(at_half, camera_jpeg=95), None) == 1
     assert model_decode_scale(_model(at_half, camera_jpeg=95), hw, "full") == 1
     assert model_decode_scale(_model(at_half, camera_jpeg=95), hw, "auto", "yuyv") == 1
+    # behind a camera whose 1/2 frames leave fewer than 128 px across: full frames, not refused ones
+    assert model_decode_scale(_model(at_half, camera_jpeg=95), (240, 320)) == 1
     assert model_decode_scale(_model(reduced), hw) == 2 and model_decode_scale(_model(reduced), None) == 2
     assert model_decode_scale(_model(reduced), hw, "full") == 1  # the model reduces full frames itself
     assert model_decode_scale(_model(floatp, descriptor=object()), hw) == 1
@@ -56,6 +58,19 @@ def test_model_decode_scale_follows_the_setting_and_the_bundle():
     assert model_decode_scale(_model(reduced), hw, "auto", "yuyv") == 2
     with pytest.raises(ValueError, match="decode_scale 'half'"):
         model_decode_scale(_model(floatp), hw, "half")
+
+
+def test_the_start_log_says_when_full_frames_go_to_a_bundle_trained_on_half_decodes():
+    from vs2t_edge.runtime.wiring import decode_scale_note
+
+    at_half = _model(TactilePreprocess(size=128, jpeg_scale=2), camera_jpeg=95)
+    note = decode_scale_note(at_half, "full")
+    assert "decoded at 1/2" in note and "not as it trained" in note
+    assert decode_scale_note(at_half, "auto") == ""
+    assert decode_scale_note(_model(TactilePreprocess(size=128), camera_jpeg=95), "full") == ""  # trained full
+    assert decode_scale_note(_model(TactilePreprocess(size=128)), "full") == ""  # lossless: any scale
+    assert decode_scale_note(_model(TactilePreprocess(size=128, reduce=2), camera_jpeg=95), "full") == ""
+    assert decode_scale_note(object(), "full") == ""
 
 
 def test_match_camera_gives_a_uvc_camera_the_scale_for_its_configured_size():
