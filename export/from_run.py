@@ -20,7 +20,7 @@ from torch import nn
 
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
-from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference
+from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera_reference, camera_scale
 
 from vs2t_edge.export.calibration import calibration_presses, sensitivity_presses
 from vs2t_edge.export.export import ExportError, _novelty, write_bundle
@@ -235,7 +235,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
         "(calibration)")
     q = art.camera_jpeg  # the camera JPEG the run trained through: every frame read here goes through it too
     if q:
-        log(f"frames through the camera's JPEG at q{q}, decoded at 1/{max(1, spec.reduce)}, as the run trained")
+        log(f"frames through the camera's JPEG at q{q}, decoded at 1/{camera_scale(spec)}, as the run trained")
     calib = np.concatenate([_frames(ds, fid, idx, spec, q) for fid, idx in calib_src.items()])
     for what, fids in (("int8 calibration, parity and the probe", calib_ids),
                        ("the gating fit (held-out touched presses)", art.touched),

@@ -148,3 +148,26 @@ def test_export_reads_the_runs_frames_at_its_jpeg_scale_and_the_cell_decodes_the
     np.testing.assert_array_equal(b.probe_input[0], want)  # the probe: a press decoded at 1/2, as trained
     model = TactileModel.load(out, threads=1)
     assert model_decode_scale(model, (120, 160)) == 2 and model_decode_scale(model, (120, 160), "full") == 1
+
+
+def test_the_report_says_which_decodes_a_camera_jpeg_run_read():
+    from vs2t_edge.train.report import _full_decodes
+
+    assert not _full_decodes({"camera_jpeg": 95, "camera_decode": "auto"})
+    assert _full_decodes({"camera_jpeg": 95, "camera_decode": "full"})
+    assert _full_decodes({"camera_jpeg": 95})  # a run before --camera-decode: full decodes
+    assert not _full_decodes({"camera_jpeg": 95, "camera_decode": "full", "preprocess_reduce": "2"})  # 1/reduce
+    assert _full_decodes({"camera_jpeg": 95, "camera_decode": "auto", "tactile_feature": "shading_markers"})
+
+
+def test_camera_decode_where_it_does_nothing_is_said(tmp_path, monkeypatch):
+    """--camera-decode without --camera-jpeg (or on the reduced path) is logged as doing nothing;
+    the run goes on (checked up to its first work: the dataset is stubbed out)."""
+    from vs2t_edge.train import run as tr
+
+    said: list = []
+    monkeypatch.setattr(tr, "_log", said.append)
+    monkeypatch.setattr(tr, "build_trunk", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("stop here")))
+    with pytest.raises(RuntimeError, match="stop here"):
+        tr.train(tiny_world(), tmp_path / "r", "tiny", camera_decode="full", figures=False)
+    assert any("camera_decode full: does nothing here" in m for m in said), said

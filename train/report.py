@@ -45,6 +45,15 @@ LEGEND = (
 )
 
 
+def _full_decodes(prof: dict) -> bool:
+    """Did a camera_jpeg run read its frames through full-size JPEG decodes? A descriptor's, and a
+    float-path run's before --camera-decode (2026-11-29) or with ``full``; the reduced path decodes
+    at 1/reduce."""
+    if prof.get("tactile_feature", "cnn") != "cnn":
+        return True
+    return prof.get("preprocess_reduce", "off") == "off" and prof.get("camera_decode") != "auto"
+
+
 def legend_lines(bullet: str = "  ") -> list[str]:
     """``LEGEND`` as lines, each ``<bullet><term>: <meaning>``."""
     return [f"{bullet}{term}: {meaning}" for term, meaning in LEGEND]
@@ -173,8 +182,8 @@ def render(m: dict) -> str:
              f"(touched/validation/untouched); trunk {prof['trunk']} at {prof['size_px']} px, visual tail "
              f"{prof.get('visual_tail', 'frozen')}; "
              + (f"tactile frames through the camera's JPEG at q{prof['camera_jpeg']}, decoded "
-                + ("at the scale the cell's camera decodes this bundle's frames at" if prof.get("camera_decode") == "auto"
-                   else "at full size") + " (train, validation and test alike); " if prof.get("camera_jpeg") else "")
+                + ("at full size" if _full_decodes(prof) else "at the scale the cell's camera decodes this bundle's "
+                   "frames at") + " (train, validation and test alike); " if prof.get("camera_jpeg") else "")
              + f"total {m['timing_s'].get('total', 0):.0f} s (features {m['timing_s']['features']:.0f} s, splits "
              f"{', '.join(f'{x:.0f}' for x in m['timing_s']['splits'])} s) on 2 shared CPU cores.", "",
              "Mean ± std over splits, %, test presses (per-class mean accuracy); ZSL val = the same model's "

@@ -484,6 +484,10 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
                                               ("validation_folds", validation_folds), ("camera_decode", camera_decode))
                             if v is not None})
     tactile_spec(prof, dataset)  # a bad choice fails here, before any work
+    if camera_decode is not None and (not prof.camera_jpeg or prof.preprocess_reduce != "off"
+                                      or prof.tactile_feature != "cnn"):
+        _log(f"camera_decode {camera_decode}: does nothing here - it is the scale a float-path run's frames are "
+             "decoded at through --camera-jpeg (the reduced path decodes at 1/reduce, a descriptor full frames)")
     if not 0.0 < prof.mis_sort_target < 1.0:
         raise ValueError(f"mis_sort_target {prof.mis_sort_target!r}: a share of pieces above 0 and below 1")
     if prof.touched is not None or prof.validation_folds:
