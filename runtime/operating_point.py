@@ -234,7 +234,8 @@ def confidence_override_note(cfg, scene_model) -> str:
     points = len(getattr(cfg, "grid_points", ()) or ())
     needed = int(getattr(cfg, "max_presses", 0)) + theirs
     cut = ""
-    if ours is None and points and needed > points:  # a written key is held to the grid by the config check
+    listed = getattr(cfg, "grid_order", "list") == "list"  # spread and rows order the whole grid: nothing to list
+    if ours is None and listed and points and needed > points:  # a written key is held to the grid by the config check
         cut = (f"the scene model's {theirs} extra presses need {needed} press points with evidence.max_presses "
                f"{cfg.max_presses}, and evidence.grid_points lists {points}: a piece stops at {points} presses, "
                "short of what validation priced (list more points, or write evidence.extra_presses)")

@@ -211,6 +211,8 @@ def test_a_grid_too_short_for_the_models_extra_presses_is_said(tmp_path):
         assert ("need 7 press points" in note and "lists 6: a piece stops at 6 presses" in note) == said, note
         assert "remove the key" not in note
     assert confidence_override_note(load_config(path), _model()) == ""
+    path.write_text(fake_cell_yaml(evidence={"max_presses": 225}))  # spread: the whole grid, nothing to list
+    assert confidence_override_note(load_config(path), _model(extra_presses=3)) == ""
     path.write_text(fake_cell_yaml(evidence={"max_presses": 4, "grid_order": "list", "grid_points": list(range(6)),
                                              "confidence": 0.5}))
     both = confidence_override_note(load_config(path), _model(extra_presses=3))
