@@ -45,6 +45,7 @@ def run(args) -> int:
                  if model.split else "")
         print(f"  format {m['format_version']}: " + (f"one press graph per press ({', '.join(trunk['outputs'])}){heads}"
                                                      if model.fused else "two graphs (trunk.onnx, heads.onnx)"))
+    print(f"  frames: {frames_trained_on(model)}")
     print(f"  classes: {len(model.touched)} touched, {len(model.untouched)} untouched; router {m['router']['name']}, "
           f"beta {model.beta:.6g}, gating T {model.temperature:.6g}")
     print(f"  {len(m['files'])} files, sha256 verified; probe max relative error {worst:.2e} "
@@ -53,3 +54,19 @@ def run(args) -> int:
     print(f"  made {prov.get('time_utc', '?')} from {prov.get('run', 'no run (untrained)')} at commit "
           f"{prov.get('git_commit', '?')}")
     return 0
+
+
+def frames_trained_on(model) -> str:
+    """The tactile frames a bundle was trained on, in words: what its camera should hand it
+    (docs/training.md "The camera's JPEG"; the cell says at its first piece when the camera's
+    MJPEG quality is another, runtime/jpeg_quality.py)."""
+    from vs2t_edge.runtime.preprocess import camera_scale
+
+    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    spec = model.preprocess_spec
+    if not q:
+        return ("lossless (a camera streaming MJPEG costs it accuracy: train with --camera-jpeg at the camera's "
+                "quality)")
+    scale = camera_scale(spec) if model.descriptor is None else 1
+    return f"through the camera's JPEG at q{q}, decoded at " + (f"1/{scale}" if scale > 1 else "full size")
+

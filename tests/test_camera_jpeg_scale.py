@@ -171,3 +171,13 @@ def test_camera_decode_where_it_does_nothing_is_said(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="stop here"):
         tr.train(tiny_world(), tmp_path / "r", "tiny", camera_decode="full", figures=False)
     assert any("camera_decode full: does nothing here" in m for m in said), said
+
+
+def test_verify_bundle_says_what_frames_the_bundle_trained_on(half_bundle, capsys):
+    from vs2t_edge.cli import main
+
+    out, _ = half_bundle
+    assert main(["verify-bundle", str(out)]) == 0
+    assert "frames: through the camera's JPEG at q90, decoded at 1/2" in capsys.readouterr().out
+    assert main(["verify-bundle", str(shared_bundle("fp32"))]) == 0
+    assert "frames: lossless" in capsys.readouterr().out
