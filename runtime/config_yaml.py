@@ -54,7 +54,9 @@ def _to_python(node: yaml.Node, key: str, lines: dict[str, int], budget: list[in
         # `key:` with nothing after it, `key: null`, `key: ~`: YAML's null, what safe_load gives;
         # serialized alone, an empty scalar is an empty document, which does not load back
         return None
-    if node.tag in _NUMBER_TAGS and node.style is None and _SURPRISING_NUMBER.fullmatch(node.value):
+    # a plain scalar YAML resolved to a number, or one tagged a number (`!!int "010"` is 8 too); a
+    # quoted scalar without a tag is text
+    if node.tag in _NUMBER_TAGS and _SURPRISING_NUMBER.fullmatch(node.value):
         value = yaml.safe_load(yaml.serialize(node))
         decimal = None if ":" in node.value else int(node.value.replace("_", ""), 10)
         if value != decimal:  # 07 is 7 either way

@@ -343,9 +343,12 @@ def test_numbers_yaml_reads_otherwise_than_written_are_refused(tmp_path):
             ("max_presses: 6", "max_presses: 1:30", "cell.yaml:16: evidence.max_presses: 1:30 reads as 90 in YAML "
                                                     "(a colon makes it base 60; write 90 if that is meant"),
             ("confidence: 0.95", "confidence: 1:30.5", "cell.yaml:15: evidence.confidence: 1:30.5 reads as 90.5 in "
-                                                       "YAML (a colon makes it base 60")):
+                                                       "YAML (a colon makes it base 60"),
+            ("max_presses: 6", 'max_presses: !!int "010"', "cell.yaml:16: evidence.max_presses: 010 reads as 8 in YAML"),
+            ("max_presses: 6", "max_presses: !!int '1:30'", "cell.yaml:16: evidence.max_presses: 1:30 reads as 90")):
         with pytest.raises(ConfigError) as err:
             load_config(write(tmp_path, GOOD.replace(old, new)))
         (problem,) = err.value.problems
         assert said in problem, problem
     assert load_config(write(tmp_path, GOOD.replace("max_presses: 6", "max_presses: 07"))).max_presses == 7
+    assert load_config(write(tmp_path, GOOD.replace("max_presses: 6", 'max_presses: !!int "07"'))).max_presses == 7
