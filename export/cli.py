@@ -93,8 +93,7 @@ def _reduce(choice: str, dataset, size: int) -> int:
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.runtime.preprocess import auto_reduce
 
-    geo = load_dataset(dataset).fabrics[0].geometry
-    return auto_reduce((geo.frame_height_px, geo.frame_width_px), size)
+    return auto_reduce(load_dataset(dataset).geometry.frame_hw, size)
 
 
 def parse_float_nodes(value: str | None) -> list[str]:

@@ -57,6 +57,11 @@ class SensorGeometry:
     def camera_px_per_mm(self) -> float:
         return self.camera_image_px / self.piece_mm
 
+    @property
+    def frame_hw(self) -> tuple[int, int]:
+        """(height, width) of the tactile frames, px."""
+        return self.frame_height_px, self.frame_width_px
+
 
 @dataclass(frozen=True)
 class Press:
@@ -87,15 +92,11 @@ class Fabric:
         return self._load_checked("camera image", self.camera_path, (side, side), _CAMERA_KEY)
 
     def load_reference(self) -> np.ndarray:
-        return self._load_checked("no-contact reference frame", self.reference_path, self._frame_shape)
+        return self._load_checked("no-contact reference frame", self.reference_path, self.geometry.frame_hw)
 
     def load_press(self, i: int) -> np.ndarray:
         p = self.presses[i]
-        return self._load_checked(f"press {p.index}", p.path, self._frame_shape)
-
-    @property
-    def _frame_shape(self) -> tuple[int, int]:
-        return self.geometry.frame_height_px, self.geometry.frame_width_px
+        return self._load_checked(f"press {p.index}", p.path, self.geometry.frame_hw)
 
     def _load_checked(self, label: str, path: Path, want_hw: tuple[int, int],
                       key: str = "") -> np.ndarray:
@@ -497,7 +498,7 @@ def _read_checked(fabric: Fabric, label: str, path: Path, want_hw: tuple[int, in
 
 
 def _check_images(fabric: Fabric, problems: list[str]) -> None:
-    frame_hw = (fabric.geometry.frame_height_px, fabric.geometry.frame_width_px)
+    frame_hw = fabric.geometry.frame_hw
     side = fabric.geometry.camera_image_px
     paths = [("no-contact reference frame", fabric.reference_path, frame_hw, "")] + [
         (f"press {p.index}", p.path, frame_hw, "") for p in fabric.presses] + [

@@ -291,7 +291,7 @@ class SimulatedCell:
                                       expected_hw=None)
         self.arm.camera = self.camera
         self.gate = simulated_serial_gate() if self.gate_kind == "pty" else FakeGate()
-        self.frame_hw = (g.frame_height_px, g.frame_width_px)
+        self.frame_hw = g.frame_hw
         return self
 
     @property

@@ -14,7 +14,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,158 +27,18 @@ from vs2t_edge.train import features as ft
 from vs2t_edge.train import vs2t
 from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
 from vs2t_edge.train.baselines import flush_denormals, predict_logits, train_classifier
-from vs2t_edge.train.folds import folds_fit
 from vs2t_edge.train.splits import fewer_touched
 from vs2t_edge.train.trunks import build_trunk
-
-
-@dataclass
-class Profile:
-    name: str
-    trunk: str = "efficientnet_lite0"
-    size_px: int = 128  # tactile and visual network input side
-    splits: int = 1
-    max_presses: int | None = None  # per fabric, feature extraction
-    ft_epochs: int = 2
-    ft_max_rows: int | None = 3000  # touched-train presses used to fine-tune the tactile (and visual) tail
-    # "frozen": visual features from the ImageNet trunk as is; "finetuned": the visual tail is
-    # fine-tuned per split like the tactile one (softmax over touched classes, the camera crops at
-    # the touched-train presses only). Chosen per profile on its validation fabrics
-    # (docs/training.md "Visual tail: frozen or fine-tuned"): small profile frozen (VS2T-ZSL val
-    # ZSL 67.1 vs 64.0 over 3 splits of 3 validation fabrics); paper profile fine-tuned (61.8 vs
-    # 61.4, and every ablation that sees vision +1.5..+4.3, 5 splits of 5 validation fabrics).
-    visual_tail: str = "frozen"
-    encoder_condition: bool = False  # E = q(z | x, v, s) as the paper's (True) or q(z | x) (docs/training.md)
-    steps: int = 800  # generator optimiser steps
-    batch: int = 64
-    cls_steps: int = 300
-    n_synth_per_class: int = 200
-    lr_scale: float = 5.0
-    latent: int = 64
-    hidden: int | None = 512  # E / G width; None = feature size (the paper's 2048 for 2048-d); 512 for CPU time
-    seed: int = 0
-    # GZSL routers evaluated on every split (beta of each tuned on the validation fabrics); each
-    # split's is chosen by VALIDATION AUSUC of VS2T-ZSL on its own validation fabrics (``choose_router``).
-    # "gaussian" (the paper's) is always reported beside it.
-    routers: tuple[str, ...] = nv.ROUTERS
-    # the tactile feature: "cnn" = the trunk above, its tail fine-tuned per split; or a no-network
-    # descriptor of runtime/tactile_descriptor.py ("shading_markers", what wins on a real GelSight:
-    # docs/realism.md), nothing fine-tuned, exported as a descriptor bundle (docs/bundle.md). The
-    # visual side keeps the trunk either way.
-    tactile_feature: str = "cnn"
-    # the tactile frames' pixel path (runtime/preprocess.py): "off" = the float path of every run
-    # before it; "auto" = the reduced uint8 path at the largest reduction that leaves ``size_px``
-    # pixels across the crop (2 on 640x480 frames at 128 or 224 px); or a factor "1", "2", "4", "8".
-    preprocess_reduce: str = "off"
-    # the tactile camera's MJPEG quality the model trains for: 0 = the dataset's lossless frames
-    # (every run before it); Q in 1..100 = every press and no-contact frame through a JPEG at Q,
-    # decoded at the bundle's scale, as a UVC camera hands them (runtime.preprocess.through_camera_jpeg;
-    # docs/training.md "The camera's JPEG"). Export and the bench read the run's frames the same way.
-    camera_jpeg: int = 0
-    # with ``camera_jpeg`` on the float path: the scale the camera's JPEG is decoded at, as the cell's
-    # devices.camera.decode_scale: "auto" = ``float_path_scale`` of the dataset's frames (1/2 of
-    # 640x480 at 128 or 224 px), what the cell's camera then decodes at; "full" = full decodes (every
-    # such run before 2026-11-29). The reduced path decodes at 1/reduce either way.
-    camera_decode: str = "auto"
-    # per split, train on only this many of its touched fabrics (``splits.fewer_touched``: a nested
-    # draw with the split's seed; the rest take no part); None: all of them. Prices the fabrics a
-    # cell has touched (docs/results/zero_shot_limits_paper.md, "More touched fabrics").
-    touched: int | None = None
-    # the share of pieces in a wrong bin the scene decision's search on validation jobs must keep
-    # under (train/decision.py); the report prices decision.MIS_SORT_TARGETS beside it
-    mis_sort_target: float = 0.01
-    # the scene decision's validation worlds beyond the split's own validation fabrics: folds of the
-    # touched fabrics, each held out of a generator trained on the others (train/folds.py); 0: none
-    validation_folds: int = 0
-
-
-REDUCE_CHOICES = ("off", "auto", "1", "2", "4", "8")
-CAMERA_DECODES = ("auto", "full")
-
-
-def tactile_spec(prof: Profile, dataset: Path) -> TactilePreprocess:
-    """The one preprocessing this run trains with and its bundle ships (the cell runs the same)."""
-    if prof.preprocess_reduce not in REDUCE_CHOICES:
-        raise ValueError(f"preprocess_reduce {prof.preprocess_reduce!r}: choose one of {', '.join(REDUCE_CHOICES)}")
-    if prof.camera_decode not in CAMERA_DECODES:
-        raise ValueError(f"camera_decode {prof.camera_decode!r}: choose one of {', '.join(CAMERA_DECODES)}")
-    if prof.tactile_feature != "cnn":  # a descriptor reads full frames
-        return TactilePreprocess(size=prof.size_px)
-    if prof.preprocess_reduce == "off":
-        if not prof.camera_jpeg or prof.camera_decode == "full":
-            return TactilePreprocess(size=prof.size_px)
-        from vs2t_edge.runtime.preprocess import float_path_scale
-
-        spec = TactilePreprocess(size=prof.size_px)  # trained on the frames the cell's camera decodes at auto
-        return TactilePreprocess(size=prof.size_px, jpeg_scale=float_path_scale(spec, _frame_hw(dataset)))
-    if prof.preprocess_reduce == "auto":
-        from vs2t_edge.runtime.preprocess import auto_reduce
-
-        return TactilePreprocess(size=prof.size_px, reduce=auto_reduce(_frame_hw(dataset), prof.size_px))
-    return TactilePreprocess(size=prof.size_px, reduce=int(prof.preprocess_reduce))
-
-
-def _frame_hw(dataset: Path) -> tuple[int, int]:
-    """The tactile frames' size, from the dataset's geometry (no frame read)."""
-    from vs2t_edge.runtime.dataset import load_dataset
-
-    geo = load_dataset(dataset).fabrics[0].geometry
-    return geo.frame_height_px, geo.frame_width_px
-
-
-PROFILES = {
-    "tiny": Profile("tiny", trunk="tiny", size_px=64, ft_epochs=2, steps=150, cls_steps=100, n_synth_per_class=60),
-    "small": Profile("small", size_px=128, steps=400, cls_steps=200, n_synth_per_class=150),
-    # paper: 50 fabrics x 225 presses; features from 90 evenly spaced presses per fabric so extraction
-    # fits the CPU budget, and a touched fabric has 9 validation presses: a validation piece can
-    # press past the cell's limit of 5, so validation can choose extra presses; see docs/training.md
-    "paper": Profile("paper", size_px=128, splits=5, max_presses=90, ft_epochs=2, ft_max_rows=2000, steps=400,
-                     cls_steps=200, n_synth_per_class=150, visual_tail="finetuned", validation_folds=4),
-}
-
-
-def n_holdout(n_fabrics: int) -> int:
-    """Validation = untouched count: the paper's 5 of 50; 15 % (>= 2) for smaller worlds (3 of 20)."""
-    return 5 if n_fabrics >= 50 else max(2, round(0.15 * n_fabrics))
-
-
-def touched_problem(n_fabrics: int, touched: int | None, dataset: Path | str) -> str | None:
-    """What is wrong with training on ``touched`` of each split's touched fabrics (``Profile.touched``)
-    in a world of ``n_fabrics``, or None."""
-    most = n_fabrics - 2 * n_holdout(n_fabrics)
-    if touched is None or 2 <= touched <= most:
-        return None
-    return f"--touched {touched}: a split of {dataset}'s {n_fabrics} fabrics has {most} touched ones; give 2 to {most}"
-
-
-def split_touched(n_fabrics: int, prof: Profile) -> int:
-    """How many touched fabrics each split of a world of ``n_fabrics`` trains on."""
-    return prof.touched or n_fabrics - 2 * n_holdout(n_fabrics)
-
-
-def folds_problem(n_fabrics: int, prof: Profile, dataset: Path | str) -> str | None:
-    """What is wrong with ``prof.validation_folds`` for a split of ``dataset``'s ``n_fabrics``, or None
-    (train/folds.py ``folds_fit``)."""
-    n, touched = prof.validation_folds, split_touched(n_fabrics, prof)
-    if n == 0 or folds_fit(n, touched):
-        return None
-    return (f"--validation-folds {n}: a split of {dataset}'s {n_fabrics} fabrics trains on {touched} touched ones; "
-            f"give 0 (none) or 2 to {touched // 2} (at least 2 held out per fold)")
-
-
-def profile_folds(n_fabrics: int, prof: Profile) -> int:
-    """The profile's own number of validation folds, shrunk to what a split can give (0 when it
-    can give none): a profile default is no request to refuse a world or a ``--touched`` for."""
-    n, touched = prof.validation_folds, split_touched(n_fabrics, prof)
-    return n if n == 0 or folds_fit(n, touched) else (touched // 2 if touched >= 4 else 0)
+# the profile and what it implies: train/profile.py (its names stay importable from here)
+from vs2t_edge.train.profile import (  # noqa: F401
+    CAMERA_DECODES, PROFILES, REDUCE_CHOICES, TACTILE_FEATURES, VISUAL_TAILS, Profile, _camera_decode_applies,
+    folds_problem, n_holdout, profile_folds, split_touched, tactile_spec, touched_problem)
 
 
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-VISUAL_TAILS = ("frozen", "finetuned")
-TACTILE_FEATURES = ("cnn", "shading_markers")
 
 
 def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray:
@@ -197,8 +57,8 @@ def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray
     return x
 
 
-def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk) -> ft.StemCache:
-    spec = tactile_spec(prof, dataset)
+def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk, spec: TactilePreprocess | None = None) -> ft.StemCache:
+    spec = spec or tactile_spec(prof, dataset)
     meta = {"size": prof.size_px, "arch": prof.trunk, "max_presses": -1 if prof.max_presses is None else prof.max_presses,
             "version": ft.CACHE_VERSION, "dataset": str(Path(dataset).resolve())}
     meta.update(ft.cache_key_extra(spec, prof.camera_jpeg))  # a float-path, lossless cache keeps its old key
@@ -359,7 +219,8 @@ def choose_router(results: list[dict], method: str = "VS2T-ZSL") -> str:
                                      -names.index(r)))
 
 
-def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_name: str = "gaussian") -> RunArtifacts:
+def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_name: str = "gaussian",
+                      spec: TactilePreprocess | None = None) -> RunArtifacts:
     views, fitted, tuned = out["views"], out["fitted"], out["trunk"]
     seed = split.seed
     # the same CLS_t and router compare.run_split evaluated (deterministic from the seed)
@@ -375,7 +236,7 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
         trunk_arch=prof.tactile_feature if descriptor else prof.trunk,
         trunk_state={} if descriptor else tuned.state_dict(),
         feature_dim=int(out["table"].x_t.shape[1]) if descriptor else tuned.feature_dim, tactile_feature=prof.tactile_feature,
-        preprocess=tactile_spec(prof, dataset).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
+        preprocess=(spec or tactile_spec(prof, dataset)).to_dict(), feature_mean=scaler.mean, feature_std=scaler.std,
         cls_t_state=cls_t.state_dict(), touched=list(split.touched),
         cls_u_state=fitted["VS2T-ZSL"].cls_u.state_dict(), untouched=list(split.untouched),
         router_name=router_name, router_params=router.to_params(), beta=float(g["beta"]),
@@ -483,9 +344,8 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
                                               ("touched", touched), ("mis_sort_target", mis_sort_target),
                                               ("validation_folds", validation_folds), ("camera_decode", camera_decode))
                             if v is not None})
-    tactile_spec(prof, dataset)  # a bad choice fails here, before any work
-    if camera_decode is not None and (not prof.camera_jpeg or prof.preprocess_reduce != "off"
-                                      or prof.tactile_feature != "cnn"):
+    spec = tactile_spec(prof, dataset)  # a bad choice fails here, before any work
+    if camera_decode is not None and not _camera_decode_applies(prof):
         _log(f"camera_decode {camera_decode}: does nothing here - it is the scale a float-path run's frames are "
              "decoded at through --camera-jpeg (the reduced path decodes at 1/reduce, a descriptor full frames)")
     if not 0.0 < prof.mis_sort_target < 1.0:
@@ -529,7 +389,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
                                                                         "AUSUC of VS2T-ZSL over splits",
                                                          "torch_threads": torch.get_num_threads()}, sort_keys=False))
     t0 = time.time()
-    cache = get_cache(dataset, prof, out_dir / "features", trunk)
+    cache = get_cache(dataset, prof, out_dir / "features", trunk, spec)
     descriptors = None if prof.tactile_feature == "cnn" else get_descriptors(dataset, prof, out_dir / "features")
     t_feat = time.time() - t0
     n = len(cache.fabric_ids)
@@ -554,7 +414,7 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     per_split = routers_by_split(results)
     router = per_split[0]
     _log(f"GZSL router by validation AUSUC: {router} (per split: {', '.join(per_split)})")
-    save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, split_list[0], first, budget, router))
+    save_run_artifacts(out_dir, _deploy_artifacts(dataset, prof, split_list[0], first, budget, router, spec))
     summary = summarise(results)
     metrics = {"dataset": str(Path(dataset).resolve()), "profile": asdict(prof), "n_fabrics": n,
                "split_sizes": [len(split_list[0].touched), k, k], "summary": summary, "orderings": orderings(summary),

@@ -276,7 +276,7 @@ def world_check(run_dir: Path, dataset_dir: Path | None = None, splits: list[int
     prof = replace(prof, **{key: run.profile[key] for key in ("size_px", "preprocess_reduce", "camera_jpeg")
                             if run.profile.get(key) is not None},
                    camera_decode=run.profile.get("camera_decode", "full"))  # JPEG runs before it decoded full frames
-    spec = tr.tactile_spec(prof, dataset_dir)
+    spec = tr.tactile_spec(prof, dataset_dir, dataset.geometry.frame_hw)
     max_presses = run.profile.get("max_presses")
     torch.set_num_threads(1)
     features_for = finetuned_features(run, log)
