@@ -24,7 +24,7 @@ import stat
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -119,11 +119,15 @@ def image_header(data: bytes) -> ImageHeader | None:
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
-def _jpeg_header(data: bytes) -> ImageHeader | None:
+def jpeg_segments(data: bytes) -> Iterator[tuple[int, int, int]]:
+    """The marker segments of a JPEG's header after its SOI, in order: (marker, index of the
+    payload's first byte, index just past the segment). Fill bytes and standalone markers are
+    stepped over; it ends at the scan (SOS) or the image's end (EOI), at a byte that is no marker,
+    and after a segment whose length is under 2. ``end`` may lie past the data: the reader checks."""
     i = 2
     while i + 4 <= len(data):
         if data[i] != 0xFF:
-            return None
+            return
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -131,14 +135,21 @@ def _jpeg_header(data: bytes) -> ImageHeader | None:
         if marker in (0x01, *range(0xD0, 0xD8)):  # standalone markers carry no length
             i += 2
             continue
-        length = struct.unpack(">H", data[i + 2:i + 4])[0]
-        if marker in _JPEG_SOF:
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
-            return ImageHeader("jpeg", w, h)
-        if marker in (0xD9, 0xDA) or length < 2:  # end of image or scan before any frame header
-            return None
+        if marker in (0xD9, 0xDA):  # end of image, or the scan: the header is over
+            return
+        length = (data[i + 2] << 8) | data[i + 3]
+        yield marker, i + 4, i + 2 + length
+        if length < 2:
+            return
         i += 2 + length
-    return None
+
+
+def _jpeg_header(data: bytes) -> ImageHeader | None:
+    for marker, start, _ in jpeg_segments(data):
+        if marker in _JPEG_SOF:
+            h, w = struct.unpack(">HH", data[start + 1:start + 5])
+            return ImageHeader("jpeg", w, h)
+    return None  # no frame header before the scan or the end
 
 
 def _tiff_header(data: bytes) -> ImageHeader | None:

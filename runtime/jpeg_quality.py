@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vs2t_edge.runtime.files import jpeg_segments
+
 # The JPEG standard's example luminance table (ITU-T T.81 annex K.1), in natural (row-major) order
 _LUMINANCE = np.array([
     16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55,
@@ -50,32 +52,18 @@ def quantisation_tables(data: bytes | np.ndarray) -> dict[int, np.ndarray]:
     if b[:2] != b"\xff\xd8":
         return {}
     tables: dict[int, np.ndarray] = {}
-    i = 2
-    while i + 4 <= len(b):
-        if b[i] != 0xFF:
-            return tables  # not a marker where one must be: a corrupt header
-        marker = b[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker == 0xDA:  # start of scan: the tables all came before it
-            break
-        length = (b[i + 2] << 8) | b[i + 3]
-        end = i + 2 + length
-        if length < 2 or end > len(b):
+    for marker, j, end in jpeg_segments(b):  # the header's segments, as runtime/files.py reads them
+        if end < j or end > len(b):  # a length under 2, or past the data: a corrupt header
             return tables
-        if marker == 0xDB:
-            j = i + 4
-            while j < end:
-                precision, table_id = b[j] >> 4, b[j] & 0x0F
-                n = 64 * (2 if precision else 1)
-                if j + 1 + n > end:
-                    return tables
-                raw = np.frombuffer(b, np.uint8, n, j + 1)
-                tables[table_id] = (raw.astype(np.int64) if not precision
-                                    else raw.reshape(64, 2).astype(np.int64) @ np.array([256, 1]))
-                j += 1 + n
-        i = end
+        while marker == 0xDB and j < end:
+            precision, table_id = b[j] >> 4, b[j] & 0x0F
+            n = 64 * (2 if precision else 1)
+            if j + 1 + n > end:
+                return tables
+            raw = np.frombuffer(b, np.uint8, n, j + 1)
+            tables[table_id] = (raw.astype(np.int64) if not precision
+                                else raw.reshape(64, 2).astype(np.int64) @ np.array([256, 1]))
+            j += 1 + n
     return tables
 
 
