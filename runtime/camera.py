@@ -202,9 +202,9 @@ class UVCCamera(CameraBase):
         self.api_preference = api_preference
         self.settings_applied: dict[str, object] = {}
         # told once per connect the MJPEG quality of the first frame a grab decodes (None: no table
-        # in it); the daemon says what it means for the bundle (runtime/jpeg_quality.py)
+        # in it; read while settings_applied, a new dict each connect, has no "mjpeg_quality"); the
+        # daemon says what it means for the bundle (runtime/jpeg_quality.py)
         self.on_stream_quality: Callable[[int | None], None] | None = None
-        self._quality_read = False
         self._guard = FrameGuard(self.name, expected_hw, frozen_after)
         self._cap = None
         self._reader: threading.Thread | None = None  # a read still stuck in the driver
@@ -250,7 +250,6 @@ class UVCCamera(CameraBase):
         if "error" in box:
             raise box["error"]
         self._cap, self.settings_applied = box["result"]
-        self._quality_read = False
         # no _guard.reset(): the frozen-frame history survives a reopen - a frame bit-identical
         # to the last one before it is the same hung buffer, not a fresh start
 
@@ -395,7 +394,7 @@ class UVCCamera(CameraBase):
                 err.reason = "jpeg"
                 raise err
             frame = self._guard.admit(decoded, reduced_by=self.decode_scale, taken_s=taken)
-            if not self._quality_read:
+            if "mjpeg_quality" not in self.settings_applied:
                 self._stream_quality(image)
             return frame
         return self._guard.admit(image, taken_s=taken)  # decoded by the backend: a full frame (the fallback)
@@ -403,7 +402,6 @@ class UVCCamera(CameraBase):
     def _stream_quality(self, jpeg: np.ndarray) -> None:
         """The MJPEG quality of the first good frame since connect, from its quantisation table, into
         ``settings_applied["mjpeg_quality"]`` and told to ``on_stream_quality``: a header parse, no read."""
-        self._quality_read = True
         q = estimate_quality(jpeg)
         self.settings_applied["mjpeg_quality"] = q.quality if q is not None else None
         if self.on_stream_quality is not None:

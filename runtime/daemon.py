@@ -103,12 +103,13 @@ def stream_quality_teller(camera_jpeg: int, log: Callable[[str], None]) -> Calla
     """What a UVC camera calls with the MJPEG quality of its first frame (``on_stream_quality``):
     the log says, once a service run, when the bundle was trained for other frames
     (runtime/jpeg_quality.py ``quality_note``; said, never refused)."""
-    told = []
+    told = False
 
     def tell(quality: int | None) -> None:
+        nonlocal told
         note = quality_note(quality, camera_jpeg)
         if note and not told:
-            told.append(quality)
+            told = True
             log(note)
     return tell
 

@@ -149,12 +149,11 @@ def decode_scale_note(model: Any, setting: str) -> str:
     bundle trained through the camera's JPEG decoded smaller (preprocess ``jpeg_scale``): they are
     scored, but not as it trained. '' otherwise."""
     spec = getattr(model, "preprocess_spec", None)
-    if setting != "full" or spec is None or not int(getattr(model, "camera_jpeg", 0) or 0) or spec.reduce:
-        return ""
-    if camera_scale(spec) == 1:
+    # jpeg_scale > 1 is a float-path camera_jpeg bundle's alone (TactilePreprocess, runtime/bundle.py)
+    if setting != "full" or spec is None or spec.jpeg_scale == 1:
         return ""
     return (f"devices.camera.decode_scale full: this bundle trained on its camera's JPEG decoded at "
-            f"1/{camera_scale(spec)} (preprocess.jpeg_scale); full frames are scored on the float path, not as it "
+            f"1/{spec.jpeg_scale} (preprocess.jpeg_scale); full frames are scored on the float path, not as it "
             "trained - remove the key (auto) to decode as it trained")
 
 
