@@ -70,9 +70,10 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
     the camera's decode scale for those frames (bench/press_timing.py ``decode_scale``, the cell's
     ``devices.camera.decode_scale``); None: the bundle's own (``camera_scale``)."""
     from vs2t_edge.runtime.novelty import log_softmax
-    from vs2t_edge.runtime.preprocess import camera_press, camera_reference
+    from vs2t_edge.runtime.preprocess import camera_press, camera_reference, camera_scale
 
     q, spec = jpeg_quality or 0, model.preprocess_spec
+    scale = camera_scale(spec) if scale is None else scale
     cls_index = {c: i for i, c in enumerate(model.classes)}
     lp, nov, lsu, lab, feat = [], [], [], [], []
     line = Line()
@@ -100,13 +101,12 @@ def press_outputs(model, ds, presses: dict[str, list[int]], log: Callable[[str],
 YUYV = "yuyv"  # press_outputs' frames through an uncompressed YUYV camera instead of a JPEG quality
 
 
-def _through_yuyv(fab, idx: list[int], spec, scale: int | None = None):
+def _through_yuyv(fab, idx: list[int], spec, scale: int):
     """A fabric's no-contact frame and presses as a UVC camera streaming YUYV hands them to the
-    cell (runtime/yuyv.py, at the bundle's camera scale): (prepared reference, (n, 3, S, S) inputs)."""
-    from vs2t_edge.runtime.preprocess import camera_scale, prepare_reference, preprocess_tactile
+    cell (runtime/yuyv.py, at the camera's ``scale``): (prepared reference, (n, 3, S, S) inputs)."""
+    from vs2t_edge.runtime.preprocess import prepare_reference, preprocess_tactile
     from vs2t_edge.runtime.yuyv import through_camera_yuyv
 
-    scale = camera_scale(spec) if scale is None else scale
     ref = prepare_reference(through_camera_yuyv(fab.load_reference(), scale, f"{fab.id} reference frame"), spec, scale)
     x = np.stack([preprocess_tactile(through_camera_yuyv(fab.load_press(i), scale, f"{fab.id} press {i}"), ref, spec,
                                      scale) for i in idx])

@@ -393,11 +393,10 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
                                                                   accuracy_lossless, accuracy_through_yuyv)
                 log(f"[{i + 1}/{len(bundles)}] {b.name}: accuracy on held-out presses, frames {row['accuracy_frames']}")
                 ds = load_dataset(ds_root)
-                geometry = ds.by_id(model.touched[0]).geometry  # the frame size, without reading a frame
-                row["decode_scale_accuracy"] = decode_scale(
-                    model, (geometry.frame_height_px, geometry.frame_width_px), camera_decode,
-                    "yuyv" if quality == YUYV else "mjpeg") if quality else 1
-                if quality:
+                row["decode_scale_accuracy"] = 1  # lossless frames: the dataset's, whole
+                if quality:  # as the cell's camera hands them, at the frame size of the dataset's geometry
+                    row["decode_scale_accuracy"] = decode_scale(model, ds.geometry.frame_hw, camera_decode,
+                                                                "yuyv" if quality == YUYV else "mjpeg")
                     row["accuracy_frames"] += f" (1/{row['decode_scale_accuracy']})"
                 outs = press_outputs(model, ds, eval_presses(model.manifest, ds, cap), jpeg_quality=quality,
                                      scale=row["decode_scale_accuracy"])

@@ -64,7 +64,8 @@ def decode_scale(model, frame_hw: tuple[int, int] | None = None, setting: str = 
                  camera_format: str = "mjpeg") -> int:
     """The scale the cell's UVC camera decodes ``frame_hw`` frames at for this bundle with
     ``devices.camera.decode_scale`` = ``setting`` (runtime/wiring.py ``model_decode_scale``: 1/reduce
-    on the reduced path; auto: a float-path bundle's too, 1/2 of 640x480 at 128 or 224 px)."""
+    on the reduced path; auto: a float-path bundle's too, 1/2 of 640x480 at 128 or 224 px). Imported
+    on call: runtime.wiring loads the cell (the arm, the gate, cv2), which the bench's CLI need not."""
     from vs2t_edge.runtime.wiring import model_decode_scale
 
     return model_decode_scale(model, frame_hw, setting, camera_format)
