@@ -5,8 +5,6 @@ cell's UVC camera decodes at it. A run or bundle trained on full decodes keeps t
 
 from __future__ import annotations
 
-import json
-import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -19,6 +17,7 @@ from vs2t_edge.runtime.preprocess import (FrameError, TactilePreprocess, camera_
 pytest.importorskip("torch")
 
 from test_bundle_fixtures import shared_bundle, tiny_world  # noqa: E402
+from test_bundle import _edit, bundle_copy  # noqa: F401,E402  (a copy of the shared bundle; a sealed manifest edit)
 from test_export import tiny_run  # noqa: F401,E402  (the module-scoped run-folder fixture)
 
 TINY_HALF = 48  # px: the tiny world's 160x120 frames keep 60 px across at 1/2, 30 at 1/4
@@ -100,21 +99,15 @@ def test_the_float_path_takes_the_half_decode_and_a_full_frame_but_refuses_an_up
                                                          scale=1), spec, 90, scale=4)
 
 
-def test_a_manifest_with_a_jpeg_scale_and_no_camera_jpeg_is_refused_by_key(tmp_path):
-    src = shared_bundle("fp32")
-    dst = tmp_path / "b"
-    shutil.copytree(src, dst)
-    m = json.loads((dst / rb.MANIFEST).read_text())
-    m["preprocess"]["jpeg_scale"] = 2
-    (dst / rb.MANIFEST).write_text(json.dumps(rb.seal_manifest(m)))
+def test_a_manifest_with_a_jpeg_scale_and_no_camera_jpeg_is_refused_by_key(bundle_copy):  # noqa: F811
+    dst = bundle_copy
+    _edit(dst, lambda m: m["preprocess"].__setitem__("jpeg_scale", 2))
     with pytest.raises(rb.BundleError, match="jpeg_scale 2 .* no 'camera_jpeg'"):
         rb.load_bundle(dst)
-    m["camera_jpeg"] = 90  # with the quality it trained through, the same manifest loads
-    (dst / rb.MANIFEST).write_text(json.dumps(rb.seal_manifest(m)))
+    _edit(dst, lambda m: m.__setitem__("camera_jpeg", 90))  # with the quality it trained through, it loads
     b = rb.load_bundle(dst)
     assert b.preprocess.jpeg_scale == 2 and b.camera_jpeg == 90
-    m["preprocess"]["jpeg_scale"] = 3
-    (dst / rb.MANIFEST).write_text(json.dumps(rb.seal_manifest(m)))
+    _edit(dst, lambda m: m["preprocess"].__setitem__("jpeg_scale", 3))
     with pytest.raises(rb.BundleError, match="'preprocess'.*jpeg_scale = 3"):
         rb.load_bundle(dst)
 

@@ -174,7 +174,7 @@ def test_a_float_path_bundle_scores_what_its_uvc_camera_decodes_reduced(mjpeg_ca
     from test_bundle_fixtures import SIZE, make_bundle
 
     from vs2t_edge.runtime.inference import TactileModel
-    from vs2t_edge.runtime.preprocess import TactilePreprocess, float_path_scale
+    from vs2t_edge.runtime.preprocess import TactilePreprocess, float_path_scale, reduced_hw
     from vs2t_edge.runtime.wiring import match_camera
 
     make_bundle(tmp_path / "b", "fp32", preprocess=TactilePreprocess(size=SIZE))
@@ -186,7 +186,7 @@ def test_a_float_path_bundle_scores_what_its_uvc_camera_decodes_reduced(mjpeg_ca
     with cam:
         ref, press = cam.grab(), cam.grab()
     assert cam.decode_scale == n and ref.reduced_by == press.reduced_by == n
-    assert press.image.shape[:2] == (-(-480 // n), -(-640 // n))
+    assert press.image.shape[:2] == reduced_hw((480, 640), n)
     model.set_reference(ref.image, reduced_by=ref.reduced_by)
     score = model.score_press(press.image, reduced_by=press.reduced_by)
     assert all(np.isfinite(v) for v in score.log_posterior.values())

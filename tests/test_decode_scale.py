@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from vs2t_edge.runtime.preprocess import (TactilePreprocess, decode_jpeg, float_path_scale, prepare_reference,
-                                          preprocess_tactile)
+                                          preprocess_tactile, through_camera_jpeg)
 from vs2t_edge.runtime.wiring import DECODE_SCALES, match_camera, model_decode_scale
 
 
@@ -152,7 +152,7 @@ def test_the_bench_scores_a_float_path_bundle_on_frames_decoded_at_the_cells_sca
     full = acc.press_outputs(model, ds, {model.classes[0]: [3, 5]}, log=lambda m: None, jpeg_quality=90)
 
     def camera(frame, scale):
-        return decode_jpeg(cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes(), scale)
+        return through_camera_jpeg(frame, 90, scale)
     for out, scale in ((half, 2), (full, 1)):
         model.set_reference(camera(ref, scale), reduced_by=scale)
         expected = model.forward(np.concatenate([model.preprocess(camera(raws[i], scale), reduced_by=scale)
