@@ -52,7 +52,7 @@ from vs2t_edge.bench.press_timing import (  # noqa: F401 - press_stages & co. st
     decode_payload, decode_scale, press_stages, split_press_graph, stages_of)
 from vs2t_edge.bench.verdict import (  # noqa: F401 - the verdict's names stay importable from here
     CELL_MEASURES, MIN_INT8_SPEEDUP, TARGET_CELL_MS, TARGET_CELL_P99_MS, TARGET_INT8_POINTS, TARGET_OF_LIMIT,
-    compare_pairs, cost_points, recommend, targets)
+    compare_pairs, cost_points, over_runs, recommend, targets)
 from vs2t_edge.bench.accuracy import (  # noqa: F401
     BIN_MAX_PRESSES, BIN_SCENES, ITEM_PRESSES, SEQ_CONFIDENCE, SEQ_MAX_PRESSES, YUYV, _dataset_of, _spread, accuracy,
     accuracy_frames, by_bins, eval_presses, pieces_per_minute, press_outputs)
@@ -422,6 +422,7 @@ def run_bench(bundles: Sequence[Path], out_dir: Path | None, *, dataset: str | N
     for c in result["comparisons"]:  # the same presses and items: the difference with its noise
         if c["fp32"] in views and c["int8"] in views:
             c["paired"] = paired(views[c["fp32"]], views[c["int8"]], n_items=n_items)
+    result["int8_over_runs"] = over_runs(result["comparisons"])
     result["targets"] = targets(result)
     result["recommendation"] = recommend(result)
     if out_dir is not None:

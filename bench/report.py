@@ -222,6 +222,14 @@ def render_markdown(result: dict) -> str:
             lines.append(f"| {c['int8']} | {c['fp32']} | {c['speedup_2t']:.2f}x | " + (" | ".join(
                 _f(d.get(k), "{:+.1f}") for k in keys) + f" | {f'{worst[1]:.1f} ({worst[0]})' if worst else '–'} | "
                 f"{'yes' if c['within_1_point'] else 'no'} |" if d else " | ".join(["–"] * 10) + " |"))
+        over = render_over_runs(result)
+        if over:
+            lines += ["", "### Over runs: int8 minus fp32, mean over each recipe's runs", "",
+                      "One run's pair scores one split's held-out presses and five untouched fabrics; its noise is "
+                      "about the size of the 1-point target (the paired intervals below). Each recipe benched on "
+                      "several runs (bundles of several `train --seed S` runs, each exported fp32 and int8 the same "
+                      "way) is judged on the mean of its runs' differences; ± is the standard error over runs.", "",
+                      over]
         paired_lines = render_paired(result)
         if paired_lines:
             lines += ["", "### Paired: int8 minus fp32 on the same presses and items, with its noise", "", paired_lines]
@@ -231,6 +239,33 @@ def render_markdown(result: dict) -> str:
                   "held-out presses' and scenes' noise, not a retraining's.", "", render_pairs(result)]
     lines += render_made_by(result)
     return "\n".join(lines) + "\n"
+
+
+OVER_RUNS_KEYS = (("press_acc_t", "press acc_t"), ("press_H", "press H"), ("press_zsl", "press ZSL"),
+                  ("scene_press_H", "scene press H"), ("item5_H", "item-5 H"), ("sequential_H", "seq H"),
+                  ("bins_right_scene_model", "right bin (scene)"), ("bins_mis_sort_scene_model", "mis-sort (scene)"))
+
+
+def render_over_runs(result: dict) -> str:
+    """``result["int8_over_runs"]`` as a table: per recipe and measure, the mean difference ± its
+    standard error over runs, and each run's own."""
+    rows = result.get("int8_over_runs") or []
+    if not rows:
+        return ""
+    lines = ["| recipe | runs | speed-up (2 threads) | measure | Δ mean ± se | sd | each run | loss of the mean |",
+             "|" + "---|" * 8]
+    for o in rows:
+        for k, label in OVER_RUNS_KEYS:
+            d = o["delta_points"].get(k)
+            if d is None:
+                continue
+            lines.append(f"| `{o['recipe']}` | {o['runs']} | {o['speedup_2t']:.2f}x | {label} | {d['mean']:+.1f} ± "
+                         f"{d['se']:.1f} | {d['sd']:.1f} | {' / '.join(f'{v:+.1f}' for v in d['runs'])} | "
+                         f"{max(o['cost_points'][k], 0.0):.1f} |")
+        worst = max(o["cost_points"].items(), key=lambda kv: kv[1])
+        lines.append(f"| `{o['recipe']}` | {o['runs']} | | **largest mean loss** | | | | {worst[1]:.1f} ({worst[0]}): "
+                     f"{'within' if o['within_1_point'] else '**not** within'} 1 point |")
+    return "\n".join(lines)
 
 
 def render_paired(result: dict) -> str:

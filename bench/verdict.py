@@ -8,6 +8,9 @@ changed)."""
 from __future__ import annotations
 
 import math
+import shlex
+
+import numpy as np
 
 from vs2t_edge.bench.press_timing import DECODE_LABEL, decode_key
 
@@ -22,30 +25,39 @@ def recommend(result: dict) -> list[dict]:
     it is at least ``MIN_INT8_SPEEDUP`` x faster (2 threads) and loses at most ``TARGET_INT8_POINTS``
     against fp32 on every measure the bench took (``cost_points``); else fp32, saying why. For a
     pair of format-3 bundles (no router on the cell's press) "every measure" is every measure of
-    what the cell decides with (``CELL_MEASURES``), and the advice says what the router loses."""
+    what the cell decides with (``CELL_MEASURES``), and the advice says what the router loses.
+    When the pair's recipe was benched on several runs (``result["int8_over_runs"]``), its accuracy
+    is judged on the mean over those runs, which one split's noise does not decide."""
     out = []
     isa = result.get("machine", {}).get("instruction_sets", {})
     vnni = isa.get("avx512_vnni") or isa.get("avx_vnni")
+    runs_of = {o["recipe"]: o for o in result.get("int8_over_runs", [])}
     for c in result.get("comparisons", []):
+        o = runs_of.get(c.get("recipe")) if c.get("run") else None
+        judged = o or c
+        over = f" (mean over {o['runs']} runs)" if o else ""
         fast = c["speedup_2t"] >= MIN_INT8_SPEEDUP
-        cell_only = "cell_within_1_point" in c and not c.get("within_1_point")
-        accurate = c["cell_within_1_point"] if cell_only else c.get("within_1_point")
-        worst = max(c["cost_points"].items(), key=lambda kv: kv[1]) if c.get("cost_points") else None
+        cell_only = "cell_within_1_point" in judged and not judged.get("within_1_point")
+        accurate = judged["cell_within_1_point"] if cell_only else judged.get("within_1_point")
+        cost = judged.get("cost_points")
+        worst = max(cost.items(), key=lambda kv: kv[1]) if cost else None
+        delta = (lambda k: o["delta_points"][k]["mean"]) if o else (lambda k: c["delta_points"][k])
         if fast and accurate and cell_only:
-            pick, why = c["int8"], (f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every "
+            pick, why = c["int8"], (f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point{over} on every "
                                     f"accuracy of what the cell decides with (the scene model: {', '.join(CELL_MEASURES)}); "
                                     f"the router, which a format-3 bundle's press never runs, loses {worst[1]:.1f} "
-                                    f"({worst[0]}: {c['delta_points'][worst[0]]:+.1f})")
+                                    f"({worst[0]}: {delta(worst[0]):+.1f})")
         elif fast and accurate:
-            pick, why = c["int8"], f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point on every accuracy"
+            pick, why = c["int8"], (f"{c['speedup_2t']:.2f}x faster and within {TARGET_INT8_POINTS:g} point{over} on "
+                                    "every accuracy")
         elif not fast:
             pick, why = c["fp32"], (f"int8 only {c['speedup_2t']:.2f}x faster here (< {MIN_INT8_SPEEDUP}x"
                                     f"{'' if vnni else '; this CPU has no VNNI'})")
         elif accurate is None:
             pick, why = c["fp32"], "int8's accuracy was not measured (trained bundles with --dataset measure it)"
         else:
-            pick, why = c["fp32"], (f"int8 {c['speedup_2t']:.2f}x faster but costs {worst[1]:.1f} points ({worst[0]}: "
-                                    f"{c['delta_points'][worst[0]]:+.1f}), more than {TARGET_INT8_POINTS:g}")
+            pick, why = c["fp32"], (f"int8 {c['speedup_2t']:.2f}x faster but costs {worst[1]:.1f} points{over} "
+                                    f"({worst[0]}: {delta(worst[0]):+.1f}), more than {TARGET_INT8_POINTS:g}")
         out.append({"fp32": c["fp32"], "int8": c["int8"], "recommended": pick, "why": why})
     return out
 
@@ -67,7 +79,8 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
             if (r32["precision"] == "fp32" and r32["arch"] == r8["arch"] and r32["size_px"] == r8["size_px"]
                     and r32.get("run") == r8.get("run")):
                 t = max(set(r32["latency"]) & set(r8["latency"]), key=int)  # 2 threads unless --threads says
-                c = {"int8": r8["name"], "fp32": r32["name"],
+                c = {"int8": r8["name"], "fp32": r32["name"], "run": r8.get("run"),
+                     "recipe": recipe(r8.get("made_by") or {}),
                      "speedup_2t": r32["latency"][t]["p50_ms"] / r8["latency"][t]["p50_ms"]}
                 if "accuracy" in r8 and "accuracy" in r32:
                     a8, a32 = r8["accuracy"], r32["accuracy"]
@@ -90,6 +103,60 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
                         if set(cell) == set(CELL_MEASURES):
                             c["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
                 out.append(c)
+    return out
+
+
+def recipe(made_by: dict) -> str:
+    """How an int8 bundle was made, without the run it was made from: its export command's options
+    less ``--out`` (``vs2t-edge export RUN --out B --trunk-precision int8`` -> ``--trunk-precision
+    int8``), so that bundles of several runs made the same way are one recipe."""
+    words = shlex.split(made_by.get("command") or "")
+    if "export" not in words:
+        return "?"
+    words, out, skip = words[words.index("export") + 1:], [], False
+    for i, w in enumerate(words):
+        if skip:
+            skip = False
+        elif w == "--out":
+            skip = True
+        elif w.startswith("--out="):
+            continue
+        elif i == 0 and not w.startswith("-"):
+            continue  # the run folder
+        else:
+            out.append(w)
+    return " ".join(out)
+
+
+def over_runs(comparisons: list[dict]) -> list[dict]:
+    """int8 against fp32 over several runs, one recipe at a time: one run's pair is one split's five
+    untouched fabrics, whose noise is as large as the 1-point target (bench.md's paired intervals);
+    the mean over runs, with its standard error, is the price a user pays on average. A recipe
+    (``recipe``) benched on fewer than two runs gets no row. Per measure: the runs' deltas, their
+    mean, sd and standard error; ``cost_points`` of the means; ``within_1_point`` judges the means."""
+    groups: dict[str, dict[str, dict]] = {}
+    for c in comparisons:
+        if c.get("delta_points") and c.get("run"):
+            groups.setdefault(c.get("recipe", "?"), {}).setdefault(c["run"], c)
+    out = []
+    for rec, by_run in groups.items():
+        if len(by_run) < 2:
+            continue
+        cs = list(by_run.values())
+        keys = [k for k in cs[0]["delta_points"] if all(k in c["delta_points"] for c in cs)]
+        per = {}
+        for k in keys:
+            v = np.array([c["delta_points"][k] for c in cs], float)
+            sd = float(v.std(ddof=1))
+            per[k] = {"runs": [float(x) for x in v], "mean": float(v.mean()), "sd": sd, "se": sd / math.sqrt(len(v))}
+        cost = cost_points({k: p["mean"] for k, p in per.items()})
+        cell = {k: v for k, v in cost.items() if k in CELL_MEASURES}
+        row = {"recipe": rec, "runs": len(cs), "pairs": [[c["int8"], c["fp32"]] for c in cs],
+               "speedup_2t": float(np.mean([c["speedup_2t"] for c in cs])), "delta_points": per, "cost_points": cost,
+               "within_1_point": all(v <= TARGET_INT8_POINTS for v in cost.values())}
+        if set(cell) == set(CELL_MEASURES) and all("cell_within_1_point" in c for c in cs):
+            row["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
+        out.append(row)
     return out
 
 
@@ -141,4 +208,12 @@ def targets(result: dict) -> list[dict]:
                                                          f"{c['fp32']} on every measure",
                          "measured": f"largest loss {worst[1]:.1f} points ({worst[0]}: {c['delta_points'][worst[0]]:+.1f})",
                          "met": c["within_1_point"]})
+    for o in result.get("int8_over_runs", []):
+        worst = max(o["cost_points"].items(), key=lambda kv: kv[1])
+        d = o["delta_points"][worst[0]]
+        rows.append({"variant": f"int8 `{o['recipe']}`, {o['runs']} runs",
+                     "target": f"int8 loses at most {TARGET_INT8_POINTS:g} point against fp32 on every measure, "
+                               "mean over runs",
+                     "measured": f"largest mean loss {worst[1]:.1f} points ({worst[0]}: {d['mean']:+.1f} ± {d['se']:.1f} "
+                                 "standard error)", "met": o["within_1_point"]})
     return rows
