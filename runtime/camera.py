@@ -54,6 +54,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from vs2t_edge.runtime.camera_warmup import settle
 from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
 from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, InputRefused, read_image_file
 from vs2t_edge.runtime.jpeg_quality import estimate_quality
@@ -176,9 +177,14 @@ class UVCCamera(CameraBase):
                  frozen_after: int = FROZEN_AFTER, flush_frames: int = 2, buffer_size: int | None = 1,
                  expected_hw: tuple[int, int] | None = None, api_preference: int = cv2.CAP_ANY,
                  open_timeout_s: float = UVC_OPEN_TIMEOUT_S, decode_scale: int = 1,
-                 pixel_format: str = "mjpeg") -> None:
+                 pixel_format: str = "mjpeg", warmup_s: float = 0.0) -> None:
         if read_timeout_s <= 0 or open_timeout_s <= 0:
             raise ValueError("read_timeout_s and open_timeout_s must be positive")
+        if not 0 <= warmup_s < open_timeout_s:
+            raise ValueError(f"warmup_s must be >= 0 and below open_timeout_s ({open_timeout_s:g} s: the warm-up "
+                             f"runs inside the bounded open), got {warmup_s!r}")
+        # after each open, frames read until the picture holds still (runtime/camera_warmup.py)
+        self.warmup_s = warmup_s
         if decode_scale not in REDUCE_FACTORS:
             raise ValueError(f"decode_scale must be one of {REDUCE_FACTORS} (1/n JPEG decode), got {decode_scale!r}")
         if pixel_format not in PIXEL_FORMATS:
@@ -304,6 +310,8 @@ class UVCCamera(CameraBase):
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             applied["mjpeg_undecoded"] = _raw_frames(cap)
         applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
+        if self.warmup_s > 0:  # the next grab is a piece's no-contact reference: not one taken mid-ramp
+            applied["warmup"] = settle(cap.read, self.warmup_s)
         return cap, applied
 
     def disconnect(self) -> None:
@@ -568,7 +576,7 @@ def camera_from_config(cam: dict, decode_scale: int = 1):
                          fps=cam["fps"], exposure=cam["exposure"], read_timeout_s=cam["timeout_s"],
                          flush_frames=cam["flush_frames"], frozen_after=cam["frozen_after"],
                          expected_hw=(cam["height_px"], cam["width_px"]), decode_scale=decode_scale,
-                         pixel_format=cam.get("pixel_format", "mjpeg"))
+                         pixel_format=cam.get("pixel_format", "mjpeg"), warmup_s=cam.get("warmup_s", 0.0))
     if cam["kind"] == "replay":
         return ReplayCamera(cam["path"], frozen_after=cam["frozen_after"])
     raise ValueError(f"devices.camera.kind = {cam['kind']!r}: built by the simulated cell, not from a config")

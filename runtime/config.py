@@ -83,6 +83,13 @@ _SCHEMA: dict[str, Any] = {
             "timeout_s": _leaf("float", 2.0, (0.05, CAMERA_TIMEOUT_MAX_S), "longest wait for one frame",
                                why=f"a hung grab must become a latched camera fault, not a kill by systemd's "
                                    f"WatchdogSec={SYSTEMD_WATCHDOG_S:g} s (a press and its retry each wait this long)"),
+            # after each open (start, the reopen before a retry, the operator's clear), frames read
+            # until the picture's brightness holds still: auto exposure ramps over a stream's first
+            # frames, and the first grab is a piece's no-contact reference (runtime/camera_warmup.py).
+            # Below UVC_OPEN_TIMEOUT_S (5 s), inside whose bound it runs.
+            "warmup_s": _leaf("float", 2.0, (0.0, 4.0),
+                              "uvc: after each open, read frames until their brightness holds still, at most "
+                              "this long (0: none)"),
             "flush_frames": _leaf("int", 2, (0, 30),
                                   "uvc: buffered frames dropped before each grab (taken before the press settled)"),
             "frozen_after": _leaf("int", 2, (2, 100),
