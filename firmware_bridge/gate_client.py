@@ -41,12 +41,15 @@ class GateClientError(RuntimeError):
     may be at the bin. A timeout always may have been executed; a NAK never was."""
 
     def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None,
-                 maybe_executed: bool = False) -> None:
+                 maybe_executed: bool = False, reported_state: str | None = None) -> None:
         super().__init__(message)
         assert kind in ERROR_KINDS, kind
         self.kind = kind
         self.reason = reason
-        self.reported_bin = reported_bin  # bad_ack: the bin the gate's ACK says the flap is at
+        # where the gate's reply (a contradicting ACK, a NAK) says the flap is, and the gate's state
+        # then: a NAK of a latched gate leaves the flap there - it refuses the move to reject too
+        self.reported_bin = reported_bin
+        self.reported_state = reported_state
         self.maybe_executed = maybe_executed
 
 
@@ -337,7 +340,8 @@ class GateClient:
             log.error("%s: the gate's ACK reports %s", what, ", ".join(wrong))
             raise GateClientError(f"{what}: the gate acknowledged it but reports {', '.join(wrong)} - the ACK "
                                   f"contradicts the request, so the flap's position is not known",
-                                  kind="bad_ack", reason="contradicting_ack", reported_bin=ack.bin)
+                                  kind="bad_ack", reason="contradicting_ack", reported_bin=ack.bin,
+                                  reported_state=_state_name(ack.state))
 
     def _nak_error(self, nak: p.Nak, what: str) -> GateClientError:
         reason = p.NAK_NAMES.get(nak.reason, f"unknown({nak.reason})")
@@ -352,7 +356,8 @@ class GateClient:
             "jam": "the flap jammed and did not reach the bin; clear the jam, then clear the gate",
             "jam_present": "the flap is still blocked; free it before clearing",
         }.get(reason, reason)
-        return GateClientError(f"{what} refused: {words}", kind=kind, reason=reason)
+        return GateClientError(f"{what} refused: {words}", kind=kind, reason=reason, reported_bin=nak.bin,
+                               reported_state=_state_name(nak.state))
 
     def _request(self, msg_type: int, payload: bytes, *, seq: int | None = None, retries: int | None = None,
                  check_reboot: bool = True) -> p.Ack | p.Nak | p.StatusReply:

@@ -26,7 +26,8 @@ REJECT_BIN = proto.REJECT_BIN
 def _to_gate_error(exc: GateClientError) -> GateError:
     error = GateError(str(exc), device="gate", kind=exc.kind)
     error.retryable = exc.kind == "timeout"  # one more try may help a noisy line; nothing else
-    error.reported_bin = exc.reported_bin  # bad_ack: where the gate says the flap is
+    error.reported_bin = exc.reported_bin  # bad_ack, NAK: where the gate says the flap is
+    error.reported_state = exc.reported_state  # and the gate's state: "fault" holds the flap there
     error.maybe_executed = exc.maybe_executed  # the request went out: a SORT may have moved the flap
     return error
 

@@ -177,7 +177,9 @@ class FakeGate:
             if self._jam_next:
                 self._jam_next = False
                 self._state, self._fault = "fault", "jam"
-                raise GateError(f"sort to bin {bin_index} refused: the flap jammed", device="gate", kind="jam")
+                error = GateError(f"sort to bin {bin_index} refused: the flap jammed", device="gate", kind="jam")
+                error.reported_bin, error.reported_state = self._bin, self._state  # as the firmware's NAK
+                raise error
             self._bin = bin_index
             self.sorted.append(bin_index)
 

@@ -189,8 +189,8 @@ SCENARIOS = [
     Scenario("gate_ack_lost", "pty gate", "acks 2 s late, past all retries (timeout 0.3 s)",
              "fault latched, piece recorded unknown_outcome with the bin it may be in; resumes after clear",
              ack_lost_past_timeout),
-    Scenario("gate_jam", "pty gate", "flap jammed", "fault latched, piece rejected, resumes once freed + cleared",
-             gate_jam),
+    Scenario("gate_jam", "pty gate", "flap jammed", "fault latched, piece recorded unknown_outcome with the bin the "
+             "latched flap holds (the last piece's); resumes once freed + cleared", gate_jam),
     Scenario("gate_reboot", "pty gate", "MCU reboots mid-run", "fault latched (boot id changed), cleared, resumes",
              gate_reboot),
     Scenario("gate_ack_contradicts", "pty gate", "ACK of a SORT reports another bin / jam / fail-safe / busy "
@@ -226,7 +226,7 @@ SCENARIOS = [
              "refuses, a piece wait past the watchdog, ...",
              "refused with exit 2 naming the file, no traceback", hostile_configs),
     Scenario("bundle_tampered", "bundle", "graph byte flipped / truncated, file missing, manifest truncated, "
-             "a newer format (3), opset 11, probe mismatch",
+             "a newer format (4), opset 11, probe mismatch",
              "refused before READY, exit 2, file named, journal never opened", bundle_tampered),
     Scenario("bundle_manifest_edited", "bundle", "manifest.json beta edited by hand, hashes untouched",
              "refused before READY, exit 2, manifest.json named", bundle_manifest_edited),

@@ -376,3 +376,34 @@ def test_a_link_lost_after_the_sort_went_out_may_have_moved_the_flap(sim, client
     with pytest.raises(GateClientError) as again:  # nothing can go out now: certain
         client.sort(4)
     assert again.value.kind == "link" and again.value.maybe_executed is False
+
+
+# --- a refused sort that leaves the flap at another piece's bin ------------------------------------
+
+def test_a_jam_says_where_the_flap_is_held_and_the_latched_gate_keeps_it_there(sim, client):
+    """The firmware's NAK of a jammed SORT reports the flap at the last bin it reached, in state
+    FAULT; latched, the gate refuses the move to reject too, so the flap stays at the bin of the
+    piece before - the error carries both, for the cell's record."""
+    client.sort(3)
+    sim.jam()
+    with pytest.raises(GateClientError) as caught:
+        client.sort(5)
+    assert (caught.value.kind, caught.value.reported_bin, caught.value.reported_state) == ("jam", 3, "fault")
+    client.to_reject()  # refused (latched), never raises
+    assert client.status().bin == 3
+
+
+def test_the_cell_records_a_piece_refused_by_a_gate_holding_another_bin_as_unknown(tmp_path):
+    """A jam on the first piece leaves the flap at reject: rejected_fault (test_cell.py). A jam after
+    a piece went to bin 2 leaves it held at bin 2 by a latched gate: the piece is recorded
+    unknown_outcome with maybe_bin 2 - where it lands if let go - never a plain reject."""
+    from test_cell import BINS, finals, make_cell
+
+    cell, _arm, _cam, gate, journal = make_cell(tmp_path, [60, 60, 60] * 2)
+    assert [r.outcome for r in cell.run(max_items=1)] == ["sorted"] and gate.sorted == [BINS["silk"]]
+    gate.jam_next_sort()
+    result = cell.run(max_items=2)[-1]  # max_items counts the cell's pieces
+    last = finals(journal.path)[-1]
+    assert result.outcome == last["outcome"] == "unknown_outcome" and last["bin"] == 0
+    assert last["maybe_bin"] == BINS["silk"] and f"held at bin {BINS['silk']}" in last["reason"]
+    assert cell.fault and gate.status().bin == BINS["silk"]
