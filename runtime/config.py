@@ -32,6 +32,7 @@ ARM_KINDS = ("ur_rtde", "fake", "sim")
 GATE_KINDS = ("serial", "sim", "fake")
 GRID_ORDERS = ("spread", "rows", "list")
 WITHOUT_SCENE_MODEL = ("refuse", "allow")
+SHARED_BINS = ("refuse", "allow")  # scene.shared_bins
 N_GRID_X = N_GRID_Y = GRID_N  # 15: the paper's 15 x 15 grid of press points on the 8 cm piece
 
 
@@ -122,6 +123,10 @@ _SCHEMA: dict[str, Any] = {
         "reject_bin": _leaf("int", 0, (0, 7), "bin for unknown items, faults and anything off-scene: the "
                                               "gate's own reject bin, 0"),
         "fabrics": _leaf("list", REQUIRED, None, "list of {name, kind: touched|untouched, bin}"),
+        # a copied bin line merges two fabrics: refused while a bin stays free, unless written here
+        "shared_bins": _leaf("str", "refuse", SHARED_BINS,
+                             "two fabrics in one bin while a bin of the gate stays free: refuse the config "
+                             "(a copied line?) or allow it"),
     },
     "evidence": {
         "confidence": _leaf("float", 0.9, (0.5, 0.99999), "stop pressing once the posterior reaches this"),
@@ -209,21 +214,6 @@ class CellConfig:
             if f.name == label:
                 return f.bin
         return self.reject_bin
-
-    def shared_bins_note(self) -> str:
-        """Fabrics that share a bin while a bin of the gate (1..7) stays free, in words, or "": a
-        copied line that merged two fabrics in one bin mis-sorts every piece of one of them. Sharing
-        is meant when the job has more fabrics than the gate has bins (sim/scene.assign_bins)."""
-        by_bin: dict[int, list[str]] = {}
-        for f in self.fabrics:
-            by_bin.setdefault(f.bin, []).append(f.name)
-        shared = {b: names for b, names in sorted(by_bin.items()) if len(names) > 1}
-        free = [b for b in range(1, 8) if b != self.reject_bin and b not in by_bin]
-        if not shared or not free:
-            return ""
-        said = "; ".join(f"{' and '.join(names)} share bin {b}" for b, names in shared.items())
-        return (f"{self.path}: scene.fabrics: {said}, while bin(s) {free} stay free - one bin for two fabrics "
-                "puts the pieces of one in the other's bin; give each its own bin unless that is meant")
 
     def press_points_mm(self) -> list[tuple[float, float]]:
         grid = self.arm.grid_points_mm(N_GRID_X, N_GRID_Y)
@@ -348,6 +338,21 @@ class _Checker:
         return out
 
 
+def shared_bins(fabrics: list[SceneFabric], reject_bin: int) -> str:
+    """Fabrics that share a bin while a bin of the gate (1..7) stays free, in words, or "": a
+    copied line that merged two fabrics in one bin mis-sorts every piece of one of them. A job with
+    more fabrics than the gate has bins must share (sim/scene.assign_bins): said nothing."""
+    by_bin: dict[int, list[str]] = {}
+    for f in fabrics:
+        by_bin.setdefault(f.bin, []).append(f.name)
+    shared = {b: names for b, names in sorted(by_bin.items()) if len(names) > 1}
+    free = [b for b in range(1, 8) if b != reject_bin and b not in by_bin]
+    if not shared or not free:
+        return ""
+    return "; ".join(f"{' and '.join(names)} share bin {b}" for b, names in shared.items()) + \
+        f", while bin(s) {free} stay free"
+
+
 def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellConfig:
     chk = _Checker(path, lines)
     for dup in lines.get("__dup__", []):  # type: ignore[union-attr]
@@ -406,6 +411,13 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         fabrics.append(SceneFabric(name, str(kind), int(bin_)))
     if v["scene"]["fabrics"] is not None and not v["scene"]["fabrics"]:
         chk.err("scene.fabrics", "scene.fabrics: the scene needs at least one fabric")
+    said = shared_bins(fabrics, reject_bin)
+    if said and v["scene"]["shared_bins"] != "allow":
+        # refused, not warned: every piece of one of them would go to the other's bin, and a start
+        # log's warning is easy to miss (it was one until 2026-11-29)
+        chk.err("scene.fabrics", f"scene.fabrics: {said} - one bin for two fabrics puts the pieces of one in "
+                                 "the other's bin; give each its own bin, or set scene.shared_bins: allow if "
+                                 "that is meant")
 
     # evidence: which grid points, in which order
     ev = v["evidence"]

@@ -58,8 +58,6 @@ def run(args) -> int:
         note = confidence_override_note(cfg, read[0])
         if note:
             print(f"warning: {note}", file=sys.stderr)
-    if shared := cfg.shared_bins_note():  # a warning, not a refusal: said at the start too (runtime/daemon.py)
-        print(f"warning: {shared}", file=sys.stderr)
     from vs2t_edge.runtime.operating_point import config_sets_confidence
 
     fabrics = ", ".join(f"{f.name}({f.kind[0]})->{f.bin}" for f in cfg.fabrics)

@@ -159,8 +159,6 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
     note = confidence_override_note(cfg, getattr(model, "scene_model", None))
     if note:  # the config moves the operating point training chose for the mis-sort target
         log(note)
-    if shared := cfg.shared_bins_note():
-        log(f"warning: {shared}")
     for line in job_check_lines(cfg, model, evidence_factory):
         log(line)
     try:

@@ -296,20 +296,27 @@ def test_the_reject_bin_is_the_bin_the_gate_fails_safe_to(tmp_path):
         load_config(path)
 
 
-def test_two_fabrics_in_one_bin_while_bins_are_free_is_said_before_the_start(tmp_path, capsys):
-    """A copied line that gives silk denim's bin sorts every silk piece into denim's bin: allowed
-    (a job with more fabrics than bins shares them on purpose), but validate-config warns when a
-    bin stays free, naming the fabrics and the bin."""
-    ok = load_config(write(tmp_path, GOOD))
-    assert ok.shared_bins_note() == ""
-    path = write(tmp_path, GOOD.replace("kind: untouched, bin: 2", "kind: untouched, bin: 1"))
-    assert main(["validate-config", str(path)]) == 0
-    err = capsys.readouterr().err
-    assert "warning:" in err and "denim and silk share bin 1" in err and "[2, 3, 4, 5, 6, 7] stay free" in err
+def test_two_fabrics_in_one_bin_while_bins_are_free_is_refused_unless_allowed(tmp_path, capsys):
+    """A copied line that gives silk denim's bin sorts every silk piece into denim's bin: refused
+    while a bin stays free, naming the fabrics, the bin and the key that allows it; allowed when
+    written (scene.shared_bins: allow), and needed by no job with more fabrics than the gate's bins."""
+    assert load_config(write(tmp_path, GOOD)).fabrics
+    merged = GOOD.replace("kind: untouched, bin: 2", "kind: untouched, bin: 1")
+    path = write(tmp_path, merged)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert "denim and silk share bin 1, while bin(s) [2, 3, 4, 5, 6, 7] stay free" in str(info.value)
+    assert "scene.shared_bins: allow" in str(info.value) and f"{path}:" in str(info.value)
+    assert main(["validate-config", str(path)]) == 2
+    assert "denim and silk share bin 1" in capsys.readouterr().err
+    allowed = write(tmp_path, merged.replace("  reject_bin: 0\n", "  reject_bin: 0\n  shared_bins: allow\n"))
+    cfg = load_config(allowed)
+    assert cfg.bin_for("silk") == cfg.bin_for("denim") == 1
+    assert main(["validate-config", str(allowed)]) == 0 and "share" not in capsys.readouterr().err
     full = GOOD.replace("    - {name: silk, kind: untouched, bin: 2}\n",
                         "".join(f"    - {{name: f{b}, kind: touched, bin: {b}}}\n" for b in range(2, 8))
                         + "    - {name: silk, kind: untouched, bin: 1}\n")
-    assert load_config(write(tmp_path, full)).shared_bins_note() == ""  # every bin used: sharing is meant
+    assert load_config(write(tmp_path, full)).bin_for("silk") == 1  # every bin used: sharing is needed
 
 
 def test_the_state_files_are_four_files(tmp_path):
