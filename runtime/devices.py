@@ -114,7 +114,8 @@ class Arm(Protocol):
 
 class GateError(DeviceError):
     """kind: timeout (no ack after retries), nak, jam, fault_latched, link, bad_ack (an ACK that
-    reports another bin or state than the one asked; ``reported_bin`` is the bin it reports)."""
+    reports another bin or state than the one asked). ``reported_bin`` / ``reported_state``, when
+    set: where the gate's reply (that ACK, or a NAK) says the flap is, and the gate's state then."""
 
 
 @dataclass(frozen=True)
