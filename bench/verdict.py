@@ -31,9 +31,9 @@ def recommend(result: dict) -> list[dict]:
     out = []
     isa = result.get("machine", {}).get("instruction_sets", {})
     vnni = isa.get("avx512_vnni") or isa.get("avx_vnni")
-    runs_of = {o["recipe"]: o for o in result.get("int8_over_runs", [])}
+    groups = result.get("int8_over_runs", [])
     for c in result.get("comparisons", []):
-        o = runs_of.get(c.get("recipe")) if c.get("run") else None
+        o = next((g for g in groups if [c["int8"], c["fp32"]] in g["pairs"]), None)  # a group this pair is in
         judged = o or c
         over = f" (mean over {o['runs']} runs)" if o else ""
         fast = c["speedup_2t"] >= MIN_INT8_SPEEDUP
@@ -79,8 +79,8 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
             if (r32["precision"] == "fp32" and r32["arch"] == r8["arch"] and r32["size_px"] == r8["size_px"]
                     and r32.get("run") == r8.get("run")):
                 t = max(set(r32["latency"]) & set(r8["latency"]), key=int)  # 2 threads unless --threads says
-                c = {"int8": r8["name"], "fp32": r32["name"], "run": r8.get("run"),
-                     "recipe": recipe(r8.get("made_by") or {}),
+                c = {"int8": r8["name"], "fp32": r32["name"], "run": r8.get("run"), "arch": r8["arch"],
+                     "size_px": r8["size_px"], "recipe": recipe(r8.get("made_by") or {}),
                      "speedup_2t": r32["latency"][t]["p50_ms"] / r8["latency"][t]["p50_ms"]}
                 if "accuracy" in r8 and "accuracy" in r32:
                     a8, a32 = r8["accuracy"], r32["accuracy"]
@@ -107,25 +107,38 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
 
 
 def recipe(made_by: dict) -> str:
-    """How an int8 bundle was made, without the run it was made from: its export command's options
-    less ``--out`` (``vs2t-edge export RUN --out B --trunk-precision int8`` -> ``--trunk-precision
-    int8``), so that bundles of several runs made the same way are one recipe."""
-    words = shlex.split(made_by.get("command") or "")
+    """How a bundle was exported, without the run it was made from: its export command's options
+    read by export's own parser, those left at their default and ``--out`` dropped (``vs2t-edge
+    export RUN --out B --trunk-precision int8`` -> ``--trunk-precision int8``), so that bundles of
+    several runs made the same way are one recipe. "?" when the command is not an export's."""
+    import argparse
+
+    from vs2t_edge.export.cli import add_arguments
+
+    command = made_by.get("command") or ""
+    try:
+        words = shlex.split(command)
+    except ValueError:  # an unbalanced quote in a path: commands were recorded unquoted until 2026-11-29
+        words = command.split()
     if "export" not in words:
         return "?"
-    words, out, skip = words[words.index("export") + 1:], [], False
-    for i, w in enumerate(words):
-        if skip:
-            skip = False
-        elif w == "--out":
-            skip = True
-        elif w.startswith("--out="):
+    class Quiet(argparse.ArgumentParser):
+        def error(self, message):  # not a usage line on the bench's stderr and an exit: no recipe
+            raise ValueError(message)
+
+    parser = Quiet(add_help=False)
+    add_arguments(parser, "export")
+    try:
+        ns, rest = parser.parse_known_args(words[words.index("export") + 1:])
+    except (argparse.ArgumentError, ValueError):
+        return "?"
+    said = []
+    for action in parser._actions:
+        value = getattr(ns, action.dest, None)
+        if action.dest in ("run", "out") or not action.option_strings or value == action.default:
             continue
-        elif i == 0 and not w.startswith("-"):
-            continue  # the run folder
-        else:
-            out.append(w)
-    return " ".join(out)
+        said.append(action.option_strings[0] if action.nargs == 0 else f"{action.option_strings[0]} {value}")
+    return " ".join(said + rest)
 
 
 def over_runs(comparisons: list[dict]) -> list[dict]:
@@ -134,12 +147,12 @@ def over_runs(comparisons: list[dict]) -> list[dict]:
     the mean over runs, with its standard error, is the price a user pays on average. A recipe
     (``recipe``) benched on fewer than two runs gets no row. Per measure: the runs' deltas, their
     mean, sd and standard error; ``cost_points`` of the means; ``within_1_point`` judges the means."""
-    groups: dict[str, dict[str, dict]] = {}
-    for c in comparisons:
-        if c.get("delta_points") and c.get("run"):
-            groups.setdefault(c.get("recipe", "?"), {}).setdefault(c["run"], c)
+    groups: dict[tuple, dict[str, dict]] = {}
+    for c in comparisons:  # one trunk, size and recipe a group; a bundle that says no recipe joins none
+        if c.get("delta_points") and c.get("run") and c.get("recipe", "?") != "?":
+            groups.setdefault((c.get("arch"), c.get("size_px"), c["recipe"]), {}).setdefault(c["run"], c)
     out = []
-    for rec, by_run in groups.items():
+    for (arch, size_px, rec), by_run in groups.items():
         if len(by_run) < 2:
             continue
         cs = list(by_run.values())
@@ -151,7 +164,8 @@ def over_runs(comparisons: list[dict]) -> list[dict]:
             per[k] = {"runs": [float(x) for x in v], "mean": float(v.mean()), "sd": sd, "se": sd / math.sqrt(len(v))}
         cost = cost_points({k: p["mean"] for k, p in per.items()})
         cell = {k: v for k, v in cost.items() if k in CELL_MEASURES}
-        row = {"recipe": rec, "runs": len(cs), "pairs": [[c["int8"], c["fp32"]] for c in cs],
+        row = {"recipe": rec, "arch": arch, "size_px": size_px, "runs": len(cs),
+               "pairs": [[c["int8"], c["fp32"]] for c in cs],
                "speedup_2t": float(np.mean([c["speedup_2t"] for c in cs])), "delta_points": per, "cost_points": cost,
                "within_1_point": all(v <= TARGET_INT8_POINTS for v in cost.values())}
         if set(cell) == set(CELL_MEASURES) and all("cell_within_1_point" in c for c in cs):
@@ -211,7 +225,7 @@ def targets(result: dict) -> list[dict]:
     for o in result.get("int8_over_runs", []):
         worst = max(o["cost_points"].items(), key=lambda kv: kv[1])
         d = o["delta_points"][worst[0]]
-        rows.append({"variant": f"int8 `{o['recipe']}`, {o['runs']} runs",
+        rows.append({"variant": f"{o['arch']} {o['size_px']} px int8 `{o['recipe']}`, {o['runs']} runs",
                      "target": f"int8 loses at most {TARGET_INT8_POINTS:g} point against fp32 on every measure, "
                                "mean over runs",
                      "measured": f"largest mean loss {worst[1]:.1f} points ({worst[0]}: {d['mean']:+.1f} ± {d['se']:.1f} "

@@ -18,6 +18,7 @@ import io
 import json
 import math
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -400,7 +401,7 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             "checks": checks,
             "files": {name: rb.sha256_file(tmp / name) for name in files},
             "provenance": {"time_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-                           "git_commit": _git_commit(), "versions": _versions(), "command": " ".join(sys.argv),
+                           "git_commit": _git_commit(), "versions": _versions(), "command": shlex.join(sys.argv),
                            **(provenance or {})},
         }
         manifest = seal_verify_and_place(manifest, tmp, out, threads)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 
 pytest.importorskip("torch")
@@ -381,55 +380,6 @@ def test_format_3_pairs_are_advised_on_what_the_cell_decides_with():
     (c,) = bench.compare_pairs([row("fp32", 2.0, 38.5, 43.6, 75.6, 1.5, split=False),
                                 row("int8", 1.0, 35.9, 44.2, 76.4, 0.7)])
     assert "cell_within_1_point" not in c and bench.recommend({"machine": {}, "comparisons": [c]})[0]["recommended"] == "b_fp32"
-
-
-def test_int8_is_judged_on_the_mean_over_runs_when_a_recipe_was_benched_on_several():
-    """Three runs, each exported fp32 and int8 with one recipe: one run's int8 loses 1.9 points of
-    the router's H (that pair fails the target), the mean over the three loses 0.4 (the recipe meets
-    it, and is recommended on the mean, said so). A second recipe benched on one run only gets no
-    over-runs row and keeps its pair's verdict. The recipe is the export command less run and --out."""
-    from vs2t_edge.bench import verdict as bench
-    from vs2t_edge.bench.report import render_over_runs
-
-    assert bench.recipe({"command": "/v/bin/vs2t-edge export runs/s1 --out B/s1_int8 --trunk-precision int8"}) \
-        == "--trunk-precision int8"
-    assert bench.recipe({"command": "vs2t-edge export r --trunk-precision int8 --out=B/x --int8-float-auto 8"}) \
-        == "--trunk-precision int8 --int8-float-auto 8"
-    assert bench.recipe({}) == "?"
-
-    def row(prec, run, press_h, extra=""):
-        bins = {"all": {"right": 70.0, "mis-sort": 0.5}}
-        cmd = f"vs2t-edge export {run} --out B/{run}_{prec}" + (" --trunk-precision int8" + extra if prec == "int8" else "")
-        return {"name": f"{run}_{prec}{extra.replace(' ', '')}", "precision": prec, "arch": "lite0", "size_px": 128,
-                "run": run, "split": True, "made_by": {"command": cmd}, "latency": {"2": {"p50_ms": 2.0 if prec == "fp32" else 1.0}},
-                "accuracy": {"press": {"H": press_h, "zsl": 30.0, "acc_t": 80.0}, "items": {"5": {"H": 40.0}},
-                             "sequential": {"H": 40.0}, "press_scene": {"H": 45.0},
-                             "bins": {"scene_model": bins, "router": bins}}}
-
-    rows = [row("fp32", "s0", 40.0), row("int8", "s0", 38.1), row("fp32", "s1", 40.0), row("int8", "s1", 40.3),
-            row("fp32", "s2", 40.0), row("int8", "s2", 40.6), row("int8", "s0", 37.0, " --int8-float-auto 8")]
-    comps = bench.compare_pairs(rows)
-    assert len(comps) == 4 and [c["within_1_point"] for c in comps] == [False, True, True, False]
-    (o,) = bench.over_runs(comps)
-    assert o["recipe"] == "--trunk-precision int8" and o["runs"] == 3
-    h = o["delta_points"]["press_H"]
-    assert h["runs"] == pytest.approx([-1.9, 0.3, 0.6]) and h["mean"] == pytest.approx(-1 / 3)
-    assert h["se"] == pytest.approx(np.std([-1.9, 0.3, 0.6], ddof=1) / np.sqrt(3))
-    assert o["cost_points"]["press_H"] == pytest.approx(1 / 3) and o["within_1_point"] and o["cell_within_1_point"]
-    result = {"machine": {}, "variants": [], "comparisons": comps, "int8_over_runs": [o]}
-    over = [t for t in bench.targets(result) if "mean over runs" in t["target"]]
-    assert len(over) == 1 and over[0]["met"] and "3 runs" in over[0]["variant"]
-    rec = {r["int8"]: r for r in bench.recommend(result)}
-    assert rec["s0_int8"]["recommended"] == "s0_int8" and "mean over 3 runs" in rec["s0_int8"]["why"]
-    # the one-run recipe: judged on its own pair, whose router loses 3 points (the scene model none)
-    one = rec["s0_int8--int8-float-auto8"]["why"]
-    assert "loses 3.0 (press_H: -3.0)" in one and "mean over" not in one
-    table = render_over_runs(result)
-    assert "-0.3 ± 0.8" in table and "-1.9 / +0.3 / +0.6" in table and "within 1 point" in table
-    # the mean over runs judges only what every run measured, and fails when the mean loses > 1
-    rows[3]["accuracy"]["press"]["H"] = 37.0
-    (o,) = bench.over_runs(bench.compare_pairs(rows))
-    assert not o["within_1_point"] and o["cost_points"]["press_H"] == pytest.approx((1.9 + 3.0 - 0.6) / 3)
 
 
 def test_a_bench_of_one_thread_count_renders(bench_result):
