@@ -144,6 +144,7 @@ class CameraBase:
 # A UVC open takes well under a second; one that hangs in the driver is ended past this.
 UVC_OPEN_TIMEOUT_S = 5.0
 V4L2_DEFAULT_BUFFERS = 4  # what a V4L2 driver queues when it does not take CAP_PROP_BUFFERSIZE
+WARMUP_OPEN_MARGIN_S = 1.0  # the warm-up ends this long before the open's bound, whatever warmup_s says
 # frames read past the flush while the driver's capture time is before the grab (OpenCV's V4L2 queue max)
 MAX_STALE_DROPS = 10
 # A driver whose frame times once fall this close to the monotonic clock stamps with it (OpenCV's
@@ -260,6 +261,7 @@ class UVCCamera(CameraBase):
         # to the last one before it is the same hung buffer, not a fresh start
 
     def _open(self) -> tuple[object, dict[str, object]]:
+        opened_at = time.monotonic()
         cap = cv2.VideoCapture(self.device, self.api_preference)
         if not cap.isOpened():
             cap.release()
@@ -311,7 +313,10 @@ class UVCCamera(CameraBase):
             applied["mjpeg_undecoded"] = _raw_frames(cap)
         applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
         if self.warmup_s > 0:  # the next grab is a piece's no-contact reference: not one taken mid-ramp
-            applied["warmup"] = settle(cap.read, self.warmup_s)
+            # inside the open's bound, whatever the open and the settings took: a camera that never
+            # settles must not make every open a timeout
+            left = self.open_timeout_s - WARMUP_OPEN_MARGIN_S - (time.monotonic() - opened_at)
+            applied["warmup"] = settle(cap.read, min(self.warmup_s, max(left, 0.0)))
         return cap, applied
 
     def disconnect(self) -> None:

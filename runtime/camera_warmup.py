@@ -23,6 +23,7 @@ import numpy as np
 WARMUP_MIN_FRAMES = 4  # read at least this many, settled or not (the stream's first frames)
 SETTLE_RUN = 3  # consecutive frame-to-frame steps that must stay within SETTLE_LEVELS
 SETTLE_LEVELS = 0.5  # mean grey levels: far above a frame mean's noise, far below a ramp's step
+FAILED_READS = 3  # reads in a row without a readable frame that end the warm-up
 
 
 def frame_level(image: object) -> float | None:
@@ -46,28 +47,33 @@ def settle(read: Callable[[], tuple[bool, object]], limit_s: float,
            clock: Callable[[], float] = time.monotonic) -> dict:
     """Read frames with ``read()`` (``cv2.VideoCapture.read``) until the last ``SETTLE_RUN`` + 1
     frames' mean levels span at most ``SETTLE_LEVELS`` (after at least ``WARMUP_MIN_FRAMES``), or
-    ``limit_s`` has passed, or a read fails (the grab that follows says why). What happened, for
+    ``limit_s`` has passed, or ``FAILED_READS`` reads in a row gave no readable frame (the grab that
+    follows says why). A failed read or an undecodable frame alone - common as a stream starts - is
+    read past, and breaks the run of steady frames. What happened, for
     ``settings_applied["warmup"]`` (journaled in the start record, logged as ``camera runs:``):
     frames read, settled or not, the last level, and the seconds it took."""
-    start, levels, why = clock(), [], "time limit"
+    start, run, frames, failed, first, last, why = clock(), [], 0, 0, None, None, "time limit"
     while True:
         ok, image = read()
         level = frame_level(image) if ok else None
         if level is None:
-            why = "no frame" if not ok or image is None else "unreadable frame"
-            break
-        levels.append(level)
-        tail = levels[-(SETTLE_RUN + 1):]
-        if len(levels) >= WARMUP_MIN_FRAMES and len(tail) == SETTLE_RUN + 1 and max(tail) - min(tail) <= SETTLE_LEVELS:
-            return {"frames": len(levels), "settled": True, "level": round(level, 2),
-                    "seconds": round(clock() - start, 3)}
+            failed, run = failed + 1, []  # a steady run must be unbroken
+            if failed >= FAILED_READS:
+                why = "no frame" if not ok or image is None else "unreadable frames"
+                break
+        else:
+            failed, frames, last = 0, frames + 1, level
+            first = level if first is None else first
+            run = (run + [level])[-(SETTLE_RUN + 1):]
+            if frames >= WARMUP_MIN_FRAMES and len(run) == SETTLE_RUN + 1 and max(run) - min(run) <= SETTLE_LEVELS:
+                return {"frames": frames, "settled": True, "level": round(level, 2),
+                        "seconds": round(clock() - start, 3)}
         if clock() - start >= limit_s:
             break
-    out = {"frames": len(levels), "settled": False, "why": why, "seconds": round(clock() - start, 3)}
-    if levels:
-        out["level"] = round(levels[-1], 2)
-        out["level_first"] = round(levels[0], 2)
+    out = {"frames": frames, "settled": False, "why": why, "seconds": round(clock() - start, 3)}
+    if first is not None:
+        out["level"], out["level_first"] = round(last, 2), round(first, 2)
     return out
 
 
-__all__ = ["frame_level", "settle", "WARMUP_MIN_FRAMES", "SETTLE_RUN", "SETTLE_LEVELS"]
+__all__ = ["frame_level", "settle", "WARMUP_MIN_FRAMES", "SETTLE_RUN", "SETTLE_LEVELS", "FAILED_READS"]

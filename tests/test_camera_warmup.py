@@ -109,3 +109,38 @@ def test_warmup_is_bounded_inside_the_open_and_set_from_the_config(tmp_path):
     _, load = _cell_config(tmp_path, "    warmup_s: 5\n")
     with pytest.raises(Exception, match="warmup_s"):
         load()
+
+
+def test_a_failed_read_is_read_past_and_three_in_a_row_end_the_warmup():
+    gel = _gel()
+    script = iter([(True, gel), (False, None), (True, gel), (True, gel), (True, None), (True, gel), (True, gel),
+                   (True, gel), (True, gel)])
+    got = wu.settle(lambda: next(script), limit_s=10.0)
+    # the unreadable frame broke the steady run: settled on the 4 frames after it
+    assert got["settled"] and got["frames"] == 7
+    got = wu.settle(iter([(True, gel)] * 2 + [(False, None)] * 3).__next__, limit_s=10.0)
+    assert got == {**got, "settled": False, "why": "no frame", "frames": 2}
+
+
+class _NeverSettling(_RecordingCapture):
+    """Lighting that flickers: every frame's level differs from the last by far more than 0.5."""
+
+    def read(self):
+        self.reads += 1
+        h, w = int(self.props[cv2.CAP_PROP_FRAME_HEIGHT]), int(self.props[cv2.CAP_PROP_FRAME_WIDTH])
+        return True, np.full((h, w, 3), 100 + 20 * (self.reads % 2), np.uint8)
+
+
+def test_a_camera_that_never_settles_still_opens_within_its_bound(monkeypatch):
+    import time
+
+    _RecordingCapture.instances = []
+    monkeypatch.setattr(cv2, "VideoCapture", _NeverSettling)
+    cam = UVCCamera(0, width=160, height=120, open_timeout_s=1.6, warmup_s=1.5)
+    start = time.monotonic()
+    cam.connect()  # the warm-up ends a margin before the open's bound: no "did not open"
+    took = time.monotonic() - start
+    w = cam.settings_applied["warmup"]
+    assert not w["settled"] and w["why"] == "time limit" and w["frames"] > 0
+    assert took < 1.6 and w["seconds"] <= 1.6 - 1.0 + 0.1
+    cam.disconnect()
