@@ -421,30 +421,28 @@ class Cell(FaultLatch):
         except CellFault as fault:
             # A SORT that timed out may have been executed with only its acks lost (docs/protocol.md):
             # the piece is in its bin or the reject bin, and the record says so instead of claiming
-            # reject. A NAK, a latched gate, a jam or a reboot (the MCU boots to reject) did not route it.
+            # reject. A NAK of a gate that stays ready, or a reboot (the MCU boots to reject), did not
+            # route it.
             # An ACK that contradicts the sort (bad_ack: another bin, a latched or moving gate) is no
             # more certain than a lost one: the flap is where the gate says, or nobody knows.
-            uncertain = gate_told and (fault.kind in ("timeout", "bad_ack") or fault.maybe_routed)
+            # A gate that answers latched in fault (a jam: it lets its servo go where the flap stuck,
+            # between the last bin it reached - the one it reports - and this one; it refuses the move
+            # to reject and does not fail safe) leaves the piece's bin as unknown as a lost ack does.
             cause = fault.__cause__
-            reported = getattr(cause, "reported_bin", None) if fault.kind == "bad_ack" else None
-            also = f", bin {reported} (where the gate says the flap is)" if reported not in (None, bin_) else ""
+            jammed = fault.kind != "bad_ack" and getattr(cause, "reported_state", None) == "fault"
+            uncertain = gate_told and (fault.kind in ("timeout", "bad_ack") or fault.maybe_routed or jammed)
+            reported = getattr(cause, "reported_bin", None) if fault.kind == "bad_ack" or jammed else None
+            if jammed and reported == self.scene.reject_bin:
+                reported = None  # the reject bin is named anyway
+            where = "the last bin the latched gate reports its flap at" if jammed else "where the gate says the flap is"
+            also = f", bin {reported} ({where})" if reported not in (None, bin_) else ""
             reason = fault.reason + (f"; the piece may be in bin {bin_}{also} or the reject bin - check "
                                      f"{'them' if also else 'both'}" if uncertain else "")
-            # A refused SORT (a jam, a latched gate) did not route the piece, but the gate's reply
-            # says where its flap is: left at another piece's bin by a gate latched in fault, which
-            # refuses the move to reject too, it is where this piece lands if let go
-            held = getattr(cause, "reported_bin", None) if gate_told and not uncertain else None
-            if held not in (None, self.scene.reject_bin) and getattr(cause, "reported_state", None) == "fault":
-                uncertain, maybe = True, held
-                reason += (f"; the gate reports its flap held at bin {held}, latched - a piece let go there lands "
-                           f"in bin {held}: check bin {held} and the reject bin")
-            else:
-                maybe = bin_
             outcome = "unknown_outcome" if uncertain else "rejected_fault"
             self.latch_fault(f"item {number} ({item.id}): {reason}", fault.kind)
             self._final(number, item.id, label=label if pre_written else UNKNOWN, bin_=self.scene.reject_bin,
                         outcome=outcome, reason=reason, presses=tally.presses,
-                        **({"maybe_bin": maybe} if uncertain else {}),
+                        **({"maybe_bin": bin_} if uncertain else {}),
                         **({"reported_bin": reported} if also else {}))
             result = ItemResult(item, UNKNOWN, self.scene.reject_bin, outcome, tally.presses, 0.0,
                                 "fault", tally.skipped, tally.latencies, self.clock() - t0)

@@ -189,8 +189,8 @@ SCENARIOS = [
     Scenario("gate_ack_lost", "pty gate", "acks 2 s late, past all retries (timeout 0.3 s)",
              "fault latched, piece recorded unknown_outcome with the bin it may be in; resumes after clear",
              ack_lost_past_timeout),
-    Scenario("gate_jam", "pty gate", "flap jammed", "fault latched, piece recorded unknown_outcome with the bin the "
-             "latched flap holds (the last piece's); resumes once freed + cleared", gate_jam),
+    Scenario("gate_jam", "pty gate", "flap jammed", "fault latched, piece recorded unknown_outcome with the bin asked "
+             "and the last bin the gate reached; resumes once freed + cleared", gate_jam),
     Scenario("gate_reboot", "pty gate", "MCU reboots mid-run", "fault latched (boot id changed), cleared, resumes",
              gate_reboot),
     Scenario("gate_ack_contradicts", "pty gate", "ACK of a SORT reports another bin / jam / fail-safe / busy "

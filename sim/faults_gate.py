@@ -128,10 +128,10 @@ def ack_lost_past_timeout(w: Path):
 
 
 def gate_jam(w: Path):
-    """The flap jams on the second piece's SORT, after the first went to its bin: the gate, latched
-    in fault, holds the flap at that bin and refuses the move to reject, so the piece is recorded
-    unknown_outcome with that bin (where it lands if let go), never a plain reject."""
-    return _gate_row(w, lambda s: s.jam(True), {"sorted": 3, "unknown_outcome": 1}, "held at bin",
+    """The flap jams on the second piece's SORT, after the first went to its bin: latched, the gate
+    lets its servo go where the flap stuck, between the two bins, and refuses the move to reject, so
+    the piece is recorded unknown_outcome with both bins, never a plain reject."""
+    return _gate_row(w, lambda s: s.jam(True), {"sorted": 3, "unknown_outcome": 1}, "may be in bin",
                      fix=lambda s: s.jam(False))
 
 

@@ -393,17 +393,18 @@ def test_a_jam_says_where_the_flap_is_held_and_the_latched_gate_keeps_it_there(s
     assert client.status().bin == 3
 
 
-def test_the_cell_records_a_piece_refused_by_a_gate_holding_another_bin_as_unknown(tmp_path):
-    """A jam on the first piece leaves the flap at reject: rejected_fault (test_cell.py). A jam after
-    a piece went to bin 2 leaves it held at bin 2 by a latched gate: the piece is recorded
-    unknown_outcome with maybe_bin 2 - where it lands if let go - never a plain reject."""
+def test_the_cell_records_a_piece_whose_sort_jammed_as_unknown_naming_both_bins(tmp_path):
+    """A jam leaves the flap stuck between the last bin the gate reached and the one asked, with its
+    servo let go, latched: the refused piece is recorded unknown_outcome with maybe_bin (asked) and
+    reported_bin (the last bin reached, which the NAK reports) - never a plain reject."""
     from test_cell import BINS, finals, make_cell
 
-    cell, _arm, _cam, gate, journal = make_cell(tmp_path, [60, 60, 60] * 2)
-    assert [r.outcome for r in cell.run(max_items=1)] == ["sorted"] and gate.sorted == [BINS["silk"]]
+    cell, _arm, _cam, gate, journal = make_cell(tmp_path, [50, 50, 50] + [60, 60, 60])
+    assert [r.outcome for r in cell.run(max_items=1)] == ["sorted"] and gate.sorted == [BINS["denim"]]
     gate.jam_next_sort()
     result = cell.run(max_items=2)[-1]  # max_items counts the cell's pieces
     last = finals(journal.path)[-1]
     assert result.outcome == last["outcome"] == "unknown_outcome" and last["bin"] == 0
-    assert last["maybe_bin"] == BINS["silk"] and f"held at bin {BINS['silk']}" in last["reason"]
-    assert cell.fault and gate.status().bin == BINS["silk"]
+    assert (last["maybe_bin"], last["reported_bin"]) == (BINS["silk"], BINS["denim"])
+    assert f"may be in bin {BINS['silk']}, bin {BINS['denim']} (the last bin the latched gate" in last["reason"]
+    assert cell.fault and gate.status().bin == BINS["denim"]
