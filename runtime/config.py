@@ -341,7 +341,8 @@ class _Checker:
 def shared_bins(fabrics: list[SceneFabric], reject_bin: int) -> str:
     """Fabrics that share a bin while a bin of the gate (1..7) stays free, in words, or "": a
     copied line that merged two fabrics in one bin mis-sorts every piece of one of them. A job with
-    more fabrics than the gate has bins must share (sim/scene.assign_bins): said nothing."""
+    more fabrics than the gate has bins must share (sim/scene.assign_bins): said nothing. The config
+    does not know the gate: bins 1..7 of the gate's 8 (firmware_bridge's default) are assumed."""
     by_bin: dict[int, list[str]] = {}
     for f in fabrics:
         by_bin.setdefault(f.bin, []).append(f.name)
@@ -417,7 +418,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         # log's warning is easy to miss (it was one until 2026-11-29)
         chk.err("scene.fabrics", f"scene.fabrics: {said} - one bin for two fabrics puts the pieces of one in "
                                  "the other's bin; give each its own bin, or set scene.shared_bins: allow if "
-                                 "that is meant")
+                                 "that is meant (or if the gate has fewer than 8 bins and the job must share them)")
 
     # evidence: which grid points, in which order
     ev = v["evidence"]
