@@ -495,7 +495,9 @@ def stranger_lines(sd: list[dict]) -> list[str]:
 
     diff = [p["knowing"]["all"]["mis-sort"] - p["unaware"]["all"]["mis-sort"] for p in ps]
     return [f"Pieces of the validation fabrics among the off-scene ones (their later presses; fabrics the run "
-            f"pressed, not never-seen ones), right / mis-sort % over {len(ps)} split(s): all pieces "
+            f"pressed, not never-seen ones - and every press of theirs also chose the operating point, so these "
+            f"numbers flatter the rejection of a stranger; test.all above does not use them), right / mis-sort % "
+            f"over {len(ps)} split(s): all pieces "
             f"{cell('unaware', 'all')} with a model that does not know them, {cell('knowing', 'all')} with the "
             f"deployed one, which knows them only to refuse them (mis-sorts {_ms(diff)} points paired by split, "
             f"fewer in {sum(d < 0 for d in diff)}, more in {sum(d > 0 for d in diff)}); off-scene pieces "

@@ -385,8 +385,9 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
     plain = json.loads(json.dumps({"profile": asdict(prof), "budget": asdict(budget)}))  # tuples -> lists for YAML
     (out_dir / "config.yaml").write_text(yaml.safe_dump({"dataset": str(Path(dataset).resolve()), **plain,
                                                          "routers": list(prof.routers),
-                                                         "router_rule": "deployed router: highest mean validation "
-                                                                        "AUSUC of VS2T-ZSL over splits",
+                                                         "router_rule": "deployed router: highest validation AUSUC "
+                                                                        "of VS2T-ZSL on split 0's own validation "
+                                                                        "fabrics",
                                                          "torch_threads": torch.get_num_threads()}, sort_keys=False))
     t0 = time.time()
     cache = get_cache(dataset, prof, out_dir / "features", trunk, spec)
