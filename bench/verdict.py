@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import shlex
+from pathlib import Path
 
 import numpy as np
 
@@ -107,14 +108,12 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
 
 
 def recipe(made_by: dict) -> str:
-    """How a bundle was exported, without the run it was made from: its export command's options
-    read by export's own parser, those left at their default and ``--out`` dropped (``vs2t-edge
-    export RUN --out B --trunk-precision int8`` -> ``--trunk-precision int8``), so that bundles of
-    several runs made the same way are one recipe. "?" when the command is not an export's."""
-    import argparse
-
-    from vs2t_edge.export.cli import add_arguments
-
+    """How a bundle was exported, without the run it was made from: its export command's words
+    after ``export``, less ``--out`` and its value and less the run folder (the word naming
+    ``made_by["run"]``, wherever it stands): ``vs2t-edge export RUN --out B --trunk-precision int8``
+    -> ``--trunk-precision int8``, so that bundles of several runs made the same way are one recipe.
+    "?" when the command is not an export's (no ``export`` word, no ``--out``). Read from the words,
+    not export's parser: the bench does not import export (docs/ARCHITECTURE.md)."""
     command = made_by.get("command") or ""
     try:
         words = shlex.split(command)
@@ -122,23 +121,25 @@ def recipe(made_by: dict) -> str:
         words = command.split()
     if "export" not in words:
         return "?"
-    class Quiet(argparse.ArgumentParser):
-        def error(self, message):  # not a usage line on the bench's stderr and an exit: no recipe
-            raise ValueError(message)
-
-    parser = Quiet(add_help=False)
-    add_arguments(parser, "export")
-    try:
-        ns, rest = parser.parse_known_args(words[words.index("export") + 1:])
-    except (argparse.ArgumentError, ValueError):
-        return "?"
-    said = []
-    for action in parser._actions:
-        value = getattr(ns, action.dest, None)
-        if action.dest in ("run", "out") or not action.option_strings or value == action.default:
-            continue
-        said.append(action.option_strings[0] if action.nargs == 0 else f"{action.option_strings[0]} {value}")
-    return " ".join(said + rest)
+    words = words[words.index("export") + 1:]
+    run = Path(str(made_by.get("run") or "")).name
+    bare = [i for i, w in enumerate(words) if not w.startswith("-")]
+    # the run folder: the word naming it, else the first bare word that is no option's value (a
+    # link's name differs from the folder it points to); a word missed keeps its runs apart
+    at = next((i for i in bare if run and Path(words[i]).name == run), None)
+    if at is None:
+        at = next((i for i in bare if i == 0 or not words[i - 1].startswith("-") or "=" in words[i - 1]), None)
+    said, out, skip = [], False, False
+    for i, w in enumerate(words):
+        if skip:
+            skip = False
+        elif w == "--out":
+            out = skip = True
+        elif w.startswith("--out="):
+            out = True
+        elif i != at:
+            said.append(w)
+    return " ".join(said) if out else "?"
 
 
 def over_runs(comparisons: list[dict]) -> list[dict]:

@@ -15,8 +15,9 @@ def row(prec, run, press_h, extra="", arch="lite0", command=None):
     bins = {"all": {"right": 70.0, "mis-sort": 0.5}}
     cmd = command if command is not None else (
         f"vs2t-edge export {run} --out B/{run}_{prec}" + (" --trunk-precision int8" + extra if prec == "int8" else ""))
+    made_by = {"command": cmd, "run": f"/data/runs/{run}"}
     return {"name": f"{run}_{prec}{extra.replace(' ', '')}{arch}", "precision": prec, "arch": arch, "size_px": 128,
-            "run": run, "split": True, "made_by": {"command": cmd},
+            "run": run, "split": True, "made_by": made_by,
             "latency": {"2": {"p50_ms": 2.0 if prec == "fp32" else 1.0}},
             "accuracy": {"press": {"H": press_h, "zsl": 30.0, "acc_t": 80.0}, "items": {"5": {"H": 40.0}},
                          "sequential": {"H": 40.0}, "press_scene": {"H": 45.0},
@@ -25,18 +26,22 @@ def row(prec, run, press_h, extra="", arch="lite0", command=None):
 
 def test_the_recipe_is_the_export_command_less_run_and_out():
     r = bench.recipe
-    assert r({"command": "/v/bin/vs2t-edge export runs/s1 --out B/s1_int8 --trunk-precision int8"}) \
+    assert r({"command": "/v/bin/vs2t-edge export runs/s1 --out B/s1_int8 --trunk-precision int8",
+              "run": "/data/runs/s1"}) == "--trunk-precision int8"
+    # the run anywhere (named by the manifest's run folder), --out=, a quoted path with a space
+    assert r({"command": "vs2t-edge export --trunk-precision int8 runs/s0 --out=B/x --int8-float-auto 8",
+              "run": "/data/runs/s0"}) == "--trunk-precision int8 --int8-float-auto 8"
+    assert r({"command": "vs2t-edge export 'my runs/s2' --out B/y --trunk-precision int8 --size 128",
+              "run": "/data/my runs/s2"}) == "--trunk-precision int8 --size 128"
+    assert r({"command": "vs2t-edge export r --out B/z", "run": "/x/r"}) == ""  # fp32 at every default
+    # the run named through a link (the manifest records the folder it points to): the bare word first
+    assert r({"command": "vs2t-edge export paper --out B/p --trunk-precision int8", "run": "/x/paper90"}) \
         == "--trunk-precision int8"
-    # the run anywhere, --out=, an option written at its default, a quoted path with a space
-    assert r({"command": "vs2t-edge export --trunk-precision int8 runs/s0 --out=B/x --int8-float-auto 8"}) \
-        == "--trunk-precision int8 --int8-float-auto 8"
-    assert r({"command": "vs2t-edge export 'my runs/s2' --out B/y --trunk-precision int8 --size 128"}) \
-        == "--trunk-precision int8 --size 128"
-    assert r({"command": "vs2t-edge export r --out B/z"}) == ""  # fp32 at every default
     # recorded unquoted before 2026-11-29: an apostrophe in a path must not crash the bench
-    assert r({"command": "vs2t-edge export bob's_run --out B/w --trunk-precision int8"}) == "--trunk-precision int8"
+    assert r({"command": "vs2t-edge export bob's_run --out B/w --trunk-precision int8",
+              "run": "/x/bob's_run"}) == "--trunk-precision int8"
     assert r({}) == "?" and r({"command": "python -m vs2t_edge.export.cli r --out B"}) == "?"
-    assert r({"command": "vs2t-edge export r"}) == "?"  # not a command export ran (no --out)
+    assert r({"command": "vs2t-edge export r", "run": "/x/r"}) == "?"  # not a command export ran (no --out)
 
 
 def test_int8_is_judged_on_the_mean_over_runs_when_a_recipe_was_benched_on_several():
