@@ -125,6 +125,12 @@ def _decode_label(result: dict) -> str:
     return DECODE_LABEL[DECODE_STAGE.get(result.get("camera_format", "mjpeg"), "decode_mjpeg")]
 
 
+# the int8-minus-fp32 measures the tables show, and their labels (verdict.compare_pairs' keys)
+INT8_MEASURES = (("press_acc_t", "press acc_t"), ("press_H", "press H"), ("press_zsl", "press ZSL"),
+                 ("scene_press_H", "scene press H"), ("item5_H", "item-5 H"), ("sequential_H", "seq H"),
+                 ("bins_right_scene_model", "right bin (scene)"), ("bins_mis_sort_scene_model", "mis-sort (scene)"))
+
+
 def render_markdown(result: dict) -> str:
     m, pk = result["machine"], result["peak"]
     lines = ["# Speed for accuracy: the bench", "",
@@ -211,11 +217,10 @@ def render_markdown(result: dict) -> str:
                   "mis-sorts by bins; a gain is no loss); *within 1 point*: it loses at most 1 point on every measure.", "",
                   "*press* columns: the router's hard route at beta (the paper's protocol); *scene press H*: the "
                   "bundle's scene model, one softmax over every bundle class, per press (what the cell decides with).", "",
-                  "| int8 | fp32 | speed-up (2 threads) | Δ press acc_t | Δ press H | Δ press ZSL | Δ scene press H "
-                  "| Δ item-5 H | Δ seq H | Δ right bin (scene) | Δ mis-sort (scene) | largest loss | within 1 point |",
+                  "| int8 | fp32 | speed-up (2 threads) | " + " | ".join(f"Δ {label}" for _, label in INT8_MEASURES)
+                  + " | largest loss | within 1 point |",
                   "|" + "---|" * 13]
-        keys = ("press_acc_t", "press_H", "press_zsl", "scene_press_H", "item5_H", "sequential_H",
-                "bins_right_scene_model", "bins_mis_sort_scene_model")
+        keys = tuple(k for k, _ in INT8_MEASURES)
         for c in result["comparisons"]:
             d, cost = c.get("delta_points"), c.get("cost_points") or {}
             worst = max(cost.items(), key=lambda kv: kv[1]) if cost else None
@@ -241,11 +246,6 @@ def render_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-OVER_RUNS_KEYS = (("press_acc_t", "press acc_t"), ("press_H", "press H"), ("press_zsl", "press ZSL"),
-                  ("scene_press_H", "scene press H"), ("item5_H", "item-5 H"), ("sequential_H", "seq H"),
-                  ("bins_right_scene_model", "right bin (scene)"), ("bins_mis_sort_scene_model", "mis-sort (scene)"))
-
-
 def render_over_runs(result: dict) -> str:
     """``result["int8_over_runs"]`` as a table: per recipe and measure, the mean difference ± its
     standard error over runs, and each run's own."""
@@ -255,7 +255,7 @@ def render_over_runs(result: dict) -> str:
     lines = ["| recipe | runs | speed-up (2 threads) | measure | Δ mean ± se | sd | each run | loss of the mean |",
              "|" + "---|" * 8]
     for o in rows:
-        for k, label in OVER_RUNS_KEYS:
+        for k, label in INT8_MEASURES:
             d = o["delta_points"].get(k)
             if d is None:
                 continue

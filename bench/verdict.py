@@ -97,13 +97,21 @@ def compare_pairs(rows: list[dict]) -> list[dict]:
                         if b8 and b32:
                             c["delta_points"][f"bins_right_{name}"] = b8["all"]["right"] - b32["all"]["right"]
                             c["delta_points"][f"bins_mis_sort_{name}"] = b8["all"]["mis-sort"] - b32["all"]["mis-sort"]
-                    c["cost_points"] = cost_points(c["delta_points"])
-                    c["within_1_point"] = all(v <= TARGET_INT8_POINTS for v in c["cost_points"].values())
-                    if r8.get("split") and r32.get("split"):  # format 3: no router on the cell's press
-                        cell = {k: v for k, v in c["cost_points"].items() if k in CELL_MEASURES}
-                        if set(cell) == set(CELL_MEASURES):
-                            c["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
+                    # format 3 on both sides: no router on the cell's press
+                    c.update(_judge(c["delta_points"], bool(r8.get("split") and r32.get("split"))))
                 out.append(c)
+    return out
+
+
+def _judge(delta: dict[str, float], format_3: bool) -> dict:
+    """The int8 target on differences (int8 - fp32, points): what each costs (``cost_points``),
+    ``within_1_point`` on every measure, and for format-3 bundles ``cell_within_1_point`` on what
+    the cell decides with (``CELL_MEASURES``, when all were measured)."""
+    cost = cost_points(delta)
+    out = {"cost_points": cost, "within_1_point": all(v <= TARGET_INT8_POINTS for v in cost.values())}
+    cell = {k: v for k, v in cost.items() if k in CELL_MEASURES}
+    if format_3 and set(cell) == set(CELL_MEASURES):
+        out["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
     return out
 
 
@@ -163,15 +171,10 @@ def over_runs(comparisons: list[dict]) -> list[dict]:
             v = np.array([c["delta_points"][k] for c in cs], float)
             sd = float(v.std(ddof=1))
             per[k] = {"runs": [float(x) for x in v], "mean": float(v.mean()), "sd": sd, "se": sd / math.sqrt(len(v))}
-        cost = cost_points({k: p["mean"] for k, p in per.items()})
-        cell = {k: v for k, v in cost.items() if k in CELL_MEASURES}
-        row = {"recipe": rec, "arch": arch, "size_px": size_px, "runs": len(cs),
-               "pairs": [[c["int8"], c["fp32"]] for c in cs],
-               "speedup_2t": float(np.mean([c["speedup_2t"] for c in cs])), "delta_points": per, "cost_points": cost,
-               "within_1_point": all(v <= TARGET_INT8_POINTS for v in cost.values())}
-        if set(cell) == set(CELL_MEASURES) and all("cell_within_1_point" in c for c in cs):
-            row["cell_within_1_point"] = all(v <= TARGET_INT8_POINTS for v in cell.values())
-        out.append(row)
+        out.append({"recipe": rec, "arch": arch, "size_px": size_px, "runs": len(cs),
+                    "pairs": [[c["int8"], c["fp32"]] for c in cs],
+                    "speedup_2t": float(np.mean([c["speedup_2t"] for c in cs])), "delta_points": per,
+                    **_judge({k: p["mean"] for k, p in per.items()}, all("cell_within_1_point" in c for c in cs))})
     return out
 
 
