@@ -38,7 +38,10 @@ class GateClientError(RuntimeError):
     """A gate request failed; ``kind`` is one of ERROR_KINDS, ``reason`` the NAK reason name.
     ``maybe_executed``: the request went out whole and the gate may have acted on it (a link lost
     while waiting for its reply, or a reboot seen after an unanswered try) - for a SORT, the flap
-    may be at the bin. A timeout always may have been executed; a NAK never was."""
+    may be at the bin. A timeout always may have been executed. A NAK of a gate that stays ready
+    was not; one of a gate latched in fault (a jam: the flap stuck between the last bin it reached,
+    ``reported_bin``, and the bin asked, its servo let go; latched, it refuses the move to reject
+    and does not fail safe) leaves the piece where that flap sends it, so it counts as maybe executed."""
 
     def __init__(self, message: str, *, kind: str, reason: str = "", reported_bin: int | None = None,
                  maybe_executed: bool = False, reported_state: str | None = None) -> None:
@@ -356,8 +359,9 @@ class GateClient:
             "jam": "the flap jammed and did not reach the bin; clear the jam, then clear the gate",
             "jam_present": "the flap is still blocked; free it before clearing",
         }.get(reason, reason)
-        return GateClientError(f"{what} refused: {words}", kind=kind, reason=reason, reported_bin=nak.bin,
-                               reported_state=_state_name(nak.state))
+        latched = nak.state == p.STATE_FAULT  # the flap stays where it stuck (class doc)
+        return GateClientError(f"{what} refused: {words}", kind=kind, reason=reason, maybe_executed=latched,
+                               reported_bin=nak.bin if latched else None, reported_state=_state_name(nak.state))
 
     def _request(self, msg_type: int, payload: bytes, *, seq: int | None = None, retries: int | None = None,
                  check_reboot: bool = True) -> p.Ack | p.Nak | p.StatusReply:

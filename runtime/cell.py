@@ -425,16 +425,14 @@ class Cell(FaultLatch):
             # route it.
             # An ACK that contradicts the sort (bad_ack: another bin, a latched or moving gate) is no
             # more certain than a lost one: the flap is where the gate says, or nobody knows.
-            # A gate that answers latched in fault (a jam: it lets its servo go where the flap stuck,
-            # between the last bin it reached - the one it reports - and this one; it refuses the move
-            # to reject and does not fail safe) leaves the piece's bin as unknown as a lost ack does.
-            cause = fault.__cause__
-            jammed = fault.kind != "bad_ack" and getattr(cause, "reported_state", None) == "fault"
-            uncertain = gate_told and (fault.kind in ("timeout", "bad_ack") or fault.maybe_routed or jammed)
-            reported = getattr(cause, "reported_bin", None) if fault.kind == "bad_ack" or jammed else None
-            if jammed and reported == self.scene.reject_bin:
+            # A SORT refused by a gate latched in fault (a jam) may have routed it too (the gate
+            # driver's maybe_executed), and its reply names the last bin the flap reached.
+            uncertain = gate_told and (fault.kind in ("timeout", "bad_ack") or fault.maybe_routed)
+            reported = getattr(fault.__cause__, "reported_bin", None) if uncertain else None
+            if fault.kind != "bad_ack" and reported == self.scene.reject_bin:
                 reported = None  # the reject bin is named anyway
-            where = "the last bin the latched gate reports its flap at" if jammed else "where the gate says the flap is"
+            where = ("where the gate says the flap is" if fault.kind == "bad_ack"
+                     else "the last bin the latched gate reports its flap at")
             also = f", bin {reported} ({where})" if reported not in (None, bin_) else ""
             reason = fault.reason + (f"; the piece may be in bin {bin_}{also} or the reject bin - check "
                                      f"{'them' if also else 'both'}" if uncertain else "")

@@ -179,6 +179,7 @@ class FakeGate:
                 self._state, self._fault = "fault", "jam"
                 error = GateError(f"sort to bin {bin_index} refused: the flap jammed", device="gate", kind="jam")
                 error.reported_bin, error.reported_state = self._bin, self._state  # as the firmware's NAK
+                error.maybe_executed = True  # the flap stuck on its way (firmware_bridge GateClientError)
                 raise error
             self._bin = bin_index
             self.sorted.append(bin_index)
