@@ -66,14 +66,42 @@ def test_real_check_on_a_folder_of_any_frame_size(tmp_path, capsys, hw):
         assert 0.0 <= r["auroc_knn"]["mean"] <= 1.0
 
 
-def test_temporal_folds_fit_earlier_or_later_presses_never_both():
-    for n in (20, 7, 2):
-        (fit_a, test_a), (fit_b, test_b) = rc.temporal_folds([n, n + 1])
-        for fa, ta, fb, tb, m in zip(fit_a, test_a, fit_b, test_b, (n, n + 1)):
-            assert len(fa) and len(ta)
-            assert fa.max() < ta.min() and tb.max() < fb.min()  # fold A fits early, fold B fits late
-            assert sorted(np.concatenate([fa, ta])) == list(range(m))
-            assert list(fa) == list(tb) and list(ta) == list(fb)
+def test_temporal_folds_fit_earlier_presses_and_test_later_ones():
+    """As the cell lives: every fold fits a material's first presses and tests the rest, never the
+    reverse (fold B used to fit the later half and test the earlier one)."""
+    for n in (20, 7, 4):
+        folds = rc.temporal_folds([n, n + 1])
+        assert len(folds) == 2
+        for fits, tests in folds:
+            for fit, test, m in zip(fits, tests, (n, n + 1)):
+                assert len(fit) and len(test) and fit.max() < test.min()
+                assert list(np.concatenate([fit, test])) == list(range(m))
+        (fit_a, _), (fit_b, _) = folds
+        assert [len(f) for f in fit_a] == [n // 2, (n + 1) // 2] and len(fit_b[0]) > len(fit_a[0])
+    assert len(rc.temporal_folds([2, 2])) == 1  # a second fold would be the first again
+
+
+def test_novelty_reads_the_touched_materials_fit_presses_only(tmp_path):
+    """An untouched material's fit presses changed (inverted) leave every novelty AUROC as it was:
+    the standardisation and a pipeline's fitted part (the marker count, the shading_markers
+    reference) are made per draw from the touched materials alone. The closed-set accuracy, over
+    every material, may move."""
+    import cv2
+
+    n_materials, n_presses = 4, 8
+    untouched = int(np.random.default_rng(0).permutation(n_materials)[-1])  # the one draw's (seed 0)
+    a_dir = _folder(tmp_path / "a", n_materials=n_materials, n_presses=n_presses)
+    b_dir = _folder(tmp_path / "b", n_materials=n_materials, n_presses=n_presses)
+    for p in range(n_presses // 2):  # the fit presses of both folds
+        f = b_dir / f"material_{untouched + 1}" / f"press_{p + 1:03d}.png"
+        cv2.imwrite(str(f), 255 - cv2.imread(str(f)))
+    pipelines = ("shading", "markers", "shading_markers")
+    a, b = (rc.run_real_check(d, pipelines=pipelines, n_seeds=1) for d in (a_dir, b_dir))
+    for name in pipelines:
+        for fa, fb in zip(a["pipelines"][name]["folds"], b["pipelines"][name]["folds"]):
+            assert fa["auroc"] == fb["auroc"], name
+    assert any(fa["accuracy"] != fb["accuracy"] for name in pipelines
+               for fa, fb in zip(a["pipelines"][name]["folds"], b["pipelines"][name]["folds"]))
 
 
 def test_a_test_folder_is_a_second_session_of_the_same_materials(tmp_path, capsys):
@@ -236,7 +264,7 @@ def test_discriminant_distances_flag_an_unseen_class():
 
 def test_within_fit_never_reads_the_test_presses(tmp_path, monkeypatch):
     """--within-fit evaluates inside the fit presses: with --test, the test folder's content does
-    not change a number; without, every evaluated fold sees one half of the presses only."""
+    not change a number; without, every evaluated fold sees its fit presses only."""
     train = _folder(tmp_path / "early", n_presses=6)
     a = rc.run_real_check(train, _folder(tmp_path / "late_a", n_presses=3), ("shading",), n_seeds=2, within_fit=True)
     late_b = _folder(tmp_path / "late_b", n_presses=3)
@@ -255,9 +283,10 @@ def test_within_fit_never_reads_the_test_presses(tmp_path, monkeypatch):
 
     monkeypatch.setattr(rc, "pipeline_features", spy)
     rc.run_real_check(_folder(tmp_path / "twenty", n_presses=8), pipelines=("shading",), n_seeds=1, within_fit=True)
-    assert len(seen) == 4  # two temporal folds, each split in two inside its fit half
-    assert all(lens == [4, 4, 4] for lens, _ in seen)  # only the fold's 4 fit presses per material
-    assert [fit[0] for _, fit in seen] == [[0, 1], [2, 3], [0, 1], [2, 3]]
+    assert len(seen) == 4  # two temporal folds, each split in two the same way inside its fit presses
+    # only each fold's fit presses (4 of fold A, 6 of fold B), earlier ones fitting the later ones
+    assert [lens for lens, _ in seen] == [[4, 4, 4]] * 2 + [[6, 6, 6]] * 2
+    assert [fit[0] for _, fit in seen] == [[0, 1], [0, 1, 2], [0, 1, 2], [0, 1, 2, 3]]
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/real/gelsight_mini_materials (not on a fresh machine)")
@@ -287,7 +316,8 @@ def test_finetuned_pipeline_runs_on_a_folder(tmp_path, capsys):
                      "--seeds", "2"]) == 0
     assert "| finetuned |" in capsys.readouterr().out
     r = json.loads(out.read_text())["pipelines"]["finetuned"]
-    assert len(r["folds"]) == 2 and 0.0 <= r["auroc_knn"]["mean"] <= 1.0
+    # tuned on every material's fit presses, it has seen the untouched ones: no novelty AUROC
+    assert len(r["folds"]) == 2 and r["auroc_knn"] == {"mean": None, "std": None}
     assert r["accuracy_shrunk_lda"]["mean"] >= 0.6, r  # three clearly different materials, chance 33 %
 
 
