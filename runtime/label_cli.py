@@ -207,7 +207,7 @@ def rejected_pieces(cfg, n: int) -> list[str]:
         kind = rec.get("type")
         if kind == "final" and rec.get("bin") == cfg.reject_bin:
             last.append(rec)
-        elif kind == "label" and rec.get("item_id") is not None:
+        elif kind == "label" and rec.get("item_id") is not None and rec.get("read_before") is not True:
             said = "withdrawn" if rec.get("retract") else \
                 f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
             fate[str(rec["item_id"])] = f"{said}: " + ("applied" if rec.get("applied") else

@@ -124,6 +124,7 @@ class OperatorFeedback:
         self._seen: tuple | None = None  # the labels file's (device, inode, size, mtime) when last read
         # (bytes, SHA-256) of the file through line lines_read; None: unknown (a journal older than them)
         self._prefix: tuple[int, str] | None = (0, _EMPTY_SHA256)
+        self._judged: set[tuple] = set()  # the labels file's lines judged so far (``_line_key``): a re-read skips them
 
     def __call__(self):
         return item_evidence(self.deployed, self.model, self.scene, self.labelled, self.strangers, self.make_evidence)
@@ -207,8 +208,10 @@ class OperatorFeedback:
         A labels file that cannot be read (permissions, a folder in its place) stops no piece: the
         cell sorts on with what it learned, and the journal says so once per distinct error. A file
         that no longer begins with the lines read before (a new file in its place, truncated, edited)
-        is read again from its first line, said in the journal: none of its lines is skipped, and a
-        label already in force changes nothing when read again."""
+        is read again from its first line, said in the journal: none of its new lines is skipped, and
+        a line judged before is not judged again (journaled ``read_before``): an editor's stale copy
+        would bring a withdrawn label back into force, and a line that named no piece when it was
+        read - the last journal's, whose ids a new journal gives again - would name a later piece."""
         try:
             st = os.stat(self.path)
             seen = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
@@ -227,13 +230,15 @@ class OperatorFeedback:
             return out
         self._unreadable = ""
         out = []
+        judged_before: set[tuple] = set()  # a re-read: the lines judged so far stay judged
         if not self._begins_with_lines_read(data):
             why = (f"labels file {self.path} no longer begins with the {self.lines_read} line(s) read before (a new "
-                   "file in its place, truncated or edited): read again from line 1. The labels in force stay (one "
-                   "read again changes nothing); a line taken out withdraws nothing: `vs2t-edge label --retract` does")
+                   "file in its place, truncated or edited): read again from line 1. The labels in force stay (a line "
+                   "judged before is not judged again); a line taken out withdraws nothing: `vs2t-edge label "
+                   "--retract` does")
             out.append(journal.append({"type": "label", "file": str(self.path), "applied": False, "reread": True,
                                        "why": why}))
-            self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)
+            self.lines_read, self._prefix, judged_before = 0, (0, _EMPTY_SHA256), set(self._judged)
         start, lines = _parse_labels(data, self.lines_read)
         digest = hashlib.sha256(data[:start])
         for line, rec, end in lines:
@@ -244,6 +249,10 @@ class OperatorFeedback:
             before_line = dict(self.item_labels)  # what a label that cannot be journaled must leave
             if isinstance(rec, str):
                 entry.update(applied=False, why=f"{self.path} line {line}: {rec}")
+            elif _line_key(rec) in judged_before:
+                entry.update(item_id=rec["item_id"], **_said(rec), applied=False, read_before=True,
+                             why="a line the cell judged before the file was read again: it changes nothing "
+                                 "(a label given again after its withdrawal is appended anew)")
             elif rec.get("retract"):
                 before = self.item_labels.get(rec["item_id"])
                 why = self._retract(rec["item_id"])
@@ -270,6 +279,8 @@ class OperatorFeedback:
                     self._relearn()
                 raise
             self.lines_read, self._prefix = line, (end, entry["file_sha256"])
+            if not isinstance(rec, str):
+                self._judged.add(_line_key(rec))
         self._seen = seen  # a line still being written grows the file, so it is read when whole
         return out
 
@@ -312,15 +323,34 @@ class OperatorFeedback:
                 # applied then) must still withdraw the label when the fabric is back
                 # (a line that was no label, unreadable, has no item_id: nothing to apply)
                 item = rec.get("item_id")
-                if item is not None and rec.get("retract"):
+                said = item is not None and (rec.get("retract") or isinstance(rec.get("fabric"), str))
+                if said:
+                    self._judged.add(_line_key(rec))
+                if not said or rec.get("read_before") is True:
+                    pass  # no label, or a line judged before its file was read again: it changed nothing live
+                elif rec.get("retract"):
                     self._retract(str(item), rebuild=False)
-                elif item is not None and isinstance(rec.get("fabric"), str):
+                else:
                     self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
                 self._prefix = (n, sha) if known else None
         self._relearn()  # once, not once per label
+
+
+def _line_key(rec: Mapping[str, Any]) -> tuple:
+    """What a labels-file line (or its ``label`` record) says, as a key: the same words, the same key."""
+    if rec.get("retract"):
+        return (str(rec.get("item_id")), None, False)
+    return (str(rec.get("item_id")), rec.get("fabric"), bool(rec.get("off_scene", False)))
+
+
+def _said(rec: Mapping[str, Any]) -> dict:
+    """A label record's fields for what the line said (its fabric, or the withdrawal)."""
+    if rec.get("retract"):
+        return {"retract": True}
+    return {"fabric": rec["fabric"], **({"off_scene": True} if rec.get("off_scene") else {})}
 
 
 def _press_count(n: Any) -> bool:

@@ -1,0 +1,95 @@
+"""A labels file read again from line 1 (runtime/labels.py ``OperatorFeedback.poll``: it no longer
+begins with the lines read - an editor's save, a copy put back, a line taken out) must leave what the
+operator's labels taught as it was: its lines the cell judged already are not judged again. Judged
+again, a label the operator withdrew came back into force, and a label read before its piece id
+existed (a labels file kept across a new journal, whose pieces are numbered from piece-000001 again)
+was applied to the new piece of that id - either way a fabric no label names taught wool's mean, and
+its next pieces went to wool's bin."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from feedback_fakes import BINS, CLASSES, ListJournal, PieceModel, labelled_cell, operator_feedback
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.labels import append_label
+from vs2t_edge.runtime.journal import iter_records
+
+LINEN = (8.0, 2.0)  # a fabric the job does not list: zero-shot it goes to the reject bin (never sure)
+
+
+class _LinenModel(PieceModel):
+    z = LINEN
+
+
+def _decide(evidence, z, n=4):
+    for _ in range(n):
+        d = evidence.add(so.Press({c: -1.0 for c in CLASSES}, None, np.asarray(z, float)))
+        if d is not None:
+            return d
+    return evidence.decide()
+
+
+def _save_over(path, text):
+    """An editor's save: a new file with ``text`` renamed over ``path``."""
+    tmp = path.with_name(path.name + ".swp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def test_a_withdrawn_label_stays_withdrawn_when_an_editor_saves_a_stale_copy(tmp_path):
+    """The operator labels a linen piece wool by mistake, withdraws it (`label --retract`), and an
+    editor opened on the labels file before the withdrawal saves its copy: the file no longer begins
+    with the lines read, so the cell reads it again from line 1. The wrong label must stay withdrawn
+    - it came back, and the next linen piece went to wool's bin."""
+    fb = operator_feedback(tmp_path)
+    cell, gate, journal = labelled_cell(tmp_path, fb, [80] * 40, _LinenModel())
+    first = cell.run(max_items=1)[0]
+    assert first.bin == 0  # linen, zero-shot: the reject bin
+    append_label(fb.path, first.item.id, "wool")  # the mistake
+    stale = fb.path.read_text()  # what the editor holds
+    cell.run(max_items=2)
+    assert gate.sorted[-1] == BINS["wool"]  # the wrong label in force: linen into wool's bin
+    append_label(fb.path, first.item.id, None)  # withdrawn
+    cell.run(max_items=3)
+    assert gate.sorted[-1] == 0 and fb.item_labels == {}
+    _save_over(fb.path, stale)
+    cell.run(max_items=4)
+    assert fb.item_labels == {} and gate.sorted[-1] == 0, (
+        f"after the editor's save: labels {fb.item_labels}, the linen piece went to bin {gate.sorted[-1]}")
+    reread = [r for r in iter_records(journal.path) if r.get("type") == "label"][-2:]
+    assert reread[0].get("reread") and reread[1].get("read_before") and not reread[1]["applied"]
+    journal.close()
+    restarted = operator_feedback(tmp_path)  # a restart rebuilds the same: the label stays withdrawn
+    restarted.restore(iter_records(journal.path), seal=None)
+    assert restarted.item_labels == {} and _decide(restarted(), LINEN).label != "wool"
+
+
+def test_a_label_read_before_its_piece_id_existed_does_not_name_a_later_piece_of_that_id(tmp_path):
+    """A new journal numbers its pieces from piece-000001 again (a damaged one moved aside, say);
+    the labels file kept at its path holds the last journal's labels. The first poll judges them:
+    no piece of that id decided. Once the new journal has a piece-000001 - a linen piece - an edit of
+    the file (a bad line taken out) has it read again from line 1: the old line must still name no
+    piece here - it taught wool the linen piece's presses, and the next linen piece went to wool's bin."""
+    fb = operator_feedback(tmp_path)
+    old = ['{"item_id": "piece-000001", "fabric": wool}\n',  # a typo the operator fixes later
+           json.dumps({"item_id": "piece-000001", "fabric": "wool"}, sort_keys=True) + "\n"]
+    fb.path.write_text("".join(old))
+    j = ListJournal()
+    assert [r["applied"] for r in fb.poll(j)] == [False, False]  # no piece-000001 in this journal yet
+    ev = fb()
+    assert _decide(ev, LINEN).label != "wool"
+    fb.remember("piece-000001", ev)  # the new journal's piece-000001: linen
+    _save_over(fb.path, old[1])  # the bad line taken out
+    got = fb.poll(j)
+    assert fb.item_labels == {} and _decide(fb(), LINEN).label != "wool", (
+        f"after the edit: labels {fb.item_labels}, a linen piece decided {_decide(fb(), LINEN).label}")
+    assert got[0].get("reread") and not any(r["applied"] for r in got[1:])
+    restarted = operator_feedback(tmp_path)
+    pre_sort = {"type": "pre_sort", "item_id": "piece-000001", "presses": ev.presses,
+                "scene_z_mean": fb.journal_z_mean(ev)}
+    restarted.restore(j.records[:2] + [pre_sort] + j.records[2:], seal=None)  # in the journal's order
+    assert restarted.item_labels == {}
