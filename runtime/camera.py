@@ -12,7 +12,8 @@ camera, ``SimulatedCamera``, is in vs2t_edge.sim.devices: simulators stay out of
   float-path one the cell decodes reduced (below) - it asks
   the driver for the MJPEG stream undecoded (``CAP_PROP_FOURCC`` MJPG, ``CAP_PROP_CONVERT_RGB`` 0;
   OpenCV's V4L2 backend honours it and hands the JPEG bytes) and decodes each frame itself at 1/n
-  scale (``decode_jpeg``: libjpeg skips most of the work), handing ``Frame(reduced_by=n)``. A
+  scale (``decode_jpeg``: libjpeg skips most of the work), handing ``Frame(reduced_by=n)``; a frame
+  cut short in transit, which libjpeg decodes filled, is refused by its marks (runtime/jpeg_integrity.py). A
   backend that still hands decoded frames (other backends, a camera without MJPEG) is the
   fallback: its full frames go to the model as they are, which reduces them with the very
   function training used (``settings_applied["mjpeg_undecoded"]`` says which). A float-path
@@ -57,6 +58,7 @@ import numpy as np
 from vs2t_edge.runtime.camera_warmup import settle
 from vs2t_edge.runtime.devices import CameraError, CameraFrozen, Frame, NotConnectedError
 from vs2t_edge.runtime.files import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, InputRefused, read_image_file
+from vs2t_edge.runtime.jpeg_integrity import damaged_jpeg
 from vs2t_edge.runtime.jpeg_quality import estimate_quality
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS, FrameError, check_frame, decode_jpeg, reduced_hw
 from vs2t_edge.runtime.yuyv import BYTES_PER_PIXEL, decode_yuyv
@@ -401,16 +403,23 @@ class UVCCamera(CameraBase):
             return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale, taken_s=taken)
         if self.decode_scale > 1 and is_compressed(image):
             decoded = decode_jpeg(image, self.decode_scale)
-            if decoded is None:
-                err = CameraError(f"{self.name} frame {self._guard.index}: {image.size} bytes that do not decode as "
-                                  "a JPEG (a truncated MJPEG frame?)", device=self.name, kind="corrupt")
-                err.reason = "jpeg"
-                raise err
+            # a frame cut short in transit decodes with its lost part filled (runtime/jpeg_integrity.py)
+            why = ("that do not decode as a JPEG (a truncated MJPEG frame?)" if decoded is None
+                   else damaged_jpeg(image, decoded))
+            self._refuse_damaged(why, f"{image.size} bytes")
             frame = self._guard.admit(decoded, reduced_by=self.decode_scale, taken_s=taken)
             if "mjpeg_quality" not in self.settings_applied:
                 self._stream_quality(image)
             return frame
+        if self.pixel_format == "mjpeg" and isinstance(image, np.ndarray) and image.ndim == 3:
+            self._refuse_damaged(damaged_jpeg(None, image), "decoded by the backend,")  # its fill tells
         return self._guard.admit(image, taken_s=taken)  # decoded by the backend: a full frame (the fallback)
+
+    def _refuse_damaged(self, why: str, what: str) -> None:
+        if why:
+            err = CameraError(f"{self.name} frame {self._guard.index}: {what} {why}", device=self.name, kind="corrupt")
+            err.reason = "jpeg"
+            raise err
 
     def _stream_quality(self, jpeg: np.ndarray) -> None:
         """The MJPEG quality of the first good frame since connect, from its quantisation table, into
