@@ -6,12 +6,13 @@ log and ``_reopen_camera``.
 Only a fault file that was there and is gone clears a fault: one that could not be written (a
 full disk, a folder the service may not write) is written again while the fault stays latched,
 and a restart that finds no file restores a fault whose journal record says its file was never
-written."""
+written, or names another file that is still there (a config changed before the clear)."""
 
 from __future__ import annotations
 
 import time
 import traceback
+from pathlib import Path
 
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.evidence import UNKNOWN
@@ -29,6 +30,21 @@ def _fault_file_never_written(fault: dict | None) -> bool:
     return isinstance(steps, list) and any(isinstance(s, str) and s.startswith(FAULT_FILE_FAILED) for s in steps)
 
 
+def _fault_file_of(fault: dict | None) -> Path | None:
+    """The fault file a journal's latched fault record says it was written to (None: not said)."""
+    where = fault.get("fault_file") if isinstance(fault, dict) else None
+    return Path(where) if isinstance(where, str) and where else None
+
+
+def _fault_file_reason(path: Path) -> str:
+    """A fault file's reason, read bounded (never a FIFO's endless wait): the fault stays latched either way."""
+    try:
+        text = read_regular_file(path, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
+    except (OSError, ValueError) as exc:
+        text = f"fault file {path} unreadable ({exc})"
+    return text.strip() or "fault latched before restart"
+
+
 class FaultLatch:
     """The fault latch's half of ``Cell``, whose ``__init__`` sets ``fault`` (None) and
     ``_fault_file_written`` (False: only a fault file that was there and is gone clears a fault)."""
@@ -40,15 +56,18 @@ class FaultLatch:
         """Resolve items the last run left between pre_sort and final; restore a latched fault."""
         resolved = self._resolve_open_items()
         ff = self.scene.fault_file
+        last = self.journal.latched_fault()
+        moved = _fault_file_of(last)
         if ff is not None and ff.exists():
-            try:  # bounded, and never a FIFO's endless wait: the fault stays latched either way
-                text = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace")
-            except (OSError, ValueError) as exc:
-                text = f"fault file {ff} unreadable ({exc})"
-            reason = text.strip() or "fault latched before restart"
-            self.fault, self._fault_file_written = reason, True
-            self.notifier.status(f"FAULT (latched before restart): {reason}")
-        elif ff is not None and _fault_file_never_written(last := self.journal.latched_fault()):
+            self.fault, self._fault_file_written = _fault_file_reason(ff), True
+            self.notifier.status(f"FAULT (latched before restart): {self.fault}")
+        elif ff is not None and moved is not None and moved != ff and moved.exists():
+            # latched under another fault file, still there: the config changed, the operator cleared nothing
+            self.fault = _fault_file_reason(moved)
+            self._write_fault_file()  # where this config's operator clears it
+            self.notifier.status(f"FAULT (latched before restart, its fault file {moved} still there; this config's "
+                                 f"is {ff}): {self.fault}")
+        elif ff is not None and _fault_file_never_written(last):
             # the journal's last fault, its file never written: no operator can have cleared it
             self.fault = str(last.get("reason") or "fault latched before restart")
             self._write_fault_file()  # now, if it can
@@ -103,8 +122,10 @@ class FaultLatch:
         if failed:
             steps.append(f"{FAULT_FILE_FAILED}: {failed}")
         try:
+            # where its file is: a restart on a config naming another place still finds it (``recover``)
+            where = {"fault_file": str(self.scene.fault_file)} if self.scene.fault_file is not None else {}
             self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
-                                 "t": time.time()})
+                                 **where, "t": time.time()})
         except Exception as exc:  # noqa: BLE001
             steps.append(f"journal failed: {exc}")
         try:

@@ -65,6 +65,11 @@ TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "
                          "speculative_error", "stale_frames_read_past"})
 
 
+# Of a fault record: the latch's steps that failed (the devices of that day) and where its fault file
+# was written (the session's state folder; a replay writes its own): neither is the decision
+NOT_DECISIONS = frozenset({"steps_failed", "fault_file"})
+
+
 def without_timing(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: without_timing(v) for k, v in x.items() if k not in TIMING_KEYS}
@@ -78,7 +83,7 @@ def decisions_of(records: list[dict]) -> list[dict]:
     out = []
     for r in records:
         if r.get("type") in DECISION_TYPES:
-            out.append(without_timing({k: v for k, v in r.items() if k != "steps_failed"}))
+            out.append(without_timing({k: v for k, v in r.items() if k not in NOT_DECISIONS}))
     return out
 
 

@@ -3,15 +3,10 @@
 
 from __future__ import annotations
 
-import pytest
-
 from test_fault_latch import _cell, _turns
 from vs2t_edge.sim.fake_devices import FakeArm
 
 
-@pytest.mark.xfail(strict=True, reason="not fixed: recover() reads only the config's fault file, and the fault "
-                   "record names none (the fix the audit of 2026-11-29 describes: the start record names its "
-                   "fault file, the journal keeps the one of its latched fault's session)")
 def test_a_restart_with_the_fault_file_moved_keeps_the_fault_latched(tmp_path):
     """The service latched a fault (its file at FAULT beside the journal); the operator, before
     any clear, restarts it on a config whose fault_file names another place (a new state folder):
