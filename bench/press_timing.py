@@ -73,16 +73,21 @@ def decode_scale(model, frame_hw: tuple[int, int] | None = None, setting: str = 
 
 class CameraChecks:
     """What the cell does to each grabbed frame before scoring it: the camera's frame guard
-    (check_frame, frozen frame) and the press-frame contact check against the item's no-contact
-    frame (on by default for a UVC camera, docs/cell.md)."""
+    (check_frame, frozen frame), an MJPEG frame's marks of a cut in transit (its end marker, its
+    last row; runtime/jpeg_integrity.py) and the press-frame contact check against the item's
+    no-contact frame (on by default for a UVC camera, docs/cell.md)."""
 
     def __init__(self, reference_image: np.ndarray) -> None:
         from vs2t_edge.runtime.camera import FrameGuard
         from vs2t_edge.runtime.contact import ContactCheck
+        from vs2t_edge.runtime.jpeg_integrity import damaged_jpeg
 
+        self.damaged_jpeg = damaged_jpeg
         self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
 
-    def __call__(self, image: np.ndarray) -> None:
+    def __call__(self, image: np.ndarray, jpeg: np.ndarray | None = None) -> None:
+        if jpeg is not None and self.damaged_jpeg(jpeg, image):
+            raise ValueError("the bench's own JPEG reads as cut short in transit")
         self.guard.admit(image)
         self.contact.read(image, self.reference)
 
@@ -103,7 +108,7 @@ def press_stages(model, jpeg, evidence, checks: CameraChecks | None = None,
     frame = decode_payload(jpeg, scale)
     t1 = time.perf_counter()
     if checks is not None:
-        checks(frame)
+        checks(frame, None if stage != DECODE_STAGE["mjpeg"] else jpeg)
     t1c = time.perf_counter()
     s = model.score_press(frame, scale)
     tm = dict(model.last_timing)

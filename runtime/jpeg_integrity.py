@@ -29,16 +29,20 @@ import numpy as np
 
 JPEG_FILL = 128  # what libjpeg decodes a block with no data to, in every channel (DC 0 = mid-grey)
 EOI = (0xFF, 0xD9)
+TAIL_BYTES = 256  # where the end marker is looked for first (a frame's zero padding is shorter)
 FILLED_TAIL = 0.125  # of the last pixel row: real frames have at most 0.4 % of it at exactly 128, anywhere
 
 
-def ends_with_eoi(data: np.ndarray) -> bool:
+def ends_with_eoi(data: np.ndarray | bytes) -> bool:
     """Do the frame's bytes end with the JPEG's end marker (after trailing zero padding)?"""
-    flat = np.asarray(data, np.uint8).reshape(-1)
-    nonzero = np.flatnonzero(flat)
-    if nonzero.size == 0:
-        return False
-    end = int(nonzero[-1]) + 1
+    flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else np.asarray(data, np.uint8).reshape(-1)
+    nonzero = np.flatnonzero(flat[-TAIL_BYTES:])  # the padding is short: the tail, not the frame
+    offset = max(0, flat.size - TAIL_BYTES)
+    if nonzero.size == 0:  # padding longer than the tail (or nothing): the whole buffer
+        nonzero, offset = np.flatnonzero(flat), 0
+        if nonzero.size == 0:
+            return False
+    end = offset + int(nonzero[-1]) + 1
     return end >= 2 and (int(flat[end - 2]), int(flat[end - 1])) == EOI
 
 

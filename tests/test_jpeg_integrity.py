@@ -63,6 +63,8 @@ def test_a_frame_without_its_end_marker_is_refused_whatever_opencv_decodes(mjpeg
             cam.grab()
     assert exc.value.reason == "jpeg" and "end marker" in str(exc.value)
     assert ends_with_eoi(np.frombuffer(press_jpeg + b"\x00" * 40, np.uint8))  # padding after it is no damage
+    assert ends_with_eoi(press_jpeg + b"\x00" * 4000)  # longer than the tail it looks in first; bytes too
+    assert not ends_with_eoi(press_jpeg[:-2] + b"\x00" * 4000) and not ends_with_eoi(b"\x00" * 10)
     assert not ends_with_eoi(np.frombuffer(cut_short(press_jpeg, 0.8, eoi=False), np.uint8))
 
 
