@@ -213,7 +213,7 @@ def speed_worker(bundle: str, dataset: str | None, threads_list: Sequence[int], 
             frames = [decode_payload(b, scale) for b in jpegs]
             ref = decode_payload(camera_payload(ref, camera_format, jpeg_quality), scale)
         model.set_reference(ref, scale)
-        checks = CameraChecks(ref)
+        checks = CameraChecks(ref, model)
         xs = [model.preprocess(f, scale) for f in frames]
         sess, name = model._trunk, model._trunk_in  # a fused bundle's: the whole press graph (see below)
         t0 = time.perf_counter()

@@ -77,13 +77,15 @@ class CameraChecks:
     last row; runtime/jpeg_integrity.py) and the press-frame contact check against the item's
     no-contact frame (on by default for a UVC camera, docs/cell.md)."""
 
-    def __init__(self, reference_image: np.ndarray) -> None:
+    def __init__(self, reference_image: np.ndarray, model=None) -> None:
         from vs2t_edge.runtime.camera import FrameGuard
         from vs2t_edge.runtime.contact import ContactCheck
         from vs2t_edge.runtime.jpeg_integrity import damaged_jpeg
+        from vs2t_edge.runtime.wiring import model_crop_fraction
 
         self.damaged_jpeg = damaged_jpeg
-        self.guard, self.contact, self.reference = FrameGuard("bench", None, 2), ContactCheck(), reference_image
+        self.contact = ContactCheck(crop_fraction=model_crop_fraction(model))  # the model's square too, as the cell
+        self.guard, self.reference = FrameGuard("bench", None, 2), reference_image
 
     def __call__(self, image: np.ndarray, jpeg: np.ndarray | None = None) -> None:
         if jpeg is not None and self.damaged_jpeg(jpeg, image):

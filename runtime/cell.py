@@ -316,12 +316,14 @@ class Cell(FaultLatch):
             return  # a wrong-size or wrong-type frame is the frame check's to refuse (skipped, not retried)
         reading = check.read(image, reference)
         if not reading.pressed:
+            seen = reading.model_area_fraction
+            where = "" if seen is None else f" and in {seen:.2%} of the square the model reads"
             raise CameraError(
                 f"no contact: the press frame differs from the no-contact reference in "
-                f"{reading.area_fraction:.2%} of the image (peak {reading.peak_levels:.1f} grey levels; "
+                f"{reading.area_fraction:.2%} of the image{where} (peak {reading.peak_levels:.1f} grey levels; "
                 f"a press needs {check.min_area_fraction:.2%} over {check.threshold_levels:g}) - the gel "
-                "did not touch the piece (piece missing, wrong height?) or the frame is stale",
-                device="camera", kind=NO_CONTACT)
+                "did not touch the piece (piece missing, wrong height, an imprint beside the model's square?) "
+                "or the frame is stale", device="camera", kind=NO_CONTACT)
 
     def process_item(self, item: Item) -> ItemResult | None:
         t0 = self.clock()

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from vs2t_edge.runtime.devices import CameraError
+from vs2t_edge.runtime.preprocess import centre_square
 
 
 @dataclass(frozen=True)
@@ -23,6 +24,7 @@ class ContactReading:
     pressed: bool
     area_fraction: float  # of pixels that changed by more than the threshold
     peak_levels: float  # largest locally averaged change, grey levels
+    model_area_fraction: float | None = None  # the same inside the square the model sees (``crop_fraction``)
 
 
 @dataclass(frozen=True)
@@ -33,11 +35,17 @@ class ContactCheck:
     that sensor noise cancels while an imprint (a few mm, tens of pixels) stays; the gel counts
     as pressed when enough of the image changed by more than ``threshold_levels``. A global
     lighting drift of a few levels stays under the threshold.
+
+    ``crop_fraction`` (the bundle's: the centred square of the shorter side the model reads): the
+    imprint must also cover ``min_area_fraction`` of that square. A press whose imprint falls only
+    in the bands beside it (a piece's edge under the gel's side) shows the model an untouched gel,
+    which no class was trained on and which scores as whatever fabric lies nearest.
     """
 
     threshold_levels: float = 12.0
     min_area_fraction: float = 0.005
     window_px: int = 5
+    crop_fraction: float | None = None
 
     def difference(self, frame: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """HxW float32: the largest change over the channels, box-averaged over ``window_px``."""
@@ -65,9 +73,15 @@ class ContactCheck:
     def read(self, frame: np.ndarray, reference: np.ndarray) -> ContactReading:
         sums = self._window_sums(frame, reference)
         n = self.window_px ** 2
-        area = cv2.countNonZero(cv2.compare(sums, float(self.threshold_levels) * n, cv2.CMP_GT)) / sums.size
-        return ContactReading(pressed=area >= self.min_area_fraction, area_fraction=area,
-                              peak_levels=float(cv2.minMaxLoc(sums)[1]) / n)
+        changed = cv2.compare(sums, float(self.threshold_levels) * n, cv2.CMP_GT)
+        area = cv2.countNonZero(changed) / sums.size
+        seen = None
+        if self.crop_fraction is not None:
+            square = changed[centre_square(changed.shape, self.crop_fraction)]
+            seen = cv2.countNonZero(square) / square.size
+        return ContactReading(pressed=area >= self.min_area_fraction and (seen is None or seen >= self.min_area_fraction),
+                              area_fraction=area, peak_levels=float(cv2.minMaxLoc(sums)[1]) / n,
+                              model_area_fraction=seen)
 
     def is_pressed(self, frame: np.ndarray, reference: np.ndarray) -> bool:
         return self.read(frame, reference).pressed

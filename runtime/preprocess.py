@@ -303,21 +303,25 @@ def _reduced_input(image: np.ndarray, spec: TactilePreprocess, reduced_by: int) 
     return image
 
 
+def centre_square(hw: tuple[int, ...], crop_fraction: float) -> tuple[slice, slice]:
+    """The centred square of the shorter side times ``crop_fraction``: the part of a frame the
+    model reads (the contact check asks for the imprint there too, runtime/contact.py)."""
+    h, w = hw[:2]
+    side = max(1, int(round(min(h, w) * crop_fraction)))
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    return slice(y0, y0 + side), slice(x0, x0 + side)
+
+
 def _crop_resize_u8(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
     """The reduced path: centre square crop -> uint8 INTER_LINEAR to size x size."""
-    h, w = image.shape[:2]
-    side = max(1, int(round(min(h, w) * spec.crop_fraction)))
-    y0, x0 = (h - side) // 2, (w - side) // 2
-    return cv2.resize(image[y0:y0 + side, x0:x0 + side], (spec.size, spec.size), interpolation=cv2.INTER_LINEAR)
+    return cv2.resize(image[centre_square(image.shape, spec.crop_fraction)], (spec.size, spec.size),
+                      interpolation=cv2.INTER_LINEAR)
 
 
 def _crop_resize(image: np.ndarray, spec: TactilePreprocess) -> np.ndarray:
     """Centre square crop (uint8 view, no copy) -> float32 -> INTER_AREA to size x size."""
     image = _sensor_corrected(image, spec)
-    h, w = image.shape[:2]
-    side = max(1, int(round(min(h, w) * spec.crop_fraction)))
-    y0, x0 = (h - side) // 2, (w - side) // 2
-    crop = image[y0:y0 + side, x0:x0 + side].astype(np.float32)
+    crop = image[centre_square(image.shape, spec.crop_fraction)].astype(np.float32)
     return cv2.resize(crop, (spec.size, spec.size), interpolation=cv2.INTER_AREA)
 
 

@@ -102,13 +102,24 @@ def require_scene_model(model: Any, bundle, without_scene_model: str | None, opt
             f"scene model, or - knowing that risk - {opt_in}")
 
 
-def contact_check_for(cfg: CellConfig) -> ContactCheck | None:
-    """The press-frame contact check the config asks for, or None (docs/cell.md, "Contact check")."""
+def contact_check_for(cfg: CellConfig, model=None) -> ContactCheck | None:
+    """The press-frame contact check the config asks for, or None (docs/cell.md, "Contact check").
+    With a trunk ``model``, the imprint must also lie in the square its preprocessing crops."""
     cam = cfg.camera
     on = cam["contact_check"] == "on" or (cam["contact_check"] == "auto" and cam["kind"] == "uvc")
     if not on:
         return None
-    return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"])
+    return ContactCheck(threshold_levels=cam["contact_threshold_levels"], min_area_fraction=cam["contact_min_area"],
+                        crop_fraction=model_crop_fraction(model))
+
+
+def model_crop_fraction(model) -> float | None:
+    """The share of a frame's shorter side a trunk model crops, centred (None: a descriptor bundle,
+    which reads the whole frame, or no model)."""
+    if model is None or getattr(model, "descriptor", None) is not None:
+        return None
+    spec = getattr(model, "preprocess_spec", None)
+    return float(spec.crop_fraction) if spec is not None else None
 
 
 DECODE_SCALES = ("auto", "full")  # devices.camera.decode_scale (runtime/config.py holds the literal)
@@ -203,7 +214,7 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
                 scene=SceneSpec.from_config(cfg),
                 evidence_factory=evidence_factory or evidence_factory_for(cfg, model),
                 items=items or ContinuousFeed(first_number=journal.next_item_number()), stop_event=stop_event,
-                on_item=on_item, log=log, contact_check=contact_check_for(cfg))
+                on_item=on_item, log=log, contact_check=contact_check_for(cfg, model))
 
 
 __all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",

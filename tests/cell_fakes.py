@@ -46,7 +46,8 @@ class FakeModel:
 class ScriptedCamera:
     """Returns a reference frame when the gel is up and the scripted frames when pressed.
 
-    ``script`` entries: an int grey level, "black" (a bad frame), "error" (CameraError), or
+    ``script`` entries: an int grey level, "black" (a bad frame), "side" (pressed only beside the
+    centred square a model reads), "error" (CameraError), or
     "unplugged" (the cable comes out: that grab and every grab after it fail with an unplugged
     CameraError until connect(); connect() fails while ``cable_out`` - set it back to False, as
     the operator plugging it in, or leave ``back_on_reconnect`` True for a cable that is back at
@@ -95,6 +96,10 @@ class ScriptedCamera:
             raise CameraError("no frame (unplugged)", device="camera", kind="unplugged")
         if what == "black":
             return Frame(np.zeros(self.size + (3,), np.uint8), float(self.index), self.index)
+        if what == "side":  # an imprint in the band left of the centred square, the rest the gel at rest
+            image = np.full(self.size + (3,), 100, np.uint8)
+            image[:, :self.size[1] // 16] = 60  # its box-averaged change stays outside the square
+            return Frame(image, float(self.index), self.index)
         return Frame(np.full(self.size + (3,), int(what), np.uint8), float(self.index), self.index)
 
 
