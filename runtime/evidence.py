@@ -175,7 +175,9 @@ class Evidence:
             self._inside += self.weight * np.maximum(v, -1e300)
             for c, val in lp.items():
                 if c not in self.classes:
-                    self._outside[c] = self._outside.get(c, 0.0) + self.weight * max(float(val), -1e300)
+                    if math.isnan(val := float(val)):  # max(NaN, x) is NaN: the known-class rule off for the piece
+                        raise ValueError(f"Evidence: press score has NaN log posterior for {c} (outside the scene)")
+                    self._outside[c] = self._outside.get(c, 0.0) + self.weight * max(val, -1e300)
         self._add_open(score)
         v = v - _logsumexp(v)
         self._acc = self._acc + self.weight * np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
@@ -187,7 +189,8 @@ class Evidence:
         if math.isfinite(self.open_threshold) and d2:
             # the scene's fabrics (a stranger the operator taught, runtime/feedback.py, has no press distance)
             if z is None:
-                self._open_sum += min(float(d2[c]) for c in self.classes if c in d2)
+                near = [float(d2[c]) for c in self.classes if c in d2]
+                self._open_sum += math.nan if any(map(math.isnan, near)) else min(near)
             else:
                 # the item model's own means: where operator labels moved a class's mean to its real
                 # presses, the distance to the learned mean, not to the bundle's synthesis the press
@@ -196,6 +199,8 @@ class Evidence:
                     self._open_rows = np.array([self.item_model.classes.index(c) for c in self.classes if c in d2])
                 own = self.item_model.sq_distances_projected(z[None, :])[0]
                 self._open_sum += float(own[self._open_rows].min())
+            if math.isnan(self._open_sum):  # NaN > threshold is False: the open-set rule off for the piece
+                raise ValueError("Evidence: press score has a NaN squared distance")
             self._open_n += 1
 
     def _add_projected(self, score) -> ItemDecision | None:

@@ -67,3 +67,24 @@ def test_refuse_early_stops_at_the_press_that_makes_a_left_out_fabric_sure():
     assert ev.add(leads) is None  # 0.6 share < 0.99: not sure yet
     # off without the known-class rule: nothing to compare with
     assert Evidence(["a", "b"], 0.9, 5, refuse_early=True).add(sure) is None
+
+
+def test_a_nan_in_a_refusal_rule_is_refused_not_a_rule_switched_off():
+    """A NaN for a class outside the job, or in a press's squared distances, made every comparison
+    of the known-class or open-set rule False: the rule silently off for that piece, which could
+    then sort a stranger. Like a NaN of the job's own classes, it is refused (the cell latches)."""
+    import pytest
+
+    @dataclass(frozen=True)
+    class D:
+        log_posterior: dict
+        sq_distance: dict
+
+    known = Evidence(["a", "b"], 0.95, 5, known_margin=0.0)
+    with pytest.raises(ValueError, match="outside the scene"):
+        known.add(S({"a": 0.0, "b": -3.0, "z": math.nan}))
+    opened = Evidence(["a", "b"], 0.95, 5, open_threshold=10.0)
+    with pytest.raises(ValueError, match="NaN squared distance"):
+        opened.add(D({"a": 0.0, "b": -3.0}, {"a": 1.0, "b": math.nan}))  # min(1.0, NaN) is 1.0: one is enough
+    fine = Evidence(["a", "b"], 0.95, 5, known_margin=0.0, open_threshold=10.0)
+    fine.add(D({"a": 0.0, "b": -3.0, "z": -9.0}, {"a": 1.0, "b": 4.0}))
