@@ -45,6 +45,15 @@ def decide_piece(model, z, n=4):
     return ev.decide(), ev
 
 
+def decide_with(evidence, z, n=4):
+    """The decision of ``evidence`` (a fresh one) for a piece whose ``n`` presses all land at ``z``."""
+    for _ in range(n):
+        d = evidence.add(so.Press({c: -1.0 for c in CLASSES}, None, np.asarray(z, float)))
+        if d is not None:
+            return d
+    return evidence.decide()
+
+
 class ListJournal:
     """A journal that keeps its records in a list."""
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cell_fakes import ScriptedCamera
-from feedback_fakes import CLASSES, ListJournal, PieceModel, labelled_cell, labels_config, operator_feedback, scene_model
+from feedback_fakes import ListJournal, PieceModel, decide_with, labelled_cell, labels_config, operator_feedback, scene_model
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.labels import OperatorFeedback, append_label
@@ -18,14 +18,6 @@ from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
 from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
 
 _model, _feedback = scene_model, operator_feedback
-
-
-def _decide(evidence, z, n=4):
-    for _ in range(n):
-        d = evidence.add(so.Press({c: -1.0 for c in CLASSES}, None, np.asarray(z, float)))
-        if d is not None:
-            return d
-    return evidence.decide()
 
 
 # --- 1. restart rebuilds other learned means than the live cell had -------------------------------
@@ -45,10 +37,10 @@ def _cell(tmp_path, feedback, script):
 def _boundary(fb, a, b, iters=60):
     """t in [0, 1] where fb's decision of a piece at a + t (b - a) stops being 'wool'."""
     lo, hi = 0.0, 1.0
-    assert _decide(fb(), a).label == "wool" and _decide(fb(), b).label != "wool"
+    assert decide_with(fb(), a).label == "wool" and decide_with(fb(), b).label != "wool"
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        if _decide(fb(), a + mid * (b - a)).label == "wool":
+        if decide_with(fb(), a + mid * (b - a)).label == "wool":
             lo = mid
         else:
             hi = mid
@@ -75,7 +67,7 @@ def test_restart_rebuilds_the_same_learned_means_as_the_live_cell(tmp_path):
     lo_live, hi_live = _boundary(live, a, b)
     lo_rest, hi_rest = _boundary(restarted, a, b)
     z_between = a + 0.5 * (min(hi_live, hi_rest) + max(lo_live, lo_rest)) * (b - a)
-    live_label, restarted_label = _decide(live(), z_between).label, _decide(restarted(), z_between).label
+    live_label, restarted_label = decide_with(live(), z_between).label, decide_with(restarted(), z_between).label
     assert np.array_equal(restarted.model.means, live.model.means), (
         f"restart learned wool mean {restarted.model.means[2].tolist()}, live {live.model.means[2].tolist()}; "
         f"a piece at {z_between.tolist()}: live {live_label}, after restart {restarted_label}")
@@ -100,7 +92,7 @@ def _decided(fb, *items):
     pre_sorts = []
     for item in items:
         ev = fb()
-        _decide(ev, PIECE_Z)
+        decide_with(ev, PIECE_Z)
         fb.remember(item, ev)
         pre_sorts.append({"type": "pre_sort", "item_id": item, "presses": ev.presses,
                           "scene_z_mean": fb.journal_z_mean(ev)})
@@ -233,11 +225,11 @@ def test_a_label_given_a_recorded_piece_is_applied_by_that_recording_alone(tmp_p
     # the live service restarts on its journal and the shared labels file
     fb = _feedback(tmp_path)
     fb.restore(iter_records(cfg.journal), seal=None)
-    before = _decide(fb(), other_piece).label
+    before = decide_with(fb(), other_piece).label
     polled = fb.poll(ListJournal())
     assert polled and not any(r.get("applied") for r in polled)
     assert all("no decided item" in r["why"] for r in polled)
-    assert _decide(fb(), other_piece).label == before
+    assert decide_with(fb(), other_piece).label == before
 
 
 def test_a_retraction_or_correction_given_while_its_fabric_was_out_of_the_job_holds_when_it_is_back(tmp_path):

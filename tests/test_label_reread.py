@@ -11,10 +11,8 @@ from __future__ import annotations
 import json
 import os
 
-import numpy as np
 
-from feedback_fakes import BINS, CLASSES, ListJournal, PieceModel, labelled_cell, operator_feedback
-from vs2t_edge.runtime import sorting as so
+from feedback_fakes import BINS, ListJournal, PieceModel, decide_with, labelled_cell, operator_feedback
 from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.journal import iter_records
 
@@ -23,14 +21,6 @@ LINEN = (8.0, 2.0)  # a fabric the job does not list: zero-shot it goes to the r
 
 class _LinenModel(PieceModel):
     z = LINEN
-
-
-def _decide(evidence, z, n=4):
-    for _ in range(n):
-        d = evidence.add(so.Press({c: -1.0 for c in CLASSES}, None, np.asarray(z, float)))
-        if d is not None:
-            return d
-    return evidence.decide()
 
 
 def _save_over(path, text):
@@ -65,7 +55,7 @@ def test_a_withdrawn_label_stays_withdrawn_when_an_editor_saves_a_stale_copy(tmp
     journal.close()
     restarted = operator_feedback(tmp_path)  # a restart rebuilds the same: the label stays withdrawn
     restarted.restore(iter_records(journal.path), seal=None)
-    assert restarted.item_labels == {} and _decide(restarted(), LINEN).label != "wool"
+    assert restarted.item_labels == {} and decide_with(restarted(), LINEN).label != "wool"
 
 
 def test_a_label_read_before_its_piece_id_existed_does_not_name_a_later_piece_of_that_id(tmp_path):
@@ -81,12 +71,12 @@ def test_a_label_read_before_its_piece_id_existed_does_not_name_a_later_piece_of
     j = ListJournal()
     assert [r["applied"] for r in fb.poll(j)] == [False, False]  # no piece-000001 in this journal yet
     ev = fb()
-    assert _decide(ev, LINEN).label != "wool"
+    assert decide_with(ev, LINEN).label != "wool"
     fb.remember("piece-000001", ev)  # the new journal's piece-000001: linen
     _save_over(fb.path, old[1])  # the bad line taken out
     got = fb.poll(j)
-    assert fb.item_labels == {} and _decide(fb(), LINEN).label != "wool", (
-        f"after the edit: labels {fb.item_labels}, a linen piece decided {_decide(fb(), LINEN).label}")
+    assert fb.item_labels == {} and decide_with(fb(), LINEN).label != "wool", (
+        f"after the edit: labels {fb.item_labels}, a linen piece decided {decide_with(fb(), LINEN).label}")
     assert got[0].get("reread") and not any(r["applied"] for r in got[1:])
     restarted = operator_feedback(tmp_path)
     pre_sort = {"type": "pre_sort", "item_id": "piece-000001", "presses": ev.presses,
