@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 
-
 from feedback_fakes import BINS, ListJournal, PieceModel, decide_with, labelled_cell, operator_feedback
 from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.journal import iter_records
