@@ -12,6 +12,10 @@ press orders come from a seed, never from a decision), so the difference of two 
 - per item, by bins: pieces in the right bin, for the scene decision and the router's posterior,
   the delta with a bootstrap over scenes and the items that flip.
 
+Items are not independent pairs: a fabric's items (by bins, in every scene it is in) are drawn from
+its presses, so their McNemar p is clustered by fabric (``mcnemar_clustered_p``); the exact test on
+them counted one press that flips once per item showing it.
+
 A delta whose interval holds 0 is inside the noise of this comparison.
 """
 
@@ -41,6 +45,21 @@ def mcnemar_p(b: int, c: int) -> float:
     k = min(b, c)
     tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
     return min(1.0, 2 * tail)
+
+
+def mcnemar_clustered_p(worse: np.ndarray, better: np.ndarray, cluster: np.ndarray) -> float:
+    """Two-sided McNemar p for pairs that come in clusters sharing their data (Durkalski et al.
+    2003, Stat Med 22:2417): X^2 = (B - C)^2 / sum_k (b_k - c_k)^2, chi-square with 1 df; b_k, c_k
+    the pairs of cluster k that flip worse and better. The bench's items are drawn from their
+    fabric's presses (by bins, in every scene the fabric is in), so one press that flips flips every
+    item that shows it: the exact test on items counted it that often (one press apart, p 4e-15).
+    Clusters of one pair each give the classic (asymptotic) McNemar."""
+    _, k = np.unique(np.asarray(cluster), return_inverse=True)
+    d = np.bincount(k, weights=np.asarray(worse, float)) - np.bincount(k, weights=np.asarray(better, float))
+    den = float(np.sum(d ** 2))
+    if den == 0:
+        return 1.0
+    return min(1.0, math.erfc(math.sqrt(float(np.sum(d)) ** 2 / den / 2)))
 
 
 def _press_indicators(v: dict) -> dict[str, np.ndarray]:
@@ -134,8 +153,10 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
     for name in ("scene_model", "router"):
         if name == "scene_model" and (v32["scene_model"] is None or v8["scene_model"] is None):
             continue
-        r32 = np.array([r.outcome == so.RIGHT for r in _bins_records(v32, name, scenes, seed)])
+        recs32 = _bins_records(v32, name, scenes, seed)
+        r32 = np.array([r.outcome == so.RIGHT for r in recs32])
         r8 = np.array([r.outcome == so.RIGHT for r in _bins_records(v8, name, scenes, seed)])
+        fabric = np.array([r.truth for r in recs32])  # a fabric's items share its presses across scenes
         if len(r32) != len(s_of) or len(r8) != len(s_of):
             raise RuntimeError("by-bins items do not line up with their scenes")
         rng = np.random.default_rng(seed)
@@ -149,7 +170,7 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
         out[name] = {"fp32": 100 * float(r32.mean()), "int8": 100 * float(r8.mean()),
                      "delta": 100 * float(r8.mean() - r32.mean()), "ci95": [float(lo), float(hi)],
                      "items": int(len(r32)), "flips_worse": worse, "flips_better": better,
-                     "mcnemar_p": mcnemar_p(worse, better)}
+                     "mcnemar_p": mcnemar_clustered_p(r32 & ~r8, ~r32 & r8, fabric)}
     return out
 
 
@@ -188,7 +209,7 @@ def paired_items(v32: dict, v8: dict, n_items: int = 100, n_boot: int = N_BOOT, 
         worse, better = int(np.sum(a & ~b)), int(np.sum(~a & b))
         out[f"{key}_H"] = {"fp32": h(a, rows), "int8": h(b, rows), "delta": h(b, rows) - h(a, rows),
                            "ci95": [float(lo), float(hi)], "items": int(len(a)), "flips_worse": worse,
-                           "flips_better": better, "mcnemar_p": mcnemar_p(worse, better)}
+                           "flips_better": better, "mcnemar_p": mcnemar_clustered_p(a & ~b, ~a & b, item_lab)}
     return out
 
 
@@ -196,7 +217,8 @@ def paired(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0, n_items: in
     return {"press": paired_press(v32, v8, n_boot, seed), "items": paired_items(v32, v8, n_items, n_boot, seed),
             "bins": paired_bins(v32, v8, n_boot, seed),
             "bootstrap": n_boot, "note": "int8 minus fp32 on the same presses / items; ci95 by bootstrap "
-            "(presses within fabric; scenes for bins); flips = discordant pairs, McNemar exact p"}
+            "(presses within fabric; scenes for bins); flips = discordant pairs, McNemar exact p per press, "
+            "clustered by fabric for items and bins (their items share the fabric's presses)"}
 
 
-__all__ = ["paired", "paired_press", "paired_items", "paired_bins", "mcnemar_p", "view"]
+__all__ = ["paired", "paired_press", "paired_items", "paired_bins", "mcnemar_p", "mcnemar_clustered_p", "view"]

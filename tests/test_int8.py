@@ -5,6 +5,7 @@ int8 with fp32 on the same presses and states the noise."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -304,6 +305,22 @@ def test_paired_press_counts_flips_and_its_interval_holds_the_truth():
     other["out"] = dict(other["out"], label=np.roll(other["out"]["label"], 1))
     with pytest.raises(ValueError, match="same presses"):
         pr.paired_press(_view(), other)
+
+
+def test_paired_items_mcnemar_counts_one_flipped_press_once():
+    """The bench's items share their fabric's presses: one press that flips flips every item showing
+    it. The exact McNemar test on items counted it once per item (49 items, p 4e-15, where the press
+    itself has p 1.0); clustered by fabric it is one cluster's evidence."""
+    shift = np.zeros((50, 5))
+    shift[0, 1] = 60.0  # int8 moves ONE press of class a to class b
+    assert pr.paired_press(_view(), _view(shift), n_boot=50)["acc_t"]["mcnemar_p"] == 1.0
+    d = pr.paired_items(_view(), _view(shift), n_items=100, n_boot=50)["item5_H"]
+    assert d["flips_worse"] > 20 and d["flips_better"] == 0
+    assert d["mcnemar_p"] > 0.3
+    # clusters of one pair each: the classic McNemar, (b - c)^2 / (b + c)
+    assert pr.mcnemar_clustered_p(np.r_[np.ones(9), np.zeros(3)], np.r_[np.zeros(9), np.ones(3)],
+                                  np.arange(12)) == pytest.approx(math.erfc(math.sqrt(3.0 / 2)))
+    assert pr.mcnemar_clustered_p(np.zeros(4), np.zeros(4), np.arange(4)) == 1.0
 
 
 def test_paired_numbers_are_the_bench_accuracy_numbers():
