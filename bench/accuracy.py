@@ -290,13 +290,19 @@ def by_bins(model, out: dict, n_scenes: int = BIN_SCENES, seed: int = 0) -> dict
         summary = so.summarise(recs)
         res[name] = {kind: {k: (100 * v if k in so.OUTCOMES else v) for k, v in r.items()}
                      for kind, r in [("all", summary["all"]), *summary["by_kind"].items()]}
+    if "scene_model_teach" in res and runs["scene_model_teach"]:
+        # the teach pieces are no pieces of the table, but the arm pressed them: per counted piece
+        n = len(runs["scene_model_teach"])
+        res["scene_model_teach"]["all"]["teach_presses"] = so.teach_presses(
+            scenes, tables["scene_model"], True, BIN_MAX_PRESSES) / n
     return res
 
 
 def pieces_per_minute(row: dict, arm) -> None:
     """Adds ``pieces_per_min`` (per decision: scored sequentially / overlapped) to ``row``'s by-bins
-    table, from the decision's presses per piece, ``arm`` (runtime.sorting.ArmTimes) and this
-    variant's whole press as the cell pays it (p50 at the most threads timed)."""
+    table, from the decision's presses per piece (its teach pieces' presses spread over them),
+    ``arm`` (runtime.sorting.ArmTimes) and this variant's whole press as the cell pays it (p50 at
+    the most threads timed)."""
     from vs2t_edge.runtime import sorting as so
 
     press = row.get("press", {})
@@ -304,8 +310,10 @@ def pieces_per_minute(row: dict, arm) -> None:
         return
     score_s = press[max(press, key=int)]["p50_ms"] / 1e3
     bins = row.get("accuracy", {}).get("bins", {})
+    # a decision whose jobs start with teach pieces pays their presses too (``teach_presses``, per piece)
     bins["pieces_per_min"] = {
-        name: {mode: so.items_per_minute(b["all"]["presses"], arm, score_s, overlap)
+        name: {mode: so.items_per_minute(b["all"]["presses"] + b["all"].get("teach_presses", 0.0), arm, score_s,
+                                         overlap)
                for mode, overlap in (("sequential", False), ("overlapped", True))}
         for name, b in bins.items() if isinstance(b, dict) and "all" in b}
 

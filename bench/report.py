@@ -158,7 +158,8 @@ def render_markdown(result: dict) -> str:
                  "count). *scene decision*: the bundle's scene model at its operating point; *+ operator labels*: "
                  "the same scenes as jobs of 4 pieces a fabric in a random order, every rejected piece labelled before "
                  "the next (runtime/feedback.py; not zero-shot); *+ a teach piece*: the same with one labelled piece of "
-                 "each untouched fabric pressed before the job, not counted; *router*: the GZSL "
+                 "each untouched fabric pressed before the job, not counted as a piece (its presses are in the pieces "
+                 "per minute, not in *presses*); *router*: the GZSL "
                  "router's posterior, the cell's decision before it (the baseline). %.", "", render_bins(result), "",
                  arm_times_line(result), ""]
                 if render_bins(result) else []),

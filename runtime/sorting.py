@@ -339,7 +339,7 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
         labelled: dict[str, list] = {}
         strangers: dict[str, list] = {}
         shown: dict[str, set] = {}  # presses of the job's teach and labelled pieces, kept out of its other pieces
-        for fabric in (teach(scene) if callable(teach) else scene.untouched if teach else ()):
+        for fabric in _taught(scene, teach):
             taught = rng.permutation(len(presses[fabric]))[:max_presses]
             shown[fabric] = set(taught.tolist())
             zs = np.stack([np.asarray(presses[fabric][i].scene_z, np.float64) for i in taught])
@@ -364,6 +364,19 @@ def simulate_with_labels(scenes: Sequence[Scene], presses: dict[str, list[Press]
                 shown.setdefault(fabric, set()).update(order[:ev.presses])
                 current = adapt(base, labelled, strangers)
     return records
+
+
+def _taught(scene: Scene, teach) -> Sequence[str]:
+    """The fabrics ``simulate_with_labels`` presses a teach piece of before ``scene``'s job."""
+    return teach(scene) if callable(teach) else scene.untouched if teach else ()
+
+
+def teach_presses(scenes: Sequence[Scene], presses: dict[str, list[Press]],
+                  teach: bool | Callable[[Scene], Sequence[str]], max_presses: int = 5) -> int:
+    """The presses ``simulate_with_labels``' teach pieces take over ``scenes`` (``max_presses``
+    each, or what the fabric has): no piece of the records, yet arm time the jobs spent - what
+    pieces per minute must pay with them."""
+    return sum(min(max_presses, len(presses[f])) for scene in scenes for f in _taught(scene, teach))
 
 
 def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None) -> Callable[[Scene], Evidence]:
@@ -445,4 +458,5 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
            "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
            "log_softmax", "Press", "scene_model_presses", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict",
+           "simulate_with_labels", "teach_presses",
            "KNOB_GRID", "knob_prices"]

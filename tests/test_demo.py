@@ -175,3 +175,23 @@ def test_the_totals_count_the_pieces_the_off_scene_rules_refused():
     assert re.search(r"touched\s+3 pieces: right\s+33.3%.*; 1 to the reject bin by the off-scene rules", out), out
     assert re.search(r"untouched\s+1 pieces: .*; 0 to the reject bin by the off-scene rules", out), out
     assert re.search(r"off-scene\s+3 pieces: right\s+100.0%.*; 2 to the reject bin by the off-scene rules", out), out
+
+
+def test_pieces_per_minute_count_the_job_pieces_over_the_time_teach_pieces_took_too():
+    """Teach pieces are not counted (the totals are the job's pieces), but the arm pressed them: the
+    pace is the job's pieces over the time of every piece. It counted the two teach pieces as pieces
+    (32 where 30 were sorted) and put their 5-press times in the median time per piece."""
+    from vs2t_edge.runtime.items import Item, ItemResult
+    from vs2t_edge.sim.demo import TEACH_PREFIX, job_pace, report_lines
+
+    def res(item_id, s):
+        return ItemResult(Item(item_id), "silk", 1, "sorted", 1, 0.9, "confident", 0, [5.0], s)
+    results = [res(f"{TEACH_PREFIX}01", 6.0), res(f"{TEACH_PREFIX}02", 6.0)] + [res(f"item-{i:04d}", 2.0)
+                                                                               for i in range(1, 5)]
+    pace = job_pace(results)
+    assert pace["items_per_min"] == pytest.approx(60.0 * 4 / 20.0)  # 4 pieces in 20 s: 12 a minute, not 18
+    assert pace["item_s_median"] == 2.0 and pace["teach_s"] == pytest.approx(12.0)
+    assert job_pace(results[2:])["items_per_min"] == pytest.approx(30.0)  # no teach pieces: as before
+    recs = [so.record("silk", "touched", r, ["silk"]) for r in results[2:]]
+    out = report_lines({**so.summarise(recs), **pace, "teach_pieces": ["silk"]})
+    assert "12.0 pieces per minute" in out and "their 12.0 s are in the pieces per minute" in out, out

@@ -256,3 +256,24 @@ def test_the_operators_knobs_are_priced_on_the_same_jobs():
     assert hi["by_kind"]["untouched"]["reject"] > lo["by_kind"]["untouched"]["reject"]
     assert hi["by_kind"]["untouched"]["mis-sort"] <= lo["by_kind"]["untouched"]["mis-sort"]
     assert 0.0 <= hi["coverage"] < lo["coverage"] <= 1.0
+
+
+def test_teach_pieces_presses_are_paid_in_the_pieces_per_minute():
+    """simulate_with_labels' teach pieces are no records (not counted), but each took up to
+    max_presses of the arm: the bench's pieces per minute of a teach row pays them
+    (``teach_presses`` per counted piece), where it priced only the counted pieces' presses."""
+    from vs2t_edge.bench.accuracy import pieces_per_minute
+
+    scenes = so.draw_scenes(["a", "b", "c"], ["u", "v"], (), 4, n_touched=2, n_untouched=2, seed=0)
+    presses = {f: [so.Press({})] * n for f, n in (("a", 9), ("b", 9), ("c", 9), ("u", 9), ("v", 3))}
+    assert so.teach_presses(scenes, presses, True, 5) == 4 * (5 + 3)  # each job teaches u (5) and v (3 it has)
+    assert so.teach_presses(scenes, presses, False, 5) == 0
+    assert so.teach_presses(scenes, presses, lambda s: ["v"], 5) == 4 * 3
+    arm = so.ArmTimes(0.3, 1.9, 0.3)
+    row = {"press": {"2": {"p50_ms": 4.0}},
+           "accuracy": {"bins": {"scene_model": {"all": {"presses": 2.0}},
+                                 "scene_model_teach": {"all": {"presses": 2.0, "teach_presses": 0.5}}}}}
+    pieces_per_minute(row, arm)
+    ppm = row["accuracy"]["bins"]["pieces_per_min"]
+    assert ppm["scene_model"]["sequential"] == pytest.approx(so.items_per_minute(2.0, arm, 4e-3, False))
+    assert ppm["scene_model_teach"]["sequential"] == pytest.approx(so.items_per_minute(2.5, arm, 4e-3, False))
