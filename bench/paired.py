@@ -8,13 +8,16 @@ press orders come from a seed, never from a decision), so the difference of two 
   interval (presses resampled within each fabric, the per-class means recomputed) and the count
   of presses that flip (fp32 right and int8 wrong, and the reverse) with McNemar's exact p;
 - per item (random presses of one fabric, the bench's own items): H with 5 presses and with the
-  sequential rule, bootstrap over items within each fabric, items that flip;
+  sequential rule, bootstrap over fabrics, items that flip;
 - per item, by bins: pieces in the right bin, for the scene decision and the router's posterior,
-  the delta with a bootstrap over scenes and the items that flip.
+  the delta with a bootstrap over fabrics and the items that flip.
 
 Items are not independent pairs: a fabric's items (by bins, in every scene it is in) are drawn from
 its presses, so their McNemar p is clustered by fabric (``mcnemar_clustered_p``); the exact test on
-them counted one press that flips once per item showing it.
+them counted one press that flips once per item showing it. For the same reason their intervals
+resample fabrics, each with all its items (``_fabric_bootstrap``): resampling items within a fabric,
+or scenes that share fabrics, drew the same presses again and again and made the interval narrow
+(one press apart: item-5 H -8.9 [-11.1, -7.1]).
 
 A delta whose interval holds 0 is inside the noise of this comparison.
 """
@@ -60,6 +63,12 @@ def mcnemar_clustered_p(worse: np.ndarray, better: np.ndarray, cluster: np.ndarr
     if den == 0:
         return 1.0
     return min(1.0, math.erfc(math.sqrt(float(np.sum(d)) ** 2 / den / 2)))
+
+
+def _fabric_bootstrap(rng: np.random.Generator, groups: list[list]) -> list:
+    """One bootstrap draw of fabrics: each group (e.g. touched, untouched) resampled with replacement,
+    so every draw still has fabrics of each group."""
+    return [g[i] for g in groups if g for i in rng.integers(0, len(g), len(g))]
 
 
 def _press_indicators(v: dict) -> dict[str, np.ndarray]:
@@ -160,10 +169,10 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
         if len(r32) != len(s_of) or len(r8) != len(s_of):
             raise RuntimeError("by-bins items do not line up with their scenes")
         rng = np.random.default_rng(seed)
+        of_fabric = {f: np.flatnonzero(fabric == f) for f in np.unique(fabric)}
         boots = []
-        for _ in range(n_boot):
-            pick = rng.integers(0, len(scenes), len(scenes))
-            m = np.concatenate([np.flatnonzero(s_of == s) for s in pick])
+        for _ in range(n_boot):  # fabrics, each with all its items (the scenes share them)
+            m = np.concatenate([of_fabric[f] for f in _fabric_bootstrap(rng, [list(of_fabric)])])
             boots.append(100 * (r8[m].mean() - r32[m].mean()))
         worse, better = int(np.sum(r32 & ~r8)), int(np.sum(~r32 & r8))
         lo, hi = np.percentile(boots, [2.5, 97.5])
@@ -176,8 +185,8 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
 
 def paired_items(v32: dict, v8: dict, n_items: int = 100, n_boot: int = N_BOOT, seed: int = 0) -> dict:
     """Per item (accuracy.draw_items: the bench's own items, the same for both bundles): H with 5
-    presses summed and with the sequential rule; delta, bootstrap over items within each fabric,
-    items that flip (right for one bundle only)."""
+    presses summed and with the sequential rule; delta, bootstrap over fabrics (each with its items,
+    which share its presses), items that flip (right for one bundle only)."""
     from vs2t_edge.bench.accuracy import draw_items, sequential_items
 
     lab = v32["out"]["label"]
@@ -191,10 +200,11 @@ def paired_items(v32: dict, v8: dict, n_items: int = 100, n_boot: int = N_BOOT, 
         right[name] = {"item5": np.argmax(lp[items[:, :5]].sum(axis=1), axis=1) == item_lab,
                        "sequential": sequential_items(v["classes"], lp, items, item_lab)[0]}
     rows = {c: np.flatnonzero(item_lab == c) for c in np.unique(item_lab)}
+    groups = [[c for c in rows if c < ct], [c for c in rows if c >= ct]]
 
-    def h(x: np.ndarray, idx: dict) -> float:
-        at = np.mean([np.mean(x[r]) for c, r in idx.items() if c < ct])
-        au = np.mean([np.mean(x[r]) for c, r in idx.items() if c >= ct])
+    def h(x: np.ndarray, classes) -> float:
+        at = np.mean([np.mean(x[rows[c]]) for c in classes if c < ct])
+        au = np.mean([np.mean(x[rows[c]]) for c in classes if c >= ct])
         return 100 * _h(float(at), float(au))
 
     rng = np.random.default_rng(seed)
@@ -202,9 +212,9 @@ def paired_items(v32: dict, v8: dict, n_items: int = 100, n_boot: int = N_BOOT, 
     for key in ("item5", "sequential"):
         a, b = right["fp32"][key], right["int8"][key]
         boots = []
-        for _ in range(n_boot):
-            res = {c: r[rng.integers(0, len(r), len(r))] for c, r in rows.items()}
-            boots.append(h(b, res) - h(a, res))
+        for _ in range(n_boot):  # touched and untouched fabrics, each with all its items
+            drawn = _fabric_bootstrap(rng, groups)
+            boots.append(h(b, drawn) - h(a, drawn))
         lo, hi = np.percentile(boots, [2.5, 97.5])
         worse, better = int(np.sum(a & ~b)), int(np.sum(~a & b))
         out[f"{key}_H"] = {"fp32": h(a, rows), "int8": h(b, rows), "delta": h(b, rows) - h(a, rows),
@@ -217,7 +227,7 @@ def paired(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0, n_items: in
     return {"press": paired_press(v32, v8, n_boot, seed), "items": paired_items(v32, v8, n_items, n_boot, seed),
             "bins": paired_bins(v32, v8, n_boot, seed),
             "bootstrap": n_boot, "note": "int8 minus fp32 on the same presses / items; ci95 by bootstrap "
-            "(presses within fabric; scenes for bins); flips = discordant pairs, McNemar exact p per press, "
+            "(presses within fabric per press; fabrics, each with all its items, for items and bins); flips = discordant pairs, McNemar exact p per press, "
             "clustered by fabric for items and bins (their items share the fabric's presses)"}
 
 

@@ -317,6 +317,10 @@ def test_paired_items_mcnemar_counts_one_flipped_press_once():
     d = pr.paired_items(_view(), _view(shift), n_items=100, n_boot=50)["item5_H"]
     assert d["flips_worse"] > 20 and d["flips_better"] == 0
     assert d["mcnemar_p"] > 0.3
+    # and its interval: one press apart is inside the noise (items resampled within the fabric
+    # gave -8.9 [-11.1, -7.1]; fabrics, each with all its items, hold 0)
+    lo, hi = d["ci95"]
+    assert d["delta"] < 0 and lo < d["delta"] <= hi and hi >= 0
     # clusters of one pair each: the classic McNemar, (b - c)^2 / (b + c)
     assert pr.mcnemar_clustered_p(np.r_[np.ones(9), np.zeros(3)], np.r_[np.zeros(9), np.ones(3)],
                                   np.arange(12)) == pytest.approx(math.erfc(math.sqrt(3.0 / 2)))
