@@ -136,16 +136,18 @@ def scan(bundle: Path, *, dataset: str | None = None, calibration_frames: int = 
         return out
 
     t0 = time.time()
-    with Quantiser(bundle / m["graphs"]["trunk"]["file"], calib, method=method, percentile=percentile) as q:
-        tail = _float_tail_nodes(q.model)
-        q.check_names(list(float_nodes))
+    # ``quant``, not ``q``: q is the camera JPEG quality the result reports
+    with Quantiser(bundle / m["graphs"]["trunk"]["file"], calib, method=method, percentile=percentile) as quant:
+        tail = _float_tail_nodes(quant.model)
+        quant.check_names(list(float_nodes))
         ops = tuple(ops) if ops else None
-        cands = [n for n in q.candidates(tail) if (ops is None or q.nodes[n] in ops) and n not in set(float_nodes)]
-        f32 = _run_fp32(q.pre, held, threads)
+        cands = [n for n in quant.candidates(tail)
+                 if (ops is None or quant.nodes[n] in ops) and n not in set(float_nodes)]
+        f32 = _run_fp32(quant.pre, held, threads)
         fp32_scores = score(f32, f32)
-        sens = layer_sensitivity(q, held, tail=tail, base_float=list(float_nodes), candidates=cands,
+        sens = layer_sensitivity(quant, held, tail=tail, base_float=list(float_nodes), candidates=cands,
                                  threads=threads, score=score, rank_by=rank_by, log=log)
-        macs = _macs(q.model)
+        macs = _macs(quant.model)
     total = sum(macs.values()) or 1
     for r in sens["rows"]:
         r["macs_share"] = macs.get(r["node"], 0) / total

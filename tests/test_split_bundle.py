@@ -194,3 +194,22 @@ def test_int8_sensitivity_reads_format_3_heads_and_refuses_format_2_in_words(tmp
     assert res["rows"] and 0.0 <= res["fp32"]["cls_t_agreement"] <= 1.0
     with pytest.raises(ValueError, match=r"heads are inside its press graph \(format 2\).*format 3.*--two-graphs"):
         scan(tmp_path / "b2", calibration_frames=6, validation_presses=2, ops=["Conv"], top=1)
+
+
+def test_int8_sensitivity_out_file_is_what_export_reads(tmp_path, capsys):
+    """`vs2t-edge int8-sensitivity B --out FILE` writes the scan as JSON and `export
+    --int8-float-nodes @FILE` reads its recommended nodes; the scan says which camera JPEG it read
+    the frames through (0: lossless). The scan's quantiser once shadowed that quality, so the JSON
+    write failed after the whole scan (TypeError) and the documented @FILE route never worked."""
+    import json
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.export.cli import parse_float_nodes
+
+    _world_bundle(tmp_path / "b3", heads_in_press_graph=False)
+    out = tmp_path / "scan.json"
+    assert main(["int8-sensitivity", str(tmp_path / "b3"), "--calibration-frames", "6", "--validation-presses", "2",
+                 "--ops", "Conv", "--top", "1", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["camera_jpeg"] == 0 and res["recommended"]
+    assert parse_float_nodes(f"@{out}") == res["recommended"]
