@@ -184,6 +184,10 @@ def finetuned_features(run: RunSource, log: Callable[[str], None] = print, weigh
     # here, so that even a trunk without pretrained weights (tiny, resnet50) starts identical
     torch.manual_seed(int(run.profile.get("seed", 0)))
     trunk = build_trunk(arch, pretrained=True, weights_path=weights)
+    made_by = cache.meta.get("trunk_sha256")  # caches written before the key have none
+    if made_by is not None and made_by != ft.trunk_fingerprint(trunk):
+        raise ValueError(f"{path}: stem cache made by another {arch} trunk (other weights or seed) than the one "
+                         "built here; its tails would not be the run's (pass the run's --weights)")
     epochs = int(run.profile.get("ft_epochs", 2))
     max_rows = run.profile.get("ft_max_rows", None)
     what = " + ".join(w for w, on in (("tactile", tactile), ("visual", visual)) if on)

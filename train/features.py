@@ -19,6 +19,7 @@ camera crops at those presses) for the visual tail.
 from __future__ import annotations
 
 import copy
+import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,6 +72,33 @@ class StemCache:
                        z["stem_v"] if "stem_v" in z.files else None)
 
 
+def trunk_fingerprint(trunk: nn.Module) -> str:
+    """sha256 of the trunk's weights and buffers, the stem cache's key for *which* trunk made it.
+    The exported trunk is the run's own (its stem included); tails fine-tuned on another trunk's
+    cached stems give features the exported graph never computes (a tiny trunk is random per
+    ``--seed``, a ResNet50 without ``--weights`` too, and ``--weights`` names another file)."""
+    h = hashlib.sha256()
+    for name, t in trunk.state_dict().items():
+        a = t.detach().cpu().contiguous().numpy()
+        h.update(f"{name}|{a.dtype}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def dataset_fingerprint(dataset_root: Path) -> str:
+    """sha256 over every file of the dataset folder (its relative path, size and modification time,
+    no content read): the stem cache's key for *which* frames it holds. A world drawn again into the
+    same folder (`vs2t-edge demo --seed 1` in a work folder of seed 0) keeps the path, and a cache
+    keyed by the path alone fed the old world's stems to the new run while export, the probe and
+    the cell read the new world's frames. A copy that changes times only costs an extraction."""
+    h = hashlib.sha256()
+    root = Path(dataset_root).resolve()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        st = path.stat()
+        h.update(f"{path.relative_to(root).as_posix()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
 def _visual_input(crop_bgr: np.ndarray, size: int) -> np.ndarray:
     import cv2
 
@@ -104,6 +132,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     if spec.size != size:
         raise ValueError(f"extract_cache: spec.size {spec.size} != size {size}")
     trunk.eval()
+    fingerprint = trunk_fingerprint(trunk)
     stems, stems_v, xv, xt0, fab = [], [], [], [], []
     line = Line()
     t0 = time.time()
@@ -143,6 +172,8 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
                      {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
                       "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
+                      "trunk_sha256": fingerprint,  # the trunk whose stem made it (its weights, not only its name)
+                      "dataset_files_sha256": dataset_fingerprint(dataset_root),  # and the frames it read
                       **cache_key_extra(spec, camera_jpeg)},  # as train.run.get_cache expects
                      c(np.concatenate(stems_v)))
 
@@ -296,5 +327,5 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
     return np.concatenate(out).astype(np.float32)
 
 
-__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "trunk_fingerprint", "dataset_fingerprint", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
            "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]
