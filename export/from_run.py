@@ -199,9 +199,12 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     if art.tactile_feature != "cnn":
         from vs2t_edge.export.descriptor import export_descriptor_run
 
-        if router is not None or trunk_precision != "fp32" or size is not None:
+        asked = [opt for opt, on in (("--router", router is not None), ("--trunk-precision int8", trunk_precision != "fp32"),
+                                     ("--size", size is not None), ("--heads-precision int8", heads_precision != "fp32"),
+                                     ("--two-graphs", not fuse), ("--heads-in-press-graph", heads_in_press_graph)) if on]
+        if asked:  # a descriptor bundle has no trunk or press graph: what is asked would not ship
             raise ExportError(f"run {run_dir} has the {art.tactile_feature} descriptor as its tactile feature: "
-                              "--router, --trunk-precision int8 and --size apply to a trunk (not yet to a descriptor)")
+                              f"{', '.join(asked)} apply to a trunk and its press graph (not to a descriptor)")
         return export_descriptor_run(run_dir, art, out_dir, dataset=dataset, calibration_frames=calibration_frames,
                                      log=log, threads=threads)
     trunk, cls_t, cls_u = build_modules(art)

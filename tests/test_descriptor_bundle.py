@@ -238,6 +238,9 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
 
     with pytest.raises(ExportError, match="apply to a trunk"):  # not silently a trunk export
         export_run(tmp_path / "run", tmp_path / "b2", router="gaussian", threads=1)
+    for asked in ({"heads_precision": "int8"}, {"fuse": False}, {"heads_in_press_graph": True}):
+        with pytest.raises(ExportError, match="apply to a trunk"):  # were silently left out of the bundle
+            export_run(tmp_path / "run", tmp_path / "b2", threads=1, **asked)
     from vs2t_edge.cli import main
 
     assert main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "b3"), "--calibration-frames", "8"]) == 0
