@@ -64,7 +64,12 @@ class FaultLatch:
         elif ff is not None and moved is not None and moved != ff and moved.exists():
             # latched under another fault file, still there: the config changed, the operator cleared nothing
             self.fault = _fault_file_reason(moved)
-            self._write_fault_file()  # where this config's operator clears it
+            failed = self._write_fault_file()  # where this config's operator clears it
+            # the journal's latched fault names that file now: cleared there while the service is
+            # stopped (`run --clear-fault`), the next start is clean, not latched again by the old one
+            self.journal.append({"type": "fault", "reason": self.fault, "kind": "restored",
+                                 "steps_failed": [f"{FAULT_FILE_FAILED}: {failed}"] if failed else [],
+                                 "fault_file": str(ff), "t": time.time()})
             self.notifier.status(f"FAULT (latched before restart, its fault file {moved} still there; this config's "
                                  f"is {ff}): {self.fault}")
         elif ff is not None and _fault_file_never_written(last):

@@ -21,3 +21,13 @@ def test_a_restart_with_the_fault_file_moved_keeps_the_fault_latched(tmp_path):
     cell.run(max_items=1, stop_when=_turns(10))
     assert cell.fault is not None and gate.sorted == [], (
         f"the fault latched under {tmp_path / 'FAULT'} was dropped: the cell sorted into {gate.sorted}")
+    assert (tmp_path / "run" / "FAULT").exists()  # where this config's operator clears it
+    journal.close()
+    # cleared there while the service is stopped (what `vs2t-edge run --clear-fault` does): the next
+    # start is clean, though the old file is still there
+    (tmp_path / "run" / "FAULT").unlink()
+    cell, arm, gate, journal = _cell(tmp_path, tmp_path / "run" / "FAULT")
+    cell.recover()
+    assert cell.fault is None and (tmp_path / "FAULT").exists()
+    cell.run(max_items=1)
+    assert gate.sorted, "a fault cleared at the config's fault file latched again from the old one"
