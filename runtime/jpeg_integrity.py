@@ -8,7 +8,7 @@ OpenCV does not pass the warning on. What it hands back has its own marks:
   data for with all coefficients zero - exactly (128, 128, 128) - to the image's end, so the
   frame's last pixel row ends in that flat grey (from edge to edge once the data ran out before
   the last row of blocks). A real sensor's frame never does (read noise, vignetting: on
-  the 200 real GelSight Mini frames of ``../shared/real`` and the ViTac cloth frames, at q75 and
+  the 200 real GelSight Mini frames of ``../shared/real`` and the ViTac cloth frames, at q50, q75 and
   q95, decoded at 1/1 to 1/8, at most 0.4 % of a bottom row's pixels lie at exactly 128);
 * the bytes end without the JPEG's end marker (EOI, ``FF D9``; zero bytes of padding after it
   allowed): OpenCV 5 refuses such a buffer, but OpenCV 4 (``opencv>=4.8`` is allowed) decodes

@@ -14,7 +14,8 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                         help="folder of material_*/ folders of press images in press order (file names sort in time)")
     parser.add_argument("--test", type=Path,
                         help="the same layout, later presses of the same materials; without it the temporal split "
-                             "of --train (first half fits, second half tests, and the reverse)")
+                             "of --train (fold A: the first half fits, the second tests; fold B: the first three quarters fit, "
+                             "the last quarter tests)")
     parser.add_argument("--out", type=Path, default=Path("real-check.json"), help="JSON result (default real-check.json)")
     parser.add_argument("--pipelines", default="frozen,inpainted,markers,shading,shading_markers",
                         help="comma-separated: frozen (floor), finetuned (the frozen trunk's tail tuned per fold on "
@@ -23,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
                              "(shading and the marker dots' sub-pixel centres)")
     parser.add_argument("--seeds", type=int, default=10, help="material draws per fold for novelty AUROC")
     parser.add_argument("--within-fit", action="store_true",
-                        help="evaluate inside each fold's fit presses only (their first half fits, second half "
-                             "tests, and the reverse): the numbers to choose a pipeline by; test presses never read")
+                        help="evaluate inside each fold's fit presses only (split the same way: earlier ones fit, later "
+                             "ones test): the numbers to choose a pipeline by; test presses never read")
 
 
 def run(args: argparse.Namespace) -> int:
