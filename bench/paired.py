@@ -156,18 +156,17 @@ def paired_bins(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0) -> dic
         return {}
     scenes = so.draw_scenes(v32["touched"], v32["untouched"], (), BIN_SCENES, seed=seed)
     # simulate_scenes: scene by scene, every scene and off-scene fabric, ITEMS_PER_FABRIC items each
-    s_of = np.concatenate([np.full((len(sc.classes) + len(sc.off_scene)) * ITEMS_PER_FABRIC, i)
-                           for i, sc in enumerate(scenes)])
+    n_items = sum((len(sc.classes) + len(sc.off_scene)) * ITEMS_PER_FABRIC for sc in scenes)
     out = {}
     for name in ("scene_model", "router"):
         if name == "scene_model" and (v32["scene_model"] is None or v8["scene_model"] is None):
             continue
-        recs32 = _bins_records(v32, name, scenes, seed)
+        recs32, recs8 = _bins_records(v32, name, scenes, seed), _bins_records(v8, name, scenes, seed)
         r32 = np.array([r.outcome == so.RIGHT for r in recs32])
-        r8 = np.array([r.outcome == so.RIGHT for r in _bins_records(v8, name, scenes, seed)])
+        r8 = np.array([r.outcome == so.RIGHT for r in recs8])
         fabric = np.array([r.truth for r in recs32])  # a fabric's items share its presses across scenes
-        if len(r32) != len(s_of) or len(r8) != len(s_of):
-            raise RuntimeError("by-bins items do not line up with their scenes")
+        if len(recs32) != n_items or [r.truth for r in recs8] != fabric.tolist():
+            raise RuntimeError("by-bins items of the two bundles do not line up")
         rng = np.random.default_rng(seed)
         of_fabric = {f: np.flatnonzero(fabric == f) for f in np.unique(fabric)}
         boots = []
@@ -227,8 +226,9 @@ def paired(v32: dict, v8: dict, n_boot: int = N_BOOT, seed: int = 0, n_items: in
     return {"press": paired_press(v32, v8, n_boot, seed), "items": paired_items(v32, v8, n_items, n_boot, seed),
             "bins": paired_bins(v32, v8, n_boot, seed),
             "bootstrap": n_boot, "note": "int8 minus fp32 on the same presses / items; ci95 by bootstrap "
-            "(presses within fabric per press; fabrics, each with all its items, for items and bins); flips = discordant pairs, McNemar exact p per press, "
-            "clustered by fabric for items and bins (their items share the fabric's presses)"}
+            "(presses within fabric per press; fabrics, each with all its items, for items and bins); "
+            "flips = discordant pairs, McNemar exact p per press, clustered by fabric for items and bins "
+            "(their items share the fabric's presses)"}
 
 
 __all__ = ["paired", "paired_press", "paired_items", "paired_bins", "mcnemar_p", "mcnemar_clustered_p", "view"]

@@ -189,8 +189,7 @@ class Evidence:
         if math.isfinite(self.open_threshold) and d2:
             # the scene's fabrics (a stranger the operator taught, runtime/feedback.py, has no press distance)
             if z is None:
-                near = [float(d2[c]) for c in self.classes if c in d2]
-                self._open_sum += math.nan if any(map(math.isnan, near)) else min(near)
+                self._open_sum += float(np.min([float(d2[c]) for c in self.classes if c in d2]))  # NaN stays NaN
             else:
                 # the item model's own means: where operator labels moved a class's mean to its real
                 # presses, the distance to the learned mean, not to the bundle's synthesis the press

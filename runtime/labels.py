@@ -256,15 +256,14 @@ class OperatorFeedback:
             elif rec.get("retract"):
                 before = self.item_labels.get(rec["item_id"])
                 why = self._retract(rec["item_id"])
-                entry.update(item_id=rec["item_id"], retract=True, applied=not why, **({"why": why} if why else {}),
+                entry.update(item_id=rec["item_id"], **_said(rec), applied=not why, **({"why": why} if why else {}),
                              **({"withdrew": before[0]} if before and not why else {}))
             else:
                 off = bool(rec.get("off_scene", False))
                 before = self.item_labels.get(rec["item_id"])
                 why = self._apply(rec["item_id"], rec["fabric"], off)
                 twins = [] if why or off else self.twins_of(rec["fabric"])
-                entry.update(item_id=rec["item_id"], fabric=rec["fabric"], **({"off_scene": True} if off else {}),
-                             applied=not why, **({"why": why} if why else {}),
+                entry.update(item_id=rec["item_id"], **_said(rec), applied=not why, **({"why": why} if why else {}),
                              **({"replaces": before[0]} if before and not why else {}),
                              **({"withdrew": before[0]} if before and why and rec["item_id"] not in self.item_labels
                                 else {}),
@@ -326,12 +325,12 @@ class OperatorFeedback:
                 said = item is not None and (rec.get("retract") or isinstance(rec.get("fabric"), str))
                 if said:
                     self._judged.add(_line_key(rec))
-                if not said or rec.get("read_before") is True:
-                    pass  # no label, or a line judged before its file was read again: it changed nothing live
-                elif rec.get("retract"):
-                    self._retract(str(item), rebuild=False)
-                else:
-                    self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
+                # a line judged before its file was read again changed nothing live
+                if said and rec.get("read_before") is not True:
+                    if rec.get("retract"):
+                        self._retract(str(item), rebuild=False)
+                    else:
+                        self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)

@@ -218,4 +218,5 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
 
 
 __all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
+           "model_crop_fraction",
            "DECODE_SCALES", "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]

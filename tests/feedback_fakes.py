@@ -38,11 +38,7 @@ WOOL_PIECE = (8.0, 2.0)  # where real wool presses land: unsure between silk and
 def decide_piece(model, z, n=4):
     """(decision, evidence) of a piece whose ``n`` presses all land at ``z``, scene ``CLASSES``."""
     ev = Evidence(list(CLASSES), 0.95, n, item_model=model)
-    for _ in range(n):
-        d = ev.add(so.Press({}, None, np.asarray(z, float)))
-        if d is not None:
-            return d, ev
-    return ev.decide(), ev
+    return decide_with(ev, z, n), ev
 
 
 def decide_with(evidence, z, n=4):

@@ -12,8 +12,8 @@ import json
 import os
 
 from feedback_fakes import BINS, ListJournal, PieceModel, decide_with, labelled_cell, operator_feedback
-from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.journal import iter_records
+from vs2t_edge.runtime.labels import append_label
 
 LINEN = (8.0, 2.0)  # a fabric the job does not list: zero-shot it goes to the reject bin (never sure)
 

@@ -132,7 +132,7 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     if spec.size != size:
         raise ValueError(f"extract_cache: spec.size {spec.size} != size {size}")
     trunk.eval()
-    fingerprint = trunk_fingerprint(trunk)
+    key = stem_cache_key(dataset_root, trunk, size, max_presses, spec, camera_jpeg)
     stems, stems_v, xv, xt0, fab = [], [], [], [], []
     line = Line()
     t0 = time.time()
@@ -170,12 +170,20 @@ def extract_cache(dataset_root: Path, trunk: Trunk, size: int, max_presses: int 
     c = np.ascontiguousarray
     return StemCache(c(np.concatenate(stems)), c(np.concatenate(xv), np.float32), c(np.concatenate(xt0), np.float32),
                      np.concatenate(fab).astype(np.int64), list(ds.ids), ds.attribute_matrix().astype(np.float64),
-                     {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
-                      "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
-                      "trunk_sha256": fingerprint,  # the trunk whose stem made it (its weights, not only its name)
-                      "dataset_files_sha256": dataset_fingerprint(dataset_root),  # and the frames it read
-                      **cache_key_extra(spec, camera_jpeg)},  # as train.run.get_cache expects
-                     c(np.concatenate(stems_v)))
+                     key, c(np.concatenate(stems_v)))
+
+
+def stem_cache_key(dataset_root: Path, trunk: Trunk, size: int, max_presses: int | None, spec,
+                   camera_jpeg: int) -> dict:
+    """What a stem cache was made from, the key ``StemCache.load`` checks (train.run.get_cache):
+    trunk, size, presses, cache version, dataset folder; the trunk's weights (``trunk_fingerprint``)
+    and the dataset's files (``dataset_fingerprint``) - another seed's or weights file's stems, or a
+    world drawn again into the same folder, would train tails, heads and a scene model on features
+    the exported trunk never computes from the frames the cell is shown; and ``cache_key_extra``."""
+    return {"size": size, "arch": trunk.arch, "max_presses": -1 if max_presses is None else max_presses,
+            "version": CACHE_VERSION, "dataset": str(Path(dataset_root).resolve()),
+            "trunk_sha256": trunk_fingerprint(trunk), "dataset_files_sha256": dataset_fingerprint(dataset_root),
+            **cache_key_extra(spec, camera_jpeg)}
 
 
 def cache_key_extra(spec, camera_jpeg: int) -> dict:
@@ -327,5 +335,5 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
     return np.concatenate(out).astype(np.float32)
 
 
-__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "trunk_fingerprint", "dataset_fingerprint", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
+__all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "stem_cache_key", "trunk_fingerprint", "dataset_fingerprint", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
            "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]

@@ -222,7 +222,9 @@ def pipeline_features(pipeline: str, frames: list[list[np.ndarray]], fit: list[n
                       trunk: FrozenTrunk | None, log=lambda m: None) -> list[np.ndarray]:
     """Per material, (presses, D) features of every press. The background of ``inpainted`` is the
     median of the fit presses only (of every material: the session's resting gel); ``finetuned``
-    tunes a fresh copy of the trunk on the fit presses only (train/real_finetune.py)."""
+    tunes a fresh copy of the trunk on the fit presses only (train/real_finetune.py). A pipeline
+    that reads ``fit`` belongs in ``REFIT_PER_DRAW`` (or ``NO_NOVELTY``): else its novelty draws
+    read the untouched materials' presses."""
     if pipeline == "finetuned":
         from vs2t_edge.train.real_finetune import finetuned_features
 
@@ -334,8 +336,8 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
     """Closed-set accuracy over every material and novelty AUROC over seeded material draws. Each
     draw reads what a cell that touched only its touched materials would have: the standardisation
     is fitted on their fit presses, and ``touched_features(touched)`` (for a pipeline whose features
-    read fit presses) makes the features again from theirs alone. ``novelty=False``: no AUROC (None
-    per draw), for features that have seen every material."""
+    read fit presses) makes the features again from theirs alone. ``novelty=False``: no draw, no
+    AUROC (empty lists), for features that have seen every material."""
     from vs2t_edge.runtime.router_eval import auroc
 
     n = len(feats)
@@ -375,8 +377,6 @@ def evaluate_fold(feats: list[np.ndarray], fit: list[np.ndarray], test: list[np.
         gauss.append(auroc(m.sq_distances(dt[t_in]).min(1), m.sq_distances(dt[t_out]).min(1)))
         for name, a in router_aurocs(dx, y_t, n_t, dt[t_in], dt[t_out]).items():
             routers[name].append(a)
-    if not novelty:
-        knn, gauss, routers = [None] * n_seeds, [None] * n_seeds, {name: [None] * n_seeds for name in CHECK_ROUTERS}
     return {"accuracy": {"nearest_mean": acc_ncm, "lda": acc_lda, "shrunk_lda": acc_shrunk},
             "auroc": {"knn": knn, "lda": gauss, **routers}, "touched_materials": n_t}
 

@@ -60,13 +60,7 @@ def get_descriptors(dataset: Path, prof: Profile, cache_dir: Path) -> np.ndarray
 
 def get_cache(dataset: Path, prof: Profile, cache_dir: Path, trunk, spec: TactilePreprocess | None = None) -> ft.StemCache:
     spec = spec or tactile_spec(prof, dataset)
-    # keyed by the trunk's weights and the dataset's files too: another seed's or weights file's
-    # stems, or a world drawn again into the same folder, would train tails, heads and a scene
-    # model on features the exported trunk never computes from the frames the cell is shown
-    meta = {"size": prof.size_px, "arch": prof.trunk, "max_presses": -1 if prof.max_presses is None else prof.max_presses,
-            "version": ft.CACHE_VERSION, "dataset": str(Path(dataset).resolve()),
-            "trunk_sha256": ft.trunk_fingerprint(trunk), "dataset_files_sha256": ft.dataset_fingerprint(dataset)}
-    meta.update(ft.cache_key_extra(spec, prof.camera_jpeg))  # a float-path, lossless cache keeps its old key
+    meta = ft.stem_cache_key(dataset, trunk, prof.size_px, prof.max_presses, spec, prof.camera_jpeg)
     path = cache_dir / "stem_cache.npz"
     cache = ft.StemCache.load(path, meta)
     if cache is not None and prof.visual_tail == "finetuned" and cache.stem_v is None:
