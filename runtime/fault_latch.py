@@ -56,12 +56,15 @@ class FaultLatch:
         """Resolve items the last run left between pre_sort and final; restore a latched fault."""
         resolved = self._resolve_open_items()
         ff = self.scene.fault_file
-        last = self.journal.latched_fault()
-        moved = _fault_file_of(last)
-        if ff is not None and ff.exists():
+        if ff is None:
+            return resolved
+        if ff.exists():
             self.fault, self._fault_file_written = _fault_file_reason(ff), True
             self.notifier.status(f"FAULT (latched before restart): {self.fault}")
-        elif ff is not None and moved is not None and moved != ff and moved.exists():
+            return resolved
+        last = self.journal.latched_fault()
+        moved = _fault_file_of(last)
+        if moved is not None and moved != ff and moved.exists():
             # latched under another fault file, still there: the config changed, the operator cleared nothing
             self.fault = _fault_file_reason(moved)
             failed = self._write_fault_file()  # where this config's operator clears it
@@ -72,7 +75,7 @@ class FaultLatch:
                                  "fault_file": str(ff), "t": time.time()})
             self.notifier.status(f"FAULT (latched before restart, its fault file {moved} still there; this config's "
                                  f"is {ff}): {self.fault}")
-        elif ff is not None and _fault_file_never_written(last):
+        elif _fault_file_never_written(last):
             # the journal's last fault, its file never written: no operator can have cleared it
             self.fault = str(last.get("reason") or "fault latched before restart")
             self._write_fault_file()  # now, if it can

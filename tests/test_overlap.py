@@ -117,8 +117,8 @@ def make(tmp_path, script, *, overlap, press_s=0.0, lift_s=0.0, score_s=0.0, max
 
 
 def records(cell):
-    """The journal without its wall-clock times."""
-    return [{k: v for k, v in r.items() if k != "t"} for r in read_records(cell.journal.path)]
+    """The journal without its wall-clock times and where its fault file is (each cell's own folder)."""
+    return [{k: v for k, v in r.items() if k not in ("t", "fault_file")} for r in read_records(cell.journal.path)]
 
 
 def timed_run(cell, max_items=1):
