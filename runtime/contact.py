@@ -79,8 +79,8 @@ class ContactCheck:
         if self.crop_fraction is not None:
             square = changed[centre_square(changed.shape, self.crop_fraction)]
             seen = cv2.countNonZero(square) / square.size
-        return ContactReading(pressed=area >= self.min_area_fraction and (seen is None or seen >= self.min_area_fraction),
-                              area_fraction=area, peak_levels=float(cv2.minMaxLoc(sums)[1]) / n,
+        pressed = area >= self.min_area_fraction and (seen is None or seen >= self.min_area_fraction)
+        return ContactReading(pressed=pressed, area_fraction=area, peak_levels=float(cv2.minMaxLoc(sums)[1]) / n,
                               model_area_fraction=seen)
 
     def is_pressed(self, frame: np.ndarray, reference: np.ndarray) -> bool:

@@ -70,9 +70,8 @@ class FaultLatch:
             failed = self._write_fault_file()  # where this config's operator clears it
             # the journal's latched fault names that file now: cleared there while the service is
             # stopped (`run --clear-fault`), the next start is clean, not latched again by the old one
-            self.journal.append({"type": "fault", "reason": self.fault, "kind": "restored",
-                                 "steps_failed": [f"{FAULT_FILE_FAILED}: {failed}"] if failed else [],
-                                 "fault_file": str(ff), "t": time.time()})
+            self.journal.append(self._fault_record(self.fault, "restored",
+                                                   [f"{FAULT_FILE_FAILED}: {failed}"] if failed else []))
             self.notifier.status(f"FAULT (latched before restart, its fault file {moved} still there; this config's "
                                  f"is {ff}): {self.fault}")
         elif _fault_file_never_written(last):
@@ -130,10 +129,7 @@ class FaultLatch:
         if failed:
             steps.append(f"{FAULT_FILE_FAILED}: {failed}")
         try:
-            # where its file is: a restart on a config naming another place still finds it (``recover``)
-            where = {"fault_file": str(self.scene.fault_file)} if self.scene.fault_file is not None else {}
-            self.journal.append({"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps,
-                                 **where, "t": time.time()})
+            self.journal.append(self._fault_record(reason, kind, steps))
         except Exception as exc:  # noqa: BLE001
             steps.append(f"journal failed: {exc}")
         try:
@@ -154,6 +150,12 @@ class FaultLatch:
                 self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
             return False
         return not ff.exists()
+
+    def _fault_record(self, reason: str, kind: str, steps: list[str]) -> dict:
+        """A ``fault`` journal record, naming where its fault file is: a restart on a config naming
+        another place still finds it (``recover``)."""
+        where = {"fault_file": str(self.scene.fault_file)} if self.scene.fault_file is not None else {}
+        return {"type": "fault", "reason": reason, "kind": kind, "steps_failed": steps, **where, "t": time.time()}
 
     def _write_fault_file(self) -> str:
         """The latched fault's reason into the fault file (if the scene has one); '' when written,

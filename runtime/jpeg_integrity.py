@@ -35,7 +35,7 @@ FILLED_TAIL = 0.125  # of the last pixel row: real frames have at most 0.4 % of 
 
 def ends_with_eoi(data: np.ndarray | bytes) -> bool:
     """Do the frame's bytes end with the JPEG's end marker (after trailing zero padding)?"""
-    flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else np.asarray(data, np.uint8).reshape(-1)
+    flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else np.asarray(data, np.uint8).ravel()
     nonzero = np.flatnonzero(flat[-TAIL_BYTES:])  # the padding is short: the tail, not the frame
     offset = max(0, flat.size - TAIL_BYTES)
     if nonzero.size == 0:  # padding longer than the tail (or nothing): the whole buffer

@@ -340,9 +340,7 @@ class OperatorFeedback:
 
 def _line_key(rec: Mapping[str, Any]) -> tuple:
     """What a labels-file line (or its ``label`` record) says, as a key: the same words, the same key."""
-    if rec.get("retract"):
-        return (str(rec.get("item_id")), None, False)
-    return (str(rec.get("item_id")), rec.get("fabric"), bool(rec.get("off_scene", False)))
+    return (str(rec.get("item_id")), *sorted(_said(rec).items()))
 
 
 def _said(rec: Mapping[str, Any]) -> dict:
