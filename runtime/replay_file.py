@@ -156,14 +156,36 @@ class ReplayFile:
             raise ReplayError(f"{path}: frame missing or unreadable ({exc.strerror or exc})") from None
 
     def frames_by_item(self):
-        """(reference frame, pressed frames) per item: the first grab of an item is its reference."""
-        grabs: dict[int, list[str]] = defaultdict(list)
+        """(reference frame, pressed frames) per item with a grab: the first grab of an item is its
+        reference; its pressed frames are the presses the cell scored against that reference (its
+        pre_sort record's ``scores``, in press order), each the last frame grabbed after a press at
+        its point. A grab the cell never scored - a press frame the contact check refused (the gel at
+        rest), the retry's after the camera was reopened mid-piece, a speculative press - is no press
+        of the piece, nor is any press of an item that ended before its decision."""
+        ids = [it["id"] for it in self.index["items"]]
+        scored: dict[str, list] = {}  # item id -> the points of its scored presses, in order
+        for d in self.index["decisions"]:
+            if d.get("type") == "pre_sort" and isinstance(d.get("item_id"), str) and isinstance(d.get("scores"), list):
+                scored[d.get("item_id")] = [_point(s.get("x_mm"), s.get("y_mm")) if isinstance(s, dict) else None
+                                            for s in d["scores"]]
+        refs: dict[int, str] = {}
+        pressed_at: dict[int, dict] = defaultdict(dict)  # item -> point -> the last frame grabbed pressed there
+        point, pressed = None, False  # where the arm is above, and whether it pressed there since
         for ev in self.index["events"]:
-            if ev["dev"] == "camera" and ev.get("frame"):
-                grabs[ev["item"]].append(ev["frame"])
-        for item in sorted(grabs):
-            names = grabs[item]
-            yield self.load_frame(names[0]), [self.load_frame(n) for n in names[1:]]
+            if ev["dev"] == "arm" and ev["call"] == "move_above":
+                args = [*(ev.get("args") or []), None, None]
+                point, pressed = _point(args[0], args[1]), False
+            elif ev["dev"] == "arm" and ev["call"] == "press":
+                pressed = "error" not in ev
+            elif ev["dev"] == "camera" and ev.get("frame"):
+                if ev["item"] not in refs:
+                    refs[ev["item"]] = ev["frame"]
+                elif pressed and point is not None:
+                    pressed_at[ev["item"]][point] = ev["frame"]
+        for item in sorted(refs):
+            points = scored.get(ids[item], []) if 0 <= item < len(ids) else []
+            names = [pressed_at[item][p] for p in points if p in pressed_at[item]]
+            yield self.load_frame(refs[item]), [self.load_frame(n) for n in names]
 
     def frame_scale(self) -> int:
         """The scale the recorded frames were decoded at: 1 (full frames), or n for a UVC camera that
@@ -187,6 +209,11 @@ _FRAME_NAME = re.compile(r"^frames/[0-9]{6}\.png$")  # nothing outside the repla
 
 def _number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _point(x: Any, y: Any) -> tuple[float, float] | None:
+    """A press point (mm) as a key: a move_above's args and a score's x_mm, y_mm are the same grid floats."""
+    return (round(float(x), 6), round(float(y), 6)) if _number(x) and _number(y) else None
 
 
 def _check_index(index: Any, path: Path) -> None:

@@ -250,6 +250,42 @@ def test_replay_presses_score_as_the_cell_scored_them():
         np.testing.assert_allclose(got, journaled, rtol=1e-4)
 
 
+def test_replay_presses_are_the_frames_the_cell_scored_not_every_grab(tmp_path):
+    """A recorded session's frames include grabs the cell never scored against the piece's reference:
+    a press frame the contact check refused (the gel did not touch: an untouched gel's novelty) and
+    the retry's frame after the camera was reopened mid-piece (the piece went to reject, the frame
+    unscored). Calibration must see the presses the cell scored, on the reference it scored them on."""
+    from cell_fakes import FakeEvidence, FakeModel, ScriptedCamera
+
+    from vs2t_edge.runtime.calibrate import novelty_from_replays
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.items import ContinuousFeed
+    from vs2t_edge.runtime.recording import record_session
+    from vs2t_edge.runtime.replay import ReplayFile
+    from vs2t_edge.sim.fake_devices import FakeArm, FakeGate
+
+    classes = ["denim", "silk", "wool"]
+    (tmp_path / "cell.yaml").write_text(
+        "bundle: bundle\ndevices:\n  camera: {kind: replay, path: x, contact_check: 'on'}\n  arm: {kind: fake}\n"
+        "  gate: {kind: fake}\nscene:\n  fabrics:\n    - {name: denim, kind: touched, bin: 1}\n"
+        "    - {name: silk, kind: touched, bin: 2}\n    - {name: wool, kind: untouched, bin: 3}\n"
+        "evidence: {confidence: 0.95, max_presses: 4}\ncell: {overlap_scoring: false}\njournal: j.jsonl\n")
+    cfg = load_config(tmp_path / "cell.yaml")
+    arm = FakeArm(config=cfg.arm)
+    # piece 1: its first press frame is the untouched gel (grey 100, the reference's), retried, then
+    # two silk presses; piece 2: the camera fails, is reopened, and the retry's frame ends the piece
+    camera = ScriptedCamera(arm, [100, 60, 60, "error", 60])
+    out = record_session(cfg, tmp_path / "s.replay", model=FakeModel({60: "silk"}, classes), camera=camera, arm=arm,
+                         gate=FakeGate(), items=ContinuousFeed(limit=2),
+                         evidence_factory=lambda: FakeEvidence(classes, 0.95, 4), operator_clear=lambda: True)
+    decisions = ReplayFile.open(out).index["decisions"]
+    assert [d["stopped_by"] for d in decisions if d["type"] == "pre_sort"] == ["confident", "camera_reopened"]
+    assert [d["kind"] for d in decisions if d["type"] == "retry"] == ["no_contact", "timeout"]
+    journaled = [s["novelty"] for d in decisions if d["type"] == "pre_sort" for s in d["scores"]]
+    assert journaled == [60.0, 60.0]
+    assert novelty_from_replays(FakeModel({60: "silk"}, classes), [out]) == journaled
+
+
 def test_cli_from_replay_files_with_the_real_bundle(tmp_path, capsys):
     import shutil
 
