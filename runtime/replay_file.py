@@ -89,13 +89,15 @@ def decisions_of(records: list[dict]) -> list[dict]:
 
 def labels_of(records: list[dict]) -> list[dict]:
     """The operator labels a session read (runtime/labels.py), each with the item it was read
-    before: a replay hands them to the cell at the same points, so its decisions can match."""
+    before: a replay hands them to the cell at the same points, so its decisions can match. A line
+    judged before its file was read again (``read_before``: an editor's stale copy) changed nothing
+    live; handed over, it would be a new label to the replay - a withdrawn one back in force."""
     out, before = [], None
     for r in records:
         if r.get("type") == "item":
             before = r.get("item_id")
-        elif r.get("type") == "label" and isinstance(r.get("line"), int) and before is not None:  # a line read, not
-            # a note about the file (unreadable, read again from line 1)
+        elif r.get("type") == "label" and isinstance(r.get("line"), int) and before is not None \
+                and r.get("read_before") is not True:  # a line read, not a note about the file (unreadable, read again)
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
                         **({"off_scene": True} if r.get("off_scene") else {}),
                         **({"retract": True} if r.get("retract") else {})})

@@ -275,8 +275,8 @@ def test_the_label_verb_refuses_a_piece_decided_under_another_bundle(tmp_path, c
     assert main(["label", str(cfg), "--last", "wool"]) == 0
 
 
-def _recorded_with_labels(tmp_path, operator):
-    """A session of 3 pieces recorded with operator labels (``operator(cfg, result)`` after each
+def _recorded_with_labels(tmp_path, operator, pieces=3):
+    """A session of ``pieces`` pieces recorded with operator labels (``operator(cfg, result)`` after each
     piece), the wool piece's presses every time: (replay folder, ReplayFile, the model class)."""
     from vs2t_edge.runtime.recording import record_session
     from vs2t_edge.runtime.replay import ReplayFile
@@ -286,8 +286,9 @@ def _recorded_with_labels(tmp_path, operator):
 
     cfg = labels_config(tmp_path, "j.jsonl")
     arm = FakeArm(config=cfg.arm)
-    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 12), arm=arm,
-                         gate=FakeGate(), items=ContinuousFeed(limit=3), on_item=lambda result: operator(cfg, result))
+    out = record_session(cfg, tmp_path / "s.replay", model=Model(), camera=ScriptedCamera(arm, [80] * 4 * pieces),
+                         arm=arm, gate=FakeGate(), items=ContinuousFeed(limit=pieces),
+                         on_item=lambda result: operator(cfg, result))
     return out, ReplayFile.open(out), Model
 
 
@@ -329,3 +330,24 @@ def test_a_withdrawn_label_is_recorded_and_replayed_at_its_point(tmp_path):
     index["labels"] = index["labels"][:-1]  # without the withdrawal the third piece is sorted: it was used
     (out / "index.json").write_text(json.dumps(index))
     assert not run_replay(out, model=Model()).ok
+
+
+def test_a_line_read_again_that_changed_nothing_live_changes_nothing_in_the_replay(tmp_path):
+    """An editor's stale copy of the labels file brings back a withdrawn label's line: the live cell
+    reads the file again, judges that line read before and changes nothing. Its replay must not hand
+    it over as a new label - the fourth piece would be sorted to wool's bin where it went to reject."""
+    from vs2t_edge.runtime.replay import run_replay
+
+    def operator(cfg, result):
+        path = cfg.operator_labels
+        if result.item.id == "piece-000001":
+            append_label(path, result.item.id, "wool")
+        elif result.item.id == "piece-000002":
+            append_label(path, "piece-000001", None)
+        elif result.item.id == "piece-000003":  # the stale copy: the first line alone
+            path.write_text(path.read_text().splitlines(keepends=True)[0])
+
+    out, rf, Model = _recorded_with_labels(tmp_path, operator, pieces=4)
+    assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == [UNKNOWN, "wool", UNKNOWN, UNKNOWN]
+    report = run_replay(out, model=Model())
+    assert report.ok, (report.diverged, report.mismatches[:3])
