@@ -20,8 +20,9 @@ reject, its final record ``aborted``), then gate to reject, arm stopped, ``stop`
 journal closed, STOPPING=1, exit 0.
 
 ``--clear-fault``: the operator's command after fixing the cause of a latched fault: prints
-the reason and removes the fault file; the running service sees it, clears the gate and arm
-and resumes (a stopped service starts clean).
+the reason and removes the fault file - the config's, or, when that is absent, the one the
+journal's latched fault names (found as a start finds it, ``fault_latch.find_latched_fault``);
+the running service sees it, clears the gate and arm and resumes (a stopped service starts clean).
 
 This module is the service around the cell: start-up order, signals, watchdog and the fault
 clear. The parts - model, devices, item rule, the Cell itself - are built by runtime/wiring.py,
@@ -41,11 +42,10 @@ import time
 from typing import Any, Callable
 
 from vs2t_edge.runtime.bundle import SEAL_KEY
-from vs2t_edge.runtime.cell import MAX_FAULT_FILE_BYTES
 from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config_or_say
 from vs2t_edge.runtime.devices import DeviceError
-from vs2t_edge.runtime.files import read_regular_file
-from vs2t_edge.runtime.journal import Journal, JournalError, iter_records
+from vs2t_edge.runtime.fault_latch import find_latched_fault
+from vs2t_edge.runtime.journal import Journal, JournalError, iter_records, latched_fault_in
 from vs2t_edge.runtime.jpeg_quality import quality_note
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.operating_point import confidence_override_note
@@ -60,16 +60,26 @@ def _log(msg: str) -> None:
 
 
 def clear_fault(cfg: CellConfig) -> int:
+    """The operator's clear: the latched fault found as the service's start finds it
+    (``find_latched_fault``: the config's fault file, else the one the journal's last fault record
+    names), its file removed; a fault whose file was never written is only in the journal, and is
+    said so (exit 1) - the service's next start writes its file, which the operator then removes."""
     ff = cfg.fault_file
-    if not ff.exists():
-        print(f"no latched fault ({ff} absent)")
+    found = find_latched_fault(ff, lambda: latched_fault_in(cfg.journal))
+    if found is None:
+        print(f"no latched fault ({ff} absent, and the journal {cfg.journal} names no other fault file still there)")
         return EXIT_OK
-    try:
-        reason = read_regular_file(ff, MAX_FAULT_FILE_BYTES, "fault file").decode("utf-8", "replace").strip()
-    except (OSError, ValueError) as exc:  # a FIFO or a huge file there is no reason to print; remove it
-        reason = f"(fault file unreadable: {exc})"
-    ff.unlink()
-    print(f"fault cleared: {reason}\nthe running service clears the gate and arm and resumes sorting")
+    if found.file is None:
+        print(f"fault NOT cleared: {found.reason}\nits fault file {ff} was never written (the journal {cfg.journal} "
+              "says so): the service's next start latches it again and writes that file; remove it then with "
+              "`vs2t-edge run --clear-fault`")
+        return EXIT_FAILED
+    found.file.unlink(missing_ok=True)  # a running service may have cleared it meanwhile
+    if found.moved:
+        print(f"fault cleared: {found.reason}\nit was latched under an earlier config's fault file {found.file} "
+              f"(removed; this config's is {ff}): the service starts clean")
+    else:
+        print(f"fault cleared: {found.reason}\nthe running service clears the gate and arm and resumes sorting")
     return EXIT_OK
 
 

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.evidence import UNKNOWN
@@ -45,6 +47,33 @@ def _fault_file_reason(path: Path) -> str:
     return text.strip() or "fault latched before restart"
 
 
+@dataclass(frozen=True)
+class LatchedFault:
+    """A latched fault as a start finds it: its reason, the file that holds it (None: its file was
+    never written, only the journal holds it) and whether that file is the config's own."""
+
+    reason: str
+    file: Path | None
+    moved: bool = False  # held by another file than the config's (a config changed before the clear)
+
+
+def find_latched_fault(ff: Path, last_fault: Callable[[], dict | None]) -> LatchedFault | None:
+    """The one reading of where a latched fault is, for a restart (``FaultLatch.recover``) and the
+    operator's clear (``vs2t-edge run --clear-fault``): the config's fault file ``ff`` if it is
+    there; else, from the journal's last uncleared fault record (``last_fault``, read only then),
+    the other fault file it names if that is still there, or the record itself if it says its
+    file was never written. None: no fault latched."""
+    if ff.exists():
+        return LatchedFault(_fault_file_reason(ff), ff)
+    last = last_fault()
+    moved = _fault_file_of(last)
+    if moved is not None and moved != ff and moved.exists():
+        return LatchedFault(_fault_file_reason(moved), moved, moved=True)
+    if _fault_file_never_written(last):
+        return LatchedFault(str(last.get("reason") or "fault latched before restart"), None)
+    return None
+
+
 class FaultLatch:
     """The fault latch's half of ``Cell``, whose ``__init__`` sets ``fault`` (None) and
     ``_fault_file_written`` (False: only a fault file that was there and is gone clears a fault)."""
@@ -58,25 +87,24 @@ class FaultLatch:
         ff = self.scene.fault_file
         if ff is None:
             return resolved
-        if ff.exists():
-            self.fault, self._fault_file_written = _fault_file_reason(ff), True
-            self.notifier.status(f"FAULT (latched before restart): {self.fault}")
+        found = find_latched_fault(ff, lambda: self.journal.latched_fault())  # the journal only when ff is absent
+        if found is None:
             return resolved
-        last = self.journal.latched_fault()
-        moved = _fault_file_of(last)
-        if moved is not None and moved != ff and moved.exists():
+        self.fault = found.reason
+        if found.file == ff:
+            self._fault_file_written = True
+            self.notifier.status(f"FAULT (latched before restart): {self.fault}")
+        elif found.moved:
             # latched under another fault file, still there: the config changed, the operator cleared nothing
-            self.fault = _fault_file_reason(moved)
             failed = self._write_fault_file()  # where this config's operator clears it
             # the journal's latched fault names that file now: cleared there while the service is
             # stopped (`run --clear-fault`), the next start is clean, not latched again by the old one
             self.journal.append(self._fault_record(self.fault, "restored",
                                                    [f"{FAULT_FILE_FAILED}: {failed}"] if failed else []))
-            self.notifier.status(f"FAULT (latched before restart, its fault file {moved} still there; this config's "
-                                 f"is {ff}): {self.fault}")
-        elif _fault_file_never_written(last):
+            self.notifier.status(f"FAULT (latched before restart, its fault file {found.file} still there; this "
+                                 f"config's is {ff}): {self.fault}")
+        else:
             # the journal's last fault, its file never written: no operator can have cleared it
-            self.fault = str(last.get("reason") or "fault latched before restart")
             self._write_fault_file()  # now, if it can
             self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")
         return resolved

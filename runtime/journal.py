@@ -111,6 +111,19 @@ def read_records(path: Path | str) -> list[dict]:
     return list(iter_records(path))
 
 
+def latched_fault_in(path: Path | str) -> dict | None:
+    """The last fault record not followed by a fault_cleared record, read without opening the
+    journal for appending (``Journal.latched_fault`` of an open journal): what the operator's
+    clear needs while the service may hold the journal."""
+    fault = None
+    for rec in iter_records(path):
+        if rec.get("type") == "fault":
+            fault = rec
+        elif rec.get("type") == "fault_cleared":
+            fault = None
+    return fault
+
+
 RECENT_RECORDS = 128  # records kept in memory (``Journal.records``); the file keeps them all
 
 
