@@ -91,8 +91,9 @@ class Evidence:
             raise ValueError(f"Evidence: need 1 <= min_presses ({min_presses}) <= max_presses ({max_presses})")
         if not 0.0 < weight <= 1.0:
             raise ValueError(f"Evidence: weight = {weight} must be in (0, 1]")
-        if math.isnan(open_threshold) or math.isnan(known_margin):
-            raise ValueError("Evidence: open_threshold and known_margin must not be NaN")
+        for key, value in (("open_threshold", open_threshold), ("known_margin", known_margin)):
+            if not value >= 0:  # -inf would switch the rule off below (it runs on a finite value only)
+                raise ValueError(f"Evidence: {key} = {value} must be at least 0, or inf (the rule off)")
         if extra_presses < 0:
             raise ValueError(f"Evidence: extra_presses = {extra_presses} must be at least 0")
         self.confidence, self.max_presses, self.min_presses = confidence, max_presses, min_presses

@@ -79,13 +79,25 @@ def read_beta_override(path: Path | None, bundle_manifest: dict | None = None) -
         return None
     try:
         data = json.loads(read_regular_file(path, MAX_JSON_BYTES, "beta override file"))
-        beta = float(data["beta"])
     except OSError as exc:
         raise OverrideFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, KeyError, TypeError) as exc:
+    except ValueError as exc:
         raise OverrideFileError(f"{path}: not a beta override file ({exc})") from None
+    if not isinstance(data, dict) or "beta" not in data:
+        raise OverrideFileError(f"{path}: not a beta override file (no key 'beta')")
+    try:
+        beta = float(data["beta"])
+    except (ValueError, TypeError):
+        raise OverrideFileError(f"{path}: 'beta' {data['beta']!r} is not a number") from None
     if not math.isfinite(beta):
         raise OverrideFileError(f"{path}: beta {beta} is not finite")
+    if bundle_manifest is not None and "decision" not in bundle_manifest \
+            and "bundle_seal" not in data and not _is_number(data.get("bundle_beta")):
+        # where beta routes the presses (no scene model) a file that names no bundle may be another
+        # bundle's, in its router's units; with a scene model beta sorts nothing and the file is taken
+        raise OverrideFileError(f"{path}: names no bundle (no key 'bundle_seal', no 'bundle_beta'), so its beta may "
+                                "be another bundle's, in that bundle's router's units. Run calibrate-threshold for "
+                                "this bundle, or remove the file to use the bundle's own beta")
     other = _for_another_bundle(data, bundle_manifest) if bundle_manifest is not None else ""
     if other:
         raise OverrideFileError(f"{path}: calibrated for another bundle ({other}); its beta is in that bundle's "

@@ -396,10 +396,9 @@ class SceneModel:
             raise SceneModelError("scene model parameters contain NaN or Inf")
         temperature, bias = scalar("temperature"), scalar("untouched_bias")
         weight, conf, conf_u = scalar("evidence_weight"), scalar("confidence"), scalar("untouched_confidence")
-        open_thr, margin = scalar("open_threshold"), scalar("known_margin")
+        open_thr, margin = (_refusal_rule(scalar(key), key) for key in ("open_threshold", "known_margin"))
         if not (temperature > 0 and math.isfinite(temperature) and math.isfinite(bias)
-                and 0 < weight <= 1 and 0 < conf <= 1 and 0 < conf_u <= 1 and not math.isnan(open_thr)
-                and not math.isnan(margin)):
+                and 0 < weight <= 1 and 0 < conf <= 1 and 0 < conf_u <= 1):
             raise SceneModelError(f"scene model scalars out of range: temperature {temperature}, bias {bias}, "
                                   f"evidence_weight {weight}, confidence {conf}/{conf_u}, open_threshold {open_thr}, "
                                   f"known_margin {margin}")
@@ -426,13 +425,27 @@ class SceneModel:
                 return model
             labels = {key: scalar(f"labels_{key}") for key in LABELS_KEYS}
             _check_offset(labels, "labels_")
-            if not (0 < labels["confidence"] <= 1 and 0 < labels["untouched_confidence"] <= 1
-                    and not math.isnan(labels["open_threshold"]) and not math.isnan(labels["known_margin"])):
+            for key in ("open_threshold", "known_margin"):
+                _refusal_rule(labels[key], f"labels_{key}")
+            if not (0 < labels["confidence"] <= 1 and 0 < labels["untouched_confidence"] <= 1):
                 raise SceneModelError(f"scene model labels_ operating point out of range: {labels}")
             return replace(model, labels_rule=labels)
         offset = {key: scalar(key) for key in OFFSET_KEYS}
         _check_offset(offset, "")
         return replace(model, item_rule=rule, **offset)
+
+
+def _refusal_rule(value: float, key: str) -> float:
+    """``open_threshold`` / ``known_margin`` (and their ``labels_`` twins): a number of at least 0,
+    or +inf - the rule off, as training's grids write it. -inf was taken for off too (the rules run
+    on a finite value only), though by its arithmetic it refuses every piece; below 0 the open-set
+    rule refuses every piece (a mean squared distance is never negative) and the known-class rule
+    refuses pieces the job explains better than any class it leaves out; NaN compares false
+    everywhere. None of these is a choice training makes: refused, naming the key."""
+    if not value >= 0:
+        raise SceneModelError(f"scene model '{key}' = {value:g}: must be a number of at least 0, or inf (the rule "
+                              "off)")
+    return value
 
 
 def _ratio(params: Mapping[str, Any], key: str) -> float:
