@@ -17,8 +17,9 @@ The job (the scene) is 4 of the bundle's touched and 3 of its untouched fabrics,
 stream adds off-scene pieces of a touched fabric the job leaves out and of a fabric the bundle has
 never seen. Touched pieces show only presses no training step saw. Prints a line per item (truth,
 its bin, decision, bin, presses, confidence, latency: right / rejected / MIS-SORTED) and the totals
-as a sorting line counts them (runtime/sorting.py): per kind, right bin, mis-sort, reject; presses
-per piece, pieces per minute, latency, time per stage; writes them to
+as a sorting line counts them (runtime/sorting.py): per kind, right bin, mis-sort, reject - of the
+pieces whose bin is known: a piece journalled ``unknown_outcome`` (the gate may have moved it) is
+counted on its own line, "outcome unknown", in no share; presses per piece, pieces per minute, latency, time per stage; writes them to
 ``DIR/demo_summary.json``. ``--record FILE`` also records the sorting session as a replay.
 """
 
@@ -45,6 +46,8 @@ from vs2t_edge.runtime.wiring import SceneModelMissing, require_scene_model
 from vs2t_edge.sim.scene import SimItem, SimulatedCell, assign_bins, item_stream, scene_config_yaml, write_scene_config
 
 TEACH_PREFIX = "teach-"  # a teach piece's item id: pressed and labelled before the job, not counted
+UNKNOWN_OUTCOME = "unknown_outcome"  # a final record's outcome: the gate may or may not have moved the piece
+OUTCOME_UNKNOWN = "outcome unknown"  # such a piece's result: counted apart from right / mis-sort / reject
 # world profile -> training profile (the demo's world trains with the small profile's budget)
 TRAIN_PROFILE = {"demo": "small"}
 
@@ -170,7 +173,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
             old.unlink()
     kinds = {n: k for n, k, _ in fabrics}
     bins = {n: b for n, _, b in fabrics}
-    records: list = []
+    records: list = []  # the pieces whose bin is known: the right / mis-sort / reject shares
+    unknown: list[str] = []  # pieces recorded unknown_outcome: counted apart
     rows: list[dict] = []
 
     def on_item(r) -> None:
@@ -181,16 +185,21 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
                 f"{'es' if r.presses != 1 else ''}, the cell said {r.label}; operator: {truth}) - not counted")
             return
         kind = kinds.get(truth, "off-scene")
-        rec = so.record(truth, kind, r, tuple(scene_names), sorted_=r.outcome == "sorted")
-        records.append(rec)
-        o = rec.outcome
+        if r.outcome == UNKNOWN_OUTCOME:  # the gate may have moved it: in no share (``report_lines``)
+            unknown.append(r.item.id)
+            o = OUTCOME_UNKNOWN
+        else:
+            rec = so.record(truth, kind, r, tuple(scene_names), sorted_=r.outcome == "sorted")
+            records.append(rec)
+            o = rec.outcome
         rows.append({"item": r.item.id, "truth": truth, "kind": kind, "label": r.label, "bin": r.bin,
                      "outcome": r.outcome, "result": o, "presses": r.presses, "confidence": float(r.confidence),
                      "stopped_by": r.stopped_by})
         lat = sum(r.latency_ms) / len(r.latency_ms) if r.latency_ms else float("nan")
         said = "reject" if r.label not in scene_names else f"{r.label} {names_of.get(r.label, '')}"
-        mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED"}[o]
-        if r.label not in scene_names:  # the reject bin: say why ("conf" is the leading job fabric's)
+        mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED",
+                OUTCOME_UNKNOWN: "OUTCOME UNKNOWN: the gate may have moved it, a person checks the bins"}[o]
+        if r.label not in scene_names and o != OUTCOME_UNKNOWN:  # the reject bin: say why ("conf" is the leading job fabric's)
             why = "a stranger the operator taught" if r.label.startswith(OFF_SCENE_PREFIX) else r.stopped_by
             mark += f": {so.REASONS.get(why, why)}"
         if r.outcome != "sorted":
@@ -257,7 +266,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
 
     speculative = sum(r.get("speculative_presses", 0) for r in read_records(journal) if r["type"] == "pre_sort")
     summary.update(scene={"touched": touched, "untouched": untouched, "off_scene": off_scene, "bins": bins},
-                   items=len(records), sort_s=sort_s, rows=rows, overlap_scoring=overlap_scoring,
+                   items=len(records) + len(unknown), outcome_unknown=unknown, sort_s=sort_s, rows=rows, overlap_scoring=overlap_scoring,
                    speculative_presses=speculative, operator_labels=operator_labels, teach_pieces=taught,
                    labels_applied=sum(bool(r.get("applied")) for r in read_records(journal) if r["type"] == "label"),
                    **job_pace(results_holder))
@@ -306,6 +315,12 @@ def report_lines(summary: dict) -> str:
     a = summary["all"]
     lines = [f"{a['n']} pieces: {a['right']:.1%} in the right bin, {a['mis-sort']:.1%} MIS-SORTED (wrong bin), "
              f"{a['reject']:.1%} rejected (reject bin, a person looks)"]
+    if unknown := summary.get("outcome_unknown"):
+        # recorded unknown_outcome: the gate may or may not have moved the piece (docs/cell.md), so it
+        # is neither rejected nor in a bin - in none of the shares, which are of the pieces above
+        lines.append(f"outcome unknown: {len(unknown)} piece{'s' if len(unknown) != 1 else ''} ({', '.join(unknown)}) - "
+                     "the gate may have moved it into the bin it was asked for; a person checks the bins. Not in "
+                     "the shares above, which are of the pieces whose bin is known")
     for kind, r in summary["by_kind"].items():
         refused = round(summary["off_scene_rule"]["by_kind"][kind] * r["n"])
         lines.append(f"  {kind:9s} {r['n']:3d} pieces: right {r['right']:6.1%}  mis-sorted {r['mis-sort']:6.1%}  "

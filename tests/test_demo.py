@@ -195,3 +195,38 @@ def test_pieces_per_minute_count_the_job_pieces_over_the_time_teach_pieces_took_
     recs = [so.record("silk", "touched", r, ["silk"]) for r in results[2:]]
     out = report_lines({**so.summarise(recs), **pace, "teach_pieces": ["silk"]})
     assert "12.0 pieces per minute" in out and "their 12.0 s are in the pieces per minute" in out, out
+
+
+def test_a_piece_of_unknown_outcome_is_counted_apart_not_as_a_reject(demo_run, tmp_path, monkeypatch):
+    """A piece whose gate ack was lost twice is journalled ``unknown_outcome`` (the gate may have
+    moved it into the bin it was asked for): the summary counted it as a reject - in the reject bin
+    - which it may not be. It gets its own line, and the right / mis-sorted / rejected shares are
+    of the pieces whose bin is known."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.sim import fake_devices
+
+    _, _, work = demo_run
+    copy = tmp_path / "demo"
+    shutil.copytree(work, copy, ignore=shutil.ignore_patterns("journal.jsonl*", "labels.jsonl", "FAULT"))
+
+    class AckLostGate(fake_devices.FakeGate):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            self.time_out_next(2)  # the first SORT and its retry: the piece's outcome is unknown
+
+    monkeypatch.setattr(fake_devices, "FakeGate", AckLostGate)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["demo", "--workdir", str(copy), "--items", "3", "--arm", "fake", "--gate", "fake",
+                     "--threads", "1", "--max-presses", "3", "--without-scene-model", "allow"])
+    out = out.getvalue()
+    assert code == 0, out
+    finals = [r for r in read_records(copy / "journal.jsonl") if r["type"] == "final"]
+    unknown = [f["item_id"] for f in finals if f["outcome"] == "unknown_outcome"]
+    assert len(unknown) == 1 and len(finals) == 3, finals
+    summary = json.loads((copy / "demo_summary.json").read_text())
+    assert summary["outcome_unknown"] == unknown and summary["items"] == 3
+    assert summary["all"]["n"] == 2  # the shares: of the pieces whose bin is known
+    m = re.search(r"(\d+) pieces?: ([0-9.]+)% in the right bin", out)
+    assert m and int(m.group(1)) == 2, out
+    assert re.search(rf"outcome unknown: 1 piece \({unknown[0]}\)", out), out
