@@ -78,7 +78,7 @@ class CameraChecks:
     no-contact frame (on by default for a UVC camera, docs/cell.md)."""
 
     def __init__(self, reference_image: np.ndarray, model=None) -> None:
-        from vs2t_edge.runtime.camera import FrameGuard
+        from vs2t_edge.runtime.frame_guard import FrameGuard
         from vs2t_edge.runtime.contact import ContactCheck
         from vs2t_edge.runtime.jpeg_integrity import damaged_jpeg
         from vs2t_edge.runtime.wiring import model_crop_fraction

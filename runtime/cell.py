@@ -22,7 +22,7 @@ Retry policy (one table, so the behaviour is reviewable):
 * with a ``contact_check``: a press frame that is still the no-contact reference is a
   CameraError of kind ``no_contact`` (retried, not reopened for).
 * a bad frame from the camera (black, white, saturated, wrong size): every camera's frame guard
-  (runtime/camera.py) makes it a CameraError, so it is retried as above, then latched.
+  (runtime/frame_guard.py) makes it a CameraError, so it is retried as above, then latched.
 * a press the model cannot score (FrameError from inference: non-finite output): skipped,
   counted, journalled, never used; the next grid point is pressed. An item whose frames are all
   unusable is decided "unknown" -> reject.

@@ -2,7 +2,7 @@
 
 Simulators stay out of the cell's code (docs/ARCHITECTURE.md): these were in runtime/camera.py
 and runtime/gate.py. They satisfy the same protocols (runtime/devices.py) and admit frames through
-the same guard as the live camera (runtime/camera.py ``FrameGuard``), so the loop cannot tell.
+the same guard as the live camera (runtime/frame_guard.py ``FrameGuard``), so the loop cannot tell.
 The simulated cell (sim/scene.py), the demo, the soak and the fault matrix build them directly; a
 config's ``devices.gate.kind: sim`` reaches ``simulated_serial_gate`` through the runtime's lazy
 registry (runtime/devices.py ``SIMULATORS``), the only way the runtime gets to this module.
@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
-from vs2t_edge.runtime.camera import FROZEN_AFTER, CameraBase, FrameGuard
+from vs2t_edge.runtime.frame_guard import FROZEN_AFTER, CameraBase, FrameGuard
 from vs2t_edge.runtime.devices import CameraError, Frame, NotConnectedError
 from vs2t_edge.runtime.gate import SerialGate
 

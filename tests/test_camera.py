@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from vs2t_edge.runtime.camera import FrameGuard, ReplayCamera, UVCCamera
+from vs2t_edge.runtime.camera import ReplayCamera, UVCCamera
 from vs2t_edge.runtime.contact import ContactCheck, capture_reference
+from vs2t_edge.runtime.frame_guard import FrameGuard
 from vs2t_edge.sim.devices import SimulatedCamera
 from vs2t_edge.runtime.devices import CameraError, NotConnectedError, TactileCamera
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile

@@ -85,11 +85,11 @@ def test_off_scene_label_goes_to_reject(tmp_path):
 
 
 class _GuardedCamera(ScriptedCamera):
-    """The scripted camera behind the production frame guard (runtime/camera.py), as every live,
+    """The scripted camera behind the production frame guard (runtime/frame_guard.py), as every live,
     replay and simulated camera is: a black frame is the camera's fault, never the model's."""
 
     def __init__(self, arm, script):
-        from vs2t_edge.runtime.camera import FrameGuard
+        from vs2t_edge.runtime.frame_guard import FrameGuard
 
         super().__init__(arm, script)
         self.guard = FrameGuard("camera", None, frozen_after=10 ** 6)  # scripted frames repeat by design
