@@ -59,6 +59,7 @@ from vs2t_edge.train.baselines import (
     train_classifier,
 )
 from vs2t_edge.train.generators_modern import MODERN
+from vs2t_edge.train.stats import sample_sd
 from vs2t_edge.train.splits import FabricSplit, make_splits  # make_splits: in __all__, as callers reach it here
 
 GAUSSIAN_ROUTER = "gaussian"  # the paper's router, used for every method's Table-4 GZSL row
@@ -350,7 +351,7 @@ def summarise(split_results: list[dict], cell_inputs: dict[str, tuple[str, ...]]
 
 def _ms(values) -> dict[str, float]:
     v = np.asarray(values, dtype=np.float64)
-    return {"mean": float(v.mean()), "std": float(v.std()), "n": int(v.size)}
+    return {"mean": float(v.mean()), "std": sample_sd(v), "n": int(v.size)}
 
 
 def _pct(d: dict) -> str:

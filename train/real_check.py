@@ -63,6 +63,7 @@ from vs2t_edge.runtime.preprocess import shading_descriptor as shading_features
 from vs2t_edge.runtime.tactile_descriptor import dot_centres, grid_order
 from vs2t_edge.runtime.tactile_descriptor import prepare_reference as prepare_descriptor_reference
 from vs2t_edge.runtime.tactile_descriptor import shading_markers as tactile_descriptor
+from vs2t_edge.train.stats import sample_sd
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 PIPELINES = ("frozen", "finetuned", "inpainted", "markers", "shading", "shading_markers")
@@ -443,11 +444,11 @@ def summarise(folds: list[dict]) -> dict:
     out = {"folds": folds}
     for clf in ACCURACY_KEYS:
         v = [f["accuracy"][clf] for f in folds]
-        out[f"accuracy_{clf}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))}
+        out[f"accuracy_{clf}"] = {"mean": float(np.mean(v)), "std": sample_sd(v)}
     for score in AUROC_KEYS:
         # over every seeded draw of every fold; None where the router could not be fitted
         v = [a for f in folds for a in f["auroc"][score] if a is not None]
-        out[f"auroc_{score}"] = {"mean": float(np.mean(v)), "std": float(np.std(v))} if v else \
+        out[f"auroc_{score}"] = {"mean": float(np.mean(v)), "std": sample_sd(v)} if v else \
             {"mean": None, "std": None}
     return out
 

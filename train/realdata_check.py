@@ -38,6 +38,7 @@ from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.runtime.dataset import read_image
 from vs2t_edge.runtime.preprocess import TactilePreprocess, preprocess_tactile
+from vs2t_edge.train.stats import sample_sd
 
 DEFAULT_ROOT = Path(__file__).resolve().parents[2] / "shared" / "real" / "gelsight_mini_materials"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -209,12 +210,12 @@ def run_check(root: Path = DEFAULT_ROOT, cfg: RealCheckConfig | None = None, pro
     summary = {}
     for mode in ("frozen", "finetuned"):
         accs = [r[mode]["touched_acc"] for r in splits]
-        summary[mode] = {"touched_acc_mean": float(np.mean(accs)), "touched_acc_std": float(np.std(accs)),
+        summary[mode] = {"touched_acc_mean": float(np.mean(accs)), "touched_acc_std": sample_sd(accs),
                          "routers": {}}
         for rname in CHECK_ROUTERS:
             au = [r[mode]["routers"][rname]["auroc"] for r in splits]
             ba = [r[mode]["routers"][rname]["balanced_routing_acc"] for r in splits]
-            summary[mode]["routers"][rname] = {"auroc_mean": float(np.mean(au)), "auroc_std": float(np.std(au)),
+            summary[mode]["routers"][rname] = {"auroc_mean": float(np.mean(au)), "auroc_std": sample_sd(au),
                                                "balanced_routing_acc_mean": float(np.mean(ba))}
     return {"root": str(root), "config": asdict(cfg), "materials": names, "splits": splits,
             "summary": summary, "seconds": round(time.time() - t_start, 1)}

@@ -10,6 +10,7 @@ import numpy as np
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime import router_eval as reval
 from vs2t_edge.train.baselines import predict_logits, train_classifier
+from vs2t_edge.train.stats import sample_sd
 
 
 # What the printout and the report's words mean, for someone who has not read the paper. One
@@ -249,7 +250,7 @@ def _ms(values) -> str:
     v = 100 * np.asarray([x for x in values if x == x], dtype=float)
     if v.size == 0:
         return "-"
-    return f"{v.mean():.1f} ± {v.std(ddof=1):.1f}" if v.size > 1 else f"{v.mean():.1f}"
+    return f"{v.mean():.1f} ± {sample_sd(v):.1f}" if v.size > 1 else f"{v.mean():.1f}"
 
 
 def _refused_share(summary: dict, kind: str) -> float:

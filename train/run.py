@@ -28,6 +28,7 @@ from vs2t_edge.train import vs2t
 from vs2t_edge.train.artifacts import RunArtifacts, save_run_artifacts
 from vs2t_edge.train.baselines import flush_denormals, predict_logits, train_classifier
 from vs2t_edge.train.splits import fewer_touched
+from vs2t_edge.train.stats import sample_sd
 from vs2t_edge.train.trunks import build_trunk
 # the profile and what it implies: train/profile.py (its names stay importable from here)
 from vs2t_edge.train.profile import (  # noqa: F401
@@ -247,7 +248,7 @@ def _deploy_artifacts(dataset: Path, prof: Profile, split, out, budget, router_n
 
 def _stat(vals) -> dict:
     v = 100 * np.asarray(vals, dtype=float)
-    return {"mean": float(v.mean()), "std": float(v.std())}
+    return {"mean": float(v.mean()), "std": sample_sd(v)}
 
 
 def routers_by_split(results: list[dict]) -> list[str]:

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from vs2t_edge.runtime.files import portable
+from vs2t_edge.train.stats import sample_sd
 
 ROWS = ("generator", "map from the physical parameters", "kernel map from the physical parameters",
         "map from camera + attributes", "another realisation", "same surface", "nearest touched fabric")
@@ -229,7 +230,7 @@ def summarise(per_split: list[dict]) -> dict:
             vals = [s[role][row] for s in per_split]
             out[role][row] = {key: (None if vals[0].get(key) is None else
                                     {"mean": float(np.mean([v[key] for v in vals])),
-                                     "std": float(np.std([v[key] for v in vals]))})
+                                     "std": sample_sd([v[key] for v in vals])})
                               for key in ("rms", "zsl") if key in vals[0]}
     return out
 
