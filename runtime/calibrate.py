@@ -230,7 +230,7 @@ def novelty_from_replays(model, files: list[Path]) -> list[float]:
         rf = ReplayFile.open(f)
         # a session recorded from a camera that decoded at 1/n: the model is told, as the cell was
         reduced = {"reduced_by": rf.frame_scale()} if rf.frame_scale() != 1 else {}
-        for ref, frames in rf.frames_by_item():
+        for _, ref, frames in rf.frames_by_item():
             model.set_reference(ref, **reduced)
             for frame in frames:
                 try:

@@ -158,7 +158,9 @@ class ReplayFile:
             raise ReplayError(f"{path}: frame missing or unreadable ({exc.strerror or exc})") from None
 
     def frames_by_item(self):
-        """(reference frame, pressed frames) per item with a grab: the first grab of an item is its
+        """(item, reference frame, pressed frames) per item with a grab, ``item`` its index in
+        ``index["items"]`` (an item with no grab - one that faulted before its reference - is not
+        yielded, so a caller pairs by this index, never by position): the first grab of an item is its
         reference; its pressed frames are the presses the cell scored against that reference (its
         pre_sort record's ``scores``, in press order), each the last frame grabbed after a press at
         its point. A grab the cell never scored - a press frame the contact check refused (the gel at
@@ -187,7 +189,7 @@ class ReplayFile:
         for item in sorted(refs):
             points = scored.get(ids[item], []) if 0 <= item < len(ids) else []
             names = [pressed_at[item][p] for p in points if p in pressed_at[item]]
-            yield self.load_frame(refs[item]), [self.load_frame(n) for n in names]
+            yield item, self.load_frame(refs[item]), [self.load_frame(n) for n in names]
 
     def frame_scale(self) -> int:
         """The scale the recorded frames were decoded at: 1 (full frames), or n for a UVC camera that

@@ -103,9 +103,9 @@ def onnx_path(bundle: Path, max_presses: int = 3, confidence: float = 0.95):
     for name in REPLAYS:
         rf = ReplayFile.open(replays / f"{name}.replay")
         scene_fabrics = scene_fabrics or rf.index["config"]["scene"]["fabrics"]
-        for item, (ref, pressed) in zip(rf.index["items"], rf.frames_by_item()):
+        for i, ref, pressed in rf.frames_by_item():  # paired by item index: a piece without a grab is skipped
             if pressed:
-                recorded.append((item["truth"], ref, pressed))
+                recorded.append((rf.index["items"][i]["truth"], ref, pressed))
     model = TactileModel.load(bundle, threads=1)
     bins = {f["name"]: int(f["bin"]) for f in scene_fabrics}
     classes = list(bins)

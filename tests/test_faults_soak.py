@@ -46,3 +46,39 @@ def test_the_soak_runs_the_real_inference_path_on_the_committed_bundle(tmp_path)
     scored = [sc for r in pre for sc in r["scores"]]
     assert scored and all(set(sc["log_posterior"]) <= bundle_classes for sc in scored)  # not the grey model's
     assert len({round(sc["novelty"], 6) for sc in scored}) > 5  # the router scored real, varied frames
+
+
+def test_the_soak_pairs_each_recorded_piece_with_its_own_frames(tmp_path):
+    """A recorded piece with no camera grab (it faulted before its reference) must not shift the
+    pairing: every later piece keeps its own truth with its own frames, not the next piece's."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    import numpy as np
+
+    from vs2t_edge.runtime.replay_file import ReplayFile
+    from vs2t_edge.sim import soak
+
+    src = Path(soak.default_bundle()).parent
+    (tmp_path / "bundle").symlink_to(src / "bundle")
+    for name in soak.REPLAYS:
+        shutil.copytree(src / f"{name}.replay", tmp_path / f"{name}.replay")
+    ix_path = tmp_path / "touched.replay" / "index.json"
+    ix = json.loads(ix_path.read_text())
+    assert [it["truth"] for it in ix["items"]] == ["f04", "f05", "f08"]
+    ix["events"] = [ev for ev in ix["events"] if not (ev["item"] == 1 and ev["dev"] == "camera")]
+    ix["decisions"] = [d for d in ix["decisions"] if d.get("item_id") != "item-0002"]
+    ix_path.write_text(json.dumps(ix))
+
+    rig_kw, truths = soak.onnx_path(tmp_path / "bundle")
+    assert truths[:2] == ["f04", "f08"]  # the piece without a grab is left out, not its neighbour's frames
+    f08_ref = next(ref for i, ref, _ in ReplayFile.open(tmp_path / "touched.replay").frames_by_item() if i == 2)
+
+    class Arm:
+        pressed = False
+
+    class Pieces:
+        index = 1
+
+    assert np.array_equal(rig_kw["frames"](Arm(), Pieces())(), f08_ref)
