@@ -332,9 +332,6 @@ class Cell(FaultLatch):
         self.notifier.status(f"item {number} ({item.id}): pressing")
         self.journal.append({"type": "item", "item": number, "item_id": item.id, "t": time.time()})
         learns = hasattr(self.evidence_factory, "remember")  # operator labels (runtime/feedback.py)
-        if learns:
-            self.evidence_factory.poll(self.journal)  # labels journaled before this piece is pressed
-        evidence = self.evidence_factory()
         tally = Tally()  # presses, skipped frames, latencies and scores so far (fault paths read it)
         stale_before = getattr(self.camera, "stale_dropped", 0)  # a UVC camera's frames read past (runtime/camera.py)
         decision = None
@@ -343,6 +340,10 @@ class Cell(FaultLatch):
         final_written = False
         label, bin_ = UNKNOWN, self.scene.reject_bin
         try:
+            # inside the try: an exception here is this piece's fault, its final record says so
+            if learns:
+                self.evidence_factory.poll(self.journal)  # labels journaled before this piece is pressed
+            evidence = self.evidence_factory()
             x0, y0 = self.scene.points_mm[0]
 
             def reference():

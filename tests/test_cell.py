@@ -644,3 +644,45 @@ def test_a_journal_write_failing_between_a_failed_press_and_its_retry_lifts_the_
     assert cell.fault and "journal write failed" in cell.fault and gate.sorted == []
     after = arm.calls[arm.calls.index("press"):]
     assert after[:2] == ["press", "retract"], after  # lifted before the latch stopped the arm
+
+
+@pytest.mark.parametrize("where", ["labels poll", "evidence factory"])
+def test_an_exception_before_the_press_records_the_fault_on_the_piece(tmp_path, where):
+    """An exception from the operator labels' poll or from the evidence factory (before the piece
+    is pressed) used to escape the piece: its journal item stayed open until the operator's clear,
+    which recorded it "aborted ... process stopped" - not what happened. The piece's final record
+    now says the fault, written when it latched: nothing open, the next piece sorted after the clear."""
+    cell, arm, cam, gate, journal = make_cell(tmp_path, [60] * 10)
+    calls = {"n": 0}
+
+    class Factory:
+        def __call__(self):
+            if where == "evidence factory" and calls["n"] == 0:
+                calls["n"] += 1
+                raise ValueError("evidence broken (injected)")
+            return FakeEvidence(CLASSES, 0.95, 4)
+
+        def poll(self, j):
+            if where == "labels poll" and calls["n"] == 0:
+                calls["n"] += 1
+                raise ValueError("labels broken (injected)")
+            return []
+
+        def remember(self, item_id, ev):
+            pass
+
+        def journal_z_mean(self, ev):
+            return None
+
+    cell.evidence_factory = Factory()
+    results = cell.run(max_items=1, stop_when=lambda: cell.fault is not None)
+    assert [r.outcome for r in results] == ["rejected_fault"] and results[0].bin == 0
+    assert cell.fault.startswith("item 1 (") and "internal error: ValueError" in cell.fault
+    f = finals(journal.path)
+    assert [(r["item"], r["outcome"], r["bin"]) for r in f] == [(1, "rejected_fault", 0)]
+    assert "ValueError" in f[0]["reason"] and "process stopped" not in str(f[0])
+    assert Journal.open(journal.path).unresolved_items() == []  # nothing left open
+    assert gate.sorted == [] and arm.calls.count("press") == 0 and gate.to_reject_calls >= 1
+    (tmp_path / "FAULT").unlink()
+    assert cell.run(max_items=2)[-1].outcome == "sorted"
+    assert [r["outcome"] for r in finals(journal.path)] == ["rejected_fault", "sorted"]
