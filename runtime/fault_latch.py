@@ -109,22 +109,23 @@ class FaultLatch:
             self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")
         return resolved
 
-    def _resolve_open_items(self) -> list[dict]:
+    def _resolve_open_items(self, cause: str = "process stopped") -> list[dict]:
         """One final record for every item the journal has open (a restart, or a failed journal
-        write in this run): after its pre_sort the gate may have moved, before it the gate was not told."""
+        write in this run: ``cause`` says which): after its pre_sort the gate may have moved, before
+        it the gate was not told."""
         resolved = []
         for pre in self.journal.unresolved_items():
             if pre.get("type") == "pre_sort":
                 rec = self._final(pre["item"], pre.get("item_id", ""), label=pre.get("label", UNKNOWN),
                                   bin_=self.scene.reject_bin, outcome="unknown_outcome",
                                   maybe_bin=pre.get("bin", self.scene.reject_bin),
-                                  note=f"process stopped after the pre-sort record (bin {pre.get('bin')}) "
+                                  note=f"{cause} after the pre-sort record (bin {pre.get('bin')}) "
                                        "and before the gate's ack; the gate may have moved - check the bins")
                 self.log(f"recovered item {pre['item']}: unknown outcome, logged as reject")
             else:
                 rec = self._final(pre["item"], pre.get("item_id", ""), label=UNKNOWN, bin_=self.scene.reject_bin,
-                                  outcome="aborted", note="process stopped before a decision; the gate was "
-                                                          "not told - the piece is still at the station")
+                                  outcome="aborted", note=f"{cause} before a decision; the gate was "
+                                                           "not told - the piece is still at the station")
                 self.log(f"recovered item {pre['item']}: stopped before a decision, logged as aborted")
             resolved.append(rec)
         return resolved
@@ -203,7 +204,8 @@ class FaultLatch:
         try:
             # an item a failed journal write left open gets its final record first (the disk
             # must be writable again, else the fault latches again here)
-            self._resolve_open_items()
+            # only a failed journal write leaves an item open in a running cell (runtime/cell.py)
+            self._resolve_open_items("a journal write failed (the fault the operator cleared)")
             with self.notifier.bounded_wait(self.scene.bounds.clear_s if self.scene.bounds else None):
                 self.gate.clear()
                 clear_arm = getattr(self.arm, "clear_protective_stop", None)

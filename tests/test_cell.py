@@ -364,6 +364,8 @@ def test_journal_write_failure_latches_and_the_clear_resolves_the_item(tmp_path,
     recs = read_records(journal.path)
     f = [r for r in recs if r["type"] == "final"]
     assert [(r["item"], r["outcome"]) for r in f] == [(1, "aborted"), (2, "sorted")] and f[0]["bin"] == 0
+    # the note says what happened: the journal write failed, the process did not stop
+    assert "journal write failed" in f[0]["note"] and "process stopped" not in f[0]["note"], f[0]["note"]
     assert results[-1].outcome == "sorted" and gate.sorted == [f[1]["bin"]] and f[1]["bin"] != 0
     assert jmod.Journal.open(journal.path).torn_bytes == 0
 
