@@ -93,17 +93,44 @@ def _decode(line: bytes) -> dict | None:
         return None
 
 
-def iter_records(path: Path | str) -> Iterator[dict]:
+_SAID_CORRUPT: set[tuple[str, int]] = set()  # (journal, line) said on stderr by iter_records: once each
+
+
+def iter_records(path: Path | str, *, log: Callable[[str], None] | None = None) -> Iterator[dict]:
     """Every good record of a journal, streamed line by line (torn or corrupt lines are skipped,
-    not repaired); memory does not grow with the file."""
+    not repaired); memory does not grow with the file. A torn last line is normal (a write under
+    way, or a power cut ``Journal.open`` will cut) and read past quietly; a corrupt line with good
+    records after it (disk damage, a hand edit) has lost a record - were it a session's ``start``,
+    that session's pieces would read as the previous one's - so ``log`` (default: stderr, the
+    service's log) says it, naming the file and the line, once per process. ``Journal.open`` (the
+    service's start, before it restores anything from here) refuses such a journal."""
     path = Path(path)
     if not path.exists():
         return
+    bad: list[int] = []  # corrupt lines since the last good record (the torn tail, if nothing follows)
     with open(path, "rb") as f:
-        for line in f:
-            rec = _decode(line.rstrip(b"\n")) if line.strip() else None
-            if rec is not None:
-                yield rec
+        for number, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            rec = _decode(line.rstrip(b"\n"))
+            if rec is None:
+                bad.append(number)
+                continue
+            if bad:
+                _say_corrupt(path, bad, log)
+                bad = []
+            yield rec
+
+
+def _say_corrupt(path: Path, lines: list[int], log: Callable[[str], None] | None) -> None:
+    new = [n for n in lines if (str(path), n) not in _SAID_CORRUPT]
+    if not new:
+        return
+    _SAID_CORRUPT.update((str(path), n) for n in new)
+    which = f"line {new[0]}" if len(new) == 1 else f"lines {', '.join(map(str, new))}"
+    (log or _stderr_log)(f"journal {path}: {which} corrupt (bad JSON or CRC) with good records after it, skipped: "
+                         "a record is lost there (disk damage or a hand edit); the service refuses to start on "
+                         "this journal until a human repairs it")
 
 
 def read_records(path: Path | str) -> list[dict]:

@@ -228,3 +228,43 @@ def test_an_existing_too_open_torn_file_is_tightened(tmp_path):
         f.write(b'{"crc":1,"rec":{"ty')
     Journal.open(p).close()
     assert stat.S_IMODE(torn.stat().st_mode) == 0o640 and torn.read_bytes().startswith(b"old")
+
+
+def _three_sessions(p):
+    with Journal.open(p) as j:
+        for s in ("a", "b", "c"):
+            j.append({"type": "start", "manifest_sha256": s})
+            j.append({"type": "pre_sort", "item_id": f"piece-{s}"})
+    return p.read_bytes().split(b"\n")
+
+
+def test_a_corrupt_middle_line_is_said_once_naming_the_file_and_line(tmp_path, capsys):
+    """Reading a journal (`label`, `--clear-fault`, replay, tools) skipped a corrupt line in the
+    middle without a word: were it a session's start record, that session's pieces would read as
+    the previous session's. The reader says it on stderr (the service's log) once per line; the
+    start itself refuses such a journal (test_corruption_in_the_middle_is_refused)."""
+    from vs2t_edge.runtime.journal import iter_records
+
+    p = tmp_path / "j.jsonl"
+    lines = _three_sessions(p)
+    lines[2] = lines[2].replace(b'"manifest_sha256":"b"', b'"manifest_sha256":"x"')  # CRC no longer matches
+    p.write_bytes(b"\n".join(lines))
+    assert [r.get("item_id", r.get("manifest_sha256")) for r in iter_records(p)] == ["a", "piece-a", "piece-b",
+                                                                                     "c", "piece-c"]
+    err = capsys.readouterr().err
+    assert f"journal {p}: line 3 " in err and "corrupt" in err and err.count("\n") == 1, err
+    list(iter_records(p))
+    assert capsys.readouterr().err == ""  # once, not at every read
+    with pytest.raises(JournalError, match="record 3 .* corrupt"):
+        Journal.open(p)  # the service does not start (nor restore labels) on a damaged journal
+
+
+def test_a_torn_last_line_is_read_past_quietly(tmp_path, capsys):
+    """The last line of a journal the service is writing may be half there: normal, not damage."""
+    from vs2t_edge.runtime.journal import iter_records
+
+    p = tmp_path / "j.jsonl"
+    _three_sessions(p)
+    with open(p, "ab") as f:
+        f.write(b'{"crc":1,"rec":{"type":"fi')
+    assert len(list(iter_records(p))) == 6 and capsys.readouterr().err == ""
