@@ -187,31 +187,35 @@ class Journal:
         fd, created, was_mode = _open_state_file(path, os.O_RDWR, log)
         j = cls(path=path, _fd=fd, mode_tightened_from=was_mode)
         good_end = 0  # byte after the last good record
-        bad_at = None  # (record number, byte) of the first corrupt line
-        n_good = 0
+        bad_at = None  # (line number, byte) of the first corrupt line
+        number = 0  # lines read
         try:
             if created:
                 _fsync_dir(path.parent)
             # One streaming pass. Only the tail may be torn or corrupt; a corrupt line with real
-            # records after it is a damaged journal and is refused (a human looks at it).
+            # records after it is a damaged journal and is refused (a human looks at it). A blank
+            # line (a hand edit) holds no record: it loses nothing and refuses nothing.
             with open(path, "rb") as f:
                 pos = 0
                 for line in f:
+                    number += 1
                     if bad_at is not None:
                         if line.strip():
-                            raise JournalError(f"journal {path}: record {bad_at[0]} (byte {bad_at[1]}) is "
+                            raise JournalError(f"journal {path}: line {bad_at[0]} (byte {bad_at[1]}) is "
                                                "corrupt and is not the last one; refusing to append to a "
                                                "damaged journal")
+                        pos += len(line)
+                        continue
+                    if line.endswith(b"\n") and not line.strip():
                         pos += len(line)
                         continue
                     rec = _decode(line[:-1]) if line.endswith(b"\n") else None
                     if rec is None:
                         if not line.endswith(b"\n"):
                             break  # bytes after the last newline: a torn last write
-                        bad_at = (n_good + 1, pos)
+                        bad_at = (number, pos)
                         pos += len(line)
                         continue
-                    n_good += 1
                     j._apply(rec)
                     pos += len(line)
                     good_end = pos

@@ -42,7 +42,7 @@ def test_corruption_in_the_middle_is_refused(tmp_path):
     lines = p.read_bytes().split(b"\n")
     lines[1] = lines[1].replace(b'"item":1', b'"item":9')  # CRC no longer matches
     p.write_bytes(b"\n".join(lines))
-    with pytest.raises(JournalError, match="record 2 .* corrupt"):
+    with pytest.raises(JournalError, match="line 2 .* corrupt"):
         Journal.open(p)
 
 
@@ -255,7 +255,7 @@ def test_a_corrupt_middle_line_is_said_once_naming_the_file_and_line(tmp_path, c
     assert f"journal {p}: line 3 " in err and "corrupt" in err and err.count("\n") == 1, err
     list(iter_records(p))
     assert capsys.readouterr().err == ""  # once, not at every read
-    with pytest.raises(JournalError, match="record 3 .* corrupt"):
+    with pytest.raises(JournalError, match="line 3 .* corrupt"):
         Journal.open(p)  # the service does not start (nor restore labels) on a damaged journal
 
 
@@ -268,3 +268,19 @@ def test_a_torn_last_line_is_read_past_quietly(tmp_path, capsys):
     with open(p, "ab") as f:
         f.write(b'{"crc":1,"rec":{"type":"fi')
     assert len(list(iter_records(p))) == 6 and capsys.readouterr().err == ""
+
+
+def test_a_blank_line_in_the_middle_loses_nothing_and_does_not_refuse_the_start(tmp_path):
+    """A blank line (a hand edit) holds no record: the start used to refuse it as a corrupt one."""
+    p = tmp_path / "j.jsonl"
+    lines = _three_sessions(p)
+    p.write_bytes(b"\n".join(lines[:2] + [b"", b"  "] + lines[2:]))
+    with Journal.open(p) as j:
+        assert j.torn_bytes == 0 and j.counts["start"] == 3 and j.counts["pre_sort"] == 3
+        j.append({"type": "stop"})
+    assert [r["type"] for r in read_records(p)][-2:] == ["pre_sort", "stop"]
+    lines = p.read_bytes().split(b"\n")
+    lines[4] = lines[4].replace(b'"manifest_sha256":"b"', b'"manifest_sha256":"x"')  # after the blank lines
+    p.write_bytes(b"\n".join(lines))
+    with pytest.raises(JournalError, match=f"journal {p}: line 5 .* corrupt"):
+        Journal.open(p)  # named by its line in the file, blank lines counted
