@@ -6,7 +6,8 @@ log and ``_reopen_camera``.
 Only a fault file that was there and is gone clears a fault: one that could not be written (a
 full disk, a folder the service may not write) is written again while the fault stays latched,
 and a restart that finds no file restores a fault whose journal record says its file was never
-written, or names another file that is still there (a config changed before the clear)."""
+written, or names another file that is still there (a config changed before the clear). A file
+written late (by that retry, or by a restart) is journalled, so its removal is a clear."""
 
 from __future__ import annotations
 
@@ -24,6 +25,9 @@ from vs2t_edge.runtime.journal import JournalError
 INTERNAL = "internal"  # fault kind of an exception the loop has no rule for (Cell._latch_internal)
 MAX_FAULT_FILE_BYTES = 64 * 1024  # a fault reason is one line
 FAULT_FILE_FAILED = "fault file failed"  # the latch step a fault record's steps_failed names
+# fault record kind: a fault file that could not be written when its fault latched, written at last
+# by the loop's retry (a restart that writes it journals kind "restored"): its removal is then a clear
+FILE_WRITTEN = "file_written"
 
 
 def _fault_file_never_written(fault: dict | None) -> bool:
@@ -105,7 +109,7 @@ class FaultLatch:
                                  f"config's is {ff}): {self.fault}")
         else:
             # the journal's last fault, its file never written: no operator can have cleared it
-            self._write_fault_file()  # now, if it can
+            self._write_fault_file_late("restored")  # now, if it can
             self.notifier.status(f"FAULT (latched before restart; its fault file was never written): {self.fault}")
         return resolved
 
@@ -175,10 +179,26 @@ class FaultLatch:
         if ff is None:
             return True
         if not self._fault_file_written:
-            if not self._write_fault_file():  # still unwritable: still latched (latch_fault said why)
+            if not self._write_fault_file_late(FILE_WRITTEN):  # else still latched (latch_fault said why)
                 self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
             return False
         return not ff.exists()
+
+    def _write_fault_file_late(self, kind: str) -> str:
+        """Write the fault file of a fault whose file could not be written when it latched, and once
+        it is there journal a ``fault`` record of ``kind`` naming it with no failed step: the
+        operator who removes it while the service is stopped has cleared the fault, which the next
+        start then sees (``find_latched_fault``), instead of the first record's file never written.
+        '' when written and journalled, else why not; until then the loop writes it again."""
+        failed = self._write_fault_file()
+        if failed:
+            return failed
+        try:
+            self.journal.append(self._fault_record(self.fault, kind, []))
+        except JournalError as exc:
+            self._fault_file_written = False  # not in the journal: written and journalled again next turn
+            return f"journal failed: {exc}"
+        return ""
 
     def _fault_record(self, reason: str, kind: str, steps: list[str]) -> dict:
         """A ``fault`` journal record, naming where its fault file is: a restart on a config naming

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from vs2t_edge.runtime import devices as dv
+from vs2t_edge.runtime.fault_latch import FILE_WRITTEN
 from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
 
 FORMAT = "vs2t-edge-replay"
@@ -68,6 +69,9 @@ TIMING_KEYS = frozenset({"t", "latency_ms", "timestamp_s", "load_s", "item_s", "
 # Of a fault record: the latch's steps that failed (the devices of that day) and where its fault file
 # was written (the session's state folder; a replay writes its own): neither is the decision
 NOT_DECISIONS = frozenset({"steps_failed", "fault_file"})
+# Fault records that say only that a fault file that could not be written is there at last
+# (runtime/fault_latch.py): that day's disk, not a decision; a replay's file is written at once
+NOT_DECISION_FAULT_KINDS = frozenset({FILE_WRITTEN})
 
 
 def without_timing(x: Any) -> Any:
@@ -82,6 +86,8 @@ def decisions_of(records: list[dict]) -> list[dict]:
     """The journal records a replay compares, timestamps and timings dropped."""
     out = []
     for r in records:
+        if r.get("type") == "fault" and r.get("kind") in NOT_DECISION_FAULT_KINDS:
+            continue
         if r.get("type") in DECISION_TYPES:
             out.append(without_timing({k: v for k, v in r.items() if k not in NOT_DECISIONS}))
     return out

@@ -79,3 +79,48 @@ def test_a_restart_after_the_operators_clear_starts_clean(tmp_path):
     cell.recover()
     assert cell.fault is None
     assert cell.run(max_items=1)[-1].outcome == "sorted"
+
+
+def _latched_with_its_file_unwritable(tmp_path):
+    state = tmp_path / "state"
+    state.write_text("a file where the fault file's folder should be")  # as EROFS or a full disk would refuse it
+    fault_file = state / "FAULT"
+    cell, arm, gate, journal = _cell(tmp_path, fault_file, FakeArm(fail_next=["protective_stop"]))
+    cell.run(max_items=2, stop_when=_turns(10))
+    assert cell.fault and not fault_file.exists()
+    state.unlink()
+    state.mkdir()  # the folder comes back
+    return cell, journal, fault_file
+
+
+def test_a_fault_file_the_retry_wrote_and_the_operator_removed_while_stopped_is_a_clear(tmp_path):
+    """The loop's retry wrote the fault file at last, the service stopped, the operator removed the
+    file (`--clear-fault`): the journal's only fault record said the file was never written, so the
+    next start latched the fault again and wrote the file anew - the operator's clear ignored."""
+    cell, journal, fault_file = _latched_with_its_file_unwritable(tmp_path)
+    cell.run(max_items=2, stop_when=_turns(5))
+    assert fault_file.exists() and cell.fault
+    journal.close()
+    fault_file.unlink()  # the operator's clear while the service is stopped
+    cell, arm, gate, journal = _cell(tmp_path, fault_file)
+    cell.recover()
+    assert cell.fault is None and not fault_file.exists(), f"cleared, yet latched again: {cell.fault}"
+    assert cell.run(max_items=1)[-1].outcome == "sorted"
+    fault = [r for r in read_records(journal.path) if r["type"] == "fault"]
+    assert [r["kind"] for r in fault] == ["protective_stop", "file_written"] and fault[1]["steps_failed"] == []
+    assert fault[1]["reason"] == fault[0]["reason"] and fault[1]["fault_file"] == str(fault_file)
+
+
+def test_a_fault_file_a_restart_wrote_and_the_operator_removed_while_stopped_is_a_clear(tmp_path):
+    """The same with the file written by a restart that found the journal's fault never written."""
+    cell, journal, fault_file = _latched_with_its_file_unwritable(tmp_path)
+    journal.close()
+    cell, arm, gate, journal = _cell(tmp_path, fault_file)
+    cell.recover()
+    assert cell.fault and fault_file.exists()
+    journal.close()
+    fault_file.unlink()
+    cell, arm, gate, journal = _cell(tmp_path, fault_file)
+    cell.recover()
+    assert cell.fault is None, f"cleared, yet latched again: {cell.fault}"
+    assert [r["kind"] for r in read_records(journal.path) if r["type"] == "fault"] == ["protective_stop", "restored"]

@@ -131,6 +131,17 @@ def test_timings_are_not_decisions():
     assert compare([rec], [dict(now, scores=[dict(now["scores"][0], novelty=3.1)])])  # a score still counts
 
 
+def test_a_fault_file_written_late_is_not_a_decision():
+    """A fault file that could not be written when its fault latched, written at last by the loop's
+    retry, is journalled (runtime/fault_latch.py): that day's disk, which a replay does not have."""
+    from vs2t_edge.runtime.fault_latch import FILE_WRITTEN
+    from vs2t_edge.runtime.replay import decisions_of
+
+    fault = {"type": "fault", "reason": "jam", "kind": "jam", "steps_failed": ["fault file failed: EROFS"]}
+    late = {"type": "fault", "reason": "jam", "kind": FILE_WRITTEN, "steps_failed": []}
+    assert decisions_of([fault, late]) == [{"type": "fault", "reason": "jam", "kind": "jam"}]
+
+
 def test_bad_replay_files_are_named(tmp_path):
     with pytest.raises(ReplayError, match="no index.json"):
         ReplayFile.open(tmp_path)
