@@ -139,13 +139,24 @@ class Bundle:
         return self.touched + self.untouched
 
 
+def not_a_bundle_hint(root: Path) -> str:
+    """What to do with a folder given as a bundle that has no manifest: the usual mix-ups (a training
+    run, a dataset) named, and where a bundle comes from."""
+    if (root / "metrics.json").is_file() and (root / "config.yaml").is_file():
+        return f"it is a training run: export it first, `vs2t-edge export {root} --out BUNDLE`, and give BUNDLE"
+    if (root / "dataset.yaml").is_file():
+        return ("it is a dataset: train on it (`vs2t-edge train DS --out RUN`), export the run "
+                "(`vs2t-edge export RUN --out BUNDLE`) and give BUNDLE")
+    return "a bundle is the folder `vs2t-edge export RUN --out BUNDLE` writes"
+
+
 def read_manifest(root: Path | str) -> dict:
     root = Path(root)
     if not root.is_dir():
         raise BundleError(root, "not a folder")
     path = root / MANIFEST
     if not path.is_file():
-        raise BundleError(root, f"no {MANIFEST}")
+        raise BundleError(root, f"no {MANIFEST}; {not_a_bundle_hint(root)}")
     try:
         manifest = json.loads(read_regular_file(path, MAX_JSON_BYTES, MANIFEST), object_pairs_hook=_no_duplicate_keys)
     except InputRefused as exc:  # a FIFO (would block for ever), a device, or far too large

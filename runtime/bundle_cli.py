@@ -17,7 +17,7 @@ def add_arguments(parser, verb: str) -> None:
 
 
 def run(args) -> int:
-    from vs2t_edge.runtime.bundle import MANIFEST, BundleError
+    from vs2t_edge.runtime.bundle import MANIFEST, BundleError, not_a_bundle_hint
     from vs2t_edge.runtime.inference import TactileModel
 
     path = Path(args.bundle)
@@ -25,7 +25,7 @@ def run(args) -> int:
         print(f"verify-bundle: {path} is not a folder", file=sys.stderr)
         return 2
     if not (path / MANIFEST).is_file():
-        print(f"verify-bundle: {path} is not a bundle (no {MANIFEST})", file=sys.stderr)
+        print(f"verify-bundle: {path} is not a bundle (no {MANIFEST}): {not_a_bundle_hint(path)}", file=sys.stderr)
         return 2
     try:
         model = TactileModel.load(path, threads=args.threads)

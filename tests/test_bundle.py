@@ -214,6 +214,25 @@ def test_not_a_bundle(tmp_path):
         TactileModel.load(tmp_path / "nope")
 
 
+def test_not_a_bundle_says_what_the_folder_is_and_what_to_do(tmp_path, capsys):
+    """A training run or a dataset given as a bundle (the usual mix-ups) is named, with the command
+    that makes a bundle of it."""
+    from vs2t_edge.cli import main
+
+    run, ds = tmp_path / "run", tmp_path / "ds"
+    run.mkdir(), ds.mkdir()
+    (run / "metrics.json").write_text("{}"), (run / "config.yaml").write_text("{}")
+    (ds / "dataset.yaml").write_text("{}")
+    with pytest.raises(rb.BundleError, match=r"training run: export it first, `vs2t-edge export "):
+        TactileModel.load(run)
+    with pytest.raises(rb.BundleError, match=r"it is a dataset: train on it"):
+        TactileModel.load(ds)
+    with pytest.raises(rb.BundleError, match=r"a bundle is the folder `vs2t-edge export RUN --out BUNDLE` writes"):
+        TactileModel.load(tmp_path)
+    assert main(["verify-bundle", str(run)]) == 2
+    assert "not a bundle (no manifest.json): it is a training run" in capsys.readouterr().err
+
+
 def test_verify_bundle_cli(bundle_copy, capsys):
     from vs2t_edge.cli import main
 
