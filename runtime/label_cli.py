@@ -212,7 +212,8 @@ def rejected_pieces(cfg, n: int) -> list[str]:
                 f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
             fate[str(rec["item_id"])] = f"{said}: " + ("applied" if rec.get("applied") else
                                                       f"not applied ({rec.get('why', '?')})")
-    waiting = {str(r["item_id"]): "withdrawn" if r.get("retract") else f"labelled {r['fabric']}"
+    waiting = {str(r["item_id"]): "withdrawn" if r.get("retract") else
+               f"labelled {r['fabric']}{' (off-scene)' if r.get('off_scene') else ''}"
                for _, r in read_labels(cfg.operator_labels) if isinstance(r, dict)}
     if not last:
         return [f"no piece in the reject bin in {cfg.journal}"]

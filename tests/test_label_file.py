@@ -248,6 +248,11 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     capsys.readouterr()
     assert main(["label", str(cfg), "--last", "wool"]) == 0  # decided, nothing begun since: it is the last one
     assert capsys.readouterr().out.startswith("piece-000004 labelled wool")
+    # a label the service has not read yet says off-scene as a read one does (it said "labelled linen")
+    assert main(["label", str(cfg), "piece-000003", "linen", "--off-scene"]) == 0
+    capsys.readouterr()
+    assert main(["label", str(cfg), "--list"]) == 0
+    assert "labelled linen (off-scene): the service reads it before its next piece" in capsys.readouterr().out
 
 
 def test_the_label_verb_refuses_a_piece_decided_under_another_bundle(tmp_path, capsys):
