@@ -126,7 +126,9 @@ class ReplayFile:
         folder = Path(folder)
         path = folder / "index.json"
         if not path.is_file():
-            raise ReplayError(f"{folder}: not a replay file (no index.json)")
+            raise ReplayError(f"{folder}: not a replay file ({'no index.json' if folder.is_dir() else 'no such folder'}; "
+                              "`vs2t-edge record --config CONFIG --out NAME.replay` or `vs2t-edge demo --record "
+                              "NAME.replay` writes one)")
         if not inside(folder, path):
             raise ReplayError(f"{path}: a link to outside the replay folder; nothing outside it is read")
         try:

@@ -158,7 +158,8 @@ def test_replay_cli_names_a_bad_file_once(tmp_path, capsys):
     missing = tmp_path / "nonexistent.replay"
     assert main(["replay", str(missing)]) == 2
     err = capsys.readouterr().err
-    assert err.count(str(missing)) == 1 and "not a replay file" in err
+    assert err.count(str(missing)) == 1 and "not a replay file (no such folder;" in err
+    assert "`vs2t-edge record --config CONFIG --out NAME.replay`" in err  # and what writes one
     (tmp_path / "other.replay").mkdir()
     (tmp_path / "other.replay" / "index.json").write_text('{"format": "other"}')
     assert main(["replay", str(tmp_path / "other.replay")]) == 2
