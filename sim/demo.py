@@ -327,7 +327,7 @@ def report_lines(summary: dict) -> str:
                      f"rejected {r['reject']:6.1%}  ({r['presses']:.1f} presses each; "
                      f"{refused} to the reject bin by the off-scene rules)")
     lines.append(f"presses per piece {a['presses']:.2f}; {summary['items_per_min']:.1f} pieces per minute with the "
-                 f"simulated arm in real time ({summary['item_s_median']:.1f} s per piece); model latency median "
+                 f"simulated arm in real time (a piece's median {summary['item_s_median']:.1f} s); model latency median "
                  f"{summary['latency_ms_median']:.1f} ms, p95 {summary['latency_ms_p95']:.1f} ms per press")
     if summary.get("operator_labels"):
         lines.append(f"learning from the reject bin (evidence.operator_labels, outside the zero-shot protocol): the "

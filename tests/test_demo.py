@@ -195,6 +195,7 @@ def test_pieces_per_minute_count_the_job_pieces_over_the_time_teach_pieces_took_
     recs = [so.record("silk", "touched", r, ["silk"]) for r in results[2:]]
     out = report_lines({**so.summarise(recs), **pace, "teach_pieces": ["silk"]})
     assert "12.0 pieces per minute" in out and "their 12.0 s are in the pieces per minute" in out, out
+    assert "(a piece's median 2.0 s)" in out, out  # a median, not 60 / pieces per minute: said so
 
 
 def test_a_piece_of_unknown_outcome_is_counted_apart_not_as_a_reject(demo_run, tmp_path, monkeypatch):
