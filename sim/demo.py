@@ -392,6 +392,9 @@ def run(args) -> int:
         print(msg, flush=True)
 
     workdir = Path(args.workdir).resolve()
+    if workdir.exists() and not workdir.is_dir():
+        print(f"demo: --workdir {workdir} is a file, not a folder; give a new or an earlier demo's folder", file=sys.stderr)
+        return 2
     t0 = time.monotonic()
     fault_at = None
     if args.fault_at:

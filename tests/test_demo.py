@@ -70,6 +70,15 @@ def test_the_demo_runs_from_cached_stages(demo_run):
     assert (work / "demo_summary.json").is_file() and (work / "journal.jsonl").is_file()
 
 
+def test_a_workdir_that_is_a_file_is_bad_usage(tmp_path, capsys):
+    from vs2t_edge.cli import main
+
+    (tmp_path / "afile").write_text("")
+    assert main(["demo", "--workdir", str(tmp_path / "afile")]) == 2
+    err = capsys.readouterr().err
+    assert "is a file, not a folder" in err and str(tmp_path / "afile") in err, err
+
+
 def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):
     code, out, work = demo_run
     records = read_records(work / "journal.jsonl")
