@@ -430,5 +430,7 @@ def run(args) -> int:
     stages = ", ".join(f"{k.removesuffix('_s')} {v:.0f} s" for k, v in summary["stage_s"].items()) or "all stages cached"
     log(f"time: {stages}; sorting {summary['sort_s']:.0f} s; total {summary['total_s']:.0f} s")
     (workdir / "demo_summary.json").write_text(json.dumps(summary, indent=1, default=float))
-    log(f"summary: {workdir / 'demo_summary.json'}; journal: {workdir / 'journal.jsonl'}")
+    log(f"summary: {workdir / 'demo_summary.json'}; journal: {workdir / 'journal.jsonl'}; the cell config the daemon "
+        f"ran: {workdir / 'cell.yaml'} (`vs2t-edge check-job`, `vs2t-edge label CONFIG --list` and "
+        "`vs2t-edge validate-config` take it)")
     return 0

@@ -68,6 +68,8 @@ def test_the_demo_runs_from_cached_stages(demo_run):
     assert code == 0, out
     assert "[1/4] fabric world: cached" in out and "[3/4] export: cached" in out  # nothing was retrained
     assert (work / "demo_summary.json").is_file() and (work / "journal.jsonl").is_file()
+    # the config the daemon ran is named, for the commands a user runs next (check-job, label, ...)
+    assert f"the cell config the daemon ran: {work / 'cell.yaml'}" in out and (work / "cell.yaml").is_file()
 
 
 def test_a_workdir_that_is_a_file_is_bad_usage(tmp_path, capsys):
