@@ -199,7 +199,8 @@ def recording_journal(out: Path | str) -> Path:
 
 def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items, evidence_factory=None,
                    max_items: int | None = None, operator_clear=None, meta: dict | None = None,
-                   on_item=None, log=lambda m: None, stop_event: threading.Event | None = None) -> Path:
+                   on_item=None, log=lambda m: None, stop_event: threading.Event | None = None,
+                   keep_journal: Path | None = None) -> Path:
     """Run the daemon on the given devices, recording everything into the replay folder ``out``.
 
     The session journals into a fresh journal beside the replay (``out``.journal.jsonl), so the
@@ -213,6 +214,8 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
     ``signal_name``), and an exception escaping the daemon is re-raised only after the save
     (``meta.crashed`` names it). A session cut short mid-item does not replay as is (its last item
     has no more device events); its frames and decisions are there for calibration and review.
+    ``keep_journal``: move the session's journal there once saved instead of deleting it (the demo
+    keeps it as its own journal, which its totals and `vs2t-edge label --list` read).
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -259,7 +262,10 @@ def record_session(cfg, out: Path | str, *, model=None, camera, arm, gate, items
         meta["crashed"] = f"{type(crashed).__name__}: {crashed}"
     folder = rec.save(out, raw, records, meta)
     if journal.exists():
-        journal.unlink()
+        if keep_journal is not None:
+            shutil.move(str(journal), str(keep_journal))  # across file systems too
+        else:
+            journal.unlink()
     if crashed is not None:
         raise crashed
     return folder

@@ -247,7 +247,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         if record is not None:
             record_session(cfg, record, model=model, camera=cell.camera, arm=cell.arm, gate=cell.gate,
                            items=cell.source, operator_clear=cell.operator_clear, on_item=capture,
-                           meta={"made_by": "vs2t-edge demo", "seed": seed})
+                           meta={"made_by": "vs2t-edge demo", "seed": seed},
+                           keep_journal=journal)  # the totals below read it (labels applied, speculative presses)
         else:
             def stop_when() -> bool:
                 if cfg.fault_file.exists():

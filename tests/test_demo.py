@@ -242,3 +242,25 @@ def test_a_piece_of_unknown_outcome_is_counted_apart_not_as_a_reject(demo_run, t
     m = re.search(r"(\d+) pieces?: ([0-9.]+)% in the right bin", out)
     assert m and int(m.group(1)) == 2, out
     assert re.search(rf"outcome unknown: 1 piece \({unknown[0]}\)", out), out
+
+
+def test_a_recorded_demo_keeps_its_journal_for_its_totals_and_label(demo_run, tmp_path):
+    """`demo --record` journalled into the recording's own journal and deleted it: the totals read
+    the demo's journal, absent, and printed "0 label(s) taught the cell" under labels that had
+    taught it, and the journal the last line named was not there for `vs2t-edge label --list`."""
+    from vs2t_edge.cli import main
+
+    _, _, cached = demo_run
+    work = tmp_path / "work"
+    shutil.copytree(cached, work)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["demo", "--workdir", str(work), "--items", "6", "--arm", "fake", "--gate", "fake",
+                     "--threads", "1", "--max-presses", "3", "--without-scene-model", "allow",
+                     "--record", str(tmp_path / "s.replay")])
+    assert code == 0, out.getvalue()
+    assert (tmp_path / "s.replay" / "index.json").is_file() and (work / "journal.jsonl").is_file()
+    applied = sum(bool(r.get("applied")) for r in read_records(work / "journal.jsonl") if r["type"] == "label")
+    summary = json.loads((work / "demo_summary.json").read_text())
+    assert summary["labels_applied"] == applied
+    assert sum(r["type"] == "final" for r in read_records(work / "journal.jsonl")) == 6
