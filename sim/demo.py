@@ -347,7 +347,8 @@ def report_lines(summary: dict) -> str:
 
 
 def add_arguments(parser, verb: str) -> None:
-    parser.add_argument("--workdir", default="vs2t-demo", help="work folder; stages are cached there")
+    parser.add_argument("--workdir", default="vs2t-demo", help="work folder (default ./vs2t-demo); stages are cached there, and the daemon's "
+                             "cell.yaml, journal and labels are left there")
     parser.add_argument("--items", type=int, default=30, help="pieces in the stream (default 30)")
     parser.add_argument("--profile", default="demo",
                         help="fabric world (sim/synth.py PROFILES; default demo: 24 fabrics of 6 kinds, 7 x 7 presses); "
@@ -363,12 +364,15 @@ def add_arguments(parser, verb: str) -> None:
                              "not yet confident and refused by no off-scene rule (default: the bundle's, chosen "
                              "on validation; 0: off)")
     parser.add_argument("--confidence", type=float, default=None,
-                        help="posterior that sorts a piece (default: the bundle's operating point, chosen on "
-                             "validation fabrics for at most 1 %% mis-sorts)")
+                        help="evidence.confidence: the posterior that sorts a piece of a touched fabric (default: "
+                             "the bundle's operating point, chosen on validation fabrics for at most 1 %% mis-sorts; "
+                             "with a scene model untouched fabrics keep the bundle's own confidence)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--fault-at", default=None, metavar="ITEM:PRESS",
                         help="inject a protective stop at that press of that item (0-based item)")
-    parser.add_argument("--record", default=None, help="also record the session into this replay folder")
+    parser.add_argument("--record", default=None, metavar="NAME.replay",
+                        help="also record the session into this replay folder (`vs2t-edge replay NAME.replay` "
+                             "replays it)")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.add_argument("--without-scene-model", choices=("refuse", "allow"), default=None,
                         help="evidence.without_scene_model for a bundle without a scene model (decision.npz): "
