@@ -369,7 +369,9 @@ def add_arguments(parser, verb: str) -> None:
                              "with a scene model untouched fabrics keep the bundle's own confidence)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--fault-at", default=None, metavar="ITEM:PRESS",
-                        help="inject a protective stop at that press of that item (0-based item)")
+                        help="inject a protective stop just before that press of that piece: ITEM 0-based over every "
+                             "piece the arm presses, teach pieces first (3:2 with three teach pieces is item-0001's "
+                             "second press); PRESS 1-based")
     parser.add_argument("--record", default=None, metavar="NAME.replay",
                         help="also record the session into this replay folder (`vs2t-edge replay NAME.replay` "
                              "replays it)")
