@@ -402,6 +402,11 @@ def run(args) -> int:
     if workdir.exists() and not workdir.is_dir():
         print(f"demo: --workdir {workdir} is a file, not a folder; give a new or an earlier demo's folder", file=sys.stderr)
         return 2
+    from vs2t_edge.sim.synth import PROFILES
+
+    if args.profile not in PROFILES:  # before any stage: synth raised it as a traceback
+        print(f"demo: unknown --profile {args.profile!r}; choose one of {', '.join(sorted(PROFILES))}", file=sys.stderr)
+        return 2
     t0 = time.monotonic()
     fault_at = None
     if args.fault_at:

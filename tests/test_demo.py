@@ -72,13 +72,17 @@ def test_the_demo_runs_from_cached_stages(demo_run):
     assert f"the cell config the daemon ran: {work / 'cell.yaml'}" in out and (work / "cell.yaml").is_file()
 
 
-def test_a_workdir_that_is_a_file_is_bad_usage(tmp_path, capsys):
+def test_a_workdir_that_is_a_file_or_an_unknown_profile_is_bad_usage(tmp_path, capsys):
     from vs2t_edge.cli import main
 
     (tmp_path / "afile").write_text("")
     assert main(["demo", "--workdir", str(tmp_path / "afile")]) == 2
     err = capsys.readouterr().err
     assert "is a file, not a folder" in err and str(tmp_path / "afile") in err, err
+    # an unknown --profile, before any stage (it was synth's ValueError traceback)
+    assert main(["demo", "--workdir", str(tmp_path / "new"), "--profile", "papr"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown --profile 'papr'; choose one of demo, paper" in err and not (tmp_path / "new").exists(), err
 
 
 def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):
