@@ -72,7 +72,8 @@ def add_arguments(parser, verb: str) -> None:
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads for the checks (default 2)")
     parser.add_argument("--two-graphs", action="store_true",
                         help="write the format-1 bundle of earlier releases (trunk.onnx + heads.onnx, router and scene "
-                             "projection in numpy) instead of the fused press graph (format 2); for comparisons")
+                             "projection in numpy) instead of one press graph (format 2; format 3 for a bundle with a "
+                             "scene model, the default export since 2026-11-27); for comparisons")
     parser.add_argument("--heads-in-press-graph", action="store_true",
                         help="for a bundle with a scene model: keep the heads and the router in the press graph "
                              "(format 2, as exported before 2026-11-27) instead of heads.onnx beside it (format 3, "
