@@ -201,12 +201,22 @@ def _another_bundle(cfg, seal: str | None) -> str:
 def rejected_pieces(cfg, n: int) -> list[str]:
     """Lines for ``--list``: the last ``n`` pieces the journal sent to the reject bin, oldest first,
     each with its decision and its label's fate (the journal's label records, else the labels file)."""
+    from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
+    from vs2t_edge.runtime.sorting import REASONS
+
     last: deque = deque(maxlen=n)
     fate: dict[str, str] = {}
+    # the decision's reason (its pre_sort's stopped_by) of the pieces not yet final: a few at most, so a
+    # long journal is read in bounded memory; kept with the piece's final record
+    stopped_by: dict[str, str] = {}
     for rec in iter_records(cfg.journal):
         kind = rec.get("type")
-        if kind == "final" and rec.get("bin") == cfg.reject_bin:
-            last.append(rec)
+        if kind == "pre_sort" and rec.get("item_id") is not None:
+            stopped_by[str(rec["item_id"])] = str(rec.get("stopped_by") or "")
+        if kind == "final":
+            why = stopped_by.pop(str(rec.get("item_id")), "")
+            if rec.get("bin") == cfg.reject_bin:
+                last.append((rec, why))
         elif kind == "label" and rec.get("item_id") is not None and rec.get("read_before") is not True:
             said = "withdrawn" if rec.get("retract") else \
                 f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
@@ -218,10 +228,12 @@ def rejected_pieces(cfg, n: int) -> list[str]:
     if not last:
         return [f"no piece in the reject bin in {cfg.journal}"]
     out = [f"the last {len(last)} piece(s) in the reject bin ({cfg.journal}), oldest first:"]
-    for rec in last:
+    for rec, stopped in last:
         item = str(rec.get("item_id", ""))
         label = fate.get(item) or (f"{waiting[item]}: the service reads it before its next piece"
                                    if item in waiting else "no label yet")
-        why = rec.get("reason") or ("" if rec.get("outcome") == "sorted" else str(rec.get("outcome", "")))
+        why = rec.get("reason") or ("" if rec.get("outcome") == "sorted" else str(rec.get("outcome", ""))) \
+            or ("a stranger the operator taught" if str(rec.get("label", "")).startswith(OFF_SCENE_PREFIX) else
+                REASONS.get(stopped, stopped))
         out.append(f"  {item:>14s}  decision {rec.get('label', '?'):>14s}  {why:<12.60s}  {label}")
     return out

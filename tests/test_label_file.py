@@ -255,6 +255,23 @@ def test_the_label_verb_checks_the_config_and_appends(tmp_path, capsys):
     assert "labelled linen (off-scene): the service reads it before its next piece" in capsys.readouterr().out
 
 
+def test_label_list_says_why_the_cell_sent_a_piece_to_the_reject_bin(tmp_path, capsys):
+    """--list's reason column was empty for every piece the cell itself sent to the reject bin (only a
+    fault's reason was journalled on the final record): it now says the decision's, as the demo does."""
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(journal="state/journal.jsonl", evidence={"operator_labels": "labels.jsonl"}))
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        for i, (label, stopped_by) in enumerate([(UNKNOWN, "press_limit"), (UNKNOWN, "off_scene"),
+                                                 ("off-scene:felt", "confident")], 1):
+            for kind in ("pre_sort", "final"):
+                j.append({"type": kind, "item": i, "item_id": f"piece-00000{i}", "label": label, "bin": 0,
+                          **({"stopped_by": stopped_by} if kind == "pre_sort" else {"outcome": "sorted"})})
+    assert main(["label", str(cfg), "--list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert "never confident within the press limit" in listed[1] and "refused as off-scene" in listed[2]
+    assert "a stranger the operator taught" in listed[3], listed
+
+
 def test_the_label_verb_refuses_a_piece_decided_under_another_bundle(tmp_path, capsys):
     """The service learns only from pieces decided under the bundle it runs (their projections are
     that model's); a label of a piece decided under another was accepted here and refused there,
