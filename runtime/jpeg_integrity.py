@@ -36,6 +36,8 @@ FILLED_TAIL = 0.125  # of the last pixel row: real frames have at most 0.4 % of 
 def ends_with_eoi(data: np.ndarray | bytes) -> bool:
     """Do the frame's bytes end with the JPEG's end marker (after trailing zero padding)?"""
     flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else np.asarray(data, np.uint8).ravel()
+    if flat.size >= 2 and flat[-1] == EOI[1] and flat[-2] == EOI[0]:
+        return True  # no padding (a frame's usual end): the search below would find the same two bytes
     nonzero = np.flatnonzero(flat[-TAIL_BYTES:])  # the padding is short: the tail, not the frame
     offset = max(0, flat.size - TAIL_BYTES)
     if nonzero.size == 0:  # padding longer than the tail (or nothing): the whole buffer
@@ -54,6 +56,8 @@ def filled_bottom_row(image: np.ndarray) -> bool:
     if image.ndim < 2 or image.shape[0] == 0 or image.shape[1] == 0:
         return False
     row = image[-1].reshape(image.shape[1], -1)
+    if row[-1].tobytes() != bytes((JPEG_FILL,)) * row.shape[1]:
+        return False  # the row does not end in the fill (every real frame): its grey tail is empty
     grey = np.all(row == JPEG_FILL, axis=1)
     tail = grey.size - int(np.flatnonzero(~grey)[-1]) - 1 if not grey.all() else grey.size
     return tail >= max(1, int(np.ceil(FILLED_TAIL * grey.size)))

@@ -1,0 +1,76 @@
+"""The per-press work outside the trunk made cheaper (issue 14) decides exactly as before: each
+faster form is compared here with the plain form it replaced, on rendered GelSight frames and on
+crafted edge cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from frame_fixtures import rendered_press_jpeg
+from test_jpeg_integrity import cut_short
+from vs2t_edge.runtime.jpeg_integrity import EOI, FILLED_TAIL, JPEG_FILL, TAIL_BYTES, ends_with_eoi, filled_bottom_row
+from vs2t_edge.runtime.preprocess import decode_jpeg
+
+
+# --- runtime/jpeg_integrity.py: the fast answers for a frame's usual end ----------------------
+
+def _ends_with_eoi_scan(data) -> bool:
+    """``ends_with_eoi`` as it was: the last nonzero byte searched for, every time."""
+    flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else np.asarray(data, np.uint8).ravel()
+    nonzero = np.flatnonzero(flat[-TAIL_BYTES:])
+    offset = max(0, flat.size - TAIL_BYTES)
+    if nonzero.size == 0:
+        nonzero, offset = np.flatnonzero(flat), 0
+        if nonzero.size == 0:
+            return False
+    end = offset + int(nonzero[-1]) + 1
+    return end >= 2 and (int(flat[end - 2]), int(flat[end - 1])) == EOI
+
+
+def _filled_bottom_row_scan(image: np.ndarray) -> bool:
+    """``filled_bottom_row`` as it was: the row's grey tail counted, every time."""
+    if image.ndim < 2 or image.shape[0] == 0 or image.shape[1] == 0:
+        return False
+    row = image[-1].reshape(image.shape[1], -1)
+    grey = np.all(row == JPEG_FILL, axis=1)
+    tail = grey.size - int(np.flatnonzero(~grey)[-1]) - 1 if not grey.all() else grey.size
+    return tail >= max(1, int(np.ceil(FILLED_TAIL * grey.size)))
+
+
+def _camera_jpegs() -> list[bytes]:
+    """The rendered press and no-contact frames as the camera's JPEG, whole and cut short."""
+    _, _, jpegs = rendered_press_jpeg()
+    return [*jpegs, *(cut_short(j, kept, eoi) for j in jpegs for kept in (0.0, 0.3, 0.9, 0.999) for eoi in (True, False))]
+
+
+def test_the_end_marker_check_answers_as_the_full_search():
+    cases = [b"", b"\xd9", b"\xff\xd9", b"\x00" * 10, b"\xff\xd9" + b"\x00" * 3, b"\x00\xff\xd9\x00"]
+    for jpeg in _camera_jpegs():
+        for pad in (0, 1, 40, TAIL_BYTES - 1, TAIL_BYTES, 4000):
+            cases += [jpeg + b"\x00" * pad, jpeg[:-1] + b"\x00" * pad]
+    for data in cases:
+        for given in (data, np.frombuffer(data, np.uint8), bytearray(data)):
+            assert ends_with_eoi(given) == _ends_with_eoi_scan(given), (len(data), type(given))
+
+
+def test_the_fill_check_answers_as_the_full_scan():
+    decoded = (decode_jpeg(np.frombuffer(j, np.uint8), scale) for j in _camera_jpegs() for scale in (1, 2, 4, 8))
+    images = [image for image in decoded if image is not None]  # OpenCV 5 refuses a frame without its end
+    rng = np.random.default_rng(0)
+    for channels in (None, 1, 3):  # a row that ends in grey tails of every length, and none
+        for tail in (0, 1, 2, 5, 39, 40, 41, 79, 80):
+            shape = (4, 80) if channels is None else (4, 80, channels)
+            image = rng.integers(0, 256, shape, dtype=np.uint8)
+            image[-1, 80 - tail:] = JPEG_FILL
+            images += [image, image[:, ::2], np.ascontiguousarray(image[:, ::-1])]
+    images += [np.zeros((0, 3, 3), np.uint8), np.full((2, 2, 3), JPEG_FILL, np.uint8)]
+    marked = 0
+    for image in images:
+        assert filled_bottom_row(image) == _filled_bottom_row_scan(image), image.shape
+        marked += filled_bottom_row(image)
+    assert 0 < marked < len(images)  # both answers were asked for
+
+
+if __name__ == "__main__":  # pragma: no cover
+    pytest.main([__file__, "-q"])
