@@ -213,8 +213,8 @@ def _reduced_before(frame, ref, spec):
                                              (2, 40, 1.0)])
 @pytest.mark.parametrize("use_reference", [True, False])
 def test_reduced_path_one_call_scaling_is_the_per_plane_scaling_bit_for_bit(reduce, size, std, use_reference):
-    """mean 0 and one std for all channels (every bundle's): the scaling, channel swap and transpose
-    in one blobFromImage give the very floats of the per-plane loop; other specs keep the loop."""
+    """mean 0 and one std for all channels (every bundle's) and other specs: the scaling over the
+    whole tensor (runtime/preprocess.py ``_scaled_chw``) gives the very floats of the per-plane loop."""
     frame, ref = _frames(120, 160, seed=size)
     spec = TactilePreprocess(size=size, reduce=reduce, std=(std,) * 3, use_reference=use_reference)
     got = preprocess_tactile(frame, prepare_reference(ref, spec) if use_reference else None, spec)

@@ -4,13 +4,14 @@ crafted edge cases."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from frame_fixtures import rendered_press_jpeg
 from test_jpeg_integrity import cut_short
 from vs2t_edge.runtime.jpeg_integrity import EOI, FILLED_TAIL, JPEG_FILL, TAIL_BYTES, ends_with_eoi, filled_bottom_row
-from vs2t_edge.runtime.preprocess import decode_jpeg
+from vs2t_edge.runtime.preprocess import TactilePreprocess, decode_jpeg, prepare_reference, preprocess_tactile
 
 
 # --- runtime/jpeg_integrity.py: the fast answers for a frame's usual end ----------------------
@@ -70,6 +71,57 @@ def test_the_fill_check_answers_as_the_full_scan():
         assert filled_bottom_row(image) == _filled_bottom_row_scan(image), image.shape
         marked += filled_bottom_row(image)
     assert 0 < marked < len(images)  # both answers were asked for
+
+
+# --- runtime/preprocess.py: the scaling in fewer numpy calls -----------------------------------
+
+def _reduced_one_call(frame, reference, spec, scale):
+    """The reduced path's tail as it was: the float32 difference, then one blobFromImage (scaling,
+    channel swap, transpose) - for mean 0 and one std, every bundle's."""
+    def side(image):
+        return cv2.resize(image[:, (image.shape[1] - image.shape[0]) // 2:][:, :image.shape[0]], (spec.size,) * 2,
+                          interpolation=cv2.INTER_LINEAR)
+    diff = cv2.subtract(side(frame), side(reference).astype(np.float32), dtype=cv2.CV_32F)
+    s = float(np.float32(1.0) / (np.float32(255.0) * np.float32(spec.std[0])))
+    return cv2.dnn.blobFromImage(diff, scalefactor=s, swapRB=True, ddepth=cv2.CV_32F)[0]
+
+
+def _float_per_plane(frame, reference, spec):
+    """The float path's tail as it was: the difference in place, then per RGB plane
+    ``* (1 / 255)``, ``- mean``, ``/ std`` on the strided channel."""
+    def side(image):
+        crop = image[:, (image.shape[1] - image.shape[0]) // 2:][:, :image.shape[0]].astype(np.float32)
+        return cv2.resize(crop, (spec.size,) * 2, interpolation=cv2.INTER_AREA)
+    image = side(frame)
+    image -= side(reference)
+    mean, std = np.asarray(spec.mean, np.float32), np.asarray(spec.std, np.float32)
+    out = np.empty((3, spec.size, spec.size), np.float32)
+    for c in range(3):
+        np.multiply(image[:, :, 2 - c], np.float32(1.0 / 255.0), out=out[c])
+        np.subtract(out[c], mean[c], out=out[c])
+        np.divide(out[c], std[c], out=out[c])
+    return out
+
+
+@pytest.mark.parametrize("size", [128, 224])
+def test_the_cells_press_tensor_is_the_one_it_was_bit_for_bit(size):
+    # the camera's frames at 1/2 (640x480 -> 320x240), on both paths, at both trunks' sizes
+    _, _, jpegs = rendered_press_jpeg()
+    press, reference = (decode_jpeg(np.frombuffer(j, np.uint8), 2) for j in jpegs)
+    frames = [press, reference, cv2.flip(press, 1), np.ascontiguousarray(press[::-1])]
+    for spec, before in ((TactilePreprocess(size=size, reduce=2), _reduced_one_call),
+                         (TactilePreprocess(size=size), _float_per_plane),
+                         (TactilePreprocess(size=size, mean=(0.01, -0.02, 0.0), std=(0.08, 0.1, 0.05)),
+                          _float_per_plane)):
+        prepared = prepare_reference(reference, spec, 2)
+        np.testing.assert_array_equal(prepared.planes, prepared.resized.transpose(2, 0, 1)[::-1])
+        for frame in frames:
+            args = (frame, reference, spec) + ((2,) if spec.reduce else ())
+            want = before(*args)
+            got = preprocess_tactile(frame, prepared, spec, 2)
+            assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == (3, size, size)
+            np.testing.assert_array_equal(got, want)
+            assert np.ptp(got) > 0 or frame is reference
 
 
 if __name__ == "__main__":  # pragma: no cover
