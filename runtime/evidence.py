@@ -70,10 +70,12 @@ class ItemDecision:
 
 
 def _logsumexp(x: np.ndarray) -> float:
-    m = float(np.max(x))
+    # ndarray methods, not np.max / np.sum: the same reductions without their Python wrappers (the
+    # evidence runs a dozen of them a press, each paid cold after the trunk's run)
+    m = float(x.max())
     if not math.isfinite(m):
         return m
-    return m + math.log(float(np.sum(np.exp(x - m))))
+    return m + math.log(float(np.exp(x - m).sum()))
 
 
 class Evidence:
@@ -168,9 +170,9 @@ class Evidence:
         if missing:
             raise KeyError(f"Evidence: press score has no class {missing} of the scene")
         v = np.array([float(lp[c]) for c in self.classes], dtype=np.float64)
-        if np.any(np.isnan(v)):
+        if np.isnan(v).any():
             raise ValueError("Evidence: press score has NaN log posterior")
-        if not np.any(np.isfinite(v)):  # no scene class possible from this press: uninformative
+        if not np.isfinite(v).any():  # no scene class possible from this press: uninformative
             v = np.zeros_like(v)
         if math.isfinite(self.known_margin):
             self._inside += self.weight * np.maximum(v, -1e300)
@@ -210,7 +212,7 @@ class Evidence:
             raise ValueError("Evidence: the scene model's offset rule needs the press's projection (scene_z), "
                              "and this press score has none")
         z = np.asarray(z, dtype=np.float64).reshape(-1)
-        if z.shape != self._z_sum.shape or not np.all(np.isfinite(z)):
+        if z.shape != self._z_sum.shape or not np.isfinite(z).all():
             raise ValueError(f"Evidence: press projection of shape {z.shape} (finite: {bool(np.all(np.isfinite(z)))}), "
                              f"expected ({self._z_sum.shape[0]},) finite")
         self._z_all += z
@@ -255,12 +257,12 @@ class Evidence:
         """Whether the presses so far say the piece is none of the scene's fabrics (module doc)."""
         if self._open_n and self._open_sum / self._open_n > self.open_threshold:
             return True
-        if self._likeness is not None and self._likeness[int(np.argmax(self._acc))] > self.item_model.likeness_ratio:
+        if self._likeness is not None and self._likeness[int(self._acc.argmax())] > self.item_model.likeness_ratio:
             return True
         outside = self._outside_values()
         if outside is not None:
-            best_in = float(np.max(self._inside))
-            return float(np.max(outside)) > best_in + self.known_margin
+            best_in = float(self._inside.max())
+            return float(outside.max()) > best_in + self.known_margin
         return False
 
     def _outside_values(self) -> np.ndarray | None:
@@ -286,7 +288,7 @@ class Evidence:
         """Whether the presses can pick a bin at all: at least ``min_presses`` of them, and a
         leading class ahead of every other (a tie - a two-fabric scene at confidence 0.5 - would
         otherwise sort to whichever fabric the scene lists first)."""
-        return self.used_presses >= self.min_presses and int(np.sum(post == post[i])) == 1
+        return self.used_presses >= self.min_presses and int((post == post[i]).sum()) == 1
 
     @property
     def press_limit(self) -> int:
@@ -306,11 +308,11 @@ class Evidence:
         if self.presses < self.max_presses:
             return False
         post = self._posterior()
-        return not self._extending(post, int(np.argmax(post)))
+        return not self._extending(post, int(post.argmax()))
 
     def _check(self, final: bool) -> ItemDecision | None:
         post = self._posterior()
-        i = int(np.argmax(post))
+        i = int(post.argmax())
         confident = self._decisive(post, i) and math.exp(float(post[i])) >= self._needed[i]
         if confident and not self.off_scene():
             return self._make(post, "confident")

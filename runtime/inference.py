@@ -376,9 +376,9 @@ class TactileModel:
         scene model's posterior; no heads, no router (novelty None)."""
         feature, z = self._press_run(x)
         t2 = time.perf_counter()
-        if not np.all(np.isfinite(feature)):
+        if not np.isfinite(feature).all():  # the method: np.all's Python wrapper is paid cold after the trunk
             raise FrameError("model output not usable for this frame (non-finite feature)", "model_output")
-        if not np.all(np.isfinite(z)):
+        if not np.isfinite(z).all():
             raise FrameError("model output not usable for this frame (non-finite scene projection)", "model_output")
         log_posterior, sq, z64 = self._scene_posterior(z)
         t3 = time.perf_counter()

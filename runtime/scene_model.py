@@ -214,7 +214,7 @@ class SceneModel:
         cache = self.__dict__.setdefault("_cast_cache", {})
         if "spread" not in cache:
             cache["spread"] = self.press_spread()
-        return bool(np.min(d2 / cache["spread"]) > self.outlier_ratio)
+        return bool((d2 / cache["spread"]).min() > self.outlier_ratio)
 
     def sq_distances(self, features: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(N, C) squared Mahalanobis distance of each press to each bundle class's mean."""
@@ -222,10 +222,25 @@ class SceneModel:
 
     def sq_distances_projected(self, z: np.ndarray) -> np.ndarray:
         """The same from projected presses z = (x - center) @ basis, (N, k) (``project``, or the
-        ``scene_z`` output of a fused bundle graph, docs/bundle.md); float64."""
+        ``scene_z`` output of a fused bundle graph, docs/bundle.md); float64.
+
+        One press's answer is kept until the next press, read-only: the cell asks it of the same
+        projection twice a press (its decision, then the evidence's outlier or open-set rule),
+        and each of its dozen numpy calls is paid cold after the trunk's run."""
         z = np.asarray(z, np.float64)
+        one = z.ndim == 2 and z.shape[0] == 1
+        cache = self.__dict__.setdefault("_cast_cache", {})
+        if one:
+            key = z.tobytes()
+            last = cache.get("last_press")
+            if last is not None and last[0] == key:
+                return last[1]
         means_t, means_sq = self._consts()[:2]
-        return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ means_t + means_sq[None, :]).clip(min=0.0)
+        d2 = (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ means_t + means_sq[None, :]).clip(min=0.0)
+        if one:
+            d2.setflags(write=False)
+            cache["last_press"] = (key, d2)
+        return d2
 
     def scores(self, sq_distances: np.ndarray) -> np.ndarray:
         """(N, C) class scores s_c (module doc) from squared distances."""
@@ -252,13 +267,24 @@ class SceneModel:
         z = np.asarray(z_mean, np.float64).reshape(-1)
         means_t, means_sq, _, synth, offset_var = self._consts()
         d2 = (float(z @ z) - 2.0 * (z @ means_t) + means_sq).clip(min=0.0)
-        return d2, offset_var + self.press_var / n, synth
+        return d2, self._offset_terms(n)[0], synth
+
+    def _offset_terms(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The offset rule's terms that depend on ``n`` only, made once per ``n``: (v_c, the log
+        term 0.5 k log v_c, the synthesised classes' bias)."""
+        cache = self.__dict__.setdefault("_cast_cache", {}).setdefault("offset_terms", {})
+        if n not in cache:
+            _, _, _, synth, offset_var = self._consts()
+            v = offset_var + self.press_var / n
+            cache[n] = (v, 0.5 * self.k * np.log(v), self.item_bias * synth)
+        return cache[n]
 
     def item_log_lik(self, z_mean: np.ndarray, n: int) -> np.ndarray:
         """(C,) the offset rule's item scores L_c (module doc) of a piece whose ``n`` presses have
         the mean projection ``z_mean`` (k,)."""
-        d2, v, synth = self._item_terms(z_mean, n)
-        return (-0.5 * d2 / v - 0.5 * self.k * np.log(v)) / self.item_temperature + self.item_bias * synth
+        d2, v, _ = self._item_terms(z_mean, n)
+        _, log_term, bias = self._offset_terms(n)
+        return (-0.5 * d2 / v - log_term) / self.item_temperature + bias
 
     def item_ratios(self, z_mean: np.ndarray, n: int) -> np.ndarray:
         """(C,) the squared distance of a piece's mean of ``n`` presses to each class mean over what

@@ -4,12 +4,17 @@ crafted edge cases."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 
 from frame_fixtures import rendered_press_jpeg
+from test_item_rule import _offset, _world
 from test_jpeg_integrity import cut_short
+from vs2t_edge.runtime import sorting as so
+from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.jpeg_integrity import EOI, FILLED_TAIL, JPEG_FILL, TAIL_BYTES, ends_with_eoi, filled_bottom_row
 from vs2t_edge.runtime.preprocess import TactilePreprocess, decode_jpeg, prepare_reference, preprocess_tactile
 
@@ -122,6 +127,78 @@ def test_the_cells_press_tensor_is_the_one_it_was_bit_for_bit(size):
             assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == (3, size, size)
             np.testing.assert_array_equal(got, want)
             assert np.ptp(got) > 0 or frame is reference
+
+
+# --- runtime/scene_model.py, runtime/evidence.py: one press's distances kept, per-n terms made once ----
+
+def _fresh(model):
+    """The same scene model with nothing cached (``dataclasses.replace`` builds a new one)."""
+    return replace(model)
+
+
+def _sq_distances_plain(model, z):
+    z = np.asarray(z, np.float64)
+    means = np.asarray(model.means, np.float64)
+    return (np.sum(z * z, axis=1)[:, None] - 2.0 * z @ means.T + np.sum(means * means, axis=1)[None, :]).clip(min=0.0)
+
+
+def test_a_press_distances_kept_are_the_ones_computed_again():
+    model, held, *_ = _world()
+    z = model.project(np.concatenate([held["f0"][:4], held["f7"][:3]]))
+    asks = [z[i:i + 1] for i in (0, 0, 1, 0, 2, 2)] + [z[3:4].astype(np.float32), z, z[4:5], z[4]]
+    for q in asks:  # one press again (kept), another press, a batch, a 1-d press
+        got = model.sq_distances_projected(np.atleast_2d(q))
+        np.testing.assert_array_equal(got, _sq_distances_plain(model, np.atleast_2d(q)))
+        np.testing.assert_array_equal(got, _fresh(model).sq_distances_projected(np.atleast_2d(q)))
+    kept = model.sq_distances_projected(z[:1])
+    assert not kept.flags.writeable  # kept for the next ask: nobody may change it meanwhile
+    with pytest.raises(ValueError):
+        kept += 1.0
+
+
+def test_the_offset_rules_item_scores_are_the_formula_bit_for_bit():
+    model, held, *_ = _world()
+    m = _offset(model)
+    z = m.project(held["f1"][:9])
+    synth = np.array([c in m.untouched and c not in m.taught for c in m.classes], np.float64)
+    offset_var = np.where([c in m.untouched for c in m.classes], m.offset_var_untouched, m.offset_var_touched)
+    for n in (1, 2, 3, 5, 9, 2, 1):  # each n twice: made, then kept
+        zbar = z[:n].mean(0)
+        d2 = (float(zbar @ zbar) - 2.0 * (zbar @ m.means.T) + np.sum(m.means * m.means, axis=1)).clip(min=0.0)
+        v = offset_var + m.press_var / n
+        want = (-0.5 * d2 / v - 0.5 * m.k * np.log(v)) / m.item_temperature + m.item_bias * synth
+        np.testing.assert_array_equal(m.item_log_lik(zbar, n), want)
+        np.testing.assert_array_equal(m.item_ratios(zbar, n), d2 / (m.k * v))
+
+
+@pytest.mark.parametrize("rule", ["sum", "offset"])
+def test_the_evidence_decides_every_piece_as_with_nothing_kept(rule):
+    # the same presses through the cell's evidence twice: on the model, its distances kept from the
+    # decision to the evidence, and on fresh copies for every ask (nothing kept anywhere)
+    model, held, touched, untouched, strangers = _world()
+    model = replace(_offset(model) if rule == "offset" else model, outlier_ratio=3.0, open_threshold=60.0,
+                    known_margin=0.0)
+    scene = so.Scene(tuple(touched[:4]), tuple(untouched[:2]), ())
+    confidence, opts = so.scene_model_rule(model)
+    decided = {}
+    for kept in (True, False):
+        decided[kept] = []
+        for fabric in (*touched, *untouched, *strangers):
+            x = held[fabric]
+            for piece in range(0, len(x) - 5, 5):
+                ev = Evidence(scene.classes, confidence, 5, **opts)
+                for z in model.project(x[piece:piece + 5]):
+                    m = model if kept else _fresh(model)
+                    if not kept:
+                        ev.item_model = None if ev.item_model is None else _fresh(model)
+                        ev.outlier_model = None if ev.outlier_model is None else _fresh(model)
+                    lp, d2 = m.log_posterior_projected(z[None])
+                    if (d := ev.add(so.Press(dict(zip(m.classes, lp[0].tolist())),
+                                             dict(zip(m.classes, d2[0].tolist())), z))) is not None:
+                        break
+                decided[kept].append(repr(d or ev.decide()))
+    assert decided[True] == decided[False]
+    assert len(set(decided[True])) > 10 and any("off_scene" in d for d in decided[True])
 
 
 if __name__ == "__main__":  # pragma: no cover
