@@ -71,10 +71,15 @@ _PRECHECK_ROW_STRIDE = 16  # rows of the frozen-frame pre-check (every 16th row:
 
 
 def _same_image(a: np.ndarray, b: np.ndarray) -> bool:
-    """Bit-identical frames? Every 16th row first: two live frames' noise differs there already,
-    so the full comparison (a pass over both frames, cold after the trunk's run: 0.1 ms of the
-    per-press budget) only runs for a frame that may be frozen. The verdict is the full one's."""
+    """Bit-identical frames? The middle row's bytes first, then every 16th row: two live frames'
+    noise differs there already, so the full comparison (a pass over both frames, cold after the
+    trunk's run: 0.1 ms of the per-press budget) only runs for a frame that may be frozen. The
+    verdict is the full one's (for uint8 frames equal bytes are equal values). The one row as bytes,
+    without numpy's comparison: 0.055 -> 0.010 ms a press on a 320x240 frame after the trunk."""
     if a.shape != b.shape:
+        return False
+    mid = a.shape[0] // 2
+    if a.dtype == b.dtype == np.uint8 and a.size and a[mid].tobytes() != b[mid].tobytes():
         return False
     if not np.array_equal(a[::_PRECHECK_ROW_STRIDE], b[::_PRECHECK_ROW_STRIDE]):
         return False

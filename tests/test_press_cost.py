@@ -15,6 +15,7 @@ from test_item_rule import _offset, _world
 from test_jpeg_integrity import cut_short
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.evidence import Evidence
+from vs2t_edge.runtime.frame_guard import _same_image
 from vs2t_edge.runtime.jpeg_integrity import EOI, FILLED_TAIL, JPEG_FILL, TAIL_BYTES, ends_with_eoi, filled_bottom_row
 from vs2t_edge.runtime.preprocess import TactilePreprocess, decode_jpeg, prepare_reference, preprocess_tactile
 
@@ -76,6 +77,27 @@ def test_the_fill_check_answers_as_the_full_scan():
         assert filled_bottom_row(image) == _filled_bottom_row_scan(image), image.shape
         marked += filled_bottom_row(image)
     assert 0 < marked < len(images)  # both answers were asked for
+
+
+# --- runtime/frame_guard.py: the frozen-frame check's middle row first ---------------------------
+
+def test_the_frozen_frame_check_answers_as_the_full_comparison():
+    _, _, jpegs = rendered_press_jpeg()
+    press, reference = (decode_jpeg(np.frombuffer(j, np.uint8), 2) for j in jpegs)
+    pairs = [(press, reference), (press, press.copy()), (press, press[:-1]), (press[:0], press[:0])]
+    for row in (0, 1, 16, 119, 120, 121, 239):  # one pixel changed: on, beside and off the rows looked at first
+        other = press.copy()
+        other[row, 7, 1] ^= 1
+        pairs.append((press, other))
+    as_float = press.astype(np.float32)
+    signed = as_float.copy()
+    signed[120] = -0.0  # equal values, other bytes: the byte check is for uint8 frames only
+    pairs += [(as_float, as_float.copy()), (np.zeros_like(as_float), signed * 0), (press, press.astype(np.int16)),
+              (press[:, ::2], np.ascontiguousarray(press[:, ::2]))]
+    for a, b in pairs:
+        want = a.shape == b.shape and bool(np.array_equal(a, b))
+        assert _same_image(a, b) == want == _same_image(b, a), (a.shape, a.dtype, b.dtype)
+    assert sum(_same_image(a, b) for a, b in pairs) >= 4 and not all(_same_image(a, b) for a, b in pairs)
 
 
 # --- runtime/preprocess.py: the scaling in fewer numpy calls -----------------------------------
