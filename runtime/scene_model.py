@@ -224,12 +224,16 @@ class SceneModel:
         """The same from projected presses z = (x - center) @ basis, (N, k) (``project``, or the
         ``scene_z`` output of a fused bundle graph, docs/bundle.md); float64.
 
-        One press's answer is kept until the next press, read-only: the cell asks it of the same
-        projection twice a press (its decision, then the evidence's outlier or open-set rule),
-        and each of its dozen numpy calls is paid cold after the trunk's run."""
+        One press's answer is kept until the next press, read-only, by a model whose evidence asks
+        it of the same projection again (the outlier rule; the offset rule's open-set rule): the cell
+        then asks it twice a press (its decision, then the evidence), and each of its dozen numpy
+        calls is paid cold after the trunk's run."""
         z = np.asarray(z, np.float64)
-        one = z.ndim == 2 and z.shape[0] == 1
         cache = self.__dict__.setdefault("_cast_cache", {})
+        if "asked_twice" not in cache:
+            cache["asked_twice"] = math.isfinite(self.outlier_ratio) or (
+                self.item_rule == "offset" and math.isfinite(self.open_threshold))
+        one = cache["asked_twice"] and z.ndim == 2 and z.shape[0] == 1
         if one:
             key = z.tobytes()
             last = cache.get("last_press")

@@ -165,7 +165,9 @@ def _sq_distances_plain(model, z):
 
 
 def test_a_press_distances_kept_are_the_ones_computed_again():
-    model, held, *_ = _world()
+    plain, held, *_ = _world()
+    assert plain.sq_distances_projected(plain.project(held["f0"][:1])).flags.writeable  # no rule asks twice: none kept
+    model = replace(plain, outlier_ratio=3.0)
     z = model.project(np.concatenate([held["f0"][:4], held["f7"][:3]]))
     asks = [z[i:i + 1] for i in (0, 0, 1, 0, 2, 2)] + [z[3:4].astype(np.float32), z, z[4:5], z[4]]
     for q in asks:  # one press again (kept), another press, a batch, a 1-d press
