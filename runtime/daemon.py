@@ -71,8 +71,8 @@ def clear_fault(cfg: CellConfig) -> int:
         return EXIT_OK
     if found.file is None:
         print(f"fault NOT cleared: {found.reason}\nits fault file {ff} was never written (the journal {cfg.journal} "
-              "says so): the service's next start latches it again and writes that file; remove it then with "
-              "`vs2t-edge run --clear-fault`")
+              "says so): the service writes it as soon as it can - a running one retries every turn, a stopped "
+              "one at its next start - and then `vs2t-edge run --clear-fault` clears it")
         return EXIT_FAILED
     found.file.unlink(missing_ok=True)  # a running service may have cleared it meanwhile
     if found.moved:

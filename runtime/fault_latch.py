@@ -179,9 +179,13 @@ class FaultLatch:
         if ff is None:
             return True
         if not self._fault_file_written:
-            if not self._write_fault_file_late(FILE_WRITTEN):  # else still latched (latch_fault said why)
+            failed = self._write_fault_file_late(FILE_WRITTEN)
+            if not failed:
                 self.log(f"fault file {ff} written at last; clear the fault with `vs2t-edge run --clear-fault`")
-            return False
+            elif self._fault_file_written:  # the file is there, its record is not: the clear will say the journal
+                self.log(f"fault file {ff} written at last, but {failed}: clearing the fault fails until the "
+                         "journal can be written")
+            return False  # else the file is still not there (latch_fault said why)
         return not ff.exists()
 
     def _write_fault_file_late(self, kind: str) -> str:
@@ -189,14 +193,16 @@ class FaultLatch:
         it is there journal a ``fault`` record of ``kind`` naming it with no failed step: the
         operator who removes it while the service is stopped has cleared the fault, which the next
         start then sees (``find_latched_fault``), instead of the first record's file never written.
-        '' when written and journalled, else why not; until then the loop writes it again."""
+        '' when written and journalled, else why not; until the file is there the loop writes it again."""
         failed = self._write_fault_file()
         if failed:
             return failed
         try:
             self.journal.append(self._fault_record(self.fault, kind, []))
         except JournalError as exc:
-            self._fault_file_written = False  # not in the journal: written and journalled again next turn
+            # the file stays counted as written: the operator's removal is taken as a clear, whose
+            # own journal record then fails and latches the fault again, saying why - not a file
+            # written back behind the operator's back every turn
             return f"journal failed: {exc}"
         return ""
 

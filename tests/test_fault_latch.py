@@ -111,6 +111,25 @@ def test_a_fault_file_the_retry_wrote_and_the_operator_removed_while_stopped_is_
     assert fault[1]["reason"] == fault[0]["reason"] and fault[1]["fault_file"] == str(fault_file)
 
 
+def test_a_late_fault_file_whose_record_the_journal_refuses_is_not_written_back_behind_the_operator(tmp_path):
+    """The retry wrote the fault file at last but the journal refused its record: the file stays
+    counted as written and the log says the journal is why a clear will fail. Removing it is then the
+    operator's clear, whose own record fails and latches the fault again saying why - it used to be
+    written back every turn with no word in the log."""
+    cell, journal, fault_file = _latched_with_its_file_unwritable(tmp_path)
+    logs = []
+    cell.log = logs.append
+    journal._broken = "a failed write could not be cut back (simulated)"  # appends refused from here
+    cell.run(max_items=2, stop_when=_turns(3))
+    assert fault_file.exists() and cell.fault
+    assert any("written at last, but journal failed" in m and "simulated" in m for m in logs), logs
+    fault_file.unlink()  # the operator's clear
+    logs.clear()
+    cell.run(max_items=2, stop_when=_turns(3))
+    assert cell.fault and "could not clear the fault" in cell.fault and "simulated" in cell.fault, cell.fault
+    assert any("could not clear the fault" in m for m in logs), logs
+
+
 def test_a_fault_file_a_restart_wrote_and_the_operator_removed_while_stopped_is_a_clear(tmp_path):
     """The same with the file written by a restart that found the journal's fault never written."""
     cell, journal, fault_file = _latched_with_its_file_unwritable(tmp_path)
