@@ -144,11 +144,15 @@ def latched_fault_in(path: Path | str) -> dict | None:
     clear needs while the service may hold the journal."""
     fault = None
     for rec in iter_records(path):
-        if rec.get("type") == "fault":
-            fault = rec
-        elif rec.get("type") == "fault_cleared":
-            fault = None
+        fault = _latched_after(fault, rec)
     return fault
+
+
+def _latched_after(fault: dict | None, rec: dict) -> dict | None:
+    """The latched fault after ``rec``, given the one before it: the one rule for an open journal
+    (``Journal._apply``) and a closed one (``latched_fault_in``)."""
+    kind = rec.get("type")
+    return rec if kind == "fault" else None if kind == "fault_cleared" else fault
 
 
 RECENT_RECORDS = 128  # records kept in memory (``Journal.records``); the file keeps them all
@@ -241,6 +245,7 @@ class Journal:
         self.records.append(rec)
         kind = rec.get("type")
         self.counts[kind] += 1
+        self._fault = _latched_after(self._fault, rec)
         item = rec.get("item")
         if isinstance(item, (list, dict)):
             item = json.dumps(item, sort_keys=True)  # a hand-edited record: a key, not a crash
@@ -253,10 +258,6 @@ class Journal:
             self._open_items[item] = rec
         elif kind == "item" and item not in self._open_items:
             self._open_items[item] = rec
-        elif kind == "fault":
-            self._fault = rec
-        elif kind == "fault_cleared":
-            self._fault = None
 
     def append(self, rec: dict[str, Any]) -> dict:
         if self._fd is None:
