@@ -201,8 +201,7 @@ def _another_bundle(cfg, seal: str | None) -> str:
 def rejected_pieces(cfg, n: int) -> list[str]:
     """Lines for ``--list``: the last ``n`` pieces the journal sent to the reject bin, oldest first,
     each with its decision and its label's fate (the journal's label records, else the labels file)."""
-    from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
-    from vs2t_edge.runtime.sorting import REASONS
+    from vs2t_edge.runtime.sorting import reject_reason
 
     last: deque = deque(maxlen=n)
     fate: dict[str, str] = {}
@@ -233,7 +232,6 @@ def rejected_pieces(cfg, n: int) -> list[str]:
         label = fate.get(item) or (f"{waiting[item]}: the service reads it before its next piece"
                                    if item in waiting else "no label yet")
         why = rec.get("reason") or ("" if rec.get("outcome") == "sorted" else str(rec.get("outcome", ""))) \
-            or ("a stranger the operator taught" if str(rec.get("label", "")).startswith(OFF_SCENE_PREFIX) else
-                REASONS.get(stopped, stopped))
+            or reject_reason(str(rec.get("label", "")), stopped)
         out.append(f"  {item:>14s}  decision {rec.get('label', '?'):>14s}  {why:<12.60s}  {label}")
     return out

@@ -27,6 +27,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
+from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.operating_point import scene_model_rule
 
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
@@ -37,6 +38,14 @@ REASONS = {"press_limit": "never confident within the press limit", "off_scene":
            "confident": "confident", "unlabelled_guard": "the zero-shot guard",
            "confusable_guard": "the guard of an untaught twin", "no_usable_frames": "no usable frames",
            "camera_reopened": "the camera reopened", "fault": "a fault", "stop": "the service stopped"}
+
+
+def reject_reason(label: str, stopped_by: str) -> str:
+    """Why a piece decided ``label`` went to the reject bin, in words, for the person there (the demo's
+    line and `vs2t-edge label --list`): a stranger the operator taught, else its decision's rule."""
+    if label.startswith(OFF_SCENE_PREFIX):
+        return "a stranger the operator taught"
+    return REASONS.get(stopped_by, stopped_by)
 
 
 def outcome(truth: str, label: str, scene: Iterable[str], sorted_: bool = True) -> str:
@@ -456,7 +465,7 @@ def as_dict(records: Sequence[ItemRecord]) -> list[dict]:
 
 
 __all__ = ["RIGHT", "MIS_SORT", "REJECT", "OUTCOMES", "KINDS", "outcome", "ItemRecord", "record", "summarise",
-           "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
+           "REASONS", "reject_reason", "ArmTimes", "items_per_minute", "risk_coverage", "expected_calibration_error", "fit_temperature",
            "log_softmax", "Press", "scene_model_presses", "Scene", "posterior_presses", "draw_scenes", "simulate_scenes", "as_dict",
            "simulate_with_labels", "teach_presses",
            "KNOB_GRID", "knob_prices"]

@@ -38,7 +38,6 @@ import numpy as np
 from vs2t_edge.runtime import sorting as so
 from vs2t_edge.runtime.daemon import run_daemon
 from vs2t_edge.runtime.dataset import load_dataset, press_partition
-from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.labels import append_label
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.recording import record_session
@@ -200,8 +199,7 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         mark = {so.RIGHT: "right", so.REJECT: "rejected", so.MIS_SORT: "MIS-SORTED",
                 OUTCOME_UNKNOWN: "OUTCOME UNKNOWN: the gate may have moved it, a person checks the bins"}[o]
         if r.label not in scene_names and o != OUTCOME_UNKNOWN:  # the reject bin: say why ("conf" is the leading job fabric's)
-            why = "a stranger the operator taught" if r.label.startswith(OFF_SCENE_PREFIX) else r.stopped_by
-            mark += f": {so.REASONS.get(why, why)}"
+            mark += f": {so.reject_reason(r.label, r.stopped_by)}"
         if r.outcome != "sorted":
             mark += f" ({r.outcome})"
         elif operator_labels and r.label not in scene_names:  # a person at the reject bin says what it was
