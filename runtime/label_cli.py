@@ -28,7 +28,7 @@ from dataclasses import replace
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.labels import append_label, read_labels
+from vs2t_edge.runtime.labels import append_label, judged_anew, read_labels
 from vs2t_edge.runtime.journal import iter_records
 
 
@@ -216,7 +216,7 @@ def rejected_pieces(cfg, n: int) -> list[str]:
             why = stopped_by.pop(str(rec.get("item_id")), "")
             if rec.get("bin") == cfg.reject_bin:
                 last.append((rec, why))
-        elif kind == "label" and rec.get("item_id") is not None and rec.get("read_before") is not True:
+        elif kind == "label" and rec.get("item_id") is not None and judged_anew(rec):
             said = "withdrawn" if rec.get("retract") else \
                 f"labelled {rec.get('fabric')}{' (off-scene)' if rec.get('off_scene') else ''}"
             fate[str(rec["item_id"])] = f"{said}: " + ("applied" if rec.get("applied") else

@@ -326,7 +326,7 @@ class OperatorFeedback:
                 if said:
                     self._judged.add(_line_key(rec))
                 # a line judged before its file was read again changed nothing live
-                if said and rec.get("read_before") is not True:
+                if said and judged_anew(rec):
                     if rec.get("retract"):
                         self._retract(str(item), rebuild=False)
                     else:
@@ -336,6 +336,13 @@ class OperatorFeedback:
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
                 self._prefix = (n, sha) if known else None
         self._relearn()  # once, not once per label
+
+
+def judged_anew(rec: dict) -> bool:
+    """Whether a journaled label line was judged when read, not skipped as one judged before its file
+    was read again (``read_before``: an editor's stale copy, which changed nothing live). What the
+    restore, `vs2t-edge label --list` and a replay count as the operator's word."""
+    return rec.get("read_before") is not True
 
 
 def _line_key(rec: Mapping[str, Any]) -> tuple:
@@ -362,5 +369,5 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["append_label", "read_labels", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+__all__ = ["append_label", "read_labels", "judged_anew", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

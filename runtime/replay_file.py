@@ -23,6 +23,7 @@ import numpy as np
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.fault_latch import FILE_WRITTEN
 from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
+from vs2t_edge.runtime.labels import judged_anew
 
 FORMAT = "vs2t-edge-replay"
 VERSION = 1
@@ -103,7 +104,7 @@ def labels_of(records: list[dict]) -> list[dict]:
         if r.get("type") == "item":
             before = r.get("item_id")
         elif r.get("type") == "label" and isinstance(r.get("line"), int) and before is not None \
-                and r.get("read_before") is not True:  # a line read, not a note about the file (unreadable, read again)
+                and judged_anew(r):  # a line read, not a note about the file (unreadable, read again)
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
                         **({"off_scene": True} if r.get("off_scene") else {}),
                         **({"retract": True} if r.get("retract") else {})})
