@@ -40,12 +40,19 @@ def _turns(n):
     return stop_when
 
 
-def test_a_fault_whose_file_cannot_be_written_stays_latched_until_the_operator_clears_it(tmp_path):
+def _latched_where_its_file_cannot_be_written(tmp_path, turns):
+    """A protective stop latched while the fault file's folder is a file (as EROFS or a full disk
+    would refuse it): (its folder, the fault file, and the cell's parts)."""
     state = tmp_path / "state"
-    state.write_text("a file where the fault file's folder should be")  # as EROFS or a full disk would refuse it
+    state.write_text("a file where the fault file's folder should be")
     fault_file = state / "FAULT"
     cell, arm, gate, journal = _cell(tmp_path, fault_file, FakeArm(fail_next=["protective_stop"]))
-    cell.run(max_items=2, stop_when=_turns(30))
+    cell.run(max_items=2, stop_when=_turns(turns))
+    return state, fault_file, cell, arm, gate, journal
+
+
+def test_a_fault_whose_file_cannot_be_written_stays_latched_until_the_operator_clears_it(tmp_path):
+    state, fault_file, cell, arm, gate, journal = _latched_where_its_file_cannot_be_written(tmp_path, 30)
     recs = read_records(journal.path)
     fault = [r for r in recs if r["type"] == "fault"]
     assert len(fault) == 1 and fault[0]["kind"] == "protective_stop"
@@ -82,11 +89,7 @@ def test_a_restart_after_the_operators_clear_starts_clean(tmp_path):
 
 
 def _latched_with_its_file_unwritable(tmp_path):
-    state = tmp_path / "state"
-    state.write_text("a file where the fault file's folder should be")  # as EROFS or a full disk would refuse it
-    fault_file = state / "FAULT"
-    cell, arm, gate, journal = _cell(tmp_path, fault_file, FakeArm(fail_next=["protective_stop"]))
-    cell.run(max_items=2, stop_when=_turns(10))
+    state, fault_file, cell, arm, gate, journal = _latched_where_its_file_cannot_be_written(tmp_path, 10)
     assert cell.fault and not fault_file.exists()
     state.unlink()
     state.mkdir()  # the folder comes back
