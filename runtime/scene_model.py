@@ -230,10 +230,7 @@ class SceneModel:
         calls is paid cold after the trunk's run."""
         z = np.asarray(z, np.float64)
         cache = self.__dict__.setdefault("_cast_cache", {})
-        if "asked_twice" not in cache:
-            cache["asked_twice"] = math.isfinite(self.outlier_ratio) or (
-                self.item_rule == "offset" and math.isfinite(self.open_threshold))
-        one = cache["asked_twice"] and z.ndim == 2 and z.shape[0] == 1
+        one = z.ndim == 2 and z.shape[0] == 1 and self._asks_distances_twice()
         if one:
             key = z.tobytes()
             last = cache.get("last_press")
@@ -245,6 +242,11 @@ class SceneModel:
             d2.setflags(write=False)
             cache["last_press"] = (key, d2)
         return d2
+
+    def _asks_distances_twice(self) -> bool:
+        """Whether the evidence asks a press's distances again after the decision did: the outlier
+        rule, or the offset rule's open-set rule."""
+        return math.isfinite(self.outlier_ratio) or (self.item_rule == "offset" and math.isfinite(self.open_threshold))
 
     def scores(self, sq_distances: np.ndarray) -> np.ndarray:
         """(N, C) class scores s_c (module doc) from squared distances."""
