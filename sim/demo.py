@@ -48,7 +48,7 @@ TEACH_PREFIX = "teach-"  # a teach piece's item id: pressed and labelled before 
 UNKNOWN_OUTCOME = "unknown_outcome"  # a final record's outcome: the gate may or may not have moved the piece
 OUTCOME_UNKNOWN = "outcome unknown"  # such a piece's result: counted apart from right / mis-sort / reject
 # world profile -> training profile (the demo's world trains with the small profile's budget)
-TRAIN_PROFILE = {"demo": "small"}
+TRAIN_PROFILE = {"demo": "small", "demo_visible": "small"}
 
 
 def _stage_done(marker: Path, params: dict) -> bool:

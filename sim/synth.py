@@ -98,6 +98,10 @@ class SynthProfile:
     # None: every construction, drawn as ``draw_world`` always has; a tuple: only these, each as
     # often as the others (the demo's world, where each family is touched several times over)
     constructions: tuple[str, ...] | None = None
+    # "drawn": every parameter drawn at random within its kind's ranges (what the camera cannot see
+    # varies as much as what it can); "visible": the fabrics of a kind differ in yarn pitch, spread
+    # evenly over the kind's range (relief follows it), and share the rest, near the kind's middle
+    kind_spread: str = "drawn"
 
 
 PROFILES: dict[str, SynthProfile] = {
@@ -111,6 +115,9 @@ PROFILES: dict[str, SynthProfile] = {
     # are never trained on (runtime.dataset.press_partition), enough for a 5-press item.
     "demo": SynthProfile(n_fabrics=24, grid=(7, 7), frame_px=(320, 240), camera_px=500,
                          constructions=("plain", "rib_knit", "terry", "felt", "lace", "corduroy")),
+    "demo_visible": SynthProfile(n_fabrics=24, grid=(7, 7), frame_px=(320, 240), camera_px=500,
+                                 constructions=("rib_knit", "terry", "lace", "corduroy", "hessian", "felt"),
+                                 kind_spread="visible"),
     # A paper-like world three times as wide (another draw, not the paper world's 50 plus 100), at
     # the 45 presses a fabric the paper profile trains on
     # (a 9 x 5 sub-grid): how zero-shot grows with the fabrics a cell has touched
@@ -125,8 +132,13 @@ def _u(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
     return float(rng.uniform(*lo_hi))
 
 
-def draw_fabric(rng: np.random.Generator, construction: str) -> FabricParams:
+def draw_fabric(rng: np.random.Generator, construction: str, quantile: float | None = None) -> FabricParams:
+    """One fabric of a kind; with ``quantile`` (0..1) its pitch and relief sit at that point of the
+    kind's ranges and what the camera cannot see (hairiness, stiffness, thickness, yarn fill) near
+    the kind's middle, without decoration."""
     pitch, relief, hair, stiff, thick, stretch, absorb = _FAMILY[construction]
+    if quantile is not None:
+        return _visible_fabric(rng, construction, quantile)
     decorated = construction in ("plain", "twill", "satin", "jersey", "denim", "felt")
     print_kind = str(rng.choice(["none", "dots", "floral", "geometric"], p=[0.6, 0.13, 0.14, 0.13]))
     return FabricParams(
@@ -154,15 +166,40 @@ def draw_fabric(rng: np.random.Generator, construction: str) -> FabricParams:
     )
 
 
-def draw_world(n_fabrics: int, seed: int, constructions: tuple[str, ...] | None = None) -> list[FabricParams]:
+def _visible_fabric(rng: np.random.Generator, construction: str, q: float) -> FabricParams:
+    pitch, relief, hair, stiff, thick, stretch, absorb = _FAMILY[construction]
+
+    def middle(lo_hi: tuple[float, float], spread: float = 0.05) -> float:
+        return float(np.mean(lo_hi) + rng.normal(0, spread * (lo_hi[1] - lo_hi[0])))
+
+    drawn = draw_fabric(rng, construction)  # colour, print, stripes, angle, phases: as any fabric
+    return replace(drawn, pitch_mm=round(pitch[0] + q * (pitch[1] - pitch[0]), 4),
+                   relief_mm=round(relief[0] + q * (relief[1] - relief[0]), 4), yarn_fill=0.8,
+                   hairiness=round(float(np.clip(middle(hair), 0, 1)), 3),
+                   stiffness=round(float(np.clip(middle(stiff), 0, 1)), 3),
+                   thickness_mm=round(middle(thick), 3), stretch=stretch, absorbency=absorb,
+                   embroidery=False, jacquard=False)
+
+
+def draw_world(n_fabrics: int, seed: int, constructions: tuple[str, ...] | None = None,
+               kind_spread: str = "drawn") -> list[FabricParams]:
     """n fabrics covering the constructions (each at least once when n allows), shuffled; with
-    ``constructions``, only those, in equal numbers (up to one)."""
+    ``constructions``, only those, in equal numbers (up to one). ``kind_spread="visible"`` (with
+    ``constructions``): a kind's fabrics differ in pitch, spread evenly over the kind's range."""
     rng = np.random.default_rng(seed)
     if constructions is not None:
         unknown = sorted(set(constructions) - set(CONSTRUCTIONS))
         if unknown:
             raise ValueError(f"unknown construction(s) {unknown}; known: {', '.join(CONSTRUCTIONS)}")
         kinds = [constructions[i % len(constructions)] for i in range(n_fabrics)]
+        if kind_spread == "visible":
+            order = [str(k) for k in rng.permutation(kinds)]
+            quantile = {}
+            for kind in sorted(set(order)):
+                slots = [i for i, k in enumerate(order) if k == kind]
+                for rank, i in enumerate(rng.permutation(len(slots))):
+                    quantile[slots[i]] = (rank + rng.uniform(0.3, 0.7)) / len(slots)
+            return [draw_fabric(rng, k, quantile[i]) for i, k in enumerate(order)]
         return [draw_fabric(rng, str(k)) for k in rng.permutation(kinds)]
     order = list(CONSTRUCTIONS) * (n_fabrics // len(CONSTRUCTIONS) + 1)
     head = list(rng.permutation(CONSTRUCTIONS))
@@ -518,7 +555,7 @@ def generate(root: str | Path, profile: str = "small", seed: int = 0, progress: 
         prof = replace(prof, n_fabrics=int(n_fabrics))
     markers = bool(markers and prof.markers)
     root = Path(root)
-    world = draw_world(prof.n_fabrics, seed, prof.constructions)
+    world = draw_world(prof.n_fabrics, seed, prof.constructions, prof.kind_spread)
     label_rng = np.random.default_rng([seed, 99])
     attrs = [label_attributes(p, label_rng) for p in world]
     w, h = prof.frame_px

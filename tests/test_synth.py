@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import hashlib
 import time
 from dataclasses import replace
@@ -252,3 +253,28 @@ def test_synth_defaults_to_the_fabricvst_sized_world():
     synth_cli.add_arguments(parser, "synth")
     prof = PROFILES[parser.parse_args(["out"]).profile]
     assert (prof.frame_px, prof.camera_px, prof.n_fabrics) == ((640, 480), 1000, 50)
+
+
+def test_the_visible_world_spreads_each_kinds_pitch_and_shares_what_the_camera_cannot_see():
+    """The demo_visible world: a kind's fabrics differ in yarn pitch, one in each quarter of the
+    kind's range (so none is another's twin), and sit near the kind's middle in what no camera sees;
+    the same world in every process (a set's order once depended on the string hash seed)."""
+    import subprocess
+    import sys
+
+    from vs2t_edge.sim.synth import _FAMILY, PROFILES, draw_world
+
+    prof = PROFILES["demo_visible"]
+    world = draw_world(prof.n_fabrics, 0, prof.constructions, prof.kind_spread)
+    for kind in prof.constructions:
+        mine = [p for p in world if p.construction == kind]
+        (lo, hi), (h_lo, h_hi) = _FAMILY[kind][0], _FAMILY[kind][2]
+        quarters = sorted(int((p.pitch_mm - lo) / (hi - lo) * len(mine)) for p in mine)
+        assert quarters == list(range(len(mine))), (kind, [p.pitch_mm for p in mine])
+        assert all(abs(p.hairiness - (h_lo + h_hi) / 2) < 0.25 * (h_hi - h_lo) + 0.01 for p in mine), kind
+        assert not any(p.embroidery or p.jacquard for p in mine)
+    code = ("from vs2t_edge.sim.synth import PROFILES, draw_world; p = PROFILES['demo_visible']; "
+            "print([f.pitch_mm for f in draw_world(p.n_fabrics, 0, p.constructions, p.kind_spread)])")
+    outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                           env={**os.environ, "PYTHONHASHSEED": str(seed)}).stdout for seed in (1, 2)}
+    assert outs == {str([p.pitch_mm for p in world]) + "\n"}
