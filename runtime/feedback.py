@@ -216,6 +216,80 @@ class GuardedEvidence:
         return self._guarded(self.adapted.decide(), final=True)
 
 
+class ZeroShotUnlessTaught:
+    """The item evidence with labels for a sum-rule bundle: its own rule decides every piece as it
+    does zero-shot, except one the labels' rule puts into a class a label taught.
+
+    A sum-rule bundle's labels rule is another operating point (its stored offset setting,
+    ``SceneModel.for_labels``), which validation may have rated far below the bundle's own. Trusted
+    with the touched classes (``GuardedEvidence``), one label - even a stranger's - moved every
+    touched piece to that point: on the demo_visible world's job touched pieces went from 83 to 25 %
+    right, and untouched pieces into a touched sibling's bin. Here what no label taught keeps the
+    bundle's decision: the zero-shot evidence's, at the press it stops. Labels only add: while the
+    labels' rule leads a taught class (``taught``: labelled untouched fabrics that are not guarded
+    twins, learned strangers) - or the bundle's rule refused the piece - the cell presses on, and the
+    piece goes to that class once the labels' rule is confident of it; else the zero-shot decision
+    stands as soon as the labels' rule decides anything else or reaches its press limit."""
+
+    def __init__(self, adapted: Evidence, zero_shot: Evidence, taught: Iterable[str]) -> None:
+        self.adapted, self.zero_shot, self.taught = adapted, zero_shot, frozenset(taught)
+        self._zero_shot_said: ItemDecision | None = None  # the bundle's decision, once its rule stopped
+        self._adapted_done = False  # the labels' rule decided a class no label taught: it sorts nothing more
+
+    @property
+    def presses(self) -> int:
+        return self.adapted.presses
+
+    @property
+    def press_limit(self) -> int:
+        return max(self.adapted.press_limit, self.zero_shot.press_limit)
+
+    @property
+    def mean_presses(self) -> int:
+        return self.adapted.mean_presses
+
+    @property
+    def z_mean(self):
+        return self.adapted.z_mean
+
+    def _taught(self, d) -> bool:
+        """Whether the labels' rule's decision ``d`` sorts the piece (a taught class, and no other
+        class decided before it)."""
+        if d is None or self._adapted_done:
+            return False
+        if d.label in self.taught:
+            return True
+        self._adapted_done = True
+        return False
+
+    def _leads_taught(self) -> bool:
+        post = self.adapted.decide().log_posterior
+        return not self._adapted_done and max(post, key=post.get) in self.taught
+
+    def add(self, score):
+        a = self.adapted.add(score)
+        if self._zero_shot_said is None:
+            self._zero_shot_said = self.zero_shot.add(score)
+        if self._taught(a):
+            return a
+        said = self._zero_shot_said
+        if said is None:
+            return None
+        if self._adapted_done or self.adapted.at_limit():
+            return self._as_pressed(said)
+        return None if said.label == UNKNOWN or self._leads_taught() else self._as_pressed(said)
+
+    def _as_pressed(self, said: ItemDecision) -> ItemDecision:
+        """The bundle's decision, with the presses the piece took (the labels' rule may have held it)."""
+        return replace(said, presses=self.adapted.presses)
+
+    def decide(self):
+        a = self.adapted.decide()
+        if self._taught(a):
+            return a
+        return self._as_pressed(self._zero_shot_said or self.zero_shot.decide())
+
+
 class TrackedEvidence:
     """A sum-rule evidence that also keeps its presses' mean projection (``z_mean``), which a later
     label of the piece reads (the offset rule's evidence keeps it itself)."""
@@ -287,6 +361,8 @@ def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str
     adapted_ev.need_at_most_touched([c for c in labelled_taught if c in scene and c not in near])
     if math.isfinite(deployed.outlier_ratio):
         adapted_ev.outlier_model = FarFromBoth(deployed, adapted)
+    if deployed.item_rule != "offset":  # the labels' rule is another operating point than the bundle's
+        return ZeroShotUnlessTaught(adapted_ev, zero_shot, [c for c in learned if c not in near])
     return GuardedEvidence(adapted_ev, zero_shot, trusted, near)
 
 
@@ -306,5 +382,5 @@ class FarFromBoth:
         return self.deployed.is_outlier_press(z, sq_distance) and self.adapted.is_outlier_press(z, sq_distance)
 
 
-__all__ = ["adapt", "item_evidence", "confusable", "GuardedEvidence", "FarFromBoth", "OFF_SCENE_PREFIX",
+__all__ = ["adapt", "item_evidence", "confusable", "GuardedEvidence", "ZeroShotUnlessTaught", "FarFromBoth", "OFF_SCENE_PREFIX",
            "TrackedEvidence", "labels_teach"]

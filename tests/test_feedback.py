@@ -413,3 +413,51 @@ def test_a_label_never_hands_the_job_to_a_rule_without_the_bundles_off_scene_rul
     assert _model(item_rule="sum", labels_rule=off, open_threshold=20.0).for_labels().open_threshold == 20.0
     assert _model(item_rule="sum", labels_rule={**off, "open_threshold": 5.0},
                   open_threshold=20.0).for_labels().open_threshold == 5.0
+
+
+def test_a_sum_rule_bundle_decides_what_no_label_taught_by_its_own_rule():
+    """A sum-rule bundle's labels rule is another operating point (its stored offset setting), which
+    validation may have rated far below the bundle's own (the demo_visible world's split: 42 % of
+    validation pieces right against 74 %). One label - here a stranger's - handed the job to it and
+    touched classes were trusted to it alone: in that world's main job touched pieces went from 83
+    to 25 % right and untouched pieces into a touched sibling's bin (found 2026-11-29, reproduced
+    here with a labels rule that needs a posterior of 0.99999). What no label taught is decided by
+    the bundle's own rule, exactly as without labels; a taught class is still the labels' rule's."""
+    from vs2t_edge.runtime.operating_point import scene_model_rule
+
+    strict = {"press_var": 1.0, "offset_var_touched": 0.1, "offset_var_untouched": 20.0, "item_temperature": 3.0,
+              "item_bias": 0.0, "known_margin": float("inf"), "open_threshold": float("inf"),
+              "confidence": 0.99999, "untouched_confidence": 0.99999}
+    deployed = SceneModel.from_params(_model(item_rule="sum", temperature=2.0, labels_rule=strict).to_params())
+
+    def make(m, classes):
+        c, o = scene_model_rule(m)
+        return Evidence(classes, c, 4, **o)
+
+    def piece(ev, z, model=deployed):
+        z = np.asarray(z, float)
+        lp, d2 = model.log_posterior_projected(z[None])
+        p = so.Press(dict(zip(model.classes, lp[0].tolist())), dict(zip(model.classes, d2[0].tolist())), z)
+        for _ in range(6):
+            if (d := ev.add(p)) is not None:
+                return d
+        return ev.decide()
+
+    strangers = {"felt": [(np.array([5.0, -40.0]), 4)]}  # one stranger label, far from these pieces
+    adapted = adapt(deployed.for_labels(), {}, strangers)
+    for z in ((0.5, 0.0), (9.5, 0.5), (0.5, 9.5)):  # a piece of denim, of silk, of wool
+        zero_shot = piece(item_evidence(deployed, deployed.for_labels(), CLASSES, {}, {}, make), z)
+        assert zero_shot.label != UNKNOWN, zero_shot
+        after = piece(item_evidence(deployed, adapted, CLASSES, {}, strangers, make), z)
+        assert (after.label, after.presses) == (zero_shot.label, zero_shot.presses), (z, after, zero_shot)
+    # the stranger the label taught still goes to the reject bin, by the labels' rule
+    felt = piece(item_evidence(deployed, adapted, CLASSES, {}, strangers, make), (5.0, -40.0))
+    assert felt.label == "off-scene:felt", felt
+    # and a class a label taught sorts pieces the bundle's own rule refused (a labels rule that sorts)
+    loose = SceneModel.from_params(_model(item_rule="sum", temperature=2.0, labels_rule={
+        **strict, "confidence": 0.9, "untouched_confidence": 0.9}).to_params())
+    wool_real = (8.0, 2.0)
+    labelled = {"wool": [(np.array(wool_real), 4)] * 3}
+    assert piece(item_evidence(loose, loose.for_labels(), CLASSES, {}, {}, make), wool_real, loose).label != "wool"
+    taught = adapt(loose.for_labels(), labelled)
+    assert piece(item_evidence(loose, taught, CLASSES, labelled, {}, make), wool_real, loose).label == "wool"
