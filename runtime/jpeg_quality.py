@@ -91,3 +91,22 @@ def quality_note(stream_quality: object, camera_jpeg: int) -> str | None:
             f"this bundle was trained {trained}: a bundle trained for this camera (`vs2t-edge train DS "
             f"--camera-jpeg {stream_quality}`, exported again) scores its frames as it trained on them "
             "(README knob table, \"training through the camera's JPEG\")")
+
+
+def camera_format_problem(camera: dict, camera_jpeg: object) -> str:
+    """Why the cell cannot score a bundle trained through the camera's MJPEG at ``camera_jpeg`` (the
+    manifest's; 0 or absent: lossless frames) on the camera a config's ``devices.camera`` section
+    describes, or '' when it can. A UVC camera streaming YUYV (``pixel_format: yuyv``) hands
+    uncompressed frames: the bundle's trunk, scene model and operating point were fitted on JPEG
+    ones, and scored on YUYV frames a tiny demo-world run trained through q90 decided 87 of its 528
+    test-job pieces otherwise than training's report (right 56.1 -> 53.4 %, mis-sorts 4.36 -> 4.55 %).
+    A quality the camera streams at (MJPEG) is read from its frames and only said (``quality_note``):
+    close qualities score close; no JPEG at all is the frames the bundle never saw."""
+    if isinstance(camera_jpeg, bool) or not isinstance(camera_jpeg, int) or camera_jpeg <= 0:
+        return ""  # lossless-trained (or a value the bundle's own check refuses, naming it)
+    if camera.get("kind") != "uvc" or camera.get("pixel_format", "mjpeg") != "yuyv":
+        return ""
+    return (f"devices.camera.pixel_format is yuyv (uncompressed frames), but the bundle was trained through the "
+            f"camera's MJPEG at q{camera_jpeg} (manifest camera_jpeg): it would score frames unlike every frame "
+            "its trunk, scene model and operating point were fitted on. Set pixel_format: mjpeg, or deploy a "
+            "bundle trained on lossless frames (`vs2t-edge train` without --camera-jpeg)")

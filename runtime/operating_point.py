@@ -37,6 +37,7 @@ from typing import Any
 from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, atomic_write, read_regular_file
+from vs2t_edge.runtime.jpeg_quality import camera_format_problem
 
 
 class OverrideFileError(ValueError):
@@ -301,7 +302,9 @@ def scene_bundle_problem(cfg, touched, untouched, manifest, scene_model) -> str:
     model ('' when they can). Every scene fabric is a class of the bundle, of the kind the scene
     says: a fabric the scene calls touched that the bundle only knows zero-shot (or the reverse) is
     a wrong config or a wrong bundle, and the cell would sort it with the wrong expectation. A
-    one-fabric scene needs an off-scene rule (``one_fabric_problem``). The start refuses the job
+    one-fabric scene needs an off-scene rule (``one_fabric_problem``). The camera must hand the frames
+    the bundle trained on (runtime/jpeg_quality.py ``camera_format_problem``: no YUYV camera for a
+    bundle trained through the camera's JPEG). The start refuses the job
     (runtime/wiring.py, on the loaded bundle); `validate-config --check-bundle` asks the same of the
     bundle's files (runtime/config_cli.py), so the unit's ExecStartPre stops what `run` would."""
     touched, untouched = list(touched), list(untouched)
@@ -326,7 +329,8 @@ def scene_bundle_problem(cfg, touched, untouched, manifest, scene_model) -> str:
     if wrong:
         return (f"{cfg.path}: scene fabric kind disagrees with bundle {cfg.bundle}: {'; '.join(wrong)} "
                 "- fix scene.fabrics[].kind, or deploy the bundle trained for this scene")
-    return one_fabric_problem(cfg, scene_model)
+    camera = camera_format_problem(getattr(cfg, "camera", None) or {}, (manifest or {}).get("camera_jpeg", 0))
+    return one_fabric_problem(cfg, scene_model) or (f"{cfg.path}: {camera}" if camera else "")
 
 
 __all__ = ["OverrideFileError", "override_path_for", "override_file_for", "resolve_beta", "read_beta_override",

@@ -230,3 +230,60 @@ def test_a_backend_handing_yuyv_shaped_hxwx2_is_converted_too(yuyv_capture):
         frame = cam.grab()
     assert frame.image.shape == (240, 320, 3) and frame.reduced_by == 2
     assert np.array_equal(frame.image, through_camera_yuyv(_texture(), 2))
+
+
+CAMERA_CFG = """\
+bundle: bundle
+threads: 1
+devices:
+  camera: {kind: uvc, pixel_format: PIXELS}
+  arm: {kind: fake, force_n: 15.0}
+  gate: {kind: fake}
+scene:
+  reject_bin: 0
+  fabrics:
+    - {name: denim, kind: touched, bin: 1}
+    - {name: silk, kind: untouched, bin: 2}
+journal: state/journal.jsonl
+"""
+
+
+@pytest.mark.parametrize("pixels, camera_jpeg, refused", [("yuyv", 90, True), ("yuyv", 0, False),
+                                                          ("mjpeg", 90, False), ("mjpeg", 0, False)])
+def test_a_bundle_trained_through_the_cameras_jpeg_is_refused_on_a_yuyv_camera(tmp_path, capsys, pixels,
+                                                                               camera_jpeg, refused):
+    """A bundle trained through the camera's MJPEG (manifest ``camera_jpeg``) was fitted - trunk, scene
+    model and operating point - on JPEG frames; a YUYV camera never hands one. The cell scored the
+    uncompressed frames anyway, without a word: on the demo world a tiny run trained through q90 put
+    87 of its 528 test-job pieces elsewhere than training's report did (right 56.1 -> 53.4 %, mis-sorts
+    4.36 -> 4.55 %). Refused at start and by `validate-config --check-bundle`, naming both keys."""
+    import json
+    from types import SimpleNamespace
+
+    import numpy as np
+    from feedback_fakes import scene_model
+
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.config import load_config
+    from vs2t_edge.runtime.wiring import check_scene_against_bundle
+
+    (tmp_path / "bundle").mkdir()
+    sm = scene_model(untouched=frozenset({"silk"}))
+    np.savez(tmp_path / "bundle" / "decision.npz", **sm.to_params())
+    classes = {"touched": ["denim"], "untouched": ["silk"]}
+    manifest = {"format": "vs2t-bundle", "format_version": 3, "classes": classes, "decision": {"file": "decision.npz"},
+                **({"camera_jpeg": camera_jpeg} if camera_jpeg else {})}
+    (tmp_path / "bundle" / "manifest.json").write_text(json.dumps(manifest))
+    path = tmp_path / "cell.yaml"
+    path.write_text(CAMERA_CFG.replace("PIXELS", pixels))
+    code = main(["validate-config", str(path), "--check-bundle"])
+    err = capsys.readouterr().err
+    loaded = SimpleNamespace(touched=classes["touched"], untouched=classes["untouched"], scene_model=sm,
+                             manifest=manifest, camera_jpeg=camera_jpeg)
+    if not refused:
+        assert code == 0, err
+        check_scene_against_bundle(load_config(path), loaded)
+        return
+    assert code == 2 and "devices.camera.pixel_format" in err and "camera_jpeg" in err, err
+    with pytest.raises(ValueError, match=r"pixel_format is yuyv.*trained through the camera's MJPEG at q90"):
+        check_scene_against_bundle(load_config(path), loaded)  # what the start says
