@@ -110,3 +110,31 @@ def test_a_cache_of_frames_since_replaced_in_the_same_folder_is_not_reused(tmp_p
     assert not np.array_equal(again.stem_t[0], first.stem_t[0])
     trained = _stems_through_tail(trunk, again.stem_t[:1])
     assert np.abs(trained - exported).max() <= 1e-2 * np.abs(exported).max()
+
+
+def test_a_cache_of_another_preprocessing_is_not_reused(tmp_path):
+    """The key held the pixel path (reduce, camera JPEG, its scale) but not the rest of the
+    preprocessing the bundle ships and the cell runs: a run whose crop, normalisation, reference use
+    or sensor corrections differ from the cache's (a TactilePreprocess default changed, a profile
+    that sets one) fine-tuned its tails and fitted its scene model on stems of the old frames' input.
+    A cache of the preprocessing every run so far used keeps its key (no extraction again)."""
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.train import features as ft
+    from vs2t_edge.train.run import PROFILES, get_cache
+    from vs2t_edge.train.trunks import build_trunk
+
+    world = tiny_world()
+    prof = replace(PROFILES["tiny"], max_presses=3)
+    torch.manual_seed(0)
+    trunk = build_trunk("tiny").eval()
+    plain = TactilePreprocess(size=prof.size_px)
+    first = get_cache(world, prof, tmp_path, trunk, plain)
+    assert set(first.meta) == {"size", "arch", "max_presses", "version", "dataset", "trunk_sha256",
+                               "dataset_files_sha256"}  # the key every float-path, lossless cache has had
+    for other in (replace(plain, std=(0.1, 0.1, 0.1)), replace(plain, crop_fraction=0.8),
+                  replace(plain, use_reference=False), replace(plain, mean=(0.01, 0.0, 0.0)),
+                  replace(plain, normalise_exposure=True)):
+        again = get_cache(world, prof, tmp_path, trunk, other)
+        assert again.meta != first.meta, other
+        assert not np.array_equal(again.stem_t, first.stem_t), other
+        assert again.meta == ft.stem_cache_key(world, trunk, prof.size_px, prof.max_presses, other, 0)

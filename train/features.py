@@ -186,12 +186,23 @@ def stem_cache_key(dataset_root: Path, trunk: Trunk, size: int, max_presses: int
             **cache_key_extra(spec, camera_jpeg)}
 
 
+# The rest of the preprocessing as every run so far has used it (TactilePreprocess's defaults when
+# the key left them out), written out here so that a default changed later changes the key too.
+_KEYED_AS_BEFORE = {"crop_fraction": 1.0, "mean": (0.0, 0.0, 0.0), "std": (0.08, 0.08, 0.08), "use_reference": True,
+                    "inpaint_markers": False, "normalise_exposure": False}
+
+
 def cache_key_extra(spec, camera_jpeg: int) -> dict:
     """The feature cache's key beyond size, trunk, presses and dataset: the pixel path, the
     camera's JPEG and the scale it is decoded at, each only when set (a float-path, lossless cache
-    keeps its old key, and a JPEG cache of full decodes its own)."""
+    keeps its old key, and a JPEG cache of full decodes its own); and every other field of the
+    preprocessing that differs from what the key assumed before it held them (``_KEYED_AS_BEFORE``):
+    stems of another crop, normalisation, reference use or sensor correction are another input."""
+    other = {k: (tuple(float(x) for x in v) if isinstance(v, (tuple, list)) else v)
+             for k, v in ((k, getattr(spec, k)) for k in _KEYED_AS_BEFORE)}
     return {**({"reduce": spec.reduce} if spec.reduce else {}), **({"camera_jpeg": camera_jpeg} if camera_jpeg else {}),
-            **({"jpeg_scale": spec.jpeg_scale} if spec.jpeg_scale > 1 else {})}
+            **({"jpeg_scale": spec.jpeg_scale} if spec.jpeg_scale > 1 else {}),
+            **{f"preprocess_{k}": repr(v) for k, v in other.items() if v != _KEYED_AS_BEFORE[k]}}
 
 
 def descriptor_table(dataset_root: Path, name: str, max_presses: int | None = None,
