@@ -116,6 +116,10 @@ class UVCCamera(CameraBase):
         if pixel_format not in PIXEL_FORMATS:
             raise ValueError(f"pixel_format must be one of {PIXEL_FORMATS}, got {pixel_format!r}")
         self.decode_scale = decode_scale  # > 1: MJPEG taken undecoded and decoded at 1/decode_scale
+        # MJPEG taken undecoded at full scale too: a bundle trained through the camera's JPEG (manifest
+        # camera_jpeg; runtime/wiring.py match_camera sets it). Left to itself, OpenCV's V4L2 backend
+        # picks YUYV before MJPEG, frames that bundle never trained on, with no quality to read.
+        self.take_mjpeg = False
         self.pixel_format = pixel_format  # yuyv: raw frames, made BGR (at 1/decode_scale) here
         if flush_frames < 0:
             raise ValueError("flush_frames must be >= 0")
@@ -196,7 +200,7 @@ class UVCCamera(CameraBase):
         applied: dict[str, object] = {}
         # the format before the size: V4L2 sizes and rates are per format, and a format set after
         # them may change them (what the driver runs is read back once all are set, below)
-        fourcc = "YUYV" if self.pixel_format == "yuyv" else "MJPG" if self.decode_scale > 1 else None
+        fourcc = "YUYV" if self.pixel_format == "yuyv" else "MJPG" if self._mjpeg_undecoded else None
         if fourcc:
             cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*fourcc)))
         sizes = (("width", cv2.CAP_PROP_FRAME_WIDTH), ("height", cv2.CAP_PROP_FRAME_HEIGHT), ("fps", cv2.CAP_PROP_FPS))
@@ -233,7 +237,7 @@ class UVCCamera(CameraBase):
                 err.reason = "pixel_format"
                 raise err
             applied["yuyv_raw"] = _raw_frames(cap)
-        elif self.decode_scale > 1:
+        elif self._mjpeg_undecoded:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)
             applied["mjpeg_undecoded"] = _raw_frames(cap)
         applied["decode_scale"] = self.decode_scale  # 1/n: devices.camera.decode_scale for this bundle
@@ -324,7 +328,7 @@ class UVCCamera(CameraBase):
                               kind="unplugged")
         if self.pixel_format == "yuyv" and (is_compressed(image) or _two_channel(image)):
             return self._guard.admit(self._from_yuyv(image), reduced_by=self.decode_scale, taken_s=taken)
-        if self.decode_scale > 1 and is_compressed(image):
+        if self._mjpeg_undecoded and is_compressed(image):
             decoded = decode_jpeg(image, self.decode_scale)
             # a frame cut short in transit decodes with its lost part filled (runtime/jpeg_integrity.py)
             why = ("that do not decode as a JPEG (a truncated MJPEG frame?)" if decoded is None
@@ -337,6 +341,11 @@ class UVCCamera(CameraBase):
         if self.pixel_format == "mjpeg" and isinstance(image, np.ndarray) and image.ndim == 3:
             self._refuse_damaged(damaged_jpeg(None, image), "decoded by the backend,")  # its fill tells
         return self._guard.admit(image, taken_s=taken)  # decoded by the backend: a full frame (the fallback)
+
+    @property
+    def _mjpeg_undecoded(self) -> bool:
+        """Whether the MJPEG stream is asked for and taken undecoded (decoded here at 1/decode_scale)."""
+        return self.pixel_format == "mjpeg" and (self.decode_scale > 1 or self.take_mjpeg)
 
     def _refuse_damaged(self, why: str, what: str) -> None:
         if why:

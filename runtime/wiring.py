@@ -170,10 +170,14 @@ def decode_scale_note(model: Any, setting: str) -> str:
 
 def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:
     """Before connect: a UVC camera decodes its frames at the scale ``model_decode_scale`` gives
-    ``model``'s bundle for the camera's configured size; other cameras hand full frames, which the
-    model reduces itself (reduced path) or takes whole (float path)."""
+    ``model``'s bundle for the camera's configured size, and takes the MJPEG stream (undecoded, its
+    quality read) whenever the bundle was trained through the camera's JPEG - at full scale too,
+    where the driver would otherwise pick the format (YUYV, in OpenCV's V4L2 backend); other cameras
+    hand full frames, which the model reduces itself (reduced path) or takes whole (float path)."""
     if isinstance(camera, UVCCamera):
         camera.decode_scale = model_decode_scale(model, camera.expected_hw, setting, camera.pixel_format)
+        # a bundle trained through the camera's JPEG gets the MJPEG stream at any scale (runtime/camera.py)
+        camera.take_mjpeg = bool(int(getattr(model, "camera_jpeg", 0) or 0))
 
 
 def build_live_devices(cfg: CellConfig):

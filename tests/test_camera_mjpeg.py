@@ -193,3 +193,51 @@ def test_a_float_path_bundle_scores_what_its_uvc_camera_decodes_reduced(mjpeg_ca
     match_camera(cam, model, "full")
     with cam:
         assert cam.grab().image.shape == (480, 640, 3)
+
+
+class _DefaultYuyvCapture(_MjpegCapture):
+    """A UVC camera offering YUYV and MJPEG that streams YUYV until asked for MJPG (OpenCV's V4L2
+    backend prefers YUYV to MJPEG when it picks the format itself); its MJPEG is at quality 90."""
+
+    def read(self):
+        ok, frame = _RecordingCapture.read(self)
+        frame = cv2.GaussianBlur(frame, (5, 5), 0)
+        if self.props.get(cv2.CAP_PROP_FOURCC) != float(cv2.VideoWriter_fourcc(*"MJPG")):
+            return ok, frame  # YUYV made BGR by the backend: no JPEG loss
+        jpeg = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 90])[1]
+        if self.props.get(cv2.CAP_PROP_CONVERT_RGB, 1.0) != 0:
+            return ok, cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
+        return ok, jpeg.reshape(1, -1).copy()
+
+
+@pytest.mark.parametrize("model_kind, camera_jpeg, setting", [("trunk", 90, "full"), ("descriptor", 90, "auto"),
+                                                              ("trunk", 0, "full")])
+def test_a_bundle_trained_through_the_cameras_jpeg_gets_the_mjpeg_stream_at_full_scale(monkeypatch, model_kind,
+                                                                                      camera_jpeg, setting):
+    """A bundle trained through the camera's MJPEG that the camera decodes at full size - a descriptor
+    bundle, `decode_scale: full`, a float-path bundle trained on full decodes - had the camera left
+    in the format the driver picks: OpenCV's V4L2 backend picks YUYV before MJPEG, and the bundle
+    scored uncompressed frames it never trained on, with no quality read to say so (the same frames
+    refused for an explicit `pixel_format: yuyv`). It now asks for MJPEG and takes it undecoded,
+    decodes it at full size itself and reads its quality; a lossless-trained bundle is left as it was."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.runtime.wiring import match_camera
+
+    _RecordingCapture.instances = []
+    monkeypatch.setattr(cv2, "VideoCapture", _DefaultYuyvCapture)
+    model = SimpleNamespace(preprocess_spec=TactilePreprocess(size=128), camera_jpeg=camera_jpeg,
+                            descriptor=object() if model_kind == "descriptor" else None)
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640))
+    match_camera(cam, model, setting)
+    assert cam.decode_scale == 1
+    with cam:
+        frame = cam.grab()
+    asked_mjpeg = (cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter_fourcc(*"MJPG"))) in _RecordingCapture.instances[0].sets
+    assert frame.image.shape == (480, 640, 3) and frame.reduced_by == 1
+    if camera_jpeg:
+        assert asked_mjpeg and cam.settings_applied["mjpeg_undecoded"] is True
+        assert cam.settings_applied["mjpeg_quality"] == 90  # read from the frame, said if it is not the bundle's
+    else:
+        assert not asked_mjpeg and "mjpeg_undecoded" not in cam.settings_applied
