@@ -246,6 +246,8 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
                         "beta": _float_or_none(getattr(model, "beta", None)), "load_s": round(load_s, 3)})
         if runs:
             log("camera runs: " + ", ".join(f"{k} {v}" for k, v in runs.items()))
+        if note := wiring.decode_fallback_note(model, camera):  # a backend that decodes what the bundle trained on
+            log(f"{cfg.path}: {note}")
     except JournalError as exc:  # e.g. the disk is full: nothing may move without a journal
         log(f"journal {cfg.journal}: cannot write the start record ({exc}); free space or fix the state "
             "folder, then start again")

@@ -168,6 +168,29 @@ def decode_scale_note(model: Any, setting: str) -> str:
             "trained - remove the key (auto) to decode as it trained")
 
 
+def decode_fallback_note(model: Any, camera: Any) -> str:
+    """What the start log says when a connected UVC camera's backend decodes the MJPEG itself (the
+    fallback: ``settings_applied["mjpeg_undecoded"]`` false) for a bundle trained through the camera's
+    JPEG: the stream's quality cannot be read against the bundle's, and a bundle trained on decodes
+    at 1/n (``camera_scale``) scores the backend's full decodes, not as it trained (on the demo
+    world, a tiny run at q90 and 1/2 decided 61 of 528 test-job pieces otherwise so). '' otherwise: a
+    lossless-trained bundle's fallback is training's own path."""
+    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    spec = getattr(model, "preprocess_spec", None)
+    applied = getattr(camera, "settings_applied", None)
+    if not q or spec is None or not isinstance(camera, UVCCamera) or not isinstance(applied, dict) \
+            or applied.get("mjpeg_undecoded") is not False:
+        return ""
+    note = (f"the camera's backend decodes its MJPEG itself (it did not take CAP_PROP_CONVERT_RGB 0): the stream's "
+            f"quality cannot be read to check it against the q{q} this bundle trained through")
+    n = camera_scale(spec) if getattr(model, "descriptor", None) is None else 1
+    if n > 1:
+        how = "reduced by a box average" if spec.reduce else "on the float path"
+        note += (f"; and it trained on that JPEG decoded at 1/{n}: the backend's full decodes are scored {how}, not as "
+                 "it trained (OpenCV's V4L2 backend hands the MJPEG undecoded)")
+    return note
+
+
 def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:
     """Before connect: a UVC camera decodes its frames at the scale ``model_decode_scale`` gives
     ``model``'s bundle for the camera's configured size, and takes the MJPEG stream (undecoded, its
@@ -223,4 +246,4 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
 
 __all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
            "model_crop_fraction",
-           "DECODE_SCALES", "model_decode_scale", "match_camera", "build_live_devices", "build_cell"]
+           "DECODE_SCALES", "model_decode_scale", "decode_fallback_note", "match_camera", "build_live_devices", "build_cell"]

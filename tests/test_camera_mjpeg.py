@@ -241,3 +241,34 @@ def test_a_bundle_trained_through_the_cameras_jpeg_gets_the_mjpeg_stream_at_full
         assert cam.settings_applied["mjpeg_quality"] == 90  # read from the frame, said if it is not the bundle's
     else:
         assert not asked_mjpeg and "mjpeg_undecoded" not in cam.settings_applied
+
+
+@pytest.mark.parametrize("camera_jpeg, reduce, jpeg_scale, said", [(90, 0, 2, True), (90, 2, 1, True), (90, 0, 1, True),
+                                                                  (0, 0, 1, False), (0, 2, 1, False)])
+def test_a_backend_that_decodes_the_mjpeg_itself_is_said_for_a_bundle_trained_through_it(
+        mjpeg_capture, camera_jpeg, reduce, jpeg_scale, said):
+    """The fallback - a backend that will not hand the MJPEG undecoded - gives full frames the
+    backend decoded: a bundle trained through the camera's JPEG at 1/2 (or on the reduced path, at
+    1/reduce) then scores full decodes, not as it trained (a tiny demo-world run at q90 and 1/2:
+    61 of 528 test-job pieces decided otherwise than training's report), and no quality is read to
+    tell. The start log says it (as for `decode_scale: full`); for a lossless-trained bundle the
+    fallback is training's own path (the box average) and nothing is said."""
+    from types import SimpleNamespace
+
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.runtime.wiring import decode_fallback_note, match_camera
+
+    _MjpegCapture.undecoded = False
+    model = SimpleNamespace(preprocess_spec=TactilePreprocess(size=128, reduce=reduce, jpeg_scale=jpeg_scale),
+                            camera_jpeg=camera_jpeg, descriptor=None)
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640))
+    match_camera(cam, model)
+    with cam:
+        note = decode_fallback_note(model, cam)
+        assert cam.settings_applied["mjpeg_undecoded"] is False
+    assert bool(note) == said, note
+    if said:
+        assert f"q{camera_jpeg}" in note and "CAP_PROP_CONVERT_RGB" in note
+    _MjpegCapture.undecoded = True
+    with cam:
+        assert decode_fallback_note(model, cam) == ""  # undecoded as asked: as it trained
