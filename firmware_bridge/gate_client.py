@@ -95,6 +95,25 @@ def timing_problems(timeout_s: float, retries: int,
     return problems
 
 
+MOVE_TIMEOUT_S = p.MOVE_TIMEOUT_MS / 1000  # the longest a working flap may take to reach a bin (then: a jam)
+
+
+def move_problems(timeout_s: float, move_time_s: float = MOVE_TIMEOUT_S) -> list[str]:
+    """Why a try of ``timeout_s`` is too short for the gate's flap, in words ([] = long enough).
+
+    The gate ACKs a SORT or CLEAR only once the flap reached its bin (docs/protocol.md), and a
+    retransmission is ignored while it moves: a try no longer than the move times out, and so does
+    each retransmission of it until the move ends - the first sort (or connect's CLEAR) a gate
+    fault. A working flap may take up to the firmware's MOVE_TIMEOUT. The cell config refuses such a
+    ``timeout_s`` (runtime/config.py); the driver itself takes it, for simulated gates whose flap
+    moves faster (``start_simulated_gate(move_time_ms=...)``)."""
+    if timeout_s <= move_time_s:
+        return [f"not longer than the flap's move time of up to {move_time_s:g} s (the gate's MOVE_TIMEOUT): the "
+                f"gate ACKs a sort only when the flap is there, so a try of {timeout_s:g} s times out on a slow move "
+                "and the gate faults at the first piece"]
+    return []
+
+
 WRITE_TIMEOUT_S = 0.25  # a frame is ~10 bytes: a write the line has not taken by then has failed
 HEARTBEAT_STOP_SLACK_S = 0.5  # stop_heartbeat(): the thread's last look at its stop flag
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from vs2t_edge.firmware_bridge.gate_client import move_problems as gate_move_problems
 from vs2t_edge.firmware_bridge.gate_client import timing_problems as gate_timing_problems
 from vs2t_edge.firmware_bridge.protocol import REJECT_BIN as GATE_REJECT_BIN
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
@@ -455,6 +456,8 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         for problem in gate_timing_problems(gate["timeout_s"], gate["retries"]):
             chk.err("devices.gate.timeout_s", f"devices.gate.timeout_s = {gate['timeout_s']!r}, retries = "
                                               f"{gate['retries']!r}: the gate driver refuses them: {problem}")
+        for problem in gate_move_problems(gate["timeout_s"]):  # the driver takes it; the live gate's flap does not
+            chk.err("devices.gate.timeout_s", f"devices.gate.timeout_s = {gate['timeout_s']!r}: {problem}")
     if not chk.problems:  # the watchdog budget needs every number valid
         bounds = bounds_of(cam, arm_sec["kind"], arm_cfg, gate)
         for key, problem in watchdog_problems(bounds, v["watchdog"]["wait_item_timeout_s"]):

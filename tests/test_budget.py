@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from cell_fakes import FakeEvidence, FakeModel
-from vs2t_edge.firmware_bridge.gate_client import GateClient, timing_problems
+from vs2t_edge.firmware_bridge.gate_client import GateClient, GateClientError, timing_problems
+from vs2t_edge.firmware_bridge.gate_client import move_problems as gate_move_problems
 from vs2t_edge.sim.fake_devices import FakeArm
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, StepBounds, allowed_wait_s, bounds_of, unleased_waits
 from vs2t_edge.runtime.cell import Cell, SceneSpec
@@ -54,6 +55,44 @@ def test_a_gate_timeout_the_driver_refuses_is_refused_by_validation(tmp_path):
     assert f"{path}:{line}:" in str(err.value)  # file and line of the key, as every config problem
 
 
+def test_a_gate_timeout_shorter_than_the_flaps_move_is_refused_by_validation(tmp_path):
+    """The gate ACKs a SORT (and connect's CLEAR) only once its flap reached the bin, which a working
+    flap may take up to the firmware's MOVE_TIMEOUT (0.3 s) to do. `timeout_s: 0.2` passed validation,
+    and every try of a slow move timed out (a retransmission is ignored while the flap moves): a
+    latched gate fault at connect or at the first piece. Refused now, naming the key and both values."""
+    path = _cfg(tmp_path, timeout=0.2)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    msg = str(err.value)
+    assert "devices.gate.timeout_s = 0.2" in msg and "0.3 s" in msg and "move" in msg, msg
+    line = next(n for n, text in enumerate(path.read_text().splitlines(), 1) if "timeout_s: 0.2" in text)
+    assert f"{path}:{line}:" in msg
+    p = subprocess.run([sys.executable, "-m", "vs2t_edge.cli", "validate-config", str(path)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "devices.gate.timeout_s = 0.2" in p.stderr and "0.3 s" in p.stderr, p.stderr
+    load_config(_cfg(tmp_path, timeout=0.35))  # longer than the longest move: accepted
+
+
+def test_what_the_move_rule_prevents_a_slow_flap_outlasts_every_short_try():
+    """The simulated MCU with a 250 ms move (inside MOVE_TIMEOUT): with tries of 0.2 s the driver's
+    CLEAR at connect never gets its ACK; with 0.35 s it does."""
+    from vs2t_edge.firmware_bridge.mcu_sim import start_simulated_gate
+
+    for timeout, ok in ((0.2, False), (0.35, True)):
+        path, sim = start_simulated_gate(move_time_ms=250)
+        client = GateClient(path, timeout_s=timeout, retries=0)
+        try:
+            client.connect()
+            connected = True
+        except GateClientError as exc:
+            connected = False
+            assert exc.kind == "timeout"
+        finally:
+            client.disconnect()
+            sim.stop()
+        assert connected == ok == (not gate_move_problems(timeout)), timeout
+
+
 @pytest.mark.parametrize("timeout, retries", list(itertools.product([0.05, 0.3, 0.7, 0.74, 0.75, 0.9, 10.0], [0, 3, 10])))
 def test_validation_passes_exactly_what_the_gate_driver_accepts(tmp_path, timeout, retries):
     try:
@@ -66,7 +105,9 @@ def test_validation_passes_exactly_what_the_gate_driver_accepts(tmp_path, timeou
         config_ok = True
     except ConfigError:
         config_ok = False
-    assert config_ok == driver_ok == (not timing_problems(timeout, retries))
+    # the driver takes a try shorter than the flap's move (a simulator's flap moves in 60 ms); a cell config does not
+    assert driver_ok == (not timing_problems(timeout, retries))
+    assert config_ok == (driver_ok and not gate_move_problems(timeout))
 
 
 def test_run_refuses_a_gate_the_driver_rejects_in_words_not_a_traceback(tmp_path):
@@ -203,7 +244,7 @@ def test_every_device_a_valid_config_describes_can_be_built(tmp_path, edge):
         camera={"kind": "uvc", "device": "/dev/null-camera", "width_px": 16 if low else 4096,
                 "height_px": 16 if low else 4096, "fps": 1 if low else 240, "timeout_s": 0.05 if low else 10,
                 "flush_frames": 0 if low else 30, "frozen_after": 2 if low else 100},
-        gate={"kind": "serial", "url": "/dev/null", "timeout_s": 0.05 if low else 0.74, "retries": 0 if low else 10},
+        gate={"kind": "serial", "url": "/dev/null", "timeout_s": 0.31 if low else 0.74, "retries": 0 if low else 10},
         watchdog={"wait_item_timeout_s": 0.01 if low else 26})
     (tmp_path / "cell.yaml").write_text(text)
     cfg = load_config(tmp_path / "cell.yaml")
