@@ -70,10 +70,13 @@ def run(args) -> int:
             print(f"label: --list {args.list}: give how many pieces to list (1 or more)", file=sys.stderr)
             return 2
         try:
-            print("\n".join(rejected_pieces(cfg, args.list)))
+            listed = rejected_pieces(cfg, args.list)
         except (OSError, ValueError) as exc:  # ValueError: InputRefused (a FIFO or a huge labels file)
             print(f"label: {exc}", file=sys.stderr)
             return 2
+        # printed outside the try: a reader that closed the pipe (`--list | head`) is no journal error
+        # (vs2t_edge/cli.py ends quietly on it)
+        print("\n".join(listed))
         return 0
     if args.last is not None:
         if args.item_id is not None or args.retract:

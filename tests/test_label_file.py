@@ -373,3 +373,23 @@ def test_a_line_read_again_that_changed_nothing_live_changes_nothing_in_the_repl
     assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == [UNKNOWN, "wool", UNKNOWN, UNKNOWN]
     report = run_replay(out, model=Model())
     assert report.ok, (report.diverged, report.mismatches[:3])
+
+
+def test_label_list_into_a_reader_that_stops_early_exits_quietly(tmp_path):
+    """`vs2t-edge label CONFIG --list | head` printed "label: [Errno 32] Broken pipe" (and exit 2):
+    a reader that has seen enough closing the pipe is no error. Now nothing on stderr."""
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(journal="state/journal.jsonl", evidence={"operator_labels": "labels.jsonl"}))
+    (tmp_path / "state").mkdir()
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        for i in range(1, 2001):  # more lines than a pipe's buffer holds: the writer meets the closed pipe
+            for kind in ("pre_sort", "final"):
+                j.append({"type": kind, "item": i, "item_id": f"piece-{i:06d}", "label": UNKNOWN, "bin": 0,
+                          **({"stopped_by": "press_limit"} if kind == "pre_sort" else {"outcome": "sorted"})})
+    p = subprocess.run(["sh", "-c", f'"{sys.executable}" -m vs2t_edge.cli label "{cfg}" --list 2000 | head -n 2'],
+                       capture_output=True, text=True, timeout=120)
+    assert len(p.stdout.splitlines()) == 2 and "piece-000001" in p.stdout, p.stdout
+    assert p.stderr == "", p.stderr

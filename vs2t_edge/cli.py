@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import os
 import sys
 from typing import Sequence
 
@@ -126,7 +127,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     module.add_arguments(verb_parser, verb)
     args = verb_parser.parse_args(rest)
     args.verb = verb
-    return int(module.run(args) or 0)
+    try:
+        code = int(module.run(args) or 0)
+        sys.stdout.flush()  # here, not at exit: a closed pipe is caught below, not printed by the interpreter
+    except BrokenPipeError:
+        return _stdout_closed()
+    return code
+
+
+EXIT_STDOUT_CLOSED = 128 + 13  # 128 + SIGPIPE: what a shell reports for a C tool ended by `| head`
+
+
+def _stdout_closed() -> int:
+    """The reader of stdout closed it early (`vs2t-edge label CONFIG --list | head`): no traceback, no
+    "Broken pipe" line. stdout is pointed at /dev/null so the interpreter's flush at exit says nothing."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # stdout is no file descriptor (a test's StringIO): nothing left to flush
+        pass
+    return EXIT_STDOUT_CLOSED
 
 
 if __name__ == "__main__":  # pragma: no cover
