@@ -28,7 +28,7 @@ from dataclasses import replace
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.labels import append_label, judged_anew, read_labels
+from vs2t_edge.runtime.labels import alike_fabric, append_label, judged_anew, read_labels, scene_fabric, typed_name
 from vs2t_edge.runtime.journal import iter_records
 
 
@@ -84,6 +84,10 @@ def run(args) -> int:
                   file=sys.stderr)
             return 2
         args.fabric = args.last
+    if args.item_id is not None:
+        args.item_id = typed_name(args.item_id)
+    if args.fabric is not None:  # as the scene spells it when it is one of its fabrics (the service compares exactly)
+        args.fabric = scene_fabric(args.fabric, cfg.scene_classes) or typed_name(args.fabric)
     if args.retract:
         if args.item_id is None or args.fabric is not None or args.off_scene:
             print("label: --retract takes ITEM_ID alone (to correct a label, label the piece again)", file=sys.stderr)
@@ -103,7 +107,7 @@ def run(args) -> int:
         print("label: give ITEM_ID and FABRIC (or --list to see the pieces in the reject bin)", file=sys.stderr)
         return 2
     in_scene = args.fabric in cfg.scene_classes
-    if not in_scene and (alike := _same_name(args.fabric, cfg.scene_classes)) is not None:
+    if not in_scene and (alike := alike_fabric(args.fabric, cfg.scene_classes)) is not None:
         # 'WOOL' for wool: as a stranger, wool's own presses would teach the cell to reject wool
         print(f"label: {args.fabric!r} is not a fabric of the scene in {cfg.path}, but {alike!r} is (names are "
               f"exact): label it {alike}", file=sys.stderr)
@@ -127,14 +131,6 @@ def run(args) -> int:
             "touched": f" ({args.fabric} is touched: recorded, its mean stays the training one)"}[kind]
     print(f"{args.item_id} labelled {args.fabric} in {cfg.operator_labels}{note}{decided}")
     return 0
-
-
-def _same_name(fabric: str, scene_classes) -> str | None:
-    """The scene's fabric ``fabric`` names but for case, spaces, '-' and '_', or None."""
-    def key(name: str) -> str:
-        return "".join(c for c in name.casefold() if c not in " -_")
-
-    return next((c for c in scene_classes if key(c) == key(fabric)), None)
 
 
 def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import unicodedata
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -32,6 +33,33 @@ JOURNAL_DECIMALS = 5  # of a pre_sort record's scene_z_mean, what live and resta
 
 MAX_LABEL_LINE_BYTES = 4096
 MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; a new file per job (at a new path) long before
+
+
+def typed_name(name: str) -> str:
+    """A name as typed, composed (Unicode NFC): 'é' sent decomposed by another keyboard or system
+    (e + a combining accent, NFD) is the same name, byte for byte, as the config's."""
+    return unicodedata.normalize("NFC", name)
+
+
+def name_key(name: str) -> str:
+    """A fabric name with case, letter width, spaces, '-' and '_' set aside: two names with one key are
+    one fabric to a person ('WOOL', 'wool ', 'Ｗｏｏｌ' for wool)."""
+    folded = unicodedata.normalize("NFKC", unicodedata.normalize("NFKC", name).casefold())
+    return "".join(c for c in folded if c not in "-_" and not c.isspace())
+
+
+def scene_fabric(name: str, scene: Iterable[str]) -> str | None:
+    """The fabric of ``scene`` that ``name`` spells as Unicode text (``typed_name``), in the scene's own
+    spelling; None when it names none."""
+    typed = typed_name(name)
+    return next((c for c in scene if typed_name(c) == typed), None)
+
+
+def alike_fabric(name: str, scene: Iterable[str]) -> str | None:
+    """The fabric of ``scene`` that ``name`` names but for case, width, spaces, '-' or '_' (``name_key``),
+    or None."""
+    key = name_key(name)
+    return next((c for c in scene if name_key(c) == key), None)
 
 
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
@@ -154,10 +182,17 @@ class OperatorFeedback:
         else why not. A piece's earlier label is replaced (``item_labels``), never added to; by a
         touched fabric's (which teaches nothing) it is withdrawn; so it is by a label this job cannot
         apply - the piece's latest label says what it was, so the earlier one is wrong whatever job
-        reads it (a restart into another job judges each journalled label again, ``restore``)."""
-        if off_scene and fabric in self.scene:
+        reads it (a restart into another job judges each journalled label again, ``restore``). Names
+        are Unicode text (``typed_name``): a job fabric spelt decomposed is that fabric; and an
+        off-scene name that is a job fabric's but for case or spaces (``alike_fabric``) names that
+        fabric, whose presses must not teach a stranger (its next pieces to the reject bin)."""
+        fabric = typed_name(fabric)
+        if not off_scene:
+            fabric = scene_fabric(fabric, self.scene) or fabric
+        if off_scene and (alike := alike_fabric(fabric, self.scene)) is not None:
             return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild,
-                                          f"{fabric!r} is a fabric of this job, not an off-scene one")
+                                          f"{fabric!r} is a fabric of this job"
+                                          + (f" ({alike!r})" if alike != fabric else "") + ", not an off-scene one")
         if not off_scene and fabric not in self.scene:
             return self._withdraw_earlier(item_id, (fabric, off_scene), rebuild, f"{fabric!r} is not a fabric of "
                                           "this job (an off-scene piece is labelled with off_scene)")
@@ -180,7 +215,7 @@ class OperatorFeedback:
         stays): left in force it would teach its class the presses of a piece the operator has
         since called something else - the next pieces of that fabric into the wrong bin."""
         earlier = self.item_labels.get(item_id)
-        if earlier is None or earlier[0] == label[0]:  # the same fabric, named as this job or another needs
+        if earlier is None or name_key(earlier[0]) == name_key(label[0]):  # the same fabric, named as this job or another needs
             return why
         self._retract(item_id, rebuild)
         return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"
@@ -369,5 +404,5 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["append_label", "read_labels", "judged_anew", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+__all__ = ["append_label", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric", "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

@@ -393,3 +393,48 @@ def test_label_list_into_a_reader_that_stops_early_exits_quietly(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert len(p.stdout.splitlines()) == 2 and "piece-000001" in p.stdout, p.stdout
     assert p.stderr == "", p.stderr
+
+
+MERINO = "laine-m\u00e9rinos"  # composed (NFC), as the config and the bundle spell it
+MERINO_NFD = "laine-me\u0301rinos"  # the same name as another keyboard (or a Mac's file dialog) sends it
+
+
+def test_a_fabric_name_typed_decomposed_is_the_scenes_fabric(tmp_path, capsys):
+    """The label verb compared the typed name with the scene's byte for byte: 'laine-mérinos' typed
+    decomposed (NFD) was 'not a fabric of the scene' - and with --off-scene became a stranger that
+    taught the cell to reject the job's own merino. Names are compared as Unicode text now (NFC),
+    and the label is written in the scene's own spelling, which the service compares exactly."""
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(fake_cell_yaml(fabrics=(("denim", "touched", 1), (MERINO, "untouched", 2)),
+                                  journal="state/journal.jsonl", evidence={"operator_labels": "labels.jsonl"}))
+    (tmp_path / "state").mkdir()
+    with Journal.open(tmp_path / "state" / "journal.jsonl") as j:
+        j.append({"type": "pre_sort", "item_id": "piece-000001", "label": UNKNOWN, "presses": 5})
+    assert main(["label", str(cfg), "piece-000001", MERINO_NFD, "--off-scene"]) == 2
+    assert "drop --off-scene" in capsys.readouterr().err  # merino's presses must not teach a stranger
+    assert main(["label", str(cfg), "piece-000001", MERINO_NFD.upper(), "--off-scene"]) == 2
+    assert f"but {MERINO!r} is" in capsys.readouterr().err
+    assert main(["label", str(cfg), "piece-000001", MERINO_NFD]) == 0, capsys.readouterr().err
+    assert main(["label", str(cfg), "pi\u0065ce-000001", "cor\u0064uroy\u0301", "--off-scene"]) == 0
+    lines = [json.loads(x) for x in (tmp_path / "labels.jsonl").read_text().splitlines()]
+    assert lines[0] == {"item_id": "piece-000001", "fabric": MERINO}  # the scene's spelling
+    assert lines[1]["fabric"] == "corduro\u00fd"  # a stranger's name is written composed too
+
+
+def test_the_service_refuses_an_off_scene_label_naming_a_job_fabric_in_other_letters(tmp_path):
+    """The service compared an off-scene label's name with the job's fabrics byte for byte: 'WOOL'
+    (labelled off-scene in a job without wool, restored into one with it, or a line written by hand)
+    taught a stranger 'off-scene:WOOL' from a wool piece, and the cell refused wool's next pieces. It
+    is not applied, as `--off-scene wool` is not (docs/cell.md), and a decomposed name of a job
+    fabric counts as that fabric."""
+    fb, j = _feedback(tmp_path), _Journal()
+    _, ev = _decide(fb.model, WOOL_PIECE)
+    fb.remember("piece-1", ev)
+    fb.remember("piece-2", ev)
+    path = tmp_path / "labels.jsonl"
+    append_label(path, "piece-1", "WOOL", off_scene=True)
+    append_label(path, "piece-2", "wo\u006fl ", off_scene=True)  # a stray space: the label verb refuses it too
+    recs = fb.poll(j)
+    assert [r["applied"] for r in recs] == [False, False], recs
+    assert "a fabric of this job" in recs[0]["why"] and not fb.strangers
+    assert "off-scene:WOOL" not in fb.model.classes
