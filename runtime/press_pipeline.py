@@ -166,7 +166,8 @@ class PressLoop:
             if tally.skipped >= 2 * scene.max_presses:
                 break  # the camera keeps giving bad frames: decide on what we have
             try:
-                press, _frame = cell._step(f"press {k} at ({x_mm}, {y_mm}) mm",
+                # a press's words count from 1, as the piece's press count does (its ``point`` stays 0-based)
+                press, _frame = cell._step(f"press {k + 1} at ({x_mm}, {y_mm}) mm",
                                            lambda: cell._press_once(x_mm, y_mm, cell.scorer.start), self.t0,
                                            on_retryable=self._before_retry)
             except _DecidedMeanwhile as decided:
@@ -231,7 +232,7 @@ class PressLoop:
             cell.skipped_total += 1
             cell.journal.append({"type": "frame_skipped", "item": self.number, "point": p.point,
                                  "reason": exc.reason, "message": str(exc)})
-            cell.log(f"item {self.number}: frame of press {p.point} skipped ({exc.reason})")
+            cell.log(f"item {self.number}: frame of press {p.point + 1} skipped ({exc.reason})")
             cell.notifier.ping_if_due()
             return None
         tally.presses += 1

@@ -225,8 +225,8 @@ def sort_stream(workdir: Path, dataset: Path, bundle: Path, *, n_items: int, see
         if operator_labels:
             data["evidence"]["operator_labels"] = str(labels)
         cfg = write_scene_config(workdir / "cell.yaml", data)
-        if fault_at is not None:
-            cell.schedule_fault(fault_at[0], fault_at[1], "protective_stop")
+        if fault_at is not None:  # item-000N as printed (teach pieces are pressed first, named apart)
+            cell.schedule_fault(len(taught) + fault_at[0] - 1, fault_at[1], "protective_stop")
         t0 = time.monotonic()
         results_holder: list = []
 
@@ -367,9 +367,9 @@ def add_arguments(parser, verb: str) -> None:
                              "with a scene model untouched fabrics keep the bundle's own confidence)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--fault-at", default=None, metavar="ITEM:PRESS",
-                        help="inject a protective stop just before that press of that piece: ITEM 0-based over every "
-                             "piece the arm presses, teach pieces first (3:2 with three teach pieces is item-0001's "
-                             "second press); PRESS 1-based")
+                        help="inject a protective stop just before that press of that piece, both numbered as the "
+                             "printout and the fault's words do: 3:2 is item-0003's second press (teach pieces, "
+                             "named teach-NN, are not counted)")
     parser.add_argument("--record", default=None, metavar="NAME.replay",
                         help="also record the session into this replay folder (`vs2t-edge replay NAME.replay` "
                              "replays it)")
@@ -413,6 +413,10 @@ def run(args) -> int:
             fault_at = (int(a), int(b))
         except ValueError:
             print("demo: --fault-at wants ITEM:PRESS, e.g. 3:2", file=sys.stderr)
+            return 2
+        if not (1 <= fault_at[0] <= args.items and fault_at[1] >= 1):
+            print(f"demo: --fault-at {args.fault_at}: ITEM is a piece of the stream as printed (item-0001 .. "
+                  f"item-{args.items:04d}: 1 .. {args.items}) and PRESS counts from 1", file=sys.stderr)
             return 2
     try:
         dataset, bundle, times = prepare(workdir, profile=args.profile, seed=args.seed, force=args.force, log=log)

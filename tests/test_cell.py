@@ -455,7 +455,7 @@ def test_press_frame_identical_to_the_reference_is_retried_then_latches_no_conta
     assert "no contact" in cell.fault and "failed twice" in cell.fault
     assert cell.model.scored == 0 and arm.calls.count("press") == 2
     recs = read_records(journal.path)
-    assert [(r["kind"], r["step"].split(" at ")[0]) for r in recs if r["type"] == "retry"] == [("no_contact", "press 0")]
+    assert [(r["kind"], r["step"].split(" at ")[0]) for r in recs if r["type"] == "retry"] == [("no_contact", "press 1")]
     fault = [r for r in recs if r["type"] == "fault"]
     assert len(fault) == 1 and "no contact" in fault[0]["reason"]
     assert cam.connects == 0  # not a camera fault: the camera is not reopened for it

@@ -47,7 +47,7 @@ def demo_run(tmp_path_factory):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         code = main(["demo", "--workdir", str(work), "--items", str(N_ITEMS), "--arm", "fake", "--gate", "fake",
-                     "--threads", "1", "--max-presses", "3", "--fault-at", "2:1",
+                     "--threads", "1", "--max-presses", "3", "--fault-at", "3:1",
                      "--without-scene-model", "allow"])  # the test bundle decides with its router
     return code, out.getvalue(), work
 
@@ -98,8 +98,9 @@ def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):
             assert f["bin"] == bins.get(f["label"], scene["reject_bin"]), f
         else:
             assert f["bin"] == scene["reject_bin"], f
-    # the injected protective stop (item 2, press 1): latched, rejected, cleared, sorting went on
-    assert finals[2]["outcome"] == "rejected_fault"
+    # the injected protective stop (--fault-at 3:1: item-0003's first press, as the printout numbers
+    # them): latched, rejected, cleared, sorting went on
+    assert finals[2]["outcome"] == "rejected_fault" and finals[2]["item_id"] == "item-0003"
     assert [r["type"] for r in records].count("fault_cleared") == 1
     assert all(f["outcome"] == "sorted" for i, f in enumerate(finals) if i != 2)
     # a pre_sort before every sorted final, with the same decision
@@ -268,3 +269,13 @@ def test_a_recorded_demo_keeps_its_journal_for_its_totals_and_label(demo_run, tm
     summary = json.loads((work / "demo_summary.json").read_text())
     assert summary["labels_applied"] == applied
     assert sum(r["type"] == "final" for r in read_records(work / "journal.jsonl")) == 6
+
+
+def test_the_fault_at_option_and_the_faults_words_number_as_the_printout(demo_run):
+    """`--fault-at ITEM:PRESS` took ITEM 0-based while the printout names pieces item-0001 on, and the
+    fault said "during press 0" of the press the option called 1 (the cell named a press by its
+    0-based point): both are 1-based now, as the printout's pieces and press counts."""
+    code, out, work = demo_run
+    fault = next(r for r in read_records(work / "journal.jsonl") if r["type"] == "fault")
+    assert "(item-0003): arm safety stop during press 1 at" in fault["reason"], fault["reason"]
+    assert "item-0003" in next(line for line in out.splitlines() if "FAULT latched" in line)
