@@ -28,7 +28,8 @@ from dataclasses import replace
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.labels import alike_fabric, append_label, judged_anew, read_labels, scene_fabric, typed_name
+from vs2t_edge.runtime.labels import (alike_fabric, append_label, judged_anew, piece_digest, read_labels, scene_fabric,
+                                      typed_name)
 from vs2t_edge.runtime.journal import iter_records
 
 
@@ -59,7 +60,7 @@ def run(args) -> int:
         return 2
     if cfg.operator_labels is None:
         print(f"label: {cfg.path} does not turn operator labels on; set evidence.operator_labels to a file "
-              "(docs/cell.md, \"Learning from the reject bin\")", file=sys.stderr)
+              "(docs/operator_labels.md)", file=sys.stderr)
         return 2
     if getattr(args, "recording", None):
         from vs2t_edge.runtime.recording import recording_journal  # the daemon's imports: only when asked
@@ -94,9 +95,9 @@ def run(args) -> int:
             return 2
         if (found := _decided(cfg, args.item_id)) is None:
             return 2
-        decided = found[1]
+        _, decided, piece = found
         try:
-            append_label(cfg.operator_labels, args.item_id, None)
+            append_label(cfg.operator_labels, args.item_id, None, piece=piece)
         except OSError as exc:
             print(f"label: cannot write {cfg.operator_labels}: {exc.strerror or exc}", file=sys.stderr)
             return 2
@@ -120,9 +121,9 @@ def run(args) -> int:
         return 2
     if (found := _decided(cfg, args.item_id)) is None:
         return 2
-    args.item_id, decided = found
+    args.item_id, decided, piece = found
     try:
-        append_label(cfg.operator_labels, args.item_id, args.fabric, off_scene=args.off_scene)
+        append_label(cfg.operator_labels, args.item_id, args.fabric, off_scene=args.off_scene, piece=piece)
     except OSError as exc:
         print(f"label: cannot write {cfg.operator_labels}: {exc.strerror or exc}", file=sys.stderr)
         return 2
@@ -133,11 +134,12 @@ def run(args) -> int:
     return 0
 
 
-def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
-    """(the piece's id, '; the cell had decided ...') for a decided piece ``item_id`` of the config's
-    journal, or the last decided one for ``item_id`` None; ('' when the journal cannot be read: said
-    on stderr); None (refused, said) when the journal has no such piece, or the piece was decided
-    under another bundle than the config's (the service would not use its label)."""
+def _decided(cfg, item_id: str | None) -> tuple[str, str, str | None] | None:
+    """(the piece's id, '; the cell had decided ...', its ``piece_digest``) for a decided piece
+    ``item_id`` of the config's journal, or the last decided one for ``item_id`` None; ('', None when
+    the journal cannot be read: said on stderr); None (refused, said) when the journal has no such
+    piece, or the piece was decided under another bundle than the config's (the service would not
+    use its label). The digest binds the label to this piece's presses (runtime/labels.py)."""
     last, found, begun = None, None, None
     # the bundle (its start record's seal) the session that decided each piece ran
     session_seal = last_seal = found_seal = None
@@ -158,7 +160,7 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
             return None
         print(f"label: cannot read the journal {cfg.journal} to check {item_id} ({exc.strerror or exc}); "
               "writing the label anyway - the service journals whether it could use it", file=sys.stderr)
-        return item_id, ""
+        return item_id, "", None
     if item_id is None and last is not None and begun is not None and begun.get("item_id") != last.get("item_id"):
         # --last names the piece the operator just saw decided; once the line has begun another, the
         # last decided piece may already be a later one than that (a teach piece's label would then
@@ -182,8 +184,9 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str] | None:
               "under the bundle it runs", file=sys.stderr)
         return None
     label = found.get("label", "?")
+    piece = piece_digest(found.get("scene_z_mean"), found.get("scene_z_presses", found.get("presses")))
     return str(found["item_id"]), ("; the cell had decided " + ("the reject bin" if label == UNKNOWN else label)
-                                   + f" after {found.get('presses', '?')} press(es)")
+                                   + f" after {found.get('presses', '?')} press(es)"), piece
 
 
 def _another_bundle(cfg, seal: str | None) -> str:

@@ -62,14 +62,28 @@ def alike_fabric(name: str, scene: Iterable[str]) -> str | None:
     return next((c for c in scene if name_key(c) == key), None)
 
 
-def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False) -> dict:
+def piece_digest(z_mean: Any, presses: Any) -> str | None:
+    """The SHA-256 of a decided piece's press mean and press count as its ``pre_sort`` record keeps
+    them (``scene_z_mean``, ``scene_z_presses`` or ``presses``), None for a record without them: what
+    a label is bound to (``append_label``'s ``piece``)."""
+    if not isinstance(z_mean, list) or not _press_count(presses):
+        return None
+    return hashlib.sha256(json.dumps([z_mean, presses], separators=(",", ":")).encode()).hexdigest()
+
+
+def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False,
+                 piece: str | None = None) -> dict:
     """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
     ``fabric`` names a piece that is none of the job's fabrics (any name the operator uses);
-    ``fabric`` None: withdraw the piece's label (module doc)."""
+    ``fabric`` None: withdraw the piece's label (module doc). ``piece``: the ``piece_digest`` of the
+    piece the label verb looked up; the cell applies the line to a piece of that id with those
+    presses only (ids start again at piece-000001 in a new journal, and a kept labels file first
+    read late - unreadable to the service until then - named the new journal's piece of that id)."""
+    bound = {"piece_sha256": piece} if piece else {}
     if fabric is None:
-        rec: dict = {"item_id": str(item_id), "retract": True}
+        rec: dict = {"item_id": str(item_id), "retract": True, **bound}
     else:
-        rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {})}
+        rec = {"item_id": str(item_id), "fabric": str(fabric), **({"off_scene": True} if off_scene else {}), **bound}
     line = (json.dumps(rec, sort_keys=True) + "\n").encode()
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o640)
     try:
@@ -115,9 +129,10 @@ def _parse_label(raw: bytes) -> dict | str:
         and "off_scene" not in rec and isinstance(rec.get("item_id"), str)
     if not retract and (not isinstance(rec, dict) or not isinstance(rec.get("item_id"), str)
                         or not isinstance(rec.get("fabric"), str) or "retract" in rec
-                        or not isinstance(rec.get("off_scene", False), bool)):
+                        or not isinstance(rec.get("off_scene", False), bool)) \
+            or not isinstance(rec.get("piece_sha256", ""), str):  # a dict by here: ``or`` stops at a non-dict
         return ('not {"item_id": "...", "fabric": "..."[, "off_scene": true]} '
-                'nor {"item_id": "...", "retract": true}')
+                'nor {"item_id": "...", "retract": true} (either with a "piece_sha256": "..." or not)')
     return rec
 
 
@@ -177,7 +192,16 @@ class OperatorFeedback:
         if z is not None and n:
             self.pieces[str(item_id)] = (z, int(n))
 
-    def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True) -> str:
+    def _another_piece(self, item_id: str, piece: str | None) -> str:
+        """Why a line bound to ``piece`` (``append_label``) names another piece than this journal's
+        ``item_id``, '' when it names this one (or is bound to none, or no such piece is decided)."""
+        if not piece or item_id not in self.pieces or piece == piece_digest(*self.pieces[item_id]):
+            return ""
+        return (f"names another piece than this journal's {item_id!r}: the label verb saw other presses for it "
+                "(a label given before this journal began numbering its pieces again)")
+
+    def _apply(self, item_id: str, fabric: str, off_scene: bool = False, rebuild: bool = True,
+               piece: str | None = None) -> str:
         """'' when the label moved the model (``rebuild`` False: is to move it once ``_relearn`` runs),
         else why not. A piece's earlier label is replaced (``item_labels``), never added to; by a
         touched fabric's (which teaches nothing) it is withdrawn; so it is by a label this job cannot
@@ -186,6 +210,8 @@ class OperatorFeedback:
         are Unicode text (``typed_name``): a job fabric spelt decomposed is that fabric; and an
         off-scene name that is a job fabric's but for case or spaces (``alike_fabric``) names that
         fabric, whose presses must not teach a stranger (its next pieces to the reject bin)."""
+        if (other := self._another_piece(item_id, piece)):
+            return other  # it says nothing of this piece: its label stands
         fabric = typed_name(fabric)
         if not off_scene:
             fabric = scene_fabric(fabric, self.scene) or fabric
@@ -220,8 +246,10 @@ class OperatorFeedback:
         self._retract(item_id, rebuild)
         return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"
 
-    def _retract(self, item_id: str, rebuild: bool = True) -> str:
+    def _retract(self, item_id: str, rebuild: bool = True, piece: str | None = None) -> str:
         """'' when the piece's label was withdrawn, else why not."""
+        if (other := self._another_piece(item_id, piece)):
+            return other
         if item_id not in self.item_labels:
             return f"{item_id!r} has no applied label to retract"
         del self.item_labels[item_id]
@@ -290,13 +318,13 @@ class OperatorFeedback:
                                  "(a label given again after its withdrawal is appended anew)")
             elif rec.get("retract"):
                 before = self.item_labels.get(rec["item_id"])
-                why = self._retract(rec["item_id"])
+                why = self._retract(rec["item_id"], piece=rec.get("piece_sha256"))
                 entry.update(item_id=rec["item_id"], **_said(rec), applied=not why, **({"why": why} if why else {}),
                              **({"withdrew": before[0]} if before and not why else {}))
             else:
                 off = bool(rec.get("off_scene", False))
                 before = self.item_labels.get(rec["item_id"])
-                why = self._apply(rec["item_id"], rec["fabric"], off)
+                why = self._apply(rec["item_id"], rec["fabric"], off, piece=rec.get("piece_sha256"))
                 twins = [] if why or off else self.twins_of(rec["fabric"])
                 entry.update(item_id=rec["item_id"], **_said(rec), applied=not why, **({"why": why} if why else {}),
                              **({"replaces": before[0]} if before and not why else {}),
@@ -362,10 +390,11 @@ class OperatorFeedback:
                     self._judged.add(_line_key(rec))
                 # a line judged before its file was read again changed nothing live
                 if said and judged_anew(rec):
+                    piece = rec.get("piece_sha256") if isinstance(rec.get("piece_sha256"), str) else None
                     if rec.get("retract"):
-                        self._retract(str(item), rebuild=False)
+                        self._retract(str(item), rebuild=False, piece=piece)
                     else:
-                        self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False)
+                        self._apply(str(item), rec["fabric"], bool(rec.get("off_scene")), rebuild=False, piece=piece)
                 n, sha = rec.get("file_bytes"), rec.get("file_sha256")
                 self.lines_read = rec["line"]
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
@@ -386,10 +415,12 @@ def _line_key(rec: Mapping[str, Any]) -> tuple:
 
 
 def _said(rec: Mapping[str, Any]) -> dict:
-    """A label record's fields for what the line said (its fabric, or the withdrawal)."""
+    """A label record's fields for what the line said (its fabric, or the withdrawal, and the piece
+    it is bound to)."""
+    bound = {"piece_sha256": rec["piece_sha256"]} if isinstance(rec.get("piece_sha256"), str) else {}
     if rec.get("retract"):
-        return {"retract": True}
-    return {"fabric": rec["fabric"], **({"off_scene": True} if rec.get("off_scene") else {})}
+        return {"retract": True, **bound}
+    return {"fabric": rec["fabric"], **({"off_scene": True} if rec.get("off_scene") else {}), **bound}
 
 
 def _press_count(n: Any) -> bool:
@@ -404,5 +435,5 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["append_label", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric", "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+__all__ = ["append_label", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric", "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

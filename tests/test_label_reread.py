@@ -82,3 +82,47 @@ def test_a_label_read_before_its_piece_id_existed_does_not_name_a_later_piece_of
                 "scene_z_mean": fb.journal_z_mean(ev)}
     restarted.restore(j.records[:2] + [pre_sort] + j.records[2:], seal=None)  # in the journal's order
     assert restarted.item_labels == {}
+
+
+def test_a_labels_file_first_read_after_a_new_journal_began_names_no_piece_of_it(tmp_path, capsys):
+    """The same kept labels file, first read late: the service could not read it when the new journal
+    began (written by `label` as another user with mode 0640 - the unit's DynamicUser - or put back
+    from a backup), sorted on, and read it once its group was fixed. The last job's label of
+    piece-000001 - a wool piece, so labelled by the verb - named the new journal's piece-000001, a
+    linen piece: wool learned linen's presses, and the next linen piece went to wool's bin. The verb
+    now binds a label to the presses of the piece it looked up; a piece of that id with other presses
+    is another piece."""
+    from feedback_fakes import labels_config
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime.journal import Journal
+
+    cfg = labels_config(tmp_path, "journal.jsonl")
+    with Journal.open(tmp_path / "journal.jsonl") as j:  # the last job's piece-000001: wool
+        j.append({"type": "pre_sort", "item_id": "piece-000001", "label": "unknown", "presses": 4,
+                  "scene_z_mean": [7.5, 2.5]})
+    assert main(["label", str(cfg.path), "piece-000001", "wool"]) == 0, capsys.readouterr().err
+    (tmp_path / "journal.jsonl").rename(tmp_path / "last-job.jsonl")  # a new job: a new journal
+    kept = tmp_path / "labels.jsonl"
+    kept.rename(tmp_path / "labels.unreadable")  # not readable by the service yet
+    fb, j = operator_feedback(tmp_path), ListJournal()
+    assert fb.poll(j) == []
+    ev = fb()
+    assert decide_with(ev, LINEN).label != "wool"
+    fb.remember("piece-000001", ev)  # the new journal's piece-000001: linen
+    (tmp_path / "labels.unreadable").rename(kept)  # readable now
+    got = fb.poll(j)
+    assert not got[0]["applied"] and "another piece" in got[0]["why"], got
+    assert fb.item_labels == {} and decide_with(fb(), LINEN).label != "wool"
+    restarted = operator_feedback(tmp_path)  # a restart judges the line the same way
+    pre_sort = {"type": "pre_sort", "item_id": "piece-000001", "presses": ev.presses,
+                "scene_z_mean": fb.journal_z_mean(ev)}
+    restarted.restore([pre_sort, *j.records], seal=None)
+    assert restarted.item_labels == {}
+    # a label the verb binds to this journal's piece-000001 is applied, live and at a restart
+    with Journal.open(tmp_path / "journal.jsonl") as jj:
+        jj.append(pre_sort)
+    assert main(["label", str(cfg.path), "piece-000001", "wool"]) == 0, capsys.readouterr().err
+    assert [r["applied"] for r in fb.poll(j)] == [True]
+    again = operator_feedback(tmp_path)
+    again.restore([pre_sort, *j.records], seal=None)
+    assert again.item_labels == {"piece-000001": ("wool", False)}
