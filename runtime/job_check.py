@@ -8,7 +8,7 @@ says where it goes. When even the picture goes to the reject bin - a fabric of t
 close to it, or a fabric the cell knows that the job leaves out does and the off-scene rule
 refuses it - the fabric's real pieces go there too, whatever they press: the operator learns it
 before the first piece, not from the reject bin, and can start the job with a teach piece of it
-(docs/cell.md, "Starting a job with teach pieces") or leave its rival out of the job.
+(docs/operator_labels.md, "Starting a job with teach pieces") or leave its rival out of the job.
 
 Training's report measures how well the check foretells the bins of its test jobs
 (train/decision.py ``job_check_outcomes``). Paper world, the 5 splits' test jobs (`vs2t-edge train DS

@@ -425,7 +425,7 @@ def test_the_service_refuses_an_off_scene_label_naming_a_job_fabric_in_other_let
     """The service compared an off-scene label's name with the job's fabrics byte for byte: 'WOOL'
     (labelled off-scene in a job without wool, restored into one with it, or a line written by hand)
     taught a stranger 'off-scene:WOOL' from a wool piece, and the cell refused wool's next pieces. It
-    is not applied, as `--off-scene wool` is not (docs/cell.md), and a decomposed name of a job
+    is not applied, as `--off-scene wool` is not (docs/operator_labels.md), and a decomposed name of a job
     fabric counts as that fabric."""
     fb, j = _feedback(tmp_path), _Journal()
     _, ev = _decide(fb.model, WOOL_PIECE)
