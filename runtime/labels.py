@@ -155,7 +155,7 @@ class OperatorFeedback:
                                   "carries no offset setting (a bundle exported before it did: re-export it)")
         self.deployed, self.base = model, base  # the zero-shot rule, and the offset-rule model labels update
         self.scene = list(scene_classes)
-        self.path = Path(labels_path)
+        self.path = Path(os.path.abspath(labels_path))  # absolute in the journal: a restart elsewhere finds it
         self.make_evidence = make_evidence
         self.pieces: dict[str, tuple[list[float], int]] = {}  # item id -> (press mean, presses)
         self.item_labels: dict[str, tuple[str, bool]] = {}  # item id -> its label that counts (fabric, off-scene)
@@ -368,6 +368,7 @@ class OperatorFeedback:
         Records of sessions run on another bundle (their start record's ``seal``) are skipped:
         their projections are in another model's space."""
         current = True  # records before the first start record: this journal's own
+        mine = _names_file(self.path)
         for rec in records:
             kind = rec.get("type")
             if kind == "start":
@@ -377,9 +378,9 @@ class OperatorFeedback:
             elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
                     and rec.get("item_id") is not None and _press_count(rec.get("scene_z_presses", rec.get("presses"))):
                 self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec.get("scene_z_presses", rec["presses"]))
-            elif kind == "label" and rec.get("file") == str(self.path) and rec.get("reread") is True:
+            elif kind == "label" and mine(rec.get("file")) and rec.get("reread") is True:
                 self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
-            elif kind == "label" and rec.get("file") == str(self.path) and isinstance(rec.get("line"), int):
+            elif kind == "label" and mine(rec.get("file")) and isinstance(rec.get("line"), int):
                 # every label the operator gave, applied in its session or not, judged again by this
                 # job: a retraction or correction given while its fabric was out of the job (so not
                 # applied then) must still withdraw the label when the fabric is back
@@ -400,6 +401,25 @@ class OperatorFeedback:
                 known = isinstance(n, int) and not isinstance(n, bool) and isinstance(sha, str)
                 self._prefix = (n, sha) if known else None
         self._relearn()  # once, not once per label
+
+
+def _names_file(path: Path) -> Callable[[Any], bool]:
+    """Whether a ``label`` record's ``file`` is ``path``: the same string, or the same file by its real
+    path. The string is the config's (relative to where a relative config was loaded: `run --config
+    cell.yaml` from its folder writes `labels.jsonl`), so a restart may name the file otherwise, and
+    one that found none of its records read the file again from line 1, judging again lines judged
+    before (tests/test_label_reread.py). A relative string of an earlier run resolves against this
+    process's folder, which may not be that run's: the cell keeps its own ``path`` absolute."""
+    own, real = str(path), os.path.realpath(path)
+    known: dict[str, bool] = {}
+
+    def names(file: Any) -> bool:
+        if not isinstance(file, str):
+            return False
+        if file not in known:
+            known[file] = file == own or os.path.realpath(file) == real
+        return known[file]
+    return names
 
 
 def judged_anew(rec: dict) -> bool:

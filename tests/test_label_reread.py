@@ -126,3 +126,28 @@ def test_a_labels_file_first_read_after_a_new_journal_began_names_no_piece_of_it
     again = operator_feedback(tmp_path)
     again.restore([pre_sort, *j.records], seal=None)
     assert again.item_labels == {"piece-000001": ("wool", False)}
+
+
+def test_a_restart_that_names_the_labels_file_by_another_path_resumes_where_it_was(tmp_path):
+    """The journal's label records name the labels file by the path string the config gave (a config
+    loaded as `cell.yaml` from its folder names `labels.jsonl`; given by its full path, the full path).
+    A restart that named the same file by another string found none of its records: it read the file
+    from line 1 again, with every piece of the journal known - a line that named no piece when it was
+    read (the last journal's piece-000001) then named this journal's piece-000001, a linen piece, and
+    the next linen piece went to wool's bin. Records naming the same file are the file's."""
+    (tmp_path / "sub").mkdir()
+    other = str(tmp_path / "sub" / ".." / "labels.jsonl")  # the same file, by another string
+    first = operator_feedback(tmp_path)
+    first.path = type(first.path)(other)
+    first.path.write_text(json.dumps({"item_id": "piece-000001", "fabric": "wool"}, sort_keys=True) + "\n")
+    j = ListJournal()
+    assert [r["applied"] for r in first.poll(j)] == [False]  # the last journal's line: no such piece here
+    ev = first()
+    assert decide_with(ev, LINEN).label != "wool"
+    pre_sort = {"type": "pre_sort", "item_id": "piece-000001", "presses": ev.presses,
+                "scene_z_mean": first.journal_z_mean(ev)}
+    restarted = operator_feedback(tmp_path)  # the same file by its plain path
+    restarted.restore([*j.records, pre_sort], seal=None)
+    assert restarted.lines_read == 1
+    restarted.poll(ListJournal())
+    assert restarted.item_labels == {} and decide_with(restarted(), LINEN).label != "wool", restarted.item_labels
