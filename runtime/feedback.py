@@ -38,7 +38,9 @@ which keeps the untouched one, nor a learned stranger, whose pieces go to the re
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,
-never bolder elsewhere. Touched classes are not guarded: their means were real already (and the
+never bolder elsewhere. (On a sum-rule bundle, whose labels rule is another operating point than
+its own, what no label taught - touched classes too - is decided by the bundle's own rule as
+zero-shot: ``ZeroShotUnlessTaught``.) On an offset-rule bundle touched classes are not guarded: their means were real already (and the
 rule labels switch to keeps every off-scene rule the bundle's own has, ``SceneModel.for_labels``:
 a sum-rule bundle's stored offset setting may have had none). Nor is a
 taught class - unless an untouched fabric of the job that no label taught may feel like it
@@ -162,7 +164,28 @@ def confusable(model: SceneModel, offset_var_untouched: float, taught: Iterable[
     return out
 
 
-class GuardedEvidence:
+class _PairedEvidence:
+    """Two evidences that see every press of a piece: ``adapted`` (the labels' model) and
+    ``zero_shot`` (the bundle's own). The piece's presses and press mean are the adapted one's,
+    which sees every press: what its ``pre_sort`` record keeps and a later label reads."""
+
+    def __init__(self, adapted: Evidence, zero_shot: Evidence) -> None:
+        self.adapted, self.zero_shot = adapted, zero_shot
+
+    @property
+    def presses(self) -> int:
+        return self.adapted.presses
+
+    @property
+    def mean_presses(self) -> int:
+        return self.adapted.mean_presses
+
+    @property
+    def z_mean(self):
+        return self.adapted.z_mean
+
+
+class GuardedEvidence(_PairedEvidence):
     """The item evidence with labels, never bolder than zero-shot where no label taught it.
 
     Two evidences see every press: one scored with the adapted model, one with the bundle's own.
@@ -178,24 +201,13 @@ class GuardedEvidence:
 
     def __init__(self, adapted: Evidence, zero_shot: Evidence, trusted: Iterable[str],
                  confusable_with: Mapping[str, Sequence[str]] | None = None) -> None:
-        self.adapted, self.zero_shot, self.trusted = adapted, zero_shot, frozenset(trusted)
+        super().__init__(adapted, zero_shot)
+        self.trusted = frozenset(trusted)
         self.confusable_with = dict(confusable_with or {})  # taught, yet guarded (module doc)
 
     @property
-    def presses(self) -> int:
-        return self.adapted.presses
-
-    @property
     def press_limit(self) -> int:
-        return self.adapted.press_limit
-
-    @property
-    def mean_presses(self) -> int:
-        return self.adapted.mean_presses
-
-    @property
-    def z_mean(self):
-        return self.adapted.z_mean
+        return self.adapted.press_limit  # the adapted evidence decides; the zero-shot one only agrees
 
     def _guarded(self, d, final: bool):
         if d is None or d.label == UNKNOWN or d.label in self.trusted:
@@ -216,51 +228,37 @@ class GuardedEvidence:
         return self._guarded(self.adapted.decide(), final=True)
 
 
-class ZeroShotUnlessTaught:
+class ZeroShotUnlessTaught(_PairedEvidence):
     """The item evidence with labels for a sum-rule bundle: its own rule decides every piece as it
     does zero-shot, except one the labels' rule puts into a class a label taught.
 
     A sum-rule bundle's labels rule is another operating point (its stored offset setting,
     ``SceneModel.for_labels``), which validation may have rated far below the bundle's own. Trusted
     with the touched classes (``GuardedEvidence``), one label - even a stranger's - moved every
-    touched piece to that point: on the demo_visible world's job touched pieces went from 83 to 25 %
-    right, and untouched pieces into a touched sibling's bin. Here what no label taught keeps the
-    bundle's decision: the zero-shot evidence's, at the press it stops. Labels only add: while the
-    labels' rule leads a taught class (``taught``: labelled untouched fabrics that are not guarded
-    twins, learned strangers) - or the bundle's rule refused the piece - the cell presses on, and the
-    piece goes to that class once the labels' rule is confident of it; else the zero-shot decision
-    stands as soon as the labels' rule decides anything else or reaches its press limit."""
+    touched piece to that point: on a demo_visible job (docs/results/demo_visible_world.md) touched
+    pieces went from 83 to 25 % right, and untouched pieces into a touched sibling's bin. Here what
+    no label taught keeps the bundle's decision: the zero-shot evidence's, at the press it stops.
+    Labels only add: while the labels' rule leads a taught class (``taught``: labelled untouched
+    fabrics that are not guarded twins, learned strangers) the cell presses on, and the piece goes
+    to that class once the labels' rule is confident of it; the zero-shot decision stands as soon as
+    the labels' rule leads or decides any other class. A held decision keeps the zero-shot
+    evidence's reason, confidence and posterior, with the presses the piece took."""
 
     def __init__(self, adapted: Evidence, zero_shot: Evidence, taught: Iterable[str]) -> None:
-        self.adapted, self.zero_shot, self.taught = adapted, zero_shot, frozenset(taught)
+        super().__init__(adapted, zero_shot)
+        self.taught = frozenset(taught)
         self._zero_shot_said: ItemDecision | None = None  # the bundle's decision, once its rule stopped
         self._adapted_done = False  # the labels' rule decided a class no label taught: it sorts nothing more
 
     @property
-    def presses(self) -> int:
-        return self.adapted.presses
-
-    @property
     def press_limit(self) -> int:
+        # each rule stops at its own limit (their extra presses may differ); the piece at the later
         return max(self.adapted.press_limit, self.zero_shot.press_limit)
 
-    @property
-    def mean_presses(self) -> int:
-        return self.adapted.mean_presses
-
-    @property
-    def z_mean(self):
-        return self.adapted.z_mean
-
-    def _taught(self, d) -> bool:
-        """Whether the labels' rule's decision ``d`` sorts the piece (a taught class, and no other
-        class decided before it)."""
-        if d is None or self._adapted_done:
-            return False
-        if d.label in self.taught:
-            return True
-        self._adapted_done = True
-        return False
+    def _sorts(self, d: ItemDecision | None) -> bool:
+        """Whether the labels' rule's decision ``d`` sorts the piece: a taught class, and the rule
+        decided no other class before."""
+        return d is not None and not self._adapted_done and d.label in self.taught
 
     def _leads_taught(self) -> bool:
         post = self.adapted.decide().log_posterior
@@ -270,14 +268,14 @@ class ZeroShotUnlessTaught:
         a = self.adapted.add(score)
         if self._zero_shot_said is None:
             self._zero_shot_said = self.zero_shot.add(score)
-        if self._taught(a):
+        if self._sorts(a):
             return a
+        if a is not None:
+            self._adapted_done = True
         said = self._zero_shot_said
-        if said is None:
+        if said is None or self._leads_taught():
             return None
-        if self._adapted_done or self.adapted.at_limit():
-            return self._as_pressed(said)
-        return None if said.label == UNKNOWN or self._leads_taught() else self._as_pressed(said)
+        return self._as_pressed(said)
 
     def _as_pressed(self, said: ItemDecision) -> ItemDecision:
         """The bundle's decision, with the presses the piece took (the labels' rule may have held it)."""
@@ -285,10 +283,9 @@ class ZeroShotUnlessTaught:
 
     def decide(self):
         a = self.adapted.decide()
-        if self._taught(a):
+        if self._sorts(a):
             return a
         return self._as_pressed(self._zero_shot_said or self.zero_shot.decide())
-
 
 class TrackedEvidence:
     """A sum-rule evidence that also keeps its presses' mean projection (``z_mean``), which a later
@@ -338,8 +335,9 @@ class TrackedEvidence:
 def item_evidence(deployed: SceneModel, adapted: SceneModel, scene: Sequence[str], labelled: Iterable[str],
                   strangers: Iterable[str], make_evidence: Callable[[SceneModel, list[str]], Any]):
     """One piece's evidence: the bundle's own (``deployed``, zero-shot) while nothing was learned,
-    else the guarded pair (``GuardedEvidence``): ``adapted`` (the offset-rule model the labels
-    updated, over the scene's fabrics and the learned strangers) checked by the zero-shot one."""
+    else a pair over ``adapted`` (the offset-rule model the labels updated, over the scene's fabrics
+    and the learned strangers) and the zero-shot one: ``GuardedEvidence`` for an offset-rule bundle,
+    ``ZeroShotUnlessTaught`` for a sum-rule one (module doc)."""
     taught = [OFF_SCENE_PREFIX + name for name in strangers]
     # a labelled class is taught only where ``adapt`` moved its mean; else it is guarded like any other
     learned = [*(labelled if labels_teach(adapted) else ()), *taught]

@@ -82,7 +82,7 @@ def test_a_workdir_that_is_a_file_or_an_unknown_profile_is_bad_usage(tmp_path, c
     # an unknown --profile, before any stage (it was synth's ValueError traceback)
     assert main(["demo", "--workdir", str(tmp_path / "new"), "--profile", "papr"]) == 2
     err = capsys.readouterr().err
-    assert "unknown --profile 'papr'; choose one of demo, paper" in err and not (tmp_path / "new").exists(), err
+    assert "unknown --profile 'papr'; choose one of demo, demo_visible, paper" in err and not (tmp_path / "new").exists(), err
 
 
 def test_every_piece_is_journalled_once_in_the_bin_of_its_label(demo_run):

@@ -461,3 +461,44 @@ def test_a_sum_rule_bundle_decides_what_no_label_taught_by_its_own_rule():
     assert piece(item_evidence(loose, loose.for_labels(), CLASSES, {}, {}, make), wool_real, loose).label != "wool"
     taught = adapt(loose.for_labels(), labelled)
     assert piece(item_evidence(loose, taught, CLASSES, labelled, {}, make), wool_real, loose).label == "wool"
+
+
+class _Scripted:
+    """An evidence whose ``add`` returns a scripted decision per press (None: press on), led by
+    ``leader`` while it has none (review, 2026-11-29)."""
+
+    def __init__(self, script, leader, limit=9):
+        self.script, self.leader, self.presses, self.press_limit = script, leader, 0, limit
+        self.mean_presses, self.z_mean = 0, None
+
+    def add(self, score):
+        self.presses += 1
+        return self.script.get(self.presses)
+
+    def decide(self):
+        from vs2t_edge.runtime.evidence import ItemDecision
+        return self.script.get(self.presses) or ItemDecision(UNKNOWN, 0.5, self.presses,
+                                                             {self.leader: 0.0, "other": -1.0}, "press_limit")
+
+
+def test_a_zero_shot_refusal_is_not_held_while_the_labels_rule_leads_no_taught_class():
+    """The bundle's rule refuses a piece at its first press (a known outsider refused early); the
+    labels' rule leads a touched class no label taught. The piece goes to the reject bin then, as
+    without labels - it was held to the labels' rule's limit (9 presses) for the same refusal - and
+    is held only while a taught class leads."""
+    from vs2t_edge.runtime.evidence import ItemDecision
+    from vs2t_edge.runtime.feedback import ZeroShotUnlessTaught
+
+    def run(ev):
+        for _ in range(ev.press_limit):
+            if (d := ev.add(None)) is not None:
+                return d
+        return ev.decide()
+
+    refused = {1: ItemDecision(UNKNOWN, 0.6, 1, {"denim": -0.5}, "off_scene")}
+    d = run(ZeroShotUnlessTaught(_Scripted({9: ItemDecision("denim", 0.99, 9, {}, "confident")}, "denim"),
+                                 _Scripted(refused, "denim"), ["off-scene:felt"]))
+    assert (d.label, d.presses, d.stopped_by) == (UNKNOWN, 1, "off_scene")
+    held = run(ZeroShotUnlessTaught(_Scripted({3: ItemDecision("off-scene:felt", 0.99, 3, {}, "confident")},
+                                              "off-scene:felt"), _Scripted(refused, "denim"), ["off-scene:felt"]))
+    assert (held.label, held.presses) == ("off-scene:felt", 3)
