@@ -8,6 +8,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 
 from cell_fakes import ScriptedCamera
 from feedback_fakes import (BINS, CLASSES, WOOL_PIECE, ListJournal, PieceModel, decide_piece, labelled_cell,
@@ -438,3 +439,18 @@ def test_the_service_refuses_an_off_scene_label_naming_a_job_fabric_in_other_let
     assert [r["applied"] for r in recs] == [False, False], recs
     assert "a fabric of this job" in recs[0]["why"] and not fb.strangers
     assert "off-scene:WOOL" not in fb.model.classes
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_not_swallowed(monkeypatch):
+    """The front door ended any verb quietly (exit 141, no word) on any BrokenPipeError out of its
+    run() - also one from a pipe or socket to a device; only stdout's reader going away is quiet
+    (review, 2026-11-29)."""
+    from vs2t_edge.cli import main
+    from vs2t_edge.runtime import label_cli
+
+    def run(args):
+        raise BrokenPipeError(32, "Broken pipe (the arm's socket)")
+
+    monkeypatch.setattr(label_cli, "run", run)
+    with pytest.raises(BrokenPipeError, match="the arm's socket"):
+        main(["label", "cell.yaml", "--list"])

@@ -8,7 +8,8 @@ Each verb module exposes ``add_arguments(parser, verb)`` and ``run(args) -> int`
 
 Exit codes (documented in README):
   0 success, 1 the job ran but failed its check (e.g. replay mismatch),
-  2 bad usage, config or input, 3 hardware or device fault, 4 missing optional extra.
+  2 bad usage, config or input, 3 hardware or device fault, 4 missing optional extra,
+  141 stdout's reader closed it early (`... | head`: 128 + SIGPIPE, as a shell reports a C tool).
 """
 
 from __future__ import annotations
@@ -131,8 +132,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = int(module.run(args) or 0)
         sys.stdout.flush()  # here, not at exit: a closed pipe is caught below, not printed by the interpreter
     except BrokenPipeError:
+        if not _stdout_is_a_closed_pipe():
+            raise  # another pipe or socket of the verb (a device's): an error, not a reader gone
         return _stdout_closed()
     return code
+
+
+def _stdout_is_a_closed_pipe() -> bool:
+    """Whether stdout is a pipe whose reader went away (poll says POLLERR on its write end)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (AttributeError, ValueError, OSError):  # a test's StringIO, a closed stream: no such pipe
+        return False
 
 
 EXIT_STDOUT_CLOSED = 128 + 13  # 128 + SIGPIPE: what a shell reports for a C tool ended by `| head`
