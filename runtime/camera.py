@@ -223,19 +223,21 @@ class UVCCamera(CameraBase):
             queue = applied["buffersize"]
             queue = int(queue) if queue is not None and queue >= 1 else V4L2_DEFAULT_BUFFERS
             applied["flush_frames"] = max(self.flush_frames, queue + 1)
-        if self.pixel_format == "yuyv":
-            # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py); what the driver
-            # runs is read back, and a camera that keeps another format at this size is refused
+        if fourcc:
+            # what the driver runs is read back, and a camera that keeps another format at this
+            # size is refused in words: its frames would be refused one by one as bad JPEG or YUYV
             applied["pixel_format"] = runs = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
-            if runs not in (None, "YUYV"):  # None: the backend does not say; the frames' size will
+            if runs not in (None, fourcc):  # None: the backend does not say; the frames' size will
                 cap.release()
                 size = "x".join(str(int(v)) if v else "?" for v in (applied.get("width"), applied.get("height")))
-                err = CameraError(f"{self.name}: devices.camera.pixel_format is yuyv, but the camera runs {runs} at "
-                                  f"{size} (it does not offer YUYV there): "
-                                  "set pixel_format: mjpeg, or a size it streams uncompressed",
-                                  device=self.name, kind="corrupt")
+                fix = ("set pixel_format: mjpeg, or a size it streams uncompressed" if fourcc == "YUYV" else
+                       "set a size it streams as MJPEG (the bundle was trained on the camera's JPEG)")
+                err = CameraError(f"{self.name}: the cell asks for {fourcc}, but the camera runs {runs} at {size} "
+                                  f"(it does not offer {fourcc} there): {fix}", device=self.name, kind="corrupt")
                 err.reason = "pixel_format"
                 raise err
+        if self.pixel_format == "yuyv":
+            # uncompressed frames, taken raw and made BGR here (runtime/yuyv.py)
             applied["yuyv_raw"] = _raw_frames(cap)
         elif self._mjpeg_undecoded:
             # the JPEG bytes, not the frame the backend would decode at full size (module doc)

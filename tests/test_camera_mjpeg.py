@@ -272,3 +272,55 @@ def test_a_backend_that_decodes_the_mjpeg_itself_is_said_for_a_bundle_trained_th
     _MjpegCapture.undecoded = True
     with cam:
         assert decode_fallback_note(model, cam) == ""  # undecoded as asked: as it trained
+
+
+def test_a_camera_without_mjpeg_at_the_size_is_refused_at_connect_in_words(monkeypatch):
+    """The cell asks for MJPG (and CONVERT_RGB 0) at decode scale 1 for a bundle trained through the
+    camera's JPEG. A camera that does not offer MJPEG at the configured size keeps YUYV, and with
+    CONVERT_RGB 0 hands raw YUYV bytes as one row: connect succeeded, and every grab was refused as
+    'a truncated MJPEG frame?' - each press retried, each piece faulted, the cause never named
+    (review, 2026-11-29). The format is read back and refused at connect, in words, as for yuyv."""
+    from types import SimpleNamespace
+
+    import cv2
+    import numpy as np
+    import pytest
+
+    from test_camera import _RecordingCapture
+    from vs2t_edge.runtime.camera import UVCCamera
+    from vs2t_edge.runtime.devices import CameraError
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.runtime.wiring import match_camera
+
+    yuyv = float(cv2.VideoWriter_fourcc(*"YUYV"))
+
+    class YuyvOnly(_RecordingCapture):
+        def set(self, prop, value):
+            if prop == cv2.CAP_PROP_FOURCC:
+                self.sets.append((prop, value))
+                return False  # no MJPEG at this size: the driver keeps YUYV
+            return super().set(prop, value)
+
+        def get(self, prop):
+            if prop == cv2.CAP_PROP_FOURCC:
+                return yuyv
+            return self.props.get(prop, 1.0 if prop == cv2.CAP_PROP_CONVERT_RGB else 0.0)
+
+        def read(self):
+            ok, frame = super().read()
+            if self.props.get(cv2.CAP_PROP_CONVERT_RGB, 1.0) != 0:
+                return ok, frame
+            return ok, np.zeros((1, 640 * 480 * 2), np.uint8) + 128  # raw YUYV, one row (V4L2 backend)
+
+    _RecordingCapture.instances = []
+    monkeypatch.setattr(cv2, "VideoCapture", YuyvOnly)
+    model = SimpleNamespace(preprocess_spec=TactilePreprocess(size=128), camera_jpeg=90, descriptor=None)
+    cam = UVCCamera(0, flush_frames=0, expected_hw=(480, 640))
+    match_camera(cam, model, "full")
+    with pytest.raises(CameraError) as exc:
+        cam.connect()
+        try:
+            cam.grab()
+        finally:
+            cam.disconnect()
+    assert "YUYV" in str(exc.value) and "MJPEG" in str(exc.value), str(exc.value)
