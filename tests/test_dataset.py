@@ -256,13 +256,13 @@ def _jpeg_sources(kind: str) -> tuple[list[bytes], bytes, str]:
         if image.shape[0] != image.shape[1]:  # 256x256 as published; crop if a copy is not square
             cam = cv2.imencode(".jpg", _square(image), [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes()
         return [p.read_bytes() for p in tactile], cam, "vitac_cloth11"
-    from vs2t_edge.sim import synth
+    from vs2t_edge.sim import fabrics, synth
     from vs2t_edge.sim.gelsight import GelSight, background, reference_frame, render_press
 
     sensor = GelSight(width_px=160, height_px=120, mm_per_px=15 / 160)
     rng = np.random.default_rng(0)
     bg = background(sensor, seed=1)
-    fabric = synth.draw_fabric(rng, "corduroy")
+    fabric = fabrics.draw_fabric(rng, "corduroy")
     surface = synth.Surface(fabric)
     frames = [reference_frame(bg, sensor, rng)] + [
         render_press(synth.pressed_deformation(fabric, surface, 20.0 + 10 * k, 40.0, 15.0, 0.0, sensor, 1.0),

@@ -15,7 +15,7 @@ import pytest
 from vs2t_edge.cli import main
 from vs2t_edge.runtime.attributes import ATTRIBUTES, EXCLUSIVE_PAIRS
 from vs2t_edge.runtime.dataset import load_dataset, validate_dataset
-from vs2t_edge.sim import synth
+from vs2t_edge.sim import fabrics, synth
 from vs2t_edge.sim.gelsight import GelSight, marker_mask
 
 
@@ -98,7 +98,7 @@ def _press(p: synth.FabricParams, force_n: float = 15.0) -> np.ndarray:
 
 
 def test_colour_and_print_never_change_touch():
-    p = synth.draw_fabric(np.random.default_rng(0), "twill")
+    p = fabrics.draw_fabric(np.random.default_rng(0), "twill")
     recoloured = replace(p, colour_hsv=(10.0, 0.9, 0.3), print_kind="dots", stripes=not p.stripes)
     assert np.array_equal(_press(p), _press(recoloured))
     cam_a = synth.camera_image(p, synth.Surface(p), 100)
@@ -107,18 +107,18 @@ def test_colour_and_print_never_change_touch():
 
 
 def test_stiffer_fabric_lets_less_of_its_surface_touch_the_gel():
-    p = synth.draw_fabric(np.random.default_rng(1), "jersey")
+    p = fabrics.draw_fabric(np.random.default_rng(1), "jersey")
     soft, stiff = replace(p, stiffness=0.05), replace(p, stiffness=0.95)
     assert (_press(soft) > 1e-4).mean() > (_press(stiff) > 1e-4).mean() + 0.1
 
 
 def test_more_force_more_contact():
-    p = synth.draw_fabric(np.random.default_rng(2), "felt")
+    p = fabrics.draw_fabric(np.random.default_rng(2), "felt")
     assert (_press(p, 19.0) > 1e-4).mean() > (_press(p, 11.0) > 1e-4).mean()
 
 
 def test_hairiness_shows_more_in_touch_than_in_sight():
-    p = synth.draw_fabric(np.random.default_rng(5), "plain")
+    p = fabrics.draw_fabric(np.random.default_rng(5), "plain")
     bald, hairy = replace(p, hairiness=0.0), replace(p, hairiness=1.0)
     touch = np.abs(_press(hairy) - _press(bald)).mean() / (np.abs(_press(bald)).mean() + 1e-9)
     cam = lambda q: synth.camera_image(q, synth.Surface(q), 200).astype(float)
@@ -130,7 +130,7 @@ def test_attributes_respect_exclusive_pairs_and_fabricvst_base_rates():
     """Base rates over many worlds of 50 (labels only, no rendering) sit near FabricVST's."""
     rates = {a: [] for a in synth.TARGET_RATES}
     for seed in range(12):
-        world = synth.draw_world(50, seed)
+        world = fabrics.draw_world(50, seed)
         rng = np.random.default_rng([seed, 99])
         attrs = np.stack([synth.label_attributes(p, rng) for p in world])
         for x, y in EXCLUSIVE_PAIRS:
@@ -142,8 +142,8 @@ def test_attributes_respect_exclusive_pairs_and_fabricvst_base_rates():
 
 
 def test_every_construction_appears_in_a_paper_sized_world():
-    kinds = {p.construction for p in synth.draw_world(50, 0)}
-    assert kinds == set(synth.CONSTRUCTIONS)
+    kinds = {p.construction for p in fabrics.draw_world(50, 0)}
+    assert kinds == set(fabrics.CONSTRUCTIONS)
 
 
 def test_unknown_profile_is_refused(tmp_path):
@@ -174,7 +174,7 @@ def test_attributes_alone_number_measures_label_noise_below_the_coarseness_cap(m
     from vs2t_edge.sim import difficulty
 
     def world(seed: int):
-        params = synth.draw_world(50, seed)
+        params = fabrics.draw_world(50, seed)
         rng = np.random.default_rng([seed, 99])
         attrs = np.stack([synth.label_attributes(p, rng) for p in params])
         return params, attrs, len({tuple(a) for a in attrs}) / len(attrs)
@@ -262,7 +262,8 @@ def test_the_visible_world_spreads_each_kinds_pitch_and_shares_what_the_camera_c
     import subprocess
     import sys
 
-    from vs2t_edge.sim.synth import _FAMILY, PROFILES, draw_world
+    from vs2t_edge.sim.fabrics import _FAMILY, draw_world
+    from vs2t_edge.sim.synth import PROFILES
 
     prof = PROFILES["demo_visible"]
     world = draw_world(prof.n_fabrics, 0, prof.constructions, prof.kind_spread)

@@ -73,7 +73,7 @@ def physical_parameters(dataset) -> tuple[np.ndarray, list]:
     """Every fabric's FabricParams of a synthetic world (its fabric.yaml read once), and their
     (F, P) numeric matrix, constructions one-hot; colour, print and the surface seed left out of it
     (they change no tactile frame, or are the realisation itself)."""
-    from vs2t_edge.sim.synth import CONSTRUCTIONS
+    from vs2t_edge.sim.fabrics import CONSTRUCTIONS
 
     hidden = [hidden_parameters(fab) for fab in dataset.fabrics]
     rows = []
