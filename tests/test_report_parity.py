@@ -7,7 +7,8 @@ scene model's float64 projection). The cell scores a frame with the exported gra
 stem cache) and the bundle's ``decision.npz``. Measured on the demo world (2026-11-29, one split,
 528 pieces): per press the log posteriors agree to 4.4e-3 (the float16 stems; 4e-5 between the
 torch modules and onnxruntime), and not one piece is decided otherwise, on the float path, the
-reduced path, through the camera's JPEG and with a descriptor - on a tiny world here."""
+reduced path, through the camera's JPEG and with a descriptor (the audit's script, 2026-11-29).
+Kept here: the float path, on a tiny world."""
 from __future__ import annotations
 
 import json

@@ -138,3 +138,15 @@ def test_a_cache_of_another_preprocessing_is_not_reused(tmp_path):
         assert again.meta != first.meta, other
         assert not np.array_equal(again.stem_t, first.stem_t), other
         assert again.meta == ft.stem_cache_key(world, trunk, prof.size_px, prof.max_presses, other, 0)
+
+
+def test_every_preprocessing_field_is_in_the_cache_key():
+    """A field TactilePreprocess gains later must join the key (train/features.py ``_KEYED_AS_BEFORE``,
+    or the size, pixel path and decode scale keyed on their own): else a run of another input would
+    reuse these stems silently (review, 2026-11-29)."""
+    from dataclasses import fields
+
+    from vs2t_edge.runtime.preprocess import TactilePreprocess
+    from vs2t_edge.train.features import _KEYED_AS_BEFORE
+
+    assert {f.name for f in fields(TactilePreprocess)} == set(_KEYED_AS_BEFORE) | {"size", "reduce", "jpeg_scale"}
