@@ -241,7 +241,8 @@ class OperatorFeedback:
         stays): left in force it would teach its class the presses of a piece the operator has
         since called something else - the next pieces of that fabric into the wrong bin."""
         earlier = self.item_labels.get(item_id)
-        if earlier is None or name_key(earlier[0]) == name_key(label[0]):  # the same fabric, named as this job or another needs
+        # the same fabric, named as this job or another needs
+        if earlier is None or name_key(earlier[0]) == name_key(label[0]):
             return why
         self._retract(item_id, rebuild)
         return f"{why}; its earlier label {earlier[0]!r} is withdrawn (a piece's latest label counts)"
@@ -455,5 +456,6 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["append_label", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric", "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+__all__ = ["append_label", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric",
+           "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

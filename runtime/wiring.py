@@ -244,6 +244,6 @@ def build_cell(cfg: CellConfig, *, model, camera, arm, gate, journal, notifier, 
                 on_item=on_item, log=log, contact_check=contact_check_for(cfg, model))
 
 
-__all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for", "contact_check_for",
-           "model_crop_fraction",
-           "DECODE_SCALES", "model_decode_scale", "decode_fallback_note", "match_camera", "build_live_devices", "build_cell"]
+__all__ = ["SceneModelMissing", "load_model", "check_scene_against_bundle", "evidence_factory_for",
+           "contact_check_for", "model_crop_fraction", "DECODE_SCALES", "model_decode_scale",
+           "decode_fallback_note", "match_camera", "build_live_devices", "build_cell"]
