@@ -287,6 +287,7 @@ class ZeroShotUnlessTaught(_PairedEvidence):
             return a
         return self._as_pressed(self._zero_shot_said or self.zero_shot.decide())
 
+
 class TrackedEvidence:
     """A sum-rule evidence that also keeps its presses' mean projection (``z_mean``), which a later
     label of the piece reads (the offset rule's evidence keeps it itself)."""
