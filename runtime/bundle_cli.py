@@ -61,8 +61,9 @@ def frames_trained_on(model) -> str:
     (docs/training.md "The camera's JPEG"; the cell says at its first piece when the camera's
     MJPEG quality is another, runtime/jpeg_quality.py)."""
     from vs2t_edge.runtime.preprocess import camera_scale
+    from vs2t_edge.runtime.jpeg_quality import trained_quality
 
-    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    q = trained_quality(model)
     spec = model.preprocess_spec
     if not q:
         return ("lossless (a camera streaming MJPEG costs it accuracy: train with --camera-jpeg at the camera's "

@@ -47,6 +47,7 @@ from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.config import ConfigError, load_config
 from vs2t_edge.runtime.dataset import load_dataset
 from vs2t_edge.runtime.inference import TactileModel
+from vs2t_edge.runtime.jpeg_quality import trained_quality
 from vs2t_edge.runtime.router_eval import threshold_rates, tune_threshold
 from vs2t_edge.runtime.operating_point import (  # noqa: F401 - re-exported for callers of calibrate
     OverrideFileError, override_file_for, override_path_for, read_beta_override, write_beta_override)
@@ -199,7 +200,7 @@ def novelty_from_dataset(model, dataset_root: Path, validation: list[str] | None
     """Novelty of every press of the dataset, split into touched (bundle classes) and validation.
     A bundle trained through the camera's JPEG (manifest ``camera_jpeg``) scores the dataset's
     frames through it, decoded at its scale, as its camera hands them (``camera_frame``)."""
-    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    q = trained_quality(model)
     scale = camera_scale(model.preprocess_spec) if q else 1
     by = {"reduced_by": scale} if scale != 1 else {}
     ds = load_dataset(dataset_root)

@@ -46,7 +46,7 @@ from vs2t_edge.runtime.config import CellConfig, ConfigError, load_config_or_say
 from vs2t_edge.runtime.devices import DeviceError
 from vs2t_edge.runtime.fault_latch import find_latched_fault
 from vs2t_edge.runtime.journal import Journal, JournalError, iter_records, latched_fault_in
-from vs2t_edge.runtime.jpeg_quality import quality_note
+from vs2t_edge.runtime.jpeg_quality import quality_note, trained_quality
 from vs2t_edge.runtime.notify import Notifier
 from vs2t_edge.runtime.operating_point import confidence_override_note
 from vs2t_edge.runtime import job_check, wiring
@@ -256,7 +256,7 @@ def run_daemon(cfg: CellConfig, *, model=None, camera=None, arm=None, gate=None,
         journal.close()
         return EXIT_USAGE
     if hasattr(camera, "on_stream_quality"):  # a UVC camera taking MJPEG undecoded reads its quality from a frame
-        camera.on_stream_quality = stream_quality_teller(int(getattr(model, "camera_jpeg", 0) or 0), log)
+        camera.on_stream_quality = stream_quality_teller(trained_quality(model), log)
     if hasattr(evidence_factory, "restore"):  # operator labels: the pieces and labels of this bundle so far
         evidence_factory.restore(iter_records(cfg.journal), seal)
     cell.recover()

@@ -93,6 +93,12 @@ def quality_note(stream_quality: object, camera_jpeg: int) -> str | None:
             "(README knob table, \"training through the camera's JPEG\")")
 
 
+def trained_quality(model: object) -> int:
+    """The camera MJPEG quality ``model``'s bundle was trained through (manifest ``camera_jpeg``), 0
+    for a bundle trained on lossless frames or a model that names none (an injected one)."""
+    return int(getattr(model, "camera_jpeg", 0) or 0)
+
+
 def camera_format_problem(camera: dict, camera_jpeg: object) -> str:
     """Why the cell cannot score a bundle trained through the camera's MJPEG at ``camera_jpeg`` (the
     manifest's; 0 or absent: lossless frames) on the camera a config's ``devices.camera`` section

@@ -28,8 +28,8 @@ from dataclasses import replace
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.config import load_config_or_say
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.labels import (alike_fabric, append_label, judged_anew, piece_digest, read_labels, scene_fabric,
-                                      typed_name)
+from vs2t_edge.runtime.labels import (alike_fabric, append_label, judged_anew, piece_digest, pre_sort_piece,
+                                      read_labels, scene_fabric, typed_name)
 from vs2t_edge.runtime.journal import iter_records
 
 
@@ -184,7 +184,7 @@ def _decided(cfg, item_id: str | None) -> tuple[str, str, str | None] | None:
               "under the bundle it runs", file=sys.stderr)
         return None
     label = found.get("label", "?")
-    piece = piece_digest(found.get("scene_z_mean"), found.get("scene_z_presses", found.get("presses")))
+    piece = piece_digest(*kept) if (kept := pre_sort_piece(found)) else None
     return str(found["item_id"]), ("; the cell had decided " + ("the reject bin" if label == UNKNOWN else label)
                                    + f" after {found.get('presses', '?')} press(es)"), piece
 

@@ -71,6 +71,14 @@ def piece_digest(z_mean: Any, presses: Any) -> str | None:
     return hashlib.sha256(json.dumps([z_mean, presses], separators=(",", ":")).encode()).hexdigest()
 
 
+def pre_sort_piece(rec: Mapping[str, Any]) -> tuple[list, int] | None:
+    """(press mean, presses it averages) of a decided piece as its ``pre_sort`` record keeps them for
+    a later label (``scene_z_mean``; ``scene_z_presses`` when outlier presses were left out of it,
+    else ``presses``), None for a record without them."""
+    z_mean, presses = rec.get("scene_z_mean"), rec.get("scene_z_presses", rec.get("presses"))
+    return (z_mean, presses) if isinstance(z_mean, list) and _press_count(presses) else None
+
+
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False,
                  piece: str | None = None) -> dict:
     """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
@@ -376,9 +384,9 @@ class OperatorFeedback:
                 current = rec.get(SEAL_KEY) == seal
             elif not current:
                 continue
-            elif kind == "pre_sort" and _projection(rec.get("scene_z_mean"), self.base.k) \
-                    and rec.get("item_id") is not None and _press_count(rec.get("scene_z_presses", rec.get("presses"))):
-                self.pieces[str(rec["item_id"])] = (rec["scene_z_mean"], rec.get("scene_z_presses", rec["presses"]))
+            elif kind == "pre_sort" and rec.get("item_id") is not None and (piece := pre_sort_piece(rec)) \
+                    and _projection(piece[0], self.base.k):
+                self.pieces[str(rec["item_id"])] = piece
             elif kind == "label" and mine(rec.get("file")) and rec.get("reread") is True:
                 self.lines_read, self._prefix = 0, (0, _EMPTY_SHA256)  # the file was read again from line 1
             elif kind == "label" and mine(rec.get("file")) and isinstance(rec.get("line"), int):
@@ -457,5 +465,5 @@ def _projection(z: Any, k: int) -> bool:
 
 
 __all__ = ["append_label", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric",
-           "alike_fabric", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
+           "alike_fabric", "pre_sort_piece", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

@@ -31,6 +31,7 @@ from vs2t_edge.runtime.config import CellConfig, ConfigError
 from vs2t_edge.runtime.devices import simulator
 from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.labels import OperatorFeedback
+from vs2t_edge.runtime.jpeg_quality import trained_quality
 from vs2t_edge.runtime.gate import SerialGate
 from vs2t_edge.runtime.inference import TactileModel
 from vs2t_edge.runtime.items import ContinuousFeed
@@ -150,7 +151,7 @@ def model_decode_scale(model: Any, frame_hw: tuple[int, int] | None = None, sett
         return int(spec.reduce)
     if frame_hw is None or pixel_format != "mjpeg":
         return 1
-    if int(getattr(model, "camera_jpeg", 0) or 0):  # as it trained, where the camera's frames leave enough pixels
+    if trained_quality(model):  # as it trained, where the camera's frames leave enough pixels
         return min(camera_scale(spec), float_path_scale(spec, frame_hw))
     return float_path_scale(spec, frame_hw)
 
@@ -180,7 +181,7 @@ def decode_fallback_note(model: Any, camera: Any) -> str:
     setting of the cell config, which the operator changes; a backend that decodes for itself is the
     machine's OpenCV build, and on the audit's run it moved right and wrong bins far less than
     uncompressed frames did (61 against 87 of 528 pieces)."""
-    q = int(getattr(model, "camera_jpeg", 0) or 0)
+    q = trained_quality(model)
     spec = getattr(model, "preprocess_spec", None)
     applied = getattr(camera, "settings_applied", None)
     if not q or spec is None or not isinstance(camera, UVCCamera) or not isinstance(applied, dict) \
@@ -205,7 +206,7 @@ def match_camera(camera: Any, model: Any, setting: str = "auto") -> None:
     if isinstance(camera, UVCCamera):
         camera.decode_scale = model_decode_scale(model, camera.expected_hw, setting, camera.pixel_format)
         # a bundle trained through the camera's JPEG gets the MJPEG stream at any scale (runtime/camera.py)
-        camera.take_mjpeg = bool(int(getattr(model, "camera_jpeg", 0) or 0))
+        camera.take_mjpeg = bool(trained_quality(model))
 
 
 def build_live_devices(cfg: CellConfig):
