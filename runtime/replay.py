@@ -234,8 +234,10 @@ class ReplayItems:
         self.q.item_index += 1
         item = self.items[self.q.item_index]
         for rec in [r for r in self.labels if isinstance(r, dict) and r.get("before_item") == item.id]:
+            piece = rec.get("piece_sha256")  # bound to the presses the label verb saw (runtime/labels.py)
             append_label(self.labels_path, str(rec.get("item_id")),
-                         None if rec.get("retract") else str(rec.get("fabric")), bool(rec.get("off_scene")))
+                         None if rec.get("retract") else str(rec.get("fabric")), bool(rec.get("off_scene")),
+                         piece if isinstance(piece, str) else None)
         return item
 
     def exhausted(self) -> bool:

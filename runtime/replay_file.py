@@ -98,7 +98,9 @@ def labels_of(records: list[dict]) -> list[dict]:
     """The operator labels a session read (runtime/labels.py), each with the item it was read
     before: a replay hands them to the cell at the same points, so its decisions can match. A line
     judged before its file was read again (``read_before``: an editor's stale copy) changed nothing
-    live; handed over, it would be a new label to the replay - a withdrawn one back in force."""
+    live; handed over, it would be a new label to the replay - a withdrawn one back in force. A line
+    bound to a piece (``piece_sha256``) keeps its binding: unbound, one the live cell refused as naming
+    another piece would teach the replay that piece's presses."""
     out, before = [], None
     for r in records:
         if r.get("type") == "item":
@@ -107,7 +109,8 @@ def labels_of(records: list[dict]) -> list[dict]:
                 and judged_anew(r):  # a line read, not a note about the file (unreadable, read again)
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
                         **({"off_scene": True} if r.get("off_scene") else {}),
-                        **({"retract": True} if r.get("retract") else {})})
+                        **({"retract": True} if r.get("retract") else {}),
+                        **({"piece_sha256": r["piece_sha256"]} if isinstance(r.get("piece_sha256"), str) else {})})
     return out
 
 

@@ -355,6 +355,23 @@ def test_a_withdrawn_label_is_recorded_and_replayed_at_its_point(tmp_path):
     assert not run_replay(out, model=Model()).ok
 
 
+def test_a_label_bound_to_another_piece_changes_nothing_in_the_replay_either(tmp_path):
+    """A label the `label` verb bound to other presses than this journal's piece of that id (a label
+    given in an earlier journal, whose ids this one gives again) changes nothing live. Its replay
+    must hand it over with its binding: unbound, the replay learned wool from the piece and sorted
+    the next pieces into wool's bin where the session sent them to reject."""
+    from vs2t_edge.runtime.replay import run_replay
+
+    def operator(cfg, result):
+        if result.item.id == "piece-000001":
+            append_label(cfg.operator_labels, result.item.id, "wool", piece="0" * 64)
+
+    out, rf, Model = _recorded_with_labels(tmp_path, operator)
+    assert [d["label"] for d in rf.index["decisions"] if d["type"] == "final"] == [UNKNOWN, UNKNOWN, UNKNOWN]
+    report = run_replay(out, model=Model())
+    assert report.ok, (report.diverged, report.mismatches[:3])
+
+
 def test_a_line_read_again_that_changed_nothing_live_changes_nothing_in_the_replay(tmp_path):
     """An editor's stale copy of the labels file brings back a withdrawn label's line: the live cell
     reads the file again, judges that line read before and changes nothing. Its replay must not hand
