@@ -26,6 +26,7 @@ from vs2t_edge.firmware_bridge.protocol import REJECT_BIN as GATE_REJECT_BIN
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_problems
 from vs2t_edge.runtime.config_yaml import ConfigError, parse_yaml_with_lines
+from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
@@ -403,6 +404,9 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         seen_names.add(name)
         if name == "unknown":
             chk.err(f"{key}.name", f"{key}.name: 'unknown' is reserved for undecided items")
+        if name.startswith(OFF_SCENE_PREFIX):  # a stranger operator labels teach (runtime/feedback.py): reject bin
+            chk.err(f"{key}.name", f"{key}.name = {name!r}: '{OFF_SCENE_PREFIX}' is reserved for strangers the "
+                                   "operator labels off-scene, whose pieces go to the reject bin")
         if kind not in ("touched", "untouched"):
             chk.err(f"{key}.kind", f"{key}.kind = {kind!r}: must be touched or untouched")
         if isinstance(bin_, bool) or not isinstance(bin_, int) or not 0 <= bin_ <= 7:

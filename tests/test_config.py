@@ -107,6 +107,16 @@ def test_duplicate_fabric_and_broken_yaml(tmp_path):
         load_config(write(tmp_path, "bundle: [unclosed\n"))
 
 
+
+def test_a_fabric_named_like_a_stranger_the_operator_teaches_is_refused(tmp_path):
+    """A stranger the operator labels off-scene is the class 'off-scene:NAME' (runtime/feedback.py),
+    decided like any class and sent, being no job fabric, to the reject bin. A job fabric of that
+    name would be the same class: the stranger's pieces into that fabric's bin (and the fabric
+    trusted as taught, unguarded by the zero-shot rule)."""
+    text = GOOD.replace("name: silk", "name: 'off-scene:silk'")
+    with pytest.raises(ConfigError, match="'off-scene:' is reserved"):
+        load_config(write(tmp_path, text))
+
 def test_list_order_checks_indices(tmp_path):
     text = GOOD.replace("max_presses: 6", "max_presses: 2\n  grid_order: list\n  grid_points: [3, 300]")
     with pytest.raises(ConfigError, match=r"\[300\] are not grid indices"):
