@@ -28,6 +28,7 @@ from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_pro
 from vs2t_edge.runtime.config_yaml import ConfigError, parse_yaml_with_lines
 from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
+from vs2t_edge.runtime.labels import name_key
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
 ARM_KINDS = ("ur_rtde", "fake", "sim")
@@ -378,6 +379,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
     # scene
     fabrics: list[SceneFabric] = []
     seen_names: set[str] = set()
+    alike: dict[str, str] = {}  # name_key -> the first fabric spelled so: one fabric to a person, or to a label
     reject_bin = v["scene"]["reject_bin"]
     if reject_bin is not None and reject_bin != GATE_REJECT_BIN:
         # the gate moves its flap there by itself (the cell's to_reject on a fault or stop, its
@@ -401,7 +403,15 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
             continue
         if name in seen_names:
             chk.err(f"{key}.name", f"{key}.name = {name!r}: listed twice")
+        elif name_key(name) in alike:
+            # an operator's label names a fabric as typed (Unicode form, case, spaces set aside:
+            # runtime/labels.py), so two such names would take each other's labels - pieces of one
+            # taught into the other's bin
+            chk.err(f"{key}.name", f"{key}.name = {name!r}: the same name to a person, or to an operator's label, "
+                                   f"as {alike[name_key(name)]!r} (Unicode form, case, width, spaces, '-' and '_' "
+                                   "set aside): give the fabrics names that differ")
         seen_names.add(name)
+        alike.setdefault(name_key(name), name)
         if name == "unknown":
             chk.err(f"{key}.name", f"{key}.name: 'unknown' is reserved for undecided items")
         if name.startswith(OFF_SCENE_PREFIX):  # a stranger operator labels teach (runtime/feedback.py): reject bin

@@ -117,6 +117,18 @@ def test_a_fabric_named_like_a_stranger_the_operator_teaches_is_refused(tmp_path
     with pytest.raises(ConfigError, match="'off-scene:' is reserved"):
         load_config(write(tmp_path, text))
 
+
+@pytest.mark.parametrize("first, second", [("denim", "Denim"), ("denim", "'de nim'"),
+                                           ("caf\u00e9", "cafe\u0301")])  # NFC and NFD of one word
+def test_two_fabrics_one_name_to_a_label_are_refused(tmp_path, first, second):
+    """A label names a fabric as typed, case, Unicode form and spaces set aside (runtime/labels.py):
+    fabrics 'denim' and 'Denim' in one job would take each other's labels - a piece taught into the
+    other's bin."""
+    text = GOOD.replace("name: denim", f"name: {first}").replace("name: silk", f"name: {second}")
+    with pytest.raises(ConfigError, match="the same name to a person"):
+        load_config(write(tmp_path, text))
+
+
 def test_list_order_checks_indices(tmp_path):
     text = GOOD.replace("max_presses: 6", "max_presses: 2\n  grid_order: list\n  grid_points: [3, 300]")
     with pytest.raises(ConfigError, match=r"\[300\] are not grid indices"):
