@@ -174,6 +174,9 @@ class GateClient:
         self._reboot: tuple[int, int] | None = None  # (old, new) boot id once a reboot is seen
         self._hb_stop = threading.Event()
         self._hb_thread: threading.Thread | None = None
+        # to_reject() failed and stopped the heartbeats: the gate is left to fail safe on its own,
+        # and routes nothing after that until clear() (or a new connect()) starts them again
+        self.failing_safe = False
         self.last_state = ""
         self.last_bin = p.REJECT_BIN  # the flap's bin in the gate's last reply or report
         self.armed_from = ""  # the latch connect() cleared, if any
@@ -244,6 +247,7 @@ class GateClient:
         if not self.heartbeat_period_s or (self._hb_thread and self._hb_thread.is_alive()):
             return
         self._hb_stop.clear()
+        self.failing_safe = False
         self._hb_thread = threading.Thread(target=self._heartbeat_loop, name="gate-heartbeat", daemon=True)
         self._hb_thread.start()
 
@@ -334,6 +338,7 @@ class GateClient:
         except Exception as exc:  # noqa: BLE001 - must not raise, whatever went wrong
             log.warning("gate to reject failed (%s); stopping heartbeats so the gate fails safe", exc)
             self.stop_heartbeat()
+            self.failing_safe = True
 
     # --- internals -----------------------------------------------------------------------------
     def _next_seq(self) -> int:

@@ -307,7 +307,13 @@ def gate_latched_at_start(gate) -> tuple[str, str] | None:
     """(reason, kind) when the gate refuses to route right now, else None. A gate that latched while
     no service fed it (down longer than its heartbeat timeout, a jam, a reboot) is seen here, before
     the first piece is pressed - not by the sort after the piece's presses - and latched as any gate
-    fault: nothing moves until the operator's clear, which clears the gate too."""
+    fault: nothing moves until the operator's clear, which clears the gate too. So is a gate whose
+    start-up ``to_reject`` went unanswered (``failing_safe``): its heartbeats were stopped so that
+    it fails safe on its own, and a status that still says ready would have let the first piece be
+    pressed and its decision refused at the sort."""
+    if getattr(gate, "failing_safe", False) is True:
+        return ("gate to reject at start went unanswered: its heartbeats are stopped so that it fails safe "
+                "on its own, and it routes nothing until cleared; check the gate's link, then clear", "link")
     try:
         status = gate.status()
     except DeviceError as exc:

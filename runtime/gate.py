@@ -88,6 +88,12 @@ class SerialGate:
             self._client.to_reject()  # never raises; falls back on the MCU's watchdog
 
     @property
+    def failing_safe(self) -> bool:
+        """``to_reject`` failed and left the gate to fail safe on its own (heartbeats stopped): it
+        routes nothing until ``clear``, however its status answers right now."""
+        return self._client.failing_safe
+
+    @property
     def client(self) -> GateClient:
         return self._client
 

@@ -245,6 +245,31 @@ def test_a_gate_latched_at_start_latches_the_cell_before_any_piece_is_pressed(tm
     assert latch in fault_file.read_text()
 
 
+def test_a_gate_whose_start_to_reject_went_unanswered_latches_the_cell_before_any_piece(tmp_path, sim):
+    """The start sends the gate to reject; when every try's ACK is lost, the driver stops its
+    heartbeats so the gate fails safe on its own - but a STATUS right after still says ready. The
+    first piece was pressed, and its decision refused at the sort a second later (the gate failed
+    safe meanwhile): lost. Now the cell latches before any piece, naming the link."""
+    from vs2t_edge.runtime.journal import read_records
+
+    class LosingStartReject(SerialGate):
+        def to_reject(self) -> None:
+            sim.faults.drop_tx = 4  # the SORT(0)'s four tries answered, every ACK lost on the line
+            super().to_reject()
+
+    gate = LosingStartReject(sim.device_path, timeout_s=0.3, retries=3, heartbeat_period_s=0.1)
+    fault_file = tmp_path / "state" / "FAULT"
+    deadline = time.monotonic() + 30
+    code, arm, cfg = _daemon_in_process(tmp_path, gate, ["denim", "silk"],
+                                        stop_when=lambda: fault_file.exists() or time.monotonic() > deadline)
+    assert code == 0
+    recs = read_records(cfg.journal)
+    assert "item" not in [r["type"] for r in recs]  # latched before the first piece
+    fault = next(r for r in recs if r["type"] == "fault")
+    assert "to reject at start went unanswered" in fault["reason"]
+    assert arm.press_count == 0
+
+
 def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_path):
     from vs2t_edge.sim.fake_devices import FakeGate
     from vs2t_edge.runtime.journal import read_records
