@@ -143,6 +143,11 @@ _SCHEMA: dict[str, Any] = {
         "untouched_confidence": _leaf("optfloat", None, (0.5, 0.99999),
                                       "a bundle with a scene model: the posterior that sorts a piece into an "
                                       "untouched fabric's bin (default: the model's, chosen in training)"),
+        # runtime/operating_point.py: touched fabrics an untouched fabric of the job may be, held back
+        "twin_ratio": _leaf("optfloat", None, (0.01, 100.0),
+                            "a bundle with a scene model: hold a touched fabric of the job to confidence "
+                            "0.9999 where its mean lies within this many times the generator's expected "
+                            "error of an untouched fabric's synthesis (default: off)"),
         "grid_order": _leaf("str", "spread", GRID_ORDERS, "spread (far-apart points first), rows, or list"),
         "grid_points": _leaf("list", None, None, "grid_order list: press indices 0..224 (row-major 15x15)"),
         # runtime/wiring.py evidence_factory_for: without decision.npz nothing refuses an off-scene piece
@@ -205,6 +210,7 @@ class CellConfig:
     operator_labels: Path | None = None  # evidence.operator_labels (runtime/feedback.py)
     untouched_confidence: float | None = None  # evidence.untouched_confidence (runtime/operating_point.py)
     extra_presses: int | None = None  # evidence.extra_presses; None: the scene model's (runtime/operating_point.py)
+    twin_ratio: float | None = None  # evidence.twin_ratio; None: off (runtime/operating_point.py)
     raw: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -495,7 +501,7 @@ def validate_config_dict(data: Any, lines: dict[str, int], path: Path) -> CellCo
         wait_item_timeout_s=v["watchdog"]["wait_item_timeout_s"],
         overlap_scoring=v["cell"]["overlap_scoring"], without_scene_model=ev["without_scene_model"],
         operator_labels=ev["operator_labels"], untouched_confidence=ev["untouched_confidence"],
-        extra_presses=ev["extra_presses"], raw=data if isinstance(data, dict) else {},
+        extra_presses=ev["extra_presses"], twin_ratio=ev["twin_ratio"], raw=data if isinstance(data, dict) else {},
     )
 
 

@@ -199,6 +199,24 @@ class SceneModel:
         m = self if self.item_rule == "offset" or self.labels_rule is None else self.for_labels()
         return m.k * (m.offset_vars() + m.press_var)
 
+    def twins(self, scene, ratio: float) -> list[str]:
+        """The touched classes of ``scene`` whose mean lies within ``ratio`` times the expected squared
+        error of a synthesised class of the scene (an untouched class no label taught): k s_u, the
+        offset rule's variance of a synthesis around its fabric's real mean (a sum-rule model reads
+        its stored offset setting, as ``press_spread``). Zero-shot, the cell cannot tell that
+        untouched fabric's pieces from such a touched fabric's: on the demo world its pieces went into
+        the touched fabric's bin (docs/decision.md, "Twins in a job"). [] for ``ratio`` inf or 0, or a
+        model without an offset setting."""
+        m = self if self.item_rule == "offset" or self.labels_rule is None else self.for_labels()
+        if not (0 < ratio < math.inf) or m.item_rule != "offset":
+            return []
+        index = {c: i for i, c in enumerate(self.classes)}
+        var = m.offset_vars()
+        synth = [index[c] for c in scene if c in self.untouched and c not in self.taught]
+        touched = [c for c in scene if c in index and c not in self.untouched and c not in self.known_only]
+        return [t for t in touched if any(float(np.sum((self.means[index[t]] - self.means[u]) ** 2))
+                                          <= ratio * self.k * float(var[u]) for u in synth)]
+
     def is_outlier_press(self, z: np.ndarray | None = None, sq_distance: Mapping[str, float] | None = None) -> bool:
         """Whether a press lies farther than ``outlier_ratio`` spreads (``press_spread``) from every
         class (module doc), given by its projection ``z`` (k,) or, without one, its squared

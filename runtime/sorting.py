@@ -28,7 +28,7 @@ import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
 from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
-from vs2t_edge.runtime.operating_point import scene_model_rule
+from vs2t_edge.runtime.operating_point import TWIN_CONFIDENCE, scene_model_rule
 
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
 OUTCOMES = (RIGHT, MIS_SORT, REJECT)
@@ -388,18 +388,22 @@ def teach_presses(scenes: Sequence[Scene], presses: dict[str, list[Press]],
     return sum(min(max_presses, len(presses[f])) for scene in scenes for f in _taught(scene, teach))
 
 
-def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None) -> Callable[[Scene], Evidence]:
+def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None,
+                   twin_ratio: float | None = None) -> Callable[[Scene], Evidence]:
     """The evidence the cell builds for a scene from a scene model's operating point
     (``runtime.scene_model.SceneModel``: confidences, press weight, open-set and known-class rules,
     its extra presses), ``extra_presses`` overriding the model's as the config's
     ``evidence.extra_presses`` does (runtime/evidence.py; such an evidence may take up to
-    ``press_limit`` presses)."""
+    ``press_limit`` presses); ``twin_ratio``: the config's ``evidence.twin_ratio``, each scene's twins
+    held to ``TWIN_CONFIDENCE`` (runtime/operating_point.py ``job_twins``)."""
     confidence, opts = scene_model_rule(model)
     if extra_presses is not None:
         opts = {**opts, "extra_presses": int(extra_presses)}
 
     def make(scene: Scene) -> Evidence:
-        return Evidence(scene.classes, confidence, max_presses, **opts)
+        held = {t: TWIN_CONFIDENCE for t in model.twins(scene.classes, float(twin_ratio))} if twin_ratio else {}
+        return Evidence(scene.classes, confidence, max_presses,
+                        **({**opts, "class_confidence": {**opts["class_confidence"], **held}} if held else opts))
     return make
 
 

@@ -482,6 +482,7 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     out["knobs"] = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
                                   seed=seed + 1, records=recs, grid={**so.KNOB_GRID, "outlier_ratio": OUTLIER_RATIOS,
                                         "likeness_ratio": ns.OFFSET_GRID["likeness_ratio"]})
+    out["knobs"] += twin_prices(model, scenes, tables, items_per_fabric=items_per_fabric, seed=seed + 1)
     choices = [("mis_sort_target", 100 * float(t), m) for t, m in sorted((targets or {}).items())] + \
         [("validation_folds", float(n), m) for n, m in sorted((folds or {}).items())]
     for knob, value, m in choices:  # each a whole operating point validation chose for it
@@ -515,6 +516,24 @@ def evaluate_scenes(model: SceneModel, touched: list[str], touched_test: tuple[n
     if model.for_labels() is not None:
         out["operator_labels"] = operator_label_jobs(model, tables, scenes, seed=seed + 2, checks=checks)
     return out
+
+
+TWIN_RATIOS = (0.5, 1.0, 2.0)  # evidence.twin_ratio, priced on the test jobs (runtime/operating_point.py)
+
+
+def twin_prices(model: SceneModel, scenes, tables: dict, *, items_per_fabric: int, seed: int) -> list[dict]:
+    """The same jobs with each job's twins (``SceneModel.twins``: touched fabrics within that many
+    times the generator's expected error of an untouched fabric's synthesis) held to
+    ``TWIN_CONFIDENCE``, one row per ratio: what sending their doubtful pieces to the reject bin buys
+    in mis-sorts and costs in pieces right. Priced, not chosen (the cell config's key)."""
+    rows = []
+    for ratio in TWIN_RATIOS:
+        recs = so.simulate_scenes(scenes, tables, so.scene_evidence(model, MAX_PRESSES, twin_ratio=ratio), seed=seed,
+                                  items_per_fabric=items_per_fabric, max_presses=MAX_PRESSES)
+        row = so.knob_prices(model, scenes, tables, max_presses=MAX_PRESSES, items_per_fabric=items_per_fabric,
+                             seed=seed, grid={}, records=recs)[0]
+        rows.append({**row, "knob": "twin_ratio", "value": ratio, "own": False})
+    return rows
 
 
 def scene_checks(model: SceneModel, scenes) -> dict:

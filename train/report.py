@@ -390,6 +390,8 @@ KNOB_KEYS = {"confidence": "evidence.confidence (touched)", "untouched_confidenc
              "likeness_ratio": "likeness ratio (training's choice, offset rule only, no config key)",
              "mis_sort_target": "mis-sort target, % (`train --mis-sort-target`: the whole operating point chosen on "
                                 "validation for it)",
+             "twin_ratio": "evidence.twin_ratio (touched fabrics within this many times the generator's expected "
+                           "error of an untouched fabric of the job held to confidence 0.9999; default off)",
              "validation_folds": "validation folds (`train --validation-folds`: the whole operating point chosen "
                                  "with that many folds of touched fabrics beside the validation fabrics)"}
 
