@@ -219,7 +219,8 @@ def confidence_override_note(cfg, scene_model) -> str:
     and ``validate-config --check-bundle``; '' when the config writes none of them (the model's own
     operating point decides) or they equal the model's. Without a scene model only
     ``evidence.confidence`` acts, and a written ``evidence.untouched_confidence`` or
-    ``evidence.extra_presses`` is said to do nothing. Also said: a scene model's own extra presses
+    ``evidence.extra_presses`` is said to do nothing. Also said: the fabrics a written
+    ``evidence.twin_ratio`` holds back (or that it holds none), and a scene model's own extra presses
     that a short ``evidence.grid_points`` list cuts (the cell stops a piece at its last point)."""
     if scene_model is None:
         idle = [f"evidence.{key} {value:g}" for key, value in (
@@ -244,6 +245,13 @@ def confidence_override_note(cfg, scene_model) -> str:
                   else "expect more touched pieces in the reject bin")
         said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
                     f"validation ({effect})")
+    if getattr(cfg, "twin_ratio", None) is not None:
+        twins = job_twins(cfg, scene_model)
+        said.append(f"evidence.twin_ratio {float(cfg.twin_ratio):g} holds " + (
+            f"{', '.join(twins)} to confidence {TWIN_CONFIDENCE:g} (an untouched fabric of the job lies within "
+            "that many times the generator's error of them: expect their pieces in the reject bin unless "
+            "near-certain)" if twins else "no fabric of this job back (no touched fabric lies that near an "
+                                          "untouched one's synthesis)"))
     points = len(getattr(cfg, "grid_points", ()) or ())
     needed = int(getattr(cfg, "max_presses", 0)) + theirs
     cut = ""

@@ -78,6 +78,7 @@ def test_the_cell_holds_the_configs_twins_as_the_simulated_jobs_do(tmp_path):
     for ev in (cell, jobs):
         needed = dict(zip(ev.classes, ev._needed.tolist()))
         assert needed["cashmere"] == op.TWIN_CONFIDENCE and needed["denim"] == 0.9 and needed["wool"] == 0.9
+    assert "evidence.twin_ratio 1 holds cashmere to confidence 0.9999" in op.confidence_override_note(cfg, m)
     (tmp_path / "c.yaml").write_text(CFG)
     plain = load_config(tmp_path / "c.yaml")
     assert plain.twin_ratio is None and op.job_twins(plain, m) == []
