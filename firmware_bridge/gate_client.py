@@ -175,7 +175,7 @@ class GateClient:
         self._hb_stop = threading.Event()
         self._hb_thread: threading.Thread | None = None
         # to_reject() failed and stopped the heartbeats: the gate is left to fail safe on its own,
-        # and routes nothing after that until clear() (or a new connect()) starts them again
+        # and routes nothing after that until clear() or a new connect()
         self.failing_safe = False
         self.last_state = ""
         self.last_bin = p.REJECT_BIN  # the flap's bin in the gate's last reply or report
@@ -218,6 +218,7 @@ class GateClient:
             except GateClientError:
                 self.disconnect()
                 raise
+            self.failing_safe = False
         self.start_heartbeat()
         return report
 
@@ -328,6 +329,7 @@ class GateClient:
             self._require_ack_of(reply, expected, "clear")
             self._boot_id = reply.boot_id
             self._reboot = None
+            self.failing_safe = False
         self.start_heartbeat()
 
     def to_reject(self) -> None:

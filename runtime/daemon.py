@@ -308,12 +308,10 @@ def gate_latched_at_start(gate) -> tuple[str, str] | None:
     no service fed it (down longer than its heartbeat timeout, a jam, a reboot) is seen here, before
     the first piece is pressed - not by the sort after the piece's presses - and latched as any gate
     fault: nothing moves until the operator's clear, which clears the gate too. So is a gate whose
-    start-up ``to_reject`` went unanswered (``failing_safe``): its heartbeats were stopped so that
-    it fails safe on its own, and a status that still says ready would have let the first piece be
-    pressed and its decision refused at the sort."""
-    if getattr(gate, "failing_safe", False) is True:
-        return ("gate to reject at start went unanswered: its heartbeats are stopped so that it fails safe "
-                "on its own, and it routes nothing until cleared; check the gate's link, then clear", "link")
+    start-up ``to_reject`` failed while its status says ready (``failing_safe``): its heartbeats
+    were stopped so that it fails safe on its own, and the first piece would have been pressed and
+    its decision refused at the sort a second later. (A latched gate refuses that ``to_reject`` too;
+    its status says why, first.)"""
     try:
         status = gate.status()
     except DeviceError as exc:
@@ -321,6 +319,9 @@ def gate_latched_at_start(gate) -> tuple[str, str] | None:
     if status.state in ("fault", "failsafe"):
         return (f"gate latched at start: {status.state} ({status.fault or 'no reason given'}), flap at bin "
                 f"{status.bin} - it routes nothing until cleared; check the gate, then clear", "fault_latched")
+    if getattr(gate, "failing_safe", False) is True:
+        return ("gate to reject at start failed: its heartbeats are stopped so that it fails safe on its own, "
+                "and it routes nothing until cleared; check the gate's link, then clear", "link")
     return None
 
 

@@ -90,7 +90,8 @@ class SerialGate:
     @property
     def failing_safe(self) -> bool:
         """``to_reject`` failed and left the gate to fail safe on its own (heartbeats stopped): it
-        routes nothing until ``clear``, however its status answers right now."""
+        routes nothing until ``clear``, however its status answers right now (the daemon asks the
+        status first: a latched gate refuses ``to_reject`` too)."""
         return self._client.failing_safe
 
     @property

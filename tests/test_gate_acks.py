@@ -245,7 +245,7 @@ def test_a_gate_latched_at_start_latches_the_cell_before_any_piece_is_pressed(tm
     assert latch in fault_file.read_text()
 
 
-def test_a_gate_whose_start_to_reject_went_unanswered_latches_the_cell_before_any_piece(tmp_path, sim):
+def test_a_gate_whose_start_to_reject_failed_latches_the_cell_before_any_piece(tmp_path, sim):
     """The start sends the gate to reject; when every try's ACK is lost, the driver stops its
     heartbeats so the gate fails safe on its own - but a STATUS right after still says ready. The
     first piece was pressed, and its decision refused at the sort a second later (the gate failed
@@ -266,8 +266,29 @@ def test_a_gate_whose_start_to_reject_went_unanswered_latches_the_cell_before_an
     recs = read_records(cfg.journal)
     assert "item" not in [r["type"] for r in recs]  # latched before the first piece
     fault = next(r for r in recs if r["type"] == "fault")
-    assert "to reject at start went unanswered" in fault["reason"]
+    assert "to reject at start failed" in fault["reason"] and fault["kind"] == "link"
     assert arm.press_count == 0
+
+
+def test_a_serial_gate_latched_at_start_is_named_latched_not_a_link_failure(tmp_path, sim):
+    """A latched gate refuses the start's send to reject too, which stops the driver's heartbeats
+    (``failing_safe``); its status says why, and that is what the fault names."""
+    from vs2t_edge.runtime.journal import read_records
+
+    feeder = GateClient(sim.device_path, timeout_s=0.3, retries=3, heartbeat_period_s=0.1)
+    feeder.connect()
+    feeder.stop_heartbeat()  # the service went down: no heartbeats past the gate's timeout
+    time.sleep(p.HEARTBEAT_TIMEOUT_MS / 1000 + 0.5)  # no request at all: a STATUS feeds the watchdog too
+    assert feeder.status().state == "failsafe"
+    feeder.disconnect()
+    gate = SerialGate(sim.device_path, timeout_s=0.3, retries=3, heartbeat_period_s=0.1)
+    fault_file = tmp_path / "state" / "FAULT"
+    deadline = time.monotonic() + 30
+    code, arm, cfg = _daemon_in_process(tmp_path, gate, ["denim", "silk"],
+                                        stop_when=lambda: fault_file.exists() or time.monotonic() > deadline)
+    assert code == 0 and arm.press_count == 0
+    fault = next(r for r in read_records(cfg.journal) if r["type"] == "fault")
+    assert fault["kind"] == "fault_latched" and "gate latched at start: failsafe" in fault["reason"]
 
 
 def test_after_the_operator_clears_a_gate_latched_at_start_the_cell_sorts(tmp_path):
