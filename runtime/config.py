@@ -26,9 +26,8 @@ from vs2t_edge.firmware_bridge.protocol import REJECT_BIN as GATE_REJECT_BIN
 from vs2t_edge.runtime.arm import GRID_N, ArmConfig, ArmConfigError
 from vs2t_edge.runtime.budget import SYSTEMD_WATCHDOG_S, bounds_of, watchdog_problems
 from vs2t_edge.runtime.config_yaml import ConfigError, parse_yaml_with_lines
-from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_CONFIG_BYTES
-from vs2t_edge.runtime.labels import name_key
+from vs2t_edge.runtime.names import OFF_SCENE_PREFIX, name_key
 
 CAMERA_KINDS = ("uvc", "replay", "sim")
 ARM_KINDS = ("ur_rtde", "fake", "sim")

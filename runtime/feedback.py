@@ -68,9 +68,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence, ItemDecision
+from vs2t_edge.runtime.names import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
-
-OFF_SCENE_PREFIX = "off-scene:"  # a learned stranger's class name (never a bundle class's)
 
 
 def _piece_weights(model: SceneModel, fabric: str, pieces) -> tuple[float, np.ndarray]:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import unicodedata
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -27,25 +26,13 @@ from vs2t_edge.runtime.bundle import SEAL_KEY
 from vs2t_edge.runtime.evidence import Evidence
 from vs2t_edge.runtime.feedback import adapt, confusable, item_evidence
 from vs2t_edge.runtime.files import InputRefused, read_regular_file
+from vs2t_edge.runtime.names import name_key, typed_name
 from vs2t_edge.runtime.scene_model import SceneModel, SceneModelError
 
 JOURNAL_DECIMALS = 5  # of a pre_sort record's scene_z_mean, what live and restarted cells learn from
 
 MAX_LABEL_LINE_BYTES = 4096
 MAX_LABELS_FILE_BYTES = 64 * 1024 * 1024  # ~500 000 labels; a new file per job (at a new path) long before
-
-
-def typed_name(name: str) -> str:
-    """A name as typed, composed (Unicode NFC): 'é' sent decomposed by another keyboard or system
-    (e + a combining accent, NFD) is the same name, byte for byte, as the config's."""
-    return unicodedata.normalize("NFC", name)
-
-
-def name_key(name: str) -> str:
-    """A fabric name with case, letter width, spaces, '-' and '_' set aside: two names with one key are
-    one fabric to a person ('WOOL', 'wool ', 'Ｗｏｏｌ' for wool)."""
-    folded = unicodedata.normalize("NFKC", unicodedata.normalize("NFKC", name).casefold())
-    return "".join(c for c in folded if c not in "-_" and not c.isspace())
 
 
 def scene_fabric(name: str, scene: Iterable[str]) -> str | None:

@@ -225,7 +225,8 @@ def confidence_override_note(cfg, scene_model) -> str:
     if scene_model is None:
         idle = [f"evidence.{key} {value:g}" for key, value in (
             ("untouched_confidence", getattr(cfg, "untouched_confidence", None)),
-            ("extra_presses", getattr(cfg, "extra_presses", None))) if value is not None]
+            ("extra_presses", getattr(cfg, "extra_presses", None)),
+            ("twin_ratio", getattr(cfg, "twin_ratio", None))) if value is not None]
         return "" if not idle else (
             f"{cfg.path}: {' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing: the bundle has no "
             "scene model, and its router's posterior sorts every class at evidence.confidence within max_presses")
@@ -245,10 +246,13 @@ def confidence_override_note(cfg, scene_model) -> str:
                   else "expect more touched pieces in the reject bin")
         said.append(f"evidence.extra_presses {int(ours)} overrides the {theirs} extra presses training chose on "
                     f"validation ({effect})")
-    if getattr(cfg, "twin_ratio", None) is not None:
+    if getattr(cfg, "twin_ratio", None) is not None and twin_ratio_idle(scene_model):
+        said.append(f"evidence.twin_ratio {float(cfg.twin_ratio):g} does nothing: the scene model has no offset "
+                    "setting to say where a synthesis's error reaches (re-export the bundle)")
+    elif getattr(cfg, "twin_ratio", None) is not None:
         twins = job_twins(cfg, scene_model)
         said.append(f"evidence.twin_ratio {float(cfg.twin_ratio):g} holds " + (
-            f"{', '.join(twins)} to confidence {TWIN_CONFIDENCE:g} (an untouched fabric of the job lies within "
+            f"{', '.join(twins)} to confidence {TWIN_CONFIDENCE:g} or more (an untouched fabric of the job lies within "
             "that many times the generator's error of them: expect their pieces in the reject bin unless "
             "near-certain)" if twins else "no fabric of this job back (no touched fabric lies that near an "
                                           "untouched one's synthesis)"))
@@ -270,16 +274,19 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
     """``evidence_settings`` of a scene model itself (operator labels build evidence from a model
     they adapted, runtime/feedback.py): its rule, the config's written confidences over its own
     (``evidence.confidence`` for touched classes, ``evidence.untouched_confidence`` for untouched
-    ones), and the config's ``evidence.extra_presses`` over its own (``extra_presses_of``)."""
+    ones), the config's ``evidence.extra_presses`` over its own (``extra_presses_of``), and the
+    job's twins that a written ``evidence.twin_ratio`` holds back (``job_twins``)."""
     confidence, opts = scene_model_rule(scene_model)
     untouched = getattr(cfg, "untouched_confidence", None)
     if untouched is not None:
         opts = {**opts, "class_confidence": {c: float(untouched) for c in opts["class_confidence"]}}
     opts = {**opts, "extra_presses": extra_presses_of(cfg, scene_model)}
+    confidence = cfg.confidence if config_sets_confidence(cfg) else confidence
     twins = job_twins(cfg, scene_model)
-    if twins:
-        opts = {**opts, "class_confidence": {**opts["class_confidence"], **{t: TWIN_CONFIDENCE for t in twins}}}
-    return (cfg.confidence if config_sets_confidence(cfg) else confidence), opts
+    if twins:  # never below what the other touched fabrics need (a written evidence.confidence may be higher)
+        held = {t: max(TWIN_CONFIDENCE, float(confidence)) for t in twins}
+        opts = {**opts, "class_confidence": {**opts["class_confidence"], **held}}
+    return confidence, opts
 
 
 TWIN_CONFIDENCE = 0.9999  # what a touched fabric an untouched fabric of the job may be needs (evidence.twin_ratio)
@@ -289,13 +296,20 @@ def job_twins(cfg, scene_model) -> list[str]:
     """The touched fabrics of the config's job that ``evidence.twin_ratio`` holds to ``TWIN_CONFIDENCE``:
     those whose mean lies within that many times the generator's expected error of an untouched
     fabric's synthesis (``SceneModel.twins``; a fabric operator labels taught is no synthesis). []
-    when the key is not written. On the demo world's test jobs, 4 splits, ratio 1: mis-sorted 2.4 ->
-    0.4 %, untouched pieces into a touched fabric's bin 7.1 -> 0.0 %, right bin 56.8 -> 50.8 %
-    (docs/decision.md, "Twins in a job")."""
+    when the key is not written, or the scene model has no offset setting (``twin_ratio_idle``). On
+    the demo world's test jobs, 4 splits, ratio 1: mis-sorted 2.4 -> 0.4 %, untouched pieces
+    mis-sorted 7.1 -> 0.0 %, right bin 56.8 -> 50.8 % (docs/decision.md, "Twins in a job")."""
     ratio = getattr(cfg, "twin_ratio", None)
     if ratio is None:
         return []
     return scene_model.twins([f.name for f in getattr(cfg, "fabrics", ())], float(ratio))
+
+
+def twin_ratio_idle(scene_model) -> bool:
+    """A scene model that cannot say where a synthesis's error reaches: a sum-rule one without the
+    offset setting labels use (a file from before it), or an untouched offset variance of 0."""
+    m = scene_model if scene_model.item_rule == "offset" else scene_model.for_labels()
+    return m is None or not float(m.offset_var_untouched or 0.0) > 0
 
 
 def refuses_off_scene(scene_model) -> bool:

@@ -401,7 +401,8 @@ def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None
         opts = {**opts, "extra_presses": int(extra_presses)}
 
     def make(scene: Scene) -> Evidence:
-        held = {t: TWIN_CONFIDENCE for t in model.twins(scene.classes, float(twin_ratio))} if twin_ratio else {}
+        held = {t: max(TWIN_CONFIDENCE, float(confidence))
+                for t in model.twins(scene.classes, float(twin_ratio))} if twin_ratio else {}
         return Evidence(scene.classes, confidence, max_presses,
                         **({**opts, "class_confidence": {**opts["class_confidence"], **held}} if held else opts))
     return make

@@ -107,7 +107,6 @@ def test_duplicate_fabric_and_broken_yaml(tmp_path):
         load_config(write(tmp_path, "bundle: [unclosed\n"))
 
 
-
 def test_a_fabric_named_like_a_stranger_the_operator_teaches_is_refused(tmp_path):
     """A stranger the operator labels off-scene is the class 'off-scene:NAME' (runtime/feedback.py),
     decided like any class and sent, being no job fabric, to the reject bin. A job fabric of that

@@ -11,7 +11,7 @@ import numpy as np
 from vs2t_edge.runtime import operating_point as op
 from vs2t_edge.runtime.config import load_config
 from vs2t_edge.runtime.evidence import UNKNOWN
-from vs2t_edge.runtime.scene_model import SceneModel
+from vs2t_edge.runtime.scene_model import LABELS_KEYS, SceneModel
 from vs2t_edge.runtime.sorting import Press, Scene, scene_evidence
 from vs2t_edge.runtime.wiring import evidence_factory_for
 
@@ -37,8 +37,13 @@ def test_twins_are_the_touched_fabrics_of_the_job_within_the_ratio_of_a_synthesi
     assert m.twins(job, float("inf")) == [] and m.twins(job, 0.0) == []
     # a fabric operator labels taught is real presses, no synthesis: it makes no twins
     assert replace(m, taught=frozenset({"wool"})).twins(job, 30.0) == []
-    # a sum-rule model reads the offset setting it keeps for labels; without one, none
-    assert replace(m, item_rule="sum").twins(job, 1.0) == []
+    # a fabric known only to refuse is no job's, and so no twin
+    assert replace(m, known_only=("cashmere",)).twins(job, 1.0) == []
+    # a sum-rule model reads the offset setting it keeps for labels; without one, none, and the
+    # config's key is said to do nothing
+    setting = {key: float(getattr(m, key)) for key in LABELS_KEYS}
+    assert replace(m, item_rule="sum", labels_rule=setting).twins(job, 1.0) == ["cashmere"]
+    assert replace(m, item_rule="sum").twins(job, 1.0) == [] and op.twin_ratio_idle(replace(m, item_rule="sum"))
 
 
 def test_an_untouched_piece_that_feels_like_its_touched_twin_goes_to_the_reject_bin_not_the_twins_bin():
@@ -79,6 +84,13 @@ def test_the_cell_holds_the_configs_twins_as_the_simulated_jobs_do(tmp_path):
         needed = dict(zip(ev.classes, ev._needed.tolist()))
         assert needed["cashmere"] == op.TWIN_CONFIDENCE and needed["denim"] == 0.9 and needed["wool"] == 0.9
     assert "evidence.twin_ratio 1 holds cashmere to confidence 0.9999" in op.confidence_override_note(cfg, m)
+    assert "evidence.twin_ratio 1 does nothing: the scene model has no offset setting" in \
+        op.confidence_override_note(cfg, replace(m, item_rule="sum"))
+    assert "evidence.twin_ratio 1 does nothing: the bundle has no scene model" in op.confidence_override_note(cfg, None)
+    # a written touched confidence above the twins' is what they need too: holding back is never bolder
+    (tmp_path / "c.yaml").write_text(CFG + "evidence: {twin_ratio: 1.0, confidence: 0.99999}\n")
+    strict = op.evidence_settings(load_config(tmp_path / "c.yaml"), SimpleNamespace(scene_model=m))[1]
+    assert strict["class_confidence"]["cashmere"] == 0.99999
     (tmp_path / "c.yaml").write_text(CFG)
     plain = load_config(tmp_path / "c.yaml")
     assert plain.twin_ratio is None and op.job_twins(plain, m) == []
