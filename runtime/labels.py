@@ -66,6 +66,12 @@ def pre_sort_piece(rec: Mapping[str, Any]) -> tuple[list, int] | None:
     return (z_mean, presses) if isinstance(z_mean, list) and _press_count(presses) else None
 
 
+def bound_piece(rec: Mapping[str, Any]) -> str | None:
+    """The ``piece_digest`` a label line or record is bound to (``piece_sha256``), None for an unbound one."""
+    piece = rec.get("piece_sha256")
+    return piece if isinstance(piece, str) else None
+
+
 def append_label(path: Path | str, item_id: str, fabric: str | None, off_scene: bool = False,
                  piece: str | None = None) -> dict:
     """Append one operator label, durably (fsync) - what ``vs2t-edge label`` does. ``off_scene``:
@@ -387,7 +393,7 @@ class OperatorFeedback:
                     self._judged.add(_line_key(rec))
                 # a line judged before its file was read again changed nothing live
                 if said and judged_anew(rec):
-                    piece = rec.get("piece_sha256") if isinstance(rec.get("piece_sha256"), str) else None
+                    piece = bound_piece(rec)
                     if rec.get("retract"):
                         self._retract(str(item), rebuild=False, piece=piece)
                     else:
@@ -433,7 +439,7 @@ def _line_key(rec: Mapping[str, Any]) -> tuple:
 def _said(rec: Mapping[str, Any]) -> dict:
     """A label record's fields for what the line said (its fabric, or the withdrawal, and the piece
     it is bound to)."""
-    bound = {"piece_sha256": rec["piece_sha256"]} if isinstance(rec.get("piece_sha256"), str) else {}
+    bound = {"piece_sha256": piece} if (piece := bound_piece(rec)) is not None else {}
     if rec.get("retract"):
         return {"retract": True, **bound}
     return {"fabric": rec["fabric"], **({"off_scene": True} if rec.get("off_scene") else {}), **bound}
@@ -451,6 +457,6 @@ def _projection(z: Any, k: int) -> bool:
         isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in z)
 
 
-__all__ = ["append_label", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric",
+__all__ = ["append_label", "bound_piece", "piece_digest", "read_labels", "judged_anew", "typed_name", "name_key", "scene_fabric",
            "alike_fabric", "pre_sort_piece", "OperatorFeedback", "JOURNAL_DECIMALS", "MAX_LABEL_LINE_BYTES",
            "MAX_LABELS_FILE_BYTES"]

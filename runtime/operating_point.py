@@ -35,9 +35,9 @@ from pathlib import Path
 from typing import Any
 
 from vs2t_edge.runtime.bundle import SEAL_KEY
-from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
 from vs2t_edge.runtime.files import MAX_JSON_BYTES, atomic_write, read_regular_file
 from vs2t_edge.runtime.jpeg_quality import camera_format_problem
+from vs2t_edge.runtime.names import OFF_SCENE_PREFIX
 
 
 class OverrideFileError(ValueError):
@@ -282,14 +282,19 @@ def scene_model_settings(cfg, scene_model) -> tuple[float, dict]:
         opts = {**opts, "class_confidence": {c: float(untouched) for c in opts["class_confidence"]}}
     opts = {**opts, "extra_presses": extra_presses_of(cfg, scene_model)}
     confidence = cfg.confidence if config_sets_confidence(cfg) else confidence
-    twins = job_twins(cfg, scene_model)
-    if twins:  # never below what the other touched fabrics need (a written evidence.confidence may be higher)
-        held = {t: max(TWIN_CONFIDENCE, float(confidence)) for t in twins}
-        opts = {**opts, "class_confidence": {**opts["class_confidence"], **held}}
-    return confidence, opts
+    return confidence, held_back(opts, job_twins(cfg, scene_model), confidence)
 
 
 TWIN_CONFIDENCE = 0.9999  # what a touched fabric an untouched fabric of the job may be needs (evidence.twin_ratio)
+
+
+def held_back(opts: dict, twins, confidence: float) -> dict:
+    """``Evidence`` keyword arguments ``opts`` with each of ``twins`` needing ``TWIN_CONFIDENCE``, and
+    never less than the touched ``confidence`` (a written evidence.confidence may be higher)."""
+    if not twins:
+        return opts
+    held = {t: max(TWIN_CONFIDENCE, float(confidence)) for t in twins}
+    return {**opts, "class_confidence": {**opts["class_confidence"], **held}}
 
 
 def job_twins(cfg, scene_model) -> list[str]:
@@ -308,7 +313,7 @@ def job_twins(cfg, scene_model) -> list[str]:
 def twin_ratio_idle(scene_model) -> bool:
     """A scene model that cannot say where a synthesis's error reaches: a sum-rule one without the
     offset setting labels use (a file from before it), or an untouched offset variance of 0."""
-    m = scene_model if scene_model.item_rule == "offset" else scene_model.for_labels()
+    m = scene_model.for_labels()  # the model itself under the offset rule
     return m is None or not float(m.offset_var_untouched or 0.0) > 0
 
 

@@ -38,7 +38,7 @@ from vs2t_edge.runtime.config import parse_yaml_with_lines, validate_config_dict
 from vs2t_edge.runtime.bundle import SEAL_KEY, BundleError, read_manifest
 from vs2t_edge.runtime.daemon import bundle_seal, run_daemon
 from vs2t_edge.runtime.devices import Frame, PressResult
-from vs2t_edge.runtime.labels import append_label
+from vs2t_edge.runtime.labels import append_label, bound_piece
 from vs2t_edge.runtime.preprocess import REDUCE_FACTORS
 from vs2t_edge.runtime.journal import read_records
 from vs2t_edge.runtime.notify import Notifier
@@ -234,10 +234,9 @@ class ReplayItems:
         self.q.item_index += 1
         item = self.items[self.q.item_index]
         for rec in [r for r in self.labels if isinstance(r, dict) and r.get("before_item") == item.id]:
-            piece = rec.get("piece_sha256")  # bound to the presses the label verb saw (runtime/labels.py)
             append_label(self.labels_path, str(rec.get("item_id")),
                          None if rec.get("retract") else str(rec.get("fabric")), bool(rec.get("off_scene")),
-                         piece if isinstance(piece, str) else None)
+                         bound_piece(rec))  # bound to the presses the label verb saw (runtime/labels.py)
         return item
 
     def exhausted(self) -> bool:

@@ -23,7 +23,7 @@ import numpy as np
 from vs2t_edge.runtime import devices as dv
 from vs2t_edge.runtime.fault_latch import FILE_WRITTEN
 from vs2t_edge.runtime.files import MAX_REPLAY_INDEX_BYTES, InputRefused, inside, read_image_file, read_regular_file
-from vs2t_edge.runtime.labels import judged_anew
+from vs2t_edge.runtime.labels import bound_piece, judged_anew
 
 FORMAT = "vs2t-edge-replay"
 VERSION = 1
@@ -110,7 +110,7 @@ def labels_of(records: list[dict]) -> list[dict]:
             out.append({"before_item": before, "item_id": str(r.get("item_id") or ""), "fabric": str(r.get("fabric") or ""),
                         **({"off_scene": True} if r.get("off_scene") else {}),
                         **({"retract": True} if r.get("retract") else {}),
-                        **({"piece_sha256": r["piece_sha256"]} if isinstance(r.get("piece_sha256"), str) else {})})
+                        **({"piece_sha256": piece} if (piece := bound_piece(r)) is not None else {})})
     return out
 
 

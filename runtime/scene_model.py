@@ -207,8 +207,8 @@ class SceneModel:
         untouched fabric's pieces from such a touched fabric's: on the demo world its pieces went into
         the touched fabric's bin (docs/decision.md, "Twins in a job"). [] for ``ratio`` inf or 0, or a
         model without an offset setting."""
-        m = self if self.item_rule == "offset" or self.labels_rule is None else self.for_labels()
-        if not (0 < ratio < math.inf) or m.item_rule != "offset":
+        m = self.for_labels()  # the model itself under the offset rule
+        if m is None or not 0 < ratio < math.inf:
             return []
         index = {c: i for i, c in enumerate(self.classes)}
         var = m.offset_vars()

@@ -27,8 +27,8 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vs2t_edge.runtime.evidence import UNKNOWN, Evidence
-from vs2t_edge.runtime.feedback import OFF_SCENE_PREFIX
-from vs2t_edge.runtime.operating_point import TWIN_CONFIDENCE, scene_model_rule
+from vs2t_edge.runtime.names import OFF_SCENE_PREFIX
+from vs2t_edge.runtime.operating_point import held_back, scene_model_rule
 
 RIGHT, MIS_SORT, REJECT = "right", "mis-sort", "reject"
 OUTCOMES = (RIGHT, MIS_SORT, REJECT)
@@ -395,16 +395,14 @@ def scene_evidence(model, max_presses: int = 5, extra_presses: int | None = None
     its extra presses), ``extra_presses`` overriding the model's as the config's
     ``evidence.extra_presses`` does (runtime/evidence.py; such an evidence may take up to
     ``press_limit`` presses); ``twin_ratio``: the config's ``evidence.twin_ratio``, each scene's twins
-    held to ``TWIN_CONFIDENCE`` (runtime/operating_point.py ``job_twins``)."""
+    held back as the cell holds them (runtime/operating_point.py ``held_back``)."""
     confidence, opts = scene_model_rule(model)
     if extra_presses is not None:
         opts = {**opts, "extra_presses": int(extra_presses)}
 
     def make(scene: Scene) -> Evidence:
-        held = {t: max(TWIN_CONFIDENCE, float(confidence))
-                for t in model.twins(scene.classes, float(twin_ratio))} if twin_ratio else {}
-        return Evidence(scene.classes, confidence, max_presses,
-                        **({**opts, "class_confidence": {**opts["class_confidence"], **held}} if held else opts))
+        twins = model.twins(scene.classes, float(twin_ratio)) if twin_ratio else []
+        return Evidence(scene.classes, confidence, max_presses, **held_back(opts, twins, confidence))
     return make
 
 
