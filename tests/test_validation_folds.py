@@ -146,14 +146,29 @@ def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeyp
 
     monkeypatch.setitem(tr.PROFILES, "tiny", replace(tr.PROFILES["tiny"], steps=20, cls_steps=20,
                                                      n_synth_per_class=20, ft_epochs=1))
+    tuned_on = []  # the touched fabrics each tail fine-tuning read
+
+    def finetune_split(cache, trunk, split, **kw):
+        tuned_on.append((list(split.touched), kw.get("tactile"), split.seed))
+        return real_finetune_split(cache, trunk, split, **kw)
+
+    real_finetune_split = tr.ft.finetune_split
+    monkeypatch.setattr(tr.ft, "finetune_split", finetune_split)
     m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, validation_folds=3)
     chosen = m["splits"][0]["scene_decision"]["validation"]
+    # the split's tail, then one per fold on the kept touched fabrics alone: no fold's held-out fabric
+    # was told apart from its siblings by a tail that read its label (train/folds.py)
+    split_touched = m["splits"][0]["split"]["touched"]
+    assert tuned_on[0][0] == split_touched and len(tuned_on) == 4
+    held = [sorted(set(split_touched) - set(kept)) for kept, _, _ in tuned_on[1:]]
+    assert all(len(h) == 2 for h in held) and sorted(f for h in held for f in h) == sorted(split_touched)
+    assert all(tactile and seed == tuned_on[0][2] for _, tactile, seed in tuned_on)
     # the split's own 2 validation fabrics, then 3 folds of its 6 touched fabrics, 2 held out each
     assert chosen["validation_worlds"] == [{"touched": 6, "validation_fabrics": 2}] + \
         [{"touched": 4, "validation_fabrics": 2}] * 3
     assert m["profile"]["validation_folds"] == 3
     err = capsys.readouterr().err
-    assert "validation fold 3/3: generator on 4 touched fabrics, 2 held out" in err
+    assert "validation fold 3/3: tails and generator on 4 touched fabrics, 2 held out" in err
     assert "(4 world(s), 8 validation fabrics)" in err
     # the operating point the validation fabrics alone choose is priced beside it, on the same test jobs
     rows = {r["value"]: r for r in m["splits"][0]["scene_decision"]["test"]["knobs"] if r["knob"] == "validation_folds"}

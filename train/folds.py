@@ -14,17 +14,22 @@ training and validation presses the pieces, the other touched fabrics the touche
 touched fabric so serves once as a fabric the generator never read.
 
 What no fold reads: the split's untouched (test) fabrics and the touched fabrics' test presses.
-What the folds share with the split's own world: the fine-tuned tactile tail and, on the paper
-profile, the fine-tuned visual tail, both trained with every touched fabric's label, so a held-out
-fabric's presses - and the camera crops its synthesis is conditioned on - are features the tails
-learnt to tell apart (a real untouched fabric's are not); and the feature scaling. Each fold's
-generator sees fewer fabrics than the deployed one (a quarter fewer with 4 folds). All of that is
-said where the numbers are (docs/results/scene_decision_rules_paper.md).
+Nor do a fold's features, where training makes them (``features``; train/run.py
+``fold_features``): its tactile tail and, on the paper profile, its visual tail are fine-tuned
+afresh on the kept fabrics alone. A tail fine-tuned on every touched fabric's label has learnt to
+tell a held-out fabric from its touched siblings, which no tail does for a real untouched fabric.
+On the demo world, in one split's test jobs that listed both, 17 of an untouched felt's 24 pieces
+went into its touched sibling's bin (docs/decision.md, "More validation fabrics"). What the folds
+still share with the split's own world: the feature scaling (per-dimension mean and spread of
+every touched fabric's training presses). Each fold's generator sees fewer fabrics than the
+deployed one (a quarter fewer with 4 folds). All of that is said where the numbers are
+(docs/results/scene_decision_rules_paper.md).
 """
 
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -76,19 +81,26 @@ def fold_data(train: ZSLData, touched_val: tuple, held: np.ndarray) -> tuple[ZSL
 
 
 def fold_worlds(method, train: ZSLData, touched_val: tuple, budget, *, n_folds: int, seed: int,
+                features: Callable[[list[str]], tuple[ZSLData, tuple]] | None = None,
                 log=lambda m: None) -> list[ValidationWorld]:
     """One ``ValidationWorld`` per fold of the touched fabrics (module doc). ``method``: the split's
     fitted generative method (VS2T-ZSL); a fresh generator of its kind (``unregistered``) is trained
-    per fold with the same ``budget``, its ensemble too."""
+    per fold with the same ``budget``, its ensemble too. ``features``: the held-out fabrics' names ->
+    ``train`` and ``touched_val`` of the same split (same fabrics, rows and order) in features from
+    tails that never read those fabrics (train/run.py ``fold_features``); None: ``train``'s own."""
     worlds = []
     for i, held in enumerate(fold_assignment(train.n_t, n_folds, seed)):
         t0 = time.time()
-        data, presses, kept_val = fold_data(train, touched_val, held)
+        fold_train, fold_val = (train, touched_val) if features is None else \
+            features([train.names_t[j] for j in held])
+        if list(fold_train.names_t) != list(train.names_t) or len(fold_train.y) != len(train.y):
+            raise ValueError(f"validation fold {i + 1}: its features name other touched fabrics or rows than the split's")
+        data, presses, kept_val = fold_data(fold_train, fold_val, held)
         gen = type(method).unregistered().fit_generators(data, budget, seed + 1 + i)
         worlds.append(ValidationWorld(data.x_t, data.y, list(data.names_t), kept_val, list(data.names_u), presses,
                                       gen.synthesise(data, budget, seed)))
-        log(f"validation fold {i + 1}/{n_folds}: generator on {data.n_t} touched fabrics, "
-            f"{len(held)} held out as validation fabrics ({time.time() - t0:.0f} s)")
+        log(f"validation fold {i + 1}/{n_folds}: {'tails and ' if features is not None else ''}generator on "
+            f"{data.n_t} touched fabrics, {len(held)} held out as validation fabrics ({time.time() - t0:.0f} s)")
     return worlds
 
 

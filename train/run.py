@@ -123,15 +123,40 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     for name, m in fitted.items():
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
-    scene_model, result["scene_decision"] = scene_decision(fitted["VS2T-ZSL"], views, split, budget,
-                                                           prof.mis_sort_target, prof.validation_folds)
+    refit = use_cnn or prof.visual_tail == "finetuned"  # tails fine-tuned on the touched labels: a fold's own
+    scene_model, result["scene_decision"] = scene_decision(
+        fitted["VS2T-ZSL"], views, split, budget, prof.mis_sort_target, prof.validation_folds,
+        fold_features=fold_features(cache, trunk, split, prof, descriptors) if refit else None)
     result["seconds"] = round(time.time() - t0, 1)
     return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk,
             "scene_model": scene_model}
 
 
+def fold_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
+                  descriptors: np.ndarray | None = None):
+    """For validation folds (train/folds.py): held-out touched fabrics' names -> the split's
+    ``train`` and ``touched_val`` views in features from tails fine-tuned as ``run_split``'s are, on
+    the other touched fabrics alone - so a held-out fabric's presses, and the camera crops its
+    synthesis is conditioned on, are features no tail learnt to tell apart, as a real untouched
+    fabric's are. The scaling is fitted as the split's is, on every touched fabric's training presses
+    (the held-out ones' too)."""
+    use_cnn = prof.tactile_feature == "cnn"
+
+    def features(held: list[str]) -> tuple:
+        kept = [f for f in split.touched if f not in held]
+        fold_split = replace(split, touched=kept, validation=[*split.validation, *held])
+        feats = ft.finetune_split(cache, trunk, fold_split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
+                                  tactile=use_cnn, visual=prof.visual_tail == "finetuned", progress=False)
+        x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
+        views = cmp.split_views(cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes),
+                                split)
+        return views.train, views.touched_val
+
+    return features
+
+
 def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget, target: float = 0.01,
-                   n_folds: int = 0) -> tuple:
+                   n_folds: int = 0, fold_features=None) -> tuple:
     """The scene decision of one split (train/decision.py): chosen on its validation fabrics, scored
     on scenes of its test fabrics, beside today's route (CLS_t / CLS_u by the paper's Gaussian
     router at its validation beta) on the same scenes. The test jobs' off-scene pieces are fabrics
@@ -144,7 +169,8 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     operating point is chosen for at most ``target`` mis-sorted pieces on validation; each of
     ``decision.MIS_SORT_TARGETS`` is chosen the same way and priced on the same test jobs.
     ``n_folds``: validation worlds from folds of the touched fabrics beside the validation fabrics
-    (train/folds.py), made once and used by every target's choice."""
+    (train/folds.py), made once and used by every target's choice; ``fold_features``: each fold's
+    features from tails that never read its held-out fabrics (``fold_features``), None: the split's."""
     from vs2t_edge.train import decision as dc
     from vs2t_edge.train.folds import fold_worlds
 
@@ -153,7 +179,7 @@ def scene_decision(method, views: cmp.SplitViews, split: cmp.FabricSplit, budget
     x_tv, _, y_tv = views.touched_val
     x_vp, _, y_vp = views.val_presses
     folds = fold_worlds(method, views.train, views.touched_val, budget, n_folds=n_folds, seed=split.seed,
-                        log=_log) if n_folds else []
+                        features=fold_features, log=_log) if n_folds else []
 
     def fit(t: float, log=lambda m: None, folds=folds):
         return dc.fit_scene_decision(
