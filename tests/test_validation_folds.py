@@ -158,17 +158,18 @@ def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeyp
     chosen = m["splits"][0]["scene_decision"]["validation"]
     # the split's tail, then one per fold on the kept touched fabrics alone: no fold's held-out fabric
     # was told apart from its siblings by a tail that read its label (train/folds.py)
-    split_touched = m["splits"][0]["split"]["touched"]
+    split_touched, seed = m["splits"][0]["split"]["touched"], m["splits"][0]["split"]["seed"]
     assert tuned_on[0][0] == split_touched and len(tuned_on) == 4
+    # fold i's tail left out exactly fold i's held-out fabrics (fold_worlds' own assignment)
     held = [sorted(set(split_touched) - set(kept)) for kept, _, _ in tuned_on[1:]]
-    assert all(len(h) == 2 for h in held) and sorted(f for h in held for f in h) == sorted(split_touched)
-    assert all(tactile and seed == tuned_on[0][2] for _, tactile, seed in tuned_on)
+    assert held == [sorted(split_touched[j] for j in fold) for fold in fold_assignment(len(split_touched), 3, seed)]
+    assert all(tactile and s == seed for _, tactile, s in tuned_on)
     # the split's own 2 validation fabrics, then 3 folds of its 6 touched fabrics, 2 held out each
     assert chosen["validation_worlds"] == [{"touched": 6, "validation_fabrics": 2}] + \
         [{"touched": 4, "validation_fabrics": 2}] * 3
     assert m["profile"]["validation_folds"] == 3
     err = capsys.readouterr().err
-    assert "validation fold 3/3: tails and generator on 4 touched fabrics, 2 held out" in err
+    assert "validation fold 3/3: own fine-tuning and generator on 4 touched fabrics, 2 held out" in err
     assert "(4 world(s), 8 validation fabrics)" in err
     # the operating point the validation fabrics alone choose is priced beside it, on the same test jobs
     rows = {r["value"]: r for r in m["splits"][0]["scene_decision"]["test"]["knobs"] if r["knob"] == "validation_folds"}
@@ -216,6 +217,27 @@ def test_a_folds_generator_is_the_methods_kind_ensemble_and_all():
     assert len(cls.instances) == before  # the split's fitted method stays the one the run keeps
     for w in worlds:  # three members' samples per held-out fabric, as the split's own syntheses pool
         assert np.bincount(w.synth_val[1]).tolist() == [3 * budget.n_synth_per_class] * len(w.val_fabrics)
+
+    # with ``features``, fold i asks for features without its own held-out fabrics, and its world's
+    # pieces and touched part are those features, not the split's
+    asked = []
+
+    def features(held_names):
+        asked.append(held_names)
+        shift = 100.0 * len(asked)  # each fold's features told apart from the split's and each other's
+        return replace(train, x_t=train.x_t + shift), (touched_val[0] + shift, touched_val[1], touched_val[2])
+
+    worlds = fold_worlds(method, train, touched_val, budget, n_folds=2, seed=1000, features=features)
+    folds = fold_assignment(n_t, 2, 1000)
+    assert asked == [[train.names_t[j] for j in fold] for fold in folds]
+    for i, (w, fold) in enumerate(zip(worlds, folds)):
+        kept = np.setdiff1d(np.arange(n_t), fold)
+        assert w.val_fabrics == [train.names_t[j] for j in fold] and w.touched == [train.names_t[j] for j in kept]
+        assert np.array_equal(w.train_x, train.x_t[np.isin(train.y, kept)] + 100.0 * (i + 1))
+        assert np.all(w.val_presses[0] >= 50.0) and np.all(w.touched_val[0] >= 50.0)
+    with pytest.raises(ValueError, match="other touched fabrics or rows"):
+        fold_worlds(method, train, touched_val, budget, n_folds=2, seed=1000,
+                    features=lambda held: (replace(train, y=train.y[::-1].copy()), touched_val))
 
 
 def test_both_item_rules_searches_break_ties_towards_fewer_mis_sorts(monkeypatch):

@@ -15,14 +15,15 @@ touched fabric so serves once as a fabric the generator never read.
 
 What no fold reads: the split's untouched (test) fabrics and the touched fabrics' test presses.
 Nor do a fold's features, where training makes them (``features``; train/run.py
-``fold_features``): its tactile tail and, on the paper profile, its visual tail are fine-tuned
-afresh on the kept fabrics alone. A tail fine-tuned on every touched fabric's label has learnt to
-tell a held-out fabric from its touched siblings, which no tail does for a real untouched fabric.
-On the demo world, in one split's test jobs that listed both, 17 of an untouched felt's 24 pieces
-went into its touched sibling's bin (docs/decision.md, "More validation fabrics"). What the folds
-still share with the split's own world: the feature scaling (per-dimension mean and spread of
-every touched fabric's training presses). Each fold's generator sees fewer fabrics than the
-deployed one (a quarter fewer with 4 folds). All of that is said where the numbers are
+``fold_features``): its tactile tail and, where the run fine-tunes one (the paper profile), its
+visual tail are fine-tuned afresh on the kept fabrics alone. A tail fine-tuned on every touched
+fabric's label has learnt to tell a held-out fabric from its touched siblings, which no tail does
+for a real untouched fabric. On the demo world without folds, in split 3's test jobs that listed
+both, 17 of an untouched felt's 24 pieces went into its touched sibling's bin (docs/decision.md,
+"More validation fabrics"). What the folds still share with the split's own world: the feature
+scaling (per-dimension mean and spread of every touched fabric's training presses, the held-out
+ones' too; no label). Each fold's generator sees fewer fabrics than the deployed one (a quarter
+fewer with 4 folds). All of that is said where the numbers are
 (docs/results/scene_decision_rules_paper.md).
 """
 
@@ -93,13 +94,14 @@ def fold_worlds(method, train: ZSLData, touched_val: tuple, budget, *, n_folds: 
         t0 = time.time()
         fold_train, fold_val = (train, touched_val) if features is None else \
             features([train.names_t[j] for j in held])
-        if list(fold_train.names_t) != list(train.names_t) or len(fold_train.y) != len(train.y):
+        if list(fold_train.names_t) != list(train.names_t) or not np.array_equal(fold_train.y, train.y) \
+                or not np.array_equal(fold_val[-1], touched_val[-1]):
             raise ValueError(f"validation fold {i + 1}: its features name other touched fabrics or rows than the split's")
         data, presses, kept_val = fold_data(fold_train, fold_val, held)
         gen = type(method).unregistered().fit_generators(data, budget, seed + 1 + i)
         worlds.append(ValidationWorld(data.x_t, data.y, list(data.names_t), kept_val, list(data.names_u), presses,
                                       gen.synthesise(data, budget, seed)))
-        log(f"validation fold {i + 1}/{n_folds}: {'tails and ' if features is not None else ''}generator on "
+        log(f"validation fold {i + 1}/{n_folds}: {'own fine-tuning and ' if features is not None else ''}generator on "
             f"{data.n_t} touched fabrics, {len(held)} held out as validation fabrics ({time.time() - t0:.0f} s)")
     return worlds
 
