@@ -16,6 +16,7 @@ import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -123,24 +124,26 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     for name, m in fitted.items():
         m.cls_u = m.cls_u_by_classes[tuple(split.untouched)]
         result["methods"][name]["synthesis"] = synth_quality(m, views, budget, split.seed)
-    refit = use_cnn or prof.visual_tail == "finetuned"  # tails fine-tuned on the touched labels: a fold's own
     scene_model, result["scene_decision"] = scene_decision(
         fitted["VS2T-ZSL"], views, split, budget, prof.mis_sort_target, prof.validation_folds,
-        fold_features=fold_features(cache, trunk, split, prof, descriptors) if refit else None)
+        fold_features=fold_features(cache, trunk, split, prof, descriptors))
     result["seconds"] = round(time.time() - t0, 1)
     return {"result": result, "table": table, "views": views, "fitted": fitted, "trunk": feats.tactile_trunk,
             "scene_model": scene_model}
 
 
 def fold_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
-                  descriptors: np.ndarray | None = None):
+                  descriptors: np.ndarray | None = None) -> Callable[[list[str]], tuple] | None:
     """For validation folds (train/folds.py): held-out touched fabrics' names -> the split's
     ``train`` and ``touched_val`` views in features from tails fine-tuned as ``run_split``'s are, on
     the other touched fabrics alone - so a held-out fabric's presses, and the camera crops its
     synthesis is conditioned on, are features no tail learnt to tell apart, as a real untouched
     fabric's are. The scaling is fitted as the split's is, on every touched fabric's training presses
-    (the held-out ones' too)."""
+    (the held-out ones' too). None when the run fine-tunes no tail (a descriptor, a frozen visual
+    tail): no feature then learnt a label, and the split's serve."""
     use_cnn = prof.tactile_feature == "cnn"
+    if not use_cnn and prof.visual_tail != "finetuned":
+        return None
 
     def features(held: list[str]) -> tuple:
         kept = [f for f in split.touched if f not in held]
