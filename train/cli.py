@@ -1,5 +1,5 @@
 """`vs2t-edge train DATASET --profile tiny|small|paper --out RUN [--splits N] [--trunk ARCH]
-[--visual-tail frozen|finetuned] [--tactile-feature cnn|shading_markers] [--camera-jpeg Q [--camera-decode auto|full]]`."""
+[--visual-tail frozen|finetuned] [--ft-attributes W] [--tactile-feature cnn|shading_markers] [--camera-jpeg Q [--camera-decode auto|full]]`."""
 
 from __future__ import annotations
 
@@ -26,6 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser, verb: str) -> None:
     parser.add_argument("--visual-tail", choices=("frozen", "finetuned"),
                         help="fine-tune the visual trunk's tail on touched fabrics' camera crops per split, or keep "
                              "it frozen (profile default: frozen; docs/training.md)")
+    parser.add_argument("--ft-attributes", type=float, metavar="W",
+                        help="weight of the tactile tail's second task while it is fine-tuned: regress each touched "
+                             "press's fabric attributes beside the softmax over touched fabrics (0: the softmax alone; "
+                             "profile default; docs/training.md \"Touch that attributes can predict\")")
     parser.add_argument("--tactile-feature", choices=("cnn", "shading_markers"),
                         help="tactile feature: the trunk (cnn, default) or the no-network shading_markers descriptor "
                              "that wins on a real GelSight (docs/realism.md); exported as a descriptor bundle")
@@ -96,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"vs2t-edge train: --mis-sort-target {args.mis_sort_target}: a percentage above 0 and below 100",
               file=sys.stderr)
         return 2
+    if args.ft_attributes is not None and not 0 <= args.ft_attributes < float("inf"):
+        print(f"vs2t-edge train: --ft-attributes {args.ft_attributes}: a finite weight of 0 or more", file=sys.stderr)
+        return 2
     if args.weights is not None and not args.weights.is_file():
         print(f"vs2t-edge train: weights file {args.weights} does not exist", file=sys.stderr)
         return 2
@@ -108,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
               max_presses=args.max_presses, tactile_feature=args.tactile_feature,
               preprocess_reduce=args.preprocess_reduce, camera_jpeg=args.camera_jpeg, touched=args.touched,
               mis_sort_target=None if args.mis_sort_target is None else args.mis_sort_target / 100,
-              validation_folds=args.validation_folds, camera_decode=args.camera_decode)
+              validation_folds=args.validation_folds, camera_decode=args.camera_decode,
+              ft_attributes=args.ft_attributes)
     s = m["summary"]["VS2T-ZSL"]
     print(f"VS2T-ZSL: ZSL {s['zsl']['mean']:.1f} %, GZSL acc_t {s['acc_t']['mean']:.1f} acc_u {s['acc_u']['mean']:.1f} "
           f"H {s['H']['mean']:.1f} ({time.time() - t0:.0f} s); report {args.out / 'report.md'}")

@@ -190,13 +190,14 @@ def finetuned_features(run: RunSource, log: Callable[[str], None] = print, weigh
                          "built here; its tails would not be the run's (pass the run's --weights)")
     epochs = int(run.profile.get("ft_epochs", 2))
     max_rows = run.profile.get("ft_max_rows", None)
+    attributes = float(run.profile.get("ft_attributes", 0.0))  # runs before it: the softmax alone
     what = " + ".join(w for w, on in (("tactile", tactile), ("visual", visual)) if on)
 
     def features_for(split: FabricSplit) -> tuple:
         t0 = time.time()
         # training's own per-split fine-tuning (run.run_split calls the same function)
         feats = ft.finetune_split(cache, trunk, split, epochs=epochs, max_rows=max_rows, tactile=tactile,
-                                  visual=visual, progress=False)
+                                  visual=visual, progress=False, attributes=attributes)
         log(f"  {what} tail fine-tuned on {feats.n_rows} touched-train presses ({time.time() - t0:.0f} s)")
         return feats, cache, (f"{path} ({what} tail fine-tuned per split, seed = split seed"
                               + (f", visual {ft.visual_tail_seed(split.seed)}" if visual else "") + ")")

@@ -257,10 +257,16 @@ def touched_training_rows(fabric: np.ndarray, fabric_ids: list[str], split) -> t
 
 def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_classes: int, *, epochs: int = 2,
                   max_rows: int | None = None, batch: int = 64, lr: float = 3e-4, seed: int = 0,
-                  progress: bool = True, what: str = "tactile") -> Trunk:
+                  progress: bool = True, what: str = "tactile", aux: np.ndarray | None = None,
+                  aux_weight: float = 0.0) -> Trunk:
     """A copy of ``trunk`` whose tail is fine-tuned (softmax over touched classes) on the given
     touched-train stem activations (tactile frames, or ``what="visual"`` the camera crops at those
-    presses). The stem is unchanged (frozen)."""
+    presses). The stem is unchanged (frozen). ``aux``: (rows, k) targets of the same rows, which a
+    linear head beside the softmax regresses from the feature, its mean squared error weighted by
+    ``aux_weight`` (``attribute_targets``: the touched fabrics' attributes); 0 or None: the softmax
+    alone, and the same random draws as before it existed."""
+    if aux is not None and len(aux) != len(y):
+        raise ValueError(f"fine-tune {what} tail: {len(aux)} auxiliary targets for {len(y)} rows")
     out = copy.deepcopy(trunk)
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -270,7 +276,13 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
     a = torch.from_numpy(np.ascontiguousarray(stem_touched[rows], dtype=np.float32))  # one layout: one result
     yt = torch.as_tensor(np.asarray(y)[rows], dtype=torch.long)
     head = nn.Linear(out.feature_dim, n_classes)
-    opt = torch.optim.Adam([{"params": out.tail.parameters(), "lr": lr}, {"params": head.parameters(), "lr": 10 * lr}])
+    params = [{"params": out.tail.parameters(), "lr": lr}, {"params": head.parameters(), "lr": 10 * lr}]
+    at = None
+    if aux is not None and aux_weight > 0:
+        at = torch.from_numpy(np.ascontiguousarray(np.asarray(aux)[rows], dtype=np.float32))
+        aux_head = nn.Linear(out.feature_dim, at.shape[1])  # drawn after the softmax head: its draws unchanged
+        params.append({"params": aux_head.parameters(), "lr": 10 * lr})
+    opt = torch.optim.Adam(params)
     out.tail.train()
     line = Line()
     t0 = time.time()
@@ -280,7 +292,10 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
             idx = perm[i0:i0 + batch]
             if len(idx) < 2:  # BatchNorm needs 2 samples
                 continue
-            loss = nn.functional.cross_entropy(head(out.features_from_stem(a[idx])), yt[idx])
+            f = out.features_from_stem(a[idx])
+            loss = nn.functional.cross_entropy(head(f), yt[idx])
+            if at is not None:
+                loss = loss + aux_weight * nn.functional.mse_loss(aux_head(f), at[idx])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -291,6 +306,17 @@ def finetune_tail(trunk: Trunk, stem_touched: np.ndarray, y: np.ndarray, n_class
         line.keep()
     out.eval()
     return out
+
+
+def attribute_targets(attributes: np.ndarray, fabric: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Per row of ``rows`` (touched-train presses), its fabric's attributes, each standardised over
+    the distinct fabrics of those rows - the touched ones, no other fabric's row is read - as
+    ``finetune_tail``'s auxiliary targets. An attribute constant over them is 0 (nothing to learn)."""
+    fab = np.asarray(fabric)[rows]
+    a = np.asarray(attributes, np.float64)
+    seen = a[np.unique(fab)]
+    z = (a[fab] - seen.mean(0)) / (seen.std(0) + 1e-6)
+    return z.astype(np.float32)
 
 
 def visual_tail_seed(split_seed: int) -> int:
@@ -311,18 +337,22 @@ class SplitFeatures:
 
 
 def finetune_split(cache: StemCache, trunk: Trunk, split, *, epochs: int, max_rows: int | None,
-                   tactile: bool = True, visual: bool = False, progress: bool = True) -> SplitFeatures:
+                   tactile: bool = True, visual: bool = False, progress: bool = True,
+                   attributes: float = 0.0) -> SplitFeatures:
     """The features of one split as `vs2t-edge train` makes them (and `compare --run` re-makes
     them): ``split``'s touched-train rows, the tactile tail fine-tuned on them (seed split seed)
     and, with ``visual``, the visual tail on the camera crops at the same presses (seed
     ``visual_tail_seed``); each tail starts from ``trunk``'s weights (``finetune_tail`` copies it).
-    A tail not fine-tuned gives the cache's frozen features."""
+    A tail not fine-tuned gives the cache's frozen features. ``attributes``: the weight of the
+    tactile tail's second task, regressing each press's fabric attributes (``attribute_targets``;
+    ``Profile.ft_attributes``, docs/training.md "Touch that attributes can predict")."""
     t0 = time.time()
     rows, y = touched_training_rows(cache.fabric, cache.fabric_ids, split)
     x_t, x_v, tuned = cache.x_t0, cache.x_v, None
     if tactile:
+        aux = attribute_targets(cache.attributes, cache.fabric, rows) if attributes > 0 else None
         tuned = finetune_tail(trunk, cache.stem_t[rows], y, len(split.touched), epochs=epochs, max_rows=max_rows,
-                              seed=split.seed, progress=progress)
+                              seed=split.seed, progress=progress, aux=aux, aux_weight=attributes)
         x_t = features_from_stem(tuned, cache.stem_t)
     t_t, t_v = time.time() - t0, 0.0
     if visual:
@@ -347,4 +377,4 @@ def features_from_stem(trunk: Trunk, stem: np.ndarray, chunk: int = 512) -> np.n
 
 
 __all__ = ["StemCache", "ZeroShotViolation", "extract_cache", "stem_cache_key", "trunk_fingerprint", "dataset_fingerprint", "extracted_presses", "cache_key_extra", "descriptor_table", "touched_training_rows", "finetune_tail",
-           "features_from_stem", "visual_tail_seed", "SplitFeatures", "finetune_split"]
+           "features_from_stem", "attribute_targets", "visual_tail_seed", "SplitFeatures", "finetune_split"]

@@ -28,6 +28,14 @@ class Profile:
     # ZSL 67.1 vs 64.0 over 3 splits of 3 validation fabrics); paper profile fine-tuned (61.8 vs
     # 61.4, and every ablation that sees vision +1.5..+4.3, 5 splits of 5 validation fabrics).
     visual_tail: str = "frozen"
+    # the tactile tail's second task beside the softmax: regress each touched-train press's fabric
+    # attributes (standardised over the touched fabrics), its squared error weighted so; 0: the
+    # softmax alone (every run before 2026-11-30, and the tiny test profile). It makes the features
+    # carry what attributes can predict, where a generator conditioned on them can reach
+    # (docs/training.md "Touch that attributes can predict"): 1 in the small and paper profiles,
+    # chosen on validation jobs of both worlds (demo world +5.7 points right, paper +1.4; 3 was
+    # no better on the demo world's).
+    ft_attributes: float = 0.0
     encoder_condition: bool = False  # E = q(z | x, v, s) as the paper's (True) or q(z | x) (docs/training.md)
     steps: int = 800  # generator optimiser steps
     batch: int = 64
@@ -112,12 +120,13 @@ def _frame_hw(dataset: Path) -> tuple[int, int]:
 
 PROFILES = {
     "tiny": Profile("tiny", trunk="tiny", size_px=64, ft_epochs=2, steps=150, cls_steps=100, n_synth_per_class=60),
-    "small": Profile("small", size_px=128, steps=400, cls_steps=200, n_synth_per_class=150),
+    "small": Profile("small", size_px=128, steps=400, cls_steps=200, n_synth_per_class=150, ft_attributes=1.0),
     # paper: 50 fabrics x 225 presses; features from 90 evenly spaced presses per fabric so extraction
     # fits the CPU budget, and a touched fabric has 9 validation presses: a validation piece can
     # press past the cell's limit of 5, so validation can choose extra presses; see docs/training.md
     "paper": Profile("paper", size_px=128, splits=5, max_presses=90, ft_epochs=2, ft_max_rows=2000, steps=400,
-                     cls_steps=200, n_synth_per_class=150, visual_tail="finetuned", validation_folds=4),
+                     cls_steps=200, n_synth_per_class=150, visual_tail="finetuned", validation_folds=4,
+                     ft_attributes=1.0),
 }
 
 

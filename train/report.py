@@ -182,6 +182,8 @@ def render(m: dict) -> str:
              f"{m['n_fabrics']} fabrics, {len(m['splits'])} seeded split(s) {n_t}/{n_v}/{n_u} "
              f"(touched/validation/untouched); trunk {prof['trunk']} at {prof['size_px']} px, visual tail "
              f"{prof.get('visual_tail', 'frozen')}; "
+             + (f"tactile tail fine-tuned to tell the touched fabrics apart and to say their attributes (weight "
+                f"{prof['ft_attributes']:g}); " if prof.get("ft_attributes") else "")
              + (f"tactile frames through the camera's JPEG at q{prof['camera_jpeg']}, decoded "
                 + ("at full size" if _full_decodes(prof) else "at the scale the cell's camera decodes this bundle's "
                    "frames at") + " (train, validation and test alike); " if prof.get("camera_jpeg") else "")

@@ -111,7 +111,7 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     if not use_cnn and (descriptors is None or len(descriptors) != len(cache.fabric)):
         raise ValueError(f"tactile_feature {prof.tactile_feature!r} needs its descriptor of every cached press")
     feats = ft.finetune_split(cache, trunk, split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
-                              tactile=use_cnn, visual=prof.visual_tail == "finetuned")
+                              tactile=use_cnn, visual=prof.visual_tail == "finetuned", attributes=prof.ft_attributes)
     x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
     table = cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     classes = vs2t.all_variants()
@@ -149,7 +149,8 @@ def fold_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Prof
         kept = [f for f in split.touched if f not in held]
         fold_split = replace(split, touched=kept, validation=[*split.validation, *held])
         feats = ft.finetune_split(cache, trunk, fold_split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
-                                  tactile=use_cnn, visual=prof.visual_tail == "finetuned", progress=False)
+                                  tactile=use_cnn, visual=prof.visual_tail == "finetuned", progress=False,
+                                  attributes=prof.ft_attributes)
         x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
         views = cmp.split_views(cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes),
                                 split)
@@ -344,8 +345,9 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
           visual_tail: str | None = None, max_presses: int | None = None, tactile_feature: str | None = None,
           preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
           mis_sort_target: float | None = None, validation_folds: int | None = None,
-          camera_decode: str | None = None) -> dict:
+          camera_decode: str | None = None, ft_attributes: float | None = None) -> dict:
     """Train and evaluate a profile on a dataset; the run folder's contract is docs/training.md.
+    ``ft_attributes``: the tactile tail's attribute task weight (``Profile.ft_attributes``; None: the profile's).
     ``mis_sort_target``: the scene decision's target share of mis-sorted pieces (``Profile.mis_sort_target``).
     ``validation_folds``: the scene decision's folds of touched fabrics (``Profile.validation_folds``).
     ``touched``: train each split on this many of its touched fabrics (``Profile.touched``).
@@ -357,7 +359,7 @@ def train(dataset: Path, out_dir: Path, profile: str = "small", splits: int | No
     with flush_denormals():
         return _train(dataset, out_dir, profile, splits, trunk_arch, weights, seed, figures, visual_tail,
                       max_presses, tactile_feature, preprocess_reduce, camera_jpeg, touched, mis_sort_target,
-                      validation_folds, camera_decode)
+                      validation_folds, camera_decode, ft_attributes)
 
 
 def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk_arch: str | None,
@@ -365,18 +367,24 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
            max_presses: int | None = None, tactile_feature: str | None = None,
            preprocess_reduce: str | None = None, camera_jpeg: int | None = None, touched: int | None = None,
            mis_sort_target: float | None = None, validation_folds: int | None = None,
-           camera_decode: str | None = None) -> dict:
+           camera_decode: str | None = None, ft_attributes: float | None = None) -> dict:
     prof = PROFILES[profile]
     prof = replace(prof, **{k: v for k, v in (("splits", splits), ("trunk", trunk_arch), ("seed", seed),
                                               ("visual_tail", visual_tail), ("tactile_feature", tactile_feature),
                                               ("preprocess_reduce", preprocess_reduce), ("camera_jpeg", camera_jpeg),
                                               ("touched", touched), ("mis_sort_target", mis_sort_target),
-                                              ("validation_folds", validation_folds), ("camera_decode", camera_decode))
+                                              ("validation_folds", validation_folds), ("camera_decode", camera_decode),
+                                              ("ft_attributes", ft_attributes))
                             if v is not None})
     spec = tactile_spec(prof, dataset)  # a bad choice fails here, before any work
     if camera_decode is not None and not _camera_decode_applies(prof):
         _log(f"camera_decode {camera_decode}: does nothing here - it is the scale a float-path run's frames are "
              "decoded at through --camera-jpeg (the reduced path decodes at 1/reduce, a descriptor full frames)")
+    if not 0 <= prof.ft_attributes < float("inf"):
+        raise ValueError(f"ft_attributes {prof.ft_attributes!r}: a finite weight of 0 or more")
+    if prof.ft_attributes and prof.tactile_feature != "cnn":
+        _log(f"ft_attributes {prof.ft_attributes}: does nothing here - no tactile tail is fine-tuned for a "
+             f"{prof.tactile_feature} descriptor")
     if not 0.0 < prof.mis_sort_target < 1.0:
         raise ValueError(f"mis_sort_target {prof.mis_sort_target!r}: a share of pieces above 0 and below 1")
     if prof.touched is not None or prof.validation_folds:
