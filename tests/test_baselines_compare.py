@@ -348,7 +348,7 @@ def test_compare_verb_on_a_run_uses_its_splits_and_reproduces_its_vs2t(tmp_path,
     assert "does not exist" in capsys.readouterr().err
 
 
-def _trained_run(tmp_path, visual_tail, seeds=(7, 11)):
+def _trained_run(tmp_path, visual_tail, seeds=(7, 11), ft_attributes=0.0):
     """A tiny run made by training's own code (``run.run_split``: tactile tail, and with
     ``visual_tail="finetuned"`` the visual tail, fine-tuned per split from the stem cache) on a
     stem cache of a tiny trunk, written as `vs2t-edge train` writes it."""
@@ -359,12 +359,12 @@ def _trained_run(tmp_path, visual_tail, seeds=(7, 11)):
     from vs2t_edge.train import vs2t
     from vs2t_edge.train.trunks import build_trunk
 
-    run = tmp_path / f"run_{visual_tail}"
+    run = tmp_path / f"run_{visual_tail}_{ft_attributes:g}"
     (run / "features").mkdir(parents=True)
     toy = sources.toy_feature_table(n_fabrics=14, presses=12, d_t=8, d_v=8, seed=3)
     prof = tr.Profile("tiny", trunk="tiny", size_px=32, splits=len(seeds), ft_epochs=1, ft_max_rows=None, steps=20,
                       batch=32, cls_steps=30, n_synth_per_class=20, latent=8, hidden=32, seed=0,
-                      routers=("gaussian",), visual_tail=visual_tail)
+                      routers=("gaussian",), visual_tail=visual_tail, ft_attributes=ft_attributes)
     budget = vs2t.VS2TBudget(steps=prof.steps, batch=prof.batch, cls_steps=prof.cls_steps,
                              n_synth_per_class=prof.n_synth_per_class, lr_scale=prof.lr_scale, latent=prof.latent,
                              hidden=prof.hidden)
@@ -393,15 +393,16 @@ def _trained_run(tmp_path, visual_tail, seeds=(7, 11)):
     return run, cache, splits
 
 
-@pytest.mark.parametrize("visual_tail", ["finetuned", "frozen"])
-def test_compare_run_reproduces_a_run_trained_with_its_visual_tail(tmp_path, capsys, visual_tail):
+@pytest.mark.parametrize("visual_tail,ft_attributes", [("finetuned", 0.0), ("frozen", 0.0), ("frozen", 1.0)])
+def test_compare_run_reproduces_a_run_trained_with_its_visual_tail(tmp_path, capsys, visual_tail, ft_attributes):
     """`compare --run` follows the run's profile.visual_tail: a run whose visual tail was
     fine-tuned per split is reproduced (same per-split VS2T-ZSL as its metrics.json), every
-    method reads those tuned visual features, and a frozen run still is reproduced."""
+    method reads those tuned visual features, and a frozen run still is reproduced. It follows
+    the tactile tail's attribute task too (``ft_attributes``), which a run without it lacks."""
     from vs2t_edge.cli import main
 
     torch.set_num_threads(1)
-    run, cache, splits = _trained_run(tmp_path, visual_tail)
+    run, cache, splits = _trained_run(tmp_path, visual_tail, ft_attributes=ft_attributes)
     src = sources.load_run(run)
     assert sources.run_visual_tail(src) == visual_tail
     table = sources.finetuned_tables(src, log=lambda m: None)(splits[0])
@@ -419,6 +420,14 @@ def test_compare_run_reproduces_a_run_trained_with_its_visual_tail(tmp_path, cap
     for ours, own in zip(res["splits"], src.vs2t_splits):  # validation and GZSL numbers too
         m = ours["methods"]["VS2T-ZSL"]
         assert (m["val_zsl_acc"], m["routers"]["gaussian"]) == (own["val_zsl_acc"], own["routers"]["gaussian"])
+    if ft_attributes:  # the test can fail: the tail without the task is another tail
+        from vs2t_edge.train import features as ft
+        from vs2t_edge.train.trunks import build_trunk
+
+        torch.manual_seed(0)  # the run's trunk, as compare builds it
+        plain = ft.finetune_split(cache, build_trunk("tiny", pretrained=True), splits[0], epochs=1, max_rows=None,
+                                  progress=False)
+        assert not np.array_equal(plain.x_t, table.x_t)
     if visual_tail == "finetuned":  # the test can fail: frozen visual features (compare's old way) do not reproduce
         from vs2t_edge.train import vs2t
 

@@ -207,8 +207,11 @@ def test_train_with_the_descriptor_then_export_gives_a_bundle_that_scores(tmp_pa
     from vs2t_edge.train.run import train
 
     world = tiny_world()
-    m = train(world, tmp_path / "run", profile="tiny", figures=False, tactile_feature="shading_markers")
+    m = train(world, tmp_path / "run", profile="tiny", figures=False, tactile_feature="shading_markers",
+              ft_attributes=1.0)
     assert m["profile"]["tactile_feature"] == "shading_markers"
+    # no tactile tail is fine-tuned for a descriptor: the attribute task asked for is recorded as off
+    assert m["profile"]["ft_attributes"] == 0.0 and "to say their attributes" not in (tmp_path / "run" / "report.md").read_text()
     art = load_run_artifacts(tmp_path / "run")
     assert art.tactile_feature == "shading_markers" and art.trunk_state == {} and art.feature_dim == 240
     man = export_run(tmp_path / "run", tmp_path / "bundle", calibration_frames=16, threads=1)

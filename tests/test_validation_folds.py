@@ -150,11 +150,15 @@ def test_training_chooses_on_its_folds_and_says_so(tmp_path, tiny_world, monkeyp
 
     def finetune_split(cache, trunk, split, **kw):
         tuned_on.append((list(split.touched), kw.get("tactile"), split.seed))
+        weights.append(kw.get("attributes"))
         return real_finetune_split(cache, trunk, split, **kw)
 
+    weights = []  # the attribute task's weight each fine-tuning got: the run's, in every fold too
     real_finetune_split = tr.ft.finetune_split
     monkeypatch.setattr(tr.ft, "finetune_split", finetune_split)
-    m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, validation_folds=3)
+    m = tr.train(tiny_world, tmp_path / "run", profile="tiny", seed=3, figures=False, validation_folds=3,
+                 ft_attributes=0.5)
+    assert weights == [0.5] * 4 and m["profile"]["ft_attributes"] == 0.5
     chosen = m["splits"][0]["scene_decision"]["validation"]
     # the split's tail, then one per fold on the kept touched fabrics alone: no fold's held-out fabric
     # was told apart from its siblings by a tail that read its label (train/folds.py)

@@ -382,9 +382,11 @@ def _train(dataset: Path, out_dir: Path, profile: str, splits: int | None, trunk
              "decoded at through --camera-jpeg (the reduced path decodes at 1/reduce, a descriptor full frames)")
     if not 0 <= prof.ft_attributes < float("inf"):
         raise ValueError(f"ft_attributes {prof.ft_attributes!r}: a finite weight of 0 or more")
-    if prof.ft_attributes and prof.tactile_feature != "cnn":
-        _log(f"ft_attributes {prof.ft_attributes}: does nothing here - no tactile tail is fine-tuned for a "
-             f"{prof.tactile_feature} descriptor")
+    if prof.tactile_feature != "cnn" and prof.ft_attributes:
+        if ft_attributes:  # asked for, not the profile's default
+            _log(f"ft_attributes {ft_attributes}: does nothing here - no tactile tail is fine-tuned for a "
+                 f"{prof.tactile_feature} descriptor")
+        prof = replace(prof, ft_attributes=0.0)  # nothing was fine-tuned: config and report say so
     if not 0.0 < prof.mis_sort_target < 1.0:
         raise ValueError(f"mis_sort_target {prof.mis_sort_target!r}: a share of pieces above 0 and below 1")
     if prof.touched is not None or prof.validation_folds:
