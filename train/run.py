@@ -107,12 +107,9 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
     t0 = time.time()
     if prof.visual_tail not in VISUAL_TAILS:
         raise ValueError(f"visual_tail {prof.visual_tail!r}: choose one of {', '.join(VISUAL_TAILS)}")
-    use_cnn = prof.tactile_feature == "cnn"
-    if not use_cnn and (descriptors is None or len(descriptors) != len(cache.fabric)):
+    if prof.tactile_feature != "cnn" and (descriptors is None or len(descriptors) != len(cache.fabric)):
         raise ValueError(f"tactile_feature {prof.tactile_feature!r} needs its descriptor of every cached press")
-    feats = ft.finetune_split(cache, trunk, split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
-                              tactile=use_cnn, visual=prof.visual_tail == "finetuned", attributes=prof.ft_attributes)
-    x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
+    x_t, feats = split_features(cache, trunk, split, prof, descriptors)
     table = cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes)
     classes = vs2t.all_variants()
     result = cmp.run_split(table, split, classes, budget, routers=tuple(prof.routers), log=_log)
@@ -132,6 +129,17 @@ def run_split(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
             "scene_model": scene_model}
 
 
+def split_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
+                   descriptors: np.ndarray | None = None, progress: bool = True) -> tuple[np.ndarray, ft.SplitFeatures]:
+    """Every cached press's tactile features for ``split`` as the profile makes them - its tuned tail's,
+    or the run's ``descriptors`` - and the fine-tuning's result (visual features, tuned trunk, times):
+    the one call of ``features.finetune_split`` with the profile's settings, for the split and its folds."""
+    use_cnn = prof.tactile_feature == "cnn"
+    feats = ft.finetune_split(cache, trunk, split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows, tactile=use_cnn,
+                              visual=prof.visual_tail == "finetuned", progress=progress, attributes=prof.ft_attributes)
+    return (feats.x_t if use_cnn else np.asarray(descriptors, np.float32)), feats
+
+
 def fold_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Profile,
                   descriptors: np.ndarray | None = None) -> Callable[[list[str]], tuple] | None:
     """For validation folds (train/folds.py): held-out touched fabrics' names -> the split's
@@ -141,17 +149,13 @@ def fold_features(cache: ft.StemCache, trunk, split: cmp.FabricSplit, prof: Prof
     fabric's are. The scaling is fitted as the split's is, on every touched fabric's training presses
     (the held-out ones' too). None when the run fine-tunes no tail (a descriptor, a frozen visual
     tail): no feature then learnt a label, and the split's serve."""
-    use_cnn = prof.tactile_feature == "cnn"
-    if not use_cnn and prof.visual_tail != "finetuned":
+    if prof.tactile_feature != "cnn" and prof.visual_tail != "finetuned":
         return None
 
     def features(held: list[str]) -> tuple:
         kept = [f for f in split.touched if f not in held]
         fold_split = replace(split, touched=kept, validation=[*split.validation, *held])
-        feats = ft.finetune_split(cache, trunk, fold_split, epochs=prof.ft_epochs, max_rows=prof.ft_max_rows,
-                                  tactile=use_cnn, visual=prof.visual_tail == "finetuned", progress=False,
-                                  attributes=prof.ft_attributes)
-        x_t = feats.x_t if use_cnn else np.asarray(descriptors, np.float32)
+        x_t, feats = split_features(cache, trunk, fold_split, prof, descriptors, progress=False)
         views = cmp.split_views(cmp.FeatureTable(x_t, feats.x_v, cache.fabric, cache.fabric_ids, cache.attributes),
                                 split)
         return views.train, views.touched_val
