@@ -172,9 +172,9 @@ class Evidence:
         v = np.array([float(lp[c]) for c in self.classes], dtype=np.float64)
         if np.isnan(v).any():
             raise ValueError("Evidence: press score has NaN log posterior")
-        if not np.isfinite(v).any():  # no scene class possible from this press: uninformative
-            v = np.zeros_like(v)
         if math.isfinite(self.known_margin):
+            # before the zeroing below: a press no scene class can have made is evidence against
+            # the job's fabrics here, not perfect evidence for them that hides a known outside one
             self._inside += self.weight * np.maximum(v, -1e300)
             for c, val in lp.items():
                 if c not in self.classes:
@@ -182,6 +182,8 @@ class Evidence:
                         raise ValueError(f"Evidence: press score has NaN log posterior for {c} (outside the scene)")
                     self._outside[c] = self._outside.get(c, 0.0) + self.weight * max(val, -1e300)
         self._add_open(score)
+        if not np.isfinite(v).any():  # no scene class possible from this press: uninformative for the posterior
+            v = np.zeros_like(v)
         v = v - _logsumexp(v)
         self._acc = self._acc + self.weight * np.maximum(v, -1e300)  # keep -inf out of sums (inf - inf = NaN)
         self.presses += 1

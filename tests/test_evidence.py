@@ -88,3 +88,20 @@ def test_a_nan_in_a_refusal_rule_is_refused_not_a_rule_switched_off():
         opened.add(D({"a": 0.0, "b": -3.0}, {"a": 1.0, "b": math.nan}))  # min(1.0, NaN) is 1.0: one is enough
     fine = Evidence(["a", "b"], 0.95, 5, known_margin=0.0, open_threshold=10.0)
     fine.add(D({"a": 0.0, "b": -3.0, "z": -9.0}, {"a": 1.0, "b": 4.0}))
+
+
+def test_press_no_scene_class_can_explain_counts_against_the_job():
+    """A press on which every class of the job is impossible (log posterior -inf) is no evidence for
+    the posterior among them, but it is for the known-class rule: two presses surely of the outside
+    fabric k and one that leans to a must send the piece to the reject bin, not into a's bin (they
+    once did: the zeroed press entered the rule's inside sum as perfect evidence for the job)."""
+    ev = Evidence(["a", "b"], 0.9, 3, known_margin=1.0)
+    d = None
+    for lp in ({"a": -math.inf, "b": -math.inf, "k": 0.0},) * 2 + ({"a": -0.05, "b": -5.0, "k": -3.2},):
+        d = ev.add(S(lp))
+    assert d is not None and d.label == "unknown" and d.stopped_by == "off_scene"
+    # without an outside fabric to prefer, the same presses still decide among the job's classes
+    alone = Evidence(["a", "b"], 0.9, 3)
+    for lp in ({"a": -math.inf, "b": -math.inf},) * 2 + ({"a": -0.05, "b": -5.0},):
+        d = alone.add(S(lp))
+    assert d is not None and d.label == "a"
