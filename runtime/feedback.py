@@ -38,20 +38,22 @@ which keeps the untouched one, nor a learned stranger, whose pieces go to the re
 
 A class no label taught is guarded (``GuardedEvidence``): sorted only where the zero-shot model,
 on the same presses, decides the same class - labels make the cell surer of what they taught,
-never bolder about an untouched fabric they did not teach. (On a sum-rule bundle, whose labels rule is another operating point than
-its own, what no label taught - touched classes too - is decided by the bundle's own rule as
-zero-shot: ``ZeroShotUnlessTaught``.) On an offset-rule bundle touched classes are not guarded:
-their means were real already (and the rule labels switch to keeps every off-scene rule the
-bundle's own has, ``SceneModel.for_labels``: a sum-rule bundle's stored offset setting may have
-had none). So a label that moves an untouched fabric's mean off a touched one makes the cell surer
-of that touched fabric too - of its own pieces, and of a piece of no job fabric that lay between
-the two and was unconfident before, unless an off-scene rule refuses it. Nor is a taught class - unless an untouched fabric of the job that no label taught may feel like it
-(``confusable``): the generator put the two syntheses closer than its own error (within the 99 %
-region of the offset model's N(m, s_u I)), so it could not tell the two fabrics apart, and the
-taught mean says nothing of where the other fabric's pieces lie. The taught class is then guarded
-too (``stopped_by`` "confusable_guard") until a label teaches the other fabric as well: found on
-the paper world, where one label of a jersey sent every piece of its touch-twin (another colour of
-the same knit) into its bin.
+never bolder about an untouched fabric they did not teach. (On a sum-rule bundle, whose labels
+rule is another operating point than its own, what no label taught - touched classes too - is
+decided by the bundle's own rule as zero-shot: ``ZeroShotUnlessTaught``.) On an offset-rule bundle
+touched classes are not guarded: their means were real already (and the rule labels switch to
+keeps every off-scene rule the bundle's own has, ``SceneModel.for_labels``: a sum-rule bundle's
+stored offset setting may have had none). Nor is a taught class - unless an untouched fabric of the
+job that no label taught may feel like it (``confusable``): the generator put the two syntheses
+closer than its own error (within the 99 % region of the offset model's N(m, s_u I)), so it could
+not tell the two fabrics apart, and the taught mean says nothing of where the other fabric's pieces
+lie. The taught class is then guarded too (``stopped_by`` "confusable_guard") until a label teaches
+the other fabric as well: found on the paper world, where one label of a jersey sent every piece of
+its touch-twin (another colour of the same knit) into its bin.
+
+So on an offset-rule bundle a label that moves an untouched fabric's mean off a touched one makes
+the cell surer of that touched fabric too: of its own pieces, and of a piece of no job fabric that
+lay between the two and was unconfident before, unless an off-scene rule refuses it.
 
 This is a mode outside the zero-shot protocol, on only when the cell config names a labels file
 (``evidence.operator_labels``), and measured as such (train/decision.py ``evaluate_scenes``,
