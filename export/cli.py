@@ -23,9 +23,11 @@ from pathlib import Path
 # paper world (bench, paired on the same presses, docs/bundle.md "int8"): minmax ranges on 64
 # presses with fp32's beta lost 2.9 points of touched accuracy per press; this recipe loses at most
 # 0.6 on every measure for a 2.1x faster trunk. The float nodes are chosen at export from held-out
-# touched and validation presses, never from untouched fabrics.
+# touched and validation presses, never from untouched fabrics. The scene model's real class means
+# moved to the int8 trunk's (since 2026-11-30): without it, the attribute-task run's bundle lost 5
+# points of touched pieces in the right bin to int8 (docs/bundle.md "int8").
 INT8_RECIPE = {"calibration_frames": 256, "int8_calibration": "percentile", "int8_float_auto": 4,
-               "int8_keep_operating_point": True}
+               "int8_keep_operating_point": True, "int8_scene_means": True}
 FP32_CALIBRATION_FRAMES = 64
 
 
@@ -58,6 +60,10 @@ def add_arguments(parser, verb: str) -> None:
                         help="move beta so the int8 graph keeps as many held-out touched presses touched as fp32 "
                              "does at the run's beta (int8 noise otherwise routes more presses to untouched; "
                              "default on)")
+    parser.add_argument("--int8-scene-means", action=argparse.BooleanOptionalAction, default=None,
+                        help="move the scene model's real class means (touched and known-only fabrics) by the int8 "
+                             "trunk's shift of the training presses they were fitted on (part of the int8 shift is "
+                             "the same on every press of a fabric; default on)")
     parser.add_argument("--int8-float-auto", type=int, default=None, metavar="K",
                         help="keep in float the K trunk nodes whose float copy buys back the most feature error "
                              "on held-out touched and validation presses (a sensitivity scan at export; default "
@@ -121,7 +127,8 @@ def run_options(args) -> dict:
     as given, each one left out from ``INT8_RECIPE`` (int8) or the fp32 defaults (no int8 work)."""
     int8 = args.trunk_precision == "int8"
     fallback = INT8_RECIPE if int8 else {"calibration_frames": FP32_CALIBRATION_FRAMES, "int8_calibration": "minmax",
-                                         "int8_float_auto": 0, "int8_keep_operating_point": False}
+                                         "int8_float_auto": 0, "int8_keep_operating_point": False,
+                                         "int8_scene_means": False}
     return {key: fallback[key] if getattr(args, key) is None else getattr(args, key) for key in INT8_RECIPE}
 
 
@@ -144,9 +151,9 @@ def run(args) -> int:
         print(f"export: --int8-float-nodes: {exc}", file=sys.stderr)
         return 2
     if ((float_nodes or args.int8_float_auto or args.int8_percentile is not None or args.int8_keep_operating_point
-         or args.int8_calibration is not None) and args.trunk_precision != "int8"):
-        print("export: --int8-float-nodes, --int8-float-auto, --int8-calibration, --int8-percentile and "
-              "--int8-keep-operating-point need --trunk-precision int8",
+         or args.int8_scene_means or args.int8_calibration is not None) and args.trunk_precision != "int8"):
+        print("export: --int8-float-nodes, --int8-float-auto, --int8-calibration, --int8-percentile, "
+              "--int8-keep-operating-point and --int8-scene-means need --trunk-precision int8",
               file=sys.stderr)
         return 2
     if args.heads_precision == "int8" and args.two_graphs:
@@ -189,6 +196,7 @@ def run(args) -> int:
                            router=args.router, threads=args.threads, fuse=not args.two_graphs,
                            float_nodes=float_nodes, float_auto=opt["int8_float_auto"], percentile=args.int8_percentile,
                            int8_keep_operating_point=opt["int8_keep_operating_point"],
+                           int8_scene_means=opt["int8_scene_means"],
                            heads_precision=args.heads_precision, heads_in_press_graph=args.heads_in_press_graph)
     except (ExportError, FileNotFoundError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
@@ -211,6 +219,11 @@ def run(args) -> int:
         kept = m["graphs"]["trunk"].get("quantisation", {}).get("float_nodes_chosen") or []
         if kept:
             print(f"  kept in float: {', '.join(kept)}")
+        if "int8_scene_means" in checks:
+            sm = checks["int8_scene_means"]
+            print(f"  scene model: {sm['classes']} real class means moved to the int8 trunk's ({sm['presses']} training "
+                  f"presses; median {sm['shift_rms_per_dim_median']:.3f}, largest {sm['shift_rms_per_dim_max']:.3f} "
+                  "rms a dimension)")
     print(f"  router {m['router']['name']} (tells touched from untouched presses), beta {m['beta']:.6g} "
           f"(its threshold, on the router's own scale): {m['operating_point']}")
     print(f"  gating temperature {m['gating']['temperature']:.4g} ({m['gating']['how']})")

@@ -25,13 +25,14 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
 from vs2t_edge.export import fuse as fz
+from vs2t_edge.export.int8_scene import shift_real_means
 from vs2t_edge.runtime import bundle as rb
 from vs2t_edge.runtime import novelty as nv
 from vs2t_edge.runtime.inference import fused_novelty
@@ -196,7 +197,8 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                  quant_options: dict | None = None, opset: int = OPSET, scene_model: dict | None = None,
                  threads: int = 2, log: Callable[[str], None] = lambda m: None, descriptor=None,
                  fuse: bool = True, int8_beta: Callable[[np.ndarray], tuple[float, str, dict]] | None = None,
-                 heads_precision: str = "fp32", camera_jpeg: int = 0, heads_in_press_graph: bool = False) -> dict:
+                 heads_precision: str = "fp32", camera_jpeg: int = 0, heads_in_press_graph: bool = False,
+                 real_mean_presses: Callable[[], Iterable[tuple[str, np.ndarray]]] | None = None) -> dict:
     """Write and verify a bundle; returns the manifest. ``calibration``: (N, 3, S, S) float32
     preprocessed presses of TOUCHED fabrics (int8 ranges, parity, probe = calibration[0]);
     ``validation`` / ``touched_heldout``: preprocessed presses of validation fabrics and held-out
@@ -217,7 +219,10 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     ``heads_precision`` int8: the fused graph's CLS_t / CLS_u weights in int8 (``fuse.quantize_heads``;
     beta stays the run's, the gating is fitted on the graph written, as for an int8 trunk).
     ``camera_jpeg``: the tactile camera's MJPEG quality the model was trained on and the given frames
-    were read through (train --camera-jpeg), recorded as the manifest's ``camera_jpeg`` (absent for 0)."""
+    were read through (train --camera-jpeg), recorded as the manifest's ``camera_jpeg`` (absent for 0).
+    ``real_mean_presses``: for an int8 trunk with ``scene_model``, yields (class, preprocessed frames)
+    of the presses each real class mean was fitted on; each mean is moved by the int8 trunk's shift
+    of them (export/int8_scene.py). None keeps the fp32 trunk's means."""
     if descriptor is not None:
         from vs2t_edge.export.descriptor import write_descriptor_bundle
 
@@ -287,11 +292,19 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
             checks["int8_vs_fp32_on_calibration"] = {"frames": int(len(calibration)), "feature_rel": _rel(f8, f32),
                                                      "feature_cosine_min": float(np.min(cos)),
                                                      "cls_t_top1_agreement": float(np.mean(top32 == top8))}
+            scene32 = scene_model
+            if scene_model is not None and real_mean_presses is not None:
+                scene_model, checks["int8_scene_means"] = shift_real_means(
+                    scene_model, real_mean_presses(), lambda x: _run_batches(sess32, x)[0],
+                    lambda x: _run_batches(sess8, x)[0])
+                log("the scene model's real class means moved to the int8 trunk's: {classes} classes, {presses} "
+                    "training presses, median shift {shift_rms_per_dim_median:.3f} rms a dimension"
+                    .format(**checks["int8_scene_means"]))
             if scene_model is not None:
                 val = [x for x in (touched_heldout, validation) if x is not None and len(x)]
                 if val:
-                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(scene_model, np.concatenate(val),
-                                                                                    sess32, sess8)
+                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(scene32, np.concatenate(val),
+                                                                                    sess32, sess8, scene_model)
                     log("int8 against fp32, the scene model's per-press decision on {presses} validation presses: "
                         "{argmax_agreement:.1%} the same class".format(**checks["int8_scene_decision_on_validation"]))
         else:
@@ -388,7 +401,9 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                                      "(runtime/scene_model.py); per item: weighted evidence, off-scene checks, "
                                      "confidence per kind (runtime/evidence.py); fitted on validation fabrics"
                                      + ("; fitted on the fp32 trunk's features and applied to the int8 trunk's "
-                                        "(checks.int8_scene_decision_on_validation)" if trunk_precision == "int8" else "")}}
+                                        + ("with its real class means moved to the int8 trunk's (checks.int8_scene_means) "
+                                           if "int8_scene_means" in checks else "")
+                                        + "(checks.int8_scene_decision_on_validation)" if trunk_precision == "int8" else "")}}
                if scene_model is not None else {}),
             "beta": float(beta),
             "operating_point": operating_point,
@@ -409,19 +424,21 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
     return manifest
 
 
-def _int8_scene_check(scene_model: dict, x: np.ndarray, sess32, sess8) -> dict:
-    """The scene model (fitted on the fp32 trunk's features) on the int8 trunk's: per press, how
-    often its most likely class over every class it knows is the same, and how far the projection
-    moves against the spread of a press around its class mean - on validation presses only (touched
-    fabrics' held-out presses and the validation fabrics'; never an untouched fabric's)."""
+def _int8_scene_check(scene_model: dict, x: np.ndarray, sess32, sess8, scene_model8: dict | None = None) -> dict:
+    """The scene model (fitted on the fp32 trunk's features) on the int8 trunk's - ``scene_model8``
+    when the int8 bundle ships other means (export/int8_scene.py) -: per press, how often its most
+    likely class over every class it knows is the same, and how far the projection moves against
+    the spread of a press around its class mean - on validation presses only (touched fabrics'
+    held-out presses and the validation fabrics'; never an untouched fabric's)."""
     from vs2t_edge.runtime.scene_model import SceneModel
 
     sm = SceneModel.from_params(scene_model)
+    sm8 = sm if scene_model8 is None else SceneModel.from_params(scene_model8)
     (f32,) = _run_batches(sess32, x)
     (f8,) = _run_batches(sess8, x)
-    z32, z8 = sm.project(f32), sm.project(f8)
+    z32, z8 = sm.project(f32), sm8.project(f8)
     lp32, d32 = sm.log_posterior_projected(z32)
-    lp8, _ = sm.log_posterior_projected(z8)
+    lp8, _ = sm8.log_posterior_projected(z8)
     shift = np.sum((z8 - z32) ** 2, axis=1)
     return {"presses": int(len(x)), "argmax_agreement": float(np.mean(lp32.argmax(1) == lp8.argmax(1))),
             "projection_shift_sq_median": float(np.median(shift)), "projection_shift_sq_max": float(np.max(shift)),

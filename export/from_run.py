@@ -24,6 +24,7 @@ from vs2t_edge.runtime.preprocess import TactilePreprocess, camera_press, camera
 
 from vs2t_edge.export.calibration import calibration_presses, sensitivity_presses
 from vs2t_edge.export.export import ExportError, _novelty, write_bundle
+from vs2t_edge.export.int8_scene import real_mean_presses
 
 
 def grid_presses(n_presses: int, max_presses: int | None) -> np.ndarray:
@@ -176,7 +177,8 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                float_convs: int = 0, router: str | None = None, log: Callable[[str], None] = lambda m: None,
                threads: int = 2, fuse: bool = True, float_nodes: Sequence[str] = (), float_auto: int = 0,
                percentile: float | None = None, int8_keep_operating_point: bool = False,
-               heads_precision: str = "fp32", heads_in_press_graph: bool = False) -> dict:
+               heads_precision: str = "fp32", heads_in_press_graph: bool = False,
+               int8_scene_means: bool = False) -> dict:
     """Bundle of a training run (RUN/artifacts/model.pt and its dataset).
 
     ``router``: None ships the run's stored router and beta; a name from ``novelty.ROUTERS``
@@ -188,7 +190,9 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
     keeps the K that buy back the most on held-out touched and validation presses
     (export/quantize.py ``layer_sensitivity``); ``percentile`` for the percentile calibration;
     ``int8_keep_operating_point`` moves beta so the int8 graph keeps as many held-out touched
-    presses touched as fp32 does at the run's beta (``matched_beta``, on the graph being written)."""
+    presses touched as fp32 does at the run's beta (``matched_beta``, on the graph being written);
+    ``int8_scene_means`` moves the scene model's real class means (touched and known-only fabrics)
+    by the int8 trunk's shift of the training presses they were fitted on (export/int8_scene.py)."""
     from vs2t_edge.runtime.dataset import load_dataset
     from vs2t_edge.train.artifacts import build_modules, load_run_artifacts, load_router
 
@@ -275,6 +279,20 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                      "validation": list(art.validation), "touched_presses": part,
                      "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
             "router": router_prov, "run_info": art.info}
+    mean_frames = None
+    if trunk_precision == "int8" and int8_scene_means and router is None and art.scene_model is not None:
+        known = [str(c) for c in art.scene_model.get("known_only", ())]
+        known_part = press_partition({fid: len(ds.by_id(fid).presses) for fid in known}, known, seed, max_presses)
+        mean_src = real_mean_presses(part, art.touched, known_part)
+        check_zero_shot(mean_src, art.untouched, "the int8 scene model's real class means")
+        log(f"reading {sum(map(len, mean_src.values()))} training presses of {len(mean_src)} touched and known-only "
+            "fabrics (the int8 scene model's real class means)")
+
+        def read_mean_presses():
+            for fid, idx in mean_src.items():
+                yield fid, _frames(ds, fid, idx, spec, q)
+        mean_frames = read_mean_presses
+        prov["data"]["int8_scene_mean_presses"] = mean_src
     keep_op = trunk_precision == "int8" and int8_keep_operating_point
     nov32 = _novelty(chosen, *_outputs(trunk, cls_t, cls_u, heldout)) if keep_op else None
 
@@ -295,7 +313,7 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                         quant_options=quant_options if trunk_precision == "int8" else None,
                         operating_point=operating_point, scene_model=art.scene_model if router is None else None,
                         fuse=fuse, int8_beta=int8_beta if keep_op else None, heads_precision=heads_precision,
-                        camera_jpeg=q, heads_in_press_graph=heads_in_press_graph)
+                        camera_jpeg=q, heads_in_press_graph=heads_in_press_graph, real_mean_presses=mean_frames)
 
 
 def matched_beta(nov32: np.ndarray, nov8: np.ndarray, beta: float) -> tuple[float, float]:

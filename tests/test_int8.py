@@ -243,12 +243,13 @@ def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsy
     ec.add_arguments(p, "export")
     assert ec.run_options(p.parse_args(["r", "--out", "o"])) == {
         "calibration_frames": ec.FP32_CALIBRATION_FRAMES, "int8_calibration": "minmax", "int8_float_auto": 0,
-        "int8_keep_operating_point": False}
+        "int8_keep_operating_point": False, "int8_scene_means": False}
     assert ec.run_options(p.parse_args(["r", "--out", "o", "--trunk-precision", "int8"])) == ec.INT8_RECIPE
     given = ec.run_options(p.parse_args(["r", "--out", "o", "--trunk-precision", "int8", "--int8-calibration", "minmax",
-                                         "--no-int8-keep-operating-point", "--int8-float-auto", "0"]))
+                                         "--no-int8-keep-operating-point", "--int8-float-auto", "0",
+                                         "--no-int8-scene-means"]))
     assert given["int8_calibration"] == "minmax" and given["int8_float_auto"] == 0
-    assert given["int8_keep_operating_point"] is False
+    assert given["int8_keep_operating_point"] is False and given["int8_scene_means"] is False
     assert given["calibration_frames"] == ec.INT8_RECIPE["calibration_frames"]
     assert main(["export", "r", "--out", str(tmp_path / "x"), "--int8-calibration", "percentile"]) == 2
     assert "need --trunk-precision int8" in capsys.readouterr().err
@@ -261,6 +262,7 @@ def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsy
     assert q["calibration"] == "percentile" and "sensitivity" in q
     assert 0 < len(q["float_nodes_chosen"]) <= ec.INT8_RECIPE["int8_float_auto"]
     assert "moved for int8" in m["operating_point"]
+    assert m["checks"]["int8_scene_means"]["classes"] == len(m["classes"]["touched"])
 
 
 # ------------------------------------------------ the bench: int8 and fp32 paired
@@ -377,3 +379,68 @@ def test_export_int8_keeps_the_operating_point(tiny_run, tmp_path):  # noqa: F81
     op = m["provenance"]["int8_operating_point"]
     assert op["run_beta"] == art.beta and m["beta"] == op["beta"] and 0 <= op["touched_kept"] <= 1
     assert "moved for int8" in m["operating_point"]
+
+
+# ------------------------------------------------ the scene model's real means on the int8 trunk
+
+
+def test_int8_export_moves_real_scene_means_by_the_int8_shift_of_their_own_training_presses(tiny_run, tmp_path,
+                                                                                             monkeypatch):  # noqa: F811
+    """With int8_scene_means each touched class mean moves by mean(int8) - mean(fp32) of its training
+    presses, projected; the synthesised means stay the generator's; every press read for it is a
+    touched fabric's training press; without it the means are training's."""
+    from vs2t_edge.runtime import dataset as dsm
+    from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.inference import TactileModel
+    from vs2t_edge.runtime.scene_model import SceneModel
+
+    run, art = tiny_run
+    stored = SceneModel.from_params(art.scene_model)
+    plain = fr.export_run(run, tmp_path / "plain", trunk_precision="int8", calibration_frames=12)
+    assert "int8_scene_means" not in plain["checks"]
+    reads: list[tuple[str, int]] = []
+    orig = dsm.Fabric.load_press
+    monkeypatch.setattr(dsm.Fabric, "load_press", lambda self, i, *a, **k: reads.append((self.id, int(i))) or
+                        orig(self, i, *a, **k))
+    m = fr.export_run(run, tmp_path / "moved", trunk_precision="int8", calibration_frames=12, int8_scene_means=True)
+    monkeypatch.undo()
+    part = m["provenance"]["data"]["touched_presses"]
+    src = m["provenance"]["data"]["int8_scene_mean_presses"]
+    assert set(src) == set(art.touched) and all(src[f] == part[f]["train"] for f in src)
+    assert not {f for f, _ in reads} & set(art.untouched)
+    assert all(i not in part[f]["test"] and i not in part[f]["unused"] for f, i in reads if f in part)
+    check = m["checks"]["int8_scene_means"]
+    assert check["classes"] == len(art.touched) and check["presses"] == sum(map(len, src.values()))
+    assert "moved to the int8 trunk's" in m["decision"]["rule"]
+
+    b32 = tmp_path / "b32"
+    fr.export_run(run, b32, trunk_precision="fp32", calibration_frames=12)
+    m32, m8 = TactileModel.load(b32, threads=1), TactileModel.load(tmp_path / "moved", threads=1)
+    m8_plain = TactileModel.load(tmp_path / "plain", threads=1)
+    np.testing.assert_allclose(m8_plain.scene_model.means, stored.means, atol=1e-12)
+    ds = load_dataset(art.dataset)
+    moved = m8.scene_model.means
+    for fid in art.touched:
+        x = fr._frames(ds, fid, src[fid], m8.preprocess_spec)
+        z8, z32 = (stored.project(mm.forward(x).feature).mean(0) for mm in (m8, m32))
+        row = stored.classes.index(fid)
+        np.testing.assert_allclose(moved[row], stored.means[row] + z8 - z32, atol=1e-4)
+    assert np.abs(moved[: len(art.touched)] - stored.means[: len(art.touched)]).max() > 1e-3  # they did move
+    for fid in art.untouched:
+        row = stored.classes.index(fid)
+        np.testing.assert_array_equal(moved[row], stored.means[row])
+
+
+def test_shift_real_means_refuses_a_synthesised_class_and_a_class_it_lacks(tiny_run):  # noqa: F811
+    from vs2t_edge.export.int8_scene import shift_real_means
+
+    _, art = tiny_run
+    same = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    x = np.zeros((3, 64))
+    with pytest.raises(ValueError, match="synthesised"):
+        shift_real_means(art.scene_model, [(art.untouched[0], x)], same, same)
+    with pytest.raises(ValueError, match="no class"):
+        shift_real_means(art.scene_model, [("nope", x)], same, same)
+    params, check = shift_real_means(art.scene_model, [(art.touched[0], x)], same, same)
+    np.testing.assert_allclose(params["means"], art.scene_model["means"])  # no int8 shift: nothing moves
+    assert check["shift_rms_per_dim_max"] == 0.0
