@@ -9,7 +9,7 @@ on the run's touched training presses with beta retuned on its validation fabric
 ``--router max_softmax``, the recommendation of docs/results/comparison_paper.md).
 
 ``--trunk-precision int8`` of a trained run uses ``INT8_RECIPE`` for every int8 option not given:
-the recipe the bench found within 1 point of fp32 on every accuracy (docs/bundle.md, "int8").
+the recipe the bench prices against fp32 (docs/bundle.md, "int8"; docs/results/bench/).
 """
 
 from __future__ import annotations
@@ -21,11 +21,13 @@ from pathlib import Path
 
 # What `--trunk-precision int8` of a trained run does for each int8 option left out. Measured on the
 # paper world (bench, paired on the same presses, docs/bundle.md "int8"): minmax ranges on 64
-# presses with fp32's beta lost 2.9 points of touched accuracy per press; this recipe loses at most
-# 0.6 on every measure for a 2.1x faster trunk. The float nodes are chosen at export from held-out
+# presses with fp32's beta lost 2.9 points of touched accuracy per press; this recipe lost at most
+# 0.6 on every measure for a 2.1x faster trunk (2026-11-26, before the attribute task; what it loses
+# now is in docs/results/bench/). The float nodes are chosen at export from held-out
 # touched and validation presses, never from untouched fabrics. The scene model's real class means
-# moved to the int8 trunk's (since 2026-11-30): without it, the attribute-task run's bundle lost 5
-# points of touched pieces in the right bin to int8 (docs/bundle.md "int8").
+# moved to the int8 trunk's (since 2026-11-30): without it, int8 put 4.9 points fewer of the
+# attribute-task run's pieces in the right bin (touched pieces 10.8); with it -0.2, at a per-press
+# cost on untouched presses (docs/bundle.md "int8").
 INT8_RECIPE = {"calibration_frames": 256, "int8_calibration": "percentile", "int8_float_auto": 4,
                "int8_keep_operating_point": True, "int8_scene_means": True}
 FP32_CALIBRATION_FRAMES = 64

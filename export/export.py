@@ -294,17 +294,20 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                                                      "cls_t_top1_agreement": float(np.mean(top32 == top8))}
             scene32 = scene_model
             if scene_model is not None and real_mean_presses is not None:
-                scene_model, checks["int8_scene_means"] = shift_real_means(
-                    scene_model, real_mean_presses(), lambda x: _run_batches(sess32, x)[0],
-                    lambda x: _run_batches(sess8, x)[0])
+                try:
+                    scene_model, checks["int8_scene_means"] = shift_real_means(
+                        scene_model, real_mean_presses(), lambda x: _run_batches(sess32, x)[0],
+                        lambda x: _run_batches(sess8, x)[0])
+                except ValueError as exc:
+                    raise ExportError(str(exc)) from None
                 log("the scene model's real class means moved to the int8 trunk's: {classes} classes, {presses} "
                     "training presses, median shift {shift_rms_per_dim_median:.3f} rms a dimension"
                     .format(**checks["int8_scene_means"]))
             if scene_model is not None:
                 val = [x for x in (touched_heldout, validation) if x is not None and len(x)]
                 if val:
-                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(scene32, np.concatenate(val),
-                                                                                    sess32, sess8, scene_model)
+                    checks["int8_scene_decision_on_validation"] = _int8_scene_check(
+                        scene32, np.concatenate(val), sess32, sess8, scene_model if scene_model is not scene32 else None)
                     log("int8 against fp32, the scene model's per-press decision on {presses} validation presses: "
                         "{argmax_agreement:.1%} the same class".format(**checks["int8_scene_decision_on_validation"]))
         else:
@@ -401,9 +404,10 @@ def write_bundle(out_dir: Path | str, *, trunk: nn.Module | None, cls_t: nn.Modu
                                      "(runtime/scene_model.py); per item: weighted evidence, off-scene checks, "
                                      "confidence per kind (runtime/evidence.py); fitted on validation fabrics"
                                      + ("; fitted on the fp32 trunk's features and applied to the int8 trunk's "
-                                        + ("with its real class means moved to the int8 trunk's (checks.int8_scene_means) "
-                                           if "int8_scene_means" in checks else "")
-                                        + "(checks.int8_scene_decision_on_validation)" if trunk_precision == "int8" else "")}}
+                                        "features" + (", its real class means moved to where the int8 trunk puts their "
+                                                      "training presses (checks.int8_scene_means)"
+                                                      if "int8_scene_means" in checks else "")
+                                        + " (checks.int8_scene_decision_on_validation)" if trunk_precision == "int8" else "")}}
                if scene_model is not None else {}),
             "beta": float(beta),
             "operating_point": operating_point,
@@ -440,7 +444,8 @@ def _int8_scene_check(scene_model: dict, x: np.ndarray, sess32, sess8, scene_mod
     lp32, d32 = sm.log_posterior_projected(z32)
     lp8, _ = sm8.log_posterior_projected(z8)
     shift = np.sum((z8 - z32) ** 2, axis=1)
-    return {"presses": int(len(x)), "argmax_agreement": float(np.mean(lp32.argmax(1) == lp8.argmax(1))),
+    return {"presses": int(len(x)), "means_moved": scene_model8 is not None,
+            "argmax_agreement": float(np.mean(lp32.argmax(1) == lp8.argmax(1))),
             "projection_shift_sq_median": float(np.median(shift)), "projection_shift_sq_max": float(np.max(shift)),
             "nearest_class_sq_median_fp32": float(np.median(d32.min(1))),
             "note": "squared distances in the scene model's whitened space; a press sits about "

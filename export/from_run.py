@@ -280,7 +280,10 @@ def export_run(run_dir: Path | str, out_dir: Path | str, *, trunk_precision: str
                      "calibration_fabrics": calib_ids, "calibration_presses": calib_src},
             "router": router_prov, "run_info": art.info}
     mean_frames = None
-    if trunk_precision == "int8" and int8_scene_means and router is None and art.scene_model is not None:
+    if trunk_precision == "int8" and int8_scene_means and (router is not None or art.scene_model is None):
+        log("the scene model's means stay as trained: " + ("--router ships no scene model" if router is not None
+                                                          else "the run has no scene model"))
+    elif trunk_precision == "int8" and int8_scene_means:
         known = [str(c) for c in art.scene_model.get("known_only", ())]
         known_part = press_partition({fid: len(ds.by_id(fid).presses) for fid in known}, known, seed, max_presses)
         mean_src = real_mean_presses(part, art.touched, known_part)

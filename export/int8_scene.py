@@ -21,6 +21,11 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+# the stored mean against the same presses re-read through the fp32 graph, rms a dimension of the
+# whitened space (where a press spreads about 1): above it, they are not the presses training
+# fitted the mean on (another dataset, another max_presses), and moving the mean would be a guess
+REREAD_TOLERANCE = 1e-2
+
 
 def real_mean_presses(part: dict[str, dict[str, list[int]]], touched: Sequence[str],
                       known_only_part: dict[str, dict[str, list[int]]]) -> dict[str, list[int]]:
@@ -38,9 +43,10 @@ def shift_real_means(scene_model: dict, presses: Iterable[tuple[str, np.ndarray]
     """``scene_model``'s parameters with the mean of every class in ``presses`` moved by the int8
     trunk's shift of that class's presses: stored mean + mean(int8 presses) - mean(fp32 presses),
     projected. ``presses`` yields (class, preprocessed frames); ``fp32`` / ``int8`` map frames to
-    features. A synthesised class is refused: its mean is the generator's. Returns (parameters, what
-    the manifest records: the presses read, how far the means moved, and how well the fp32 presses
-    re-read give the stored means)."""
+    features. A synthesised class is refused: its mean is the generator's. So is a class whose
+    presses, re-read through the fp32 graph, do not give back its stored mean (``REREAD_TOLERANCE``).
+    Returns (parameters, what the manifest records: the presses read, how far the means moved, and
+    how well the fp32 presses re-read give the stored means)."""
     from vs2t_edge.runtime.scene_model import SceneModel
 
     model = SceneModel.from_params(scene_model)
@@ -56,6 +62,11 @@ def shift_real_means(scene_model: dict, presses: Iterable[tuple[str, np.ndarray]
         row = model.classes.index(cls)
         m32, m8 = model.project(fp32(x)).mean(axis=0), model.project(int8(x)).mean(axis=0)
         reread.append(float(np.sqrt(np.mean((m32 - model.means[row]) ** 2))))
+        if not reread[-1] <= REREAD_TOLERANCE:
+            raise ValueError(f"scene model: the {len(x)} presses of {cls!r} re-read through the fp32 graph lie "
+                             f"{reread[-1]:.3g} rms a dimension from its stored mean (tolerance {REREAD_TOLERANCE}): "
+                             "they are not the presses training fitted it on (the run's dataset and max_presses?); "
+                             "export with --no-int8-scene-means to keep the means as trained")
         moved[cls] = float(np.sqrt(np.mean((m8 - m32) ** 2)))
         means[row] = model.means[row] + (m8 - m32)
         n += len(x)
@@ -72,4 +83,4 @@ def shift_real_means(scene_model: dict, presses: Iterable[tuple[str, np.ndarray]
     return {**scene_model, "means": means}, check
 
 
-__all__ = ["real_mean_presses", "shift_real_means"]
+__all__ = ["REREAD_TOLERANCE", "real_mean_presses", "shift_real_means"]

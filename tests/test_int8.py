@@ -231,7 +231,7 @@ def test_export_cli_float_node_options(tiny_run, tmp_path, capsys):  # noqa: F81
         parse_float_nodes(f"@{tmp_path / 'bad.json'}")
 
 
-def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsys):  # noqa: F811
+def test_export_cli_int8_recipe_fills_what_is_left_out(faithful_run, tmp_path, capsys):
     """`--trunk-precision int8` alone exports with INT8_RECIPE (percentile ranges, the float nodes the
     sensitivity scan picks, fp32's operating point kept); each option given wins over the recipe."""
     import argparse
@@ -254,7 +254,7 @@ def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsy
     assert main(["export", "r", "--out", str(tmp_path / "x"), "--int8-calibration", "percentile"]) == 2
     assert "need --trunk-precision int8" in capsys.readouterr().err
 
-    run, _ = tiny_run
+    run, _ = faithful_run
     out = tmp_path / "b8"
     assert main(["export", str(run), "--out", str(out), "--trunk-precision", "int8", "--calibration-frames", "12"]) == 0
     m = json.loads((out / "manifest.json").read_text())
@@ -262,7 +262,7 @@ def test_export_cli_int8_recipe_fills_what_is_left_out(tiny_run, tmp_path, capsy
     assert q["calibration"] == "percentile" and "sensitivity" in q
     assert 0 < len(q["float_nodes_chosen"]) <= ec.INT8_RECIPE["int8_float_auto"]
     assert "moved for int8" in m["operating_point"]
-    assert m["checks"]["int8_scene_means"]["classes"] == len(m["classes"]["touched"])
+    assert m["checks"]["int8_scene_means"]["classes"] == len(m["classes"]["touched"]) + 2  # and 2 known-only
 
 
 # ------------------------------------------------ the bench: int8 and fp32 paired
@@ -384,63 +384,129 @@ def test_export_int8_keeps_the_operating_point(tiny_run, tmp_path):  # noqa: F81
 # ------------------------------------------------ the scene model's real means on the int8 trunk
 
 
-def test_int8_export_moves_real_scene_means_by_the_int8_shift_of_their_own_training_presses(tiny_run, tmp_path,
-                                                                                             monkeypatch):  # noqa: F811
-    """With int8_scene_means each touched class mean moves by mean(int8) - mean(fp32) of its training
-    presses, projected; the synthesised means stay the generator's; every press read for it is a
-    touched fabric's training press; without it the means are training's."""
-    from vs2t_edge.runtime import dataset as dsm
+@pytest.fixture(scope="module")
+def faithful_run(tiny_run, tmp_path_factory):  # noqa: F811
+    """``tiny_run`` with a scene model fitted as training fits one: touched means from each touched
+    fabric's training presses (through the run's own trunk), two synthesised classes drawn near two
+    of them, and the validation fabrics known only to refuse (train/decision.py ``with_known``)."""
+    from dataclasses import replace
+
     from vs2t_edge.runtime.dataset import load_dataset
+    from vs2t_edge.runtime.scene_model import SceneModel
+    from vs2t_edge.train.artifacts import build_modules, save_run_artifacts
+    from vs2t_edge.train.decision import with_known
+
+    _, art = tiny_run
+    ds = load_dataset(art.dataset)
+    trunk, _, _ = build_modules(art)
+    part = fr.press_partition({f.id: len(f.presses) for f in ds.fabrics}, art.touched, 0, None)
+
+    def feats(fid, idx):
+        with torch.no_grad():
+            return trunk(torch.from_numpy(fr._frames(ds, fid, idx, art.tactile_preprocess))).numpy()
+
+    z = np.concatenate([feats(f, part[f]["train"]) for f in art.touched])
+    y = np.concatenate([np.full(len(part[f]["train"]), i) for i, f in enumerate(art.touched)])
+    rng = np.random.default_rng(0)
+    synth = np.concatenate([z[y == c].mean(0) + rng.normal(0, 0.5, (20, z.shape[1])) for c in (0, 3)])
+    scene = replace(SceneModel.fit(z, y, art.touched, synth, np.repeat([0, 1], 20), art.untouched, k=16),
+                    temperature=2.0, untouched_bias=0.5, confidence=0.9, untouched_confidence=0.9)
+    xv = [feats(f, range(len(ds.by_id(f).presses))) for f in art.validation]
+    scene, _ = with_known(scene, np.concatenate(xv), np.concatenate([np.full(len(x), i) for i, x in enumerate(xv)]),
+                          list(art.validation))
+    art = replace(art, scene_model=scene.to_params())
+    run = tmp_path_factory.mktemp("faithful_run")
+    save_run_artifacts(run, art)
+    return run, art
+
+
+def test_int8_export_moves_real_scene_means_by_the_int8_shift_of_their_own_training_presses(faithful_run, tmp_path,
+                                                                                             monkeypatch):
+    """With int8_scene_means each real class mean - touched and known-only - moves by mean(int8) -
+    mean(fp32) of the training presses it was fitted on, projected; the synthesised means stay the
+    generator's; every press read is such a training press; without it the means are training's."""
+    from vs2t_edge.runtime import dataset as dsm
+    from vs2t_edge.runtime.dataset import load_dataset, press_partition
     from vs2t_edge.runtime.inference import TactileModel
     from vs2t_edge.runtime.scene_model import SceneModel
 
-    run, art = tiny_run
+    run, art = faithful_run
     stored = SceneModel.from_params(art.scene_model)
+    assert stored.known_only == tuple(art.validation)
     plain = fr.export_run(run, tmp_path / "plain", trunk_precision="int8", calibration_frames=12)
     assert "int8_scene_means" not in plain["checks"]
+    assert plain["checks"]["int8_scene_decision_on_validation"]["means_moved"] is False
     reads: list[tuple[str, int]] = []
     orig = dsm.Fabric.load_press
     monkeypatch.setattr(dsm.Fabric, "load_press", lambda self, i, *a, **k: reads.append((self.id, int(i))) or
                         orig(self, i, *a, **k))
     m = fr.export_run(run, tmp_path / "moved", trunk_precision="int8", calibration_frames=12, int8_scene_means=True)
     monkeypatch.undo()
+    ds = load_dataset(art.dataset)
     part = m["provenance"]["data"]["touched_presses"]
     src = m["provenance"]["data"]["int8_scene_mean_presses"]
-    assert set(src) == set(art.touched) and all(src[f] == part[f]["train"] for f in src)
+    assert set(src) == set(art.touched) | set(art.validation)
+    assert all(src[f] == part[f]["train"] for f in art.touched)
+    for f in art.validation:  # with_known's presses: the first part of each fabric's presses in press order
+        assert src[f] == list(press_partition(len(ds.by_id(f).presses))[0])
     assert not {f for f, _ in reads} & set(art.untouched)
     assert all(i not in part[f]["test"] and i not in part[f]["unused"] for f, i in reads if f in part)
     check = m["checks"]["int8_scene_means"]
-    assert check["classes"] == len(art.touched) and check["presses"] == sum(map(len, src.values()))
-    assert "moved to the int8 trunk's" in m["decision"]["rule"]
+    assert check["classes"] == len(src) and check["presses"] == sum(map(len, src.values()))
+    assert check["fp32_reread_rms_per_dim_max"] < 1e-3  # the presses training fitted the means on
+    assert "moved to where the int8 trunk puts" in m["decision"]["rule"]
+    assert m["checks"]["int8_scene_decision_on_validation"]["means_moved"] is True
 
     b32 = tmp_path / "b32"
     fr.export_run(run, b32, trunk_precision="fp32", calibration_frames=12)
     m32, m8 = TactileModel.load(b32, threads=1), TactileModel.load(tmp_path / "moved", threads=1)
-    m8_plain = TactileModel.load(tmp_path / "plain", threads=1)
-    np.testing.assert_allclose(m8_plain.scene_model.means, stored.means, atol=1e-12)
-    ds = load_dataset(art.dataset)
+    np.testing.assert_allclose(TactileModel.load(tmp_path / "plain", threads=1).scene_model.means, stored.means,
+                               atol=1e-12)
     moved = m8.scene_model.means
-    for fid in art.touched:
-        x = fr._frames(ds, fid, src[fid], m8.preprocess_spec)
+    for fid, idx in src.items():
+        x = fr._frames(ds, fid, idx, m8.preprocess_spec)
         z8, z32 = (stored.project(mm.forward(x).feature).mean(0) for mm in (m8, m32))
         row = stored.classes.index(fid)
         np.testing.assert_allclose(moved[row], stored.means[row] + z8 - z32, atol=1e-4)
-    assert np.abs(moved[: len(art.touched)] - stored.means[: len(art.touched)]).max() > 1e-3  # they did move
+        assert np.abs(z8 - z32).max() > 1e-3  # int8 did move this fabric's presses
     for fid in art.untouched:
         row = stored.classes.index(fid)
         np.testing.assert_array_equal(moved[row], stored.means[row])
 
 
-def test_shift_real_means_refuses_a_synthesised_class_and_a_class_it_lacks(tiny_run):  # noqa: F811
+def test_int8_export_refuses_to_move_means_its_presses_do_not_give_back(tiny_run, tmp_path):  # noqa: F811
+    """tiny_run's scene model was fitted on other frames than the run's training presses: moving
+    its means would be a guess, so the export says which class and how to go on."""
+    run, art = tiny_run
+    with pytest.raises(ex.ExportError, match=r"re-read through the fp32 graph.*--no-int8-scene-means"):
+        fr.export_run(run, tmp_path / "b", trunk_precision="int8", calibration_frames=12, int8_scene_means=True)
+    assert not (tmp_path / "b").exists()
+
+
+def test_shift_real_means_moves_by_the_shift_and_refuses_what_it_cannot_move(tiny_run):  # noqa: F811
     from vs2t_edge.export.int8_scene import shift_real_means
+    from vs2t_edge.runtime.scene_model import SceneModel
 
     _, art = tiny_run
-    same = lambda x: np.asarray(x, np.float64)  # noqa: E731
-    x = np.zeros((3, 64))
+    sm = SceneModel.from_params(art.scene_model)
+    c = art.touched[2]
+    row = sm.classes.index(c)
+    # presses whose fp32 features give back the stored mean exactly: the mean's preimage, repeated
+    x = np.repeat(np.linalg.lstsq(sm.basis.T, sm.means[row], rcond=None)[0][None] + sm.center[None], 3, axis=0)
+    offset = np.linspace(-0.05, 0.05, sm.dim)
+    params, check = shift_real_means(art.scene_model, [(c, x)], lambda f: f, lambda f: f + offset)
+    want = sm.means.copy()
+    want[row] += offset @ sm.basis  # the projection is linear: the shift of the means is the offset's
+    np.testing.assert_allclose(params["means"], want, atol=1e-9)
+    assert check["classes"] == 1 and check["presses"] == 3 and check["fp32_reread_rms_per_dim_max"] < 1e-9
+    same = lambda f: f  # noqa: E731
     with pytest.raises(ValueError, match="synthesised"):
         shift_real_means(art.scene_model, [(art.untouched[0], x)], same, same)
     with pytest.raises(ValueError, match="no class"):
         shift_real_means(art.scene_model, [("nope", x)], same, same)
-    params, check = shift_real_means(art.scene_model, [(art.touched[0], x)], same, same)
-    np.testing.assert_allclose(params["means"], art.scene_model["means"])  # no int8 shift: nothing moves
-    assert check["shift_rms_per_dim_max"] == 0.0
+    with pytest.raises(ValueError, match="no presses"):
+        shift_real_means(art.scene_model, [(c, x[:0])], same, same)
+    with pytest.raises(ValueError, match="no real class means"):
+        shift_real_means(art.scene_model, [], same, same)
+    with pytest.raises(ValueError, match="not the presses training fitted"):
+        shift_real_means(art.scene_model, [(c, x + 1.0)], same, same)
