@@ -26,8 +26,9 @@ from pathlib import Path
 # now is in docs/results/bench/). The float nodes are chosen at export from held-out
 # touched and validation presses, never from untouched fabrics. The scene model's real class means
 # moved to the int8 trunk's (since 2026-11-30): without it, int8 put 4.9 points fewer of the
-# attribute-task run's pieces in the right bin (touched pieces 10.8); with it -0.2, at a per-press
-# cost on untouched presses (docs/bundle.md "int8").
+# attribute-task run's pieces in the right bin in the bench (touched pieces 10.8 points fewer;
+# -2.4 +- 0.7 over five draws of its scenes); with it -0.2, at a per-press cost on untouched
+# presses (docs/bundle.md "int8").
 INT8_RECIPE = {"calibration_frames": 256, "int8_calibration": "percentile", "int8_float_auto": 4,
                "int8_keep_operating_point": True, "int8_scene_means": True}
 FP32_CALIBRATION_FRAMES = 64
